@@ -1,0 +1,35 @@
+# scopetwin — the two commands of the README set up a fresh machine by themselves:
+#   make run    creates .venv, installs the project (and the LLVM library Mitsuba needs), runs `scopetwin run`
+#   make test   the same set-up, then the test suite
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed-stamp
+
+.PHONY: run test lint bench llvm setup clean
+
+run: setup
+	$(VENV)/bin/scopetwin run
+
+test: setup
+	$(PY) -m pytest
+
+setup: $(STAMP) llvm
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+llvm:
+	@sh .ci/ensure-llvm.sh
+
+lint: setup
+	$(VENV)/bin/ruff check .
+
+bench: setup
+	$(PY) benchmarks/render_speed.py
+
+clean:
+	rm -rf $(VENV) scopetwin-run .pytest_cache

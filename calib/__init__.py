@@ -1,0 +1,1 @@
+"""calib: from camera images to setup parameters — one-shot camera and setup calibration (no Mitsuba)."""

@@ -1,0 +1,1 @@
+"""instrument: device interfaces, simulated devices, hardware drivers, wire-protocol emulators and rigs."""

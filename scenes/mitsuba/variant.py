@@ -1,0 +1,88 @@
+"""The one place where scopetwin chooses and sets the Mitsuba variant.
+
+Order of choice: the environment variable ``SCOPETWIN_MI_VARIANT`` if set;
+otherwise ``cuda_ad_*`` when a CUDA device is usable, else ``llvm_ad_*``
+(``mono`` for the monochrome setups, ``spectral`` for the spectral microscope).
+The LLVM variants need a shared LLVM library of version 16 or newer (see
+NOTES-rendering.md); when it is missing the error says what to install.
+"""
+
+from __future__ import annotations
+
+import ctypes.util
+import glob
+import os
+import threading
+from typing import Literal
+
+from scenes.errors import ScopetwinError
+
+Kind = Literal["mono", "spectral", "rgb"]
+ENV_VARIANT = "SCOPETWIN_MI_VARIANT"
+_lock = threading.Lock()
+
+
+class MitsubaUnavailable(ScopetwinError, RuntimeError):
+    """Mitsuba or the LLVM library it needs is missing."""
+
+
+def _llvm_library() -> str | None:
+    """Path of a shared LLVM library >= 16, or None."""
+    pinned = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if pinned and os.path.exists(pinned):
+        return pinned
+    for version in range(25, 15, -1):
+        for pattern in (f"/usr/lib/*/libLLVM-{version}.so*", f"/usr/lib/*/libLLVM.so.{version}*",
+                        f"/usr/lib/llvm-{version}/lib/libLLVM*.so*"):
+            hits = sorted(glob.glob(pattern))
+            if hits:
+                return hits[0]
+    found = ctypes.util.find_library("LLVM")
+    return found
+
+
+def _cuda_available() -> bool:
+    return ctypes.util.find_library("cuda") is not None
+
+
+def choose(kind: Kind = "mono") -> str:
+    """Name of the variant scopetwin would use for ``kind`` on this machine."""
+    forced = os.environ.get(ENV_VARIANT)
+    if forced:
+        return forced
+    backend = "cuda" if _cuda_available() else "llvm"
+    return f"{backend}_ad_{kind}"
+
+
+def use(kind: Kind = "mono"):
+    """Set the variant for ``kind`` (in this thread) and return the ``mitsuba`` module.
+
+    Raises
+    ------
+    MitsubaUnavailable
+        If Mitsuba is not installed, the variant is unknown, or the LLVM
+        library is missing (the message names the package to install).
+    """
+    name = choose(kind)
+    if name.startswith("llvm") and _llvm_library() is None:
+        raise MitsubaUnavailable(
+            "Mitsuba's llvm variants need a shared LLVM library >= 16 and none was found: "
+            "install it with `apt-get install -y libllvm19` (or set DRJIT_LIBLLVM_PATH)"
+        )
+    try:
+        import mitsuba as mi
+    except ImportError as exc:  # pragma: no cover - mitsuba is a hard dependency
+        raise MitsubaUnavailable(f"mitsuba is not installed: {exc}") from exc
+    with _lock:
+        if mi.variant() != name:
+            if name not in mi.variants():
+                raise MitsubaUnavailable(f"Mitsuba variant {name!r} is not available; have {mi.variants()}")
+            if name.startswith("cuda"):
+                try:
+                    mi.set_variant(name)
+                except Exception:  # no usable GPU after all: fall back to LLVM
+                    name = name.replace("cuda", "llvm", 1)
+                    mi.set_variant(name)
+            else:
+                mi.set_variant(name)
+    return mi

@@ -1,0 +1,359 @@
+"""Setup models: pydantic v2, loaded from TOML, with the seed's setups as presets.
+
+A setup describes one physical scene of Part I of the seed:
+
+* ``scene = "deflectometry"`` — camera, deflectometry pattern, bent substrate on a
+  holding frame (seed §1.10);
+* ``scene = "target"`` — camera and a calibration target lying in the substrate
+  plane z = 0 (seed §2.7.1, §2.8);
+* ``scene = "mirror"`` — camera, deflectometry pattern and a flat mirror on the
+  holding frame (seed §2.7.2, §2.8.3).
+
+Presets live in ``scenes/presets/NAME.toml``; each names the section it comes
+from. A TOML file may say ``base = "PRESET"`` and override any field (tables
+merge key by key). All lengths are mm, angles rad (DESIGN.md).
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from functools import cached_property
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from scenes.camera import Camera, ThinLens
+from scenes.errors import GeometryError, SetupError
+from scenes.geometry import Frame
+from scenes.pattern import MarkerPattern
+from scenes.sensor import EmvaSensor
+
+PRESET_DIR = Path(__file__).resolve().parent / "presets"
+
+Vec3 = tuple[float, float, float]
+Vec2 = tuple[float, float]
+Positive = Annotated[float, Field(gt=0)]
+PositiveInt = Annotated[int, Field(gt=0)]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _frame(origin: Vec3, t_x: Vec3, t_y: Vec3, n_z: Vec3) -> Frame:
+    try:
+        return Frame(origin, t_x, t_y, n_z)
+    except GeometryError as exc:
+        raise ValueError(str(exc)) from None
+
+
+class FrameSpec(_Model):
+    """A frame: origin r_c and unit axes T_x, T_y, N_z (right-handed, orthonormal)."""
+
+    origin: Vec3
+    t_x: Vec3
+    t_y: Vec3
+    n_z: Vec3
+
+    @model_validator(mode="after")
+    def _check(self) -> FrameSpec:
+        _frame(self.origin, self.t_x, self.t_y, self.n_z)
+        return self
+
+    def frame(self) -> Frame:
+        return Frame(self.origin, self.t_x, self.t_y, self.n_z)
+
+
+class CameraSpec(_Model):
+    """Camera of seed §1.6.2 / §2.5.2.
+
+    Give the pose either as axes (``t_x``, ``t_y``, ``n_z`` and ``image_distance``)
+    or as the optimisation parameters of §2.5.2 (``r_0``, ``phi``; b then follows from
+    the thin-lens equation b = g f/(g - f) with g = |r_c - r_0|).
+    """
+
+    origin: Vec3 = Field(description="camera centre r_c, mm")
+    t_x: Vec3 | None = None
+    t_y: Vec3 | None = None
+    n_z: Vec3 | None = None
+    r_0: Vec2 | None = Field(None, description="point where the optical axis meets z = 0, mm (§2.5.2)")
+    phi: float | None = Field(None, description="sensor tilt angle, rad (§2.5.2)")
+    image_distance: Positive | None = Field(None, description="b, mm")
+    focal_length: Positive = Field(25.0, description="f, mm")
+    pixels: tuple[PositiveInt, PositiveInt] = Field((1360, 1024), description="(NP_x, NP_y)")
+    pixel_pitch: Positive = Field(0.00465, description="square pixel size, mm")
+    r_cs: Vec2 = Field((0.0, 0.0), description="pixel-grid centre relative to the optical axis, mm")
+    c0: Positive = 1.0
+    c2: float = Field(0.0, description="radial distortion, 1/mm")
+    f_number: Positive | None = Field(None, description="thin-lens f-number; None = pinhole")
+    focus_distance: Positive | None = Field(None, description="distance of the plane in focus, mm")
+
+    @model_validator(mode="after")
+    def _check(self) -> CameraSpec:
+        axes = (self.t_x, self.t_y, self.n_z)
+        pose = (self.r_0, self.phi)
+        if all(a is not None for a in axes):
+            if any(p is not None for p in pose):
+                raise ValueError("give either the axes t_x, t_y, n_z or the pose r_0, phi, not both")
+            if self.image_distance is None:
+                raise ValueError("image_distance is required when the axes are given")
+            _frame(self.origin, *axes)  # type: ignore[arg-type]
+        elif all(p is not None for p in pose):
+            if any(a is not None for a in axes):
+                raise ValueError("give either the axes t_x, t_y, n_z or the pose r_0, phi, not both")
+        else:
+            raise ValueError("the camera needs either all of t_x, t_y, n_z or both r_0 and phi")
+        try:
+            self.camera()
+        except GeometryError as exc:
+            raise ValueError(str(exc)) from None
+        return self
+
+    def camera(self) -> Camera:
+        lens = None
+        if self.f_number is not None:
+            lens = ThinLens(self.focal_length, self.f_number, self.focus_distance)
+        common = dict(r_cs=self.r_cs, c0=self.c0, c2=self.c2, lens=lens)
+        nx, ny = self.pixels
+        if self.t_x is not None:
+            frame = Frame(self.origin, self.t_x, self.t_y, self.n_z)  # type: ignore[arg-type]
+            return Camera(frame, float(self.image_distance), nx, ny, self.pixel_pitch, **common)  # type: ignore[arg-type]
+        cam = Camera.from_pose(self.origin, self.r_0, float(self.phi), self.focal_length, nx, ny,  # type: ignore[arg-type]
+                               self.pixel_pitch, **common)
+        if self.image_distance is not None:
+            cam = cam.with_(b=self.image_distance)
+        return cam
+
+
+class PatternSpec(FrameSpec):
+    """A marker pattern (seed §1.6.3, §2.2)."""
+
+    markers: tuple[PositiveInt, PositiveInt] = Field(description="(NM_x, NM_y)")
+    pitch: Vec2 = Field(description="(P_x, P_y), mm")
+    radius: Positive = Field(description="marker radius r_m, mm")
+    ref_radius: Positive = Field(description="reference marker radius, mm")
+    layout: Literal["deflectometry", "calibration"] = "deflectometry"
+    size: Vec2 | None = Field(None, description="plate size, mm; default: grid plus one pitch")
+    radiance: Positive = Field(1.0, description="radiance of a marker centre (a white texel)")
+
+    @model_validator(mode="after")
+    def _check_pattern(self) -> PatternSpec:
+        if min(self.pitch) <= 0:
+            raise ValueError(f"pitch must be > 0 mm, got {self.pitch}")
+        if self.size is not None and min(self.size) <= 0:
+            raise ValueError(f"size must be > 0 mm, got {self.size}")
+        try:
+            self.pattern()
+        except GeometryError as exc:
+            raise ValueError(str(exc)) from None
+        return self
+
+    def pattern(self) -> MarkerPattern:
+        sx, sy = self.size if self.size is not None else (None, None)
+        return MarkerPattern(self.frame(), self.markers[0], self.markers[1], self.pitch[0], self.pitch[1],
+                             self.radius, self.ref_radius, self.layout, sx, sy)
+
+
+class SurfaceSpec(_Model):
+    """How the substrate's height map is made (by :mod:`sim.surfaces`) or where it is read from."""
+
+    kind: Literal["random", "plane", "sphere", "saddle", "cylinder", "file"] = "random"
+    range_um: float = Field(40.0, ge=0, description="peak-to-valley height range, µm (§1.10: 40 µm)")
+    correlation_length: Positive = Field(12.0, description="low-pass correlation length, mm (§1.9)")
+    seed: int = Field(1, ge=0)
+    grid: tuple[Annotated[int, Field(ge=4)], Annotated[int, Field(ge=4)]] = Field(
+        (256, 512), description="height-map nodes (nx, ny)")
+    path: str | None = Field(None, description="height-map EXR (kind = 'file')")
+
+    @model_validator(mode="after")
+    def _check(self) -> SurfaceSpec:
+        if self.kind == "file" and not self.path:
+            raise ValueError("surface kind 'file' needs a path")
+        return self
+
+
+class SubstrateSpec(_Model):
+    """The bent substrate on its holding frame (seed §1.4, §1.10)."""
+
+    size: Vec2 = Field((25.2, 57.0), description="(x, y) extent, mm")
+    roi_length: Positive = Field(48.0, description="gap between the frame regions along y, mm")
+    surface: SurfaceSpec = SurfaceSpec()
+
+    @model_validator(mode="after")
+    def _check(self) -> SubstrateSpec:
+        if min(self.size) <= 0:
+            raise ValueError(f"size must be > 0 mm, got {self.size}")
+        if self.roi_length > self.size[1]:
+            raise ValueError(f"roi_length {self.roi_length} mm exceeds the substrate length {self.size[1]} mm")
+        return self
+
+
+class MirrorSpec(_Model):
+    """A flat mirror lying on the holding frame, in the plane z = 0 (seed §2.7.2)."""
+
+    size: Vec2 = Field((60.0, 80.0), description="(x, y) extent, mm")
+
+
+class RenderSpec(_Model):
+    """Rendering options."""
+
+    spp: PositiveInt = Field(16, description="samples per pixel")
+    seed: int = Field(0, ge=0)
+    noise: bool = Field(False, description="apply the EMVA sensor model")
+
+
+class SensorSpec(_Model):
+    """EMVA 1288 sensor and exposure (see :class:`scenes.sensor.EmvaSensor`)."""
+
+    quantum_efficiency: Annotated[float, Field(gt=0, le=1)] = 0.55
+    full_well_e: Positive = 18000.0
+    dark_noise_e: Annotated[float, Field(ge=0)] = 10.0
+    gain_dn_per_e: Positive = 4000.0 / 18000.0
+    black_level_dn: Annotated[float, Field(ge=0)] = 32.0
+    bit_depth: Annotated[int, Field(ge=1, le=32)] = 12
+    photons_per_unit_s: Positive = Field(1.0e6, description="photons per pixel and second at irradiance 1")
+    exposure_s: Positive | None = Field(None, description="None: fill `fill_fraction` of the full well")
+    fill_fraction: Annotated[float, Field(gt=0, le=1)] = 0.7
+
+    def sensor(self) -> EmvaSensor:
+        return EmvaSensor(self.quantum_efficiency, self.full_well_e, self.dark_noise_e, self.gain_dn_per_e,
+                          self.black_level_dn, self.bit_depth)
+
+
+class Setup(_Model):
+    """One physical scene of Part I (module docstring)."""
+
+    name: str = "custom"
+    section: str = Field("", description="seed section the setup comes from")
+    description: str = ""
+    scene: Literal["deflectometry", "target", "mirror"]
+    camera: CameraSpec
+    pattern: PatternSpec
+    substrate: SubstrateSpec | None = None
+    mirror: MirrorSpec | None = None
+    render: RenderSpec = RenderSpec()
+    sensor: SensorSpec = SensorSpec()
+
+    @model_validator(mode="after")
+    def _check(self) -> Setup:
+        if self.scene == "deflectometry" and self.substrate is None:
+            raise ValueError("a deflectometry setup needs a [substrate] table")
+        if self.scene == "mirror" and self.mirror is None:
+            raise ValueError("a mirror setup needs a [mirror] table")
+        return self
+
+    @cached_property
+    def camera_model(self) -> Camera:
+        return self.camera.camera()
+
+    @cached_property
+    def marker_pattern(self) -> MarkerPattern:
+        return self.pattern.pattern()
+
+    def to_json(self) -> str:
+        """Compact JSON of the setup (for image headers)."""
+        return self.model_dump_json()
+
+
+# -- loading ------------------------------------------------------------------------------
+def preset_names() -> list[str]:
+    """Names of all presets shipped in scenes/presets/."""
+    return sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
+
+
+def preset_info() -> list[dict[str, str]]:
+    """Name, kind, section and description of every preset."""
+    out = []
+    for name in preset_names():
+        data = _read_toml(PRESET_DIR / f"{name}.toml")
+        out.append({"name": name, "kind": str(data.get("kind", data.get("scene", ""))),
+                    "section": str(data.get("section", "")), "description": str(data.get("description", ""))})
+    return out
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except OSError as exc:
+        raise SetupError(f"cannot read setup file {path}: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise SetupError(f"setup file {path} is not valid TOML: {exc}") from None
+
+
+def _merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def resolve_toml(name_or_path: str | Path, _depth: int = 0) -> tuple[dict[str, Any], str]:
+    """Raw dictionary of a preset or TOML file with its ``base`` chain merged in; and a label for messages."""
+    if _depth > 8:
+        raise SetupError("setup 'base' chain is too deep (a cycle?)")
+    text = str(name_or_path)
+    path = Path(text)
+    if text in preset_names():
+        path = PRESET_DIR / f"{text}.toml"
+    elif not (path.suffix == ".toml" or path.exists()):
+        raise SetupError(f"unknown preset {text!r} (known presets: {', '.join(preset_names())})")
+    if not path.exists():
+        raise SetupError(f"setup file {text} does not exist")
+    data = _read_toml(path)
+    base = data.pop("base", None)
+    if base is not None:
+        base_data, _ = resolve_toml(base, _depth + 1)
+        base_data.pop("name", None)
+        data = _merge(base_data, data)
+    data.setdefault("name", path.stem)
+    return data, str(text)
+
+
+def _format_validation(exc: ValidationError, label: str) -> str:
+    err = exc.errors()[0]
+    loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
+    msg = err["msg"].removeprefix("Value error, ")
+    more = f" (and {len(exc.errors()) - 1} more problems)" if len(exc.errors()) > 1 else ""
+    return f"setup {label}: field {loc}: {msg}{more}"
+
+
+def setup_from_dict(data: dict[str, Any], label: str = "<dict>") -> Setup:
+    """Validate a setup dictionary; errors name the field and the reason."""
+    data = dict(data)
+    data.pop("kind", None)
+    try:
+        return Setup.model_validate(data)
+    except ValidationError as exc:
+        raise SetupError(_format_validation(exc, label)) from None
+
+
+def load_setup(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> Setup:
+    """Load a preset by name or a TOML file (with its ``base`` chain), apply ``overrides``, validate.
+
+    Raises
+    ------
+    SetupError
+        Unknown preset, unreadable file, invalid TOML, or a field that fails validation
+        (the message names the field and the reason).
+    """
+    data, label = resolve_toml(name_or_path)
+    kind = data.get("kind")
+    if kind not in (None, "setup"):
+        raise SetupError(f"{label} is a {kind!r} preset, not a Part I setup")
+    if overrides:
+        data = _merge(data, overrides)
+    return setup_from_dict(data, label)
+
+
+def setup_from_json(text: str) -> Setup:
+    """Inverse of :meth:`Setup.to_json` (e.g. from an image header)."""
+    try:
+        return setup_from_dict(json.loads(text), "<json>")
+    except json.JSONDecodeError as exc:
+        raise SetupError(f"setup JSON is invalid: {exc}") from None

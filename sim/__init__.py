@@ -1,0 +1,1 @@
+"""sim: synthetic truth — surfaces, measurement simulation, datasets, studies and the command line."""
