@@ -228,6 +228,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spp", type=int, help="samples per pixel")
     p.add_argument("--seed", type=int, help="random seed")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    from sim import optics_cli
+
+    optics_cli.register(sub)
     return parser
 
 
@@ -236,6 +240,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         result = args.func(args)
+        # Commands return their results as a dict (written here for --json) or an exit code
+        # (sub-command modules that write their own JSON).
+        if isinstance(result, int):
+            return result
         if getattr(args, "json", None):
             write_json_atomic(args.json, result)
     except ScopetwinError as exc:

@@ -1,0 +1,521 @@
+"""GRIN rod-lens objectives inside Mitsuba scenes (seed ch. 7-8): Dr.Jit RKN tracer, integrator, pupil sensor.
+
+Mitsuba has no gradient-index medium. Here every flat interface of the objective (cover glass,
+air gaps, rod faces, AF32 substrates, B270 beam-splitter layer, object plane, image plane) is a
+Mitsuba ``rectangle`` and every rod wall a ``cylinder``; Mitsuba's ``scene.ray_intersect`` finds
+which surface a ray meets next. A per-shape table (gathered by shape id) says what the surface
+is: its plane z, the indices on both sides, and whether a GRIN rod layer lies beyond it. When a
+ray enters a rod, the Sharma-Kumar-Ghatak Runge-Kutta-Nystrom integrator (:func:`rkn_rod_dr`, a
+``dr.while_loop``) carries it to the other face, integrating the optical path; the wall absorbs.
+
+Precision: ``"float32"`` runs the whole path in single precision (fast, for images);
+``"float64"`` keeps the ray state in ``Float64`` and takes from Mitsuba's float32 intersection
+only *which* plane is hit, recomputing the hit point exactly from the plane's z (for analysis).
+
+Plugins (registered idempotently by :func:`register`):
+
+* integrator ``scopetwin_grin`` -- traces sensor rays backwards through the objective to the object
+  plane and returns the transmission of the test target there (a Lambertian backlight of radiance 1);
+* sensor ``scopetwin_grin_pupil`` -- a bare sensor at the image plane that samples, for each pixel
+  sample, a point on the image-side face of the nearest objective's second rod (the exit pupil of
+  the realized system) with weight A cos θ cos θ' / d², so the image is the irradiance.
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+from dataclasses import dataclass
+from types import SimpleNamespace
+from typing import Any, Literal
+
+import numpy as np
+
+from scenes.errors import ScopetwinError
+from scenes.grin.profiles import RadialProfile
+from scenes.grin.rkn import rod_steps
+from scenes.grin.setup import GrinSetup, Stack
+from scenes.grin.targets import Target
+from scenes.mitsuba.variant import use
+
+Precision = Literal["float32", "float64"]
+
+mi = use("mono")
+import drjit as dr  # noqa: E402  (after the variant is set)
+
+#: Dr.Jit namespace for the profile formulas of scenes.grin.profiles.
+DR = SimpleNamespace(sqrt=dr.sqrt, tanh=dr.tanh, cosh=dr.cosh, where=dr.select, maximum=dr.maximum,
+                     floor=dr.floor, abs=dr.abs, minimum=dr.minimum)
+
+KIND_INTERFACE, KIND_OBJECT, KIND_IMAGE, KIND_WALL = 0, 1, 2, 3
+_EPS = {"float32": 2e-4, "float64": 2e-4}
+
+
+def float_type(precision: Precision) -> type:
+    """Dr.Jit float type of the ray state."""
+    if precision not in ("float32", "float64"):
+        raise ScopetwinError(f"precision must be 'float32' or 'float64', got {precision!r}")
+    return mi.Float64 if precision == "float64" else mi.Float
+
+
+# -- the integrator core -------------------------------------------------------------------------
+def rkn_rod_dr(x: Any, y: Any, tx: Any, ty: Any, tz: Any, profile: RadialProfile, length: float, steps: int,
+               radius: float, active: Any = True) -> tuple[Any, Any, Any, Any, Any, Any]:
+    """Sharma-Kumar-Ghatak RKN through one rod in a ``dr.while_loop`` (seed §7.5.1 profile).
+
+    Same equations and arguments as :func:`scenes.grin.rkn.rkn_rod`; the arrays are Dr.Jit arrays of
+    any float type (float32 or float64 state). Returns (x, y, tx, ty, opl, alive) on the exit face.
+    """
+    Float = type(x)
+    UInt = dr.uint32_array_t(Float)
+    Bool = dr.mask_t(Float)
+    n = dr.width(x)
+    dt = Float(length / steps) / tz
+    r2 = x * x + y * y
+    n2, k = profile.sharma(r2, DR)
+    alive = Bool(active) & (r2 <= radius * radius)
+    opl = dr.zeros(Float, n)
+    i = dr.zeros(UInt, n)
+    rr = radius * radius
+
+    def cond(i, x, y, tx, ty, opl, n2, k, alive):
+        return (i < steps) & alive
+
+    def body(i, x, y, tx, ty, opl, n2, k, alive):
+        ax, ay = dt * k * x, dt * k * y
+        x1 = x + dt * (0.5 * tx + 0.125 * ax)
+        y1 = y + dt * (0.5 * ty + 0.125 * ay)
+        n2_1, k1 = profile.sharma(x1 * x1 + y1 * y1, DR)
+        bx, by = dt * k1 * x1, dt * k1 * y1
+        x2 = x + dt * (tx + 0.5 * bx)
+        y2 = y + dt * (ty + 0.5 * by)
+        _, k2 = profile.sharma(x2 * x2 + y2 * y2, DR)
+        cx, cy = dt * k2 * x2, dt * k2 * y2
+        x = x + dt * (tx + (ax + 2.0 * bx) * (1.0 / 6.0))
+        y = y + dt * (ty + (ay + 2.0 * by) * (1.0 / 6.0))
+        tx = tx + (ax + 4.0 * bx + cx) * (1.0 / 6.0)
+        ty = ty + (ay + 4.0 * by + cy) * (1.0 / 6.0)
+        r2 = x * x + y * y
+        n2_new, k = profile.sharma(r2, DR)
+        opl = opl + dt * (1.0 / 6.0) * (n2 + 4.0 * n2_1 + n2_new)
+        return i + 1, x, y, tx, ty, opl, n2_new, k, alive & (r2 <= rr)
+
+    i, x, y, tx, ty, opl, n2, k, alive = dr.while_loop(state=(i, x, y, tx, ty, opl, n2, k, alive), cond=cond,
+                                                       body=body, labels=("i", "x", "y", "tx", "ty", "opl", "n2",
+                                                                          "k", "alive"))
+    return x, y, tx, ty, opl, alive
+
+
+# -- the scene -------------------------------------------------------------------------------------
+@dataclass
+class _RodLayer:
+    profile: RadialProfile
+    length: float
+    radius: float
+    steps: int
+    z0: float
+    z1: float
+    n_before: float
+    n_after: float
+
+
+class GrinScene:
+    """A Mitsuba scene of a GRIN objective array, with the tables the tracer gathers from.
+
+    Parameters
+    ----------
+    setup : GrinSetup
+        The design (layers, array, camera).
+    stack : Stack
+        Its layer stack at the wavelength wanted, including the image gap (the image plane is its end).
+    step_mm : float, optional
+        RKN step length overriding the rods' own ``step_mm`` (coarser steps for images).
+    sensor : dict, optional
+        A Mitsuba sensor dictionary to put in the scene (the pupil sensor for images).
+    integrator : dict, optional
+        A Mitsuba integrator dictionary.
+    """
+
+    def __init__(self, setup: GrinSetup, stack: Stack, step_mm: float | None = None,
+                 sensor: dict[str, Any] | None = None, integrator: dict[str, Any] | None = None) -> None:
+        self.setup = setup
+        self.stack = stack
+        self.axes = np.array(setup.array.axes(), dtype=np.float64)
+        half = 0.5 * setup.array.substrate_side
+        planes: list[dict[str, Any]] = []
+        layers = stack.layers
+        rod_index = {i: j for j, i in enumerate(i for i, layer in enumerate(layers) if layer.rod is not None)}
+        self.rods: list[_RodLayer] = []
+        for i, layer in enumerate(layers):
+            if layer.rod is None:
+                continue
+            steps = rod_steps(layer.rod.length, step_mm or layer.rod.step_mm)
+            self.rods.append(_RodLayer(layer.profile, layer.rod.length, layer.rod.radius, steps, layer.z0, layer.z1,
+                                       layers[i - 1].index if i > 0 else 1.0,
+                                       layers[i + 1].index if i + 1 < len(layers) else 1.0))
+        # one plane at z = 0 (object), one between consecutive layers, one at the image plane
+        for b in range(len(layers) + 1):
+            below = layers[b - 1] if b > 0 else None
+            above = layers[b] if b < len(layers) else None
+            z = above.z0 if above is not None else below.z1
+            kind = KIND_OBJECT if below is None else (KIND_IMAGE if above is None else KIND_INTERFACE)
+            planes.append({"z": z, "kind": kind,
+                           "n_minus": below.index if below is not None else 1.0,
+                           "n_plus": above.index if above is not None else 1.0,
+                           "rod_minus": rod_index.get(b - 1, -1) if below is not None else -1,
+                           "rod_plus": rod_index.get(b, -1) if above is not None else -1})
+        self.planes = planes
+        scene: dict[str, Any] = {"type": "scene"}
+        T = mi.ScalarTransform4f
+        for k, p in enumerate(planes):
+            scene[f"plane_{k:02d}"] = {"type": "rectangle",
+                                       "to_world": T().translate([0.0, 0.0, p["z"]]).scale([half, half, 1.0])}
+        for j, rod in enumerate(self.rods):
+            for a, (ax, ay) in enumerate(self.axes):
+                scene[f"wall_{j}_{a}"] = {"type": "cylinder", "p0": [ax, ay, rod.z0], "p1": [ax, ay, rod.z1],
+                                          "radius": rod.radius}
+        if sensor is not None:
+            scene["sensor"] = sensor
+        if integrator is not None:
+            scene["integrator"] = integrator
+        self.scene = mi.load_dict(scene)
+        ids = np.asarray(dr.reinterpret_array(mi.UInt32, self.scene.shapes_dr()), dtype=np.int64)
+        size = int(ids.max()) + 1
+        tab = {k: np.zeros(size) for k in ("z", "n_minus", "n_plus")}
+        itab = {k: np.full(size, -1, dtype=np.int32) for k in ("rod_minus", "rod_plus")}
+        kind = np.full(size, KIND_WALL, dtype=np.int32)
+        for sid, shape in zip(ids, self.scene.shapes(), strict=True):
+            name = shape.id()
+            if name.startswith("plane_"):
+                p = planes[int(name[6:])]
+                for key in tab:
+                    tab[key][sid] = p[key]
+                for key in itab:
+                    itab[key][sid] = p[key]
+                kind[sid] = p["kind"]
+        self._tab_np = tab
+        self._itab_np = itab
+        self._kind_np = kind
+        self.stop_z = stack.stop_z
+        self.stop_radius = stack.stop_radius
+        self.z_image = planes[-1]["z"]
+        self.z_pupil = self.rods[-1].z1 if self.rods else stack.last_surface_z
+        self._tables: dict[str, dict[str, Any]] = {}
+
+    def tables(self, precision: Precision) -> dict[str, Any]:
+        """Dr.Jit copies of the shape tables in the state's float type."""
+        if precision not in self._tables:
+            F = float_type(precision)
+            t = {k: F(v) for k, v in self._tab_np.items()}
+            t |= {k: mi.Int32(v) for k, v in self._itab_np.items()}
+            t["kind"] = mi.Int32(self._kind_np)
+            self._tables[precision] = t
+        return self._tables[precision]
+
+    def nearest_axis(self, x: Any, y: Any) -> tuple[Any, Any]:
+        """Optical axis (ax, ay) of the objective nearest to (x, y) (regular grid, §8.2.2)."""
+        arr = self.setup.array
+        x0 = -0.5 * (arr.nx - 1) * arr.pitch
+        y0 = -0.5 * (arr.ny - 1) * arr.pitch
+        ix = dr.clip(dr.round((x - x0) / arr.pitch), 0, arr.nx - 1)
+        iy = dr.clip(dr.round((y - y0) / arr.pitch), 0, arr.ny - 1)
+        return x0 + ix * arr.pitch, y0 + iy * arr.pitch
+
+    def trace(self, p: tuple[Any, Any, Any], t: tuple[Any, Any, Any], n_start: float, precision: Precision = "float64",
+              active: Any = True, max_events: int | None = None, eval_each: bool = False) -> dict[str, Any]:
+        """Trace rays from positions ``p`` with optical direction cosines ``t`` (|t| = n_start) until they meet the
+        object or the image plane.
+
+        Returns a dict with ``x, y, z`` (hit point on the terminal plane), ``tx, ty, tz``, ``opl``,
+        ``alive`` (reached a terminal plane unabsorbed) and ``kind`` (KIND_OBJECT / KIND_IMAGE).
+        """
+        F = float_type(precision)
+        tab = self.tables(precision)
+        px, py, pz = (F(v) for v in p)
+        tx, ty, tz = (F(v) for v in t)
+        n_cur = dr.zeros(F, dr.width(px)) + n_start
+        opl = dr.zeros(F, dr.width(px))
+        alive = dr.mask_t(F)(active) & dr.full(dr.mask_t(F), True, dr.width(px))
+        done = dr.full(dr.mask_t(F), False, dr.width(px))
+        term_kind = dr.zeros(mi.Int32, dr.width(px))
+        eps = _EPS[precision]
+        stop_r2 = None if self.stop_radius is None else self.stop_radius**2
+        # a sequential path meets every plane once, except the far faces of the rods (reached by the RKN jump)
+        events = max_events or len(self.planes) - 1 - len(self.rods)
+        for _ in range(events):
+            run = alive & ~done
+            inv_n = 1.0 / n_cur
+            dx, dy, dz = tx * inv_n, ty * inv_n, tz * inv_n
+            o = mi.Point3f(mi.Float(px + eps * dx), mi.Float(py + eps * dy), mi.Float(pz + eps * dz))
+            ray = mi.Ray3f(o, mi.Vector3f(mi.Float(dx), mi.Float(dy), mi.Float(dz)))
+            si = self.scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=True, active=run)
+            sid = dr.reinterpret_array(mi.UInt32, si.shape)
+            valid = run & si.is_valid()
+            kind = dr.gather(mi.Int32, tab["kind"], sid, valid)
+            alive &= ~run | (valid & (kind != KIND_WALL))
+            hit = run & alive
+            zp = dr.gather(F, tab["z"], sid, hit)
+            s = (zp - pz) / dz
+            px = dr.select(hit, px + s * dx, px)
+            py = dr.select(hit, py + s * dy, py)
+            pz = dr.select(hit, zp, pz)
+            opl = dr.select(hit, opl + n_cur * s, opl)
+            up = tz > 0
+            n_next = dr.select(up, dr.gather(F, tab["n_plus"], sid, hit), dr.gather(F, tab["n_minus"], sid, hit))
+            rod_next = dr.select(up, dr.gather(mi.Int32, tab["rod_plus"], sid, hit),
+                                 dr.gather(mi.Int32, tab["rod_minus"], sid, hit))
+            rod_prev = dr.select(up, dr.gather(mi.Int32, tab["rod_minus"], sid, hit),
+                                 dr.gather(mi.Int32, tab["rod_plus"], sid, hit))
+            term = hit & ((kind == KIND_OBJECT) | (kind == KIND_IMAGE))
+            done |= term
+            term_kind = dr.select(term, kind, term_kind)
+            cont = hit & ~term
+            # rays that reached a plane through a rod layer outside the rods met the holders: absorbed
+            alive &= ~cont | (rod_prev < 0)
+            cont &= alive
+            ax, ay = self.nearest_axis(px, py)
+            lx, ly = px - ax, py - ay
+            r2 = lx * lx + ly * ly
+            if stop_r2 is not None:
+                at_stop = cont & (dr.abs(pz - self.stop_z) < 1e-6)
+                alive &= ~at_stop | (r2 <= stop_r2)
+                cont &= alive
+            plain = cont & (rod_next < 0)
+            tz2 = n_next * n_next - tx * tx - ty * ty
+            alive &= ~plain | (tz2 > 0)
+            plain &= alive
+            sign = dr.select(up, F(1.0), F(-1.0))
+            tz = dr.select(plain, sign * dr.sqrt(dr.maximum(tz2, 0.0)), tz)
+            n_cur = dr.select(plain, n_next, n_cur)
+            for j, rod in enumerate(self.rods):
+                m = cont & (rod_next == j)
+                alive &= ~m | (r2 <= rod.radius**2)
+                m &= alive
+                n_in = rod.profile.index(dr.minimum(r2, rod.radius**2), DR)
+                tzi2 = n_in * n_in - tx * tx - ty * ty
+                tz_in = dr.sqrt(dr.maximum(tzi2, 1e-12))
+                ox, oy, otx, oty, dopl, ok = rkn_rod_dr(lx, ly, tx, ty, tz_in, rod.profile, rod.length, rod.steps,
+                                                        rod.radius, m)
+                alive &= ~m | ok
+                m &= alive
+                px = dr.select(m, ox + ax, px)
+                py = dr.select(m, oy + ay, py)
+                pz = dr.select(m, dr.select(up, F(rod.z1), F(rod.z0)), pz)
+                opl = dr.select(m, opl + dopl, opl)
+                tx = dr.select(m, otx, tx)
+                ty = dr.select(m, oty, ty)
+                n_b = dr.select(up, F(rod.n_after), F(rod.n_before))
+                tzo2 = n_b * n_b - tx * tx - ty * ty
+                alive &= ~m | (tzo2 > 0)
+                m &= alive
+                if stop_r2 is not None:
+                    at_stop = m & (dr.abs(pz - self.stop_z) < 1e-6)
+                    alive &= ~at_stop | (ox * ox + oy * oy <= stop_r2)
+                    m &= alive
+                tz = dr.select(m, sign * dr.sqrt(dr.maximum(tzo2, 0.0)), tz)
+                n_cur = dr.select(m, n_b, n_cur)
+            if eval_each:
+                dr.eval(px, py, pz, tx, ty, tz, n_cur, opl, alive, done, term_kind)
+        alive &= done
+        return {"x": px, "y": py, "z": pz, "tx": tx, "ty": ty, "tz": tz, "opl": opl, "alive": alive,
+                "kind": term_kind, "n": n_cur}
+
+
+# -- plugins -------------------------------------------------------------------------------------
+_SCENES: dict[str, dict[str, Any]] = {}
+_lock = threading.Lock()
+_counter = itertools.count()
+_registered: set[str] = set()
+
+
+class GrinIntegrator(mi.SamplingIntegrator):
+    """Integrator ``scopetwin_grin``: backward trace through the GRIN objective to the target (seed §8.5)."""
+
+    def __init__(self, props: mi.Properties) -> None:
+        super().__init__(props)
+        self.key = props.get("key", "")
+        self.precision = props.get("precision", "float32")
+
+    def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f, medium: Any = None,
+               active: Any = True) -> tuple[Any, Any, list]:
+        ctx = _SCENES[self.key]
+        gs: GrinScene = ctx["grin"]
+        target: Target = ctx["target"]
+        res = gs.trace((ray.o.x, ray.o.y, ray.o.z), (ray.d.x, ray.d.y, ray.d.z), 1.0, self.precision,
+                       active=active)
+        ok = res["alive"] & (res["kind"] == KIND_OBJECT)
+        x, y = mi.Float(res["x"]), mi.Float(res["y"])
+        ax, ay = gs.nearest_axis(x, y)
+        value = target.transmission(x - ax, y - ay, DR)
+        return mi.Spectrum(dr.select(ok, value, 0.0)), mi.Bool(ok), []
+
+    def aov_names(self) -> list[str]:
+        return []
+
+    def to_string(self) -> str:
+        return f"GrinIntegrator[key={self.key}, precision={self.precision}]"
+
+
+class PupilSensor(mi.Sensor):
+    """Sensor ``scopetwin_grin_pupil``: bare image plane sampling the exit-pupil disk of the nearest objective.
+
+    Properties: ``z`` (image plane), ``z_pupil`` (plane of the pupil disk), ``pupil_radius``, ``pixel``
+    (pitch, mm), ``nx``, ``ny``, ``pitch`` (objective grid), ``x0``, ``y0`` (the grid's first axis), ``cx``, ``cy``
+    (image-plane point at the sensor's centre).
+    Pixel (row, col) covers u in [(col - W/2) p, (col + 1 - W/2) p], v from the top row down (DESIGN.md).
+    """
+
+    def __init__(self, props: mi.Properties) -> None:
+        super().__init__(props)
+        self.z = props.get("z", 0.0)
+        self.z_pupil = props.get("z_pupil", 0.0)
+        self.radius = props.get("pupil_radius", 1.0)
+        self.pixel = props.get("pixel", 0.0022)
+        self.center = (props.get("cx", 0.0), props.get("cy", 0.0))
+        self.grid = (props.get("nx", 1), props.get("ny", 1), props.get("pitch", 1.0), props.get("x0", 0.0),
+                     props.get("y0", 0.0))
+        size = self.film().size()
+        self.width_mm = size[0] * self.pixel
+        self.height_mm = size[1] * self.pixel
+
+    def _axis(self, u: Any, v: Any) -> tuple[Any, Any]:
+        nx, ny, pitch, x0, y0 = self.grid
+        ix = dr.clip(dr.round((u - x0) / pitch), 0, nx - 1)
+        iy = dr.clip(dr.round((v - y0) / pitch), 0, ny - 1)
+        return x0 + ix * pitch, y0 + iy * pitch
+
+    def sample_ray(self, time: Any, sample1: Any, sample2: Any, sample3: Any, active: Any = True) -> tuple[Any, Any]:
+        u = self.center[0] + (sample2.x - 0.5) * self.width_mm
+        v = self.center[1] + (0.5 - sample2.y) * self.height_mm
+        ax, ay = self._axis(u, v)
+        r = self.radius * dr.sqrt(sample3.x)
+        phi = 2.0 * dr.pi * sample3.y
+        q = mi.Point3f(u, v, self.z)
+        p = mi.Point3f(ax + r * dr.cos(phi), ay + r * dr.sin(phi), self.z_pupil)
+        d = p - q
+        dist2 = dr.squared_norm(d)
+        d = d * dr.rsqrt(dist2)
+        cos2 = d.z * d.z
+        weight = dr.pi * self.radius * self.radius * cos2 / dist2
+        return mi.Ray3f(q, d, time, []), mi.Spectrum(weight)
+
+    def sample_ray_differential(self, time: Any, sample1: Any, sample2: Any, sample3: Any,
+                                active: Any = True) -> tuple[Any, Any]:
+        ray, w = self.sample_ray(time, sample1, sample2, sample3, active)
+        return mi.RayDifferential3f(ray), w
+
+    def bbox(self) -> mi.ScalarBoundingBox3f:
+        return mi.ScalarBoundingBox3f([-self.width_mm, -self.height_mm, self.z_pupil],
+                                      [self.width_mm, self.height_mm, self.z])
+
+    def to_string(self) -> str:
+        return f"PupilSensor[z={self.z}, z_pupil={self.z_pupil}, radius={self.radius}]"
+
+
+def register() -> None:
+    """Register ``scopetwin_grin`` and ``scopetwin_grin_pupil`` with Mitsuba (idempotent, per thread/variant)."""
+    key = f"{mi.variant()}:{threading.get_ident()}"
+    with _lock:
+        if key in _registered:
+            return
+        mi.register_integrator("scopetwin_grin", lambda props: GrinIntegrator(props))
+        mi.register_sensor("scopetwin_grin_pupil", lambda props: PupilSensor(props))
+        _registered.add(key)
+
+
+# -- high-level uses ------------------------------------------------------------------------------
+def trace_forward(setup: GrinSetup, stack: Stack, x0: np.ndarray, y0: np.ndarray, tx0: np.ndarray, ty0: np.ndarray,
+                  precision: Precision = "float64", step_mm: float | None = None) -> dict[str, np.ndarray]:
+    """Rays from object points (z = 0, in the cover glass) to the image plane through the Mitsuba scene.
+
+    Object points and results are relative to the first objective's axis (``setup.array.axes()[0]``).
+
+    Returns numpy arrays ``x, y`` on the image plane, ``tx, ty``, ``opl`` and ``alive``.
+    """
+    gs = GrinScene(setup, stack, step_mm)
+    ax, ay = setup.array.axes()[0]
+    n0 = stack.layers[0].index
+    tz = np.sqrt(n0 * n0 - tx0**2 - ty0**2)
+    res = gs.trace((x0 + ax, y0 + ay, np.zeros_like(x0)), (tx0, ty0, tz), n0, precision)
+    ok = np.asarray(res["alive"]) & (np.asarray(res["kind"]) == KIND_IMAGE)
+    out = {k: np.asarray(res[k], dtype=np.float64) for k in ("x", "y", "tx", "ty", "opl")}
+    out["x"] -= ax
+    out["y"] -= ay
+    return out | {"alive": ok}
+
+
+def render_image(setup: GrinSetup, stack: Stack, target: Target, spp: int = 16, width: int | None = None,
+                 height: int | None = None, precision: Precision = "float32", step_mm: float = 0.3,
+                 center: tuple[float, float] | None = None, seed: int = 0) -> np.ndarray:
+    """Image of ``target`` through the objective array onto the camera (irradiance, float32, row 0 at the top).
+
+    Uses the registered ``scopetwin_grin`` integrator and ``scopetwin_grin_pupil`` sensor with ``mi.render``.
+    ``center``: the point of the image plane (mm) at the middle of the sensor; default the array's centre
+    (the whole demonstrator image, Fig. 8.16); pass an objective's axis for a one-objective window.
+    """
+    register()
+    width = width or setup.camera.width_px
+    height = height or setup.camera.height_px
+    key = f"grin-{next(_counter)}"
+    arr = setup.array
+    last_rod = [layer for layer in stack.layers if layer.rod is not None][-1]
+    sensor = {"type": "scopetwin_grin_pupil", "z": stack.layers[-1].z1, "z_pupil": last_rod.z1,
+              "pupil_radius": last_rod.rod.radius, "pixel": setup.camera.pixel_um * 1e-3,
+              "nx": arr.nx, "ny": arr.ny, "pitch": arr.pitch,
+              "x0": -0.5 * (arr.nx - 1) * arr.pitch, "y0": -0.5 * (arr.ny - 1) * arr.pitch,
+              "cx": (center or (0.0, 0.0))[0], "cy": (center or (0.0, 0.0))[1],
+              "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
+                       "pixel_format": "luminance", "component_format": "float32"},
+              "sampler": {"type": "independent", "sample_count": spp, "seed": seed}}
+    integrator = {"type": "scopetwin_grin", "key": key, "precision": precision}
+    gs = GrinScene(setup, stack, step_mm, sensor=sensor, integrator=integrator)
+    _SCENES[key] = {"grin": gs, "target": target}
+    try:
+        img = mi.render(gs.scene, spp=spp)
+        out = np.array(img, dtype=np.float32)[..., 0]
+    finally:
+        _SCENES.pop(key, None)
+    return out
+
+
+def illuminate(setup: GrinSetup, n_rays: int = 1_000_000, grid: int = 101, precision: Precision = "float32",
+               seed: int = 0) -> dict[str, Any]:
+    """Light-trace the §7.5.3 illumination path: irradiance map at the object plane and energy efficiency.
+
+    LED points are uniform on the square, directions cosine-weighted (``mi.warp``: a Lambertian
+    emitter); rays run through the unfolded illumination stack in the Mitsuba scene
+    (:func:`scenes.grin.illumination.illumination_stack`). Returns ``efficiency`` (power inside the
+    field of view / LED power), ``irradiance_mw_per_mm2`` (grid x grid over ±field radius, row 0 at +y),
+    ``extent_mm`` and the loss factors.
+    """
+    from scenes.grin.illumination import fresnel_transmission, illumination_stack
+    from scenes.grin.setup import ArraySpec
+
+    ill = setup.illumination
+    if ill is None:
+        raise ScopetwinError(f"setup {setup.name or setup.section} has no [illumination] table")
+    stack = illumination_stack(setup)
+    single = setup.model_copy(update={"array": ArraySpec(nx=1, ny=1, pitch=setup.array.pitch,
+                                                          substrate_side=setup.array.substrate_side)})
+    gs = GrinScene(single, stack)
+    sampler = mi.load_dict({"type": "independent", "seed": seed})
+    sampler.seed(seed, n_rays)
+    pos = sampler.next_2d()
+    d = mi.warp.square_to_cosine_hemisphere(sampler.next_2d())
+    x = (pos.x - 0.5) * ill.led_side
+    y = (pos.y - 0.5) * ill.led_side
+    res = gs.trace((x, y, dr.zeros(mi.Float, n_rays)), (d.x, d.y, d.z), 1.0, precision)
+    ok = np.asarray(res["alive"]) & (np.asarray(res["kind"]) == KIND_IMAGE)
+    hx = np.asarray(res["x"], dtype=np.float64)[ok]
+    hy = np.asarray(res["y"], dtype=np.float64)[ok]
+    loss = fresnel_transmission(stack) * ill.splitter_reflectance if ill.fresnel else ill.splitter_reflectance
+    power_per_ray = ill.power_mw / n_rays * loss
+    r = setup.object.field_radius
+    inside = hx * hx + hy * hy <= r * r
+    hist, _, _ = np.histogram2d(hy, hx, bins=grid, range=[[-r, r], [-r, r]])
+    cell = (2 * r / grid) ** 2
+    irr = hist[::-1] * power_per_ray / cell
+    return {"efficiency": float(inside.sum() * power_per_ray / ill.power_mw),
+            "reaching_object": float(ok.mean()), "loss_factor": loss,
+            "irradiance_mw_per_mm2": irr.astype(np.float32), "extent_mm": r,
+            "uniformity_min_over_max": float(irr[irr > 0].min() / irr.max()) if (irr > 0).any() else 0.0}
