@@ -229,9 +229,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, help="random seed")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    from instrument.cli import register as register_rig
     from sim import optics_cli
 
     optics_cli.register(sub)
+    register_rig(sub)
     return parser
 
 

@@ -1,0 +1,292 @@
+"""Acquisition routines that take a rig and never ask which world is behind it.
+
+* :func:`deflectometry_capture` — pattern light on, exposure chosen for ~70 % of
+  the ADC range (seed §1.11: a well-exposed, unsaturated marker image), one frame.
+* :func:`calibration_capture` — frames of a calibration target (seed §2.2) at a chosen exposure.
+* :func:`simultaneous_capture` — the four channels exposed together on the
+  global trigger, each light on for exactly its camera's exposure (seed §4.3.2).
+* :func:`tile_scan` — a stage grid, the focus set from a focus map at every tile
+  (no focus search, seed §1.1 / §6), each frame written as it arrives.
+
+Every frame is written atomically (OpenEXR via :func:`scenes.io.write_image`)
+the moment it is grabbed, with a ``manifest.json`` rewritten atomically after
+each frame, so a failure leaves every finished frame readable on disk. Lights
+are switched off on every exit path (and :func:`instrument.open_rig` does it again).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from instrument.devices import Camera, LightSource, TriggerMode, TriggerType
+from instrument.errors import InstrumentError, OutOfRangeError
+from instrument.rig import Rig
+from scenes.io import write_image, write_json_atomic
+
+FocusMap = Callable[[float, float], float]
+
+
+def sharpness(frame: NDArray, black_level_dn: float = 0.0) -> float:
+    """Normalised band-pass energy: ``var(G_1 * I - G_4 * I) / mean(I)^2`` (dimensionless).
+
+    A difference of Gaussians (sigma 1 and 4 px) keeps the structure scales that
+    defocus removes first while suppressing pixel noise; dividing by the squared
+    mean makes it independent of exposure. Higher is sharper.
+    """
+    img = np.asarray(frame, dtype=np.float64) - float(black_level_dn)
+    band = ndimage.gaussian_filter(img, 1.0) - ndimage.gaussian_filter(img, 4.0)
+    mean = img.mean()
+    return float(band.var() / mean**2) if mean > 0 else 0.0
+
+
+class FrameWriter:
+    """Writes frames atomically, one file each, with a manifest rewritten after every frame.
+
+    Parameters
+    ----------
+    directory : path
+        Output folder (created).
+    meta : dict
+        Run-level metadata stored in the manifest.
+    """
+
+    def __init__(self, directory: str | Path, meta: dict[str, Any] | None = None) -> None:
+        self.directory = Path(directory)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.manifest: dict[str, Any] = {"meta": dict(meta or {}), "frames": [], "complete": False, "error": None}
+
+    def write(self, name: str, frame: NDArray, **info: Any) -> Path:
+        """Write ``frame`` as ``name.exr`` and record ``info`` in the manifest."""
+        path = self.directory / f"{name}.exr"
+        write_image(path, np.asarray(frame, dtype=np.float32), provenance={"frame": name, **_jsonable(info)})
+        self.manifest["frames"].append({"name": name, "path": path.name, **_jsonable(info)})
+        self._flush()
+        return path
+
+    def finish(self, error: BaseException | None = None) -> None:
+        """Mark the run complete, or record the error that ended it."""
+        self.manifest["complete"] = error is None
+        self.manifest["error"] = None if error is None else f"{type(error).__name__}: {error}"
+        self._flush()
+
+    def _flush(self) -> None:
+        write_json_atomic(self.directory / "manifest.json", self.manifest)
+
+
+def _jsonable(info: dict[str, Any]) -> dict[str, Any]:
+    return json.loads(json.dumps(info, default=float))
+
+
+@contextlib.contextmanager
+def _run(writer: FrameWriter, rig: Rig) -> Iterator[None]:
+    """Record success or failure in the manifest and switch all lights off on every exit."""
+    try:
+        yield
+    except BaseException as exc:
+        writer.finish(exc)
+        raise
+    else:
+        writer.finish()
+    finally:
+        rig.lights_off()
+
+
+def choose_exposure(camera: Camera, target_fraction: float = 0.7, percentile: float = 99.5,
+                    max_iterations: int = 6) -> float:
+    """Set the exposure so the ``percentile`` grey value sits at ``target_fraction`` of the ADC range.
+
+    Signal is linear in exposure above the black level, so each test frame gives
+    the next exposure directly; a saturated frame halves it.
+    """
+    black = camera.black_level_dn
+    full = camera.saturation_dn - black
+    exposure = camera.exposure_s
+    for _ in range(max_iterations):
+        frame = camera.grab()
+        level = float(np.percentile(frame, percentile)) - black
+        if level >= 0.98 * full:
+            exposure *= 0.4
+        elif level <= 0:
+            exposure *= 10.0
+        else:
+            ratio = target_fraction * full / level
+            exposure *= ratio
+            if abs(ratio - 1.0) < 0.05:
+                break
+        exposure = min(max(exposure, camera.limits.exposure_s.low), camera.limits.exposure_s.high)
+        camera.set_exposure_s(exposure)
+    return camera.exposure_s
+
+
+def deflectometry_capture(rig: Rig, out_dir: str | Path, *, camera: str | None = None, light: str | None = None,
+                          target_fraction: float = 0.7) -> Path:
+    """Pattern light on, exposure for ~``target_fraction`` of the range, one frame on disk; light off.
+
+    Returns the frame's path.
+    """
+    cam, lamp = rig.camera(camera), rig.light(light)
+    writer = FrameWriter(out_dir, {"routine": "deflectometry", "rig": rig.name, "camera": cam.name})
+    with _run(writer, rig):
+        lamp.switch_on(lamp.current_range.high if lamp.current_ma == 0 else None)
+        exposure = choose_exposure(cam, target_fraction)
+        frame = cam.grab()
+        lamp.switch_off()
+        return writer.write("deflectometry", frame, exposure_s=exposure, camera=cam.name, light=lamp.name)
+
+
+def calibration_capture(rig: Rig, out_dir: str | Path, *, n_frames: int = 1, camera: str | None = None,
+                        light: str | None = None, exposure_s: float | None = None,
+                        target_fraction: float = 0.7) -> list[Path]:
+    """Frames of a calibration target (light on, fixed or automatic exposure), written as they come."""
+    cam, lamp = rig.camera(camera), rig.light(light)
+    writer = FrameWriter(out_dir, {"routine": "calibration", "rig": rig.name, "camera": cam.name})
+    paths = []
+    with _run(writer, rig):
+        lamp.switch_on(lamp.current_range.high if lamp.current_ma == 0 else None)
+        if exposure_s is None:
+            choose_exposure(cam, target_fraction)
+        else:
+            cam.set_exposure_s(exposure_s)
+        for i in range(int(n_frames)):
+            paths.append(writer.write(f"calibration_{i:03d}", cam.grab(), exposure_s=cam.exposure_s))
+    return paths
+
+
+def simultaneous_capture(rig: Rig, out_dir: str | Path, channels: dict[str, str], exposure_s: float,
+                         *, trigger: str | None = None, delay_s: float = 0.0) -> dict[str, Path]:
+    """Expose several cameras at once on the global trigger, each with its light on for the exposure.
+
+    Parameters
+    ----------
+    channels : dict
+        Camera name -> light name (e.g. the four channels of the microscope unit).
+    exposure_s : float
+        Exposure of every camera; each light is on for exactly this long.
+    delay_s : float
+        Global trigger delay of cameras and lights (fine adjustment of synchrony, seed §4.3.2).
+    """
+    board = rig.trigger(trigger)
+    cams = {c: rig.camera(c) for c in channels}
+    lamps = {c: rig.light(lamp) for c, lamp in channels.items()}
+    writer = FrameWriter(out_dir, {"routine": "simultaneous", "rig": rig.name, "exposure_s": exposure_s})
+    out: dict[str, Path] = {}
+    with _run(writer, rig):
+        try:
+            for i, (name, cam) in enumerate(cams.items()):
+                line = int(getattr(cam, "trigger_line", i))
+                cam.set_exposure_s(exposure_s)
+                cam.set_trigger(TriggerType.RISING_EDGE, TriggerMode.ONCE, 0.0)
+                board.configure_camera_line(line, True, delay_s)
+                lamps[name].configure(use_duration=True, duration_s=exposure_s, listen_global_trigger=True,
+                                      global_trigger_delay_s=delay_s,
+                                      current_ma=lamps[name].current_ma or lamps[name].current_range.high)
+                cam.arm()
+            board.fire()
+            for name, cam in cams.items():
+                out[name] = writer.write(f"channel_{name}", cam.grab(), camera=name, light=lamps[name].name,
+                                         exposure_s=exposure_s)
+        finally:
+            for i, (name, cam) in enumerate(cams.items()):
+                with contextlib.suppress(InstrumentError):
+                    cam.disarm()
+                    cam.set_trigger(TriggerType.SOFTWARE)
+                    board.configure_camera_line(int(getattr(cam, "trigger_line", i)), False, 0.0)
+                    lamps[name].configure(listen_global_trigger=False, use_duration=False)
+    return out
+
+
+@dataclass
+class TileResult:
+    """One tile of a scan: where it was taken, at which focus, and its file."""
+
+    index: tuple[int, int]
+    x_mm: float
+    y_mm: float
+    focus_um: float
+    path: str
+    sharpness: float = field(default=0.0)
+
+
+def grid(x_range_mm: tuple[float, float], y_range_mm: tuple[float, float], nx: int,
+         ny: int) -> list[tuple[int, int, float, float]]:
+    """Serpentine stage grid: ``(ix, iy, x, y)`` with x reversing on every other row."""
+    if nx < 1 or ny < 1:
+        raise OutOfRangeError(f"tile grid needs nx, ny >= 1, got {nx} x {ny}")
+    xs = np.linspace(x_range_mm[0], x_range_mm[1], nx) if nx > 1 else np.array([x_range_mm[0]])
+    ys = np.linspace(y_range_mm[0], y_range_mm[1], ny) if ny > 1 else np.array([y_range_mm[0]])
+    out = []
+    for iy, y in enumerate(ys):
+        order = range(nx) if iy % 2 == 0 else range(nx - 1, -1, -1)
+        out.extend((ix, iy, float(xs[ix]), float(y)) for ix in order)
+    return out
+
+
+def tile_scan(rig: Rig, out_dir: str | Path, positions: Sequence[tuple[int, int, float, float]], *,
+              focus_map: FocusMap | None = None, fixed_focus_um: float | None = None,
+              camera: str | None = None, light: str | None = None, stage_x: str = "x", stage_y: str = "y",
+              focus: str | None = None, exposure_s: float | None = None,
+              on_tile: Callable[[TileResult], None] | None = None) -> list[TileResult]:
+    """Scan a stage grid, setting the focus from ``focus_map(x_mm, y_mm) -> focus_um`` at every tile.
+
+    With ``fixed_focus_um`` instead, the focus stays where it is set once (the
+    comparison case). The light is on only while a frame is exposed. Each frame
+    is on disk before the stage moves on.
+
+    Raises
+    ------
+    OutOfRangeError
+        Neither or both of ``focus_map`` and ``fixed_focus_um`` given; a focus-map value outside the drive's range.
+    """
+    if (focus_map is None) == (fixed_focus_um is None):
+        raise OutOfRangeError("tile_scan needs exactly one of focus_map and fixed_focus_um")
+    cam, lamp = rig.camera(camera), rig.light(light)
+    sx, sy, drive = rig.stage(stage_x), rig.stage(stage_y), rig.focus(focus)
+    writer = FrameWriter(out_dir, {"routine": "tile_scan", "rig": rig.name,
+                                   "focus": "map" if focus_map is not None else f"fixed {fixed_focus_um} um"})
+    results: list[TileResult] = []
+    with _run(writer, rig):
+        if exposure_s is not None:
+            cam.set_exposure_s(exposure_s)
+        if fixed_focus_um is not None:
+            drive.move_absolute_um(fixed_focus_um)
+        if lamp.current_ma == 0:
+            lamp.configure(current_ma=lamp.current_range.high)
+        for ix, iy, x, y in positions:
+            sx.move_absolute(x)
+            sy.move_absolute(y)
+            if focus_map is not None:
+                drive.move_absolute_um(float(focus_map(x, y)))
+            lamp.switch_on()
+            try:
+                frame = cam.grab()
+            finally:
+                lamp.switch_off()
+            z = drive.position_um
+            s = sharpness(frame, cam.black_level_dn)
+            path = writer.write(f"tile_{iy:03d}_{ix:03d}", frame, x_mm=x, y_mm=y, focus_um=z, sharpness=s,
+                                exposure_s=cam.exposure_s)
+            result = TileResult((ix, iy), x, y, z, str(path), s)
+            results.append(result)
+            if on_tile is not None:
+                on_tile(result)
+    return results
+
+
+def results_json(results: Sequence[TileResult]) -> list[dict[str, Any]]:
+    """Tile results as JSON-ready dicts."""
+    return [_jsonable(asdict(r)) for r in results]
+
+
+__all__ = [
+    "FrameWriter", "LightSource", "TileResult", "calibration_capture", "choose_exposure", "deflectometry_capture",
+    "grid", "results_json", "sharpness", "simultaneous_capture", "tile_scan",
+]

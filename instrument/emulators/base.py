@@ -1,0 +1,178 @@
+"""Wire-protocol emulators on pseudo-terminals, with a byte log and fault injection.
+
+An emulator opens a pseudo-terminal pair with :func:`os.openpty`; a thread reads
+the master side, splits the byte stream into requests (:meth:`PtyEmulator.split`),
+answers each (:meth:`PtyEmulator.handle`) and writes the answer back. A driver
+opens the slave side (:attr:`PtyEmulator.port`, e.g. ``/dev/pts/5``) as an
+ordinary serial port, so the real driver code runs end to end through a real
+tty. Every received byte is appended to :attr:`PtyEmulator.log`, which lets a
+test prove that nothing was sent when a limit check failed.
+
+Faults (:class:`Fault`) change how answers go out: ``SILENT`` stops answering,
+``GARBAGE`` answers bytes that do not follow the protocol, ``DROP`` sends half a
+frame and hangs the line up.
+"""
+
+from __future__ import annotations
+
+import enum
+import os
+import select
+import threading
+import time
+import tty
+
+import numpy as np
+
+
+class Fault(enum.Enum):
+    """Injected misbehaviour of an emulator."""
+
+    NONE = "none"
+    SILENT = "silent"
+    GARBAGE = "garbage"
+    DROP = "drop"
+
+
+class PtyEmulator:
+    """Base class: a device that speaks a wire protocol on a pseudo-terminal.
+
+    Parameters
+    ----------
+    seed : int
+        Seed of the generator that produces garbage answers.
+
+    Attributes
+    ----------
+    port : str
+        Path of the slave tty (valid after :meth:`start`).
+    log : bytearray
+        Every byte received, in order.
+    fault : Fault
+        The current fault; assign to inject one.
+    """
+
+    protocol = "base"
+    terminator = b"\n"
+
+    def __init__(self, *, seed: int = 0) -> None:
+        self.port = ""
+        self.log = bytearray()
+        self.fault = Fault.NONE
+        self.errors: list[str] = []
+        self._rng = np.random.default_rng(seed)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._master = -1
+        self._slave = -1
+        self._lock = threading.RLock()
+
+    # lifecycle ---------------------------------------------------------------------------------
+    def start(self) -> str:
+        """Open the pseudo-terminal, start answering, and return the slave's path."""
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        tty.setraw(self._master)
+        self.port = os.ttyname(self._slave)
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name=f"{self.protocol}-emulator", daemon=True)
+        self._thread.start()
+        return self.port
+
+    def stop(self) -> None:
+        """Stop the thread and close both ends of the pseudo-terminal."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        for fd in (self._master, self._slave):
+            if fd >= 0:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self._master = self._slave = -1
+
+    def __enter__(self) -> PtyEmulator:
+        if not self.port:
+            self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def received(self) -> bytes:
+        """A copy of the log of received bytes."""
+        with self._lock:
+            return bytes(self.log)
+
+    # loop --------------------------------------------------------------------------------------
+    def _run(self) -> None:
+        buffer = bytearray()
+        while not self._stop.is_set():
+            master = self._master
+            if master < 0:
+                return
+            try:
+                ready, _, _ = select.select([master], [], [], 0.02)
+            except (OSError, ValueError):
+                return
+            if not ready:
+                continue
+            try:
+                data = os.read(master, 4096)
+            except OSError:
+                return
+            if not data:
+                continue
+            with self._lock:
+                self.log += data
+                buffer += data
+                requests, rest = self.split(bytes(buffer))
+                buffer = bytearray(rest)
+                for request in requests:
+                    try:
+                        reply = self.handle(request)
+                    except Exception as exc:  # noqa: BLE001 - an emulator bug must not kill the line
+                        self.errors.append(f"{request[:40]!r}: {exc!r}")
+                        continue
+                    if reply:
+                        self._send(reply)
+                        if self._master < 0:
+                            return
+
+    def _send(self, reply: bytes) -> None:
+        fault = self.fault
+        if fault is Fault.SILENT:
+            return
+        if fault is Fault.GARBAGE:
+            reply = self.garbage(len(reply))
+        if fault is Fault.DROP:
+            self._emit(reply[: max(1, len(reply) // 2)])
+            time.sleep(0.01)
+            os.close(self._master)
+            self._master = -1
+            return
+        self._emit(reply)
+
+    def _emit(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            written = os.write(self._master, view)
+            view = view[written:]
+
+    # protocol hooks ------------------------------------------------------------------------------
+    def split(self, buffer: bytes) -> tuple[list[bytes], bytes]:
+        """Split ``buffer`` into complete requests and the incomplete rest (default: terminator lines)."""
+        parts = buffer.split(self.terminator)
+        return parts[:-1], parts[-1]
+
+    def handle(self, request: bytes) -> bytes:
+        """Answer one request (empty bytes: no answer)."""
+        raise NotImplementedError
+
+    def garbage(self, n: int) -> bytes:
+        """Bytes that break the protocol, ending with the terminator so a line reader sees a reply."""
+        noise = self._rng.integers(0x80, 0x100, size=max(n, 3), dtype=np.uint8).tobytes()
+        return noise + self.terminator

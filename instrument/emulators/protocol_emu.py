@@ -1,0 +1,76 @@
+"""pyserial URL handler ``emu://NAME?key=value&...``: a wire-protocol emulator as a serial port.
+
+``serial.serial_for_url("emu://pi-gcs?travel_mm=0,150&max_velocity_mm_s=50")``
+starts a :class:`~instrument.emulators.pi_gcs.PiGcsEmulator` on a
+pseudo-terminal and opens its slave as a real ``serial.Serial``; closing the
+port stops the emulator. The emulator object is reachable as ``port.emulator``
+(for logs and fault injection). Query values are numbers, or comma-separated
+number lists for tuple options; ``axes`` is a comma-separated list of names.
+:func:`instrument.transport.open_transport` registers this handler.
+"""
+
+from __future__ import annotations
+
+import urllib.parse
+from typing import Any
+
+from serial.serialposix import Serial as PosixSerial
+
+from instrument.errors import RigError
+
+
+def _value(key: str, text: str) -> Any:
+    if key == "axes":
+        return tuple(t for t in text.split(",") if t)
+    if key == "model":
+        return text
+    try:
+        numbers = [float(t) for t in text.split(",")]
+    except ValueError as exc:
+        raise RigError(f"emu:// option {key}={text!r} is not a number or number list") from exc
+    if key == "seed" or key.endswith("_index"):
+        return int(numbers[0])
+    return tuple(numbers) if len(numbers) > 1 else numbers[0]
+
+
+def parse_url(url: str) -> tuple[str, dict[str, Any]]:
+    """Split ``emu://NAME?opts`` into the emulator name and its keyword arguments."""
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme.lower() != "emu":
+        raise RigError(f"not an emu:// URL: {url!r}")
+    name = (parts.netloc + parts.path).strip("/")
+    options = {k: _value(k, v) for k, v in urllib.parse.parse_qsl(parts.query, keep_blank_values=False)}
+    return name, options
+
+
+class Serial(PosixSerial):
+    """A pyserial port whose other end is an in-process emulator."""
+
+    emulator = None
+
+    def open(self) -> None:
+        """Start the emulator named by the URL and open its pseudo-terminal."""
+        from instrument.emulators import EMULATORS
+
+        url = self.portstr
+        name, options = parse_url(url)
+        if name not in EMULATORS:
+            raise RigError(f"emu:// names an unknown emulator {name!r}; known: {sorted(EMULATORS)}")
+        try:
+            self.emulator = EMULATORS[name](**options)
+        except TypeError as exc:
+            raise RigError(f"emu://{name}: bad option ({exc})") from exc
+        self.port = self.emulator.start()
+        try:
+            super().open()
+        except Exception:
+            self.emulator.stop()
+            raise
+        self._port = self.portstr = url
+
+    def close(self) -> None:
+        """Close the port and stop the emulator."""
+        super().close()
+        if self.emulator is not None:
+            self.emulator.stop()
+            self.emulator = None

@@ -1,0 +1,339 @@
+"""Rigs: a TOML file names each device and its implementation; :func:`open_rig` opens them all.
+
+Format (DESIGN.md, 'Rig files')::
+
+    [rig]
+    name = "sim-cmu"
+
+    [devices.x]
+    kind = "stage"            # camera | stage | focus | light | shutter | trigger
+    driver = "sim"            # sim | pi-gcs | jena-piezo | fpga-board | basler
+    travel_mm = [0.0, 150.0]  # limits given here are enforced before anything is sent
+    max_velocity_mm_s = 50.0
+
+    [devices.focus]
+    kind = "focus"
+    driver = "jena-piezo"
+    port = "/dev/ttyS0"       # a device path or any pyserial URL (emu://jena-piezo for the emulator)
+    baudrate = 9600
+    range_um = [0.0, 400.0]
+
+Devices on one port share one transport (the FPGA board drives lights, the
+shutter and the trigger lines). :func:`open_rig` is a context manager: on every
+exit, exception included, it switches every light off, closes shutters, stops
+camera acquisition and closes transports; it never moves an axis.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import tomllib
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+from instrument.devices import (
+    Camera,
+    CameraLimits,
+    Device,
+    FocusDrive,
+    LightSource,
+    Range,
+    Shutter,
+    Stage,
+    TriggerController,
+)
+from instrument.errors import InstrumentError, RigError
+
+KINDS = ("camera", "stage", "focus", "light", "shutter", "trigger")
+DRIVERS = ("sim", "pi-gcs", "jena-piezo", "fpga-board", "basler")
+D = TypeVar("D", bound=Device)
+
+
+@dataclass
+class _Context:
+    world: Any = None
+    transports: dict[str, Any] = field(default_factory=dict)
+    boards: dict[str, Any] = field(default_factory=dict)
+
+    def sim_world(self) -> Any:
+        if self.world is None:
+            from instrument.simulated.world import VirtualWorld
+
+            self.world = VirtualWorld()
+        return self.world
+
+    def transport(self, name: str, table: dict[str, Any], default_baud: int) -> Any:
+        from instrument.transport import open_transport
+
+        port = _take(table, "port", str, name)
+        baud = int(table.pop("baudrate", default_baud))
+        if port not in self.transports:
+            self.transports[port] = open_transport(port, baudrate=baud, timeout_s=0.02)
+        return self.transports[port]
+
+
+def _take(table: dict[str, Any], key: str, kind: type, device: str, default: Any = ...) -> Any:
+    if key not in table:
+        if default is ...:
+            raise RigError(f"device {device!r}: missing field {key!r}")
+        return default
+    value = table.pop(key)
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if kind is tuple:
+        if not isinstance(value, list) or len(value) != 2 or not all(isinstance(v, int | float) for v in value):
+            raise RigError(f"device {device!r}: {key} must be a list of two numbers, got {value!r}")
+        return (float(value[0]), float(value[1]))
+    if not isinstance(value, kind):
+        raise RigError(f"device {device!r}: {key} must be {kind.__name__}, got {value!r}")
+    return value
+
+
+def _camera_limits(name: str, t: dict[str, Any]) -> CameraLimits:
+    defaults = CameraLimits()
+    shape = t.pop("sensor_shape", list(defaults.sensor_shape))
+    if not (isinstance(shape, list) and len(shape) == 2 and all(isinstance(v, int) and v > 0 for v in shape)):
+        raise RigError(f"camera {name!r}: sensor_shape must be [rows, cols], got {shape!r}")
+    exposure = _take(t, "exposure_range_s", tuple, name, (defaults.exposure_s.low, defaults.exposure_s.high))
+    return CameraLimits(sensor_shape=(shape[0], shape[1]),
+                        pixel_size_um=_take(t, "pixel_size_um", float, name, defaults.pixel_size_um),
+                        exposure_s=Range(*exposure, "s"))
+
+
+def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
+    t = dict(table)
+    kind = _take(t, "kind", str, name)
+    driver = _take(t, "driver", str, name)
+    if kind not in KINDS:
+        raise RigError(f"device {name!r}: unknown kind {kind!r}; choose from {KINDS}")
+    if driver not in DRIVERS:
+        raise RigError(f"device {name!r}: unknown driver {driver!r}; choose from {DRIVERS}")
+    timeout_s = _take(t, "timeout_s", float, name, 1.0)
+    device: Device
+    key = (kind, driver)
+    if driver == "sim":
+        from instrument.simulated import devices as simd
+
+        world = ctx.sim_world()
+        if kind == "stage":
+            device = simd.SimStage(name, world, travel_mm=_take(t, "travel_mm", tuple, name),
+                                   max_velocity_mm_s=_take(t, "max_velocity_mm_s", float, name),
+                                   position_mm=_take(t, "position_mm", float, name, None), timeout_s=timeout_s)
+        elif kind == "focus":
+            device = simd.SimFocus(name, world, range_um=_take(t, "range_um", tuple, name, (0.0, 400.0)),
+                                   position_um=_take(t, "position_um", float, name, None), timeout_s=timeout_s)
+        elif kind == "light":
+            device = simd.SimLight(name, world, max_current_ma=_take(t, "max_current_ma", float, name),
+                                   shutter=_take(t, "shutter", str, name, None), timeout_s=timeout_s)
+        elif kind == "shutter":
+            device = simd.SimShutter(name, world, timeout_s=timeout_s)
+        elif kind == "trigger":
+            device = simd.SimTrigger(name, world, n_camera_lines=_take(t, "n_camera_lines", int, name, 4),
+                                     timeout_s=timeout_s)
+        else:
+            from instrument.simulated.renderers import make_renderer
+            from scenes.sensor import EmvaSensor
+
+            limits = _camera_limits(name, t)
+            try:
+                sensor = EmvaSensor(**t.pop("sensor", {}))
+            except TypeError as exc:
+                raise RigError(f"camera {name!r}: bad sensor field ({exc})") from exc
+            renderer = make_renderer(t.pop("renderer", {"kind": "texture"}), camera=name)
+            device = simd.SimCamera(name, world, renderer=renderer, sensor=sensor, limits=limits,
+                                    photons_per_unit_s=_take(t, "photons_per_unit_s", float, name, 1.0e6),
+                                    trigger_line=_take(t, "trigger_line", int, name, 0),
+                                    seed=_take(t, "seed", int, name, 0),
+                                    serial_number=_take(t, "serial", str, name, f"SIM-{name}"), timeout_s=timeout_s)
+    elif key == ("stage", "pi-gcs"):
+        from instrument.drivers.pi_gcs import PiGcsStage
+
+        transport = ctx.transport(name, t, 115200)
+        device = PiGcsStage(name, transport, axis=str(t.pop("axis", "1")), travel_mm=_take(t, "travel_mm", tuple, name),
+                            max_velocity_mm_s=_take(t, "max_velocity_mm_s", float, name),
+                            velocity_mm_s=_take(t, "velocity_mm_s", float, name, None),
+                            reference=_take(t, "reference", bool, name, True), timeout_s=timeout_s)
+    elif key == ("focus", "jena-piezo"):
+        from instrument.drivers.jena_piezo import JenaPiezoFocus
+
+        transport = ctx.transport(name, t, 9600)
+        device = JenaPiezoFocus(name, transport, range_um=_take(t, "range_um", tuple, name, (0.0, 400.0)),
+                                timeout_s=timeout_s)
+    elif driver == "fpga-board" and kind in ("light", "shutter", "trigger"):
+        from instrument.drivers.fpga_board import FpgaBoard, FpgaLight, FpgaShutter, FpgaTrigger
+
+        port = t.get("port")
+        transport = ctx.transport(name, t, 115200)
+        step = _take(t, "current_step_ma", float, name, 0.1)
+        if port not in ctx.boards:
+            ctx.boards[port] = FpgaBoard(transport, timeout_s=timeout_s, current_step_ma=step)
+        board = ctx.boards[port]
+        if kind == "light":
+            device = FpgaLight(name, board, channel=_take(t, "channel", int, name),
+                               max_current_ma=_take(t, "max_current_ma", float, name))
+        elif kind == "shutter":
+            device = FpgaShutter(name, board, open_output=_take(t, "open_output", int, name, 0),
+                                 close_output=_take(t, "close_output", int, name, 1))
+        else:
+            device = FpgaTrigger(name, board)
+    elif key == ("camera", "basler"):
+        from instrument.drivers.basler import BaslerCamera
+
+        device = BaslerCamera(name, serial=_take(t, "serial", str, name, None),
+                              pixel_size_um=_take(t, "pixel_size_um", float, name, 6.45),
+                              trigger_line=_take(t, "trigger_input", str, name, "Line1"),
+                              timeout_s=timeout_s)
+    else:
+        raise RigError(f"device {name!r}: driver {driver!r} does not provide a {kind!r}")
+    t.pop("description", None)
+    if t:
+        raise RigError(f"device {name!r}: unknown field(s) {sorted(t)} for a {driver} {kind}")
+    return device
+
+
+class Rig:
+    """The devices of one rig, by name, plus the safe-exit logic.
+
+    Attributes
+    ----------
+    name : str
+        Rig name.
+    devices : dict
+        Devices by name, in file order.
+    world : VirtualWorld or None
+        The shared world when any device is simulated.
+    """
+
+    def __init__(self, name: str, devices: dict[str, Device], world: Any = None, transports: dict | None = None,
+                 path: str = "") -> None:
+        self.name = name
+        self.devices = devices
+        self.world = world
+        self.path = path
+        self._transports = transports or {}
+
+    def __getitem__(self, name: str) -> Device:
+        if name not in self.devices:
+            raise RigError(f"rig {self.name!r} has no device {name!r}; devices: {sorted(self.devices)}")
+        return self.devices[name]
+
+    def of_kind(self, cls: type[D]) -> list[D]:
+        """All devices that are instances of ``cls``, in file order."""
+        return [d for d in self.devices.values() if isinstance(d, cls)]
+
+    def _one(self, cls: type[D], name: str | None, what: str) -> D:
+        if name is not None:
+            device = self[name]
+            if not isinstance(device, cls):
+                raise RigError(f"device {name!r} of rig {self.name!r} is a {device.kind}, not a {what}")
+            return device
+        found = self.of_kind(cls)
+        if not found:
+            raise RigError(f"rig {self.name!r} has no {what}")
+        return found[0]
+
+    def camera(self, name: str | None = None) -> Camera:
+        """A camera by name (default: the first)."""
+        return self._one(Camera, name, "camera")
+
+    def stage(self, name: str) -> Stage:
+        """A stage axis by name."""
+        return self._one(Stage, name, "stage")
+
+    def focus(self, name: str | None = None) -> FocusDrive:
+        """The focus drive (default: the first)."""
+        return self._one(FocusDrive, name, "focus drive")
+
+    def light(self, name: str | None = None) -> LightSource:
+        """A light by name (default: the first)."""
+        return self._one(LightSource, name, "light")
+
+    def trigger(self, name: str | None = None) -> TriggerController:
+        """The trigger controller (default: the first)."""
+        return self._one(TriggerController, name, "trigger controller")
+
+    def initialize(self) -> None:
+        """Initialize every device in file order."""
+        for device in self.devices.values():
+            device.initialize()
+
+    def lights_off(self) -> list[str]:
+        """Switch every light off and close every shutter; return the failures (never raises)."""
+        failures = []
+        for device in [*self.of_kind(LightSource), *self.of_kind(Shutter)]:
+            if not device.initialized:
+                continue
+            try:
+                device.switch_off() if isinstance(device, LightSource) else device.close()
+            except InstrumentError as exc:
+                failures.append(f"{device.name}: {exc}")
+        return failures
+
+    def close(self) -> list[str]:
+        """Lights off, then shut every device down in reverse order and close transports (never raises)."""
+        failures = self.lights_off()
+        for device in reversed(list(self.devices.values())):
+            try:
+                device.shutdown()
+            except Exception as exc:  # noqa: BLE001 - closing must reach every device
+                failures.append(f"{device.name}: {exc}")
+        for transport in self._transports.values():
+            with contextlib.suppress(Exception):
+                transport.close()
+        return failures
+
+    def describe(self) -> dict[str, Any]:
+        """Rig name and each device's description (JSON-ready)."""
+        return {"rig": self.name, "path": self.path,
+                "devices": [d.describe() for d in self.devices.values()]}
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Read a rig TOML and build its devices (no I/O yet except opening serial ports).
+
+    Raises
+    ------
+    RigError
+        Unreadable file, unknown kind/driver/field, or a bad limit.
+    """
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise RigError(f"cannot read rig file {str(p)!r}: {exc}") from exc
+    tables = data.get("devices")
+    if not isinstance(tables, dict) or not tables:
+        raise RigError(f"rig file {str(p)!r} has no [devices.NAME] tables")
+    ctx = _Context()
+    devices: dict[str, Device] = {}
+    try:
+        for name, table in tables.items():
+            if not isinstance(table, dict):
+                raise RigError(f"rig file {str(p)!r}: devices.{name} is not a table")
+            devices[name] = _build(name, table, ctx)
+    except Exception:
+        for transport in ctx.transports.values():
+            with contextlib.suppress(Exception):
+                transport.close()
+        raise
+    rig_name = str(data.get("rig", {}).get("name", p.stem))
+    return Rig(rig_name, devices, ctx.world, ctx.transports, str(p))
+
+
+@contextlib.contextmanager
+def open_rig(path: str | Path, on_close: Callable[[list[str]], None] | None = None) -> Iterator[Rig]:
+    """Open a rig as a context manager: devices initialized on entry; on every exit lights off,
+    shutters closed, acquisition stopped, transports closed (axes stay where they are).
+
+    ``on_close`` receives the list of failures while closing (normally empty).
+    """
+    rig = load_rig(path)
+    try:
+        rig.initialize()
+        yield rig
+    finally:
+        failures = rig.close()
+        if on_close is not None:
+            on_close(failures)
