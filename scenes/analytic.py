@@ -103,27 +103,32 @@ def render(setup: Setup, heights: HeightMap | None = None, spp: int | None = Non
     ndarray, float32, (rows, cols)
         Mean radiance per pixel (box filter).
     """
-    spp = spp or setup.render.spp
-    seed = setup.render.seed if seed is None else seed
-    scene = AnalyticScene(setup, heights)
-    cam = scene.camera
+    cam = setup.camera_model
     r0, r1, c0, c1 = window if window is not None else (0, cam.ny, 0, cam.nx)
     if not (0 <= r0 < r1 <= cam.ny and 0 <= c0 < c1 <= cam.nx):
         raise SetupError(f"render window {window} lies outside the {cam.ny} x {cam.nx} image")
+    cc, rr = np.meshgrid(np.arange(c0, c1), np.arange(r0, r1))
+    values = render_pixels(setup, rr.ravel(), cc.ravel(), heights, spp, seed, chunk)
+    return values.reshape(r1 - r0, c1 - c0)
+
+
+def render_pixels(setup: Setup, rows: NDArray, cols: NDArray, heights: HeightMap | None = None,
+                  spp: int | None = None, seed: int | None = None, chunk: int = 1 << 18) -> NDArray[np.float32]:
+    """Render an arbitrary list of pixels (row, col); one float32 value per pixel (see :func:`render`)."""
+    spp = spp or setup.render.spp
+    seed = setup.render.seed if seed is None else seed
+    scene = AnalyticScene(setup, heights)
     rng = np.random.default_rng(seed)
-    rows = np.arange(r0, r1)
-    cols = np.arange(c0, c1)
-    n_px = len(rows) * len(cols)
-    out = np.empty(n_px, dtype=np.float64)
-    px_per_chunk = max(1, chunk // spp)
-    cc, rr = np.meshgrid(cols, rows)
-    flat_r, flat_c = rr.ravel(), cc.ravel()
-    for start in range(0, n_px, px_per_chunk):
-        stop = min(n_px, start + px_per_chunk)
-        samples = _chunk_samples(flat_r[start:stop], flat_c[start:stop], spp, rng)
+    rows = np.asarray(rows)
+    cols = np.asarray(cols)
+    out = np.empty(len(rows), dtype=np.float64)
+    step = max(1, chunk // spp)
+    for start in range(0, len(rows), step):
+        stop = min(len(rows), start + step)
+        samples = _chunk_samples(rows[start:stop], cols[start:stop], spp, rng)
         o, d = scene.camera_rays(samples, rng)
         out[start:stop] = scene.trace(o, d).reshape(-1, spp).mean(axis=1)
-    return out.reshape(len(rows), len(cols)).astype(np.float32)
+    return out.astype(np.float32)
 
 
 def _chunk_samples(rows: NDArray, cols: NDArray, spp: int, rng: np.random.Generator) -> Array:

@@ -1,0 +1,124 @@
+"""Render speed of the §1.10 deflectometry frame: Mitsuba vs the float64 numpy analytic renderer.
+
+Renders the seed's §1.10 setup (1360 x 1024 px, 33 x 33 markers, 25.2 x 57 mm substrate)
+with a smooth 40 µm bow, warm (kernels compiled, scene loaded), and prints seconds per
+frame and camera rays per second at several spp; then times :func:`scenes.analytic.render`
+on a window of the image, extrapolates to a full frame per ray, and prints the ratio.
+Targets (issue 2): <= 0.5 s per frame at 16 spp on 2 cores, >= 50x the numpy reference.
+Prints figures only; nothing here passes or fails.
+
+Usage: ``PYTHONPATH=. python benchmarks/render_speed.py [--spp 4 16 64] [--repeats 3] [--window 96]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import numpy as np
+
+from scenes.setup import load_setup
+from scenes.surface import HeightMap
+
+PRESET = "thesis-1.10-deflectometry"
+
+
+def bowed_heights(range_um: float = 40.0) -> HeightMap:
+    """A smooth bow of ``range_um`` peak-to-valley over the 25.2 x 57 mm substrate (256 x 512 nodes)."""
+    def bow(x, y):
+        return (x / 12.6) ** 2 * 0.3 + (y / 28.5) ** 2 + 0.15 * (x / 12.6) * (y / 28.5)
+
+    x = np.linspace(-12.6, 12.6, 256)
+    y = np.linspace(-28.5, 28.5, 512)
+    z = bow(*np.meshgrid(x, y))
+    scale = range_um * 1e-3 / (z.max() - z.min())
+    return HeightMap.from_function(lambda xx, yy: -scale * (bow(xx, yy) - z.min()), -12.6, 12.6, -28.5, 28.5)
+
+
+def time_mitsuba(setup, heights, spp_list: list[int], repeats: int) -> dict[int, dict[str, float]]:
+    import drjit as dr
+
+    from scenes.mitsuba.render import load_scene, render_setup
+
+    t0 = time.perf_counter()
+    load_scene(setup, heights)
+    load_s = time.perf_counter() - t0
+    print(f"scene load (texture, mesh, plugins; first call): {load_s:.2f} s")
+    out = {}
+    nx, ny = setup.camera.pixels
+    for spp in spp_list:
+        t0 = time.perf_counter()
+        render_setup(setup, heights, spp=spp, seed=0)  # compiles (or loads from the kernel cache)
+        dr.sync_thread()
+        first = time.perf_counter() - t0
+        wall, cpu = [], []
+        for k in range(repeats):
+            t0, c0 = time.perf_counter(), time.process_time()
+            render_setup(setup, heights, spp=spp, seed=k + 1)
+            dr.sync_thread()
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+        best = min(wall)
+        rays = nx * ny * spp
+        out[spp] = {"seconds": best, "median_seconds": float(np.median(wall)), "cpu_seconds": min(cpu),
+                    "first_seconds": first, "rays_per_s": rays / best}
+        print(f"mitsuba {spp:4d} spp: {best:6.3f} s/frame (median {np.median(wall):.3f}, cpu {min(cpu):.3f} s, "
+              f"first {first:.2f} s), {rays / best / 1e6:6.1f} M camera rays/s")
+    return out
+
+
+def time_analytic(setup, heights, spp: int, window: int) -> dict[str, float]:
+    from scenes.analytic import render
+
+    nx, ny = setup.camera.pixels
+    r0, c0 = ny // 2 - window // 2, nx // 2 - window // 2
+    box = (r0, r0 + window, c0, c0 + window)
+    render(setup, heights, spp=spp, seed=0, window=(r0, r0 + 8, c0, c0 + 8))  # warm caches
+    t0, c0 = time.perf_counter(), time.process_time()
+    render(setup, heights, spp=spp, seed=1, window=box)
+    dt, dc = time.perf_counter() - t0, time.process_time() - c0
+    rays = window * window * spp
+    per_ray = dt / rays
+    full = per_ray * nx * ny * spp
+    print(f"numpy analytic (float64) {spp} spp on a {window}x{window} window: {dt:.2f} s (cpu {dc:.2f} s), "
+          f"{1 / per_ray / 1e6:.3f} M rays/s -> {full:.1f} s per full frame (extrapolated)")
+    return {"seconds": full, "cpu_seconds": dc / rays * nx * ny * spp, "rays_per_s": 1 / per_ray, "window": window}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--spp", type=int, nargs="+", default=[4, 16, 64])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--window", type=int, default=96, help="side of the analytic renderer's window, px")
+    ap.add_argument("--json", help="write the figures here")
+    args = ap.parse_args()
+
+    from scenes.mitsuba.variant import use
+
+    mi = use("mono")
+    setup = load_setup(PRESET)
+    heights = bowed_heights()
+    z = heights.z
+    print(f"{PRESET}: {setup.camera.pixels[0]}x{setup.camera.pixels[1]} px, bow {1e3 * (z.max() - z.min()):.1f} µm, "
+          f"variant {mi.variant()}, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
+    mit = time_mitsuba(setup, heights, args.spp, args.repeats)
+    ref_spp = 16 if 16 in args.spp else args.spp[0]
+    ana = time_analytic(setup, heights, ref_spp, args.window)
+    ratio = ana["seconds"] / mit[ref_spp]["seconds"]
+    cpu_ratio = ana["cpu_seconds"] / mit[ref_spp]["cpu_seconds"]
+    print(f"speed-up at {ref_spp} spp: {ratio:.0f}x wall (mitsuba {mit[ref_spp]['seconds']:.3f} s vs numpy "
+          f"{ana['seconds']:.1f} s per frame), {cpu_ratio:.0f}x in CPU time; "
+          f"targets: <= 0.5 s at 16 spp, >= 50x")
+    if os.getloadavg()[0] > 0.8 * (os.cpu_count() or 1):
+        print("note: the machine is busy (load average above the core count): wall times are inflated; "
+              "the CPU times divided by the core count estimate an idle machine's wall time")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump({"mitsuba": mit, "analytic": ana, "speedup": ratio, "speedup_cpu": cpu_ratio,
+                       "spp_ratio": ref_spp}, fh, indent=2)
+
+
+if __name__ == "__main__":
+    main()
