@@ -4,13 +4,15 @@ Unfolded, the excitation light runs along +z: the square Lambertian LED (0.5 mm,
 z = 0; air (``led_distance``, 2.427 mm); the illumination GRIN rod (``rod_length``, 2.369 mm, the
 GrinTech profile of the objective's rod 1); half of the beam-splitter layer; the reflection at the
 splitter (a factor ``splitter_reflectance``); the other half; the object-side substrate; rod 1 of
-the objective traversed backwards; the object gap and cover glass; the object plane. The layout of
+the objective traversed backwards; the object gap; the cover glass, whose far face (where the cells
+lie, §7.5.2) is the object plane and the end of the stack. The layout of
 Fig. 7.10 is not given in numbers beyond the two optimised values, so the unfolded order is an
 assumption (stated in the report).
 
-Losses: Fresnel reflection at every interface at normal incidence, (n1-n2)²/(n1+n2)² (unpolarised,
-a lower bound on the oblique loss), times the splitter reflectance; the energy efficiency is the
-power landing inside the 400 µm field of view divided by the LED power.
+Losses: Fresnel reflection at every interface up to the object plane at normal incidence,
+(n1-n2)²/(n1+n2)² (unpolarised, a lower bound on the oblique loss), times the splitter reflectance.
+What §7.5.3 calls the "energy efficiency" (about 33 %) is not defined further; the readings and their
+numbers are in :func:`scenes.mitsuba.grin.illuminate`.
 """
 
 from __future__ import annotations
@@ -20,7 +22,12 @@ from scenes.grin.setup import GrinSetup, IlluminationSpec, Layer, RodSpec, Stack
 
 
 def illumination_stack(setup: GrinSetup, spec: IlluminationSpec | None = None) -> Stack:
-    """Unfolded illumination layers, LED plane at z = 0, object plane at the end (the stack's image plane)."""
+    """Unfolded illumination layers, LED plane at z = 0, object plane at the end (the stack's image plane).
+
+    The last layer is the cover glass: its far face is the object plane. (An earlier version ended the
+    stack with a zero-thickness air layer, which put two Mitsuba planes at the same z; which one a ray
+    met first then depended on the BVH order, and most rays were lost at random, per process.)
+    """
     ill = spec or setup.illumination or IlluminationSpec()
     lam = ill.wavelength_nm
     img = setup.stack(wavelength_nm=lam)
@@ -41,7 +48,6 @@ def illumination_stack(setup: GrinSetup, spec: IlluminationSpec | None = None) -
     for layer in reversed(obj_part):
         rod = rod1 if layer.rod is not None else None
         seq.append((layer.name, layer.glass, rod.length if rod else layer.thickness, rod))
-    seq.append(("object", AIR, 0.0, None))
     layers = []
     z = 0.0
     for name, gl, t, rod in seq:

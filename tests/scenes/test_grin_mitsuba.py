@@ -65,4 +65,61 @@ def test_illumination_efficiency_is_a_fraction():
     s = load_grin_setup("thesis-7.5.2-grin-egfp")
     res = grin.illuminate(s, 20000)
     assert 0.0 <= res["efficiency"] <= res["reaching_object"] * res["loss_factor"] + 1e-12
+    assert res["efficiency"] == pytest.approx(res["efficiency_of_accepted"] * res["accepted_fraction"])
     assert res["irradiance_mw_per_mm2"].shape == (101, 101)
+
+
+def test_illumination_matches_numpy_reference():
+    """The Mitsuba light trace loses no ray the float64 numpy stack trace keeps (the zero-thickness layer bug)."""
+    from scenes.grin.illumination import illumination_stack
+
+    s = load_grin_setup("thesis-7.5.2-grin-egfp")
+    st = illumination_stack(s)
+    rng = np.random.default_rng(3)
+    n = 20000
+    x, y = rng.uniform(-0.25, 0.25, (2, n))
+    r, phi = np.sqrt(rng.uniform(0, 1, n)), rng.uniform(0, 2 * np.pi, n)
+    tx, ty = r * np.cos(phi), r * np.sin(phi)
+    with np.errstate(over="ignore", invalid="ignore"):  # rays outside the rods blow up the polynomial: dead rays
+        ref = trace_stack(st, x, y, tx, ty, until_layer=len(st.layers))
+    gs = grin.GrinScene(s.model_copy(update={"array": s.array.model_copy(update={"nx": 1, "ny": 1})}), st)
+    res = gs.trace((x, y, np.zeros(n)), (tx, ty, np.sqrt(1 - tx * tx - ty * ty)), 1.0, "float64", start="object")
+    alive = np.asarray(res["alive"])
+    assert alive.mean() > 0.05  # ~9 % of a Lambertian LED reaches the object plane
+    assert np.mean(alive != ref.alive) < 1e-3
+    both = alive & ref.alive
+    assert np.max(np.hypot(np.asarray(res["x"])[both] - ref.x[both], np.asarray(res["y"])[both] - ref.y[both])) < 1e-6
+
+
+def test_coincident_planes_are_rejected(realized):
+    from scenes.errors import ScopetwinError
+    from scenes.grin.setup import Layer, Stack
+
+    s, st = realized
+    last = st.layers[-1]
+    bad = Stack((*st.layers, Layer("empty", last.z1, last.z1, last.glass, last.index, None, None)),
+                st.wavelength_nm, st.image_distance, st.stop_z, st.stop_radius)
+    with pytest.raises(ScopetwinError, match="zero or negative thickness"):
+        grin.GrinScene(s, bad)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_interleaved_rkn_equals_plain(dtype):
+    from scenes.grin.profiles import PolynomialProfile
+
+    F = grin.float_type(dtype)
+    prof = PolynomialProfile()
+    rng = np.random.default_rng(5)
+    n = 1001  # odd: the last group is padded
+    x, y = rng.uniform(-0.9, 0.9, (2, n))
+    tx, ty = rng.uniform(-0.3, 0.3, (2, n))
+    tz = np.sqrt(prof.index(x * x + y * y) ** 2 - tx * tx - ty * ty)
+    args = [F(a) for a in (x, y, tx, ty, tz)]
+    plain = grin.rkn_rod_dr(*args, prof, 3.58, 36, 1.0)
+    alive = np.asarray(plain[5])
+    assert 0.5 < alive.mean() < 1.0  # some rays meet the wall
+    for il in (2, 3):
+        out = grin.rkn_rod_dr(*args, prof, 3.58, 36, 1.0, interleave=il)
+        np.testing.assert_array_equal(np.asarray(out[5]), alive)
+        for a, b in zip(out[:5], plain[:5], strict=True):
+            np.testing.assert_array_equal(np.asarray(a)[alive], np.asarray(b)[alive])
