@@ -229,9 +229,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, help="random seed")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    from calib.cli import register as register_calib
     from instrument.cli import register as register_rig
+    from recon.markers_cli import register as register_markers
     from sim import optics_cli
 
+    register_markers(sub)
+    register_calib(sub)
     optics_cli.register(sub)
     register_rig(sub)
     return parser

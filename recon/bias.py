@@ -1,0 +1,265 @@
+"""Centroid bias: where a marker's spot centroid lies relative to the image of the marker's centre.
+
+A marker is a round spot on the pattern (grey value g = 1 - r/r_m, seed §1.6.3). Its image is the
+disk mapped through the optics: perspective on a tilted target (§2.8.2) and reflection in the bent
+substrate (§1.6.5) bend that map, so the grey-weighted centroid of the spot (§1.5.1) is not the
+image of the marker's centre. The difference — the bias — reaches 0.05-0.1 px on a calibration
+target tilted by 20-40° and several tenths of a pixel on a 40 µm bow (NOTES-rendering.md), far more
+than the photon-noise scatter. This module predicts it from a model, so that calibration and
+reconstruction can iterate: estimate the setup -> predict the bias -> correct the centroids ->
+estimate again.
+
+How the prediction works
+------------------------
+:func:`recon.markers.centroids` measures the first moment of the whole spot (its window includes the
+faint rim), i.e. up to pixel sampling
+
+    c = ∫ x I(x) dx / ∫ I(x) dx,    I(x) = g(M(x)),
+
+where M maps an image point x to the pattern point its (chief) ray reaches. A rendered pixel is the
+box-filtered radiance, and a box filter does not move a first moment. Substituting the pattern point
+y = M(x) as the integration variable, with x = P(y) the inverse map and |det DP| its Jacobian,
+
+    c = ∫_disk P(y) g(y) |det DP(y)| dy / ∫_disk g(y) |det DP(y)| dy,
+
+while the image of the marker's centre is P(y_c). For every marker P is fitted, as a cubic
+polynomial in the pattern coordinates, to the model's forward trace of 7 x 7 image points that cover
+the marker's spot (the model's ``pattern_hits``: camera ray -> target plane, or -> surface ->
+reflection -> pattern plane, all in the float64 numpy model of :mod:`scenes`). The integrals are
+then evaluated exactly for the polynomial integrand by a polar Gauss-Legendre x trapezoid
+quadrature over the marker's disk. No image is rendered, and the prediction has no noise; ~60 rays
+per marker are traced. The model is the pinhole camera; a thin lens's symmetric defocus blur does
+not move a first moment to first order.
+
+The correction to add to a measured centroid is ``center - centroid``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scenes.analytic import AnalyticScene
+from scenes.camera import Camera
+from scenes.errors import ScopetwinError
+from scenes.geometry import Array, intersect_plane
+from scenes.pattern import MarkerPattern
+from scenes.setup import Setup
+from scenes.surface import HeightMap
+
+
+class BiasError(ScopetwinError, ValueError):
+    """A bias prediction that cannot be made (markers the model does not image)."""
+
+
+class Model(Protocol):
+    """What the bias prediction needs: a camera, a pattern, and where camera rays land on the pattern."""
+
+    camera: Camera
+    pattern: MarkerPattern
+
+    def pattern_hits(self, origins: Array, dirs: Array) -> tuple[Array, NDArray[np.bool_]]:
+        """Local pattern (x, y), mm, where rays end, and whether they get there."""
+        ...
+
+
+@dataclass(frozen=True)
+class PlaneTarget:
+    """Camera looking directly at a plane target (a calibration pattern, seed §2.2, §2.8)."""
+
+    camera: Camera
+    pattern: MarkerPattern
+
+    def pattern_hits(self, origins: Array, dirs: Array) -> tuple[Array, NDArray[np.bool_]]:
+        """Local (x, y) where rays meet the target plane; True where they reach its front side."""
+        frame = self.pattern.frame
+        lam = intersect_plane(origins, dirs, frame)
+        ok = ((dirs @ frame.nz) < 0) & np.isfinite(lam) & (lam > 0)
+        local = frame.to_local(origins + np.where(ok, lam, 0.0)[:, None] * dirs)
+        return local[:, :2], ok
+
+
+def model_for_setup(setup: Setup, heights: HeightMap | None = None, camera: Camera | None = None) -> Model:
+    """The numpy ray model of a setup (:class:`scenes.analytic.AnalyticScene`), optionally with another camera.
+
+    Parameters
+    ----------
+    setup : Setup
+        Target, mirror or deflectometry setup.
+    heights : HeightMap, optional
+        Surface (estimate) of the substrate; required for ``deflectometry``.
+    camera : Camera, optional
+        A calibrated camera to use instead of the setup's.
+    """
+    scene = AnalyticScene(setup, heights)
+    if camera is not None:
+        scene.camera = camera
+    return scene
+
+
+@dataclass(frozen=True)
+class SpotPrediction:
+    """Predicted spot centroids and images of marker centres, continuous pixel coordinates (col, row).
+
+    Attributes
+    ----------
+    centroid : ndarray, (n, 2)
+        First moment of each marker's spot.
+    center : ndarray, (n, 2)
+        Image of each marker's centre.
+    fit_rms : ndarray, (n,)
+        RMS residual of the local cubic map fit, px (a check on the prediction).
+    reaches : ndarray of bool, (n,)
+        All traced rays around the marker reached it (False: the spot is not imaged whole in the model).
+    """
+
+    centroid: Array
+    center: Array
+    fit_rms: Array
+    reaches: NDArray[np.bool_]
+
+    @property
+    def correction(self) -> Array:
+        """What to add to a measured centroid to get the image of the marker's centre, px."""
+        return self.center - self.centroid
+
+
+# -- polynomial map ----------------------------------------------------------------------------
+_EXPONENTS = np.array([(a, d - a) for d in range(4) for a in range(d, -1, -1)])  # cubic, 10 terms
+
+
+def _design(q: Array) -> Array:
+    """Monomials q_x^a q_y^b of total degree <= 3, shape (..., 10)."""
+    return q[..., :1] ** _EXPONENTS[:, 0] * q[..., 1:2] ** _EXPONENTS[:, 1]
+
+
+def _design_grad(q: Array) -> tuple[Array, Array]:
+    """Derivatives of the monomials by q_x and q_y, each (..., 10)."""
+    a, b = _EXPONENTS[:, 0], _EXPONENTS[:, 1]
+    qx, qy = q[..., :1], q[..., 1:2]
+    dx = np.where(a > 0, a * qx ** np.maximum(a - 1, 0) * qy**b, 0.0)
+    dy = np.where(b > 0, b * qx**a * qy ** np.maximum(b - 1, 0), 0.0)
+    return dx, dy
+
+
+def _quadrature(n_r: int, n_theta: int) -> tuple[Array, Array]:
+    """Nodes (k, 2) on the unit disk and weights for ∫ f(q) (1 - |q|) dq (polar Gauss-Legendre x trapezoid)."""
+    t, w = np.polynomial.legendre.leggauss(n_r)
+    rho = 0.5 * (t + 1.0)
+    w_r = 0.5 * w * rho * (1.0 - rho)
+    theta = 2.0 * np.pi * np.arange(n_theta) / n_theta
+    nodes = (rho[:, None, None] * np.stack([np.cos(theta), np.sin(theta)], axis=-1)[None]).reshape(-1, 2)
+    weights = (w_r[:, None] * np.full(n_theta, 2.0 * np.pi / n_theta)[None]).ravel()
+    return nodes, weights
+
+
+def _trace(model: Model, px: Array) -> tuple[Array, NDArray[np.bool_]]:
+    o, d = model.camera.rays(px.reshape(-1, 2))
+    xy, ok = model.pattern_hits(o, d)
+    return xy.reshape(px.shape), ok.reshape(px.shape[:-1])
+
+
+def _start(model: Model, ij: NDArray) -> Array:
+    """First guess of the image of marker centres: direct view, or the plane mirror z = 0."""
+    pts = model.pattern.centers(ij)
+    direct = model.camera.project(pts)
+    if isinstance(model, PlaneTarget) or getattr(getattr(model, "setup", None), "scene", "target") == "target":
+        return direct
+    return model.camera.project(pts * np.array([1.0, 1.0, -1.0]))
+
+
+def predict_spots(model: Model, ij: ArrayLike, guess_px: ArrayLike | None = None, n_fit: int = 7,
+                  span: float = 1.15, passes: int = 2, n_r: int = 8, n_theta: int = 24) -> SpotPrediction:
+    """Predict the spot centroid and the image of the centre of markers ``ij`` from a model (module docstring).
+
+    Parameters
+    ----------
+    model : Model
+        Camera + plane target (:class:`PlaneTarget`) or camera + surface + pattern
+        (:func:`model_for_setup`).
+    ij : array_like, (n, 2)
+        Marker indices (DESIGN.md).
+    guess_px : array_like, (n, 2), optional
+        Where the spots are roughly (e.g. the measured centroids); default: the image through a flat
+        mirror z = 0 or the direct view.
+    n_fit : int
+        The local map is fitted to n_fit x n_fit traced points.
+    span : float
+        The fitted points cover ±span marker radii around the centre.
+    passes : int
+        Re-centre the fit on the predicted centre image this often.
+    n_r, n_theta : int
+        Quadrature nodes along the radius and around.
+
+    Raises
+    ------
+    BiasError
+        The model does not image a marker (rays miss the pattern, singular map).
+    """
+    ij = np.asarray(ij, dtype=np.int64).reshape(-1, 2)
+    n = len(ij)
+    pattern = model.pattern
+    c_loc = pattern.centers_local(ij)
+    radius = pattern.radii(ij)
+    x0 = _start(model, ij) if guess_px is None else np.asarray(guess_px, dtype=np.float64).reshape(n, 2).copy()
+    if not np.all(np.isfinite(x0)):
+        raise BiasError("the model does not image every requested marker (no start position)")
+    g = np.linspace(-span, span, n_fit)
+    grid = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)  # unit-radius pattern offsets
+    unit = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    fit_rms = np.zeros(n)
+    reaches = np.zeros(n, dtype=bool)
+    for _ in range(max(1, passes)):
+        # local Jacobian d(pattern)/d(pixel) at x0, to place the fit points over the spot
+        y3, _ = _trace(model, x0[:, None, :] + unit[None])
+        jac = np.stack([y3[:, 1] - y3[:, 0], y3[:, 2] - y3[:, 0]], axis=-1)  # (n, 2 pattern, 2 pixel)
+        det = np.linalg.det(jac)
+        if not np.all(np.isfinite(det)) or np.any(np.abs(det) < 1e-300):
+            raise BiasError("the model's map from pixels to the pattern is singular at a marker")
+        inv = np.linalg.inv(jac)
+        target = c_loc[:, None, :] + radius[:, None, None] * grid[None]
+        px = x0[:, None, :] + np.einsum("npq,nkq->nkp", inv, target - y3[:, None, 0])
+        y, ok = _trace(model, px)
+        q = (y - c_loc[:, None, :]) / radius[:, None, None]
+        reaches = np.all(ok | (np.hypot(q[..., 0], q[..., 1]) > 1.0), axis=1)
+        use = ok | (ok.sum(axis=1, keepdims=True) < 16)  # fit the rays that reach, if there are enough
+        a = _design(q)  # (n, k, 10)
+        aw = a * use[..., None]
+        coef = np.linalg.solve(np.einsum("nkt,nks->nts", aw, a), np.einsum("nkt,nkc->ntc", aw, px))
+        res = np.sum((np.einsum("nkt,ntc->nkc", a, coef) - px) ** 2, axis=-1)
+        fit_rms = np.sqrt(np.sum(res * use, axis=1) / use.sum(axis=1))
+        x0 = coef[:, 0, :].copy()  # P(y_c): the monomial 1 is the only one not vanishing at q = 0
+    if not np.all(np.isfinite(coef)):
+        raise BiasError("the model's map around a marker could not be fitted")
+    nodes, weights = _quadrature(n_r, n_theta)
+    basis = _design(nodes)  # (k, 10)
+    dx, dy = _design_grad(nodes)
+    pos = np.einsum("kt,ntc->nkc", basis, coef)
+    jx = np.einsum("kt,ntc->nkc", dx, coef)  # dP/dq_x, (n, k, 2)
+    jy = np.einsum("kt,ntc->nkc", dy, coef)
+    jdet = np.abs(jx[..., 0] * jy[..., 1] - jx[..., 1] * jy[..., 0])
+    wk = weights[None] * jdet
+    centroid = np.einsum("nk,nkc->nc", wk, pos) / wk.sum(axis=1, keepdims=True)
+    return SpotPrediction(centroid=centroid, center=coef[:, 0, :].copy(), fit_rms=fit_rms, reaches=reaches)
+
+
+def correct_centroids(centroids: ArrayLike, ij: ArrayLike, model: Model, **kwargs) -> tuple[Array, SpotPrediction]:
+    """Bias-corrected centroids: measured + (predicted centre image - predicted centroid).
+
+    Parameters
+    ----------
+    centroids : array_like, (n, 2)
+        Measured centroids (:func:`recon.markers.centroids`, whole-spot first moments).
+    ij : array_like, (n, 2)
+        Their marker indices.
+    model : Model
+        Current estimate of the setup.
+    **kwargs
+        Passed to :func:`predict_spots`.
+    """
+    c = np.asarray(centroids, dtype=np.float64).reshape(-1, 2)
+    pred = predict_spots(model, ij, guess_px=c, **kwargs)
+    return c + pred.correction, pred

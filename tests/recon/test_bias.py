@@ -1,0 +1,91 @@
+"""Bias correction (recon.bias): predicted spot centroids against analytic renders with known truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from recon.bias import BiasError, PlaneTarget, correct_centroids, model_for_setup, predict_spots
+from recon.markers import centroids
+from scenes.analytic import render
+from scenes.setup import Setup, load_setup
+from scenes.surface import HeightMap
+from sim.surfaces import surface_for
+from sim.truth import marker_truth
+
+
+def target_at(alpha_deg: float) -> Setup:
+    """§2.8.1 target seen from alpha above its plane, 233.24 mm from its centre (the §2.8.2 angle scan)."""
+    a = np.radians(alpha_deg)
+    s, c = float(np.sin(a)), float(np.cos(a))
+    cam = {"origin": [0.0, -233.24 * c, 233.24 * s], "t_x": [1.0, 0.0, 0.0], "t_y": [0.0, s, c], "n_z": [0.0, -c, s]}
+    return load_setup("thesis-2.8.1-perpendicular", {"camera": cam})
+
+
+def window_centroids(setup: Setup, heights, centre_px: np.ndarray, half: int, spp: int = 64) -> np.ndarray:
+    """Whole-spot centroids measured on analytic renders of windows around the given positions."""
+    out = []
+    for k, (c, r) in enumerate(centre_px):
+        r0, c0 = int(r) - half, int(c) - half
+        img = render(setup, heights, spp=spp, seed=k, window=(r0, r0 + 2 * half, c0, c0 + 2 * half))
+        sp = centroids(img, background=0.0)
+        best = np.argmax(sp.mass)
+        out.append(sp.centroids[best] + [c0, r0])
+    return np.array(out)
+
+
+def test_tilted_target_perspective_bias_is_removed():
+    setup = target_at(30.0)
+    truth = marker_truth(setup)
+    pick = np.array([0, 10, 49, 88, 98])  # corners and centre of the 11 x 9 target
+    ij, centre = truth.ij[pick], truth.center_px[pick]
+    raw = window_centroids(setup, None, centre, half=46)
+    corrected, pred = correct_centroids(raw, ij, PlaneTarget(setup.camera_model, setup.marker_pattern))
+    raw_err = np.linalg.norm(raw - centre, axis=1)
+    cor_err = np.linalg.norm(corrected - centre, axis=1)
+    assert raw_err.max() > 0.03  # perspective moves the centroid by several hundredths of a pixel
+    assert cor_err.max() < 0.003
+    np.testing.assert_allclose(pred.center, centre, atol=1e-6)
+    assert pred.reaches.all() and pred.fit_rms.max() < 1e-4
+
+
+def test_plane_target_and_setup_model_agree():
+    setup = target_at(50.0)
+    ij = np.array([[0, 0], [5, 4], [10, 8]])
+    a = predict_spots(PlaneTarget(setup.camera_model, setup.marker_pattern), ij)
+    b = predict_spots(model_for_setup(setup), ij)
+    np.testing.assert_allclose(a.centroid, b.centroid, atol=1e-9)
+    np.testing.assert_allclose(a.center, setup.camera_model.project(setup.marker_pattern.centers(ij)), atol=1e-7)
+
+
+def test_flat_mirror_has_no_bias_beyond_perspective():
+    setup = load_setup("thesis-1.10-deflectometry")
+    flat = HeightMap(np.zeros((8, 8)), -12.6, 12.6, -28.5, 28.5)
+    ij = np.array([[0, 0], [-5, 3], [6, -4]])
+    pred = predict_spots(model_for_setup(setup, flat), ij)
+    mirrored = setup.marker_pattern.centers(ij) * [1.0, 1.0, -1.0]
+    np.testing.assert_allclose(pred.center, setup.camera_model.project(mirrored), atol=1e-6)
+
+
+def test_bowed_substrate_bias_is_removed():
+    # a strongly bowed substrate (200 µm) makes the reflected spots' bias large
+    setup = load_setup("thesis-1.10-deflectometry", {"substrate": {"surface": {"range_um": 200.0, "seed": 4}}})
+    heights = surface_for(setup)
+    truth = marker_truth(setup, heights)
+    model = model_for_setup(setup, heights)
+    vis = np.flatnonzero(truth.visible)
+    pred = predict_spots(model, truth.ij[vis])
+    pick = vis[np.argsort(-np.linalg.norm(pred.correction, axis=1))[:4]]
+    centre = truth.center_px[pick]
+    raw = window_centroids(setup, heights, centre, half=16)
+    corrected, _ = correct_centroids(raw, truth.ij[pick], model)
+    raw_err = np.linalg.norm(raw - centre, axis=1)
+    cor_err = np.linalg.norm(corrected - centre, axis=1)
+    assert raw_err.max() > 0.02
+    assert cor_err.max() < 0.004
+
+
+def test_markers_the_model_cannot_image_are_an_error():
+    setup = target_at(90.0)
+    with pytest.raises(BiasError):
+        predict_spots(PlaneTarget(setup.camera_model, setup.marker_pattern), [[0, 0]], guess_px=[[np.nan, 1.0]])
