@@ -27,6 +27,9 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     """Add ``optics`` (with ``grin`` and ``scan``) to ``subparsers``; returns the ``optics`` parser."""
     optics = subparsers.add_parser("optics", help="GRIN objectives, spot diagrams, target images, scan-time models")
     sub = optics.add_subparsers(dest="optics_command", required=True)
+    from sim.cmu_cli import register_cmu
+
+    register_cmu(sub)
     g = sub.add_parser("grin", help="analyse/render a GRIN objective preset (seed §7.5.2, §8.3)")
     g.add_argument("preset", help="preset name (thesis-8.3.2-grin-realized, ...) or TOML path")
     g.add_argument("--json", type=Path, help="write the results as JSON")

@@ -1,0 +1,12 @@
+"""The compact four-channel fluorescence microscope unit (seed ch. 3-5), numpy float64 world model.
+
+Spectra of fluorophores, light sources, filters and dichroics (:mod:`~scenes.cmu.spectra`), the unit's layout as
+a setup (:mod:`~scenes.cmu.layout`, preset ``thesis-cmu``), bowed beam-splitter plates
+(:mod:`~scenes.cmu.plates`), the sequential tracer with perfect lenses (:mod:`~scenes.cmu.trace`), analyses
+(refocus, magnification, spots, astigmatism, wavefront PSF/MTF, the 4 mm stop; :mod:`~scenes.cmu.analysis`) and
+the test objects (:mod:`~scenes.cmu.targets`). The Mitsuba (spectral) realisation is :mod:`scenes.mitsuba.cmu`.
+"""
+
+from scenes.cmu.layout import CmuSetup, load_cmu_setup
+
+__all__ = ["CmuSetup", "load_cmu_setup"]

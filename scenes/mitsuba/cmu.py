@@ -1,0 +1,414 @@
+"""The compact microscope unit in Mitsuba's spectral variant (seed ch. 4-5): plugins and channel images.
+
+Plugins (registered idempotently by :func:`register`):
+
+* BSDF ``scopetwin_ideal_lens`` on a ``disk``: the perfect lens of :mod:`scenes.cmu.trace` (slopes
+  s' = s - (x, y)/f in the lens frame), delta transmission, weight 1 - the objective (f = 16.45 mm) and the
+  tube lenses (f = 164.5 mm) of §5.1.2.
+* BSDF ``scopetwin_bowed_plate`` on a ``rectangle``: a 25.5 x 36 x 1 mm splitter (or mirror) whose coated face
+  carries a height map. The normal is perturbed by the map's gradient (bilinear in a table of the bicubic
+  map's exact gradients); at each hit the BSDF picks reflection or transmission with probability proportional
+  to the lane-mean R(lambda), T(lambda) of the dichroic (``NNNDCXR``, ``61002BS``) or mirror, and weights each
+  of the four wavelengths by R/p or T/(1-p) - the dichroic works physically, per wavelength. In transmission
+  the direction is kept (a plate of uniform thickness in collimated light: its deviation is < 1e-5 rad, its
+  0.33 mm lateral shift moves the beam, not the image; the numpy tracer models both faces exactly).
+
+Rendering (:func:`render_channel`): rays start on the camera's sensor (pixel area x tube-lens disk, weight
+A cos^2/d^2: irradiance), carry four wavelengths drawn from the channel's fixed detection response (band pass,
+mirror, camera QE) times the object's spectrum, and are traced backwards through the whole unit with
+``scene.ray_intersect`` and the BSDFs above until they reach the object plane, where the test object
+(Siemens star backlit by a halogen lamp, or fluorescent dummy cells) is evaluated. A pixel is the mean over
+its samples: the monochrome camera's electrons per unit exposure (relative).
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+from dataclasses import dataclass
+from types import SimpleNamespace
+from typing import Any, Literal
+
+import numpy as np
+
+from scenes.cmu import spectra
+from scenes.cmu.analysis import channel_optics, image_rays, pupil_grid
+from scenes.cmu.layout import CmuSetup
+from scenes.cmu.plates import plate_heightmap
+from scenes.cmu.targets import dummy_cells, siemens_star
+from scenes.cmu.trace import axis_frame
+from scenes.errors import ScopetwinError
+from scenes.mitsuba.variant import use
+from scenes.surface import HeightMap
+
+mi = use("spectral")
+import drjit as dr  # noqa: E402  (after the variant is set)
+
+DR = SimpleNamespace(sqrt=dr.sqrt, atan2=dr.atan2, sin=dr.sin, where=dr.select, abs=dr.abs, maximum=dr.maximum)
+_TABLES: dict[str, dict[str, Any]] = {}
+_counter = itertools.count()
+_lock = threading.Lock()
+_registered: set[str] = set()
+#: Spectral tables are sampled at 1 nm from WL0_NM.
+WL0_NM, WL1_NM = 300.0, 1000.0
+
+
+def _vec(props: mi.Properties, prefix: str) -> mi.ScalarVector3f:
+    return mi.ScalarVector3f(*[props.get(f"{prefix}_{c}", 0.0) for c in "xyz"])
+
+
+def _lookup(table: Any, wl: Any) -> Any:
+    """Linear interpolation of a 1 nm table (from WL0_NM) at wavelengths ``wl``."""
+    t = dr.clip(wl - WL0_NM, 0.0, WL1_NM - WL0_NM - 1.001)
+    i = mi.UInt32(dr.floor(t))
+    w = t - dr.floor(t)
+    return dr.gather(mi.Float, table, i) * (1.0 - w) + dr.gather(mi.Float, table, i + 1) * w
+
+
+def _lookup_spectrum(table: Any, wavelengths: Any) -> Any:
+    """:func:`_lookup` for each of the four wavelengths of a spectral sample."""
+    return mi.Spectrum(*[_lookup(table, wavelengths[k]) for k in range(4)])
+
+
+def _delta_sample(si: Any, wo_world: Any, flag: Any) -> Any:
+    bs = dr.zeros(mi.BSDFSample3f)
+    bs.wo = si.to_local(wo_world)
+    bs.pdf = mi.Float(1.0)
+    bs.eta = mi.Float(1.0)
+    bs.sampled_type = mi.UInt32(+flag)
+    bs.sampled_component = mi.UInt32(0)
+    return bs
+
+
+class IdealLens(mi.BSDF):
+    """BSDF ``scopetwin_ideal_lens``: properties ``f`` (mm) and the lens frame ``c_*``, ``tx_*``, ``ty_*``, ``nz_*``."""
+
+    def __init__(self, props: mi.Properties) -> None:
+        super().__init__(props)
+        self.f = props.get("f", 100.0)
+        self.c, self.tx, self.ty, self.nz = (_vec(props, k) for k in ("c", "tx", "ty", "nz"))
+        self.m_flags = mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
+        self.m_components = [self.m_flags]
+
+    def sample(self, ctx: Any, si: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any]:
+        d = -si.to_world(si.wi)
+        q = si.p - mi.Point3f(self.c)
+        x, y = dr.dot(q, mi.Vector3f(self.tx)), dr.dot(q, mi.Vector3f(self.ty))
+        dz = dr.dot(d, mi.Vector3f(self.nz))
+        az = dr.maximum(dr.abs(dz), 1e-12)
+        sx = dr.dot(d, mi.Vector3f(self.tx)) / az - x / self.f
+        sy = dr.dot(d, mi.Vector3f(self.ty)) / az - y / self.f
+        out = dr.normalize(sx * mi.Vector3f(self.tx) + sy * mi.Vector3f(self.ty) + dr.sign(dz) * mi.Vector3f(self.nz))
+        return _delta_sample(si, out, mi.BSDFFlags.DeltaTransmission), mi.Spectrum(1.0)
+
+    def eval(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
+        return mi.Spectrum(0.0)
+
+    def pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
+        return mi.Float(0.0)
+
+    def eval_pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> tuple[Any, Any]:
+        return mi.Spectrum(0.0), mi.Float(0.0)
+
+    def to_string(self) -> str:
+        return f"IdealLens[f={self.f}]"
+
+
+class BowedPlate(mi.BSDF):
+    """BSDF ``scopetwin_bowed_plate``: property ``key`` names the tables registered by :func:`plate_tables`."""
+
+    def __init__(self, props: mi.Properties) -> None:
+        super().__init__(props)
+        self.key = props.get("key", "")
+        t = _TABLES[self.key]
+        self.c, self.tx, self.ty, self.nz = (mi.ScalarVector3f(*t[k]) for k in ("c", "tx", "ty", "nz"))
+        self.x0, self.y0, self.dx, self.dy = t["x0"], t["y0"], t["dx"], t["dy"]
+        self.nx, self.ny = t["nx"], t["ny"]
+        self.hx, self.hy = mi.Float(t["hx"].ravel()), mi.Float(t["hy"].ravel())
+        self.refl, self.trans = mi.Float(t["R"]), mi.Float(t["T"])
+        self.m_flags = mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide \
+            | mi.BSDFFlags.BackSide
+        self.m_components = [mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide,
+                             mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide]
+
+    def _gradient(self, x: Any, y: Any) -> tuple[Any, Any]:
+        fx = dr.clip((x - self.x0) / self.dx, 0.0, self.nx - 1.001)
+        fy = dr.clip((y - self.y0) / self.dy, 0.0, self.ny - 1.001)
+        ix, iy = mi.UInt32(dr.floor(fx)), mi.UInt32(dr.floor(fy))
+        wx, wy = fx - dr.floor(fx), fy - dr.floor(fy)
+        i00 = iy * self.nx + ix
+        out = []
+        for tab in (self.hx, self.hy):
+            a = dr.gather(mi.Float, tab, i00) * (1 - wx) + dr.gather(mi.Float, tab, i00 + 1) * wx
+            b = dr.gather(mi.Float, tab, i00 + self.nx) * (1 - wx) + dr.gather(mi.Float, tab, i00 + self.nx + 1) * wx
+            out.append(a * (1 - wy) + b * wy)
+        return out[0], out[1]
+
+    def sample(self, ctx: Any, si: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any]:
+        d = -si.to_world(si.wi)
+        tx, ty, nz = mi.Vector3f(self.tx), mi.Vector3f(self.ty), mi.Vector3f(self.nz)
+        q = si.p - mi.Point3f(self.c)
+        hx, hy = self._gradient(dr.dot(q, tx), dr.dot(q, ty))
+        n = dr.normalize(nz - hx * tx - hy * ty)
+        r = _lookup_spectrum(self.refl, si.wavelengths)
+        t = _lookup_spectrum(self.trans, si.wavelengths)
+        rm, tm = dr.mean(r), dr.mean(t)
+        p = rm / dr.maximum(rm + tm, 1e-12)
+        reflect = sample1 < p
+        d_r = d - 2.0 * dr.dot(d, n) * n
+        wo = dr.select(reflect, d_r, d)
+        flag = dr.select(reflect, mi.UInt32(+mi.BSDFFlags.DeltaReflection), mi.UInt32(+mi.BSDFFlags.DeltaTransmission))
+        bs = _delta_sample(si, wo, mi.BSDFFlags.DeltaReflection)
+        bs.sampled_type = flag
+        bs.sampled_component = dr.select(reflect, mi.UInt32(0), mi.UInt32(1))
+        w = dr.select(reflect, r / dr.maximum(p, 1e-12), t / dr.maximum(1.0 - p, 1e-12))
+        return bs, w
+
+    def eval(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
+        return mi.Spectrum(0.0)
+
+    def pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
+        return mi.Float(0.0)
+
+    def eval_pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> tuple[Any, Any]:
+        return mi.Spectrum(0.0), mi.Float(0.0)
+
+    def to_string(self) -> str:
+        return f"BowedPlate[{self.key}]"
+
+
+def register() -> None:
+    """Register the BSDFs ``scopetwin_ideal_lens`` and ``scopetwin_bowed_plate`` (idempotent per thread/variant)."""
+    key = f"{mi.variant()}:{threading.get_ident()}"
+    with _lock:
+        if key in _registered:
+            return
+        mi.register_bsdf("scopetwin_ideal_lens", lambda props: IdealLens(props))
+        mi.register_bsdf("scopetwin_bowed_plate", lambda props: BowedPlate(props))
+        _registered.add(key)
+
+
+# -- the scene ----------------------------------------------------------------------------------------------
+def _grid_1nm(curve_on_grid: np.ndarray) -> np.ndarray:
+    wl = np.arange(WL0_NM, WL1_NM + 0.5, 1.0)
+    return np.interp(wl, spectra.GRID_NM, curve_on_grid)
+
+
+def plate_tables(name: str, frame: Any, hm: HeightMap | None, setup: CmuSetup, is_mirror: bool,
+                 node_mm: float = 0.1) -> str:
+    """Register the gradient and R/T tables of one plate; returns the key for ``scopetwin_bowed_plate``."""
+    pw, ph = 0.5 * setup.plate.width, 0.5 * setup.plate.height
+    xs = np.arange(-pw, pw + 1e-9, node_mm)
+    ys = np.arange(-ph, ph + 1e-9, node_mm)
+    xx, yy = np.meshgrid(xs, ys)
+    if hm is None:
+        hx = hy = np.zeros_like(xx)
+    else:
+        hx, hy = hm.gradient(xx, yy)
+    if is_mirror:
+        r = np.full(spectra.GRID_NM.shape, spectra.MIRROR_REFLECTANCE)
+        t = np.zeros_like(r)
+    else:
+        r, t = spectra.dichroic(name, "R"), spectra.dichroic(name, "T")
+    key = f"plate-{name}-{next(_counter)}"
+    _TABLES[key] = {"c": tuple(frame.origin), "tx": tuple(frame.tx), "ty": tuple(frame.ty), "nz": tuple(frame.nz),
+                    "x0": float(xs[0]), "y0": float(ys[0]), "dx": node_mm, "dy": node_mm, "nx": len(xs),
+                    "ny": len(ys), "hx": hx.astype(np.float32), "hy": hy.astype(np.float32),
+                    "R": _grid_1nm(r).astype(np.float32), "T": _grid_1nm(t).astype(np.float32)}
+    return key
+
+
+def _lens_dict(frame: Any, f: float, radius: float) -> dict[str, Any]:
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = frame.tx * radius, frame.ty * radius, frame.nz, frame.origin
+    props = {"type": "scopetwin_ideal_lens", "f": f}
+    for k, v in (("c", frame.origin), ("tx", frame.tx), ("ty", frame.ty), ("nz", frame.nz)):
+        props |= {f"{k}_x": float(v[0]), f"{k}_y": float(v[1]), f"{k}_z": float(v[2])}
+    return {"type": "disk", "to_world": mi.ScalarTransform4f(m.tolist()), "bsdf": props}
+
+
+def unit_scene(setup: CmuSetup, maps: dict[str, HeightMap] | None = None, tube_f: float | None = None,
+               flat: bool = False) -> tuple[Any, int]:
+    """Mitsuba scene of the whole unit: objective, splitters, mirrors, four tube lenses, object plane.
+
+    Returns (scene, shape id of the object plane).
+    """
+    register()
+    f_o = setup.objective.focal_length
+    T = mi.ScalarTransform4f
+    scene: dict[str, Any] = {"type": "scene"}
+    scene["objective"] = _lens_dict(axis_frame(np.array([0, 0, f_o]), np.array([0, 0, 1.0])), f_o,
+                                    0.5 * setup.objective.beam_diameter)
+    for group, is_mirror in ((setup.splitters, False), (setup.mirrors, True)):
+        for name, spec in group.items():
+            fr = spec.frame()
+            hm = None if flat else (maps or {}).get(name) or plate_heightmap(spec, setup.plate)
+            key = plate_tables(name, fr, hm, setup, is_mirror)
+            m = np.eye(4)
+            m[:3, 0], m[:3, 1] = fr.tx * 0.5 * setup.plate.width, fr.ty * 0.5 * setup.plate.height
+            m[:3, 2], m[:3, 3] = fr.nz, fr.origin
+            scene[f"plate_{name}"] = {"type": "rectangle", "to_world": T(m.tolist()),
+                                      "bsdf": {"type": "scopetwin_bowed_plate", "key": key}}
+    for cname, ch in setup.channels.items():
+        fr = axis_frame(np.asarray(ch.tube_center, dtype=np.float64), np.asarray(ch.tube_axis, dtype=np.float64))
+        scene[f"tube_{cname}"] = _lens_dict(fr, tube_f or setup.tube.focal_length, 12.5)
+    scene["object"] = {"type": "rectangle", "to_world": T().scale([5.0, 5.0, 1.0]), "bsdf": {"type": "diffuse"}}
+    sc = mi.load_dict(scene)
+    ids = np.asarray(dr.reinterpret_array(mi.UInt32, sc.shapes_dr()), dtype=np.int64)
+    obj_id = [int(i) for i, s in zip(ids, sc.shapes(), strict=True) if s.id() == "object"][0]
+    return sc, obj_id
+
+
+# -- the camera ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CameraPose:
+    """Where a channel's camera sits: image distance b behind the tube lens, in-plane tilt and offset.
+
+    The sensor's axes are the images of the object's +x (columns) and +y (rows up) through the perfect channel,
+    so an untilted camera shows the object upright. ``tilt_deg``: the sensor is turned so that the image content
+    appears rotated by +tilt (counter-clockwise as displayed, row 0 at the top); ``offset_px`` (col, row): the
+    content appears shifted by +offset. These are what :mod:`calib.channels` measures.
+    """
+
+    image_distance: float
+    tilt_deg: float = 0.0
+    offset_px: tuple[float, float] = (0.0, 0.0)
+
+
+def sensor_axes(setup: CmuSetup, channel: str) -> tuple[np.ndarray, np.ndarray]:
+    """Unit 2-vectors (tube-lens frame) of the images of object +x and +y in the flat channel."""
+    opt = channel_optics(setup, channel, flat=True)
+    px, py = pupil_grid(5)
+    out = []
+    for x0, y0 in ((0.1, 0.0), (0.0, 0.1)):
+        r = image_rays(opt, x0, y0, px, py)
+        u, v = r.at(opt.tube.f)
+        r0 = image_rays(opt, 0.0, 0.0, px, py)
+        u0, v0 = r0.at(opt.tube.f)
+        e = np.array([u.mean() - u0.mean(), v.mean() - v0.mean()])
+        out.append(e / np.linalg.norm(e))
+    return out[0], out[1]
+
+
+Target = Literal["star", "cells"]
+
+
+def _wavelength_table(setup: CmuSetup, channel: str, target: Target) -> tuple[np.ndarray, float]:
+    """Sampling density (1 nm grid) of detection response x object spectrum, and its integral."""
+    det = spectra.detection_response(channel, include_splitters=False)
+    if target == "star":
+        src = spectra.planck(spectra.GRID_NM, 3100.0)
+    else:
+        src = spectra.fluorophore(spectra.CHANNEL_FLUOROPHORE[channel]).emission(spectra.GRID_NM)
+    pdf = _grid_1nm(det * src)
+    return pdf, float(pdf.sum())
+
+
+def render_channel(setup: CmuSetup, channel: str, pose: CameraPose, target: Target = "star", spp: int = 16,
+                   window: tuple[int, int, int, int] | None = None, maps: dict[str, HeightMap] | None = None,
+                   tube_f: float | None = None, stop: bool = False, seed: int = 0, flat: bool = False,
+                   max_rays: int = 4_000_000, scene: tuple[Any, int] | None = None) -> np.ndarray:
+    """Image (float32, row 0 at the top) of the Siemens star or the dummy cells through one channel.
+
+    Parameters
+    ----------
+    window : (row0, col0, height, width), optional
+        Render only this part of the 1392 x 1040 sensor (pixel coordinates stay those of the full sensor).
+    tube_f : float, optional
+        Tube-lens focal length (default the setup's): a known magnification f_tube / f_objective.
+    stop : bool
+        The 4 mm aperture in front of the tube lens (§5.1.2).
+    scene : optional
+        A scene from :func:`unit_scene` to reuse.
+    """
+    if channel not in setup.channels:
+        raise ScopetwinError(f"unknown channel {channel!r} (channels: {', '.join(setup.channels)})")
+    if spp < 1:
+        raise ScopetwinError(f"spp must be >= 1, got {spp}")
+    cam = setup.camera
+    row0, col0, hgt, wid = window or (0, 0, cam.height_px, cam.width_px)
+    sc, obj_id = scene or unit_scene(setup, maps, tube_f, flat)
+    ch = setup.channels[channel]
+    lens = axis_frame(np.asarray(ch.tube_center, dtype=np.float64), np.asarray(ch.tube_axis, dtype=np.float64))
+    L0, LX, LY, LZ = (mi.ScalarVector3f(*[float(c) for c in v]) for v in (lens.origin, lens.tx, lens.ty, lens.nz))
+    ex, ey = sensor_axes(setup, channel)
+    ang = np.deg2rad(pose.tilt_deg)
+    p_mm = cam.pixel_um * 1e-3
+    pdf, norm = _wavelength_table(setup, channel, target)
+    dist = mi.ContinuousDistribution([WL0_NM, WL1_NM], pdf[:-1] + 1e-30)
+    star_spec = setup.target
+    if target == "cells":
+        tex, tx0, ty0 = dummy_cells(setup.cells, setup.field_mm)
+        tex_dr = mi.Float(tex.ravel())
+        tex_shape = tex.shape
+    lens_r = (0.5 * setup.tube.stop_diameter) if stop else 12.5
+    stop_c = lens.origin - setup.tube.stop_gap * lens.nz
+    n_pix = hgt * wid
+    per_pass = max(1, min(spp, max_rays // max(n_pix, 1)))
+    acc = np.zeros(n_pix, dtype=np.float64)
+    done = 0
+    pass_index = 0
+    while done < spp:
+        k = min(per_pass, spp - done)
+        n = n_pix * k
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed(seed * 100003 + pass_index, n)
+        idx = dr.arange(mi.UInt32, n) // k
+        row = mi.Float(idx // wid) + row0
+        col = mi.Float(idx % wid) + col0
+        s_pix = sampler.next_2d()
+        # pixel centre-relative sensor coordinates (cols along ex, rows against ey), then tilt and offset
+        a = (col + s_pix.x - 0.5 * cam.width_px - pose.offset_px[0]) * p_mm
+        b = (0.5 * cam.height_px - (row + s_pix.y) + pose.offset_px[1]) * p_mm
+        ca, sa = float(np.cos(-ang)), float(np.sin(-ang))
+        a, b = ca * a - sa * b, sa * a + ca * b
+        u = a * float(ex[0]) + b * float(ey[0])
+        v = a * float(ex[1]) + b * float(ey[1])
+        o_img = mi.Point3f(L0) + u * mi.Vector3f(LX) + v * mi.Vector3f(LY) + pose.image_distance * mi.Vector3f(LZ)
+        s_lens = sampler.next_2d()
+        rr = lens_r * dr.sqrt(s_lens.x)
+        phi = 2.0 * dr.pi * s_lens.y
+        p_lens = mi.Point3f(L0) + rr * dr.cos(phi) * mi.Vector3f(LX) + rr * dr.sin(phi) * mi.Vector3f(LY)
+        d = p_lens - o_img
+        d2 = dr.squared_norm(d)
+        d = d * dr.rsqrt(d2)
+        cosz = dr.abs(dr.dot(d, mi.Vector3f(LZ)))
+        weight = dr.pi * lens_r * lens_r * cosz * cosz / d2
+        u_wl = sampler.next_1d()
+        lanes = [dist.sample(u_wl + q / 4.0 - dr.floor(u_wl + q / 4.0)) for q in range(4)]
+        wl = mi.UnpolarizedSpectrum(*lanes)
+        ray = mi.Ray3f(o_img, d, 0.0, wl)
+        thr = mi.Spectrum(weight)
+        alive = mi.Bool(True)
+        value = mi.Float(0.0)
+        ctx = mi.BSDFContext()
+        for depth in range(12):
+            si = sc.ray_intersect(ray, alive)
+            alive &= si.is_valid()
+            sid = dr.reinterpret_array(mi.UInt32, si.shape)
+            is_obj = alive & (sid == obj_id)
+            if target == "star":
+                tval = siemens_star(si.p.x, si.p.y, star_spec, DR)
+            else:
+                fx = dr.clip((si.p.x - tx0) / 0.5e-3, 0, tex_shape[1] - 1)
+                fy = dr.clip((si.p.y - ty0) / 0.5e-3, 0, tex_shape[0] - 1)
+                tval = dr.gather(mi.Float, tex_dr, mi.UInt32(fy) * tex_shape[1] + mi.UInt32(fx), is_obj)
+            value += dr.select(is_obj, dr.mean(thr) * tval, 0.0)
+            alive &= ~is_obj
+            bsdf = si.bsdf(ray)
+            bs, w = bsdf.sample(ctx, si, sampler.next_1d(alive), sampler.next_2d(alive), alive)
+            wo = si.to_world(bs.wo)
+            if depth == 0 and stop:
+                sc_v = mi.ScalarVector3f(*[float(c) for c in stop_c])
+                t_s = dr.dot(mi.Vector3f(sc_v) - si.p, mi.Vector3f(LZ)) / dr.dot(wo, mi.Vector3f(LZ))
+                ps = si.p + t_s * wo - mi.Point3f(sc_v)
+                alive &= dr.squared_norm(ps) <= (0.5 * setup.tube.stop_diameter) ** 2
+            thr = thr * w
+            alive &= dr.mean(w) > 0
+            ray = mi.Ray3f(si.p + 1e-4 * wo, wo, 0.0, wl)
+        vals = np.asarray(value, dtype=np.float64)
+        acc += np.bincount(np.asarray(idx, dtype=np.int64), vals, minlength=n_pix)
+        done += k
+        pass_index += 1
+    img = (acc / spp * norm).reshape(hgt, wid)
+    return img.astype(np.float32)
