@@ -8,7 +8,6 @@ partial output behind.
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import sys
 import tempfile
@@ -160,44 +159,26 @@ def cmd_presets(args: argparse.Namespace) -> dict[str, Any]:
     return {"presets": info}
 
 
-RUN_SETUPS = (
-    ("deflectometry", "thesis-1.10-deflectometry"),
-    ("calib-substrate", "thesis-2.8.3-substrate"),
-    ("calib-mirror", "thesis-2.8.3-mirror"),
-)
-
-
 def cmd_run(args: argparse.Namespace) -> dict[str, Any]:
-    """The main job on the embedded default: render the §1.10 measurement and both calibration scenes with truth."""
-    from tqdm import tqdm
+    """The main job on the embedded default (issue 5): simulate, render, calibrate, reconstruct, compare.
+
+    Generates a §1.9 surface, renders the two calibration images and the measurement image (noise on)
+    with Mitsuba, calibrates the setup, reconstructs with the calibrated and with the ideal setup,
+    compares with the truth and writes a report folder (report.md, EXR maps, PNG plots). The folder
+    appears only when everything succeeded.
+    """
+    from sim.pipeline import run_pipeline
 
     out = Path(args.out)
-    loaded = [(tag, *_load(name, None, args.spp, args.seed, None)) for tag, name in RUN_SETUPS]
     stage = StagedOutput(out)
-    rows = []
     try:
-        for tag, setup, heights in tqdm(loaded, desc="scopetwin run", unit="scene", disable=args.quiet):
-            image, seconds = render_measurement(setup, heights, setup.render.spp, setup.render.seed,
-                                                setup.render.noise)
-            names = write_measurement(stage, f"{tag}-", setup, heights, image, setup.render.spp,
-                                      setup.render.seed, "mitsuba")
-            truth = json.loads(stage.path(names["truth"]).read_text())
-            visible = sum(m["visible"] for m in truth["markers"])
-            rows.append({"scene": tag, "setup": setup.name, "section": setup.section, "seconds": seconds,
-                         "markers_visible": visible, "markers_total": len(truth["markers"]), **names})
-        lines = ["# scopetwin run", "", "Rendered scenes with their ground truth (Mitsuba, box-filtered pixels).", "",
-                 "| scene | setup | seed section | render s | markers imaged whole | image | truth |",
-                 "|---|---|---|---|---|---|---|"]
-        for r in rows:
-            lines.append(f"| {r['scene']} | {r['setup']} | {r['section']} | {r['seconds']:.2f} | "
-                         f"{r['markers_visible']} / {r['markers_total']} | {r['image']} | {r['truth']} |")
-        (stage.path("report.md")).write_text("\n".join(lines) + "\n")
+        summary = run_pipeline(stage.stage, args.spp, args.seed, progress=not args.quiet)
         stage.commit()
     except BaseException:
         stage.discard()
         raise
-    print(f"wrote {len(rows)} scenes and report.md to {out}")
-    return {"report": str(out / "report.md"), "scenes": rows}
+    print(f"wrote the report to {out / 'report.md'}")
+    return {"report": str(out / "report.md"), **summary}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -223,7 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add("presets", cmd_presets, "list the setup presets")
 
-    p = add("run", cmd_run, "the main job on the embedded default (renders the §1.10 measurement and calibrations)")
+    p = add("run", cmd_run, "the main job on the embedded default: simulate, render, calibrate, reconstruct, compare")
     p.add_argument("--out", default="scopetwin-run", help="report folder (default: scopetwin-run)")
     p.add_argument("--spp", type=int, help="samples per pixel")
     p.add_argument("--seed", type=int, help="random seed")
@@ -232,9 +213,11 @@ def build_parser() -> argparse.ArgumentParser:
     from calib.cli import register as register_calib
     from instrument.cli import register as register_rig
     from recon.markers_cli import register as register_markers
+    from recon.reconstruct_cli import register as register_reconstruct
     from sim import optics_cli
 
     register_markers(sub)
+    register_reconstruct(sub)
     register_calib(sub)
     optics_cli.register(sub)
     register_rig(sub)

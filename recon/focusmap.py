@@ -1,0 +1,168 @@
+"""Focus maps: from the reconstructed substrate heights to piezo focus positions per stage position.
+
+This is why Part I exists (seed §1.1): the bent cover glass deforms by 50-100 times the
+depth of field, so without a map the microscope must search the focus at every position.
+With the height map h(x, y) of the substrate (seed §1.4), every field of view of the
+microscope gets its focus position in advance: focus = reference + sign * (h(x, y) - h_ref).
+
+Depth of field of the objective (the usual wave-optical plus detector term):
+
+    DOF = lambda * n / NA^2 + n * e / (M * NA)
+
+with wavelength lambda, immersion index n, numerical aperture NA, lateral magnification M and
+camera pixel pitch e. Defaults: the seed's microscope objective (§4, 10x, NA 0.45, air), green
+emission (520 nm), the MIPOS500 piezo drive's 0-400 µm range; the pixel pitch (6.45 µm) is an
+assumption, not a figure from the seed.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from dataclasses import dataclass
+
+import numpy as np
+
+from scenes.errors import ScopetwinError
+from scenes.geometry import Array
+
+
+class FocusMapError(ScopetwinError, ValueError):
+    """A focus map that cannot be made (empty ROI, focus outside the drive's range)."""
+
+
+@dataclass(frozen=True)
+class Objective:
+    """Microscope objective and camera for the depth of field (defaults: seed §4, 10x / NA 0.45)."""
+
+    magnification: float = 10.0
+    na: float = 0.45
+    wavelength_nm: float = 520.0
+    immersion_index: float = 1.0
+    pixel_pitch_um: float = 6.45
+    sensor_px: tuple[int, int] = (1392, 1040)
+
+    def __post_init__(self) -> None:
+        if not (self.magnification > 0 and 0 < self.na < self.immersion_index and self.wavelength_nm > 0
+                and self.pixel_pitch_um > 0):
+            raise FocusMapError("objective needs magnification > 0, 0 < NA < n, wavelength > 0 and pixel pitch > 0")
+
+    @property
+    def depth_of_field_um(self) -> float:
+        """DOF = lambda n / NA^2 + n e / (M NA), µm."""
+        lam_um = self.wavelength_nm * 1e-3
+        n = self.immersion_index
+        return lam_um * n / self.na**2 + n * self.pixel_pitch_um / (self.magnification * self.na)
+
+    @property
+    def field_of_view_mm(self) -> tuple[float, float]:
+        """Object-side field (x, y), mm."""
+        w, h = self.sensor_px
+        scale = self.pixel_pitch_um * 1e-3 / self.magnification
+        return w * scale, h * scale
+
+
+@dataclass(frozen=True)
+class FocusMap:
+    """Focus position for every stage position of a raster over the ROI.
+
+    Attributes
+    ----------
+    x_mm, y_mm : ndarray
+        Field centres in substrate coordinates, mm (stage position = centre + ``stage_offset``).
+    focus_um : ndarray
+        Piezo position for each field, µm.
+    spread_um : ndarray
+        Height range (max - min) inside each field, µm: one focus plane serves the field when it
+        is below the depth of field.
+    depth_of_field_um : float
+        The objective's depth of field, µm.
+    """
+
+    x_mm: Array
+    y_mm: Array
+    stage_x_mm: Array
+    stage_y_mm: Array
+    focus_um: Array
+    spread_um: Array
+    depth_of_field_um: float
+
+    @property
+    def in_focus(self) -> Array:
+        """True where the whole field lies within the depth of field around its focus."""
+        return self.spread_um <= self.depth_of_field_um
+
+    def to_csv(self) -> str:
+        """The table a rig executes: index, stage x/y (mm), focus (µm), spread (µm), whole field in focus."""
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(["index", "stage_x_mm", "stage_y_mm", "focus_um", "spread_um", "field_in_focus"])
+        for k in range(len(self.x_mm)):
+            w.writerow([k, f"{self.stage_x_mm[k]:.4f}", f"{self.stage_y_mm[k]:.4f}", f"{self.focus_um[k]:.3f}",
+                        f"{self.spread_um[k]:.3f}", int(self.in_focus[k])])
+        return buf.getvalue()
+
+    def summary(self) -> dict:
+        return {"fields": int(len(self.x_mm)), "depth_of_field_um": self.depth_of_field_um,
+                "focus_range_um": float(np.ptp(self.focus_um)) if len(self.focus_um) else 0.0,
+                "fields_in_focus": int(self.in_focus.sum()),
+                "height_range_over_dof": float(np.ptp(self.focus_um) / self.depth_of_field_um)}
+
+
+def focus_map(height, x_range: tuple[float, float], y_range: tuple[float, float],
+              objective: Objective | None = None, step_mm: tuple[float, float] | None = None,
+              reference_um: float = 200.0, sign: float = 1.0, stage_offset_mm: tuple[float, float] = (0.0, 0.0),
+              piezo_range_um: tuple[float, float] = (0.0, 400.0), samples: int = 5) -> FocusMap:
+    """Focus positions over a serpentine raster of fields covering the ROI.
+
+    Parameters
+    ----------
+    height : callable
+        h(x, y) in mm (e.g. ``SBFSurface.height`` or ``HeightMap.height``).
+    x_range, y_range : (float, float)
+        The region of interest, mm (fields lie fully inside it).
+    objective : Objective, optional
+        Depth of field and field of view.
+    step_mm : (float, float), optional
+        Raster step; default the field of view (abutting fields).
+    reference_um : float
+        Piezo position focused on the height 0 (the holding frame plane), µm.
+    sign : float
+        +1 when a higher surface needs a larger piezo position, -1 otherwise.
+    stage_offset_mm : (float, float)
+        Stage position of the substrate origin.
+    piezo_range_um : (float, float)
+        Travel of the focus drive; a focus outside it is an error.
+    samples : int
+        Height samples per field side for the spread.
+
+    Raises
+    ------
+    FocusMapError
+        The ROI holds no field, or a focus position falls outside the drive's travel.
+    """
+    obj = objective or Objective()
+    fov = obj.field_of_view_mm
+    sx, sy = step_mm if step_mm is not None else fov
+    (x0, x1), (y0, y1) = x_range, y_range
+    nx = int(np.floor((x1 - x0 - fov[0]) / sx + 1e-9)) + 1
+    ny = int(np.floor((y1 - y0 - fov[1]) / sy + 1e-9)) + 1
+    if nx < 1 or ny < 1:
+        raise FocusMapError(f"the region {x_range} x {y_range} mm holds no {fov[0]:.3f} x {fov[1]:.3f} mm field")
+    xc = 0.5 * (x0 + x1) + (np.arange(nx) - 0.5 * (nx - 1)) * sx
+    yc = 0.5 * (y0 + y1) + (np.arange(ny) - 0.5 * (ny - 1)) * sy
+    xx, yy = np.meshgrid(xc, yc)
+    xx[1::2] = xx[1::2, ::-1]  # serpentine: every other row runs backwards
+    xf, yf = xx.ravel(), yy.ravel()
+    t = np.linspace(-0.5, 0.5, samples)
+    ox, oy = np.meshgrid(t * fov[0], t * fov[1])
+    hs = np.asarray(height(xf[:, None] + ox.ravel()[None], yf[:, None] + oy.ravel()[None]), dtype=np.float64)
+    centre = np.asarray(height(xf, yf), dtype=np.float64)
+    focus = reference_um + sign * centre * 1e3
+    lo, hi = piezo_range_um
+    bad = (focus < lo) | (focus > hi)
+    if bad.any():
+        raise FocusMapError(f"{int(bad.sum())} focus positions fall outside the drive's {lo}-{hi} µm travel "
+                            f"(range {focus.min():.1f}-{focus.max():.1f} µm); change the reference position")
+    return FocusMap(xf, yf, xf + stage_offset_mm[0], yf + stage_offset_mm[1], focus, np.ptp(hs, axis=1) * 1e3,
+                    obj.depth_of_field_um)

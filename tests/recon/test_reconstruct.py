@@ -1,0 +1,193 @@
+"""The nested start-height iteration (seed §1.4) on exact marker images (sim.truth) of known surfaces."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from recon.reconstruct import (
+    MarkerObservations,
+    NotConvergedError,
+    ReconstructionConfig,
+    Reconstructor,
+    SubstrateNotVisibleError,
+    TooFewMarkersError,
+    reconstruct,
+)
+from scenes.setup import load_setup
+from scenes.surface import HeightMap
+from sim.surfaces import make_surface
+from sim.truth import marker_truth
+
+SETUP = load_setup("thesis-1.10-deflectometry")
+FAST = ReconstructionConfig.realtime(outer_tol_um=1e-3)
+
+
+def _observations(heights: HeightMap) -> MarkerObservations:
+    t = marker_truth(SETUP, heights)
+    return MarkerObservations(t.ij[t.visible], t.center_px[t.visible])
+
+
+def _roi_error(result, heights: HeightMap) -> np.ndarray:
+    xx, yy = np.meshgrid(np.linspace(-12.6, 12.6, 43), np.linspace(-23.9, 23.9, 81))
+    return (result.surface.height(xx, yy) - heights.height(xx, yy)), xx, yy
+
+
+@pytest.fixture(scope="module")
+def flat() -> tuple[HeightMap, MarkerObservations]:
+    spec = SETUP.substrate.surface.model_copy(update={"kind": "plane"})
+    h = make_surface(spec, SETUP.substrate)
+    return h, _observations(h)
+
+
+def test_flat_substrate_reconstructs_flat(flat) -> None:
+    h, obs = flat
+    res = reconstruct(SETUP, obs, config=FAST)
+    err, _, _ = _roi_error(res, h)
+    assert res.converged
+    assert np.sqrt(np.mean(err**2)) * 1e3 < 0.005  # µm RMS, absolute height included
+    assert res.outer_iterations <= 4 and len(res.history) == res.outer_iterations
+
+
+TILT = 1.0e-3  # pure tilt about the y axis, 25 µm over the width; touches the frame along x = +12.6
+
+
+@pytest.fixture(scope="module")
+def tilt() -> tuple[HeightMap, MarkerObservations]:
+    h = HeightMap.from_function(lambda x, y: TILT * (x - 12.6), -12.6, 12.6, -28.5, 28.5, 64, 128)
+    return h, _observations(h)
+
+
+def test_tilt_and_bow_recovered_to_one_percent(tilt) -> None:
+    a = TILT
+    tilt, obs = tilt
+    res = reconstruct(SETUP, obs, config=FAST)
+    err, xx, yy = _roi_error(res, tilt)
+    z = res.surface.height(xx, yy).ravel()
+    design = np.column_stack([xx.ravel(), yy.ravel(), np.ones(xx.size)])
+    slope_x, slope_y, _ = np.linalg.lstsq(design, z, rcond=None)[0]
+    assert abs(slope_x / a - 1) < 0.01 and abs(slope_y) < 0.01 * a
+
+    spec = SETUP.substrate.surface.model_copy(update={"kind": "cylinder", "range_um": 40.0})
+    bow = make_surface(spec, SETUP.substrate)
+    res = reconstruct(SETUP, _observations(bow), config=FAST)
+    err, xx, yy = _roi_error(res, bow)
+    true_c = np.polyfit(yy.ravel(), bow.height(xx, yy).ravel(), 2)[0]
+    got_c = np.polyfit(yy.ravel(), res.surface.height(xx, yy).ravel(), 2)[0]
+    assert abs(got_c / true_c - 1) < 0.01
+    assert np.std(err) * 1e3 < 0.02  # shape; the absolute offset rests on the frame extrapolation (benchmarks)
+
+
+def test_bias_step_is_applied_in_the_inner_loop(flat) -> None:
+    h, obs = flat
+    shift = np.array([0.3, -0.2])
+    shifted = MarkerObservations(obs.ij, obs.px + shift)
+    calls = []
+
+    def bias(surface, ij, px):
+        calls.append(len(px))
+        return px - shift
+
+    res = reconstruct(SETUP, shifted, config=FAST, bias=bias)
+    err, _, _ = _roi_error(res, h)
+    assert calls and np.sqrt(np.mean(err**2)) * 1e3 < 0.005
+
+
+def test_too_few_markers_next_to_a_frame_region(flat) -> None:
+    h, obs = flat
+    keep = obs.ij[:, 1] > -3  # markers of the pattern's lower rows see the substrate's far (y > 0) end
+    keep_other = obs.ij[:, 1] < 3
+    with pytest.raises(TooFewMarkersError, match="frame region"):
+        reconstruct(SETUP, MarkerObservations(obs.ij[keep], obs.px[keep]), config=FAST)
+    with pytest.raises(TooFewMarkersError, match="frame region"):
+        reconstruct(SETUP, MarkerObservations(obs.ij[keep_other], obs.px[keep_other]), config=FAST)
+    with pytest.raises(TooFewMarkersError, match="only 5 markers"):
+        reconstruct(SETUP, MarkerObservations(obs.ij[:5], obs.px[:5]), config=FAST)
+
+
+def test_camera_that_cannot_see_the_substrate() -> None:
+    away = load_setup("thesis-1.10-deflectometry", {"camera": {"t_y": [0.0, -0.5145, -0.8575],
+                                                              "n_z": [0.0, 0.8575, -0.5145]}})
+    with pytest.raises(SubstrateNotVisibleError, match="cannot see the substrate"):
+        Reconstructor.from_setup(away, FAST)
+
+
+def test_non_converging_outer_loop_saves_the_partial_history(tilt, tmp_path: Path) -> None:
+    h, obs = tilt
+    cfg = ReconstructionConfig(method="normal", outer_max=1, outer_tol_um=1e-9)
+    path = tmp_path / "history.json"
+    with pytest.raises(NotConvergedError, match="did not converge") as info:
+        reconstruct(SETUP, obs, config=cfg, history_path=path)
+    saved = json.loads(path.read_text())
+    assert saved["converged"] is False and len(saved["history"]) == 1 == len(info.value.history)
+    assert saved["history"][0]["inner_iterations"] >= 1
+
+
+def test_basis_scale_is_chosen_from_the_data_on_a_rough_surface() -> None:
+    spec = SETUP.substrate.surface.model_copy(update={"correlation_length": 6.0, "seed": 2})
+    rough = make_surface(spec, SETUP.substrate)
+    obs = _observations(rough)
+    rec = Reconstructor.from_setup(SETUP, ReconstructionConfig(method="normal", inner_tol_um=1e-3))
+    res = rec.run(obs)
+    err, _, _ = _roi_error(res, rough)
+    assert 5.0 <= res.surface.basis.sigma[0] <= 8.0  # the surface was low-passed with sigma 6 mm
+    assert min(rec.sigma_scores.values()) == rec.sigma_scores[res.surface.basis.sigma[0]]
+    assert abs(err.mean()) * 1e3 < 0.1 and np.std(err) * 1e3 < 0.02  # µm: absolute height, shape
+    assert {s.sigma_mm for s in res.history} == {12.0, res.surface.basis.sigma[0]}
+
+
+def _cli(argv: list[str]) -> dict:
+    import argparse
+
+    from recon.reconstruct_cli import register
+
+    parser = argparse.ArgumentParser(prog="scopetwin")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+def test_cli_bad_input_writes_nothing(tmp_path: Path) -> None:
+    from scenes.errors import ScopetwinError
+
+    out = tmp_path / "h.exr"
+    with pytest.raises(ScopetwinError, match="does not exist"):
+        _cli(["reconstruct", str(tmp_path / "missing.exr"), "--setup", "thesis-1.10-deflectometry", "--out", str(out)])
+    with pytest.raises(ScopetwinError, match="deflectometry setup"):
+        _cli(["reconstruct", "x.exr", "--setup", "thesis-2.8.3-substrate", "--out", str(out)])
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.mitsuba
+def test_cli_reconstructs_a_rendered_image(tmp_path: Path) -> None:
+    from scenes.io import read_heightmap, write_image
+    from scenes.mitsuba.render import render_setup
+    from sim.surfaces import surface_for
+
+    truth = surface_for(SETUP)
+    image = tmp_path / "meas.exr"
+    write_image(image, render_setup(SETUP, truth, spp=4, seed=0), SETUP.to_json())
+    out = tmp_path / "heights.exr"
+    result = _cli(["reconstruct", str(image), "--setup", "thesis-1.10-deflectometry", "--out", str(out),
+                   "--no-bias-correction", "--sigma", "12"])
+    assert {"heights", "outer_iterations", "inner_iterations", "delta_h_max_um", "seconds"} <= set(result)
+    hm = read_heightmap(out)
+    assert (hm.x_min, hm.x_max, hm.y_min, hm.y_max) == pytest.approx((-12.6, 12.6, -28.5, 28.5), abs=1e-6)
+    xx, yy = np.meshgrid(np.linspace(-12.6, 12.6, 43), np.linspace(-23.9, 23.9, 81))
+    err = hm.height(xx, yy) - truth.height(xx, yy)
+    assert np.sqrt(np.mean(err**2)) * 1e3 < 0.1  # µm over the ROI, rendered at 4 spp, raw centroids
+
+
+def test_misindexed_markers_are_an_error_not_a_tilted_map(tilt, tmp_path: Path) -> None:
+    from recon.reconstruct import InconsistentError
+
+    h, obs = tilt
+    shifted = MarkerObservations(obs.ij + np.array([0, 1]), obs.px)  # every marker one row off
+    keep = shifted.ij[:, 1] <= 16
+    with pytest.raises(InconsistentError, match="cannot lie on the holding frame"):
+        reconstruct(SETUP, MarkerObservations(shifted.ij[keep], shifted.px[keep]), config=FAST,
+                    history_path=tmp_path / "h.json")
+    assert json.loads((tmp_path / "h.json").read_text())["converged"] is True
