@@ -182,7 +182,11 @@ def cmd_run(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="scopetwin", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="scopetwin",
+        description="Physically based testbed: deflectometry, one-shot calibration, the four-channel and GRIN "
+        "microscopes, and the instruments that drive them.",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
 
     def add(name: str, func: Callable[[argparse.Namespace], dict[str, Any]], help_: str) -> argparse.ArgumentParser:
