@@ -218,13 +218,15 @@ def build_parser() -> argparse.ArgumentParser:
     from instrument.cli import register as register_rig
     from recon.markers_cli import register as register_markers
     from recon.reconstruct_cli import register as register_reconstruct
-    from sim import optics_cli
+    from sim import dataset_cli, optics_cli, study_cli
 
     register_markers(sub)
     register_reconstruct(sub)
     register_calib(sub)
     optics_cli.register(sub)
     register_rig(sub)
+    dataset_cli.register(sub)
+    study_cli.register(sub)
     return parser
 
 

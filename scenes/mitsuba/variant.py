@@ -86,3 +86,11 @@ def use(kind: Kind = "mono"):
             else:
                 mi.set_variant(name)
     return mi
+
+
+def set_thread_count(n: int) -> None:
+    """Number of Dr.Jit worker threads of the LLVM backend (one per Dask worker process on a local cluster)."""
+    use("mono")
+    import drjit as dr
+
+    dr.set_thread_count(int(n))

@@ -1,0 +1,111 @@
+"""Kill tests (issue 9): SIGKILL the generating process, or one Dask worker, at a random moment; resume; verify.
+
+Real subprocesses on a real 2-worker LocalCluster; every wait is bounded and every process this
+test starts is killed by its id at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_dataset_common import write_tiny  # noqa: E402
+
+from sim.dataset import MANIFEST, SAMPLES, load_plan, verify  # noqa: E402
+from sim.dataset import generate as generate_in_process  # noqa: E402
+
+pytestmark = [pytest.mark.mitsuba, pytest.mark.slow]
+ROOT = Path(__file__).resolve().parents[2]
+COUNT = 8
+
+
+def _start(cfg: Path, out: Path) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen([sys.executable, "-m", "sim.dataset_cli", "dataset", "generate", str(cfg), "--out",
+                             str(out), "--workers", "2", "--quiet"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def _finished(out: Path) -> int:
+    path = out / MANIFEST
+    return len(path.read_text().splitlines()) if path.exists() else 0
+
+
+def _wait(cond, timeout: float, what: str) -> None:
+    t0 = time.monotonic()
+    while not cond():
+        if time.monotonic() - t0 > timeout:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(0.05)
+
+
+def _workers(proc: subprocess.Popen) -> list[psutil.Process]:
+    """The Dask worker processes (spawned children running distributed's worker), not helper processes."""
+    out = []
+    for child in psutil.Process(proc.pid).children(recursive=True):
+        try:
+            cmd = " ".join(child.cmdline())
+        except psutil.Error:
+            continue
+        if "spawn_main" in cmd and "resource_tracker" not in cmd:
+            out.append(child)
+    return out
+
+
+def _cleanup(proc: subprocess.Popen, family: list[psutil.Process]) -> None:
+    for p in [*family, psutil.Process(proc.pid) if proc.poll() is None else None]:
+        if p is None:
+            continue
+        try:
+            p.kill()
+        except psutil.Error:
+            pass
+    proc.wait(timeout=30)
+
+
+@pytest.mark.parametrize("victim", ["client", "worker"])
+def test_kill_resume_verify(tmp_path, victim):
+    cfg = write_tiny(tmp_path, count=COUNT)
+    out = tmp_path / "set"
+    rng = random.Random(victim)
+    proc = _start(cfg, out)
+    family: list[psutil.Process] = []
+    try:
+        _wait(lambda: len(_workers(proc)) >= 2 or proc.poll() is not None, 120, "two workers")
+        family = list(psutil.Process(proc.pid).children(recursive=True))
+        target = rng.randint(1, 3)
+        _wait(lambda: _finished(out) >= target or proc.poll() is not None, 180, f"{target} finished samples")
+        time.sleep(rng.uniform(0.0, 0.8))  # a random moment, most likely inside a sample
+        assert proc.poll() is None, "the generator finished before it could be killed: make the set larger"
+        if victim == "client":
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=30)
+            # the orphaned workers notice their parent is gone and exit by themselves
+            _wait(lambda: not any(p.is_running() and p.status() != psutil.STATUS_ZOMBIE for p in family), 60,
+                  "the orphaned workers to exit")
+            assert verify(out)["complete"] < COUNT
+        else:
+            worker = _workers(proc)[0]
+            worker.send_signal(signal.SIGKILL)
+            # the nanny restarts the worker and the scheduler reruns its task: the run still finishes
+            assert proc.wait(timeout=240) == 0, proc.stdout.read().decode()[-2000:]
+    finally:
+        _cleanup(proc, family)
+    generate_in_process(load_plan(out), out, workers=0, progress=False)  # `dataset resume`
+    rep = verify(out)
+    assert rep["ok"], json.dumps(rep)
+    assert rep["complete"] == COUNT and rep["duplicates"] == [] and rep["corrupt"] == []
+    assert not [p.name for p in (out / SAMPLES).iterdir() if p.name.startswith(".")]
+    assert not [p for p in out.rglob("*.part*")]
+    indices = [json.loads(line)["index"] for line in (out / MANIFEST).read_text().splitlines()]
+    assert sorted(indices) == list(range(COUNT))
