@@ -17,6 +17,13 @@ A dataset is described by a TOML config (``examples/datasets/*.toml``)::
     surface_range_um = { uniform = [20.0, 60.0] }
     camera_shift = { normal = [0.0, 0.2] }
 
+A ``cmu`` sample (seed Part II, §5.1-§5.2) is one image per channel of the four-channel unit
+(``scenes.mitsuba.cmu``), each camera at its own refocused image distance (plus ``channel_defocus``),
+offset and tilt; the splitters' modelled bows and residual seeds vary per sample; ``[cmu]`` picks the
+channels, a sensor window and the tube-lens stop (:class:`CmuSection`). Keys with a ``per`` group
+(``bow_*``/``residual_rms_um``: each splitter, ``channel_*``: each channel) are drawn independently
+for every member, so one distribution describes e.g. all four camera offsets.
+
 Every distribution is one of ``fixed``, ``uniform = [lo, hi]``, ``normal = [mean, std]``,
 ``loguniform = [lo, hi]``, ``choice = [...]`` or ``sweep = [...]``; all ``sweep`` keys form a
 cartesian grid that sample i walks through (i modulo the grid size), repeated with fresh seeds.
@@ -33,7 +40,8 @@ Layout of a dataset folder::
     DIR/dataset.json          the normalised config (what ``resume`` reads)
     DIR/manifest.jsonl        one JSON line per finished sample (hashes + host, worker, time)
     DIR/samples/000000/       one folder per sample: image.exr, truth.json, surface.exr,
-                              normals.exr (deflectometry), preview.png, sample.json (hashes)
+                              normals.exr (deflectometry), preview.png, sample.json (hashes);
+                              'cmu': image_<channel>.exr per channel, height_<element>.exr
 
 A sample folder is written under a temporary name in ``DIR/samples`` and renamed into place
 when complete (atomic on POSIX file systems); sample files hold no timestamps or host names
@@ -45,6 +53,7 @@ sample against the manifest and its own hashes.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import json
 import logging
@@ -163,7 +172,12 @@ class Domain:
     dims: int
     unit: str
     text: str
-    strings: tuple[str, ...] = ()
+    strings: tuple[str, ...] | dict[str, tuple[str, ...]] = ()
+    per: Literal["", "splitter", "channel"] = ""
+
+    def names(self, kind: str) -> tuple[str, ...]:
+        """The allowed names of a string-valued quantity for samples of ``kind`` (empty: numeric)."""
+        return self.strings.get(kind, ()) if isinstance(self.strings, dict) else self.strings
 
     def contains(self, v: float) -> bool:
         if math.isinf(v) and v in (self.lo, self.hi):  # an unbounded distribution on an unbounded domain
@@ -194,11 +208,25 @@ DOMAINS: dict[str, Domain] = {
     "defocus": Domain(-_INF, _INF, True, True, _PART1, 1, "mm", "plane in focus minus the nominal one"),
     "distortion_c2": Domain(-_INF, _INF, True, True, _PART1, 1, "1/mm", "radial distortion c2 (§2.5.1)"),
     "principal_offset": Domain(-_INF, _INF, True, True, _PART1, 2, "mm", "r_cs, per axis (§2.8.5)"),
-    "exposure_fill": Domain(0, 1, True, False, _PART1, 1, "", "fraction of the full well at the image peak"),
+    "exposure_fill": Domain(0, 1, True, False, (*_PART1, "cmu"), 1, "",
+                            "fraction of the full well at the image peak"),
     "exposure_s": Domain(0, _INF, True, True, _PART1, 1, "s", "exposure time"),
-    "target": Domain(0, 0, False, False, ("grin",), 1, "", "§8.5 target name",
-                     strings=("dots-25", "grid-25", "grid-12.5", "lines-8")),
+    "target": Domain(0, 0, False, False, ("grin", "cmu"), 1, "", "test object (grin: §8.5 target; cmu: §5.2.2 "
+                     "Siemens star or §5.1.2 dummy cells)",
+                     strings={"grin": ("dots-25", "grid-25", "grid-12.5", "lines-8"), "cmu": ("star", "cells")}),
     "target_offset": Domain(-_INF, _INF, True, True, ("grin",), 2, "mm", "target offset from the axis, per axis"),
+    "bow_range_um": Domain(0, _INF, False, True, ("cmu",), 1, "µm", "bow range of each beam splitter (§5.1.1)",
+                           per="splitter"),
+    "bow_scale": Domain(0, _INF, False, True, ("cmu",), 1, "", "factor on each splitter's bow range of the setup",
+                        per="splitter"),
+    "residual_rms_um": Domain(0, _INF, False, True, ("cmu",), 1, "µm", "RMS of each splitter's smooth residual",
+                              per="splitter"),
+    "channel_defocus": Domain(-_INF, _INF, True, True, ("cmu",), 1, "mm",
+                              "camera distance minus the refocused image distance, per channel", per="channel"),
+    "channel_offset_px": Domain(-_INF, _INF, True, True, ("cmu",), 2, "px",
+                                "camera offset (col, row) of each channel (Table 5.3)", per="channel"),
+    "channel_tilt_deg": Domain(-45, 45, False, False, ("cmu",), 1, "deg", "in-plane camera tilt of each channel "
+                               "(Table 5.4)", per="channel"),
 }
 
 
@@ -220,6 +248,12 @@ class VarySpec(_Model):
     exposure_s: Dist | None = None
     target: Dist | None = None
     target_offset: Dist | None = None
+    bow_range_um: Dist | None = None
+    bow_scale: Dist | None = None
+    residual_rms_um: Dist | None = None
+    channel_defocus: Dist | None = None
+    channel_offset_px: Dist | None = None
+    channel_tilt_deg: Dist | None = None
 
     def items(self) -> list[tuple[str, Dist]]:
         return [(k, getattr(self, k)) for k in type(self).model_fields if getattr(self, k) is not None]
@@ -246,6 +280,15 @@ class GrinSection(_Model):
     step_mm: float = Field(0.3, gt=0)
 
 
+class CmuSection(_Model):
+    """The ``[cmu]`` table: which channels, which part of the sensor, the tube-lens stop (seed §5.1.2)."""
+
+    channels: list[str] | None = Field(None, min_length=1, description="default: every channel of the setup")
+    window: tuple[int, int, int, int] | None = Field(None, description="(row0, col0, height, width) of the sensor")
+    stop: bool = Field(False, description="the 4 mm aperture in front of every tube lens")
+    n_pupil: int = Field(21, ge=5, le=101, description="pupil grid of the numpy tracer (refocus and truth)")
+
+
 class DatasetConfig(_Model):
     """A whole dataset config (module docstring)."""
 
@@ -253,6 +296,7 @@ class DatasetConfig(_Model):
     setup: dict[str, Any] = Field(default_factory=dict)
     vary: VarySpec = VarySpec()
     grin: GrinSection = GrinSection()
+    cmu: CmuSection = CmuSection()
 
 
 # -- loading and validation -------------------------------------------------------------------------
@@ -302,12 +346,13 @@ def _check_domains(cfg: DatasetConfig, label: str) -> None:
         if kind not in dom.kinds:
             raise DatasetError(f"{where}: does not apply to {kind!r} samples (only to {', '.join(dom.kinds)})")
         values = dist.values()
-        if dom.strings:
+        names = dom.names(kind)
+        if names:
             if values is None:
                 raise DatasetError(f"{where}: {dom.text} takes fixed, choice or sweep of names, not {dist.kind}")
-            bad = [v for v in values if v not in dom.strings]
+            bad = [v for v in values if v not in names]
             if bad:
-                raise DatasetError(f"{where}: impossible value {bad[0]!r} (known: {', '.join(dom.strings)})")
+                raise DatasetError(f"{where}: impossible value {bad[0]!r} (known: {', '.join(names)})")
             continue
         if values is not None:
             flat = []
@@ -329,6 +374,12 @@ def _check_domains(cfg: DatasetConfig, label: str) -> None:
                                f"can give values outside {dom.describe()} {dom.unit} (the {dom.text})")
     if cfg.vary.exposure_fill is not None and cfg.vary.exposure_s is not None:
         raise DatasetError(f"dataset config {label}: key vary.exposure_s: give exposure_fill or exposure_s, not both")
+    if cfg.vary.bow_range_um is not None and cfg.vary.bow_scale is not None:
+        raise DatasetError(f"dataset config {label}: key vary.bow_scale: give bow_range_um or bow_scale, not both")
+    for table, default in (("grin", GrinSection()), ("cmu", CmuSection())):
+        if getattr(cfg, table) != default and kind != table:
+            raise DatasetError(f"dataset config {label}: key {table}: the [{table}] table applies only to {table!r} "
+                               f"samples, not {kind!r}")
 
 
 def load_config(path: str | Path, count: int | None = None) -> DatasetConfig:
@@ -368,19 +419,47 @@ def _sweep_cell(cfg: DatasetConfig, index: int) -> dict[str, Value]:
     return {k: v[int(c)] for (k, v), c in zip(sweeps, cell, strict=True)}
 
 
-def draw_parameters(cfg: DatasetConfig, index: int) -> dict[str, Any]:
-    """The varied quantities of sample ``index`` (JSON-ready; vectors as lists)."""
+def draw_parameters(cfg: DatasetConfig, index: int, groups: dict[str, Sequence[str]] | None = None
+                    ) -> dict[str, Any]:
+    """The varied quantities of sample ``index`` (JSON-ready; vectors as lists).
+
+    A quantity with a ``per`` group (:class:`Domain`) becomes ``{member: value}`` over ``groups[per]``
+    (channels default to the unit's four); each member has its own generator (``name:member``), so a
+    member's value does not depend on which other members the setup has.
+    """
     cell = _sweep_cell(cfg, index)
     out: dict[str, Any] = {}
     for name, dist in cfg.vary.items():
-        dims = DOMAINS[name].dims
+        dom = DOMAINS[name]
+        dims = dom.dims
+        members = _members(dom, groups, name)
         if name in cell or dist.fixed is not None:
             v = cell.get(name, dist.fixed)
-            out[name] = v if (dims == 1 or isinstance(v, list)) else [v] * dims
+            v = v if (dims == 1 or isinstance(v, list)) else [v] * dims
+            out[name] = v if members is None else {m: v for m in members}
             continue
-        vals = dist.draw(sample_rng(cfg.dataset.master_seed, index, name), dims)
-        out[name] = vals[0] if dims == 1 else vals
+        if members is None:
+            vals = dist.draw(sample_rng(cfg.dataset.master_seed, index, name), dims)
+            out[name] = vals[0] if dims == 1 else vals
+            continue
+        drawn = {m: dist.draw(sample_rng(cfg.dataset.master_seed, index, f"{name}:{m}"), dims) for m in members}
+        out[name] = {m: (v[0] if dims == 1 else v) for m, v in drawn.items()}
     return out
+
+
+def _members(dom: Domain, groups: dict[str, Sequence[str]] | None, name: str) -> list[str] | None:
+    """The members a ``per`` quantity is drawn for (None: one value per sample)."""
+    if not dom.per:
+        return None
+    given = (groups or {}).get(dom.per)
+    if given is None and dom.per == "channel":
+        from scenes.cmu.layout import CHANNEL_NAMES
+
+        given = CHANNEL_NAMES
+    if given is None:
+        raise DatasetError(f"key vary.{name}: drawn per {dom.per}; the {dom.per} names come from the setup "
+                           "(use Plan.parameters)")
+    return list(given)
 
 
 def sweep_size(cfg: DatasetConfig) -> int:
@@ -488,9 +567,7 @@ def _capability(kind: str) -> None:
 
         if importlib.util.find_spec("scenes.mitsuba.cmu") is None:
             raise DatasetError("sample kind 'cmu' needs the four-channel microscope renderer "
-                               "(scenes.mitsuba.cmu, issue 8), which this installation does not have yet")
-        raise DatasetError("sample kind 'cmu': the four-channel renderer exists but its dataset adapter is not "
-                           "written yet (sim.dataset)")
+                               "(scenes.mitsuba.cmu, issue 8), which this installation does not have")
 
 
 @dataclass(frozen=True)
@@ -506,6 +583,8 @@ class Plan:
         _capability(cfg.dataset.kind)
         if cfg.dataset.kind == "grin":
             base = _grin_base(cfg)
+        elif cfg.dataset.kind == "cmu":
+            base = _cmu_base(cfg)
         else:
             base = base_setup_dict(cfg)
             scene = base.get("scene")
@@ -530,12 +609,17 @@ class Plan:
         return cls(config_from_dict(data["config"], CONFIG_FILE), data["base_setup"])
 
     def parameters(self, index: int) -> dict[str, Any]:
-        return draw_parameters(self.config, index)
+        groups = None
+        if self.config.dataset.kind == "cmu":
+            groups = {"splitter": list(self.base["splitters"]), "channel": _cmu_channels(self.config, self.base)}
+        return draw_parameters(self.config, index, groups)
 
     def setup_of(self, index: int) -> Any:
         params = self.parameters(index)
         if self.config.dataset.kind == "grin":
             return _grin_setup(self, index, params)
+        if self.config.dataset.kind == "cmu":
+            return _cmu_sample(self, index, params)
         return part1_setup(self.config, self.base, index, params)
 
 
@@ -560,6 +644,110 @@ def _grin_setup(plan: Plan, index: int, params: dict[str, Any]) -> Any:
     except ScopetwinError as exc:
         raise DatasetError(f"sample {index}: key vary.target_offset: {exc}") from None
     return setup, tgt
+
+
+def _cmu_channels(cfg: DatasetConfig, base: dict[str, Any]) -> list[str]:
+    """The channels a cmu sample renders, in the setup's order."""
+    wanted = cfg.cmu.channels
+    return [c for c in base["channels"] if wanted is None or c in wanted]
+
+
+def _cmu_base(cfg: DatasetConfig) -> dict[str, Any]:
+    """The unit every cmu sample starts from (preset/TOML plus ``[setup]``), with ``[cmu]`` checked against it."""
+    from scenes.cmu.layout import load_cmu_setup
+
+    try:
+        setup = load_cmu_setup(cfg.dataset.setup, cfg.setup or None)
+    except ScopetwinError as exc:
+        raise DatasetError(f"dataset config: key dataset.setup / [setup]: {exc}") from None
+    c = cfg.cmu
+    if c.channels is not None:
+        bad = [ch for ch in c.channels if ch not in setup.channels]
+        if bad or len(set(c.channels)) != len(c.channels):
+            what = f"unknown channel {bad[0]!r}" if bad else "a channel is named twice"
+            raise DatasetError(f"dataset config: key cmu.channels: {what} (the setup has {', '.join(setup.channels)})")
+    if c.window is not None:
+        r0, c0, h, w = c.window
+        cam = setup.camera
+        if min(r0, c0) < 0 or min(h, w) < 1 or r0 + h > cam.height_px or c0 + w > cam.width_px:
+            raise DatasetError(f"dataset config: key cmu.window: {list(c.window)} (row0, col0, height, width) must lie "
+                               f"inside the {cam.width_px} x {cam.height_px} px sensor")
+    return json.loads(setup.to_json())
+
+
+@dataclass(frozen=True)
+class CmuSample:
+    """One cmu sample's unit and cameras: per channel the defocus (mm), tilt (deg) and offset (px, (col, row))."""
+
+    setup: Any
+    target: str
+    channels: tuple[str, ...]
+    defocus: dict[str, float]
+    tilt_deg: dict[str, float]
+    offset_px: dict[str, tuple[float, float]]
+    exposure_fill: float | None
+
+
+def _cmu_sample(plan: Plan, index: int, params: dict[str, Any]) -> CmuSample:
+    """The unit of sample ``index``: the splitters' bows and residual seeds, the cells' seed, the camera poses.
+
+    With the Siemens star, every channel's frame must lie inside the image at the nominal magnification
+    f_tube / f_objective (the bows change it by < 2 %): checked here, before any work.
+    """
+    from scenes.cmu.layout import cmu_setup_from_dict
+
+    cfg = plan.config
+    master = cfg.dataset.master_seed
+    d = json.loads(json.dumps(plan.base))
+    for name, el in d["splitters"].items():
+        if "bow_range_um" in params:
+            el["bow_range_um"] = params["bow_range_um"][name]
+        if "bow_scale" in params:
+            el["bow_range_um"] = float(el.get("bow_range_um", 0.0)) * params["bow_scale"][name]
+        if "residual_rms_um" in params:
+            el["residual_rms_um"] = params["residual_rms_um"][name]
+        el["residual_seed"] = sample_seed(master, index, f"residual:{name}")
+    d.setdefault("cells", {})["seed"] = sample_seed(master, index, "cells")
+    d["name"] = f"{d.get('name') or 'cmu'}-sample-{index:06d}"
+    try:
+        setup = cmu_setup_from_dict(d, f"sample {index}")
+    except SetupError as exc:
+        raise DatasetError(f"sample {index} (parameters {params}): {exc}") from None
+    channels = tuple(_cmu_channels(cfg, plan.base))
+    per = {k: params.get(k, {}) for k in ("channel_defocus", "channel_tilt_deg", "channel_offset_px")}
+    sample = CmuSample(setup, str(params.get("target", "star")), channels,
+                       {c: float(per["channel_defocus"].get(c, 0.0)) for c in channels},
+                       {c: float(per["channel_tilt_deg"].get(c, 0.0)) for c in channels},
+                       {c: tuple(float(v) for v in per["channel_offset_px"].get(c, (0.0, 0.0))) for c in channels},
+                       params.get("exposure_fill"))
+    if sample.target == "star":
+        _check_star_in_image(cfg, sample, index, params)
+    return sample
+
+
+def _image_box(cfg: DatasetConfig, setup: Any) -> tuple[int, int, int, int]:
+    """(row0, col0, height, width) of the rendered part of the sensor."""
+    return cfg.cmu.window or (0, 0, setup.camera.height_px, setup.camera.width_px)
+
+
+def _check_star_in_image(cfg: DatasetConfig, sample: CmuSample, index: int, params: dict[str, Any]) -> None:
+    setup = sample.setup
+    r0, c0, h, w = _image_box(cfg, setup)
+    m0 = setup.tube.focal_length / setup.objective.focal_length
+    half = 1.02 * m0 * (0.5 * setup.target.frame_side + setup.target.frame_line) / (setup.camera.pixel_um * 1e-3)
+    for ch in sample.channels:
+        t = math.radians(sample.tilt_deg[ch])
+        rot = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+        corners = (rot @ (half * np.array([[-1, -1, 1, 1], [-1, 1, -1, 1]]))).T
+        centre = np.array([0.5 * setup.camera.width_px + sample.offset_px[ch][0] - c0,
+                           0.5 * setup.camera.height_px + sample.offset_px[ch][1] - r0])
+        pts = corners + centre
+        if pts.min() < 0 or pts[:, 0].max() > w or pts[:, 1].max() > h:
+            key = next((k for k in ("channel_offset_px", "channel_tilt_deg") if k in params), "cmu.window")
+            key = key if key == "cmu.window" else f"vary.{key}"
+            raise DatasetError(f"sample {index}: key {key}: the Siemens-star frame ({2 * half:.0f} px wide) of channel "
+                               f"{ch} leaves the {w} x {h} px image (offset {list(sample.offset_px[ch])} px, tilt "
+                               f"{sample.tilt_deg[ch]:g} deg); use smaller offsets or a larger window")
 
 
 # -- writing one sample (runs on a worker) ----------------------------------------------------------
@@ -676,6 +864,169 @@ def _write_grin(plan: Plan, index: int, stage: _Stage) -> dict[str, Any]:
     return {"files": {"image": "image.exr"}, "truth": truth}
 
 
+#: The CMU cameras' sensor (Basler scA1400-30gm, Sony ICX285, §4.1.4): the EMVA model's defaults (full well
+#: 18 ke-, 10 e- dark noise); the quantum efficiency is 1 because the rendered image already counts electrons
+#: (the detection response includes the camera's QE), and the gain fills the ADC as the Part I default does.
+CMU_FILL_DEFAULT = 0.7
+
+
+def _cmu_sensor(bit_depth: int) -> Any:
+    from scenes.sensor import EmvaSensor
+
+    full_well = 18000.0
+    return EmvaSensor(quantum_efficiency=1.0, full_well_e=full_well, gain_dn_per_e=(2**bit_depth - 96) / full_well,
+                      bit_depth=bit_depth)
+
+
+def _object_to_pixel(setup: Any, opt: Any, channel: str, pose: Any, box: tuple[int, int, int, int], half: float,
+                     n_pupil: int = 15) -> np.ndarray:
+    """Affine map (2 x 3) from object (x, y, 1) in mm to (col, row) in the written image's pixel coordinates.
+
+    Fitted to the traced spot centroids (numpy tracer, the channel's real plates) of a 3 x 3 object grid of
+    +-``half`` mm on the camera plane at ``pose.image_distance``, mapped to pixels with the camera's axes, tilt
+    and offset exactly as :func:`scenes.mitsuba.cmu.render_channel` maps pixels to the plane (its inverse).
+    Pixel (r, c) covers [c, c+1) x [r, r+1) (DESIGN.md), so the star's centre is at ``A[:, 2]``.
+    """
+    from scenes.cmu.analysis import image_rays, pupil_grid
+    from scenes.mitsuba.cmu import sensor_axes
+
+    ex, ey = sensor_axes(setup, channel)
+    to_ab = np.linalg.inv(np.column_stack([ex, ey]))
+    t = math.radians(pose.tilt_deg)
+    rot = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    p_mm = setup.camera.pixel_um * 1e-3
+    r0, c0, _, _ = box
+    px, py = pupil_grid(n_pupil)
+    obj, img = [], []
+    for x0 in (-half, 0.0, half):
+        for y0 in (-half, 0.0, half):
+            u, v = image_rays(opt, x0, y0, px, py).at(pose.image_distance)
+            a, b = rot @ (to_ab @ np.array([u.mean(), v.mean()]))
+            img.append((0.5 * setup.camera.width_px + pose.offset_px[0] + a / p_mm - c0,
+                        0.5 * setup.camera.height_px + pose.offset_px[1] - b / p_mm - r0))
+            obj.append((x0, y0, 1.0))
+    coef, *_ = np.linalg.lstsq(np.asarray(obj), np.asarray(img), rcond=None)
+    return coef.T
+
+
+def _as_rendered(opt: Any) -> Any:
+    """The channel as :mod:`scenes.mitsuba.cmu` renders it: a transmitted plate keeps the ray's direction.
+
+    The exact tracer refracts at both faces of a bowed plate; the beam's 0.33 mm lateral shift then meets the
+    back face where its slope differs by ~1e-5 rad, which moves the image by a few tenths of a pixel. The
+    rendered images follow this map; the difference to the exact one is the renderer's approximation.
+    """
+    from scenes.cmu.analysis import Optics
+
+    return Optics(opt.objective, [s for s in opt.middle if s.mode != "T"], opt.tube, opt.stop, opt.wavelength_nm)
+
+
+def _affine_truth(a: np.ndarray, pixel_um: float) -> dict[str, Any]:
+    """Magnification (sqrt |det|, and the singular values), centre and displayed tilt of an object->pixel map.
+
+    The tilt is the rotation of the displayed image (rows up), counter-clockwise positive, as
+    :mod:`calib.channels` measures it.
+    """
+    lin = a[:, :2]
+    p_mm = pixel_um * 1e-3
+    sv = np.linalg.svd(lin, compute_uv=False) * p_mm
+    return {"magnification": float(math.sqrt(abs(np.linalg.det(lin))) * p_mm),
+            "magnification_xy": [float(sv[0]), float(sv[1])],
+            "frame_center_px": [float(a[0, 2]), float(a[1, 2])],
+            "image_tilt_deg": float(math.degrees(math.atan2(-lin[1, 0] - lin[0, 1], lin[0, 0] - lin[1, 1]))),
+            "object_to_pixel": a.tolist()}
+
+
+def _write_cmu(plan: Plan, index: int, stage: _Stage) -> dict[str, Any]:
+    """One channel set of the four-channel unit (seed §5.1.2, §5.2.2): an image per channel, the plates' maps, truth.
+
+    Each camera sits at its channel's refocused image distance (the numpy tracer's RMS-spot focus, §5.1.2) plus
+    the drawn defocus, with the drawn tilt and offset; the truth is the tracer's object->pixel map of that camera.
+    """
+    from scenes.cmu.analysis import analyse, channel_optics
+    from scenes.cmu.plates import plate_heightmap
+    from scenes.io import write_heightmap, write_image
+    from scenes.mitsuba.cmu import CameraPose, render_channel, unit_scene
+
+    cfg = plan.config
+    sample: CmuSample = plan.setup_of(index)
+    setup = sample.setup
+    master, spp = cfg.dataset.master_seed, cfg.dataset.spp
+    files: dict[str, str] = {}
+    elements = {**setup.splitters, **setup.mirrors}
+    maps = {name: plate_heightmap(spec, setup.plate) for name, spec in elements.items()}
+    plates = {}
+    for name, spec in elements.items():
+        role = "splitter" if name in setup.splitters else "mirror"
+        if role == "mirror" and not np.any(maps[name].z):
+            continue
+        fname = f"height_{name}.exr"
+        write_heightmap(stage.path(fname), maps[name], scopetwin_element=name)
+        files[f"height_{name}"] = fname
+        plates[name] = {"file": fname, "role": role, "bow_range_um": spec.bow_range_um,
+                        "residual_rms_um": spec.residual_rms_um, "residual_seed": spec.residual_seed,
+                        "concave": spec.concave, "height_map": spec.height_map,
+                        "range_um": float(np.ptp(maps[name].z) * 1e3)}
+    scene = unit_scene(setup, maps)
+    box = _image_box(cfg, setup)
+    noise = bool(cfg.dataset.noise or sample.exposure_fill is not None)
+    fill = CMU_FILL_DEFAULT if sample.exposure_fill is None else float(sample.exposure_fill)
+    sensor = _cmu_sensor(setup.camera.bit_depth) if noise else None
+    half = 0.5 * setup.target.frame_side if sample.target == "star" else 0.25 * min(setup.field_mm)
+    channels, images = {}, []
+    for ch in sample.channels:
+        opt = channel_optics(setup, ch, maps, stop=cfg.cmu.stop)
+        focus = analyse(setup, opt, n_pupil=cfg.cmu.n_pupil)
+        b = focus.image_distance_mm + sample.defocus[ch]
+        res = focus if sample.defocus[ch] == 0 else analyse(setup, opt, n_pupil=cfg.cmu.n_pupil, image_distance=b)
+        pose = CameraPose(b, sample.tilt_deg[ch], sample.offset_px[ch])
+        rseed = sample_seed(master, index, f"render:{ch}")
+        img = render_channel(setup, ch, pose, sample.target, spp=spp, window=box, stop=cfg.cmu.stop, seed=rseed,
+                             scene=scene)
+        exposure, nseed = None, None
+        if sensor is not None:
+            peak = float(np.percentile(img, 99.9))  # Monte-Carlo outliers above it saturate, as hot spots would
+            if not peak > 0:
+                raise ScopetwinError(f"sample {index}, channel {ch}: the rendered image is black: cannot choose an "
+                                     "exposure for the noise model")
+            exposure = sensor.exposure_for(peak, 1.0, fill)
+            nseed = sample_seed(master, index, f"noise:{ch}")
+            img = sensor.capture(img, 1.0, exposure, rng=nseed)
+        fname = f"image_{ch}.exr"
+        prov = {"seed": rseed, "spp": spp, "renderer": "mitsuba-cmu", "channel": ch, "target": sample.target,
+                "noise_seed": nseed, "versions": versions()}
+        write_image(stage.path(fname), img, setup.to_json(), prov, image_distance_mm=float(b), scopetwin_channel=ch)
+        files[f"image_{ch}"] = fname
+        images.append(img)
+        spec = setup.channels[ch]
+        channels[ch] = {"image": fname, "path": list(spec.path), "filter": spec.filter,
+                        "image_distance_mm": float(b), "refocused_image_distance_mm": focus.image_distance_mm,
+                        "defocus_mm": sample.defocus[ch],
+                        "camera": {"tilt_deg": pose.tilt_deg, "offset_px": list(pose.offset_px)},
+                        **_affine_truth(_object_to_pixel(setup, opt, ch, pose, box, half), setup.camera.pixel_um),
+                        "as_rendered": _affine_truth(_object_to_pixel(setup, _as_rendered(opt), ch, pose, box, half),
+                                                     setup.camera.pixel_um),
+                        "rms_spot_um": res.rms_spot_um, "astigmatism_mm": res.astigmatism_mm,
+                        "transmitted_fraction": res.transmitted_fraction,
+                        "exposure_e_per_unit": exposure, "seeds": {"render": rseed, "noise": nseed}}
+    if cfg.dataset.preview:
+        from sim.cli import _preview
+
+        tiles = [im / (float(np.percentile(im, 99.9)) or 1.0) for im in images]
+        _preview(stage.path("preview.png"), np.hstack(tiles))
+        files["preview"] = "preview.png"
+    target = setup.target if sample.target == "star" else setup.cells
+    truth = {"setup": setup.name, "scene": "cmu", "target": {"name": sample.target, **target.model_dump()},
+             "window": list(box), "stop": cfg.cmu.stop, "spp": spp,
+             "sensor": None if sensor is None else {**dataclasses.asdict(sensor), "fill_fraction": fill},
+             "channels": channels, "plates": plates,
+             "seeds": {"residual": {n: s.residual_seed for n, s in setup.splitters.items()},
+                       "cells": setup.cells.seed, "render": {c: v["seeds"]["render"] for c, v in channels.items()},
+                       "noise": {c: v["seeds"]["noise"] for c, v in channels.items()}},
+             "setup_json": json.loads(setup.to_json())}
+    return {"files": files, "truth": truth}
+
+
 def _sample_record(folder: Path) -> dict[str, Any]:
     files = {}
     for f in sorted(folder.iterdir()):
@@ -703,7 +1054,7 @@ def generate_sample(plan_json: dict[str, Any], index: int, root: str, threads: i
         os.umask(umask)
         stage.chmod(0o777 & ~umask)
         try:
-            writer = _write_grin if plan.config.dataset.kind == "grin" else _write_part1
+            writer = {"grin": _write_grin, "cmu": _write_cmu}.get(plan.config.dataset.kind, _write_part1)
             out = writer(plan, index, _Stage(stage))
             from scenes.io import write_json_atomic
 

@@ -352,7 +352,7 @@ def render_channel(setup: CmuSetup, channel: str, pose: CameraPose, target: Targ
         k = min(per_pass, spp - done)
         n = n_pix * k
         sampler = mi.load_dict({"type": "independent"})
-        sampler.seed(seed * 100003 + pass_index, n)
+        sampler.seed((seed * 100003 + pass_index) & 0xFFFFFFFF, n)  # the sampler takes a 32-bit seed
         idx = dr.arange(mi.UInt32, n) // k
         row = mi.Float(idx // wid) + row0
         col = mi.Float(idx % wid) + col0

@@ -72,9 +72,14 @@ def test_cli_rejects_bad_config_without_touching_the_output(tmp_path, capsys):
     assert not out.exists()
 
 
-def test_cmu_kind_names_the_missing_capability():
+def test_cmu_kind_names_the_missing_capability(monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "scenes.mitsuba.cmu" else
+                        real(name, *a))
     cfg = config_from_dict({"dataset": {"kind": "cmu", "setup": "thesis-cmu", "count": 1, "master_seed": 0}})
-    with pytest.raises(DatasetError, match="cmu"):
+    with pytest.raises(DatasetError, match=r"scenes\.mitsuba\.cmu"):
         Plan.build(cfg)
 
 
