@@ -24,6 +24,7 @@ Coordinates are continuous pixel coordinates (col, row): pixel (r, c) covers [c,
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 
 import cv2
@@ -145,7 +146,7 @@ def check_image(image: NDArray) -> NDArray[np.float32]:
     if min(img.shape) < 8:
         raise MarkerError(f"image is too small for marker identification: {img.shape}")
     out = np.ascontiguousarray(img, dtype=np.float32)
-    if not np.isfinite(out).all():
+    if not (np.isfinite(out.max()) and np.isfinite(out.min())):  # NaN propagates through min / max
         raise MarkerError("image contains NaN or infinite values")
     return out
 
@@ -168,20 +169,47 @@ def background_level(image: NDArray[np.float32], stride: int = 7) -> tuple[float
     return med, sigma
 
 
-def _saturation_level(image: NDArray, saturation: float | None) -> float:
-    """Saturation level: given, or the ADC maximum of an integer-valued image (2^k - 1), else +inf."""
+def _saturation_level(image: NDArray, saturation: float | None, top: float | None = None) -> float:
+    """Saturation level: given, or the ADC maximum of an integer-valued image (2^k - 1), else +inf.
+
+    ``top`` is the image's maximum where the caller knows it already (float images only).
+    """
     if saturation is not None:
         return float(saturation)
     arr = np.asarray(image)
     if np.issubdtype(arr.dtype, np.integer):
         return float(np.iinfo(arr.dtype).max) if arr.max() >= np.iinfo(arr.dtype).max else np.inf
-    top = float(arr.max())
+    top = float(arr.max()) if top is None else float(top)
     for bits in (8, 10, 12, 14, 16):
         if top == 2**bits - 1:
             sample = arr.ravel()[:: 97]
             if np.all(sample == np.round(sample)):
                 return top
     return np.inf
+
+
+class _Scratch(threading.local):
+    """Per-thread work buffers of the centroid search, reused from frame to frame.
+
+    Fresh large arrays cost page faults on every call (the allocator hands freed memory back to
+    the system); with ~20 pixel-list arrays of a few MB per frame that was half of the centroid
+    search's time. Each buffer grows to the largest size asked for and is then kept.
+    """
+
+    def __init__(self) -> None:
+        self.buffers: dict[str, NDArray] = {}
+
+    def get(self, name: str, shape: tuple[int, ...] | int, dtype: type) -> NDArray:
+        """A C-contiguous array of ``shape`` and ``dtype`` (uninitialised) backed by the named buffer."""
+        shape = (shape,) if isinstance(shape, int) else tuple(shape)
+        size = int(np.prod(shape))
+        buf = self.buffers.get(name)
+        if buf is None or buf.dtype != np.dtype(dtype) or buf.size < size:
+            buf = self.buffers[name] = np.empty(size + size // 4, dtype=dtype)
+        return buf[:size].reshape(shape)
+
+
+_scratch = _Scratch()
 
 
 def centroids(image: NDArray, threshold: float | None = None, background: float | None = None,
@@ -226,48 +254,96 @@ def centroids(image: NDArray, threshold: float | None = None, background: float 
         threshold = level + max(noise_sigmas * sigma, relative_threshold * (top - level))
     if not top > threshold:
         raise MarkerError(f"image is blank: no pixel exceeds the threshold {threshold:.6g}")
-    mask = cv2.compare(img, float(threshold), cv2.CMP_GT)
-    n, labels = cv2.connectedComponents(mask, connectivity=connectivity, ltype=cv2.CV_32S)
+    ny, nx = img.shape
+    mask = cv2.compare(img, float(threshold), cv2.CMP_GT, dst=_scratch.get("mask", (ny, nx), np.uint8))
+    # all work below happens in the bounding box of the spots, grown by the window margin
+    bx, by, bw, bh = cv2.boundingRect(mask)
+    if bw == 0 or bh == 0:
+        raise MarkerError("image is blank: no spot found")
+    n, labels = cv2.connectedComponents(mask[by: by + bh, bx: bx + bw], connectivity=connectivity,
+                                        ltype=cv2.CV_32S)
     if n <= 1:
         raise MarkerError("image is blank: no spot found")
-    lab_img = labels.astype(np.uint16 if n < 65535 else np.float32)
     if grow is None:  # reach the rim of a spot twice the mean area (the reference marker)
         frac = (threshold - level) / max(top - level, 1e-300)
-        r_eq = np.sqrt(2.0 * cv2.countNonZero(mask) / (n - 1) / np.pi)
+        r_eq = np.sqrt(2.0 * cv2.countNonZero(labels) / (n - 1) / np.pi)
         grow = int(np.ceil(frac / max(1.0 - frac, 1e-3) * r_eq + 1.5))
     grow = int(max(grow, 0))
+    r0, r1 = max(by - grow, 0), min(by + bh + grow, ny)
+    c0, c1 = max(bx - grow, 0), min(bx + bw + grow, nx)
+    shape = (r1 - r0, c1 - c0)
+    # pixels outside the box are below the threshold: labels and window there are 0, as on the whole image
+    lab_img = _scratch.get("labels", shape, np.uint16 if n < 65535 else np.float32)
+    lab_img.fill(0)
+    lab_img[by - r0: by - r0 + bh, bx - c0: bx - c0 + bw] = labels
     win = lab_img
     if grow > 0:
-        win = cv2.dilate(lab_img, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1)))
-    # every spot pixel lies in its window
-    idx = np.flatnonzero(cv2.compare(win, 0, cv2.CMP_GT).view(bool).ravel())
-    lab = win.ravel()[idx].astype(np.int64)
-    values = img.ravel()[idx].astype(np.float64)
-    inside = mask.ravel()[idx] != 0
-    areas = np.bincount(lab[inside], minlength=n)
-    w = values - level
-    rows = idx // img.shape[1]
-    x = (idx - rows * img.shape[1]) + 0.5
-    y = rows + 0.5
-    mass = np.bincount(lab, weights=w, minlength=n)
+        win = cv2.dilate(lab_img, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1)),
+                         dst=_scratch.get("window", shape, lab_img.dtype))
+    # every spot pixel lies in its window: gather the window pixels into flat lists (reused buffers)
+    idx = np.flatnonzero(np.not_equal(win, 0, out=_scratch.get("nonzero", shape, np.bool_)))
+    m = idx.size
+    lab = _scratch.get("lab", m, np.intp)
+    np.copyto(lab, np.take(win.ravel(), idx, out=_scratch.get("lab_raw", m, win.dtype), mode="clip"),
+              casting="unsafe")
+    crop = _scratch.get("crop", shape, np.float32)
+    np.copyto(crop, img[r0:r1, c0:c1])
+    values = _scratch.get("values", m, np.float64)
+    np.copyto(values, np.take(crop.ravel(), idx, out=_scratch.get("values32", m, np.float32), mode="clip"))
+    mask_c = _scratch.get("mask_crop", shape, np.uint8)
+    np.copyto(mask_c, mask[r0:r1, c0:c1])
+    flags = _scratch.get("flags", m, np.uint8)
+    inside = np.not_equal(np.take(mask_c.ravel(), idx, out=flags, mode="clip"), 0,
+                          out=_scratch.get("inside", m, np.bool_))
+    w = np.subtract(values, level, out=_scratch.get("w", m, np.float64))
+    rows = np.floor_divide(idx, shape[1], out=_scratch.get("rows", m, np.intp))
+    x = np.subtract(idx, np.multiply(rows, shape[1], out=_scratch.get("cols", m, np.intp)),
+                    out=_scratch.get("x", m, np.float64))
+    x += c0 + 0.5
+    # sum along runs: stretches of one label within one image row (the lists are in raster order);
+    # y is constant along a run, so only the x moments need per-pixel sums
+    start = _scratch.get("start", m, np.bool_)
+    start[0] = True
+    np.not_equal(lab[1:], lab[:-1], out=start[1:])
+    start[1:] |= np.not_equal(rows[1:], rows[:-1], out=_scratch.get("row_change", m - 1, np.bool_))
+    runs = np.flatnonzero(start)
+    tmp = _scratch.get("tmp", m, np.float64)
+    tmp2 = _scratch.get("tmp2", m, np.float64)
+    run_w = np.add.reduceat(w, runs)
+    wx = np.multiply(w, x, out=tmp)
+    run_wx = np.add.reduceat(wx, runs)
+    run_wxx = np.add.reduceat(np.multiply(wx, x, out=tmp2), runs)
+    np.copyto(tmp, inside)
+    run_in = np.add.reduceat(tmp, runs)
+    tmp.fill(-np.inf)
+    np.copyto(tmp, values, where=inside)
+    run_peak = np.maximum.reduceat(tmp, runs)
+    # threshold boundary: spot pixels with a 4-neighbour below the threshold (outside the box: below)
+    eroded = cv2.erode(mask_c, cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3)), borderValue=0,
+                       dst=_scratch.get("eroded", shape, np.uint8))
+    bnd = np.equal(np.take(eroded.ravel(), idx, out=flags, mode="clip"), 0, out=_scratch.get("bnd", m, np.bool_))
+    bnd &= inside
+    tmp.fill(0.0)
+    np.copyto(tmp, w, where=bnd)
+    run_edge = np.maximum.reduceat(tmp, runs)
+    # per spot: sums over its runs
+    rl = lab[runs]
+    ry = rows[runs] + (r0 + 0.5)
+    areas = np.bincount(rl, weights=run_in, minlength=n).astype(np.int64)
+    mass = np.bincount(rl, weights=run_w, minlength=n)
     safe = np.where(mass > 0, mass, 1.0)
-    wx = w * x
-    wy = w * y
-    cx = np.bincount(lab, weights=wx, minlength=n) / safe
-    cy = np.bincount(lab, weights=wy, minlength=n) / safe
-    sxx = np.bincount(lab, weights=wx * x, minlength=n) / safe - cx * cx
-    syy = np.bincount(lab, weights=wy * y, minlength=n) / safe - cy * cy
-    sxy = np.bincount(lab, weights=wx * y, minlength=n) / safe - cx * cy
+    cx = np.bincount(rl, weights=run_wx, minlength=n) / safe
+    cy = np.bincount(rl, weights=run_w * ry, minlength=n) / safe
+    sxx = np.bincount(rl, weights=run_wxx, minlength=n) / safe - cx * cx
+    syy = np.bincount(rl, weights=run_w * ry * ry, minlength=n) / safe - cy * cy
+    sxy = np.bincount(rl, weights=run_wx * ry, minlength=n) / safe - cx * cy
     cov = np.stack([np.stack([sxx, sxy], -1), np.stack([sxy, syy], -1)], -2)
     peak = np.full(n, -np.inf)
-    np.maximum.at(peak, lab[inside], values[inside])
-    # threshold boundary: spot pixels with a 4-neighbour below the threshold
-    eroded = cv2.erode(mask, cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3)), borderValue=0)
-    bnd = inside & (eroded.ravel()[idx] == 0)
+    np.maximum.at(peak, rl, run_peak)
     edge = np.zeros(n)
-    np.maximum.at(edge, lab[bnd], w[bnd])
+    np.maximum.at(edge, rl, run_edge)
     edge = edge / np.maximum(peak - level, 1e-300)
-    sat_level = _saturation_level(image, saturation)
+    sat_level = _saturation_level(image, saturation, top if np.asarray(image) is img else None)
     s = slice(1, None)
     ok = mass[s] > 0
     return Spots(
@@ -359,17 +435,21 @@ class Region:
         """Distance (px) of points (..., 2) to the polygon's edge, positive inside."""
         p = np.asarray(points, dtype=np.float64)
         shape = p.shape[:-1]
-        p = p.reshape(-1, 1, 2)
-        a = self.polygon[None, :, :]
-        b = np.roll(self.polygon, -1, axis=0)[None, :, :]
-        ab = b - a
-        t = np.clip(np.sum((p - a) * ab, axis=-1) / np.maximum(np.sum(ab * ab, axis=-1), 1e-300), 0.0, 1.0)
-        d = np.linalg.norm(p - (a + t[..., None] * ab), axis=-1).min(axis=1)
-        ay, by = a[..., 1], b[..., 1]
-        crosses = (ay > p[..., 1]) != (by > p[..., 1])
+        px = p[..., 0].reshape(-1, 1)
+        py = p[..., 1].reshape(-1, 1)
+        ax, ay = self.polygon[:, 0], self.polygon[:, 1]
+        bx, by = np.roll(ax, -1), np.roll(ay, -1)
+        abx, aby = bx - ax, by - ay
+        # closest point of each edge (clamped projection), x and y kept apart: (points, edges) arrays
+        dx, dy = px - ax, py - ay
+        t = np.clip((dx * abx + dy * aby) / np.maximum(abx * abx + aby * aby, 1e-300), 0.0, 1.0)
+        dx -= t * abx
+        dy -= t * aby
+        d = np.sqrt(np.min(dx * dx + dy * dy, axis=1))
+        crosses = (ay > py) != (by > py)
         with np.errstate(divide="ignore", invalid="ignore"):
-            xc = a[..., 0] + (p[..., 1] - ay) * ab[..., 0] / ab[..., 1]
-        inside = (np.sum(crosses & (p[..., 0] < xc), axis=1) % 2) == 1
+            xc = ax + (py - ay) * abx / aby
+        inside = (np.count_nonzero(crosses & (px < xc), axis=1) % 2) == 1
         return np.where(inside, d, -d).reshape(shape)
 
 
@@ -461,10 +541,10 @@ def nearest_spacing(points: Array) -> float:
     return float(np.median(d[:, 1]))
 
 
-def _peak_subpixel(mag: Array, r: int, c: int) -> tuple[float, float]:
-    """Parabolic refinement of a spectral peak (periodic indexing)."""
+def _peak_subpixel(mag: Array, r: int, c: int, log_mag: Array | None = None) -> tuple[float, float]:
+    """Parabolic refinement of a spectral peak (periodic indexing); ``log_mag``: log(mag), if computed already."""
     ny, nx = mag.shape
-    lm = np.log(np.maximum(mag, 1e-300))
+    lm = np.log(np.maximum(mag, 1e-300)) if log_mag is None else log_mag
     dr = dc = 0.0
     a, b, cc = lm[(r - 1) % ny, c], lm[r, c], lm[(r + 1) % ny, c]
     den = a - 2 * b + cc
@@ -514,14 +594,16 @@ def fourier_axes(image: NDArray, center: Array, spacing: float, size: int = 128,
     if cand.size < 2:
         raise MarkerError("no periodic marker grid found in the image's Fourier transform")
     cand = cand[np.argsort(-mag_sel.ravel()[cand])]
-    vecs = []
-    for k in cand[:20]:
+    log_mag = np.log(np.maximum(mag, 1e-300))
+
+    def peak_vector(k: int) -> Array:
         r, c = divmod(int(k), size)
-        rr, cc = _peak_subpixel(mag, r, c)
-        vecs.append(np.array([cc if cc < size / 2 else cc - size, rr if rr < size / 2 else rr - size]))
-    b1 = vecs[0]
+        rr, cc = _peak_subpixel(mag, r, c, log_mag)
+        return np.array([cc if cc < size / 2 else cc - size, rr if rr < size / 2 else rr - size])
+
+    b1 = peak_vector(cand[0])
     b2 = None
-    for v in vecs[1:]:
+    for v in map(peak_vector, cand[1:20]):  # refined one at a time, until the second direction is found
         cosang = abs(v @ b1) / (np.linalg.norm(v) * np.linalg.norm(b1))
         if cosang < np.cos(np.radians(30.0)):
             b2 = v
@@ -588,30 +670,36 @@ def reference_axes(points: Array, ref: int, mirrored: bool) -> Array:
 # ---------------------------------------------------------------------------------------------
 # 4. indexing
 # ---------------------------------------------------------------------------------------------
+#: Axial neighbour offsets of :func:`_local_basis`: +T_x, -T_x, +T_y, -T_y.
+_AXIAL = np.array([[1, 0], [-1, 0], [0, 1], [0, -1]], dtype=np.int64)
+_AXIAL_SIGN = np.array([1.0, -1.0, 1.0, -1.0])
+
+
 def _local_basis(pts: Array, table: NDArray, off: int, ij: NDArray, fallback: Array) -> Array:
     """Local steps of the markers at indices ``ij`` from their indexed axial neighbours.
 
     a_x is the mean of p[i+1, j] - p[i, j] and p[i, j] - p[i-1, j] where those exist (a_y likewise);
-    where neither exists the fallback step is kept.
+    where neither exists the fallback step is kept. ``table`` must extend at least one index beyond
+    every ``ij`` (:func:`index_grid` keeps it so).
     """
-    out = fallback.copy()
-    size = table.shape[0]
     p = pts[table[ij[:, 0] + off, ij[:, 1] + off]]
-    for axis in (0, 1):
-        acc = np.zeros((len(ij), 2))
-        cnt = np.zeros(len(ij))
-        for sign in (1, -1):
-            nb = ij.copy()
-            nb[:, axis] += sign
-            inside = np.all((nb + off >= 0) & (nb + off < size), axis=1)
-            sid = np.full(len(ij), -1)
-            sid[inside] = table[nb[inside, 0] + off, nb[inside, 1] + off]
-            has = sid >= 0
-            acc[has] += sign * (pts[sid[has]] - p[has])
-            cnt[has] += 1
-        got = cnt > 0
-        out[got, axis] = acc[got] / cnt[got, None]
-    return out
+    nb = ij[:, None, :] + _AXIAL + off  # (m, 4, 2)
+    sid = table[nb[..., 0], nb[..., 1]]
+    has = sid >= 0
+    steps = (pts[sid] - p[:, None, :]) * (_AXIAL_SIGN[:, None] * has[..., None])  # zero where missing
+    acc = steps[:, 0::2] + steps[:, 1::2]  # (m, 2 axes, 2)
+    cnt = has[:, 0::2].astype(np.float64) + has[:, 1::2]
+    got = cnt > 0
+    return np.where(got[..., None], acc / np.where(got, cnt, 1.0)[..., None], fallback)
+
+
+def _grow_table(table: NDArray, off: int) -> tuple[NDArray, int]:
+    """The index table with its offset doubled (same entries, more room around them)."""
+    new_off = 2 * off
+    size = 2 * new_off + 1
+    out = np.full((size, size), -1, dtype=table.dtype)
+    out[off: off + table.shape[0], off: off + table.shape[1]] = table
+    return out, new_off
 
 
 def index_grid(points: Array, ref: int, axes: Array, tol: float = 0.3, check: float = 0.25) -> NDArray[np.int64]:
@@ -650,9 +738,10 @@ def index_grid(points: Array, ref: int, axes: Array, tol: float = 0.3, check: fl
         return ij
     pts = np.asarray(points, dtype=np.float64)
     tree = cKDTree(pts)
-    off = n + 2
-    size = 2 * off + 1
-    table = np.full((size, size), -1, dtype=np.int64)
+    # table of spot rows by index (i + off, j + off); it grows as the flood spreads, always keeping
+    # two indices of room beyond every assigned marker (neighbour look-ups go one step further)
+    off = 16
+    table = np.full((2 * off + 1, 2 * off + 1), -1, dtype=np.int64)
     basis = np.zeros((n, 2, 2))
     assigned = np.zeros(n, dtype=bool)
     ij[ref] = 0
@@ -663,13 +752,15 @@ def index_grid(points: Array, ref: int, axes: Array, tol: float = 0.3, check: fl
     offs = NEIGHBOURS.astype(np.float64)
     while frontier.size:
         b = basis[frontier]  # (m, 2, 2) rows a_x, a_y
-        pred = pts[frontier][:, None, :] + np.einsum("kd,mdc->mkc", offs, b)
+        pred = pts[frontier][:, None, :] + (offs[None, :, 0, None] * b[:, None, 0]
+                                            + offs[None, :, 1, None] * b[:, None, 1])
         tij = ij[frontier][:, None, :] + NEIGHBOURS[None]
         free = table[tij[..., 0] + off, tij[..., 1] + off] < 0
         step = np.minimum(np.linalg.norm(b[:, 0], axis=1), np.linalg.norm(b[:, 1], axis=1))
-        dist, sid = tree.query(pred.reshape(-1, 2))
-        dist = dist.reshape(pred.shape[:2])
-        sid = sid.reshape(pred.shape[:2])
+        # only predictions of indices still free need a search
+        dist = np.full(free.shape, np.inf)
+        sid = np.zeros(free.shape, dtype=np.intp)
+        dist[free], sid[free] = tree.query(pred[free])
         ok = free & (dist < tol * step[:, None]) & ~assigned[sid]
         par, k = np.nonzero(ok)
         if par.size == 0:
@@ -680,19 +771,21 @@ def index_grid(points: Array, ref: int, axes: Array, tol: float = 0.3, check: fl
         _, first_s = np.unique(s, return_index=True)
         keep = np.zeros(len(s), dtype=bool)
         keep[first_s] = True
-        key = t[:, 0] * size + t[:, 1]
+        key = (t[:, 0] + off) * (2 * off + 1) + (t[:, 1] + off)  # >= 0: never equal to the sentinels below
         _, first_t = np.unique(np.where(keep, key, -1 - np.arange(len(key))), return_index=True)
         keep2 = np.zeros(len(s), dtype=bool)
         keep2[first_t] = True
         keep &= keep2
         par, k, s, t = par[keep], k[keep], s[keep], t[keep]
+        while np.abs(t).max() > off - 2:
+            table, off = _grow_table(table, off)
         ij[s] = t
         table[t[:, 0] + off, t[:, 1] + off] = s
         assigned[s] = True
         parent = frontier[par]
         fb = basis[parent].copy()
         # keep the parent's steps, corrected by what the step to this marker showed
-        resid = pts[s] - pts[parent] - np.einsum("md,mdc->mc", offs[k], fb)
+        resid = pts[s] - pts[parent] - (offs[k, 0, None] * fb[:, 0] + offs[k, 1, None] * fb[:, 1])
         nz = NEIGHBOURS[k] != 0
         share = nz / np.maximum(nz.sum(axis=1, keepdims=True), 1)
         fb += (share * np.sign(NEIGHBOURS[k]))[:, :, None] * resid[:, None, :]
@@ -702,6 +795,7 @@ def index_grid(points: Array, ref: int, axes: Array, tol: float = 0.3, check: fl
     idx = np.flatnonzero(assigned)
     tt = ij[idx]
     bad = np.zeros(len(idx), dtype=bool)
+    size = table.shape[0]
     for axis in (0, 1):
         lo, hi = tt.copy(), tt.copy()
         lo[:, axis] -= 1

@@ -29,6 +29,24 @@ _CACHE_SIZE = 2
 _local = threading.local()
 
 
+def _mono() -> Any:
+    """``use("mono")``, remembered per thread.
+
+    :func:`scenes.mitsuba.variant.use` searches the file system for the LLVM and CUDA libraries on
+    every call (~70 ms, two calls per render: most of a render's fixed cost); the variant it set is
+    kept here and ``use`` is asked again only when the thread's variant has changed since.
+    """
+    name = getattr(_local, "variant", None)
+    if name is not None:
+        import mitsuba as mi
+
+        if mi.variant() == name:
+            return mi
+    mi = use("mono")
+    _local.variant = mi.variant()
+    return mi
+
+
 def build_scene(setup: Setup, heights: HeightMap | None = None) -> dict:
     """The Mitsuba scene dictionary of a setup (see :func:`scenes.mitsuba.scene.scene_dict`).
 
@@ -47,7 +65,7 @@ def _scene_key(setup: Setup, window: Window | None) -> str:
 
 def load_scene(setup: Setup, heights: HeightMap | None = None, window: Window | None = None) -> Any:
     """The loaded ``mitsuba.Scene`` of a setup, cached per thread (keyed by setup and height-map identity)."""
-    use("mono")
+    _mono()
     if setup.scene == "deflectometry" and heights is None:
         raise SetupError("a deflectometry render needs the substrate's height map (heights=HeightMap(...))")
     key = _scene_key(setup, window)
@@ -83,7 +101,7 @@ def render_window(setup: Setup, heights: HeightMap | None = None, spp: int | Non
 
 def scene_render(scene: Any, spp: int, seed: int) -> NDArray[np.float32]:
     """Render a loaded scene; the single luminance channel as float32 (rows, cols)."""
-    mi = use("mono")
+    mi = _mono()
     img = mi.render(scene, spp=int(spp), seed=int(seed))
     arr = np.asarray(img, dtype=np.float32)
     return np.ascontiguousarray(arr[..., 0] if arr.ndim == 3 else arr)

@@ -10,6 +10,7 @@ NOTES-rendering.md); when it is missing the error says what to install.
 from __future__ import annotations
 
 import ctypes.util
+import functools
 import glob
 import os
 import threading
@@ -28,7 +29,12 @@ class MitsubaUnavailable(ScopetwinError, RuntimeError):
 
 def _llvm_library() -> str | None:
     """Path of a shared LLVM library >= 16, or None."""
-    pinned = os.environ.get("DRJIT_LIBLLVM_PATH")
+    return _find_llvm(os.environ.get("DRJIT_LIBLLVM_PATH"))
+
+
+@functools.lru_cache(maxsize=4)
+def _find_llvm(pinned: str | None) -> str | None:
+    """The file-system search behind :func:`_llvm_library` (cached: it costs tens of ms)."""
     if pinned and os.path.exists(pinned):
         return pinned
     for version in range(25, 15, -1):
@@ -37,10 +43,10 @@ def _llvm_library() -> str | None:
             hits = sorted(glob.glob(pattern))
             if hits:
                 return hits[0]
-    found = ctypes.util.find_library("LLVM")
-    return found
+    return None  # (ctypes' find_library("LLVM") may name LLVM 15, which drjit cannot use)
 
 
+@functools.lru_cache(maxsize=1)
 def _cuda_available() -> bool:
     return ctypes.util.find_library("cuda") is not None
 
@@ -64,6 +70,11 @@ def use(kind: Kind = "mono"):
         library is missing (the message names the package to install).
     """
     name = choose(kind)
+    import sys
+
+    mi_loaded = sys.modules.get("mitsuba")
+    if mi_loaded is not None and mi_loaded.variant() == name:
+        return mi_loaded
     if name.startswith("llvm") and _llvm_library() is None:
         raise MitsubaUnavailable(
             "Mitsuba's llvm variants need a shared LLVM library >= 16 and none was found: "
