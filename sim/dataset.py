@@ -909,18 +909,6 @@ def _object_to_pixel(setup: Any, opt: Any, channel: str, pose: Any, box: tuple[i
     return coef.T
 
 
-def _as_rendered(opt: Any) -> Any:
-    """The channel as :mod:`scenes.mitsuba.cmu` renders it: a transmitted plate keeps the ray's direction.
-
-    The exact tracer refracts at both faces of a bowed plate; the beam's 0.33 mm lateral shift then meets the
-    back face where its slope differs by ~1e-5 rad, which moves the image by a few tenths of a pixel. The
-    rendered images follow this map; the difference to the exact one is the renderer's approximation.
-    """
-    from scenes.cmu.analysis import Optics
-
-    return Optics(opt.objective, [s for s in opt.middle if s.mode != "T"], opt.tube, opt.stop, opt.wavelength_nm)
-
-
 def _affine_truth(a: np.ndarray, pixel_um: float) -> dict[str, Any]:
     """Magnification (sqrt |det|, and the singular values), centre and displayed tilt of an object->pixel map.
 
@@ -1004,8 +992,6 @@ def _write_cmu(plan: Plan, index: int, stage: _Stage) -> dict[str, Any]:
                         "defocus_mm": sample.defocus[ch],
                         "camera": {"tilt_deg": pose.tilt_deg, "offset_px": list(pose.offset_px)},
                         **_affine_truth(_object_to_pixel(setup, opt, ch, pose, box, half), setup.camera.pixel_um),
-                        "as_rendered": _affine_truth(_object_to_pixel(setup, _as_rendered(opt), ch, pose, box, half),
-                                                     setup.camera.pixel_um),
                         "rms_spot_um": res.rms_spot_um, "astigmatism_mm": res.astigmatism_mm,
                         "transmitted_fraction": res.transmitted_fraction,
                         "exposure_e_per_unit": exposure, "seeds": {"render": rseed, "noise": nseed}}

@@ -5,13 +5,21 @@ Plugins (registered idempotently by :func:`register`):
 * BSDF ``scopetwin_ideal_lens`` on a ``disk``: the perfect lens of :mod:`scenes.cmu.trace` (slopes
   s' = s - (x, y)/f in the lens frame), delta transmission, weight 1 - the objective (f = 16.45 mm) and the
   tube lenses (f = 164.5 mm) of §5.1.2.
-* BSDF ``scopetwin_bowed_plate`` on a ``rectangle``: a 25.5 x 36 x 1 mm splitter (or mirror) whose coated face
-  carries a height map. The normal is perturbed by the map's gradient (bilinear in a table of the bicubic
-  map's exact gradients); at each hit the BSDF picks reflection or transmission with probability proportional
-  to the lane-mean R(lambda), T(lambda) of the dichroic (``NNNDCXR``, ``61002BS``) or mirror, and weights each
-  of the four wavelengths by R/p or T/(1-p) - the dichroic works physically, per wavelength. In transmission
-  the direction is kept (a plate of uniform thickness in collimated light: its deviation is < 1e-5 rad, its
-  0.33 mm lateral shift moves the beam, not the image; the numpy tracer models both faces exactly).
+* BSDF ``scopetwin_bowed_plate`` on a ``rectangle``: one face of a 25.5 x 36 x 1 mm splitter (or mirror). Its
+  normal is perturbed by the plate's height map (bilinear in a table of the bicubic map's exact gradients; the
+  back face carries the same map, as in :mod:`scenes.cmu.trace`). The coated front face (z_local = 0) picks
+  reflection or transmission with probability proportional to the lane-mean R(lambda), T(lambda) of the dichroic
+  (``NNNDCXR``, ``61002BS``) or mirror, and weights each of the four wavelengths by R/p or T/(1-p) - the dichroic
+  works physically, per wavelength; a transmitted ray is refracted (Snell, air <-> fused silica at the hero
+  wavelength). A splitter also has its uncoated back face (z_local = -thickness): refraction only, weight 1.
+  So a transmitted ray refracts at both faces with each face's own normal at its own hit point and is displaced
+  laterally inside the glass (0.33 mm at 45°), as in the exact tracer: with bowed plates the two slopes differ by
+  ~1e-5 rad, which deviates the ray, and the shift moves the beam on later plates and on the objective's aperture
+  (a direction-keeping plate put the thesis unit's images 0.3-0.9 px away from the exact tracer's). Residual
+  against :mod:`scenes.cmu.trace` (reversed exact rays, tests/scenes/test_cmu_mitsuba.py): <= 0.008 px in image
+  position, <= 0.03 px per ray. What remains: each face is its plane (z_local = 0 or -thickness) with the
+  bowed normal, not the surface at z = h (a <= 5 µm hit-point error, <= 2e-7 rad of normal); one index per ray
+  (the hero wavelength: across a channel's band the image moves < 0.002 px); float32.
 
 Rendering (:func:`render_channel`): rays start on the camera's sensor (pixel area x tube-lens disk, weight
 A cos^2/d^2: irradiance), carry four wavelengths drawn from the channel's fixed detection response (band pass,
@@ -34,7 +42,7 @@ import numpy as np
 from scenes.cmu import spectra
 from scenes.cmu.analysis import channel_optics, image_rays, pupil_grid
 from scenes.cmu.layout import CmuSetup
-from scenes.cmu.plates import plate_heightmap
+from scenes.cmu.plates import fused_silica_index, plate_heightmap
 from scenes.cmu.targets import dummy_cells, siemens_star
 from scenes.cmu.trace import axis_frame
 from scenes.errors import ScopetwinError
@@ -115,7 +123,8 @@ class IdealLens(mi.BSDF):
 
 
 class BowedPlate(mi.BSDF):
-    """BSDF ``scopetwin_bowed_plate``: property ``key`` names the tables registered by :func:`plate_tables`."""
+    """BSDF ``scopetwin_bowed_plate``: ``key`` names the tables registered by :func:`plate_tables`; ``face`` is
+    ``"front"`` (coated: dichroic reflection/transmission, default) or ``"back"`` (uncoated: refraction only)."""
 
     def __init__(self, props: mi.Properties) -> None:
         super().__init__(props)
@@ -126,6 +135,8 @@ class BowedPlate(mi.BSDF):
         self.nx, self.ny = t["nx"], t["ny"]
         self.hx, self.hy = mi.Float(t["hx"].ravel()), mi.Float(t["hy"].ravel())
         self.refl, self.trans = mi.Float(t["R"]), mi.Float(t["T"])
+        self.index = mi.Float(t["n_glass"])
+        self.coated = props.get("face", "front") == "front"
         self.m_flags = mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide \
             | mi.BSDFFlags.BackSide
         self.m_components = [mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide,
@@ -144,24 +155,41 @@ class BowedPlate(mi.BSDF):
             out.append(a * (1 - wy) + b * wy)
         return out[0], out[1]
 
+    def _refract(self, d: Any, n: Any, n_glass: Any) -> tuple[Any, Any]:
+        """Snell's law at this face: air on the +N_z side of the front face and on the -N_z side of the back face.
+
+        Returns the refracted direction and a mask of rays that are not totally internally reflected."""
+        from_plus = dr.dot(d, n) < 0.0
+        into_glass = from_plus == self.coated
+        eta = dr.select(into_glass, 1.0 / n_glass, n_glass)
+        m = dr.select(from_plus, n, -n)  # the normal facing the incident side
+        c = -dr.dot(d, m)
+        k = 1.0 - eta * eta * (1.0 - c * c)
+        return dr.normalize(eta * d + (eta * c - dr.sqrt(dr.maximum(k, 0.0))) * m), k >= 0.0
+
     def sample(self, ctx: Any, si: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any]:
         d = -si.to_world(si.wi)
         tx, ty, nz = mi.Vector3f(self.tx), mi.Vector3f(self.ty), mi.Vector3f(self.nz)
         q = si.p - mi.Point3f(self.c)
         hx, hy = self._gradient(dr.dot(q, tx), dr.dot(q, ty))
         n = dr.normalize(nz - hx * tx - hy * ty)
+        d_t, ok = self._refract(d, n, _lookup(self.index, si.wavelengths[0]))
+        if not self.coated:  # the uncoated back face: refraction only
+            bs = _delta_sample(si, d_t, mi.BSDFFlags.DeltaTransmission)
+            bs.sampled_component = mi.UInt32(1)
+            return bs, dr.select(ok, mi.Spectrum(1.0), mi.Spectrum(0.0))
         r = _lookup_spectrum(self.refl, si.wavelengths)
         t = _lookup_spectrum(self.trans, si.wavelengths)
         rm, tm = dr.mean(r), dr.mean(t)
         p = rm / dr.maximum(rm + tm, 1e-12)
         reflect = sample1 < p
         d_r = d - 2.0 * dr.dot(d, n) * n
-        wo = dr.select(reflect, d_r, d)
+        wo = dr.select(reflect, d_r, d_t)
         flag = dr.select(reflect, mi.UInt32(+mi.BSDFFlags.DeltaReflection), mi.UInt32(+mi.BSDFFlags.DeltaTransmission))
         bs = _delta_sample(si, wo, mi.BSDFFlags.DeltaReflection)
         bs.sampled_type = flag
         bs.sampled_component = dr.select(reflect, mi.UInt32(0), mi.UInt32(1))
-        w = dr.select(reflect, r / dr.maximum(p, 1e-12), t / dr.maximum(1.0 - p, 1e-12))
+        w = dr.select(reflect, r / dr.maximum(p, 1e-12), dr.select(ok, t / dr.maximum(1.0 - p, 1e-12), 0.0))
         return bs, w
 
     def eval(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
@@ -179,6 +207,7 @@ class BowedPlate(mi.BSDF):
 
 def register() -> None:
     """Register the BSDFs ``scopetwin_ideal_lens`` and ``scopetwin_bowed_plate`` (idempotent per thread/variant)."""
+    use("spectral")  # another renderer may have switched this thread's variant since import
     key = f"{mi.variant()}:{threading.get_ident()}"
     with _lock:
         if key in _registered:
@@ -214,7 +243,8 @@ def plate_tables(name: str, frame: Any, hm: HeightMap | None, setup: CmuSetup, i
     _TABLES[key] = {"c": tuple(frame.origin), "tx": tuple(frame.tx), "ty": tuple(frame.ty), "nz": tuple(frame.nz),
                     "x0": float(xs[0]), "y0": float(ys[0]), "dx": node_mm, "dy": node_mm, "nx": len(xs),
                     "ny": len(ys), "hx": hx.astype(np.float32), "hy": hy.astype(np.float32),
-                    "R": _grid_1nm(r).astype(np.float32), "T": _grid_1nm(t).astype(np.float32)}
+                    "R": _grid_1nm(r).astype(np.float32), "T": _grid_1nm(t).astype(np.float32),
+                    "n_glass": fused_silica_index(np.arange(WL0_NM, WL1_NM + 0.5, 1.0)).astype(np.float32)}
     return key
 
 
@@ -229,7 +259,8 @@ def _lens_dict(frame: Any, f: float, radius: float) -> dict[str, Any]:
 
 def unit_scene(setup: CmuSetup, maps: dict[str, HeightMap] | None = None, tube_f: float | None = None,
                flat: bool = False) -> tuple[Any, int]:
-    """Mitsuba scene of the whole unit: objective, splitters, mirrors, four tube lenses, object plane.
+    """Mitsuba scene of the whole unit: objective, splitters (coated front and uncoated back face), mirrors, four
+    tube lenses, object plane.
 
     Returns (scene, shape id of the object plane).
     """
@@ -249,6 +280,10 @@ def unit_scene(setup: CmuSetup, maps: dict[str, HeightMap] | None = None, tube_f
             m[:3, 2], m[:3, 3] = fr.nz, fr.origin
             scene[f"plate_{name}"] = {"type": "rectangle", "to_world": T(m.tolist()),
                                       "bsdf": {"type": "scopetwin_bowed_plate", "key": key}}
+            if not is_mirror:  # the splitter's uncoated back face, one thickness behind the coated one
+                m[:3, 3] = fr.origin - setup.plate.thickness * fr.nz
+                scene[f"plate_{name}_back"] = {"type": "rectangle", "to_world": T(m.tolist()),
+                                               "bsdf": {"type": "scopetwin_bowed_plate", "key": key, "face": "back"}}
     for cname, ch in setup.channels.items():
         fr = axis_frame(np.asarray(ch.tube_center, dtype=np.float64), np.asarray(ch.tube_axis, dtype=np.float64))
         scene[f"tube_{cname}"] = _lens_dict(fr, tube_f or setup.tube.focal_length, 12.5)
@@ -304,6 +339,95 @@ def _wavelength_table(setup: CmuSetup, channel: str, target: Target) -> tuple[np
     return pdf, float(pdf.sum())
 
 
+def _trace_to_object(sc: Any, obj_id: int, ray: Any, thr: Any, sampler: Any,
+                     stop_plane: tuple[np.ndarray, np.ndarray, float] | None = None,
+                     max_depth: int = 12, count: bool = False) -> tuple[Any, Any, Any, Any, Any]:
+    """Follow rays (from the image side) through the unit's delta BSDFs until they meet the object plane.
+
+    ``stop_plane`` (centre, axis, radius): a circular aperture met right after the first interaction (the tube
+    lens), §5.1.2. Returns the object-plane points, the throughput there, the mask of rays that arrived, the
+    number of reflections each ray took (a channel's own path has as many as its ``:R`` steps) and the number of
+    surfaces it met before the object plane (tube lens, two faces per transmitted splitter, one per reflection,
+    objective: a ray that misses the objective's aperture has one fewer); the two counts only with ``count``
+    (they slow the renderer), else None.
+    """
+    alive = mi.Bool(True)
+    hit = mi.Bool(False)
+    p_obj = dr.zeros(mi.Point3f, dr.width(ray.o))
+    n_refl = mi.UInt32(0)
+    n_events = mi.UInt32(0)
+    ctx = mi.BSDFContext()
+    wl = ray.wavelengths
+    for depth in range(max_depth):
+        si = sc.ray_intersect(ray, alive)
+        alive &= si.is_valid()
+        is_obj = alive & (dr.reinterpret_array(mi.UInt32, si.shape) == obj_id)
+        p_obj = dr.select(is_obj, si.p, p_obj)
+        hit |= is_obj
+        alive &= ~is_obj
+        bsdf = si.bsdf(ray)
+        bs, w = bsdf.sample(ctx, si, sampler.next_1d(alive), sampler.next_2d(alive), alive)
+        wo = si.to_world(bs.wo)
+        if depth == 0 and stop_plane is not None:
+            c, axis, radius = stop_plane
+            sc_v = mi.Point3f(*[float(v) for v in c])
+            ax = mi.Vector3f(*[float(v) for v in axis])
+            t_s = dr.dot(sc_v - si.p, ax) / dr.dot(wo, ax)
+            alive &= dr.squared_norm(si.p + t_s * wo - sc_v) <= radius * radius
+        if count:
+            n_refl += dr.select(alive & mi.has_flag(bs.sampled_type, mi.BSDFFlags.DeltaReflection), 1, 0)
+            n_events += dr.select(alive, 1, 0)
+        thr = dr.select(alive, thr * w, thr)  # rays that arrived keep their throughput at the object
+        alive &= dr.mean(w) > 0
+        ray = mi.Ray3f(si.p + 1e-4 * wo, wo, 0.0, wl)
+    return p_obj, thr, hit, (n_refl if count else None), (n_events if count else None)
+
+
+@dataclass(frozen=True)
+class Landing:
+    """Where rays traced backwards through the unit meet the object plane (global mm, float64 copies), how many
+    reflections they took and how many surfaces they met on the way (see :func:`_trace_to_object`)."""
+
+    points: np.ndarray
+    hit: np.ndarray
+    reflections: np.ndarray
+    events: np.ndarray
+    throughput: np.ndarray
+
+
+def land_rays(scene: tuple[Any, int], origins: np.ndarray, directions: np.ndarray, wavelength_nm: float,
+              seed: int = 0) -> Landing:
+    """Trace rays from the image side (e.g. a camera plane) through the Mitsuba unit to the object plane.
+
+    The renderer's own ray loop (:func:`render_channel` uses it), exposed for per-ray comparison with the float64
+    tracer :mod:`scenes.cmu.trace`: reverse a traced ray at the image plane and it must land on its object point.
+
+    Parameters
+    ----------
+    scene : (scene, object shape id) from :func:`unit_scene`
+    origins, directions : (N, 3) arrays, global mm; directions point toward the unit
+    wavelength_nm : float
+        All four spectral lanes carry this wavelength (dichroic R/T and the glass index are taken there).
+    seed : int
+        Seed of the reflect/transmit choices at the splitters.
+    """
+    use("spectral")
+    sc, obj_id = scene
+    o = np.asarray(origins, dtype=np.float64)
+    d = np.asarray(directions, dtype=np.float64)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    n = len(o)
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k]) for k in range(3)]),
+                   mi.Vector3f(*[mi.Float(d[:, k]) for k in range(3)]), 0.0,
+                   mi.UnpolarizedSpectrum(float(wavelength_nm)))
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(seed & 0xFFFFFFFF, n)
+    p, thr, hit, n_refl, n_events = _trace_to_object(sc, obj_id, ray, mi.Spectrum(1.0), sampler, count=True)
+    pts = np.column_stack([np.asarray(c, dtype=np.float64) for c in (p.x, p.y, p.z)])
+    return Landing(pts, np.asarray(hit, dtype=bool), np.asarray(n_refl, dtype=np.int64),
+                   np.asarray(n_events, dtype=np.int64), np.asarray(dr.mean(thr), dtype=np.float64))
+
+
 def render_channel(setup: CmuSetup, channel: str, pose: CameraPose, target: Target = "star", spp: int = 16,
                    window: tuple[int, int, int, int] | None = None, maps: dict[str, HeightMap] | None = None,
                    tube_f: float | None = None, stop: bool = False, seed: int = 0, flat: bool = False,
@@ -321,6 +445,7 @@ def render_channel(setup: CmuSetup, channel: str, pose: CameraPose, target: Targ
     scene : optional
         A scene from :func:`unit_scene` to reuse.
     """
+    use("spectral")
     if channel not in setup.channels:
         raise ScopetwinError(f"unknown channel {channel!r} (channels: {', '.join(setup.channels)})")
     if spp < 1:
@@ -343,6 +468,7 @@ def render_channel(setup: CmuSetup, channel: str, pose: CameraPose, target: Targ
         tex_shape = tex.shape
     lens_r = (0.5 * setup.tube.stop_diameter) if stop else 12.5
     stop_c = lens.origin - setup.tube.stop_gap * lens.nz
+    stop_plane = (stop_c, lens.nz, 0.5 * setup.tube.stop_diameter) if stop else None
     n_pix = hgt * wid
     per_pass = max(1, min(spp, max_rays // max(n_pix, 1)))
     acc = np.zeros(n_pix, dtype=np.float64)
@@ -378,34 +504,14 @@ def render_channel(setup: CmuSetup, channel: str, pose: CameraPose, target: Targ
         lanes = [dist.sample(u_wl + q / 4.0 - dr.floor(u_wl + q / 4.0)) for q in range(4)]
         wl = mi.UnpolarizedSpectrum(*lanes)
         ray = mi.Ray3f(o_img, d, 0.0, wl)
-        thr = mi.Spectrum(weight)
-        alive = mi.Bool(True)
-        value = mi.Float(0.0)
-        ctx = mi.BSDFContext()
-        for depth in range(12):
-            si = sc.ray_intersect(ray, alive)
-            alive &= si.is_valid()
-            sid = dr.reinterpret_array(mi.UInt32, si.shape)
-            is_obj = alive & (sid == obj_id)
-            if target == "star":
-                tval = siemens_star(si.p.x, si.p.y, star_spec, DR)
-            else:
-                fx = dr.clip((si.p.x - tx0) / 0.5e-3, 0, tex_shape[1] - 1)
-                fy = dr.clip((si.p.y - ty0) / 0.5e-3, 0, tex_shape[0] - 1)
-                tval = dr.gather(mi.Float, tex_dr, mi.UInt32(fy) * tex_shape[1] + mi.UInt32(fx), is_obj)
-            value += dr.select(is_obj, dr.mean(thr) * tval, 0.0)
-            alive &= ~is_obj
-            bsdf = si.bsdf(ray)
-            bs, w = bsdf.sample(ctx, si, sampler.next_1d(alive), sampler.next_2d(alive), alive)
-            wo = si.to_world(bs.wo)
-            if depth == 0 and stop:
-                sc_v = mi.ScalarVector3f(*[float(c) for c in stop_c])
-                t_s = dr.dot(mi.Vector3f(sc_v) - si.p, mi.Vector3f(LZ)) / dr.dot(wo, mi.Vector3f(LZ))
-                ps = si.p + t_s * wo - mi.Point3f(sc_v)
-                alive &= dr.squared_norm(ps) <= (0.5 * setup.tube.stop_diameter) ** 2
-            thr = thr * w
-            alive &= dr.mean(w) > 0
-            ray = mi.Ray3f(si.p + 1e-4 * wo, wo, 0.0, wl)
+        p_obj, thr, hit, _, _ = _trace_to_object(sc, obj_id, ray, mi.Spectrum(weight), sampler, stop_plane)
+        if target == "star":
+            tval = siemens_star(p_obj.x, p_obj.y, star_spec, DR)
+        else:
+            fx = dr.clip((p_obj.x - tx0) / 0.5e-3, 0, tex_shape[1] - 1)
+            fy = dr.clip((p_obj.y - ty0) / 0.5e-3, 0, tex_shape[0] - 1)
+            tval = dr.gather(mi.Float, tex_dr, mi.UInt32(fy) * tex_shape[1] + mi.UInt32(fx), hit)
+        value = dr.select(hit, dr.mean(thr) * tval, 0.0)
         vals = np.asarray(value, dtype=np.float64)
         acc += np.bincount(np.asarray(idx, dtype=np.int64), vals, minlength=n_pix)
         done += k

@@ -199,6 +199,7 @@ class GrinScene:
 
     def __init__(self, setup: GrinSetup, stack: Stack, step_mm: float | None = None,
                  sensor: dict[str, Any] | None = None, integrator: dict[str, Any] | None = None) -> None:
+        use("mono")  # another module may have switched this thread's variant since import
         self.setup = setup
         self.stack = stack
         self.axes = np.array(setup.array.axes(), dtype=np.float64)
@@ -511,6 +512,7 @@ class PupilSensor(mi.Sensor):
 
 def register() -> None:
     """Register ``scopetwin_grin`` and ``scopetwin_grin_pupil`` with Mitsuba (idempotent, per thread/variant)."""
+    use("mono")
     key = f"{mi.variant()}:{threading.get_ident()}"
     with _lock:
         if key in _registered:
