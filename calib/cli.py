@@ -232,25 +232,3 @@ def register(subparsers: Any) -> None:
                    "substrate view's b and distortion)")
     p.add_argument("--out", required=True, metavar="setup.toml", help="calibrated setup TOML to write")
     _common(p)
-
-
-def _main(argv: list[str] | None = None) -> int:  # pragma: no cover - the real entry point is sim/cli.py
-    import sys
-
-    from scenes.io import write_json_atomic
-
-    parser = argparse.ArgumentParser(prog="scopetwin")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    try:
-        result = args.func(args)
-        if args.json:
-            write_json_atomic(args.json, result)
-    except ScopetwinError as exc:
-        print(f"scopetwin: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(_main())

@@ -14,8 +14,6 @@ command line turns it into exit code 2 and writes nothing.
 from __future__ import annotations
 
 import argparse
-import sys
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,8 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from recon.markers import MarkerError, Markers, find_markers_for
-from scenes.errors import ScopetwinError
-from scenes.io import atomic_path, read_image, write_json_atomic
+from scenes.io import atomic_path, read_image
 from scenes.setup import load_setup
 
 
@@ -94,22 +91,3 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--overlay", metavar="PNG", help="write a picture of the image with the indices drawn")
     p.set_defaults(func=cmd_markers)
     return p
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``markers`` on its own, as ``scopetwin`` would: JSON on success, exit code 2 on bad input."""
-    parser = argparse.ArgumentParser(prog="scopetwin")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(["markers", *(sys.argv[1:] if argv is None else argv)])
-    try:
-        result = args.func(args)
-        if args.json:
-            write_json_atomic(args.json, result)
-    except ScopetwinError as exc:
-        print(f"scopetwin: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -101,33 +101,3 @@ def register(subparsers: Any) -> None:
     p.add_argument("dir", help="dataset folder")
     p.add_argument("--json", metavar="PATH", help="write {complete, missing, corrupt, duplicates, ...} here")
     p.set_defaults(func=cmd_verify)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m sim.dataset_cli dataset ...``: the same commands before they are wired into ``scopetwin``."""
-    import sys
-
-    from scenes.errors import ScopetwinError
-
-    parser = argparse.ArgumentParser(prog="scopetwin")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    try:
-        result = args.func(args)
-        if isinstance(result, int):
-            return result
-        if getattr(args, "json", None):
-            from scenes.io import write_json_atomic
-
-            write_json_atomic(args.json, json.loads(json.dumps(result, default=str)))
-    except ScopetwinError as exc:
-        print(f"scopetwin: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("scopetwin: interrupted", file=sys.stderr)
-        return 130
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())

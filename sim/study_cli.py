@@ -43,31 +43,3 @@ def register(subparsers: Any) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
     p.set_defaults(func=cmd_study)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m sim.study_cli study NAME ...`` before the command is wired into ``scopetwin``."""
-    import json
-    import sys
-
-    from scenes.errors import ScopetwinError
-    from scenes.io import write_json_atomic
-
-    parser = argparse.ArgumentParser(prog="scopetwin")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    try:
-        result = args.func(args)
-        if args.json:
-            write_json_atomic(args.json, json.loads(json.dumps(result, default=str)))
-    except ScopetwinError as exc:
-        print(f"scopetwin: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("scopetwin: interrupted", file=sys.stderr)
-        return 130
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())

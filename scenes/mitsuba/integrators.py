@@ -16,10 +16,9 @@ the offset along the ray moves nothing. The mirror reflectance is 1.
 
 from __future__ import annotations
 
-import threading
 from typing import Any
 
-from scenes.mitsuba.variant import use
+from scenes.mitsuba.variant import register_plugin, use
 
 PLUGIN = "scopetwin_mirror"
 
@@ -27,8 +26,6 @@ PLUGIN = "scopetwin_mirror"
 #: float32 rounding of hit points, ~2 nm here, and far below any scene feature).
 DEFAULT_EPS = 1e-3
 
-_classes: dict[str, type] = {}
-_registered = threading.local()
 
 
 def _mi():
@@ -98,15 +95,5 @@ def _make_class(mi) -> type:
 
 def register() -> None:
     """Register ``scopetwin_mirror`` for the current variant in this thread (idempotent)."""
-    mi = _mi()
-    variant = mi.variant()
-    done = getattr(_registered, "variants", None)
-    if done is None:
-        done = _registered.variants = set()
-    if variant in done:
-        return
-    if variant not in _classes:
-        _classes[variant] = _make_class(mi)
-    cls = _classes[variant]
-    mi.register_integrator(PLUGIN, lambda props: cls(props))
-    done.add(variant)
+    _mi()
+    register_plugin("integrator", PLUGIN, _make_class)

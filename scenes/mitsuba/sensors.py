@@ -16,19 +16,16 @@ It is built directly from the float64 frame, never with ``look_at``.
 
 from __future__ import annotations
 
-import threading
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from scenes.camera import Camera
-from scenes.mitsuba.variant import use
+from scenes.mitsuba.variant import register_plugin, use
 
 PLUGIN = "scopetwin_camera"
 
-_classes: dict[str, type] = {}
-_registered = threading.local()
 
 
 def camera_to_world(camera: Camera) -> NDArray[np.float64]:
@@ -190,15 +187,5 @@ def register() -> None:
 
     Mitsuba's Python plugin registry is per thread and per variant (NOTES-rendering.md).
     """
-    mi = _mi()
-    variant = mi.variant()
-    done = getattr(_registered, "variants", None)
-    if done is None:
-        done = _registered.variants = set()
-    if variant in done:
-        return
-    if variant not in _classes:
-        _classes[variant] = _make_class(mi)
-    cls = _classes[variant]
-    mi.register_sensor(PLUGIN, lambda props: cls(props))
-    done.add(variant)
+    _mi()
+    register_plugin("sensor", PLUGIN, _make_class)

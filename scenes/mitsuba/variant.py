@@ -105,3 +105,29 @@ def set_thread_count(n: int) -> None:
     import drjit as dr
 
     dr.set_thread_count(int(n))
+
+
+_plugin_classes: dict[tuple[str, str], type] = {}
+_plugin_done = threading.local()
+
+
+def register_plugin(kind: str, name: str, make_class) -> None:
+    """Register the Python plugin ``name`` of ``kind`` (``integrator``, ``sensor``, ``bsdf``, ...) once.
+
+    Mitsuba's Python plugin registry is per thread and per variant (NOTES-rendering.md), so the
+    registration is remembered per thread and variant; the plugin class, built by ``make_class(mi)``
+    against the current variant's base classes, is built once per variant.
+    """
+    import mitsuba as mi
+
+    key = (mi.variant(), name)
+    done = getattr(_plugin_done, "keys", None)
+    if done is None:
+        done = _plugin_done.keys = set()
+    if key in done:
+        return
+    cls = _plugin_classes.get(key)
+    if cls is None:
+        cls = _plugin_classes[key] = make_class(mi)
+    getattr(mi, f"register_{kind}")(name, lambda props: cls(props))
+    done.add(key)

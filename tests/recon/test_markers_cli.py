@@ -10,10 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
-from recon.markers_cli import main, register
+from recon.markers_cli import register
 from scenes.analytic import render
 from scenes.io import write_image
 from scenes.setup import load_setup
+from sim.cli import main as scopetwin_main
 from sim.truth import marker_truth
 
 SETUP_TOML = """base = "thesis-2.8.1-angular"
@@ -34,6 +35,7 @@ def case(tmp_path_factory) -> tuple[Path, Path, object]:
     return toml, image, marker_truth(setup)
 
 
+
 def test_register_adds_the_markers_command():
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers(dest="command"))
@@ -44,7 +46,8 @@ def test_register_adds_the_markers_command():
 def test_json_contract_and_overlay(case, tmp_path):
     toml, image, truth = case
     out, png = tmp_path / "m.json", tmp_path / "m.png"
-    assert main([str(image), "--pattern", str(toml), "--json", str(out), "--overlay", str(png)]) == 0
+    argv = ["markers", str(image), "--pattern", str(toml), "--json", str(out), "--overlay", str(png)]
+    assert scopetwin_main(argv) == 0
     data = json.loads(out.read_text())
     assert set(data) >= {"markers", "rejected"} and data["rejected"] >= 0
     recs = data["markers"]
@@ -70,6 +73,6 @@ def test_bad_input_exits_2_and_writes_nothing(case, tmp_path, kind, capsys):
     else:
         pattern = "thesis-2.8.1-angular"  # a 1360x1024 camera for a 340x256 image
     out, png = tmp_path / "m.json", tmp_path / "m.png"
-    assert main([str(image), "--pattern", pattern, "--json", str(out), "--overlay", str(png)]) == 2
+    assert scopetwin_main(["markers", str(image), "--pattern", pattern, "--json", str(out), "--overlay", str(png)]) == 2
     assert "error" in capsys.readouterr().err
     assert not out.exists() and not png.exists()

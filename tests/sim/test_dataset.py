@@ -13,7 +13,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_dataset_common import write_tiny  # noqa: E402
 
-from sim import dataset_cli  # noqa: E402
+from sim.cli import main as scopetwin_main
 from sim.dataset import (  # noqa: E402
     MANIFEST,
     SAMPLES,
@@ -67,7 +67,7 @@ def test_bad_setup_override_and_impossible_sample_rejected_before_work(tmp_path)
 def test_cli_rejects_bad_config_without_touching_the_output(tmp_path, capsys):
     cfg = write_tiny(tmp_path, extra='\n[vary.surface_kind]\nchoice = ["random", "wavy"]\n')
     out = tmp_path / "out"
-    assert dataset_cli.main(["dataset", "generate", str(cfg), "--out", str(out), "--workers", "0"]) == 2
+    assert scopetwin_main(["dataset", "generate", str(cfg), "--out", str(out), "--workers", "0"]) == 2
     assert "vary.surface_kind" in capsys.readouterr().err
     assert not out.exists()
 
@@ -145,7 +145,7 @@ def test_determinism_truth_verify_and_resume(tmp_path):
     assert rep["missing"] == [4] and rep["duplicates"] == [int(json.loads(lines[7])["index"])]
     assert rep["temporary"] == [".tmp-000004-x"] and rep["bad_manifest_lines"] == 1
     out = tmp_path / "verify.json"
-    assert dataset_cli.main(["dataset", "verify", str(a), "--json", str(out)]) == 1
+    assert scopetwin_main(["dataset", "verify", str(a), "--json", str(out)]) == 1
     assert set(json.loads(out.read_text())) >= {"complete", "missing", "corrupt", "duplicates"}
 
     generate(load_plan(a), a, workers=0, progress=False)

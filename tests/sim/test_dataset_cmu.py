@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim import dataset_cli
+from sim.cli import main as scopetwin_main
 from sim.dataset import (
     SAMPLES,
     DatasetError,
@@ -101,7 +101,7 @@ def test_cli_rejects_bad_config_without_touching_the_output(tmp_path, capsys):
     cfg = _write(tmp_path)
     cfg.write_text(cfg.read_text().replace("[-8.0, 8.0]", "[-60.0, 60.0]"))
     out = tmp_path / "out"
-    assert dataset_cli.main(["dataset", "generate", str(cfg), "--out", str(out), "--workers", "0"]) == 2
+    assert scopetwin_main(["dataset", "generate", str(cfg), "--out", str(out), "--workers", "0"]) == 2
     assert "vary.channel_offset_px" in capsys.readouterr().err
     assert not out.exists()
 

@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from sim import studies, study_cli
+from sim import studies
+from sim.cli import main as scopetwin_main
 from sim.studies import Row, StudyContext, StudyError, StudyResult, Table, ratio, require, run_study, table_markdown
 
 
@@ -37,7 +38,7 @@ def test_missing_capability_is_named_and_nothing_is_written(tmp_path, monkeypatc
 
 
 def test_cli_unknown_study_exit_2(tmp_path, capsys):
-    assert study_cli.main(["study", "nope", "--out", str(tmp_path / "x"), "--workers", "0"]) == 2
+    assert scopetwin_main(["study", "nope", "--out", str(tmp_path / "x"), "--workers", "0"]) == 2
     assert "unknown study 'nope'" in capsys.readouterr().err
 
 
