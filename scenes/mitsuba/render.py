@@ -7,6 +7,11 @@ filter (the physical pixel), sampled by ``multijitter``.
 
 Loaded scenes are cached per thread (the last few setups / height maps), so rendering
 the same scene again with another seed or spp costs only the render itself.
+
+Pixels that provably see nothing are not traced: :func:`live_window` bounds the image of
+everything that can send light to the camera (the substrate's ROI, the mirror, the pattern
+plate) and :func:`render_setup` renders that window only, leaving the rest exactly 0 — which
+is what a full render gives there (tested).
 """
 
 from __future__ import annotations
@@ -23,10 +28,77 @@ from scenes.mitsuba.variant import use
 from scenes.setup import Setup
 from scenes.surface import HeightMap
 
-__all__ = ["build_scene", "load_scene", "render_setup", "render_window"]
+__all__ = ["build_scene", "live_window", "load_scene", "render_setup", "render_window"]
 
 _CACHE_SIZE = 2
 _local = threading.local()
+
+#: Heights of a substrate are bounded by this (mm, rounded up to a multiple) when the live window is
+#: computed, so that the window — and with it the compiled kernels and the cached scene — stays the
+#: same for every surface of ordinary size.
+_Z_STEP = 0.5
+_EDGE_SAMPLES = 256
+_MARGIN_PX = 2
+
+
+def _edges(corners: NDArray[np.float64], pairs: list[tuple[int, int]]) -> NDArray[np.float64]:
+    t = np.linspace(0.0, 1.0, _EDGE_SAMPLES)[:, None]
+    return np.concatenate([corners[a] + t * (corners[b] - corners[a]) for a, b in pairs])
+
+
+def _box_edges(x: tuple[float, float], y: tuple[float, float], z: tuple[float, float]) -> NDArray[np.float64]:
+    corners = np.array([[x[i & 1], y[(i >> 1) & 1], z[i >> 2]] for i in range(8)], dtype=np.float64)
+    pairs = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]
+    return _edges(corners, pairs)
+
+
+def _plate_edges(setup: Setup) -> NDArray[np.float64]:
+    pat = setup.marker_pattern
+    hx, hy = 0.5 * pat.size_x, 0.5 * pat.size_y
+    local = np.array([[-hx, -hy, 0.0], [hx, -hy, 0.0], [hx, hy, 0.0], [-hx, hy, 0.0]])
+    return _edges(pat.frame.to_global(local), [(0, 1), (1, 2), (2, 3), (3, 0)])
+
+
+def live_window(setup: Setup, heights: HeightMap | None = None) -> Window | None:
+    """The pixel window outside which the image is provably black, or None (render everything).
+
+    Bounds the image of the light-carrying objects — the substrate's ROI box (heights bounded by a
+    multiple of 0.5 mm), the flat mirror, the pattern plate seen directly — from densely sampled
+    edges projected through the camera model (distortion included), each clipped to the image,
+    padded by 2 px. None for a thin-lens camera (defocus spreads light), when an object reaches
+    behind the camera, or when the window would cover most of the image anyway.
+    """
+    cam = setup.camera_model
+    if cam.lens is not None:
+        return None
+    objects = [_plate_edges(setup)]
+    if setup.scene == "deflectometry" and setup.substrate is not None and heights is not None:
+        sub = setup.substrate
+        z = max(float(np.abs(heights.z).max()), 1e-9)
+        z = _Z_STEP * np.ceil(z / _Z_STEP)
+        objects.append(_box_edges((-0.5 * sub.size[0], 0.5 * sub.size[0]),
+                                  (-0.5 * sub.roi_length, 0.5 * sub.roi_length), (-z, z)))
+    elif setup.scene == "mirror" and setup.mirror is not None:
+        mx, my = setup.mirror.size
+        objects.append(_box_edges((-0.5 * mx, 0.5 * mx), (-0.5 * my, 0.5 * my), (0.0, 0.0)))
+    r0, r1, c0, c1 = cam.ny, 0, cam.nx, 0
+    for pts in objects:
+        px = cam.project(pts)
+        if not np.all(np.isfinite(px)):
+            return None
+        lo = np.floor(px.min(axis=0)).astype(int) - _MARGIN_PX
+        hi = np.ceil(px.max(axis=0)).astype(int) + _MARGIN_PX
+        lo = np.maximum(lo, 0)
+        hi = np.minimum(hi, [cam.nx, cam.ny])
+        if np.any(hi <= lo):
+            continue  # projects outside the image
+        c0, r0 = min(c0, int(lo[0])), min(r0, int(lo[1]))
+        c1, r1 = max(c1, int(hi[0])), max(r1, int(hi[1]))
+    if r1 <= r0 or c1 <= c0:
+        return None
+    if (r1 - r0) * (c1 - c0) > 0.8 * cam.nx * cam.ny:
+        return None
+    return (r0, r1, c0, c1)
 
 
 def _mono() -> Any:
@@ -125,4 +197,11 @@ def render_setup(setup: Setup, heights: HeightMap | None = None, spp: int | None
     SetupError
         ``heights`` missing for a deflectometry setup.
     """
-    return render_window(setup, heights, spp, seed, None)
+    cam = setup.camera_model
+    window = live_window(setup, heights) if (setup.scene != "deflectometry" or heights is not None) else None
+    if window is None:
+        return render_window(setup, heights, spp, seed, None)
+    r0, r1, c0, c1 = window
+    image = np.zeros((cam.ny, cam.nx), dtype=np.float32)
+    image[r0:r1, c0:c1] = render_window(setup, heights, spp, seed, window)
+    return image
