@@ -31,7 +31,7 @@ COUNT = 8
 
 def _start(cfg: Path, out: Path) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.Popen([sys.executable, "-m", "sim.dataset_cli", "dataset", "generate", str(cfg), "--out",
+    return subprocess.Popen([sys.executable, "-m", "sim.cli", "dataset", "generate", str(cfg), "--out",
                              str(out), "--workers", "2", "--quiet"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, start_new_session=True)
 
@@ -82,6 +82,7 @@ def test_kill_resume_verify(tmp_path, victim):
     family: list[psutil.Process] = []
     try:
         _wait(lambda: len(_workers(proc)) >= 2 or proc.poll() is not None, 120, "two workers")
+        assert proc.poll() is None, "the generator stopped early: " + proc.stdout.read().decode()[-2000:]
         family = list(psutil.Process(proc.pid).children(recursive=True))
         target = rng.randint(1, 3)
         _wait(lambda: _finished(out) >= target or proc.poll() is not None, 180, f"{target} finished samples")
