@@ -44,6 +44,15 @@ Positive = Annotated[float, Field(gt=0)]
 NonNegative = Annotated[float, Field(ge=0)]
 
 
+
+def _known_glass(name: str) -> str:
+    """Validator body: the glass must be in the catalogue (scenes.grin.glass); returns its canonical name."""
+    try:
+        glass(name)
+    except SetupError as exc:
+        raise ValueError(str(exc)) from None
+    return name.upper()
+
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -119,14 +128,7 @@ class PlateSpec(_Model):
     thickness: Positive
     glass: str
 
-    @field_validator("glass")
-    @classmethod
-    def _known(cls, v: str) -> str:
-        try:
-            glass(v)
-        except SetupError as exc:
-            raise ValueError(str(exc)) from None
-        return v.upper()
+    _known = field_validator("glass")(classmethod(lambda cls, v: _known_glass(v)))
 
 
 class ObjectSpec(_Model):
@@ -138,14 +140,7 @@ class ObjectSpec(_Model):
     cover_glass: str = "D263"
     field_radius: Positive = 0.2
 
-    @field_validator("cover_glass")
-    @classmethod
-    def _known(cls, v: str) -> str:
-        try:
-            glass(v)
-        except SetupError as exc:
-            raise ValueError(str(exc)) from None
-        return v.upper()
+    _known = field_validator("cover_glass")(classmethod(lambda cls, v: _known_glass(v)))
 
 
 class LayoutSpec(_Model):

@@ -32,7 +32,6 @@ its samples: the monochrome camera's electrons per unit exposure (relative).
 from __future__ import annotations
 
 import itertools
-import threading
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Any, Literal
@@ -46,7 +45,7 @@ from scenes.cmu.plates import fused_silica_index, plate_heightmap
 from scenes.cmu.targets import dummy_cells, siemens_star
 from scenes.cmu.trace import axis_frame
 from scenes.errors import ScopetwinError
-from scenes.mitsuba.variant import use
+from scenes.mitsuba.variant import register_plugin, use
 from scenes.surface import HeightMap
 
 mi = use("spectral")
@@ -55,8 +54,6 @@ import drjit as dr  # noqa: E402  (after the variant is set)
 DR = SimpleNamespace(sqrt=dr.sqrt, atan2=dr.atan2, sin=dr.sin, where=dr.select, abs=dr.abs, maximum=dr.maximum)
 _TABLES: dict[str, dict[str, Any]] = {}
 _counter = itertools.count()
-_lock = threading.Lock()
-_registered: set[str] = set()
 #: Spectral tables are sampled at 1 nm from WL0_NM.
 WL0_NM, WL1_NM = 300.0, 1000.0
 
@@ -208,13 +205,8 @@ class BowedPlate(mi.BSDF):
 def register() -> None:
     """Register the BSDFs ``scopetwin_ideal_lens`` and ``scopetwin_bowed_plate`` (idempotent per thread/variant)."""
     use("spectral")  # another renderer may have switched this thread's variant since import
-    key = f"{mi.variant()}:{threading.get_ident()}"
-    with _lock:
-        if key in _registered:
-            return
-        mi.register_bsdf("scopetwin_ideal_lens", lambda props: IdealLens(props))
-        mi.register_bsdf("scopetwin_bowed_plate", lambda props: BowedPlate(props))
-        _registered.add(key)
+    register_plugin("bsdf", "scopetwin_ideal_lens", lambda _mi: IdealLens)
+    register_plugin("bsdf", "scopetwin_bowed_plate", lambda _mi: BowedPlate)
 
 
 # -- the scene ----------------------------------------------------------------------------------------------

@@ -24,7 +24,6 @@ Plugins (registered idempotently by :func:`register`):
 from __future__ import annotations
 
 import itertools
-import threading
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Any, Literal
@@ -36,7 +35,7 @@ from scenes.grin.profiles import RadialProfile
 from scenes.grin.rkn import rod_steps
 from scenes.grin.setup import GrinSetup, Stack
 from scenes.grin.targets import Target
-from scenes.mitsuba.variant import use
+from scenes.mitsuba.variant import register_plugin, use
 
 Precision = Literal["float32", "float64"]
 
@@ -421,9 +420,7 @@ class GrinScene:
 
 # -- plugins -------------------------------------------------------------------------------------
 _SCENES: dict[str, dict[str, Any]] = {}
-_lock = threading.Lock()
 _counter = itertools.count()
-_registered: set[str] = set()
 
 
 class GrinIntegrator(mi.SamplingIntegrator):
@@ -512,14 +509,9 @@ class PupilSensor(mi.Sensor):
 
 def register() -> None:
     """Register ``scopetwin_grin`` and ``scopetwin_grin_pupil`` with Mitsuba (idempotent, per thread/variant)."""
-    use("mono")
-    key = f"{mi.variant()}:{threading.get_ident()}"
-    with _lock:
-        if key in _registered:
-            return
-        mi.register_integrator("scopetwin_grin", lambda props: GrinIntegrator(props))
-        mi.register_sensor("scopetwin_grin_pupil", lambda props: PupilSensor(props))
-        _registered.add(key)
+    use("mono")  # another renderer may have switched this thread's variant since import
+    register_plugin("integrator", "scopetwin_grin", lambda _mi: GrinIntegrator)
+    register_plugin("sensor", "scopetwin_grin_pupil", lambda _mi: PupilSensor)
 
 
 # -- high-level uses ------------------------------------------------------------------------------
