@@ -24,8 +24,10 @@ from scenes.setup import load_setup  # noqa: E402
 warnings.simplefilter("ignore", CalibrationWarning)
 
 SEED_22 = {"linear": {"r": "(1.432e-07, 5.017e-06, -2.842e-14)"}, "non-linear": {"r": "(1.79e-13, -6.787e-14, 0)"}}
-SEED_23 = {"linear": {"r": "(-1.557e-15, 4.366e-01, -1.485e-02)", "b": "2.6e-03"},
-           "non-linear": {"r": "(6.071e-15, 3.126e-13, 3.979e-13)", "b": "0"}}
+SEED_23 = {
+    "linear": {"r": "(-1.557e-15, 4.366e-01, -1.485e-02)", "b": "2.6e-03"},
+    "non-linear": {"r": "(6.071e-15, 3.126e-13, 3.979e-13)", "b": "0"},
+}
 
 
 def case(name: str):
@@ -44,16 +46,22 @@ def table(title: str, name: str, lens: str, seed: dict) -> None:
         d = frame_dev(cam.frame, truth.frame)
         print(f"  {label:10s} Δr_c = {fmt(d['r'])} mm   seed: {seed[label]['r']} mm")
         print(f"  {'':10s} ΔT_x = {fmt(d['T_x'])}  ΔT_y = {fmt(d['T_y'])}  ΔN_z = {fmt(d['N_z'])}")
-        print(f"  {'':10s} Δb = {cam.b - truth.b:.3e} mm" + (f"   seed: {seed[label]['b']} mm" if "b" in seed[label]
-                                                             else ""))
+        print(
+            f"  {'':10s} Δb = {cam.b - truth.b:.3e} mm"
+            + (f"   seed: {seed[label]['b']} mm" if "b" in seed[label] else "")
+        )
     res = cal.camera.project(np.column_stack([xy, np.zeros(len(xy))])) - px
     rr = np.linalg.norm(res, axis=1) * prior.pitch
     lres = cal.linear.camera.project(np.column_stack([xy, np.zeros(len(xy))])) - px
     lr = np.linalg.norm(lres, axis=1) * prior.pitch
-    print(f"  marker centres: linear rms {np.sqrt(np.mean(lr**2)):.3e} mm, pv {np.ptp(lr):.3e} mm; non-linear rms "
-          f"{np.sqrt(np.mean(rr**2)):.3e} mm, pv {np.ptp(rr):.3e} mm")
-    print(f"  linear magnification: m_x = {cal.linear.m_x:.8f}, m_y = {cal.linear.m_y:.8f} "
-          f"(disagreement {cal.linear.m_disagreement:.2e})")
+    print(
+        f"  marker centres: linear rms {np.sqrt(np.mean(lr**2)):.3e} mm, pv {np.ptp(lr):.3e} mm; non-linear rms "
+        f"{np.sqrt(np.mean(rr**2)):.3e} mm, pv {np.ptp(rr):.3e} mm"
+    )
+    print(
+        f"  linear magnification: m_x = {cal.linear.m_x:.8f}, m_y = {cal.linear.m_y:.8f} "
+        f"(disagreement {cal.linear.m_disagreement:.2e})"
+    )
     for flag, fname in ((cv2.SOLVEPNP_ITERATIVE, "ITERATIVE"), (cv2.SOLVEPNP_SQPNP, "SQPNP+LM")):
         e, a = pose_error(solvepnp(xy, px, truth, flag), truth.frame)
         print(f"  OpenCV solvePnP {fname:9s}: |Δr_c| = {e:.3e} mm, rotation {a:.3e} rad (true intrinsics)")
@@ -78,10 +86,14 @@ def noise_experiment(draws: int = 500) -> None:
             sig.append(cal.sigma["r_c"])
             used.append(cal.lens)
         rms = lambda a: np.sqrt(np.mean(np.square(a), axis=0))  # noqa: E731
-        print(f"  {lens:9s}: rms Δr_c = {fmt(rms(d))} mm (mean {fmt(np.mean(d, axis=0))}), mean reported "
-              f"σ(r_c) = {fmt(np.mean(sig, axis=0))} mm")
-        print(f"  {'':9s}  rms ΔT_y = {fmt(rms(dt))}, rms ΔN_z = {fmt(rms(dn))}"
-              + (f"; auto chose free in {used.count('free')}/{draws}" if lens == "auto" else ""))
+        print(
+            f"  {lens:9s}: rms Δr_c = {fmt(rms(d))} mm (mean {fmt(np.mean(d, axis=0))}), mean reported "
+            f"σ(r_c) = {fmt(np.mean(sig, axis=0))} mm"
+        )
+        print(
+            f"  {'':9s}  rms ΔT_y = {fmt(rms(dt))}, rms ΔN_z = {fmt(rms(dn))}"
+            + (f"; auto chose free in {used.count('free')}/{draws}" if lens == "auto" else "")
+        )
 
 
 def distortion_case() -> None:
@@ -92,13 +104,17 @@ def distortion_case() -> None:
     for lens in ("thin-lens", "free"):
         cal = calibrate(xy, px, prior, lens=lens, distortion=True)
         c = cal.camera
-        print(f"  {lens:9s}: Δr_c = {fmt(c.center - truth.center, 1e3)} µm, Δr_cs = "
-              f"{fmt(np.subtract(c.r_cs, truth.r_cs), 1e3)} µm, Δc0 = {c.c0 - truth.c0:.3e}, "
-              f"Δc2 = {c.c2 - truth.c2:.3e}"
-              f", c0*b - b_true = {c.c0 * c.b - truth.b:.2e} mm, rms {cal.residual_rms_px * prior.pitch:.2e} mm")
+        print(
+            f"  {lens:9s}: Δr_c = {fmt(c.center - truth.center, 1e3)} µm, Δr_cs = "
+            f"{fmt(np.subtract(c.r_cs, truth.r_cs), 1e3)} µm, Δc0 = {c.c0 - truth.c0:.3e}, "
+            f"Δc2 = {c.c2 - truth.c2:.3e}"
+            f", c0*b - b_true = {c.c0 * c.b - truth.b:.2e} mm, rms {cal.residual_rms_px * prior.pitch:.2e} mm"
+        )
     cal = calibrate(xy, px, prior, lens="thin-lens", distortion=False)
-    print(f"  without offset/distortion: rms {cal.residual_rms_px * prior.pitch:.3e} mm, pv "
-          f"{cal.residual_pv_px * prior.pitch:.3e} mm (seed: 8.553e-4 / 1.542e-3 mm)")
+    print(
+        f"  without offset/distortion: rms {cal.residual_rms_px * prior.pitch:.3e} mm, pv "
+        f"{cal.residual_pv_px * prior.pitch:.3e} mm (seed: 8.553e-4 / 1.542e-3 mm)"
+    )
 
 
 def speed() -> None:
@@ -120,14 +136,20 @@ def speed() -> None:
             for _ in range(n):
                 cal = calibrate(xy, px, prior, lens=lens)
             ms = (time.perf_counter() - t0) / n * 1e3
-            print(f"  {len(xy):5d} markers, lens={lens:9s}: {ms:6.2f} ms per calibration "
-                  f"(nfev {cal.nfev}, used {cal.lens}; target <= 50 ms)")
+            print(
+                f"  {len(xy):5d} markers, lens={lens:9s}: {ms:6.2f} ms per calibration "
+                f"(nfev {cal.nfev}, used {cal.lens}; target <= 50 ms)"
+            )
 
 
 def main() -> None:
     table("§2.8.1 perpendicular view, Table 2.2", "thesis-2.8.1-perpendicular", "fixed", SEED_22)
-    table("§2.8.1 perpendicular view, seed's thin-lens b (issue item 5)", "thesis-2.8.1-perpendicular", "thin-lens",
-          SEED_22)
+    table(
+        "§2.8.1 perpendicular view, seed's thin-lens b (issue item 5)",
+        "thesis-2.8.1-perpendicular",
+        "thin-lens",
+        SEED_22,
+    )
     table("§2.8.1 angular view, Table 2.3", "thesis-2.8.1-angular", "auto", SEED_23)
     table("§2.8.1 angular view, seed's thin-lens b (issue item 5)", "thesis-2.8.1-angular", "thin-lens", SEED_23)
     noise_experiment()

@@ -29,10 +29,19 @@ from sim.truth import marker_truth  # noqa: E402
 
 warnings.simplefilter("ignore", CalibrationWarning)
 
-SEED_25 = ("(4.383e-03, 3.979e-03, -1.598e-02) mm", "(-1.704e-10, 1.536e-05, -1.024e-05)",
-           "(8.765e-07, -4.664e-05, 2.799e-05)", "(1.844e-05, -2.799e-05, -4.665e-05)", "-9.653e-05 mm")
-SEED_26 = ("(-1.639e-03, 2.520e-02, 7.904e-03) mm", "(-1.704e-10, 1.536e-05, 1.024e-05)",
-           "(-8.688e-07, -3.123e-04, 1.875e-04)", "(1.844e-05, 1.875e-04, -3.123e-04)")
+SEED_25 = (
+    "(4.383e-03, 3.979e-03, -1.598e-02) mm",
+    "(-1.704e-10, 1.536e-05, -1.024e-05)",
+    "(8.765e-07, -4.664e-05, 2.799e-05)",
+    "(1.844e-05, -2.799e-05, -4.665e-05)",
+    "-9.653e-05 mm",
+)
+SEED_26 = (
+    "(-1.639e-03, 2.520e-02, 7.904e-03) mm",
+    "(-1.704e-10, 1.536e-05, 1.024e-05)",
+    "(-8.688e-07, -3.123e-04, 1.875e-04)",
+    "(1.844e-05, 1.875e-04, -3.123e-04)",
+)
 
 
 def angle(a: np.ndarray, b: np.ndarray) -> float:
@@ -53,8 +62,10 @@ def main() -> None:
     for name, f, t in (("substrate", fs, ts), ("mirror", fm, tm)):
         lut = {tuple(k): n for n, k in enumerate(t.ij)}
         d = f.centroids - t.center_px[[lut[tuple(k)] for k in f.ij]]
-        print(f"{name}: {len(f)} markers, centroid - truth: rms {np.sqrt(np.mean(np.sum(d**2, 1))):.4f} px, "
-              f"mean {fmt(d.mean(0), digits=2)} px")
+        print(
+            f"{name}: {len(f)} markers, centroid - truth: rms {np.sqrt(np.mean(np.sum(d**2, 1))):.4f} px, "
+            f"mean {fmt(d.mean(0), digits=2)} px"
+        )
     xs = ss.marker_pattern.centers_local(fs.ij)
     xm = virtual_coordinates(sm.marker_pattern, fm.ij)
     ps, pm = Prior.from_camera(ss.camera_model, 25.0), mirror_prior(sm)
@@ -86,13 +97,17 @@ def main() -> None:
         print(f"          ΔN_z = {fmt(dp['N_z'])}   seed: {SEED_26[3]}")
         ac = max(angle(getattr(r.camera.frame, k), getattr(cam_t, k)) for k in ("tx", "ty", "nz"))
         ap_ = max(angle(getattr(r.pattern, k), getattr(pat_t, k)) for k in ("tx", "ty", "nz"))
-        print(f"  |Δr_c| camera {np.linalg.norm(dc['r']) * 1e3:.3f} µm (target <= 2), pattern "
-              f"{np.linalg.norm(dp['r']) * 1e3:.3f} µm (target <= 5); max axis angle camera {ac * 1e6:.2f} µrad, "
-              f"pattern {ap_ * 1e6:.2f} µrad (target <= 10)")
-        print(f"  residuals: substrate rms {r.substrate.residual_rms_px * 4.65:.3f} µm, pv "
-              f"{r.substrate.residual_pv_px * 4.65:.3f} µm (seed 0.153 / 0.260 µm); mirror rms "
-              f"{r.mirror.residual_rms_px * 4.65:.3f} µm, pv {r.mirror.residual_pv_px * 4.65:.3f} µm "
-              f"(seed 0.364 / 3.307 µm)")
+        print(
+            f"  |Δr_c| camera {np.linalg.norm(dc['r']) * 1e3:.3f} µm (target <= 2), pattern "
+            f"{np.linalg.norm(dp['r']) * 1e3:.3f} µm (target <= 5); max axis angle camera {ac * 1e6:.2f} µrad, "
+            f"pattern {ap_ * 1e6:.2f} µrad (target <= 10)"
+        )
+        print(
+            f"  residuals: substrate rms {r.substrate.residual_rms_px * 4.65:.3f} µm, pv "
+            f"{r.substrate.residual_pv_px * 4.65:.3f} µm (seed 0.153 / 0.260 µm); mirror rms "
+            f"{r.mirror.residual_rms_px * 4.65:.3f} µm, pv {r.mirror.residual_pv_px * 4.65:.3f} µm "
+            f"(seed 0.364 / 3.307 µm)"
+        )
         if "substrate_bias" in kw:
             corrected = fs.centroids - bs(r.substrate.camera)
     print("\n== peer: OpenCV solvePnP on the same substrate centroids, TRUE intrinsics (b, principal point)")

@@ -43,8 +43,12 @@ def setup_at(alpha_deg: float) -> Setup:
     """The §2.8.1 target seen from ``alpha_deg`` above its plane, camera d = 233.24 mm from its centre."""
     a = np.radians(alpha_deg)
     s, c = float(np.sin(a)), float(np.cos(a))
-    cam = {"origin": [0.0, -DISTANCE_MM * c, DISTANCE_MM * s], "t_x": [1.0, 0.0, 0.0], "t_y": [0.0, s, c],
-           "n_z": [0.0, -c, s]}
+    cam = {
+        "origin": [0.0, -DISTANCE_MM * c, DISTANCE_MM * s],
+        "t_x": [1.0, 0.0, 0.0],
+        "t_y": [0.0, s, c],
+        "n_z": [0.0, -c, s],
+    }
     return load_setup("thesis-2.8.1-perpendicular", {"camera": cam, "name": f"angle-scan-{alpha_deg:g}"})
 
 
@@ -61,7 +65,7 @@ def errors(found_px: np.ndarray, truth_px: np.ndarray) -> np.ndarray:
 def stats(err: np.ndarray) -> str:
     if err.size == 0:
         return f"{'-':>7} {'-':>7}"
-    return f"{np.sqrt(np.mean(err ** 2)):7.4f} {err.max():7.4f}"
+    return f"{np.sqrt(np.mean(err**2)):7.4f} {err.max():7.4f}"
 
 
 def opencv_grid(image: np.ndarray, shape: tuple[int, int]) -> tuple[bool, np.ndarray]:
@@ -96,8 +100,9 @@ def truth_for(markers: Markers, truth) -> np.ndarray:
     return idx
 
 
-def cramer_rao(setup: Setup, clean: np.ndarray, exposure_s: float, centres: np.ndarray,
-               radius_px: np.ndarray) -> np.ndarray:
+def cramer_rao(
+    setup: Setup, clean: np.ndarray, exposure_s: float, centres: np.ndarray, radius_px: np.ndarray
+) -> np.ndarray:
     """Per-marker Cramér-Rao bound (std of col, row; px) for the spot position from one noisy frame.
 
     Pixel p has mean mu_p electrons (noise-free render x QE x photons x exposure) and variance
@@ -106,7 +111,7 @@ def cramer_rao(setup: Setup, clean: np.ndarray, exposure_s: float, centres: np.n
     """
     sen = setup.sensor
     mu = sen.quantum_efficiency * clean.astype(np.float64) * sen.photons_per_unit_s * exposure_s
-    var = mu + sen.dark_noise_e ** 2 + 1.0 / (12.0 * sen.gain_dn_per_e ** 2)
+    var = mu + sen.dark_noise_e**2 + 1.0 / (12.0 * sen.gain_dn_per_e**2)
     g_row, g_col = np.gradient(mu)
     out = np.zeros((len(centres), 2))
     for k, ((c, r), rad) in enumerate(zip(centres, radius_px, strict=True)):
@@ -129,10 +134,14 @@ def main() -> None:
     from sim.truth import marker_truth
 
     rows = []
-    print(f"camera at {DISTANCE_MM} mm from the target centre; Mitsuba {args.spp} spp; errors in px vs the true "
-          "image of the marker centres")
-    print(f"{'angle':>5} {'found':>5} | {'raw RMS':>7} {'max':>7} | {'corr RMS':>7} {'max':>7} | "
-          f"{'OpenCV RMS':>7} {'max':>7} {'grid':>5} | {'noise std':>9} {'CRB':>7} (px, per axis, corrected)")
+    print(
+        f"camera at {DISTANCE_MM} mm from the target centre; Mitsuba {args.spp} spp; errors in px vs the true "
+        "image of the marker centres"
+    )
+    print(
+        f"{'angle':>5} {'found':>5} | {'raw RMS':>7} {'max':>7} | {'corr RMS':>7} {'max':>7} | "
+        f"{'OpenCV RMS':>7} {'max':>7} {'grid':>5} | {'noise std':>9} {'CRB':>7} (px, per axis, corrected)"
+    )
     for alpha in args.angles:
         setup = setup_at(alpha)
         t0 = time.perf_counter()
@@ -155,31 +164,51 @@ def main() -> None:
         for k in range(args.captures):
             frame = sensor.capture(clean, setup.sensor.photons_per_unit_s, exposure, rng=1000 * int(alpha) + k)
             m = find_markers_for(frame, setup)
-            for ij, c in zip(map(tuple, m.ij), m.centroids + pred.correction[[
-                    {tuple(x): n for n, x in enumerate(markers.ij)}[tuple(y)] for y in m.ij]], strict=True):
+            for ij, c in zip(
+                map(tuple, m.ij),
+                m.centroids
+                + pred.correction[[{tuple(x): n for n, x in enumerate(markers.ij)}[tuple(y)] for y in m.ij]],
+                strict=True,
+            ):
                 samples.setdefault(ij, []).append(c)
         full = [np.array(v) for v in samples.values() if len(v) == args.captures]
         scatter = np.sqrt(np.mean([np.var(v, axis=0, ddof=1) for v in full], axis=0))
         spots = markers.spots
         sel = [int(np.argmin(np.linalg.norm(spots.centroids - c, axis=1))) for c in markers.centroids]
         crb = cramer_rao(setup, clean, exposure, markers.centroids, spots.major_radius()[sel])
-        crb_rms = np.sqrt(np.mean(crb ** 2, axis=0))
+        crb_rms = np.sqrt(np.mean(crb**2, axis=0))
         peak_fill = float(np.median(markers.peak)) / float(clean.max()) * 0.7
-        rows.append({"angle_deg": alpha, "markers": len(markers), "visible": int(truth.visible.sum()),
-                     "wrong_indices": wrong, "raw_rms_px": float(np.sqrt(np.mean(raw_err ** 2))),
-                     "raw_max_px": float(raw_err.max()), "corrected_rms_px": float(np.sqrt(np.mean(cor_err ** 2))),
-                     "corrected_max_px": float(cor_err.max()), "opencv_grid_found": bool(grid_ok),
-                     "opencv_rms_px": float(np.sqrt(np.mean(cv_err ** 2))) if cv_err.size else None,
-                     "opencv_max_px": float(cv_err.max()) if cv_err.size else None, "opencv_points": int(cv_err.size),
-                     "noise_std_px": scatter.tolist(), "crb_px": crb_rms.tolist(), "median_peak_full_well": peak_fill,
-                     "render_s": t_render})
-        print(f"{alpha:5.0f} {len(markers):2d}/{int(truth.visible.sum()):2d} | {stats(raw_err)} | {stats(cor_err)} | "
-              f"{stats(cv_err)} {'yes' if grid_ok else 'no':>5} | {scatter[0]:.4f},{scatter[1]:.4f} "
-              f"{crb_rms[0]:.4f},{crb_rms[1]:.4f}" + (f"  WRONG INDICES: {wrong}" if wrong else ""))
+        rows.append(
+            {
+                "angle_deg": alpha,
+                "markers": len(markers),
+                "visible": int(truth.visible.sum()),
+                "wrong_indices": wrong,
+                "raw_rms_px": float(np.sqrt(np.mean(raw_err**2))),
+                "raw_max_px": float(raw_err.max()),
+                "corrected_rms_px": float(np.sqrt(np.mean(cor_err**2))),
+                "corrected_max_px": float(cor_err.max()),
+                "opencv_grid_found": bool(grid_ok),
+                "opencv_rms_px": float(np.sqrt(np.mean(cv_err**2))) if cv_err.size else None,
+                "opencv_max_px": float(cv_err.max()) if cv_err.size else None,
+                "opencv_points": int(cv_err.size),
+                "noise_std_px": scatter.tolist(),
+                "crb_px": crb_rms.tolist(),
+                "median_peak_full_well": peak_fill,
+                "render_s": t_render,
+            }
+        )
+        print(
+            f"{alpha:5.0f} {len(markers):2d}/{int(truth.visible.sum()):2d} | {stats(raw_err)} | {stats(cor_err)} | "
+            f"{stats(cv_err)} {'yes' if grid_ok else 'no':>5} | {scatter[0]:.4f},{scatter[1]:.4f} "
+            f"{crb_rms[0]:.4f},{crb_rms[1]:.4f}" + (f"  WRONG INDICES: {wrong}" if wrong else "")
+        )
     worst = max(r["corrected_rms_px"] for r in rows)
-    print(f"worst bias-corrected RMS over the angles: {worst:.4f} px (target <= 0.01 px); "
-          f"noise: {args.captures} EMVA captures per angle, median spot peak at "
-          f"{np.median([r['median_peak_full_well'] for r in rows]):.0%} of the full well")
+    print(
+        f"worst bias-corrected RMS over the angles: {worst:.4f} px (target <= 0.01 px); "
+        f"noise: {args.captures} EMVA captures per angle, median spot peak at "
+        f"{np.median([r['median_peak_full_well'] for r in rows]):.0%} of the full well"
+    )
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(rows, fh, indent=2)

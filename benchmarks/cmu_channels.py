@@ -24,22 +24,37 @@ def main() -> None:
     from sim.cmu_cli import cmd_cmu
 
     t0 = time.perf_counter()
-    ns = argparse.Namespace(setup="thesis-cmu", splitter_maps=[], stop=False, json=args.out / "cmu.json",
-                            out=args.out, spp=args.spp, no_cells=False)
+    ns = argparse.Namespace(
+        setup="thesis-cmu",
+        splitter_maps=[],
+        stop=False,
+        json=args.out / "cmu.json",
+        out=args.out,
+        spp=args.spp,
+        no_cells=False,
+    )
     cmd_cmu(ns)
-    print(f"\noptics cmu with renders ({args.spp} spp, 1392x1040 px, 4 channels x star + cells): "
-          f"{time.perf_counter() - t0:.1f} s")
+    print(
+        f"\noptics cmu with renders ({args.spp} spp, 1392x1040 px, 4 channels x star + cells): "
+        f"{time.perf_counter() - t0:.1f} s"
+    )
     s = load_cmu_setup()
     print("\nsensitivity of the 45° RMS spot at the outer bound (red channel, beam splitter 3):")
-    for label, over in (("preset (20 mm beam, range over the whole plate)", {}),
-                        ("beam 14.81 mm (2 f NA, NA 0.45)", {"objective": {"beam_diameter": 2 * 16.45 * 0.45}}),
-                        ("range read over a 25.5 mm circle", {"splitters": {"770DCXR": {"bow_range_um": 10.2 * (
-                            (12.75**2 + 18**2) / 12.75**2)}}})):
+    for label, over in (
+        ("preset (20 mm beam, range over the whole plate)", {}),
+        ("beam 14.81 mm (2 f NA, NA 0.45)", {"objective": {"beam_diameter": 2 * 16.45 * 0.45}}),
+        (
+            "range read over a 25.5 mm circle",
+            {"splitters": {"770DCXR": {"bow_range_um": 10.2 * ((12.75**2 + 18**2) / 12.75**2)}}},
+        ),
+    ):
         ss = load_cmu_setup("thesis-cmu", over)
         r = analyse(ss, channel_optics(ss, "red"))
         rs = analyse(ss, channel_optics(ss, "red", stop=True))
-        print(f"  {label:50s} {r.rms_spot_um['1.0']:7.2f} µm, with stop {rs.rms_spot_um['1.0']:6.2f} µm "
-              f"(seed 43.499 / 8.826), m {r.magnification:.3f}")
+        print(
+            f"  {label:50s} {r.rms_spot_um['1.0']:7.2f} µm, with stop {rs.rms_spot_um['1.0']:6.2f} µm "
+            f"(seed 43.499 / 8.826), m {r.magnification:.3f}"
+        )
     t1 = time.perf_counter()
     for _ in range(3):
         analyse(s, channel_optics(s, "blue"))

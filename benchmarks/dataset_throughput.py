@@ -30,8 +30,10 @@ def rate(plan: Plan, n_workers: int, samples: int, scratch: Path) -> tuple[float
         startup = time.perf_counter() - t0
         warm = scratch / f"warm-{n_workers}"
         workers = list(client.scheduler_info()["workers"])
-        futs = [client.submit(generate_sample, plan.to_json(), 10_000 + k, str(warm), 1, workers=[w], pure=False)
-                for k, w in enumerate(workers)]
+        futs = [
+            client.submit(generate_sample, plan.to_json(), 10_000 + k, str(warm), 1, workers=[w], pure=False)
+            for k, w in enumerate(workers)
+        ]
         client.gather(futs)
         out = scratch / f"run-{n_workers}"
         t1 = time.perf_counter()
@@ -54,8 +56,11 @@ def main() -> None:
         for n in args.workers:
             r, startup = rate(plan, n, args.samples, scratch)
             rates[n] = r
-            print(f"{n} worker(s): {r:6.2f} samples/min ({60.0 / r * n:.2f} s per sample per worker; "
-                  f"cluster start-up {startup:.1f} s)", flush=True)
+            print(
+                f"{n} worker(s): {r:6.2f} samples/min ({60.0 / r * n:.2f} s per sample per worker; "
+                f"cluster start-up {startup:.1f} s)",
+                flush=True,
+            )
         if 1 in rates:
             for n, r in rates.items():
                 if n > 1:

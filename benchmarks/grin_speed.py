@@ -74,13 +74,20 @@ def main() -> None:
                     for j in range(8):
                         c[j] = dr.fma(c[j], 0.9999, 1e-4 * (k + 1))
                 return (i + 1, *c)
-            out = dr.while_loop((dr.zeros(dr.llvm.UInt32, n), *[a + 0.01 * j for j in range(8)]),
-                                lambda i, *c: i < steps, body)
+
+            out = dr.while_loop(
+                (dr.zeros(dr.llvm.UInt32, n), *[a + 0.01 * j for j in range(8)]), lambda i, *c: i < steps, body
+            )
             dr.eval(*out)
+
         return run
 
-    configs = [("float32", dr.llvm.Float, 1), ("float32", dr.llvm.Float, 2), ("float64", dr.llvm.Float64, 1),
-               ("float64", dr.llvm.Float64, 2)]
+    configs = [
+        ("float32", dr.llvm.Float, 1),
+        ("float32", dr.llvm.Float, 2),
+        ("float64", dr.llvm.Float64, 1),
+        ("float64", dr.llvm.Float64, 2),
+    ]
     arrays = {}
     for label, F, _ in configs:
         arrays[label] = [F(a) for a in (x, y, tx, ty, tz)]
@@ -92,8 +99,7 @@ def main() -> None:
     for label, _, il in configs:
         key = f"{label} interleave={il}"
         arrs = arrays[label]
-        runs[key] = (lambda arrs=arrs, il=il: dr.eval(*grin.rkn_rod_dr(*arrs, prof, length, steps, 1.0,
-                                                                        interleave=il)))
+        runs[key] = lambda arrs=arrs, il=il: dr.eval(*grin.rkn_rod_dr(*arrs, prof, length, steps, 1.0, interleave=il))
         runs[key]()
         dr.sync_thread()
         times[key] = []
@@ -102,15 +108,21 @@ def main() -> None:
         for key, fn in runs.items():
             times[key].append(_timed(fn, dr.sync_thread))
     ref_best, ref_med = _stats(n, times["reference"])
-    print(f"reference FMA kernel ({OPS_PER_STEP} float32 FMAs x {steps}, 8 chains): best {ref_best:.3e} "
-          f"median {ref_med:.3e} ray-equivalents/s")
+    print(
+        f"reference FMA kernel ({OPS_PER_STEP} float32 FMAs x {steps}, 8 chains): best {ref_best:.3e} "
+        f"median {ref_med:.3e} ray-equivalents/s"
+    )
     for key in runs:
         best, med = _stats(n, times[key])
-        print(f"Dr.Jit {key}: best {best:.3e} median {med:.3e} rays/s through the rod ({steps} steps, {n} rays); "
-              f"rod/reference {med / ref_med:.2f} (medians)")
+        print(
+            f"Dr.Jit {key}: best {best:.3e} median {med:.3e} rays/s through the rod ({steps} steps, {n} rays); "
+            f"rod/reference {med / ref_med:.2f} (medians)"
+        )
     m = args.numpy_rays
-    tnp = [_timed(lambda: rkn_rod(x[:m], y[:m], tx[:m], ty[:m], tz[:m], prof, length, steps, 1.0), lambda: None)
-           for _ in range(max(1, args.repeat // 2))]
+    tnp = [
+        _timed(lambda: rkn_rod(x[:m], y[:m], tx[:m], ty[:m], tz[:m], prof, length, steps, 1.0), lambda: None)
+        for _ in range(max(1, args.repeat // 2))
+    ]
     np_best, np_med = _stats(m, tnp)
     print(f"numpy float64: best {np_best:.3e} median {np_med:.3e} rays/s ({m} rays)")
     for key in runs:
@@ -130,8 +142,19 @@ def main() -> None:
     spp_b = max(1, args.spp // 8)
     rkn = grin.rkn_rod_dr
 
-    def straight(x: Any, y: Any, tx: Any, ty: Any, tz: Any, profile: Any, length: float, steps: int, radius: float,
-                 active: Any = True, interleave: int = 1) -> tuple[Any, ...]:
+    def straight(
+        x: Any,
+        y: Any,
+        tx: Any,
+        ty: Any,
+        tz: Any,
+        profile: Any,
+        length: float,
+        steps: int,
+        radius: float,
+        active: Any = True,
+        interleave: int = 1,
+    ) -> tuple[Any, ...]:
         s_ = length / tz
         return x + s_ * tx, y + s_ * ty, tx, ty, s_ * profile.n0, dr.mask_t(type(x))(active)
 
@@ -139,22 +162,36 @@ def main() -> None:
     for label, fn in (("full", rkn), ("no RKN", straight)):
         grin.rkn_rod_dr = fn
         grin.render_image(setup, stack, tgt, spp=1, width=64, height=48, center=centre)
-        part[label] = min(_timed(lambda: grin.render_image(setup, stack, tgt, spp=spp_b, width=args.width,
-                                                           height=args.height, center=centre), lambda: None)
-                          for _ in range(2)) * args.spp / spp_b
+        part[label] = (
+            min(
+                _timed(
+                    lambda: grin.render_image(
+                        setup, stack, tgt, spp=spp_b, width=args.width, height=args.height, center=centre
+                    ),
+                    lambda: None,
+                )
+                for _ in range(2)
+            )
+            * args.spp
+            / spp_b
+        )
     grin.rkn_rod_dr = rkn
-    print(f"breakdown at {spp_b} spp scaled to {args.spp}: full {part['full']:.2f} s, without the RKN loops "
-          f"{part['no RKN']:.2f} s (Mitsuba intersections + sampling + film), RKN share "
-          f"{part['full'] - part['no RKN']:.2f} s")
+    print(
+        f"breakdown at {spp_b} spp scaled to {args.spp}: full {part['full']:.2f} s, without the RKN loops "
+        f"{part['no RKN']:.2f} s (Mitsuba intersections + sampling + film), RKN share "
+        f"{part['full'] - part['no RKN']:.2f} s"
+    )
     tim = []
     for _ in range(args.image_repeat):
         t0 = time.perf_counter()
         img = grin.render_image(setup, stack, tgt, spp=args.spp, width=args.width, height=args.height, center=centre)
         tim.append(time.perf_counter() - t0)
         ref_t = _timed(ref_fn, dr.sync_thread)
-        print(f"image {args.width}x{args.height} at {args.spp} spp: {tim[-1]:.2f} s ({paths / tim[-1]:.3e} paths/s, "
-              f"mean {img.mean():.4g}); reference kernel right after: {n / ref_t:.3e}/s "
-              f"(x{ref_med / (n / ref_t):.2f} slower than its median above)")
+        print(
+            f"image {args.width}x{args.height} at {args.spp} spp: {tim[-1]:.2f} s ({paths / tim[-1]:.3e} paths/s, "
+            f"mean {img.mean():.4g}); reference kernel right after: {n / ref_t:.3e}/s "
+            f"(x{ref_med / (n / ref_t):.2f} slower than its median above)"
+        )
     print(f"image best {min(tim):.2f} s, median {statistics.median(tim):.2f} s")
 
 

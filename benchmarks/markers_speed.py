@@ -71,6 +71,7 @@ def stages(image: np.ndarray, setup: Setup, repeat: int) -> dict[str, float]:
     keep = np.flatnonzero(filt.keep)
     pts = spots.centroids[keep]
     ref = int(np.flatnonzero(keep == filt.reference)[0])
+
     def grid() -> np.ndarray:
         if layout == "calibration":
             return reference_axes(pts, ref, setup.scene != "target")
@@ -101,9 +102,16 @@ def main() -> None:
         hint = expected_axes(setup)
         irange = index_range(setup)
         for label, image in (("noise-free", clean), ("EMVA 12-bit", noisy(setup, clean))):
+
             def run(image=image, setup=setup, region=region, hint=hint, irange=irange):
-                return find_markers(image, setup.marker_pattern.layout, hint=hint, mirrored=setup.scene != "target",
-                                    region=region, index_range=irange)
+                return find_markers(
+                    image,
+                    setup.marker_pattern.layout,
+                    hint=hint,
+                    mirrored=setup.scene != "target",
+                    region=region,
+                    index_range=irange,
+                )
 
             found = run()
             best, med = timed(run, args.repeat)

@@ -36,6 +36,7 @@ def timed(name, func):
             return func(*args, **kwargs)
         finally:
             TIMES[name].append(time.perf_counter() - t0)
+
     return wrapper
 
 
@@ -59,8 +60,10 @@ def main() -> None:
         from sim.surfaces import surface_for
 
         image = render_with_noise(setup, surface_for(setup), 16, 0)
-    print(f"frame {image.shape[1]} x {image.shape[0]} px, OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}, "
-          f"{os.cpu_count()} CPUs visible")
+    print(
+        f"frame {image.shape[1]} x {image.shape[0]} px, OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}, "
+        f"{os.cpu_count()} CPUs visible"
+    )
 
     t_det, t_cen = [], []
     for _ in range(args.repeat):
@@ -78,9 +81,11 @@ def main() -> None:
 
     rr.fit_gradients = timed("fit (design + solve)", rr.fit_gradients)
     rr.intersect_surface = timed("ray-surface intersection", rr.intersect_surface)
-    for label, cfg, bias in (("realtime (sigma 12 fixed)", rr.ReconstructionConfig.realtime(), None),
-                             ("default (sigma from data)", rr.ReconstructionConfig(), None),
-                             ("default + bias correction", rr.ReconstructionConfig(), rr.centroid_bias_step(setup))):
+    for label, cfg, bias in (
+        ("realtime (sigma 12 fixed)", rr.ReconstructionConfig.realtime(), None),
+        ("default (sigma from data)", rr.ReconstructionConfig(), None),
+        ("default + bias correction", rr.ReconstructionConfig(), rr.centroid_bias_step(setup)),
+    ):
         t0 = time.perf_counter()
         rec = rr.Reconstructor.from_setup(setup, cfg, bias)
         t_setup = time.perf_counter() - t0
@@ -95,20 +100,24 @@ def main() -> None:
             res = rec.run(obs)
             runs.append(time.perf_counter() - t0)
             for k, v in TIMES.items():
-                parts[k].append(sum(v[before.get(k, 0):]))
+                parts[k].append(sum(v[before.get(k, 0) :]))
                 calls[k] = len(v) - before.get(k, 0)
         n_inner = res.inner_iterations
-        print(f"reconstruction, {label}: basis {rec.basis.n_basis} functions (+2 plane terms), "
-              f"{res.outer_iterations} outer / {n_inner} inner iterations; per-setup precomputation "
-              f"{t_setup * 1e3:.1f} ms")
+        print(
+            f"reconstruction, {label}: basis {rec.basis.n_basis} functions (+2 plane terms), "
+            f"{res.outer_iterations} outer / {n_inner} inner iterations; per-setup precomputation "
+            f"{t_setup * 1e3:.1f} ms"
+        )
         print(f"  whole nested iteration        {stats(runs)}")
         for name, per_frame in parts.items():
             print(f"    {name:27s} {stats(per_frame)}  ({calls[name]} calls per frame)")
         if bias is None and label.startswith("realtime"):
             total_min = min(t_det) + min(runs)
             total_med = np.median(t_det) + np.median(runs)
-            print(f"  DETECTION + RECONSTRUCTION    min {total_min * 1e3:7.2f} ms  median {total_med * 1e3:7.2f} ms  "
-                  f"(target 33 ms: {'met' if total_min <= 0.033 else 'NOT met'} at the minimum)")
+            print(
+                f"  DETECTION + RECONSTRUCTION    min {total_min * 1e3:7.2f} ms  median {total_med * 1e3:7.2f} ms  "
+                f"(target 33 ms: {'met' if total_min <= 0.033 else 'NOT met'} at the minimum)"
+            )
 
 
 if __name__ == "__main__":

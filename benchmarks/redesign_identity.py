@@ -76,8 +76,19 @@ def measure(quick: bool) -> dict[str, Any]:
             _scopetwin("render", preset, "--out", str(tmp / preset), "--spp", "4", "--seed", "1")
             out["renders"][preset] = _pixels_sha(tmp / preset / "image.exr")
             print(f"  {preset}: {out['renders'][preset][:16]}", flush=True)
-        _scopetwin("optics", "grin", "thesis-8.3.2-grin-realized", "--image", "dots-25", "--out",
-                   str(tmp / "grin.exr"), "--spp", "4", "--seed", "1")
+        _scopetwin(
+            "optics",
+            "grin",
+            "thesis-8.3.2-grin-realized",
+            "--image",
+            "dots-25",
+            "--out",
+            str(tmp / "grin.exr"),
+            "--spp",
+            "4",
+            "--seed",
+            "1",
+        )
         out["renders"]["grin-dots-25"] = _pixels_sha(tmp / "grin.exr")
         _scopetwin("optics", "cmu", "--out", str(tmp / "cmu"), "--spp", "4", "--no-cells")
         for exr in sorted((tmp / "cmu").glob("*.exr")):
@@ -125,8 +136,10 @@ def main() -> int:
     _diff(recorded, now, "", found)
     for line in found:
         print("DIFF", line)
-    print(f"{len(now['renders'])} renders, {len(now['figures'])} figure sets: "
-          f"{'identical' if not found else f'{len(found)} differences'}")
+    print(
+        f"{len(now['renders'])} renders, {len(now['figures'])} figure sets: "
+        f"{'identical' if not found else f'{len(found)} differences'}"
+    )
     return 1 if found else 0
 
 

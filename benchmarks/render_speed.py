@@ -27,6 +27,7 @@ PRESET = "thesis-1.10-deflectometry"
 
 def bowed_heights(range_um: float = 40.0) -> HeightMap:
     """A smooth bow of ``range_um`` peak-to-valley over the 25.2 x 57 mm substrate (256 x 512 nodes)."""
+
     def bow(x, y):
         return (x / 12.6) ** 2 * 0.3 + (y / 28.5) ** 2 + 0.15 * (x / 12.6) * (y / 28.5)
 
@@ -65,10 +66,17 @@ def time_mitsuba(setup, heights, spp_list: list[int], repeats: int) -> dict[int,
             cpu.append(time.process_time() - c0)
         best = min(wall)
         rays = traced_px * spp
-        out[spp] = {"seconds": best, "median_seconds": float(np.median(wall)), "cpu_seconds": min(cpu),
-                    "first_seconds": first, "rays_per_s": rays / best}
-        print(f"mitsuba {spp:4d} spp: {best:6.3f} s/frame (median {np.median(wall):.3f}, cpu {min(cpu):.3f} s, "
-              f"first {first:.2f} s), {rays / best / 1e6:6.1f} M traced camera rays/s")
+        out[spp] = {
+            "seconds": best,
+            "median_seconds": float(np.median(wall)),
+            "cpu_seconds": min(cpu),
+            "first_seconds": first,
+            "rays_per_s": rays / best,
+        }
+        print(
+            f"mitsuba {spp:4d} spp: {best:6.3f} s/frame (median {np.median(wall):.3f}, cpu {min(cpu):.3f} s, "
+            f"first {first:.2f} s), {rays / best / 1e6:6.1f} M traced camera rays/s"
+        )
     if window is not None and 16 in spp_list:
         render_window(setup, heights, spp=16, seed=0)  # the uncropped scene: load + compile
         dr.sync_thread()
@@ -78,8 +86,10 @@ def time_mitsuba(setup, heights, spp_list: list[int], repeats: int) -> dict[int,
             render_window(setup, heights, spp=16, seed=k + 1)
             dr.sync_thread()
             wall.append(time.perf_counter() - t0)
-        print(f"mitsuba   16 spp without culling (every pixel traced): {min(wall):6.3f} s/frame, "
-              f"{nx * ny * 16 / min(wall) / 1e6:6.1f} M camera rays/s")
+        print(
+            f"mitsuba   16 spp without culling (every pixel traced): {min(wall):6.3f} s/frame, "
+            f"{nx * ny * 16 / min(wall) / 1e6:6.1f} M camera rays/s"
+        )
         out["uncropped_16"] = {"seconds": min(wall)}
     return out
 
@@ -97,8 +107,10 @@ def time_analytic(setup, heights, spp: int, window: int) -> dict[str, float]:
     rays = window * window * spp
     per_ray = dt / rays
     full = per_ray * nx * ny * spp
-    print(f"numpy analytic (float64) {spp} spp on a {window}x{window} window: {dt:.2f} s (cpu {dc:.2f} s), "
-          f"{1 / per_ray / 1e6:.3f} M rays/s -> {full:.1f} s per full frame (extrapolated)")
+    print(
+        f"numpy analytic (float64) {spp} spp on a {window}x{window} window: {dt:.2f} s (cpu {dc:.2f} s), "
+        f"{1 / per_ray / 1e6:.3f} M rays/s -> {full:.1f} s per full frame (extrapolated)"
+    )
     return {"seconds": full, "cpu_seconds": dc / rays * nx * ny * spp, "rays_per_s": 1 / per_ray, "window": window}
 
 
@@ -116,8 +128,10 @@ def main() -> None:
     setup = load_setup(PRESET)
     heights = bowed_heights()
     z = heights.z
-    print(f"{PRESET}: {setup.camera.pixels[0]}x{setup.camera.pixels[1]} px, bow {1e3 * (z.max() - z.min()):.1f} µm, "
-          f"variant {mi.variant()}, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
+    print(
+        f"{PRESET}: {setup.camera.pixels[0]}x{setup.camera.pixels[1]} px, bow {1e3 * (z.max() - z.min()):.1f} µm, "
+        f"variant {mi.variant()}, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}"
+    )
     mit = time_mitsuba(setup, heights, args.spp, args.repeats)
     ref_spp = 16 if 16 in args.spp else args.spp[0]
     ana = time_analytic(setup, heights, ref_spp, args.window)
@@ -126,17 +140,24 @@ def main() -> None:
     ratio = mit[ref_spp]["rays_per_s"] / ana["rays_per_s"]
     frame_ratio = ana["seconds"] / mit[ref_spp]["seconds"]
     cpu_ratio = ana["cpu_seconds"] / mit[ref_spp]["cpu_seconds"]
-    print(f"speed-up at {ref_spp} spp: {ratio:.0f}x per traced ray (mitsuba {mit[ref_spp]['rays_per_s'] / 1e6:.1f} vs "
-          f"numpy {ana['rays_per_s'] / 1e6:.3f} M rays/s); per frame {frame_ratio:.0f}x wall "
-          f"({mit[ref_spp]['seconds']:.3f} s vs {ana['seconds']:.1f} s), {cpu_ratio:.0f}x CPU; "
-          f"targets: <= 0.5 s at 16 spp, >= 50x")
+    print(
+        f"speed-up at {ref_spp} spp: {ratio:.0f}x per traced ray (mitsuba {mit[ref_spp]['rays_per_s'] / 1e6:.1f} vs "
+        f"numpy {ana['rays_per_s'] / 1e6:.3f} M rays/s); per frame {frame_ratio:.0f}x wall "
+        f"({mit[ref_spp]['seconds']:.3f} s vs {ana['seconds']:.1f} s), {cpu_ratio:.0f}x CPU; "
+        f"targets: <= 0.5 s at 16 spp, >= 50x"
+    )
     if os.getloadavg()[0] > 0.8 * (os.cpu_count() or 1):
-        print("note: the machine is busy (load average above the core count): wall times are inflated; "
-              "the CPU times divided by the core count estimate an idle machine's wall time")
+        print(
+            "note: the machine is busy (load average above the core count): wall times are inflated; "
+            "the CPU times divided by the core count estimate an idle machine's wall time"
+        )
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump({"mitsuba": mit, "analytic": ana, "speedup": ratio, "speedup_cpu": cpu_ratio,
-                       "spp_ratio": ref_spp}, fh, indent=2)
+            json.dump(
+                {"mitsuba": mit, "analytic": ana, "speedup": ratio, "speedup_cpu": cpu_ratio, "spp_ratio": ref_spp},
+                fh,
+                indent=2,
+            )
 
 
 if __name__ == "__main__":

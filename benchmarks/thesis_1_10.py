@@ -45,19 +45,29 @@ SETUP = load_setup("thesis-1.10-deflectometry")
 SUB = Substrate2D.from_setup(SETUP)
 
 # Seed Tables 2.5 / 2.6: deviations of the calibrated camera and pattern from the ideal ones (§2.8.3).
-CAMERA_DEV = {"origin": (4.383e-3, 3.979e-3, -1.598e-2), "t_x": (-1.704e-10, 1.536e-5, -1.024e-5),
-              "t_y": (8.765e-7, -4.664e-5, 2.799e-5), "n_z": (1.844e-5, -2.799e-5, -4.665e-5)}
+CAMERA_DEV = {
+    "origin": (4.383e-3, 3.979e-3, -1.598e-2),
+    "t_x": (-1.704e-10, 1.536e-5, -1.024e-5),
+    "t_y": (8.765e-7, -4.664e-5, 2.799e-5),
+    "n_z": (1.844e-5, -2.799e-5, -4.665e-5),
+}
 CAMERA_DB = -9.653e-5
-PATTERN_DEV = {"origin": (-1.639e-3, 2.520e-2, 7.904e-3), "t_x": (-1.704e-10, 1.536e-5, 1.024e-5),
-               "t_y": (-8.688e-7, -3.123e-4, 1.875e-4), "n_z": (1.844e-5, 1.875e-4, -3.123e-4)}
+PATTERN_DEV = {
+    "origin": (-1.639e-3, 2.520e-2, 7.904e-3),
+    "t_x": (-1.704e-10, 1.536e-5, 1.024e-5),
+    "t_y": (-8.688e-7, -3.123e-4, 1.875e-4),
+    "n_z": (1.844e-5, 1.875e-4, -3.123e-4),
+}
 
 
 def seed_calibrated_setup():
     """The §1.10 setup with the seed's calibration deviations (Tables 2.5, 2.6) added: §2.8.4's 'calibration data'."""
     cam = SETUP.camera
     pat = SETUP.pattern
-    over = {"camera": {k: tuple(np.add(getattr(cam, k), v)) for k, v in CAMERA_DEV.items()},
-            "pattern": {k: tuple(np.add(getattr(pat, k), v)) for k, v in PATTERN_DEV.items()}}
+    over = {
+        "camera": {k: tuple(np.add(getattr(cam, k), v)) for k, v in CAMERA_DEV.items()},
+        "pattern": {k: tuple(np.add(getattr(pat, k), v)) for k, v in PATTERN_DEV.items()},
+    }
     over["camera"]["image_distance"] = cam.image_distance + CAMERA_DB
     return load_setup("thesis-1.10-deflectometry", over)
 
@@ -87,25 +97,38 @@ def run(setup, obs, cfg, h, bias=None) -> dict:
     last = hist[-1]
     dh = last.delta_h_max_um if hasattr(last, "delta_h_max_um") else last["delta_h_max_um"]
     n_inner = [s.inner_iterations if hasattr(s, "inner_iterations") else s["inner_iterations"] for s in hist]
-    return {**err, "converged": ok, "outer": len(hist), "inner_each": max(n_inner), "dh": dh,
-            "sigma": rec.basis.sigma, "seconds": time.perf_counter() - t0}
+    return {
+        **err,
+        "converged": ok,
+        "outer": len(hist),
+        "inner_each": max(n_inner),
+        "dh": dh,
+        "sigma": rec.basis.sigma,
+        "seconds": time.perf_counter() - t0,
+    }
 
 
 def fmt(r: dict) -> str:
     if "failed" in r:
         return f"FAILED: {r['failed']}"
     conv = "" if r["converged"] else " (NOT converged)"
-    return (f"ROI rms {r['roi_rms_um']:7.4f} max {r['roi_max_um']:7.4f} | abs {r['roi_absolute_um']:+8.4f} "
-            f"shape {r['roi_shape_um']:7.4f} | whole rms {r['all_rms_um']:7.3f} max {r['all_max_um']:7.3f} | "
-            f"{r['outer']:2d} outer x <= {r['inner_each']} inner, dh_max {r['dh']:+.3f} um{conv}")
+    return (
+        f"ROI rms {r['roi_rms_um']:7.4f} max {r['roi_max_um']:7.4f} | abs {r['roi_absolute_um']:+8.4f} "
+        f"shape {r['roi_shape_um']:7.4f} | whole rms {r['all_rms_um']:7.3f} max {r['all_max_um']:7.3f} | "
+        f"{r['outer']:2d} outer x <= {r['inner_each']} inner, dh_max {r['dh']:+.3f} um{conv}"
+    )
 
 
 def part_a(surfaces) -> None:
     print("\n== A. Seed §1.10: 9x5 inverse multiquadrics, sigma_x = 4, sigma_y = 3, Delta h_max criterion ==")
-    print("seed: distribution 1: ROI rms 0.097 max 0.697 um, whole rms 4.578 max 7.577 um, 14 outer x 3 inner, "
-          "dh -0.15 um")
-    print("      distribution 2: ROI rms 0.092 max 0.359 um, whole rms 0.213 max 1.943 um,  9 outer x 3 inner, "
-          "dh -0.009 um")
+    print(
+        "seed: distribution 1: ROI rms 0.097 max 0.697 um, whole rms 4.578 max 7.577 um, 14 outer x 3 inner, "
+        "dh -0.15 um"
+    )
+    print(
+        "      distribution 2: ROI rms 0.092 max 0.359 um, whole rms 0.213 max 1.943 um,  9 outer x 3 inner, "
+        "dh -0.009 um"
+    )
     for k, (h, obs) in enumerate(surfaces, start=1):
         if k == 3:
             print("  smoother surfaces (corr 18 mm, seeds 1 and 2) for context:")
@@ -130,10 +153,14 @@ def part_b(surfaces) -> None:
 
 
 def part_c(families) -> None:
-    print("\n== C. Improved reconstruction (Gaussian basis + ridge + plane terms, sigma chosen from the data, "
-          "level criterion, secant root search) ==")
-    print("targets (noise-free, seed's kind): shape <= 0.02 um and |absolute| <= 0.05 um (ideal setup); "
-          "shape <= 0.05 um (calibrated)")
+    print(
+        "\n== C. Improved reconstruction (Gaussian basis + ridge + plane terms, sigma chosen from the data, "
+        "level criterion, secant root search) =="
+    )
+    print(
+        "targets (noise-free, seed's kind): shape <= 0.02 um and |absolute| <= 0.05 um (ideal setup); "
+        "shape <= 0.05 um (calibrated)"
+    )
     cal = seed_calibrated_setup()
     cfg = ReconstructionConfig()
     for name, items in families.items():
@@ -143,9 +170,11 @@ def part_c(families) -> None:
             sh = np.array([r["roi_shape_um"] for r in rows])
             mx = np.array([r["roi_max_um"] for r in rows])
             sig = [r["sigma"][0] for r in rows]
-            print(f"  {name:26s} {label:15s}: |abs| mean {np.mean(np.abs(ab)):.4f} rms {np.sqrt(np.mean(ab**2)):.4f} "
-                  f"max {np.max(np.abs(ab)):.4f} | shape mean {sh.mean():.4f} max {sh.max():.4f} | ROI max err "
-                  f"{mx.max():.4f} um | sigma {sig} | {np.mean([r['seconds'] for r in rows]):.2f} s each")
+            print(
+                f"  {name:26s} {label:15s}: |abs| mean {np.mean(np.abs(ab)):.4f} rms {np.sqrt(np.mean(ab**2)):.4f} "
+                f"max {np.max(np.abs(ab)):.4f} | shape mean {sh.mean():.4f} max {sh.max():.4f} | ROI max err "
+                f"{mx.max():.4f} um | sigma {sig} | {np.mean([r['seconds'] for r in rows]):.2f} s each"
+            )
 
 
 def part_d(items) -> None:
@@ -166,9 +195,11 @@ def part_d(items) -> None:
         sh = np.array([r["roi_shape_um"] for r in rows])
         rms = np.array([r["roi_rms_um"] for r in rows])
         conv = sum(r["converged"] for r in rows)
-        print(f"  {k}. {name:44s}: ROI rms {rms.mean():7.4f} | |abs| rms {np.sqrt(np.mean(ab**2)):7.4f} | "
-              f"shape {sh.mean():7.4f} um | outer {np.mean([r['outer'] for r in rows]):4.1f} | "
-              f"converged {conv}/{len(items)}")
+        print(
+            f"  {k}. {name:44s}: ROI rms {rms.mean():7.4f} | |abs| rms {np.sqrt(np.mean(ab**2)):7.4f} | "
+            f"shape {sh.mean():7.4f} um | outer {np.mean([r['outer'] for r in rows]):4.1f} | "
+            f"converged {conv}/{len(items)}"
+        )
 
 
 def part_e(spp: int) -> None:
@@ -188,8 +219,10 @@ def part_e(spp: int) -> None:
         lookup = {(int(i), int(j)): p for (i, j), p in zip(t.ij, t.center_px, strict=True)}
         exact = np.array([lookup[(int(i), int(j))] for i, j in found.ij])
         raw_err = np.linalg.norm(found.centroids - exact, axis=1)
-        print(f"  noise {'on ' if noise else 'off'}: {len(found.ij)} markers; raw centroid - centre image: "
-              f"{np.sqrt(np.mean(raw_err**2)):.3f} px rms, {raw_err.max():.3f} px max")
+        print(
+            f"  noise {'on ' if noise else 'off'}: {len(found.ij)} markers; raw centroid - centre image: "
+            f"{np.sqrt(np.mean(raw_err**2)):.3f} px rms, {raw_err.max():.3f} px max"
+        )
         cfg = ReconstructionConfig()
         print(f"    without bias correction: {fmt(run(SETUP, obs, cfg, h))}")
         print(f"    with bias correction   : {fmt(run(SETUP, obs, cfg, h, centroid_bias_step(SETUP)))}")
@@ -207,9 +240,11 @@ def main() -> None:
     smoother = [surface(18.0, s) for s in range(1, n + 1)]
     part_a(seed_kind[:2] + smoother[:2])
     part_b(seed_kind)
-    families = {"seed's kind (corr 12 mm)": seed_kind,
-                "rougher (corr 6 mm)": [surface(6.0, s) for s in range(1, n + 1)],
-                "smoother (corr 18 mm)": smoother}
+    families = {
+        "seed's kind (corr 12 mm)": seed_kind,
+        "rougher (corr 6 mm)": [surface(6.0, s) for s in range(1, n + 1)],
+        "smoother (corr 18 mm)": smoother,
+    }
     part_c(families)
     part_d(seed_kind)
     if not args.no_render:

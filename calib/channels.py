@@ -147,8 +147,13 @@ def fit_frame(img: ArrayLike, iterations: int = 3) -> FrameFit:
     sx = 0.5 * (sides[0] + sides[2])
     sy = 0.5 * (sides[1] + sides[3])
     # displayed angle: rows grow downward, so counter-clockwise on screen is -theta in (col, row) axes
-    return FrameFit((float(c[0]), float(c[1])), float(side), (float(sx), float(sy)), float(-np.rad2deg(theta)),
-                    tuple((float(p[0]), float(p[1])) for p in corners))
+    return FrameFit(
+        (float(c[0]), float(c[1])),
+        float(side),
+        (float(sx), float(sy)),
+        float(-np.rad2deg(theta)),
+        tuple((float(p[0]), float(p[1])) for p in corners),
+    )
 
 
 def spoke_modulation(img: ArrayLike, center: tuple[float, float], radii: ArrayLike, spokes: int) -> Array:
@@ -164,8 +169,15 @@ def spoke_modulation(img: ArrayLike, center: tuple[float, float], radii: ArrayLi
     return harm / np.maximum(p.mean(axis=1), 1e-12)
 
 
-def measure_channel(img: ArrayLike, pixel_um: float, frame_side_um: float, star_radius_um: float,
-                    spokes: int = 30, threshold: float = 0.1, step_px: float = 0.25) -> ChannelMeasurement:
+def measure_channel(
+    img: ArrayLike,
+    pixel_um: float,
+    frame_side_um: float,
+    star_radius_um: float,
+    spokes: int = 30,
+    threshold: float = 0.1,
+    step_px: float = 0.25,
+) -> ChannelMeasurement:
     """Frame, magnification and Siemens-star resolution of one image (seed §5.2.2).
 
     Parameters
@@ -200,8 +212,9 @@ def measure_channel(img: ArrayLike, pixel_um: float, frame_side_um: float, star_
             t = (rel[i - 1] - threshold) / (rel[i - 1] - rel[i])
             r_min = float(radii[i - 1] + t * (radii[i] - radii[i - 1]))
     r_min_um = r_min * pixel_um / m
-    return ChannelMeasurement(fr, float(m), (float(mxy[0]), float(mxy[1])), r_min, float(r_min_um),
-                              float(np.pi * r_min_um / spokes), limited)
+    return ChannelMeasurement(
+        fr, float(m), (float(mxy[0]), float(mxy[1])), r_min, float(r_min_um), float(np.pi * r_min_um / spokes), limited
+    )
 
 
 def relative_pose(meas: ChannelMeasurement, reference: ChannelMeasurement, pixel_um: float) -> dict[str, float]:
@@ -209,5 +222,11 @@ def relative_pose(meas: ChannelMeasurement, reference: ChannelMeasurement, pixel
     dx = meas.frame.center[0] - reference.frame.center[0]
     dy = meas.frame.center[1] - reference.frame.center[1]
     dphi = (meas.frame.angle_deg - reference.frame.angle_deg + 45.0) % 90.0 - 45.0
-    return {"offset_x_px": dx, "offset_y_px": dy, "offset_x_um": dx * pixel_um, "offset_y_um": dy * pixel_um,
-            "tilt_deg": dphi, "magnification_ratio": meas.magnification / reference.magnification}
+    return {
+        "offset_x_px": dx,
+        "offset_y_px": dy,
+        "offset_x_um": dx * pixel_um,
+        "offset_y_um": dy * pixel_um,
+        "tilt_deg": dphi,
+        "magnification_ratio": meas.magnification / reference.magnification,
+    }

@@ -99,8 +99,9 @@ def _prior(setup: Setup, plane: Frame, args: argparse.Namespace) -> Prior:
 
 def _check_image_format(image: NDArray, prior: Prior, path: str) -> None:
     if image.shape != (prior.ny, prior.nx):
-        raise CalibrationError(f"{path} has {image.shape[1]} x {image.shape[0]} pixels but the setup's camera has "
-                               f"{prior.nx} x {prior.ny}")
+        raise CalibrationError(
+            f"{path} has {image.shape[1]} x {image.shape[0]} pixels but the setup's camera has {prior.nx} x {prior.ny}"
+        )
 
 
 def cmd_calibrate(args: argparse.Namespace) -> dict[str, Any]:
@@ -117,15 +118,25 @@ def cmd_calibrate(args: argparse.Namespace) -> dict[str, Any]:
     found = _markers(image, setup, args.image)
     xy = pattern.centers_local(found.ij)
     bias = None if args.no_bias_correction else spot_bias_model(xy, pattern.radii(found.ij))
-    cal = _calibrate(xy, found.centroids, prior, bias, lens=args.lens, distortion=args.distortion,
-                     b=args.image_distance)
+    cal = _calibrate(
+        xy, found.centroids, prior, bias, lens=args.lens, distortion=args.distortion, b=args.image_distance
+    )
     out = cal.as_dict(plane=plane)
-    out.update({"image": str(args.image), "target": setup.name, "markers_used": int(len(found.ij)),
-                "markers_rejected": int(found.rejected), "bias_corrected": bias is not None,
-                "seconds": time.perf_counter() - t0})
+    out.update(
+        {
+            "image": str(args.image),
+            "target": setup.name,
+            "markers_used": int(len(found.ij)),
+            "markers_rejected": int(found.rejected),
+            "bias_corrected": bias is not None,
+            "seconds": time.perf_counter() - t0,
+        }
+    )
     c = out["camera"]
-    print(f"calibrated {args.image}: r_c = ({c['r_c'][0]:.4f}, {c['r_c'][1]:.4f}, {c['r_c'][2]:.4f}) mm, "
-          f"b = {c['b']:.4f} mm ({cal.lens}), residual {cal.residual_rms_px:.4f} px rms, {len(found.ij)} markers")
+    print(
+        f"calibrated {args.image}: r_c = ({c['r_c'][0]:.4f}, {c['r_c'][1]:.4f}, {c['r_c'][2]:.4f}) mm, "
+        f"b = {c['b']:.4f} mm ({cal.lens}), residual {cal.residual_rms_px:.4f} px rms, {len(found.ij)} markers"
+    )
     for w in cal.warnings:
         print(f"warning: {w}")
     return out
@@ -141,8 +152,10 @@ def cmd_calibrate_setup(args: argparse.Namespace) -> dict[str, Any]:
     target = _setup(args.target, head_s, args.substrate_image, "--target SETUP")
     nominal = _setup(args.pattern_setup, head_m, args.mirror_image, "--pattern-setup SETUP")
     if nominal.scene != "mirror":
-        raise CalibrationError(f"the pattern setup {nominal.name} is a {nominal.scene} scene; the mirror image needs "
-                               "a mirror scene (seed §2.7.2)")
+        raise CalibrationError(
+            f"the pattern setup {nominal.name} is a {nominal.scene} scene; the mirror image needs "
+            "a mirror scene (seed §2.7.2)"
+        )
     if target.scene != "target":
         raise CalibrationError(f"the target setup {target.name} is a {target.scene} scene, not a calibration target")
     tframe = target.marker_pattern.frame
@@ -150,8 +163,9 @@ def cmd_calibrate_setup(args: argparse.Namespace) -> dict[str, Any]:
     _check_image_format(img_s, prior_s, args.substrate_image)
     pm = mirror_prior(nominal, args.focal_length)
     if args.pixel_pitch is not None:
-        pm = Prior(pm.focal_length, pm.nx, pm.ny, args.pixel_pitch, pm.nz_estimate, pm.r_cs, pm.c0, pm.c2,
-                   pm.image_distance)
+        pm = Prior(
+            pm.focal_length, pm.nx, pm.ny, args.pixel_pitch, pm.nz_estimate, pm.r_cs, pm.c0, pm.c2, pm.image_distance
+        )
     _check_image_format(img_m, pm, args.mirror_image)
     tp = target.marker_pattern
     pp = nominal.marker_pattern
@@ -163,17 +177,35 @@ def cmd_calibrate_setup(args: argparse.Namespace) -> dict[str, Any]:
     if not args.no_bias_correction:
         bias_s = spot_bias_model(xs, tp.radii(found_s.ij))
         bias_m = spot_bias_model(xm, pp.radii(found_m.ij))
-    result = calibrate_setup(xs, found_s.centroids, prior_s, xm, found_m.centroids, pm, target_frame=tframe,
-                             lens=args.lens, distortion=args.distortion, share_intrinsics=not args.per_view_lens,
-                             substrate_bias=bias_s, mirror_bias=bias_m)
+    result = calibrate_setup(
+        xs,
+        found_s.centroids,
+        prior_s,
+        xm,
+        found_m.centroids,
+        pm,
+        target_frame=tframe,
+        lens=args.lens,
+        distortion=args.distortion,
+        share_intrinsics=not args.per_view_lens,
+        substrate_bias=bias_s,
+        mirror_bias=bias_m,
+    )
     text = write_setup_toml(args.out, nominal, result)
     out = result.as_dict()
-    out.update({"setup_toml": str(args.out), "toml": text, "markers_used": {"substrate": int(len(found_s.ij)),
-                                                                       "mirror": int(len(found_m.ij))},
-                "seconds": time.perf_counter() - t0})
+    out.update(
+        {
+            "setup_toml": str(args.out),
+            "toml": text,
+            "markers_used": {"substrate": int(len(found_s.ij)), "mirror": int(len(found_m.ij))},
+            "seconds": time.perf_counter() - t0,
+        }
+    )
     o = result.pattern.origin
-    print(f"calibrated setup -> {args.out}: camera r_c = {np.round(result.camera.center, 4).tolist()} mm, "
-          f"pattern centre = ({o[0]:.4f}, {o[1]:.4f}, {o[2]:.4f}) mm")
+    print(
+        f"calibrated setup -> {args.out}: camera r_c = {np.round(result.camera.center, 4).tolist()} mm, "
+        f"pattern centre = ({o[0]:.4f}, {o[1]:.4f}, {o[2]:.4f}) mm"
+    )
     for w in result.substrate.warnings + result.mirror.warnings:
         print(f"warning: {w}")
     return out
@@ -183,11 +215,18 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
     p.add_argument("--focal-length", type=float, metavar="F", help="a-priori focal length, mm (default: the setup's)")
     p.add_argument("--pixel-pitch", type=float, metavar="P", help="pixel size, mm (default: the setup's)")
-    p.add_argument("--lens", choices=LENS_MODES, default="auto",
-                   help="image distance b: thin-lens from f (seed), free parameter, fixed, or auto (default)")
+    p.add_argument(
+        "--lens",
+        choices=LENS_MODES,
+        default="auto",
+        help="image distance b: thin-lens from f (seed), free parameter, fixed, or auto (default)",
+    )
     p.add_argument("--distortion", action="store_true", help="also refine r_cs, c0, c2 (seed §2.5.1)")
-    p.add_argument("--no-bias-correction", action="store_true",
-                   help="use the raw centroids (default: alternate calibration and centroid-bias correction)")
+    p.add_argument(
+        "--no-bias-correction",
+        action="store_true",
+        help="use the raw centroids (default: alternate calibration and centroid-bias correction)",
+    )
 
 
 def _quiet(func: Any) -> Any:
@@ -212,10 +251,16 @@ def register(subparsers: Any) -> None:
     p = subparsers.add_parser("calibrate", help=h, description=h)
     p.set_defaults(func=_quiet(cmd_calibrate))
     p.add_argument("image", help="camera image (OpenEXR, channel Y)")
-    p.add_argument("--target", metavar="SETUP", help="setup (preset or TOML) with the target and the a-priori camera "
-                   "(default: the setup in the image header)")
-    p.add_argument("--nz-estimate", metavar="X,Y,Z", help="coarse sensor normal in target coordinates "
-                   "(default: the setup camera's)")
+    p.add_argument(
+        "--target",
+        metavar="SETUP",
+        help="setup (preset or TOML) with the target and the a-priori camera (default: the setup in the image header)",
+    )
+    p.add_argument(
+        "--nz-estimate",
+        metavar="X,Y,Z",
+        help="coarse sensor normal in target coordinates (default: the setup camera's)",
+    )
     p.add_argument("--image-distance", type=float, metavar="B", help="a-priori b for --lens fixed, mm")
     _common(p)
 
@@ -225,10 +270,16 @@ def register(subparsers: Any) -> None:
     p.add_argument("--substrate-image", required=True, metavar="A.exr", help="target on the holding frame")
     p.add_argument("--mirror-image", required=True, metavar="B.exr", help="pattern seen in a flat mirror on the frame")
     p.add_argument("--target", metavar="SETUP", help="setup of the substrate image (default: its header)")
-    p.add_argument("--pattern-setup", metavar="SETUP", help="setup with the pattern and a-priori camera of the mirror "
-                   "image (default: its header)")
-    p.add_argument("--per-view-lens", action="store_true",
-                   help="the seed's way: each view its own thin-lens b (default: the mirror view keeps the "
-                   "substrate view's b and distortion)")
+    p.add_argument(
+        "--pattern-setup",
+        metavar="SETUP",
+        help="setup with the pattern and a-priori camera of the mirror image (default: its header)",
+    )
+    p.add_argument(
+        "--per-view-lens",
+        action="store_true",
+        help="the seed's way: each view its own thin-lens b (default: the mirror view keeps the "
+        "substrate view's b and distortion)",
+    )
     p.add_argument("--out", required=True, metavar="setup.toml", help="calibrated setup TOML to write")
     _common(p)

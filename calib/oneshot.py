@@ -108,9 +108,17 @@ class Prior:
     def from_camera(cls, camera: Camera, focal_length: float, plane: Frame | None = None, **changes) -> Prior:
         """A prior from a (nominal) camera: its format, pitch, distortion, b and N_z in the target frame."""
         plane = plane or Frame.identity()
-        kw = dict(focal_length=focal_length, nx=camera.nx, ny=camera.ny, pitch=camera.pitch,
-                  nz_estimate=tuple(plane.vectors_to_local(camera.frame.nz)), r_cs=camera.r_cs,
-                  c0=camera.c0, c2=camera.c2, image_distance=camera.b)
+        kw = dict(
+            focal_length=focal_length,
+            nx=camera.nx,
+            ny=camera.ny,
+            pitch=camera.pitch,
+            nz_estimate=tuple(plane.vectors_to_local(camera.frame.nz)),
+            r_cs=camera.r_cs,
+            c0=camera.c0,
+            c2=camera.c2,
+            image_distance=camera.b,
+        )
         kw.update(changes)
         return cls(**kw)
 
@@ -279,15 +287,19 @@ def linear_approximation(xy: ArrayLike, px: ArrayLike, prior: Prior, b: float | 
     if abs(det) < 1e-6 * m * m:
         raise CalibrationError("the target is seen edge-on: its image is (nearly) a line")
     if det < 0:
-        raise CalibrationError("the marker image is mirror-inverted (AE - BD < 0): the marker indices do not match "
-                               "the target's axes, or a mirrored pattern was not declared as such")
+        raise CalibrationError(
+            "the marker image is mirror-inverted (AE - BD < 0): the marker indices do not match "
+            "the target's axes, or a mirrored pattern was not declared as such"
+        )
     b_lin = prior.focal_length * (m + 1.0) if b is None else float(b)
     cams = {s: _linear_camera(coef, m, s, b_lin, prior) for s in (1, -1)}
     est = np.asarray(prior.nz_estimate)
     dots = {s: float(c.frame.nz @ est) for s, c in cams.items()}
     if max(dots.values()) <= 0:
-        raise CalibrationError(f"the N_z estimate {_fmt(est)} points away from the camera: both "
-                               f"solutions have N_z.N_est <= 0 (the camera must look at the target's front, +z side)")
+        raise CalibrationError(
+            f"the N_z estimate {_fmt(est)} points away from the camera: both "
+            f"solutions have N_z.N_est <= 0 (the camera must look at the target's front, +z side)"
+        )
     s = 1 if dots[1] >= dots[-1] else -1
     cam = cams[s]
     r0, g = axis_point(cam.frame)
@@ -341,8 +353,12 @@ class _Model:
             if self.lens != "free":
                 self.names.append("c0")  # c0 and a free b are exactly degenerate (c0*b is what the image fixes)
             self.names.append("c2")
-        self.fixed_dist = {"x_cs": self.prior.r_cs[0], "y_cs": self.prior.r_cs[1], "c0": self.prior.c0,
-                           "c2": self.prior.c2}
+        self.fixed_dist = {
+            "x_cs": self.prior.r_cs[0],
+            "y_cs": self.prior.r_cs[1],
+            "c0": self.prior.c0,
+            "c2": self.prior.c2,
+        }
         self.X = np.column_stack([self.xy, np.zeros(len(self.xy))])
 
     def get(self, p: Array, name: str) -> float:
@@ -402,7 +418,7 @@ class _Model:
         jx = [dx_base[:, cols]]
         jy = [dy_base[:, cols]]
         n = len(u)
-        for name in self.names[len(cols):]:
+        for name in self.names[len(cols) :]:
             if name == "x_cs":
                 jx.append(np.full((n, 1), -1.0 / pr.pitch))
                 jy.append(np.zeros((n, 1)))
@@ -420,14 +436,19 @@ class _Model:
     def camera(self, p: Array) -> Camera:
         fr, _ = self.frame_and_jac(p)
         frame = Frame(p[0:3], fr[3:6], fr[6:9], fr[0:3])
-        return self.prior.sensor_camera(float(fr[9]), frame, r_cs=(self.get(p, "x_cs"), self.get(p, "y_cs")),
-                                        c0=self.get(p, "c0"), c2=self.get(p, "c2"))
+        return self.prior.sensor_camera(
+            float(fr[9]),
+            frame,
+            r_cs=(self.get(p, "x_cs"), self.get(p, "y_cs")),
+            c0=self.get(p, "c0"),
+            c2=self.get(p, "c2"),
+        )
 
     def start(self, camera: Camera, r0: Array, phi: float) -> Array:
         p = list(camera.center) + [r0[0], r0[1], phi]
         if self.lens == "free":
             p.append(camera.b)
-        for name in self.names[len(p):]:
+        for name in self.names[len(p) :]:
             p.append(self.fixed_dist[name])
         return np.asarray(p, dtype=np.float64)
 
@@ -507,8 +528,12 @@ class Calibration:
     def to_global(self, plane: Frame) -> Camera:
         """The camera in the global frame, given the target's frame (target local -> global)."""
         f = self.camera.frame
-        frame = Frame(plane.to_global(f.origin), plane.vectors_to_global(f.tx), plane.vectors_to_global(f.ty),
-                      plane.vectors_to_global(f.nz))
+        frame = Frame(
+            plane.to_global(f.origin),
+            plane.vectors_to_global(f.tx),
+            plane.vectors_to_global(f.ty),
+            plane.vectors_to_global(f.nz),
+        )
         return self.camera.with_(frame=frame)
 
     def as_dict(self, plane: Frame | None = None) -> dict:
@@ -517,9 +542,13 @@ class Calibration:
         pitch_um = self.camera.pitch * 1e3
         return {
             "camera": camera_dict(cam, self.r_0, self.phi, self.g),
-            "linear": {**camera_dict(self.linear.camera, self.linear.r_0, self.linear.phi, self.linear.g),
-                       "m_x": self.linear.m_x, "m_y": self.linear.m_y,
-                       "m_disagreement": self.linear.m_disagreement, "sign": self.linear.sign},
+            "linear": {
+                **camera_dict(self.linear.camera, self.linear.r_0, self.linear.phi, self.linear.g),
+                "m_x": self.linear.m_x,
+                "m_y": self.linear.m_y,
+                "m_disagreement": self.linear.m_disagreement,
+                "sign": self.linear.sign,
+            },
             "lens": self.lens,
             "distortion": self.distortion,
             "focal_length": self.focal_length,
@@ -542,9 +571,19 @@ class Calibration:
 def camera_dict(camera: Camera, r0: ArrayLike, phi: float, g: float) -> dict:
     """Camera parameters under the contract's keys (seed Table 2.1 plus phi, r_cs, c0, c2)."""
     f = camera.frame
-    return {"r_c": f.origin.tolist(), "t_x": f.tx.tolist(), "t_y": f.ty.tolist(), "n_z": f.nz.tolist(),
-            "b": camera.b, "g": float(g), "r_0": [float(v) for v in np.asarray(r0)[:2]], "phi": float(phi),
-            "r_cs": list(camera.r_cs), "c0": camera.c0, "c2": camera.c2}
+    return {
+        "r_c": f.origin.tolist(),
+        "t_x": f.tx.tolist(),
+        "t_y": f.ty.tolist(),
+        "n_z": f.nz.tolist(),
+        "b": camera.b,
+        "g": float(g),
+        "r_0": [float(v) for v in np.asarray(r0)[:2]],
+        "phi": float(phi),
+        "r_cs": list(camera.r_cs),
+        "c0": camera.c0,
+        "c2": camera.c2,
+    }
 
 
 def _solve(model: _Model, p0: Array, max_nfev: int) -> tuple[Array, Array, Array, int, int]:
@@ -554,8 +593,9 @@ def _solve(model: _Model, p0: Array, max_nfev: int) -> tuple[Array, Array, Array
     def jac(p: Array) -> Array:
         return model.evaluate(p, True)[1]
 
-    out = least_squares(fun, p0, jac=jac, method="lm", x_scale="jac", ftol=1e-15, xtol=1e-15, gtol=1e-15,
-                        max_nfev=max_nfev)
+    out = least_squares(
+        fun, p0, jac=jac, method="lm", x_scale="jac", ftol=1e-15, xtol=1e-15, gtol=1e-15, max_nfev=max_nfev
+    )
     res, jmat = model.evaluate(out.x, True)
     return out.x, res, jmat, int(out.nfev), int(out.status)
 
@@ -590,8 +630,16 @@ def _sigmas(model: _Model, p: Array, cov: Array, scale: float) -> dict:
     return sig
 
 
-def refine(xy: ArrayLike, px: ArrayLike, prior: Prior, start: LinearResult | Calibration, lens: str = "thin-lens",
-           distortion: bool = False, b: float | None = None, max_nfev: int = 200) -> Calibration:
+def refine(
+    xy: ArrayLike,
+    px: ArrayLike,
+    prior: Prior,
+    start: LinearResult | Calibration,
+    lens: str = "thin-lens",
+    distortion: bool = False,
+    b: float | None = None,
+    max_nfev: int = 200,
+) -> Calibration:
     """Non-linear refinement of seed §2.5 by Levenberg-Marquardt (``scipy.optimize.least_squares``).
 
     Parameters
@@ -614,8 +662,7 @@ def refine(xy: ArrayLike, px: ArrayLike, prior: Prior, start: LinearResult | Cal
     b_fixed = float(b if b is not None else (prior.image_distance or 0.0))
     if lens == "fixed" and not b_fixed > 0:
         raise CalibrationError("lens mode 'fixed' needs an a-priori image distance b")
-    model = _Model(np.asarray(xy, dtype=np.float64), np.asarray(px, dtype=np.float64), prior, lens, distortion,
-                   b_fixed)
+    model = _Model(np.asarray(xy, dtype=np.float64), np.asarray(px, dtype=np.float64), prior, lens, distortion, b_fixed)
     _check_points(model.xy, model.px, len(model.names))
     cam0 = start.camera
     r00, phi0 = np.asarray(start.r_0, dtype=np.float64), float(start.phi)
@@ -645,19 +692,49 @@ def refine(xy: ArrayLike, px: ArrayLike, prior: Prior, start: LinearResult | Cal
     resid = res.reshape(2, -1).T
     start_lin = start.linear if isinstance(start, Calibration) else start
     params = {name: float(v) for name, v in zip(model.names, p, strict=True)}
-    return Calibration(camera, r0, _wrap(float(p[5])), g, start_lin, lens, distortion, params, sig,
-                       sigma_b_prior, resid, tuple(notes), nfev)
+    return Calibration(
+        camera,
+        r0,
+        _wrap(float(p[5])),
+        g,
+        start_lin,
+        lens,
+        distortion,
+        params,
+        sig,
+        sigma_b_prior,
+        resid,
+        tuple(notes),
+        nfev,
+    )
 
 
 def _start_of(camera: Camera, linear: LinearResult) -> LinearResult:
     """A LinearResult-like start from another linear camera (the alternative sign)."""
     r0, g = axis_point(camera.frame)
-    return LinearResult(linear.coefficients, linear.m_x, linear.m_y, linear.m, -linear.sign, camera, r0, g,
-                        tilt_phi(camera.frame), linear.camera)
+    return LinearResult(
+        linear.coefficients,
+        linear.m_x,
+        linear.m_y,
+        linear.m,
+        -linear.sign,
+        camera,
+        r0,
+        g,
+        tilt_phi(camera.frame),
+        linear.camera,
+    )
 
 
-def calibrate(xy: ArrayLike, px: ArrayLike, prior: Prior, lens: LensMode = "auto", distortion: bool = False,
-              b: float | None = None, residual_warn_px: float = 1.0) -> Calibration:
+def calibrate(
+    xy: ArrayLike,
+    px: ArrayLike,
+    prior: Prior,
+    lens: LensMode = "auto",
+    distortion: bool = False,
+    b: float | None = None,
+    residual_warn_px: float = 1.0,
+) -> Calibration:
     """One-shot calibration: linear approximation (§2.4) then non-linear refinement (§2.5).
 
     Parameters
@@ -693,8 +770,10 @@ def calibrate(xy: ArrayLike, px: ArrayLike, prior: Prior, lens: LensMode = "auto
     tilt = float(np.arccos(np.clip(lin.camera.frame.nz[2], -1, 1)))
     notes: list[str] = []
     if lin.m_disagreement > 0.05:
-        notes.append(f"the two magnification equations of §2.4.2 disagree by {100 * lin.m_disagreement:.1f} %: "
-                     "the linear start is poor")
+        notes.append(
+            f"the two magnification equations of §2.4.2 disagree by {100 * lin.m_disagreement:.1f} %: "
+            "the linear start is poor"
+        )
 
     def run(start: LinearResult | Calibration, how: str) -> Calibration:
         return refine(xy, px, prior, start, how, distortion, b)
@@ -712,25 +791,32 @@ def calibrate(xy: ArrayLike, px: ArrayLike, prior: Prior, lens: LensMode = "auto
         except CalibrationError:
             alt = None
         if alt is not None and not undecided and np.sum(alt.residual_px**2) < 0.25 * np.sum(cal.residual_px**2):
-            notes.append(f"the N_z estimate {_fmt(prior.nz_estimate)} picked the mirror-ambiguous "
-                         f"pose that fits worse (rms {cal.residual_rms_px:.3g} px against "
-                         f"{alt.residual_rms_px:.3g} px); the better-fitting pose is used")
+            notes.append(
+                f"the N_z estimate {_fmt(prior.nz_estimate)} picked the mirror-ambiguous "
+                f"pose that fits worse (rms {cal.residual_rms_px:.3g} px against "
+                f"{alt.residual_rms_px:.3g} px); the better-fitting pose is used"
+            )
             cal = alt
         elif alt is not None and undecided and np.sum(alt.residual_px**2) < np.sum(cal.residual_px**2):
             cal = alt
         if undecided:
-            notes.append(f"the N_z estimate {_fmt(est)} does not tell the two mirror-ambiguous poses "
-                         "apart; the better-fitting one is used")
+            notes.append(
+                f"the N_z estimate {_fmt(est)} does not tell the two mirror-ambiguous poses "
+                "apart; the better-fitting one is used"
+            )
     if lens == "free" and not (cal.sigma_b_prior is not None and cal.sigma_b_prior <= MAX_SIGMA_B):
         raise CalibrationError(
             f"the view is too close to face-on (tilt {np.rad2deg(tilt):.2f} deg) to estimate the image distance b: "
             f"its standard deviation at {PRIOR_NOISE_PX} px centroid noise would be {cal.sigma_b_prior:.3g} mm "
-            f"(limit {MAX_SIGMA_B} mm); use the thin-lens or fixed mode")
+            f"(limit {MAX_SIGMA_B} mm); use the thin-lens or fixed mode"
+        )
     if lens == "auto" and not distortion and tilt >= AUTO_FREE_TILT:
         cal = _choose_lens(cal, run(cal, "free"))
     if cal.residual_rms_px > residual_warn_px:
-        notes.append(f"the residual is large ({cal.residual_rms_px:.3g} px rms): check the marker indexing and the "
-                     "a-priori values")
+        notes.append(
+            f"the residual is large ({cal.residual_rms_px:.3g} px rms): check the marker indexing and the "
+            "a-priori values"
+        )
     for note in notes:
         warnings.warn(note, CalibrationWarning, stacklevel=2)
     return _with_notes(cal, lin, notes)
@@ -749,8 +835,14 @@ def _choose_lens(thin: Calibration, free: Calibration, z_limit: float = 3.0) -> 
     determined = free.sigma_b_prior is not None and free.sigma_b_prior <= MAX_SIGMA_B
     z = abs(free.camera.b - thin.camera.b) / sb if sb > 0 else float("inf")
     use_free = determined and z > z_limit
-    test = {"b_thin_lens": thin.camera.b, "b_free": free.camera.b, "sigma_b_free": sb, "z": z,
-            "z_limit": z_limit, "chosen": "free" if use_free else "thin-lens"}
+    test = {
+        "b_thin_lens": thin.camera.b,
+        "b_free": free.camera.b,
+        "sigma_b_free": sb,
+        "z": z,
+        "z_limit": z_limit,
+        "chosen": "free" if use_free else "thin-lens",
+    }
     return replace(free if use_free else thin, lens_test=test)
 
 
@@ -760,10 +852,17 @@ def _with_notes(cal: Calibration, lin: LinearResult, notes: list[str]) -> Calibr
     return replace(cal, linear=lin, warnings=tuple(cal.warnings) + tuple(notes))
 
 
-def calibrate_bias_corrected(xy: ArrayLike, centroids_px: ArrayLike, prior: Prior,
-                             predict_bias: Callable[[Camera], Array], lens: LensMode = "auto",
-                             distortion: bool = False, b: float | None = None, tol_px: float = 1e-5,
-                             max_iter: int = 10) -> tuple[Calibration, Array, int]:
+def calibrate_bias_corrected(
+    xy: ArrayLike,
+    centroids_px: ArrayLike,
+    prior: Prior,
+    predict_bias: Callable[[Camera], Array],
+    lens: LensMode = "auto",
+    distortion: bool = False,
+    b: float | None = None,
+    tol_px: float = 1e-5,
+    max_iter: int = 10,
+) -> tuple[Calibration, Array, int]:
     """Alternate calibration and centroid-bias correction until the parameters stop changing (issue 4, item 3).
 
     Parameters
@@ -789,8 +888,17 @@ def calibrate_bias_corrected(xy: ArrayLike, centroids_px: ArrayLike, prior: Prio
         return _bias_loop(xy, c, prior, predict_bias, lens, distortion, b, tol_px, max_iter)
 
 
-def _bias_loop(xy: ArrayLike, c: Array, prior: Prior, predict_bias: Callable[[Camera], Array], lens: LensMode,
-               distortion: bool, b: float | None, tol_px: float, max_iter: int) -> tuple[Calibration, Array, int]:
+def _bias_loop(
+    xy: ArrayLike,
+    c: Array,
+    prior: Prior,
+    predict_bias: Callable[[Camera], Array],
+    lens: LensMode,
+    distortion: bool,
+    b: float | None,
+    tol_px: float,
+    max_iter: int,
+) -> tuple[Calibration, Array, int]:
     cal = calibrate(xy, c, prior, lens, distortion, b)
     X = np.column_stack([np.asarray(xy, dtype=np.float64)[:, :2], np.zeros(len(c))])
     bias = np.zeros_like(c)
@@ -807,8 +915,16 @@ def _bias_loop(xy: ArrayLike, c: Array, prior: Prior, predict_bias: Callable[[Ca
 
 
 # -- centroid bias of a planar target (model for calibrate_bias_corrected) ------------------------
-def spot_centroids(camera: Camera, xy: ArrayLike, radii: ArrayLike, threshold: float, background: float = 0.0,
-                   radiance: float = 1.0, supersample: int = 4, chunk: int = 2_000_000) -> Array:
+def spot_centroids(
+    camera: Camera,
+    xy: ArrayLike,
+    radii: ArrayLike,
+    threshold: float,
+    background: float = 0.0,
+    radiance: float = 1.0,
+    supersample: int = 4,
+    chunk: int = 2_000_000,
+) -> Array:
     """Predicted centroids of fading round markers on the target plane z = 0 (seed §1.5.1, §1.6.3).
 
     Each marker (grey value g = 1 - r/r_m, seed §1.6.3) is imaged through ``camera`` (pinhole,
@@ -836,8 +952,10 @@ def spot_centroids(camera: Camera, xy: ArrayLike, radii: ArrayLike, threshold: f
     radii = np.asarray(radii, dtype=np.float64)
     n = len(xy)
     t = np.linspace(0.0, 2.0 * np.pi, 48, endpoint=False)
-    rim = np.concatenate([xy[:, None, :] + radii[:, None, None] * np.stack([np.cos(t), np.sin(t)], -1),
-                          np.zeros((n, len(t), 1))], axis=-1)
+    rim = np.concatenate(
+        [xy[:, None, :] + radii[:, None, None] * np.stack([np.cos(t), np.sin(t)], -1), np.zeros((n, len(t), 1))],
+        axis=-1,
+    )
     rim_px = camera.project(rim)
     lo = np.floor(np.nanmin(rim_px, axis=1)).astype(int) - 1
     hi = np.ceil(np.nanmax(rim_px, axis=1)).astype(int) + 1
@@ -882,8 +1000,14 @@ def spot_centroids(camera: Camera, xy: ArrayLike, radii: ArrayLike, threshold: f
     return out
 
 
-def spot_bias_model(xy: ArrayLike, radii: ArrayLike, threshold: float = 0.0, background: float = 0.0,
-                    radiance: float = 1.0, supersample: int | None = None) -> Callable[[Camera], Array]:
+def spot_bias_model(
+    xy: ArrayLike,
+    radii: ArrayLike,
+    threshold: float = 0.0,
+    background: float = 0.0,
+    radiance: float = 1.0,
+    supersample: int | None = None,
+) -> Callable[[Camera], Array]:
     """``predict_bias`` for :func:`calibrate_bias_corrected`: spot centroid minus image of the centre, px.
 
     The defaults (threshold 0) model the whole-spot first moment of :func:`recon.markers.centroids`.

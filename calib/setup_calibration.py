@@ -59,14 +59,22 @@ def pattern_in_camera(camera_in_pattern: Frame) -> Frame:
     """
     c = camera_in_pattern
     origin = c.to_local(np.zeros(3))
-    return Frame(origin, c.vectors_to_local([1.0, 0.0, 0.0]), c.vectors_to_local([0.0, 1.0, 0.0]),
-                 c.vectors_to_local([0.0, 0.0, 1.0]))
+    return Frame(
+        origin,
+        c.vectors_to_local([1.0, 0.0, 0.0]),
+        c.vectors_to_local([0.0, 1.0, 0.0]),
+        c.vectors_to_local([0.0, 0.0, 1.0]),
+    )
 
 
 def compose(outer: Frame, inner: Frame) -> Frame:
     """A frame given in ``outer``'s coordinates, expressed in the coordinates ``outer`` is given in."""
-    return Frame(outer.to_global(inner.origin), outer.vectors_to_global(inner.tx), outer.vectors_to_global(inner.ty),
-                 outer.vectors_to_global(inner.nz))
+    return Frame(
+        outer.to_global(inner.origin),
+        outer.vectors_to_global(inner.tx),
+        outer.vectors_to_global(inner.ty),
+        outer.vectors_to_global(inner.nz),
+    )
 
 
 def real_pattern(camera_global: Frame, camera_in_virtual: Frame) -> tuple[Frame, Frame]:
@@ -132,11 +140,20 @@ def mirror_prior(nominal: Setup, focal_length: float | None = None) -> Prior:
     return Prior.from_camera(cam, f, plane=virtual)
 
 
-def calibrate_setup(substrate_xy: ArrayLike, substrate_px: ArrayLike, substrate_prior: Prior,
-                    mirror_xy: ArrayLike, mirror_px: ArrayLike, mirror_prior: Prior,
-                    target_frame: Frame | None = None, lens: LensMode = "auto", distortion: bool = False,
-                    share_intrinsics: bool = True, substrate_bias: BiasModel | None = None,
-                    mirror_bias: BiasModel | None = None) -> SetupCalibration:
+def calibrate_setup(
+    substrate_xy: ArrayLike,
+    substrate_px: ArrayLike,
+    substrate_prior: Prior,
+    mirror_xy: ArrayLike,
+    mirror_px: ArrayLike,
+    mirror_prior: Prior,
+    target_frame: Frame | None = None,
+    lens: LensMode = "auto",
+    distortion: bool = False,
+    share_intrinsics: bool = True,
+    substrate_bias: BiasModel | None = None,
+    mirror_bias: BiasModel | None = None,
+) -> SetupCalibration:
     """Calibrate camera and pattern of the deflectometry setup from the two calibration images (seed §2.7).
 
     Parameters
@@ -162,6 +179,7 @@ def calibrate_setup(substrate_xy: ArrayLike, substrate_px: ArrayLike, substrate_
         given, each view alternates calibration and bias correction
         (:func:`calib.oneshot.calibrate_bias_corrected`).
     """
+
     def one(xy: ArrayLike, px: ArrayLike, prior: Prior, bias: BiasModel | None, **kw: Any) -> Calibration:
         if bias is None:
             return calibrate(xy, px, prior, **kw)
@@ -171,8 +189,17 @@ def calibrate_setup(substrate_xy: ArrayLike, substrate_px: ArrayLike, substrate_
     camera = sub.to_global(target_frame) if target_frame is not None else sub.camera
     if share_intrinsics:
         cam = sub.camera
-        prior = Prior(mirror_prior.focal_length, mirror_prior.nx, mirror_prior.ny, mirror_prior.pitch,
-                      mirror_prior.nz_estimate, cam.r_cs, cam.c0, cam.c2, cam.b)
+        prior = Prior(
+            mirror_prior.focal_length,
+            mirror_prior.nx,
+            mirror_prior.ny,
+            mirror_prior.pitch,
+            mirror_prior.nz_estimate,
+            cam.r_cs,
+            cam.c0,
+            cam.c2,
+            cam.b,
+        )
         mir = one(mirror_xy, mirror_px, prior, mirror_bias, lens="fixed", distortion=False, b=cam.b)
     else:
         mir = one(mirror_xy, mirror_px, mirror_prior, mirror_bias, lens="thin-lens", distortion=distortion)
@@ -233,11 +260,22 @@ def calibrated_setup_dict(nominal: Setup, result: SetupCalibration) -> dict[str,
     for key in ("r_0", "phi"):
         cspec.pop(key, None)
     f = cam.frame
-    cspec.update({"origin": f.origin.tolist(), "t_x": f.tx.tolist(), "t_y": f.ty.tolist(), "n_z": f.nz.tolist(),
-                  "image_distance": float(cam.b), "r_cs": list(cam.r_cs), "c0": float(cam.c0), "c2": float(cam.c2)})
+    cspec.update(
+        {
+            "origin": f.origin.tolist(),
+            "t_x": f.tx.tolist(),
+            "t_y": f.ty.tolist(),
+            "n_z": f.nz.tolist(),
+            "image_distance": float(cam.b),
+            "r_cs": list(cam.r_cs),
+            "c0": float(cam.c0),
+            "c2": float(cam.c2),
+        }
+    )
     p = result.pattern
-    data["pattern"].update({"origin": p.origin.tolist(), "t_x": p.tx.tolist(), "t_y": p.ty.tolist(),
-                            "n_z": p.nz.tolist()})
+    data["pattern"].update(
+        {"origin": p.origin.tolist(), "t_x": p.tx.tolist(), "t_y": p.ty.tolist(), "n_z": p.nz.tolist()}
+    )
     return data
 
 

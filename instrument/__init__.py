@@ -15,5 +15,14 @@ from instrument.errors import (
 )
 from instrument.rig import Rig, load_rig, open_rig
 
-__all__ = ["DisconnectedError", "InstrumentError", "InstrumentTimeout", "OutOfRangeError", "ProtocolError", "Rig",
-           "RigError", "load_rig", "open_rig"]
+__all__ = [
+    "DisconnectedError",
+    "InstrumentError",
+    "InstrumentTimeout",
+    "OutOfRangeError",
+    "ProtocolError",
+    "Rig",
+    "RigError",
+    "load_rig",
+    "open_rig",
+]

@@ -100,8 +100,9 @@ def _run(writer: FrameWriter, rig: Rig) -> Iterator[None]:
         rig.lights_off()
 
 
-def choose_exposure(camera: Camera, target_fraction: float = 0.7, percentile: float = 99.5,
-                    max_iterations: int = 6) -> float:
+def choose_exposure(
+    camera: Camera, target_fraction: float = 0.7, percentile: float = 99.5, max_iterations: int = 6
+) -> float:
     """Set the exposure so the ``percentile`` grey value sits at ``target_fraction`` of the ADC range.
 
     Signal is linear in exposure above the black level, so each test frame gives
@@ -127,8 +128,9 @@ def choose_exposure(camera: Camera, target_fraction: float = 0.7, percentile: fl
     return camera.exposure_s
 
 
-def deflectometry_capture(rig: Rig, out_dir: str | Path, *, camera: str | None = None, light: str | None = None,
-                          target_fraction: float = 0.7) -> Path:
+def deflectometry_capture(
+    rig: Rig, out_dir: str | Path, *, camera: str | None = None, light: str | None = None, target_fraction: float = 0.7
+) -> Path:
     """Pattern light on, exposure for ~``target_fraction`` of the range, one frame on disk; light off.
 
     Returns the frame's path.
@@ -143,9 +145,16 @@ def deflectometry_capture(rig: Rig, out_dir: str | Path, *, camera: str | None =
         return writer.write("deflectometry", frame, exposure_s=exposure, camera=cam.name, light=lamp.name)
 
 
-def calibration_capture(rig: Rig, out_dir: str | Path, *, n_frames: int = 1, camera: str | None = None,
-                        light: str | None = None, exposure_s: float | None = None,
-                        target_fraction: float = 0.7) -> list[Path]:
+def calibration_capture(
+    rig: Rig,
+    out_dir: str | Path,
+    *,
+    n_frames: int = 1,
+    camera: str | None = None,
+    light: str | None = None,
+    exposure_s: float | None = None,
+    target_fraction: float = 0.7,
+) -> list[Path]:
     """Frames of a calibration target (light on, fixed or automatic exposure), written as they come."""
     cam, lamp = rig.camera(camera), rig.light(light)
     writer = FrameWriter(out_dir, {"routine": "calibration", "rig": rig.name, "camera": cam.name})
@@ -161,8 +170,15 @@ def calibration_capture(rig: Rig, out_dir: str | Path, *, n_frames: int = 1, cam
     return paths
 
 
-def simultaneous_capture(rig: Rig, out_dir: str | Path, channels: dict[str, str], exposure_s: float,
-                         *, trigger: str | None = None, delay_s: float = 0.0) -> dict[str, Path]:
+def simultaneous_capture(
+    rig: Rig,
+    out_dir: str | Path,
+    channels: dict[str, str],
+    exposure_s: float,
+    *,
+    trigger: str | None = None,
+    delay_s: float = 0.0,
+) -> dict[str, Path]:
     """Expose several cameras at once on the global trigger, each with its light on for the exposure.
 
     Parameters
@@ -186,14 +202,19 @@ def simultaneous_capture(rig: Rig, out_dir: str | Path, channels: dict[str, str]
                 cam.set_exposure_s(exposure_s)
                 cam.set_trigger(TriggerType.RISING_EDGE, TriggerMode.ONCE, 0.0)
                 board.configure_camera_line(line, True, delay_s)
-                lamps[name].configure(use_duration=True, duration_s=exposure_s, listen_global_trigger=True,
-                                      global_trigger_delay_s=delay_s,
-                                      current_ma=lamps[name].current_ma or lamps[name].current_range.high)
+                lamps[name].configure(
+                    use_duration=True,
+                    duration_s=exposure_s,
+                    listen_global_trigger=True,
+                    global_trigger_delay_s=delay_s,
+                    current_ma=lamps[name].current_ma or lamps[name].current_range.high,
+                )
                 cam.arm()
             board.fire()
             for name, cam in cams.items():
-                out[name] = writer.write(f"channel_{name}", cam.grab(), camera=name, light=lamps[name].name,
-                                         exposure_s=exposure_s)
+                out[name] = writer.write(
+                    f"channel_{name}", cam.grab(), camera=name, light=lamps[name].name, exposure_s=exposure_s
+                )
         finally:
             for i, (name, cam) in enumerate(cams.items()):
                 with contextlib.suppress(InstrumentError):
@@ -216,8 +237,9 @@ class TileResult:
     sharpness: float = field(default=0.0)
 
 
-def grid(x_range_mm: tuple[float, float], y_range_mm: tuple[float, float], nx: int,
-         ny: int) -> list[tuple[int, int, float, float]]:
+def grid(
+    x_range_mm: tuple[float, float], y_range_mm: tuple[float, float], nx: int, ny: int
+) -> list[tuple[int, int, float, float]]:
     """Serpentine stage grid: ``(ix, iy, x, y)`` with x reversing on every other row."""
     if nx < 1 or ny < 1:
         raise OutOfRangeError(f"tile grid needs nx, ny >= 1, got {nx} x {ny}")
@@ -230,11 +252,21 @@ def grid(x_range_mm: tuple[float, float], y_range_mm: tuple[float, float], nx: i
     return out
 
 
-def tile_scan(rig: Rig, out_dir: str | Path, positions: Sequence[tuple[int, int, float, float]], *,
-              focus_map: FocusMap | None = None, fixed_focus_um: float | None = None,
-              camera: str | None = None, light: str | None = None, stage_x: str = "x", stage_y: str = "y",
-              focus: str | None = None, exposure_s: float | None = None,
-              on_tile: Callable[[TileResult], None] | None = None) -> list[TileResult]:
+def tile_scan(
+    rig: Rig,
+    out_dir: str | Path,
+    positions: Sequence[tuple[int, int, float, float]],
+    *,
+    focus_map: FocusMap | None = None,
+    fixed_focus_um: float | None = None,
+    camera: str | None = None,
+    light: str | None = None,
+    stage_x: str = "x",
+    stage_y: str = "y",
+    focus: str | None = None,
+    exposure_s: float | None = None,
+    on_tile: Callable[[TileResult], None] | None = None,
+) -> list[TileResult]:
     """Scan a stage grid, setting the focus from ``focus_map(x_mm, y_mm) -> focus_um`` at every tile.
 
     With ``fixed_focus_um`` instead, the focus stays where it is set once (the
@@ -250,8 +282,14 @@ def tile_scan(rig: Rig, out_dir: str | Path, positions: Sequence[tuple[int, int,
         raise OutOfRangeError("tile_scan needs exactly one of focus_map and fixed_focus_um")
     cam, lamp = rig.camera(camera), rig.light(light)
     sx, sy, drive = rig.stage(stage_x), rig.stage(stage_y), rig.focus(focus)
-    writer = FrameWriter(out_dir, {"routine": "tile_scan", "rig": rig.name,
-                                   "focus": "map" if focus_map is not None else f"fixed {fixed_focus_um} um"})
+    writer = FrameWriter(
+        out_dir,
+        {
+            "routine": "tile_scan",
+            "rig": rig.name,
+            "focus": "map" if focus_map is not None else f"fixed {fixed_focus_um} um",
+        },
+    )
     results: list[TileResult] = []
     with _run(writer, rig):
         if exposure_s is not None:
@@ -272,8 +310,9 @@ def tile_scan(rig: Rig, out_dir: str | Path, positions: Sequence[tuple[int, int,
                 lamp.switch_off()
             z = drive.position_um
             s = sharpness(frame, cam.black_level_dn)
-            path = writer.write(f"tile_{iy:03d}_{ix:03d}", frame, x_mm=x, y_mm=y, focus_um=z, sharpness=s,
-                                exposure_s=cam.exposure_s)
+            path = writer.write(
+                f"tile_{iy:03d}_{ix:03d}", frame, x_mm=x, y_mm=y, focus_um=z, sharpness=s, exposure_s=cam.exposure_s
+            )
             result = TileResult((ix, iy), x, y, z, str(path), s)
             results.append(result)
             if on_tile is not None:
@@ -287,6 +326,15 @@ def results_json(results: Sequence[TileResult]) -> list[dict[str, Any]]:
 
 
 __all__ = [
-    "FrameWriter", "LightSource", "TileResult", "calibration_capture", "choose_exposure", "deflectometry_capture",
-    "grid", "results_json", "sharpness", "simultaneous_capture", "tile_scan",
+    "FrameWriter",
+    "LightSource",
+    "TileResult",
+    "calibration_capture",
+    "choose_exposure",
+    "deflectometry_capture",
+    "grid",
+    "results_json",
+    "sharpness",
+    "simultaneous_capture",
+    "tile_scan",
 ]

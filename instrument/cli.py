@@ -70,8 +70,9 @@ def cmd_acquire(args: argparse.Namespace) -> dict[str, Any]:
     from instrument.acquisition import calibration_capture
 
     with open_rig(args.rig) as rig:
-        paths = calibration_capture(rig, args.out, n_frames=args.frames, camera=args.camera, light=args.light,
-                                    exposure_s=args.exposure_s)
+        paths = calibration_capture(
+            rig, args.out, n_frames=args.frames, camera=args.camera, light=args.light, exposure_s=args.exposure_s
+        )
         exposure = rig.camera(args.camera).exposure_s
     print(f"wrote {len(paths)} frame(s) to {args.out}")
     return {"frames": [str(p) for p in paths], "exposure_s": exposure, "manifest": f"{args.out}/manifest.json"}
@@ -79,8 +80,11 @@ def cmd_acquire(args: argparse.Namespace) -> dict[str, Any]:
 
 def register(subparsers: Any) -> argparse.ArgumentParser:
     """Add ``rig RIG.toml info|move|position|acquire`` to an argparse subparsers object."""
-    parser = subparsers.add_parser("rig", help="open a rig config (simulated or hardware), list devices, move, acquire",
-                                   description="open a rig config (simulated or hardware), list devices, move, acquire")
+    parser = subparsers.add_parser(
+        "rig",
+        help="open a rig config (simulated or hardware), list devices, move, acquire",
+        description="open a rig config (simulated or hardware), list devices, move, acquire",
+    )
     parser.add_argument("rig", help="rig TOML file (see rigs/)")
     actions = parser.add_subparsers(dest="rig_action", required=True)
 

@@ -174,8 +174,9 @@ class Stage(Device):
 
     kind = "stage"
 
-    def __init__(self, name: str, *, travel_mm: tuple[float, float], max_velocity_mm_s: float,
-                 settle_timeout_s: float = 2.0) -> None:
+    def __init__(
+        self, name: str, *, travel_mm: tuple[float, float], max_velocity_mm_s: float, settle_timeout_s: float = 2.0
+    ) -> None:
         super().__init__(name)
         self.travel = Range(float(travel_mm[0]), float(travel_mm[1]), "mm")
         self.velocity_range = Range(1e-6, float(max_velocity_mm_s), "mm/s")
@@ -282,8 +283,14 @@ class FocusDrive(Device):
 
     kind = "focus"
 
-    def __init__(self, name: str, *, range_um: tuple[float, float] = (0.0, 400.0), tolerance_um: float = 0.05,
-                 settle_timeout_s: float = 1.0) -> None:
+    def __init__(
+        self,
+        name: str,
+        *,
+        range_um: tuple[float, float] = (0.0, 400.0),
+        tolerance_um: float = 0.05,
+        settle_timeout_s: float = 1.0,
+    ) -> None:
         super().__init__(name)
         self.range = Range(float(range_um[0]), float(range_um[1]), "um")
         self.tolerance_um = float(tolerance_um)
@@ -395,8 +402,9 @@ class LightSource(Device):
             duration_s=self.timer_range.check(cfg.duration_s, f"light {self.name!r} duration"),
             use_duration=bool(cfg.use_duration),
             listen_global_trigger=bool(cfg.listen_global_trigger),
-            global_trigger_delay_s=self.timer_range.check(cfg.global_trigger_delay_s,
-                                                          f"light {self.name!r} global trigger delay"),
+            global_trigger_delay_s=self.timer_range.check(
+                cfg.global_trigger_delay_s, f"light {self.name!r} global trigger delay"
+            ),
         )
         self._require()
         self._do_configure(cfg)
@@ -507,8 +515,9 @@ class TriggerController(Device):
             raise OutOfRangeError(f"trigger {self.name!r}: camera line {line} is not an integer")
         return int(value)
 
-    def configure_camera_line(self, line: int, listen_global_trigger: bool,
-                              global_trigger_delay_s: float = 0.0) -> None:
+    def configure_camera_line(
+        self, line: int, listen_global_trigger: bool, global_trigger_delay_s: float = 0.0
+    ) -> None:
         """Make camera line ``line`` follow the global trigger after ``global_trigger_delay_s``."""
         index = self._line(line)
         delay = self.delay_range.check(global_trigger_delay_s, f"trigger {self.name!r} line {line} delay")
@@ -611,8 +620,12 @@ class Camera(Device):
 
     def _limits(self) -> dict[str, Any]:
         lim = self.limits
-        return {"sensor_shape": list(lim.sensor_shape), "pixel_size_um": lim.pixel_size_um,
-                "exposure_s": lim.exposure_s.as_list(), "bit_depths": list(lim.bit_depths)}
+        return {
+            "sensor_shape": list(lim.sensor_shape),
+            "pixel_size_um": lim.pixel_size_um,
+            "exposure_s": lim.exposure_s.as_list(),
+            "bit_depths": list(lim.bit_depths),
+        }
 
     # information ------------------------------------------------------------------------------
     @property
@@ -742,8 +755,9 @@ class Camera(Device):
         """Delay between trigger edge and exposure start, in seconds."""
         return self._global_trigger_delay_s
 
-    def set_trigger(self, trigger_type: TriggerType, trigger_mode: TriggerMode = TriggerMode.ONCE,
-                    delay_s: float = 0.0) -> None:
+    def set_trigger(
+        self, trigger_type: TriggerType, trigger_mode: TriggerMode = TriggerMode.ONCE, delay_s: float = 0.0
+    ) -> None:
         """Choose what starts an exposure; ``delay_s`` is the global trigger delay (seed §4.3.2)."""
         if not isinstance(trigger_type, TriggerType) or not isinstance(trigger_mode, TriggerMode):
             raise OutOfRangeError(f"camera {self.name!r}: trigger must be a TriggerType and a TriggerMode")
@@ -853,6 +867,10 @@ class Camera(Device):
 
 
 DEVICE_CLASSES: dict[str, type[Device]] = {
-    "camera": Camera, "stage": Stage, "focus": FocusDrive, "light": LightSource,
-    "shutter": Shutter, "trigger": TriggerController,
+    "camera": Camera,
+    "stage": Stage,
+    "focus": FocusDrive,
+    "light": LightSource,
+    "shutter": Shutter,
+    "trigger": TriggerController,
 }

@@ -138,8 +138,16 @@ def make_device_classes() -> dict[str, type]:
     return {"camera": RigCamera, "xy": RigXYStage, "focus": RigFocus, "shutter": RigLightShutter}
 
 
-def load_into_core(rig: Rig, core: Any | None = None, *, camera: str | None = None, stage_x: str = "x",
-                   stage_y: str = "y", focus: str | None = None, light: str | None = None) -> Any:
+def load_into_core(
+    rig: Rig,
+    core: Any | None = None,
+    *,
+    camera: str | None = None,
+    stage_x: str = "x",
+    stage_y: str = "y",
+    focus: str | None = None,
+    light: str | None = None,
+) -> Any:
     """Register the rig's camera (``Camera``), XY stage (``XY``), focus (``Z``) and a light as the
     shutter (``Light``) with a ``UniMMCore``.
 

@@ -97,9 +97,11 @@ def _camera_limits(name: str, t: dict[str, Any]) -> CameraLimits:
     if not (isinstance(shape, list) and len(shape) == 2 and all(isinstance(v, int) and v > 0 for v in shape)):
         raise RigError(f"camera {name!r}: sensor_shape must be [rows, cols], got {shape!r}")
     exposure = _take(t, "exposure_range_s", tuple, name, (defaults.exposure_s.low, defaults.exposure_s.high))
-    return CameraLimits(sensor_shape=(shape[0], shape[1]),
-                        pixel_size_um=_take(t, "pixel_size_um", float, name, defaults.pixel_size_um),
-                        exposure_s=Range(*exposure, "s"))
+    return CameraLimits(
+        sensor_shape=(shape[0], shape[1]),
+        pixel_size_um=_take(t, "pixel_size_um", float, name, defaults.pixel_size_um),
+        exposure_s=Range(*exposure, "s"),
+    )
 
 
 def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
@@ -118,20 +120,36 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
 
         world = ctx.sim_world()
         if kind == "stage":
-            device = simd.SimStage(name, world, travel_mm=_take(t, "travel_mm", tuple, name),
-                                   max_velocity_mm_s=_take(t, "max_velocity_mm_s", float, name),
-                                   position_mm=_take(t, "position_mm", float, name, None), timeout_s=timeout_s)
+            device = simd.SimStage(
+                name,
+                world,
+                travel_mm=_take(t, "travel_mm", tuple, name),
+                max_velocity_mm_s=_take(t, "max_velocity_mm_s", float, name),
+                position_mm=_take(t, "position_mm", float, name, None),
+                timeout_s=timeout_s,
+            )
         elif kind == "focus":
-            device = simd.SimFocus(name, world, range_um=_take(t, "range_um", tuple, name, (0.0, 400.0)),
-                                   position_um=_take(t, "position_um", float, name, None), timeout_s=timeout_s)
+            device = simd.SimFocus(
+                name,
+                world,
+                range_um=_take(t, "range_um", tuple, name, (0.0, 400.0)),
+                position_um=_take(t, "position_um", float, name, None),
+                timeout_s=timeout_s,
+            )
         elif kind == "light":
-            device = simd.SimLight(name, world, max_current_ma=_take(t, "max_current_ma", float, name),
-                                   shutter=_take(t, "shutter", str, name, None), timeout_s=timeout_s)
+            device = simd.SimLight(
+                name,
+                world,
+                max_current_ma=_take(t, "max_current_ma", float, name),
+                shutter=_take(t, "shutter", str, name, None),
+                timeout_s=timeout_s,
+            )
         elif kind == "shutter":
             device = simd.SimShutter(name, world, timeout_s=timeout_s)
         elif kind == "trigger":
-            device = simd.SimTrigger(name, world, n_camera_lines=_take(t, "n_camera_lines", int, name, 4),
-                                     timeout_s=timeout_s)
+            device = simd.SimTrigger(
+                name, world, n_camera_lines=_take(t, "n_camera_lines", int, name, 4), timeout_s=timeout_s
+            )
         else:
             from instrument.simulated.renderers import make_renderer
             from scenes.sensor import EmvaSensor
@@ -142,25 +160,39 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
             except TypeError as exc:
                 raise RigError(f"camera {name!r}: bad sensor field ({exc})") from exc
             renderer = make_renderer(t.pop("renderer", {"kind": "texture"}), camera=name)
-            device = simd.SimCamera(name, world, renderer=renderer, sensor=sensor, limits=limits,
-                                    photons_per_unit_s=_take(t, "photons_per_unit_s", float, name, 1.0e6),
-                                    trigger_line=_take(t, "trigger_line", int, name, 0),
-                                    seed=_take(t, "seed", int, name, 0),
-                                    serial_number=_take(t, "serial", str, name, f"SIM-{name}"), timeout_s=timeout_s)
+            device = simd.SimCamera(
+                name,
+                world,
+                renderer=renderer,
+                sensor=sensor,
+                limits=limits,
+                photons_per_unit_s=_take(t, "photons_per_unit_s", float, name, 1.0e6),
+                trigger_line=_take(t, "trigger_line", int, name, 0),
+                seed=_take(t, "seed", int, name, 0),
+                serial_number=_take(t, "serial", str, name, f"SIM-{name}"),
+                timeout_s=timeout_s,
+            )
     elif key == ("stage", "pi-gcs"):
         from instrument.drivers.pi_gcs import PiGcsStage
 
         transport = ctx.transport(name, t, 115200)
-        device = PiGcsStage(name, transport, axis=str(t.pop("axis", "1")), travel_mm=_take(t, "travel_mm", tuple, name),
-                            max_velocity_mm_s=_take(t, "max_velocity_mm_s", float, name),
-                            velocity_mm_s=_take(t, "velocity_mm_s", float, name, None),
-                            reference=_take(t, "reference", bool, name, True), timeout_s=timeout_s)
+        device = PiGcsStage(
+            name,
+            transport,
+            axis=str(t.pop("axis", "1")),
+            travel_mm=_take(t, "travel_mm", tuple, name),
+            max_velocity_mm_s=_take(t, "max_velocity_mm_s", float, name),
+            velocity_mm_s=_take(t, "velocity_mm_s", float, name, None),
+            reference=_take(t, "reference", bool, name, True),
+            timeout_s=timeout_s,
+        )
     elif key == ("focus", "jena-piezo"):
         from instrument.drivers.jena_piezo import JenaPiezoFocus
 
         transport = ctx.transport(name, t, 9600)
-        device = JenaPiezoFocus(name, transport, range_um=_take(t, "range_um", tuple, name, (0.0, 400.0)),
-                                timeout_s=timeout_s)
+        device = JenaPiezoFocus(
+            name, transport, range_um=_take(t, "range_um", tuple, name, (0.0, 400.0)), timeout_s=timeout_s
+        )
     elif driver == "fpga-board" and kind in ("light", "shutter", "trigger"):
         from instrument.drivers.fpga_board import FpgaBoard, FpgaLight, FpgaShutter, FpgaTrigger
 
@@ -171,20 +203,31 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
             ctx.boards[port] = FpgaBoard(transport, timeout_s=timeout_s, current_step_ma=step)
         board = ctx.boards[port]
         if kind == "light":
-            device = FpgaLight(name, board, channel=_take(t, "channel", int, name),
-                               max_current_ma=_take(t, "max_current_ma", float, name))
+            device = FpgaLight(
+                name,
+                board,
+                channel=_take(t, "channel", int, name),
+                max_current_ma=_take(t, "max_current_ma", float, name),
+            )
         elif kind == "shutter":
-            device = FpgaShutter(name, board, open_output=_take(t, "open_output", int, name, 0),
-                                 close_output=_take(t, "close_output", int, name, 1))
+            device = FpgaShutter(
+                name,
+                board,
+                open_output=_take(t, "open_output", int, name, 0),
+                close_output=_take(t, "close_output", int, name, 1),
+            )
         else:
             device = FpgaTrigger(name, board)
     elif key == ("camera", "basler"):
         from instrument.drivers.basler import BaslerCamera
 
-        device = BaslerCamera(name, serial=_take(t, "serial", str, name, None),
-                              pixel_size_um=_take(t, "pixel_size_um", float, name, 6.45),
-                              trigger_line=_take(t, "trigger_input", str, name, "Line1"),
-                              timeout_s=timeout_s)
+        device = BaslerCamera(
+            name,
+            serial=_take(t, "serial", str, name, None),
+            pixel_size_um=_take(t, "pixel_size_um", float, name, 6.45),
+            trigger_line=_take(t, "trigger_input", str, name, "Line1"),
+            timeout_s=timeout_s,
+        )
     else:
         raise RigError(f"device {name!r}: driver {driver!r} does not provide a {kind!r}")
     t.pop("description", None)
@@ -206,8 +249,9 @@ class Rig:
         The shared world when any device is simulated.
     """
 
-    def __init__(self, name: str, devices: dict[str, Device], world: Any = None, transports: dict | None = None,
-                 path: str = "") -> None:
+    def __init__(
+        self, name: str, devices: dict[str, Device], world: Any = None, transports: dict | None = None, path: str = ""
+    ) -> None:
         self.name = name
         self.devices = devices
         self.world = world
@@ -286,8 +330,7 @@ class Rig:
 
     def describe(self) -> dict[str, Any]:
         """Rig name and each device's description (JSON-ready)."""
-        return {"rig": self.name, "path": self.path,
-                "devices": [d.describe() for d in self.devices.values()]}
+        return {"rig": self.name, "path": self.path, "devices": [d.describe() for d in self.devices.values()]}
 
 
 def load_rig(path: str | Path) -> Rig:

@@ -56,8 +56,9 @@ class Link:
         A reply longer than this without a terminator is a protocol error.
     """
 
-    def __init__(self, transport: Any, *, timeout_s: float = 1.0, name: str = "device",
-                 max_reply_bytes: int = 4096) -> None:
+    def __init__(
+        self, transport: Any, *, timeout_s: float = 1.0, name: str = "device", max_reply_bytes: int = 4096
+    ) -> None:
         self.transport = transport
         self.timeout_s = float(timeout_s)
         self.name = name
@@ -118,11 +119,13 @@ class Link:
                 buf += chunk
                 at = buf.find(terminator)
                 if at >= 0:
-                    self._pending += buf[at + len(terminator):]
+                    self._pending += buf[at + len(terminator) :]
                     return bytes(buf[:at])
                 if len(buf) > self.max_reply_bytes:
-                    raise ProtocolError(f"{self.name}: reply of more than {self.max_reply_bytes} bytes "
-                                        f"without terminator {terminator!r}")
+                    raise ProtocolError(
+                        f"{self.name}: reply of more than {self.max_reply_bytes} bytes "
+                        f"without terminator {terminator!r}"
+                    )
             elif time.monotonic() >= deadline:
                 got = f" (got {bytes(buf[:40])!r})" if buf else ""
                 raise InstrumentTimeout(f"{self.name}: no complete reply within {self.timeout_s} s{got}")

@@ -171,8 +171,16 @@ def _start(model: Model, ij: NDArray) -> Array:
     return model.camera.project(pts * np.array([1.0, 1.0, -1.0]))
 
 
-def predict_spots(model: Model, ij: ArrayLike, guess_px: ArrayLike | None = None, n_fit: int = 7,
-                  span: float = 1.15, passes: int = 2, n_r: int = 8, n_theta: int = 24) -> SpotPrediction:
+def predict_spots(
+    model: Model,
+    ij: ArrayLike,
+    guess_px: ArrayLike | None = None,
+    n_fit: int = 7,
+    span: float = 1.15,
+    passes: int = 2,
+    n_r: int = 8,
+    n_theta: int = 24,
+) -> SpotPrediction:
     """Predict the spot centroid and the image of the centre of markers ``ij`` from a model (module docstring).
 
     Parameters

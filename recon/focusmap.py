@@ -43,8 +43,12 @@ class Objective:
     sensor_px: tuple[int, int] = (1392, 1040)
 
     def __post_init__(self) -> None:
-        if not (self.magnification > 0 and 0 < self.na < self.immersion_index and self.wavelength_nm > 0
-                and self.pixel_pitch_um > 0):
+        if not (
+            self.magnification > 0
+            and 0 < self.na < self.immersion_index
+            and self.wavelength_nm > 0
+            and self.pixel_pitch_um > 0
+        ):
             raise FocusMapError("objective needs magnification > 0, 0 < NA < n, wavelength > 0 and pixel pitch > 0")
 
     @property
@@ -98,21 +102,40 @@ class FocusMap:
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(["index", "stage_x_mm", "stage_y_mm", "focus_um", "spread_um", "field_in_focus"])
         for k in range(len(self.x_mm)):
-            w.writerow([k, f"{self.stage_x_mm[k]:.4f}", f"{self.stage_y_mm[k]:.4f}", f"{self.focus_um[k]:.3f}",
-                        f"{self.spread_um[k]:.3f}", int(self.in_focus[k])])
+            w.writerow(
+                [
+                    k,
+                    f"{self.stage_x_mm[k]:.4f}",
+                    f"{self.stage_y_mm[k]:.4f}",
+                    f"{self.focus_um[k]:.3f}",
+                    f"{self.spread_um[k]:.3f}",
+                    int(self.in_focus[k]),
+                ]
+            )
         return buf.getvalue()
 
     def summary(self) -> dict:
-        return {"fields": int(len(self.x_mm)), "depth_of_field_um": self.depth_of_field_um,
-                "focus_range_um": float(np.ptp(self.focus_um)) if len(self.focus_um) else 0.0,
-                "fields_in_focus": int(self.in_focus.sum()),
-                "height_range_over_dof": float(np.ptp(self.focus_um) / self.depth_of_field_um)}
+        return {
+            "fields": int(len(self.x_mm)),
+            "depth_of_field_um": self.depth_of_field_um,
+            "focus_range_um": float(np.ptp(self.focus_um)) if len(self.focus_um) else 0.0,
+            "fields_in_focus": int(self.in_focus.sum()),
+            "height_range_over_dof": float(np.ptp(self.focus_um) / self.depth_of_field_um),
+        }
 
 
-def focus_map(height, x_range: tuple[float, float], y_range: tuple[float, float],
-              objective: Objective | None = None, step_mm: tuple[float, float] | None = None,
-              reference_um: float = 200.0, sign: float = 1.0, stage_offset_mm: tuple[float, float] = (0.0, 0.0),
-              piezo_range_um: tuple[float, float] = (0.0, 400.0), samples: int = 5) -> FocusMap:
+def focus_map(
+    height,
+    x_range: tuple[float, float],
+    y_range: tuple[float, float],
+    objective: Objective | None = None,
+    step_mm: tuple[float, float] | None = None,
+    reference_um: float = 200.0,
+    sign: float = 1.0,
+    stage_offset_mm: tuple[float, float] = (0.0, 0.0),
+    piezo_range_um: tuple[float, float] = (0.0, 400.0),
+    samples: int = 5,
+) -> FocusMap:
     """Focus positions over a serpentine raster of fields covering the ROI.
 
     Parameters
@@ -162,7 +185,10 @@ def focus_map(height, x_range: tuple[float, float], y_range: tuple[float, float]
     lo, hi = piezo_range_um
     bad = (focus < lo) | (focus > hi)
     if bad.any():
-        raise FocusMapError(f"{int(bad.sum())} focus positions fall outside the drive's {lo}-{hi} µm travel "
-                            f"(range {focus.min():.1f}-{focus.max():.1f} µm); change the reference position")
-    return FocusMap(xf, yf, xf + stage_offset_mm[0], yf + stage_offset_mm[1], focus, np.ptp(hs, axis=1) * 1e3,
-                    obj.depth_of_field_um)
+        raise FocusMapError(
+            f"{int(bad.sum())} focus positions fall outside the drive's {lo}-{hi} µm travel "
+            f"(range {focus.min():.1f}-{focus.max():.1f} µm); change the reference position"
+        )
+    return FocusMap(
+        xf, yf, xf + stage_offset_mm[0], yf + stage_offset_mm[1], focus, np.ptp(hs, axis=1) * 1e3, obj.depth_of_field_um
+    )

@@ -95,8 +95,9 @@ def normals_from_gradients(hx: ArrayLike, hy: ArrayLike, frame: Frame | None = N
     return frame.vectors_to_global(n) if frame is not None else n
 
 
-def marker_gradients(hit_points: ArrayLike, camera_dirs: ArrayLike, pattern_points: ArrayLike,
-                     frame: Frame | None = None) -> tuple[Array, Array, Array]:
+def marker_gradients(
+    hit_points: ArrayLike, camera_dirs: ArrayLike, pattern_points: ArrayLike, frame: Frame | None = None
+) -> tuple[Array, Array, Array]:
     """Base-plane position and gradients of each marker observation (seed §1.7.1 then §1.7.3).
 
     Returns

@@ -159,7 +159,7 @@ def background_level(image: NDArray[np.float32], stride: int = 7) -> tuple[float
     scaled median absolute deviation of the samples below the median (the dark side, which holds
     no marker light).
     """
-    sub = image[stride // 2:: stride, stride // 2:: stride].ravel().astype(np.float64)
+    sub = image[stride // 2 :: stride, stride // 2 :: stride].ravel().astype(np.float64)
     med = float(np.median(sub))
     low = sub[sub <= med]
     sigma = 1.4826 * float(np.median(med - low)) if low.size else 0.0
@@ -182,7 +182,7 @@ def _saturation_level(image: NDArray, saturation: float | None, top: float | Non
     top = float(arr.max()) if top is None else float(top)
     for bits in (8, 10, 12, 14, 16):
         if top == 2**bits - 1:
-            sample = arr.ravel()[:: 97]
+            sample = arr.ravel()[::97]
             if np.all(sample == np.round(sample)):
                 return top
     return np.inf
@@ -212,10 +212,16 @@ class _Scratch(threading.local):
 _scratch = _Scratch()
 
 
-def centroids(image: NDArray, threshold: float | None = None, background: float | None = None,
-              connectivity: int = 8, grow: int | None = None, saturation: float | None = None,
-              relative_threshold: float = 0.08,
-              noise_sigmas: float = 6.0) -> Spots:
+def centroids(
+    image: NDArray,
+    threshold: float | None = None,
+    background: float | None = None,
+    connectivity: int = 8,
+    grow: int | None = None,
+    saturation: float | None = None,
+    relative_threshold: float = 0.08,
+    noise_sigmas: float = 6.0,
+) -> Spots:
     """Centroid search of seed §1.5.1: connected pixels above a threshold, grey-weighted centre of mass.
 
     r_s = (1/G) sum_i g_i r_i, G = sum_i g_i (seed §1.5.1), with g_i the grey value minus the
@@ -260,8 +266,7 @@ def centroids(image: NDArray, threshold: float | None = None, background: float 
     bx, by, bw, bh = cv2.boundingRect(mask)
     if bw == 0 or bh == 0:
         raise MarkerError("image is blank: no spot found")
-    n, labels = cv2.connectedComponents(mask[by: by + bh, bx: bx + bw], connectivity=connectivity,
-                                        ltype=cv2.CV_32S)
+    n, labels = cv2.connectedComponents(mask[by : by + bh, bx : bx + bw], connectivity=connectivity, ltype=cv2.CV_32S)
     if n <= 1:
         raise MarkerError("image is blank: no spot found")
     if grow is None:  # reach the rim of a spot twice the mean area (the reference marker)
@@ -275,17 +280,19 @@ def centroids(image: NDArray, threshold: float | None = None, background: float 
     # pixels outside the box are below the threshold: labels and window there are 0, as on the whole image
     lab_img = _scratch.get("labels", shape, np.uint16 if n < 65535 else np.float32)
     lab_img.fill(0)
-    lab_img[by - r0: by - r0 + bh, bx - c0: bx - c0 + bw] = labels
+    lab_img[by - r0 : by - r0 + bh, bx - c0 : bx - c0 + bw] = labels
     win = lab_img
     if grow > 0:
-        win = cv2.dilate(lab_img, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1)),
-                         dst=_scratch.get("window", shape, lab_img.dtype))
+        win = cv2.dilate(
+            lab_img,
+            cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1)),
+            dst=_scratch.get("window", shape, lab_img.dtype),
+        )
     # every spot pixel lies in its window: gather the window pixels into flat lists (reused buffers)
     idx = np.flatnonzero(np.not_equal(win, 0, out=_scratch.get("nonzero", shape, np.bool_)))
     m = idx.size
     lab = _scratch.get("lab", m, np.intp)
-    np.copyto(lab, np.take(win.ravel(), idx, out=_scratch.get("lab_raw", m, win.dtype), mode="clip"),
-              casting="unsafe")
+    np.copyto(lab, np.take(win.ravel(), idx, out=_scratch.get("lab_raw", m, win.dtype), mode="clip"), casting="unsafe")
     crop = _scratch.get("crop", shape, np.float32)
     np.copyto(crop, img[r0:r1, c0:c1])
     values = _scratch.get("values", m, np.float64)
@@ -293,12 +300,14 @@ def centroids(image: NDArray, threshold: float | None = None, background: float 
     mask_c = _scratch.get("mask_crop", shape, np.uint8)
     np.copyto(mask_c, mask[r0:r1, c0:c1])
     flags = _scratch.get("flags", m, np.uint8)
-    inside = np.not_equal(np.take(mask_c.ravel(), idx, out=flags, mode="clip"), 0,
-                          out=_scratch.get("inside", m, np.bool_))
+    inside = np.not_equal(
+        np.take(mask_c.ravel(), idx, out=flags, mode="clip"), 0, out=_scratch.get("inside", m, np.bool_)
+    )
     w = np.subtract(values, level, out=_scratch.get("w", m, np.float64))
     rows = np.floor_divide(idx, shape[1], out=_scratch.get("rows", m, np.intp))
-    x = np.subtract(idx, np.multiply(rows, shape[1], out=_scratch.get("cols", m, np.intp)),
-                    out=_scratch.get("x", m, np.float64))
+    x = np.subtract(
+        idx, np.multiply(rows, shape[1], out=_scratch.get("cols", m, np.intp)), out=_scratch.get("x", m, np.float64)
+    )
     x += c0 + 0.5
     # sum along runs: stretches of one label within one image row (the lists are in raster order);
     # y is constant along a run, so only the x moments need per-pixel sums
@@ -319,8 +328,12 @@ def centroids(image: NDArray, threshold: float | None = None, background: float 
     np.copyto(tmp, values, where=inside)
     run_peak = np.maximum.reduceat(tmp, runs)
     # threshold boundary: spot pixels with a 4-neighbour below the threshold (outside the box: below)
-    eroded = cv2.erode(mask_c, cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3)), borderValue=0,
-                       dst=_scratch.get("eroded", shape, np.uint8))
+    eroded = cv2.erode(
+        mask_c,
+        cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3)),
+        borderValue=0,
+        dst=_scratch.get("eroded", shape, np.uint8),
+    )
     bnd = np.equal(np.take(eroded.ravel(), idx, out=flags, mode="clip"), 0, out=_scratch.get("bnd", m, np.bool_))
     bnd &= inside
     tmp.fill(0.0)
@@ -397,8 +410,9 @@ class Filtered:
     reasons: dict[str, int]
 
 
-def find_reference(ratio: Array, candidates: NDArray[np.bool_], points: Array, min_ratio: float = 1.45,
-                   tie: float = 0.8) -> int:
+def find_reference(
+    ratio: Array, candidates: NDArray[np.bool_], points: Array, min_ratio: float = 1.45, tie: float = 0.8
+) -> int:
     """Index of the reference marker: the spot much larger than its neighbours (§1.5.4, §2.6.1).
 
     Raises
@@ -416,7 +430,8 @@ def find_reference(ratio: Array, candidates: NDArray[np.bool_], points: Array, m
         raise MarkerError(
             "two equally large reference marker candidates at "
             f"(col, row) = ({a[0]:.1f}, {a[1]:.1f}) and ({b[0]:.1f}, {b[1]:.1f}) "
-            f"(area ratios {ratio[order[0]]:.2f} and {ratio[order[1]]:.2f})")
+            f"(area ratios {ratio[order[0]]:.2f} and {ratio[order[1]]:.2f})"
+        )
     return int(order[0])
 
 
@@ -453,8 +468,9 @@ class Region:
         return np.where(inside, d, -d).reshape(shape)
 
 
-def rim_clearance(spots: Spots, shape: tuple[int, int], region: Region | None = None,
-                  n_points: int = 24) -> tuple[Array, Array]:
+def rim_clearance(
+    spots: Spots, shape: tuple[int, int], region: Region | None = None, n_points: int = 24
+) -> tuple[Array, Array]:
     """Smallest distance (px) of each spot's estimated rim ellipse to the image border and to the region's edge.
 
     Returns
@@ -483,9 +499,17 @@ def rim_clearance(spots: Spots, shape: tuple[int, int], region: Region | None = 
     return border, inner
 
 
-def filter_spots(spots: Spots, shape: tuple[int, int], region: Region | None = None,
-                 area_range: tuple[float, float] = (0.7, 1.4), min_area: int = 4, edge_slack: float = 1.5,
-                 border_margin: float = 0.5, region_margin: float = 0.5, ref_ratio: float = 1.45) -> Filtered:
+def filter_spots(
+    spots: Spots,
+    shape: tuple[int, int],
+    region: Region | None = None,
+    area_range: tuple[float, float] = (0.7, 1.4),
+    min_area: int = 4,
+    edge_slack: float = 1.5,
+    border_margin: float = 0.5,
+    region_margin: float = 0.5,
+    ref_ratio: float = 1.45,
+) -> Filtered:
     """Marker filtering of seed §1.5.2 and the reference marker.
 
     A candidate is kept when
@@ -576,7 +600,7 @@ def fourier_axes(image: NDArray, center: Array, spacing: float, size: int = 128,
     half = int(min(max(periods * spacing, 16.0), nx, ny) // 2)
     c0 = int(np.clip(round(center[0]) - half, 0, nx - 2 * half))
     r0 = int(np.clip(round(center[1]) - half, 0, ny - 2 * half))
-    crop = img[r0: r0 + 2 * half, c0: c0 + 2 * half]
+    crop = img[r0 : r0 + 2 * half, c0 : c0 + 2 * half]
     scale = size / (2.0 * half)
     small = cv2.resize(crop, (size, size), interpolation=cv2.INTER_AREA).astype(np.float64)
     small -= small.mean()
@@ -587,8 +611,9 @@ def fourier_axes(image: NDArray, center: Array, spacing: float, size: int = 128,
     fr, fc = np.meshgrid(freqs, freqs, indexing="ij")
     rad = np.hypot(fr, fc)
     expected = 2.0 * half / spacing  # cycles per window of the nearest-neighbour period
-    mag_sel = np.where((rad >= 0.4 * expected) & (rad <= 2.5 * expected) & ((fc > 0) | ((fc == 0) & (fr > 0))),
-                       mag, 0.0)
+    mag_sel = np.where(
+        (rad >= 0.4 * expected) & (rad <= 2.5 * expected) & ((fc > 0) | ((fc == 0) & (fr > 0))), mag, 0.0
+    )
     local_max = mag_sel >= np.maximum.reduce([np.roll(mag_sel, s, axis=a) for a in (0, 1) for s in (-1, 1)])
     cand = np.flatnonzero((local_max & (mag_sel > 0)).ravel())
     if cand.size < 2:
@@ -698,7 +723,7 @@ def _grow_table(table: NDArray, off: int) -> tuple[NDArray, int]:
     new_off = 2 * off
     size = 2 * new_off + 1
     out = np.full((size, size), -1, dtype=table.dtype)
-    out[off: off + table.shape[0], off: off + table.shape[1]] = table
+    out[off : off + table.shape[0], off : off + table.shape[1]] = table
     return out, new_off
 
 
@@ -752,8 +777,9 @@ def index_grid(points: Array, ref: int, axes: Array, tol: float = 0.3, check: fl
     offs = NEIGHBOURS.astype(np.float64)
     while frontier.size:
         b = basis[frontier]  # (m, 2, 2) rows a_x, a_y
-        pred = pts[frontier][:, None, :] + (offs[None, :, 0, None] * b[:, None, 0]
-                                            + offs[None, :, 1, None] * b[:, None, 1])
+        pred = pts[frontier][:, None, :] + (
+            offs[None, :, 0, None] * b[:, None, 0] + offs[None, :, 1, None] * b[:, None, 1]
+        )
         tij = ij[frontier][:, None, :] + NEIGHBOURS[None]
         free = table[tij[..., 0] + off, tij[..., 1] + off] < 0
         step = np.minimum(np.linalg.norm(b[:, 0], axis=1), np.linalg.norm(b[:, 1], axis=1))
@@ -859,17 +885,31 @@ class Markers:
 
     def as_json(self) -> dict:
         """The ``markers`` JSON of DESIGN.md: ``{"markers": [{i, j, col, row, area}], "rejected": n}``."""
-        recs = [{"i": int(i), "j": int(j), "col": float(c), "row": float(r), "area": int(a), "saturated": bool(s)}
-                for (i, j), (c, r), a, s in zip(self.ij, self.centroids, self.areas, self.saturated, strict=True)]
-        return {"markers": recs, "rejected": int(self.rejected), "saturated": int(self.saturated.sum()),
-                "reasons": dict(self.reasons)}
+        recs = [
+            {"i": int(i), "j": int(j), "col": float(c), "row": float(r), "area": int(a), "saturated": bool(s)}
+            for (i, j), (c, r), a, s in zip(self.ij, self.centroids, self.areas, self.saturated, strict=True)
+        ]
+        return {
+            "markers": recs,
+            "rejected": int(self.rejected),
+            "saturated": int(self.saturated.sum()),
+            "reasons": dict(self.reasons),
+        }
 
 
-def find_markers(image: NDArray, layout: str = "deflectometry", *, hint: Array | None = None,
-                 mirrored: bool | None = None, region: Region | None = None,
-                 index_range: tuple[tuple[int, int], tuple[int, int]] | None = None,
-                 threshold: float | None = None, saturation: float | None = None,
-                 area_range: tuple[float, float] = (0.7, 1.4), region_margin: float = 0.5) -> Markers:
+def find_markers(
+    image: NDArray,
+    layout: str = "deflectometry",
+    *,
+    hint: Array | None = None,
+    mirrored: bool | None = None,
+    region: Region | None = None,
+    index_range: tuple[tuple[int, int], tuple[int, int]] | None = None,
+    threshold: float | None = None,
+    saturation: float | None = None,
+    area_range: tuple[float, float] = (0.7, 1.4),
+    region_margin: float = 0.5,
+) -> Markers:
     """Find, filter and index the markers of an image (seed §1.5 and §2.6).
 
     Parameters
@@ -927,9 +967,17 @@ def find_markers(image: NDArray, layout: str = "deflectometry", *, hint: Array |
         reasons["index_range"] = int((found & ~inside).sum())
         found &= inside
     sel = keep[found]
-    return Markers(ij=ij[found], centroids=spots.centroids[sel], areas=spots.areas[sel], peak=spots.peak[sel],
-                   saturated=spots.saturated[sel], axes=axes, rejected=len(spots) - len(sel), reasons=reasons,
-                   spots=spots)
+    return Markers(
+        ij=ij[found],
+        centroids=spots.centroids[sel],
+        areas=spots.areas[sel],
+        peak=spots.peak[sel],
+        saturated=spots.saturated[sel],
+        axes=axes,
+        rejected=len(spots) - len(sel),
+        reasons=reasons,
+        spots=spots,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -975,8 +1023,11 @@ def region_for_setup(setup: Setup, heights: HeightMap | None = None, per_side: i
     corners = np.array([[-hx, -hy], [hx, -hy], [hx, hy], [-hx, hy]])
     sides = [corners[k] + t[:, None] * (corners[(k + 1) % 4] - corners[k]) for k in range(4)]
     outline = np.concatenate(sides)
-    z = np.zeros(len(outline)) if heights is None or setup.scene != "deflectometry" else heights.height(
-        outline[:, 0], outline[:, 1])
+    z = (
+        np.zeros(len(outline))
+        if heights is None or setup.scene != "deflectometry"
+        else heights.height(outline[:, 0], outline[:, 1])
+    )
     pts = np.concatenate([outline, z[:, None]], axis=1)
     px = setup.camera_model.project(pts)
     if not np.all(np.isfinite(px)):
@@ -996,7 +1047,12 @@ def find_markers_for(image: NDArray, setup: Setup, heights: HeightMap | None = N
     ``heights`` (a surface estimate) places the region's outline on the bent surface
     (:func:`region_for_setup`); keyword arguments override any option.
     """
-    opts = dict(layout=setup.marker_pattern.layout, hint=expected_axes(setup), mirrored=setup.scene != "target",
-                region=region_for_setup(setup, heights), index_range=index_range(setup))
+    opts = dict(
+        layout=setup.marker_pattern.layout,
+        hint=expected_axes(setup),
+        mirrored=setup.scene != "target",
+        region=region_for_setup(setup, heights),
+        index_range=index_range(setup),
+    )
     opts.update(kwargs)
     return find_markers(image, **opts)

@@ -69,14 +69,18 @@ def cmd_markers(args: argparse.Namespace) -> dict[str, Any]:
     image, _ = read_image(args.image)
     cam = setup.camera_model
     if image.shape != (cam.ny, cam.nx):
-        raise MarkerError(f"image {args.image} is {image.shape[1]}x{image.shape[0]} px but setup {args.pattern} "
-                          f"has a {cam.nx}x{cam.ny} px camera")
+        raise MarkerError(
+            f"image {args.image} is {image.shape[1]}x{image.shape[0]} px but setup {args.pattern} "
+            f"has a {cam.nx}x{cam.ny} px camera"
+        )
     markers = find_markers_for(image, setup)
     result = markers.as_json()
     if args.overlay:
         write_overlay(args.overlay, image, markers)
-    print(f"{len(markers)} markers indexed, {markers.rejected} candidates rejected, "
-          f"{int(markers.saturated.sum())} saturated ({args.image})")
+    print(
+        f"{len(markers)} markers indexed, {markers.rejected} candidates rejected, "
+        f"{int(markers.saturated.sum())} saturated ({args.image})"
+    )
     return result
 
 
@@ -85,8 +89,12 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     help_ = "find and index the markers of a camera image (seed §1.5, §2.6)"
     p = subparsers.add_parser("markers", help=help_, description=help_)
     p.add_argument("image", help="camera image (OpenEXR, channel Y)")
-    p.add_argument("--pattern", required=True, metavar="SETUP",
-                   help="setup (preset name or TOML path) giving the pattern, camera and reflecting region")
+    p.add_argument(
+        "--pattern",
+        required=True,
+        metavar="SETUP",
+        help="setup (preset name or TOML path) giving the pattern, camera and reflecting region",
+    )
     p.add_argument("--json", metavar="PATH", help="write the indexed markers here (DESIGN.md `markers`)")
     p.add_argument("--overlay", metavar="PNG", help="write a picture of the image with the indices drawn")
     p.set_defaults(func=cmd_markers)

@@ -209,24 +209,52 @@ class ReconstructionConfig:
         them onto the long side (9 centres and sigma 4 along y), which fits the substrate's aspect.
         """
         counts, sigma = ((9, 5), (4.0, 3.0)) if literal_axes else ((5, 9), (3.0, 4.0))
-        base = cls(basis="imq", counts=counts, sigma=sigma, sigma_candidates=None, tilt=False, regularization=0.0,
-                   inner_tol_um=1e-2, inner_max=3, outer_tol_um=0.01, outer_max=60, criterion="delta",
-                   search="thesis", warm_start=False, consistency_um=float("inf"))
+        base = cls(
+            basis="imq",
+            counts=counts,
+            sigma=sigma,
+            sigma_candidates=None,
+            tilt=False,
+            regularization=0.0,
+            inner_tol_um=1e-2,
+            inner_max=3,
+            outer_tol_um=0.01,
+            outer_max=60,
+            criterion="delta",
+            search="thesis",
+            warm_start=False,
+            consistency_um=float("inf"),
+        )
         return replace(base, **changes)
 
     @classmethod
     def realtime(cls, sigma: float = 12.0, **changes: Any) -> ReconstructionConfig:
         """A fixed-scale configuration for one frame period: coarser centre grid, normal equations, 2 nm tolerances."""
-        base = cls(sigma=(sigma, sigma), sigma_candidates=None, spacing=1.0, method="normal", inner_tol_um=1e-3,
-                   outer_tol_um=2e-3, grid_step=1.0, frame_step=0.3)
+        base = cls(
+            sigma=(sigma, sigma),
+            sigma_candidates=None,
+            spacing=1.0,
+            method="normal",
+            inner_tol_um=1e-3,
+            outer_tol_um=2e-3,
+            grid_step=1.0,
+            frame_step=0.3,
+        )
         return replace(base, **changes)
 
     def make_basis(self, sub: Substrate2D, sigma: float | None = None) -> ShiftedBasis:
         """The shifted basis of this configuration over a substrate (``sigma`` overrides a covering grid's scale)."""
         if self.counts is not None:
             return ShiftedBasis.grid(self.counts, sub.x_range, sub.y_range, self.sigma, self.basis, self.tilt)
-        return ShiftedBasis.covering(sub.x_range, sub.y_range, sigma if sigma is not None else self.sigma[0],
-                                     self.spacing, self.margin, self.basis, self.tilt)
+        return ShiftedBasis.covering(
+            sub.x_range,
+            sub.y_range,
+            sigma if sigma is not None else self.sigma[0],
+            self.spacing,
+            self.margin,
+            self.basis,
+            self.tilt,
+        )
 
 
 @dataclass(frozen=True)
@@ -302,10 +330,17 @@ class ReconstructionResult:
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready summary (the `reconstruct` contract's keys plus the history)."""
-        return {"outer_iterations": self.outer_iterations, "inner_iterations": self.inner_iterations,
-                "delta_h_max_um": self.delta_h_max_um, "seconds": self.seconds, "converged": self.converged,
-                "start_height_um": self.history[-1].start_height_um, "sigma_mm": list(self.surface.basis.sigma),
-                "basis_functions": self.surface.basis.n_basis, "history": self.history_dicts()}
+        return {
+            "outer_iterations": self.outer_iterations,
+            "inner_iterations": self.inner_iterations,
+            "delta_h_max_um": self.delta_h_max_um,
+            "seconds": self.seconds,
+            "converged": self.converged,
+            "start_height_um": self.history[-1].start_height_um,
+            "sigma_mm": list(self.surface.basis.sigma),
+            "basis_functions": self.surface.basis.n_basis,
+            "history": self.history_dicts(),
+        }
 
 
 def single_thread_blas() -> contextlib.AbstractContextManager:
@@ -323,8 +358,9 @@ def single_thread_blas() -> contextlib.AbstractContextManager:
 
 
 # -- geometry helpers ---------------------------------------------------------------------
-def intersect_surface(surface: SBFSurface, origins: Array, dirs: Array, frame: Frame | None = None,
-                      tol: float = 1e-10, max_iter: int = 30) -> tuple[Array, NDArray[np.bool_]]:
+def intersect_surface(
+    surface: SBFSurface, origins: Array, dirs: Array, frame: Frame | None = None, tol: float = 1e-10, max_iter: int = 30
+) -> tuple[Array, NDArray[np.bool_]]:
     """Ray parameters where rays meet z = f(x, y) (secant iteration of seed §1.6.4, eq. 1.6).
 
     The iteration starts at the rays' intersections with the planes z = offset and z = f there,
@@ -366,11 +402,13 @@ def check_substrate_visible(camera: Camera, sub: Substrate2D) -> None:
     if not inside.any():
         raise SubstrateNotVisibleError(
             "the setup's camera cannot see the substrate: no point of the region of interest projects into the "
-            f"{camera.nx} x {camera.ny} image (check the camera pose in the setup)")
+            f"{camera.nx} x {camera.ny} image (check the camera pose in the setup)"
+        )
 
 
-def select_sigma(sub: Substrate2D, x: Array, y: Array, hx: Array, hy: Array,
-                 config: ReconstructionConfig) -> tuple[float, dict[float, float]]:
+def select_sigma(
+    sub: Substrate2D, x: Array, y: Array, hx: Array, hy: Array, config: ReconstructionConfig
+) -> tuple[float, dict[float, float]]:
     """Basis scale from the data: the candidate whose fit best extrapolates held-out gradients.
 
     For each end of the data along y, the markers within ``config.holdout_band`` mm of the data's
@@ -386,8 +424,9 @@ def select_sigma(sub: Substrate2D, x: Array, y: Array, hx: Array, hy: Array,
         for test in ends:
             if test.all() or (~test).sum() * 2 < basis.n_terms // 4:
                 continue
-            coef, _ = fit_gradients(basis, x[~test], y[~test], hx[~test], hy[~test], config.regularization,
-                                    method=config.method)
+            coef, _ = fit_gradients(
+                basis, x[~test], y[~test], hx[~test], hy[~test], config.regularization, method=config.method
+            )
             gx, gy = SBFSurface(basis, coef).gradient(x[test], y[test])
             errs.append(np.mean((gx - hx[test]) ** 2 + (gy - hy[test]) ** 2))
         if errs:
@@ -415,8 +454,14 @@ class Reconstructor:
         Centroid-bias correction applied in every inner iteration (None: use the positions as measured).
     """
 
-    def __init__(self, camera: Camera, pattern: MarkerPattern, substrate: Substrate2D,
-                 config: ReconstructionConfig | None = None, bias: BiasStep | None = None) -> None:
+    def __init__(
+        self,
+        camera: Camera,
+        pattern: MarkerPattern,
+        substrate: Substrate2D,
+        config: ReconstructionConfig | None = None,
+        bias: BiasStep | None = None,
+    ) -> None:
         self.camera = camera
         self.pattern = pattern
         self.sub = substrate
@@ -434,8 +479,13 @@ class Reconstructor:
         self._frame_values = [basis.values(*self.sub.frame_grid(r, self.config.frame_step)) for r in (1, 2)]
 
     @classmethod
-    def from_setup(cls, setup: Setup, config: ReconstructionConfig | None = None, bias: BiasStep | None = None,
-                   frame_z: float = 0.0) -> Reconstructor:
+    def from_setup(
+        cls,
+        setup: Setup,
+        config: ReconstructionConfig | None = None,
+        bias: BiasStep | None = None,
+        frame_z: float = 0.0,
+    ) -> Reconstructor:
         return cls(setup.camera_model, setup.marker_pattern, Substrate2D.from_setup(setup, frame_z), config, bias)
 
     # -- pieces --------------------------------------------------------------------------
@@ -444,20 +494,24 @@ class Reconstructor:
 
     def frame_maxima(self, surface: SBFSurface) -> tuple[float, float]:
         """max over frame region 1 and region 2 of the surface, mm (eq. 1.3)."""
-        return (float(np.max(self._frame_values[0] @ surface.coef)) + surface.offset,
-                float(np.max(self._frame_values[1] @ surface.coef)) + surface.offset)
+        return (
+            float(np.max(self._frame_values[0] @ surface.coef)) + surface.offset,
+            float(np.max(self._frame_values[1] @ surface.coef)) + surface.offset,
+        )
 
     def _prepare(self, markers: MarkerObservations) -> tuple[NDArray[np.int64], Array, Array]:
         cfg = self.config
         if len(markers.ij) < cfg.min_markers:
-            raise TooFewMarkersError(f"only {len(markers.ij)} markers found; the reconstruction needs at least "
-                                     f"{cfg.min_markers}")
+            raise TooFewMarkersError(
+                f"only {len(markers.ij)} markers found; the reconstruction needs at least {cfg.min_markers}"
+            )
         idx = self.pattern.indices()
         lo, hi = idx.min(axis=0), idx.max(axis=0)
         ok = np.all((markers.ij >= lo) & (markers.ij <= hi), axis=1)
         if not ok.all():
-            raise ReconstructionError(f"{int((~ok).sum())} marker indices lie outside the "
-                                      f"{self.pattern.n_x} x {self.pattern.n_y} pattern")
+            raise ReconstructionError(
+                f"{int((~ok).sum())} marker indices lie outside the {self.pattern.n_x} x {self.pattern.n_y} pattern"
+            )
         return markers.ij, markers.px, self.pattern.centers(markers.ij)
 
     def _rays(self, px: Array) -> tuple[Array, Array]:
@@ -483,7 +537,8 @@ class Reconstructor:
         if len(xy) < max(cfg.min_markers, 0.5 * n_total):
             raise SubstrateNotVisibleError(
                 f"only {len(xy)} of {n_total} marker rays meet the substrate's region of interest: the camera "
-                "does not see the substrate as the setup describes it (wrong setup for this image?)")
+                "does not see the substrate as the setup describes it (wrong setup for this image?)"
+            )
         half = 0.5 * self.sub.roi_length
         for region, near in ((1, xy[:, 1] <= -half + cfg.edge_band), (2, xy[:, 1] >= half - cfg.edge_band)):
             n = int(near.sum())
@@ -491,10 +546,12 @@ class Reconstructor:
                 side = "y < 0" if region == 1 else "y > 0"
                 raise TooFewMarkersError(
                     f"only {n} markers within {cfg.edge_band} mm of frame region {region} ({side}); at least "
-                    f"{cfg.min_edge_markers} are needed to extrapolate the surface onto the holding frame (seed §1.4)")
+                    f"{cfg.min_edge_markers} are needed to extrapolate the surface onto the holding frame (seed §1.4)"
+                )
 
-    def inner_loop(self, start_height: float, markers: MarkerObservations,
-                   initial: SBFSurface | None = None) -> tuple[SBFSurface, list[float], float, int]:
+    def inner_loop(
+        self, start_height: float, markers: MarkerObservations, initial: SBFSurface | None = None
+    ) -> tuple[SBFSurface, list[float], float, int]:
         """Self-consistent surface for one start height (seed §1.4, eq. 1.5).
 
         Returns the surface, the RMS height changes (µm) per iteration, the final gradient
@@ -515,8 +572,7 @@ class Reconstructor:
             xy, hx, hy, ok = self._trace(surface, px, targets)
             self._check_coverage(xy, len(ij))
             used = int(ok.sum())
-            coef, resid = fit_gradients(self.basis, xy[:, 0], xy[:, 1], hx, hy, cfg.regularization,
-                                        method=cfg.method)
+            coef, resid = fit_gradients(self.basis, xy[:, 0], xy[:, 1], hx, hy, cfg.regularization, method=cfg.method)
             roi = self._roi_values @ coef
             offset = start_height - float(np.mean(roi))
             surface = SBFSurface(self.basis, coef, offset)
@@ -537,8 +593,9 @@ class Reconstructor:
         d1, d2 = m1 - self.sub.frame_z, m2 - self.sub.frame_z
         return d1 if abs(d1) <= abs(d2) else d2
 
-    def _outer(self, markers: MarkerObservations, h_start: float, history: list[OuterStep],
-               surfaces: list[SBFSurface]) -> bool:
+    def _outer(
+        self, markers: MarkerObservations, h_start: float, history: list[OuterStep], surfaces: list[SBFSurface]
+    ) -> bool:
         """The start-height loop from ``h_start``; appends to ``history`` and ``surfaces``; True when converged."""
         cfg = self.config
         values: list[tuple[float, float]] = []  # (H, F)
@@ -549,8 +606,20 @@ class Reconstructor:
             surf, changes, resid, used = self.inner_loop(h, markers, init)
             m1, m2 = self.frame_maxima(surf)
             crit = self._criterion(m1, m2)
-            history.append(OuterStep(h * 1e3, m1 * 1e3, m2 * 1e3, (m1 - m2) * 1e3, crit * 1e3, len(changes),
-                                     changes, resid * 1e6, used, self.basis.sigma[0]))
+            history.append(
+                OuterStep(
+                    h * 1e3,
+                    m1 * 1e3,
+                    m2 * 1e3,
+                    (m1 - m2) * 1e3,
+                    crit * 1e3,
+                    len(changes),
+                    changes,
+                    resid * 1e6,
+                    used,
+                    self.basis.sigma[0],
+                )
+            )
             surfaces.append(surf)
             values.append((h, crit))
             if abs(crit) <= tol:
@@ -599,8 +668,11 @@ class Reconstructor:
         seconds = time.perf_counter() - t0
         result = ReconstructionResult(self._last, self.sub, history, converged, seconds, cfg)
         last = history[-1]
-        other = (abs(last.delta_h_max_um) if cfg.criterion == "level"
-                 else abs(0.5 * (last.max_region1_um + last.max_region2_um) - self.sub.frame_z * 1e3))
+        other = (
+            abs(last.delta_h_max_um)
+            if cfg.criterion == "level"
+            else abs(0.5 * (last.max_region1_um + last.max_region2_um) - self.sub.frame_z * 1e3)
+        )
         if converged and other <= cfg.consistency_um:
             return result
         path = Path(history_path) if history_path is not None else None
@@ -612,11 +684,15 @@ class Reconstructor:
         if not converged:
             raise NotConvergedError(
                 f"the start-height loop did not converge in {len(history)} runs (last criterion "
-                f"{last.criterion_um:+.4g} µm, tolerance {cfg.outer_tol_um} µm){where}", result.history_dicts(), path)
+                f"{last.criterion_um:+.4g} µm, tolerance {cfg.outer_tol_um} µm){where}",
+                result.history_dicts(),
+                path,
+            )
         what = "Delta h_max" if cfg.criterion == "level" else "the mean frame maximum's distance from the frame"
         raise InconsistentError(
             f"the reconstructed surface cannot lie on the holding frame: {what} is {other:.3g} µm "
-            f"(> {cfg.consistency_um} µm) — are the markers indexed correctly and is the setup right?{where}")
+            f"(> {cfg.consistency_um} µm) — are the markers indexed correctly and is the setup right?{where}"
+        )
 
 
 def _predict_surface(surfaces: list[SBFSurface], values: list[tuple[float, float]], h: float) -> SBFSurface | None:
@@ -660,9 +736,15 @@ def _secant_step(values: list[tuple[float, float]], fallback: float) -> float:
     return h_new
 
 
-def reconstruct(setup: Setup, markers: MarkerObservations | ArrayLike, px: ArrayLike | None = None,
-                config: ReconstructionConfig | None = None, bias: BiasStep | None = None,
-                history_path: str | Path | None = None, frame_z: float = 0.0) -> ReconstructionResult:
+def reconstruct(
+    setup: Setup,
+    markers: MarkerObservations | ArrayLike,
+    px: ArrayLike | None = None,
+    config: ReconstructionConfig | None = None,
+    bias: BiasStep | None = None,
+    history_path: str | Path | None = None,
+    frame_z: float = 0.0,
+) -> ReconstructionResult:
     """Reconstruct the substrate's heights from indexed markers (seed §1.4, §1.7, §1.8).
 
     Parameters

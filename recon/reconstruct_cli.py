@@ -48,8 +48,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
     image, _ = read_image(args.image)
     cam = setup.camera_model
     if image.shape != (cam.ny, cam.nx):
-        raise ScopetwinError(f"{args.image} is {image.shape[1]} x {image.shape[0]} px but the setup's camera has "
-                             f"{cam.nx} x {cam.ny}")
+        raise ScopetwinError(
+            f"{args.image} is {image.shape[1]} x {image.shape[0]} px but the setup's camera has {cam.nx} x {cam.ny}"
+        )
     found = find_markers_for(image, setup)
     obs = MarkerObservations(found.ij, found.centroids)
     bias = None if args.no_bias_correction else centroid_bias_step(setup)
@@ -57,16 +58,28 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
     history_path = out.with_name(out.name + ".history.json")
     result = rec.run(obs, history_path=history_path)  # NotConvergedError: history saved, no map written
     heights = result.heightmap()
-    write_heightmap(out, heights, scopetwin_reconstruction=f"outer={result.outer_iterations} "
-                    f"inner={result.inner_iterations} delta_h_max_um={result.delta_h_max_um:.4g}")
+    write_heightmap(
+        out,
+        heights,
+        scopetwin_reconstruction=f"outer={result.outer_iterations} "
+        f"inner={result.inner_iterations} delta_h_max_um={result.delta_h_max_um:.4g}",
+    )
     seconds = time.perf_counter() - t0
-    print(f"reconstructed {len(obs.ij)} markers: {result.outer_iterations} start heights, "
-          f"{result.inner_iterations} inner iterations, Delta h_max = {result.delta_h_max_um:+.4f} µm, "
-          f"{seconds:.2f} s -> {out}")
-    return {"heights": str(out), "outer_iterations": result.outer_iterations,
-            "inner_iterations": result.inner_iterations, "delta_h_max_um": result.delta_h_max_um,
-            "seconds": seconds, "markers": len(obs.ij), "start_height_um": result.history[-1].start_height_um,
-            "history": result.history_dicts()}
+    print(
+        f"reconstructed {len(obs.ij)} markers: {result.outer_iterations} start heights, "
+        f"{result.inner_iterations} inner iterations, Delta h_max = {result.delta_h_max_um:+.4f} µm, "
+        f"{seconds:.2f} s -> {out}"
+    )
+    return {
+        "heights": str(out),
+        "outer_iterations": result.outer_iterations,
+        "inner_iterations": result.inner_iterations,
+        "delta_h_max_um": result.delta_h_max_um,
+        "seconds": seconds,
+        "markers": len(obs.ij),
+        "start_height_um": result.history[-1].start_height_um,
+        "history": result.history_dicts(),
+    }
 
 
 def register(subparsers: Any) -> None:

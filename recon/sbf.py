@@ -82,8 +82,15 @@ class ShiftedBasis:
 
     # -- construction ------------------------------------------------------------------
     @classmethod
-    def grid(cls, counts: tuple[int, int], x_range: tuple[float, float], y_range: tuple[float, float],
-             sigma: tuple[float, float], kind: BasisKind = "imq", tilt: bool = False) -> ShiftedBasis:
+    def grid(
+        cls,
+        counts: tuple[int, int],
+        x_range: tuple[float, float],
+        y_range: tuple[float, float],
+        sigma: tuple[float, float],
+        kind: BasisKind = "imq",
+        tilt: bool = False,
+    ) -> ShiftedBasis:
         """Centres on a Cartesian grid of counts (n_x, n_y) spanning the ranges inclusive (seed §1.8)."""
         nx, ny = (int(n) for n in counts)
         if nx < 1 or ny < 1:
@@ -94,17 +101,25 @@ class ShiftedBasis:
         return cls(np.stack([xx.ravel(), yy.ravel()], axis=-1), sigma, kind, tilt)
 
     @classmethod
-    def covering(cls, x_range: tuple[float, float], y_range: tuple[float, float], sigma: float,
-                 spacing: float = 0.5, margin: float = 1.5, kind: BasisKind = "gauss",
-                 tilt: bool = True) -> ShiftedBasis:
+    def covering(
+        cls,
+        x_range: tuple[float, float],
+        y_range: tuple[float, float],
+        sigma: float,
+        spacing: float = 0.5,
+        margin: float = 1.5,
+        kind: BasisKind = "gauss",
+        tilt: bool = True,
+    ) -> ShiftedBasis:
         """A square grid of spacing ``spacing*sigma`` covering the ranges plus ``margin*sigma`` on every side.
 
         The dense, overhanging grid makes a Gaussian basis with ridge damping behave like a
         stationary Gaussian-process prior over the whole substrate (module docstring).
         """
         if not (sigma > 0 and spacing > 0 and margin >= 0):
-            raise BasisError(f"covering basis needs sigma, spacing > 0 and margin >= 0, got {sigma}, {spacing}, "
-                             f"{margin}")
+            raise BasisError(
+                f"covering basis needs sigma, spacing > 0 and margin >= 0, got {sigma}, {spacing}, {margin}"
+            )
         step = spacing * sigma
 
         def axis(lo: float, hi: float) -> Array:
@@ -201,7 +216,7 @@ class ShiftedBasis:
             py = ((-ey * dy / sy)[:, :, None] * ex[:, None, :]).reshape(n, -1)
             return self._with_plane(px, xa, ya, True), self._with_plane(py, xa, ya, False)
         dx, dy, q = self._q(xa, ya)
-        w = -(1.0 + q) ** -1.5 if self.kind == "imq" else -np.exp(-0.5 * q)
+        w = -((1.0 + q) ** -1.5) if self.kind == "imq" else -np.exp(-0.5 * q)
         return self._with_plane(w * dx / sx, xa, ya, True), self._with_plane(w * dy / sy, xa, ya, False)
 
 
@@ -248,8 +263,9 @@ class SBFSurface:
         _, gx, gy, shape = self._eval(x, y)
         return gx.reshape(shape), gy.reshape(shape)
 
-    def heightmap(self, x_range: tuple[float, float], y_range: tuple[float, float], nx: int = 128,
-                  ny: int = 256) -> HeightMap:
+    def heightmap(
+        self, x_range: tuple[float, float], y_range: tuple[float, float], nx: int = 128, ny: int = 256
+    ) -> HeightMap:
         """Sample the surface on the contract's node grid (DESIGN.md: nodes span the extents inclusive)."""
         xs = np.linspace(*x_range, nx)
         ys = np.linspace(*y_range, ny)
@@ -269,9 +285,16 @@ def _grid_axes(centers: Array) -> tuple[Array, Array] | None:
     return None
 
 
-def fit_gradients(basis: ShiftedBasis, x: ArrayLike, y: ArrayLike, hx: ArrayLike, hy: ArrayLike,
-                  regularization: float = 0.0, weights: ArrayLike | None = None,
-                  method: Literal["lstsq", "normal"] = "lstsq") -> tuple[Array, float]:
+def fit_gradients(
+    basis: ShiftedBasis,
+    x: ArrayLike,
+    y: ArrayLike,
+    hx: ArrayLike,
+    hy: ArrayLike,
+    regularization: float = 0.0,
+    weights: ArrayLike | None = None,
+    method: Literal["lstsq", "normal"] = "lstsq",
+) -> tuple[Array, float]:
     """Least-squares coefficients of the gradient model f_j(r) = sum_k c_k Psi_j(r - r_k) (seed §1.8).
 
     Parameters
@@ -312,8 +335,10 @@ def fit_gradients(basis: ShiftedBasis, x: ArrayLike, y: ArrayLike, hx: ArrayLike
     if not np.all(np.isfinite(np.concatenate([xa, ya, gx, gy]))):
         raise BasisError("gradient data contain NaN or infinite values")
     if 2 * len(xa) < basis.n_terms and regularization <= 0:
-        raise BasisError(f"{2 * len(xa)} gradient equations cannot determine {basis.n_terms} coefficients; "
-                         "use fewer basis functions or regularisation")
+        raise BasisError(
+            f"{2 * len(xa)} gradient equations cannot determine {basis.n_terms} coefficients; "
+            "use fewer basis functions or regularisation"
+        )
     px, py = basis.derivatives(xa, ya)
     a = np.concatenate([px, py], axis=0)
     b = np.concatenate([gx, gy])

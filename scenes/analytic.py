@@ -81,8 +81,14 @@ class AnalyticScene:
         return self.camera.lens_rays(px, concentric_disk(rng.random((len(px), 2))))
 
 
-def render(setup: Setup, heights: HeightMap | None = None, spp: int | None = None, seed: int | None = None,
-           window: Window | None = None, chunk: int = 1 << 18) -> NDArray[np.float32]:
+def render(
+    setup: Setup,
+    heights: HeightMap | None = None,
+    spp: int | None = None,
+    seed: int | None = None,
+    window: Window | None = None,
+    chunk: int = 1 << 18,
+) -> NDArray[np.float32]:
     """Render a setup with the float64 analytic ray model.
 
     Parameters
@@ -112,8 +118,15 @@ def render(setup: Setup, heights: HeightMap | None = None, spp: int | None = Non
     return values.reshape(r1 - r0, c1 - c0)
 
 
-def render_pixels(setup: Setup, rows: NDArray, cols: NDArray, heights: HeightMap | None = None,
-                  spp: int | None = None, seed: int | None = None, chunk: int = 1 << 18) -> NDArray[np.float32]:
+def render_pixels(
+    setup: Setup,
+    rows: NDArray,
+    cols: NDArray,
+    heights: HeightMap | None = None,
+    spp: int | None = None,
+    seed: int | None = None,
+    chunk: int = 1 << 18,
+) -> NDArray[np.float32]:
     """Render an arbitrary list of pixels (row, col); one float32 value per pixel (see :func:`render`)."""
     spp = spp or setup.render.spp
     seed = setup.render.seed if seed is None else seed

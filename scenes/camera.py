@@ -325,8 +325,9 @@ def concentric_disk(samples: ArrayLike) -> Array:
     use_a = np.abs(a) > np.abs(b)
     with np.errstate(divide="ignore", invalid="ignore"):
         r = np.where(use_a, a, b)
-        theta = np.where(use_a, (np.pi / 4) * (b / np.where(a == 0, 1, a)),
-                         np.pi / 2 - (np.pi / 4) * (a / np.where(b == 0, 1, b)))
+        theta = np.where(
+            use_a, (np.pi / 4) * (b / np.where(a == 0, 1, a)), np.pi / 2 - (np.pi / 4) * (a / np.where(b == 0, 1, b))
+        )
     zero = (a == 0) & (b == 0)
     r = np.where(zero, 0.0, r)
     return np.stack([r * np.cos(theta), r * np.sin(theta)], axis=-1)

@@ -25,8 +25,17 @@ from scenes.surface import HeightMap
 EXTENT_KEYS = ("x_min_mm", "x_max_mm", "y_min_mm", "y_max_mm")
 _UMASK = os.umask(0o022)
 os.umask(_UMASK)
-_RESERVED = {"channels", "compression", "dataWindow", "displayWindow", "lineOrder", "pixelAspectRatio",
-             "screenWindowCenter", "screenWindowWidth", "type"}
+_RESERVED = {
+    "channels",
+    "compression",
+    "dataWindow",
+    "displayWindow",
+    "lineOrder",
+    "pixelAspectRatio",
+    "screenWindowCenter",
+    "screenWindowWidth",
+    "type",
+}
 
 
 @contextlib.contextmanager
@@ -86,8 +95,13 @@ def _read_exr(path: str | Path, channel: str) -> tuple[NDArray[np.float32], dict
     return data, attrs
 
 
-def write_image(path: str | Path, image: NDArray, setup_json: str | None = None,
-                provenance: dict[str, Any] | None = None, **attrs: Any) -> None:
+def write_image(
+    path: str | Path,
+    image: NDArray,
+    setup_json: str | None = None,
+    provenance: dict[str, Any] | None = None,
+    **attrs: Any,
+) -> None:
     """Write a camera image: channel ``Y`` float32, setup and provenance as header attributes."""
     extra: dict[str, Any] = dict(attrs)
     if setup_json is not None:

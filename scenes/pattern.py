@@ -92,9 +92,7 @@ class MarkerPattern:
         if max(abs(lo_x), abs(hi_x)) + self.ref_radius > 0.5 * self.size_x + 1e-9 or (
             max(abs(lo_y), abs(hi_y)) + self.ref_radius > 0.5 * self.size_y + 1e-9
         ):
-            raise GeometryError(
-                f"pattern plate {self.size_x} x {self.size_y} mm is smaller than its marker grid"
-            )
+            raise GeometryError(f"pattern plate {self.size_x} x {self.size_y} mm is smaller than its marker grid")
 
     # -- index <-> position ------------------------------------------------------------
     def _first_index(self, n: int) -> int:
@@ -183,6 +181,7 @@ class MarkerPattern:
         c = self.centers_local(ij)
         t = np.linspace(0.0, 2 * np.pi, n_points, endpoint=False)
         r = self.radii(ij)[:, None]
-        local = np.stack([c[:, None, 0] + r * np.cos(t), c[:, None, 1] + r * np.sin(t), np.zeros((len(c), n_points))],
-                         axis=-1)
+        local = np.stack(
+            [c[:, None, 0] + r * np.cos(t), c[:, None, 1] + r * np.sin(t), np.zeros((len(c), n_points))], axis=-1
+        )
         return self.frame.to_global(local)

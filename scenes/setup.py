@@ -120,8 +120,16 @@ class CameraSpec(_Model):
         if self.t_x is not None:
             frame = Frame(self.origin, self.t_x, self.t_y, self.n_z)  # type: ignore[arg-type]
             return Camera(frame, float(self.image_distance), nx, ny, self.pixel_pitch, **common)  # type: ignore[arg-type]
-        cam = Camera.from_pose(self.origin, self.r_0, float(self.phi), self.focal_length, nx, ny,  # type: ignore[arg-type]
-                               self.pixel_pitch, **common)
+        cam = Camera.from_pose(
+            self.origin,
+            self.r_0,
+            float(self.phi),
+            self.focal_length,
+            nx,
+            ny,  # type: ignore[arg-type]
+            self.pixel_pitch,
+            **common,
+        )
         if self.image_distance is not None:
             cam = cam.with_(b=self.image_distance)
         return cam
@@ -152,8 +160,18 @@ class PatternSpec(FrameSpec):
 
     def pattern(self) -> MarkerPattern:
         sx, sy = self.size if self.size is not None else (None, None)
-        return MarkerPattern(self.frame(), self.markers[0], self.markers[1], self.pitch[0], self.pitch[1],
-                             self.radius, self.ref_radius, self.layout, sx, sy)
+        return MarkerPattern(
+            self.frame(),
+            self.markers[0],
+            self.markers[1],
+            self.pitch[0],
+            self.pitch[1],
+            self.radius,
+            self.ref_radius,
+            self.layout,
+            sx,
+            sy,
+        )
 
 
 class SurfaceSpec(_Model):
@@ -164,7 +182,8 @@ class SurfaceSpec(_Model):
     correlation_length: Positive = Field(12.0, description="low-pass correlation length, mm (§1.9)")
     seed: int = Field(1, ge=0)
     grid: tuple[Annotated[int, Field(ge=4)], Annotated[int, Field(ge=4)]] = Field(
-        (256, 512), description="height-map nodes (nx, ny)")
+        (256, 512), description="height-map nodes (nx, ny)"
+    )
     path: str | None = Field(None, description="height-map EXR (kind = 'file')")
 
     @model_validator(mode="after")
@@ -218,8 +237,14 @@ class SensorSpec(_Model):
     fill_fraction: Annotated[float, Field(gt=0, le=1)] = 0.7
 
     def sensor(self) -> EmvaSensor:
-        return EmvaSensor(self.quantum_efficiency, self.full_well_e, self.dark_noise_e, self.gain_dn_per_e,
-                          self.black_level_dn, self.bit_depth)
+        return EmvaSensor(
+            self.quantum_efficiency,
+            self.full_well_e,
+            self.dark_noise_e,
+            self.gain_dn_per_e,
+            self.black_level_dn,
+            self.bit_depth,
+        )
 
 
 class Setup(_Model):
@@ -268,8 +293,14 @@ def preset_info() -> list[dict[str, str]]:
     out = []
     for name in preset_names():
         data = _read_toml(PRESET_DIR / f"{name}.toml")
-        out.append({"name": name, "kind": str(data.get("kind", data.get("scene", ""))),
-                    "section": str(data.get("section", "")), "description": str(data.get("description", ""))})
+        out.append(
+            {
+                "name": name,
+                "kind": str(data.get("kind", data.get("scene", ""))),
+                "section": str(data.get("section", "")),
+                "description": str(data.get("description", "")),
+            }
+        )
     return out
 
 

@@ -64,8 +64,9 @@ class HeightMap:
         object.__setattr__(self, "_spline", spline)
 
     @classmethod
-    def from_function(cls, func, x_min: float, x_max: float, y_min: float, y_max: float,
-                      nx: int = 256, ny: int = 512) -> HeightMap:
+    def from_function(
+        cls, func, x_min: float, x_max: float, y_min: float, y_max: float, nx: int = 256, ny: int = 512
+    ) -> HeightMap:
         """Sample ``func(x, y) -> h`` (vectorised, mm) on an nx x ny node grid."""
         x = np.linspace(x_min, x_max, nx)
         y = np.linspace(y_min, y_max, ny)
@@ -81,8 +82,10 @@ class HeightMap:
         return np.linspace(self.y_min, self.y_max, self.z.shape[0])
 
     def _clamp(self, x: ArrayLike, y: ArrayLike) -> tuple[Array, Array]:
-        return (np.clip(np.asarray(x, dtype=np.float64), self.x_min, self.x_max),
-                np.clip(np.asarray(y, dtype=np.float64), self.y_min, self.y_max))
+        return (
+            np.clip(np.asarray(x, dtype=np.float64), self.x_min, self.x_max),
+            np.clip(np.asarray(y, dtype=np.float64), self.y_min, self.y_max),
+        )
 
     def height(self, x: ArrayLike, y: ArrayLike) -> Array:
         """h(x, y), mm."""
@@ -140,9 +143,7 @@ class Substrate:
         if not (self.size_x > 0 and self.size_y > 0):
             raise GeometryError(f"substrate size must be > 0 mm, got {self.size_x} x {self.size_y}")
         if not 0 < self.roi_length <= self.size_y:
-            raise GeometryError(
-                f"substrate roi_length must be in (0, size_y={self.size_y}] mm, got {self.roi_length}"
-            )
+            raise GeometryError(f"substrate roi_length must be in (0, size_y={self.size_y}] mm, got {self.roi_length}")
 
     def on_substrate(self, x: ArrayLike, y: ArrayLike) -> NDArray[np.bool_]:
         """True for local points on the substrate."""
@@ -158,8 +159,9 @@ class Substrate:
         ya = np.asarray(y)
         return on & (ya <= -0.5 * self.roi_length), on & (ya >= 0.5 * self.roi_length)
 
-    def intersect(self, origins: ArrayLike, directions: ArrayLike, tol: float = 1e-10,
-                  max_iter: int = 60) -> tuple[Array, NDArray[np.bool_]]:
+    def intersect(
+        self, origins: ArrayLike, directions: ArrayLike, tol: float = 1e-10, max_iter: int = 60
+    ) -> tuple[Array, NDArray[np.bool_]]:
         """Ray parameters of the intersection with the surface by the secant iteration (seed §1.6.4, eq. 1.6).
 
         f(lambda) = h(r_perp(lambda)) - z(lambda) in the base frame; lambda_0 = 0 (the ray

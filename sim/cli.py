@@ -93,8 +93,9 @@ def render_measurement(setup, heights, spp: int, seed: int, noise: bool, rendere
     return image, time.perf_counter() - t0
 
 
-def write_measurement(stage: StagedOutput, prefix: str, setup, heights, image, spp: int, seed: int,
-                      renderer: str) -> dict[str, str]:
+def write_measurement(
+    stage: StagedOutput, prefix: str, setup, heights, image, spp: int, seed: int, renderer: str
+) -> dict[str, str]:
     """Write image EXR, truth JSON (and height map), preview PNG into the staging folder."""
     from scenes.io import write_heightmap, write_image
     from sim.truth import marker_truth
@@ -135,16 +136,20 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
     setup, heights = _load(args.setup, args.surface, args.spp, args.seed, args.noise)
     stage = StagedOutput(Path(args.out))
     try:
-        image, seconds = render_measurement(setup, heights, setup.render.spp, setup.render.seed,
-                                            setup.render.noise, args.renderer)
-        names = write_measurement(stage, "", setup, heights, image, setup.render.spp, setup.render.seed,
-                                  args.renderer)
+        image, seconds = render_measurement(
+            setup, heights, setup.render.spp, setup.render.seed, setup.render.noise, args.renderer
+        )
+        names = write_measurement(stage, "", setup, heights, image, setup.render.spp, setup.render.seed, args.renderer)
         moved = stage.commit()
     except BaseException:
         stage.discard()
         raise
-    result = {"image": str(moved[names["image"]]), "truth": str(moved[names["truth"]]),
-              "spp": setup.render.spp, "seconds": seconds}
+    result = {
+        "image": str(moved[names["image"]]),
+        "truth": str(moved[names["truth"]]),
+        "spp": setup.render.spp,
+        "seconds": seconds,
+    }
     print(f"rendered {setup.name} ({setup.scene}) at {setup.render.spp} spp in {seconds:.2f} s -> {args.out}")
     return result
 
@@ -201,10 +206,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--surface", help="height-map EXR replacing the preset's generated surface")
     p.add_argument("--spp", type=int, help="samples per pixel")
     p.add_argument("--seed", type=int, help="random seed")
-    p.add_argument("--noise", action=argparse.BooleanOptionalAction, default=None,
-                   help="apply the EMVA 1288 sensor model")
-    p.add_argument("--renderer", choices=("mitsuba", "analytic"), default="mitsuba",
-                   help="Mitsuba (default) or the float64 analytic reference (slow)")
+    p.add_argument(
+        "--noise", action=argparse.BooleanOptionalAction, default=None, help="apply the EMVA 1288 sensor model"
+    )
+    p.add_argument(
+        "--renderer",
+        choices=("mitsuba", "analytic"),
+        default="mitsuba",
+        help="Mitsuba (default) or the float64 analytic reference (slow)",
+    )
 
     add("presets", cmd_presets, "list the setup presets")
 

@@ -112,8 +112,10 @@ class Dist(_Model):
     def _check(self) -> Dist:
         given = [k for k in type(self).model_fields if getattr(self, k) is not None]
         if len(given) != 1:
-            raise ValueError(f"give exactly one of fixed, uniform, normal, loguniform, choice, sweep (got "
-                             f"{', '.join(given) or 'none'})")
+            raise ValueError(
+                f"give exactly one of fixed, uniform, normal, loguniform, choice, sweep (got "
+                f"{', '.join(given) or 'none'})"
+            )
         if self.uniform is not None and not self.uniform[0] <= self.uniform[1]:
             raise ValueError(f"uniform needs lo <= hi, got {list(self.uniform)}")
         if self.normal is not None and not self.normal[1] >= 0:
@@ -195,12 +197,13 @@ _PART1 = ("deflectometry", "calibration")
 _SURFACE_KINDS = ("random", "plane", "sphere", "saddle", "cylinder")
 DOMAINS: dict[str, Domain] = {
     "surface_range_um": Domain(0, _INF, False, True, ("deflectometry",), 1, "µm", "peak-to-valley range (§1.9)"),
-    "surface_correlation_length": Domain(0, _INF, True, True, ("deflectometry",), 1, "mm",
-                                         "low-pass correlation length (§1.9)"),
-    "surface_kind": Domain(0, 0, False, False, ("deflectometry",), 1, "", "surface generator",
-                           strings=_SURFACE_KINDS),
-    "view_angle_deg": Domain(0, 90, True, False, ("calibration",), 1, "deg",
-                             "camera elevation over the target (§2.8.2 angle scan)"),
+    "surface_correlation_length": Domain(
+        0, _INF, True, True, ("deflectometry",), 1, "mm", "low-pass correlation length (§1.9)"
+    ),
+    "surface_kind": Domain(0, 0, False, False, ("deflectometry",), 1, "", "surface generator", strings=_SURFACE_KINDS),
+    "view_angle_deg": Domain(
+        0, 90, True, False, ("calibration",), 1, "deg", "camera elevation over the target (§2.8.2 angle scan)"
+    ),
     "view_distance": Domain(0, _INF, True, True, ("calibration",), 1, "mm", "camera distance from the target centre"),
     "camera_shift": Domain(-_INF, _INF, True, True, _PART1, 3, "mm", "camera centre jitter, per axis"),
     "camera_rotation": Domain(-_INF, _INF, True, True, _PART1, 3, "rad", "camera rotation vector, per axis"),
@@ -208,25 +211,54 @@ DOMAINS: dict[str, Domain] = {
     "defocus": Domain(-_INF, _INF, True, True, _PART1, 1, "mm", "plane in focus minus the nominal one"),
     "distortion_c2": Domain(-_INF, _INF, True, True, _PART1, 1, "1/mm", "radial distortion c2 (§2.5.1)"),
     "principal_offset": Domain(-_INF, _INF, True, True, _PART1, 2, "mm", "r_cs, per axis (§2.8.5)"),
-    "exposure_fill": Domain(0, 1, True, False, (*_PART1, "cmu"), 1, "",
-                            "fraction of the full well at the image peak"),
+    "exposure_fill": Domain(0, 1, True, False, (*_PART1, "cmu"), 1, "", "fraction of the full well at the image peak"),
     "exposure_s": Domain(0, _INF, True, True, _PART1, 1, "s", "exposure time"),
-    "target": Domain(0, 0, False, False, ("grin", "cmu"), 1, "", "test object (grin: §8.5 target; cmu: §5.2.2 "
-                     "Siemens star or §5.1.2 dummy cells)",
-                     strings={"grin": ("dots-25", "grid-25", "grid-12.5", "lines-8"), "cmu": ("star", "cells")}),
+    "target": Domain(
+        0,
+        0,
+        False,
+        False,
+        ("grin", "cmu"),
+        1,
+        "",
+        "test object (grin: §8.5 target; cmu: §5.2.2 Siemens star or §5.1.2 dummy cells)",
+        strings={"grin": ("dots-25", "grid-25", "grid-12.5", "lines-8"), "cmu": ("star", "cells")},
+    ),
     "target_offset": Domain(-_INF, _INF, True, True, ("grin",), 2, "mm", "target offset from the axis, per axis"),
-    "bow_range_um": Domain(0, _INF, False, True, ("cmu",), 1, "µm", "bow range of each beam splitter (§5.1.1)",
-                           per="splitter"),
-    "bow_scale": Domain(0, _INF, False, True, ("cmu",), 1, "", "factor on each splitter's bow range of the setup",
-                        per="splitter"),
-    "residual_rms_um": Domain(0, _INF, False, True, ("cmu",), 1, "µm", "RMS of each splitter's smooth residual",
-                              per="splitter"),
-    "channel_defocus": Domain(-_INF, _INF, True, True, ("cmu",), 1, "mm",
-                              "camera distance minus the refocused image distance, per channel", per="channel"),
-    "channel_offset_px": Domain(-_INF, _INF, True, True, ("cmu",), 2, "px",
-                                "camera offset (col, row) of each channel (Table 5.3)", per="channel"),
-    "channel_tilt_deg": Domain(-45, 45, False, False, ("cmu",), 1, "deg", "in-plane camera tilt of each channel "
-                               "(Table 5.4)", per="channel"),
+    "bow_range_um": Domain(
+        0, _INF, False, True, ("cmu",), 1, "µm", "bow range of each beam splitter (§5.1.1)", per="splitter"
+    ),
+    "bow_scale": Domain(
+        0, _INF, False, True, ("cmu",), 1, "", "factor on each splitter's bow range of the setup", per="splitter"
+    ),
+    "residual_rms_um": Domain(
+        0, _INF, False, True, ("cmu",), 1, "µm", "RMS of each splitter's smooth residual", per="splitter"
+    ),
+    "channel_defocus": Domain(
+        -_INF,
+        _INF,
+        True,
+        True,
+        ("cmu",),
+        1,
+        "mm",
+        "camera distance minus the refocused image distance, per channel",
+        per="channel",
+    ),
+    "channel_offset_px": Domain(
+        -_INF,
+        _INF,
+        True,
+        True,
+        ("cmu",),
+        2,
+        "px",
+        "camera offset (col, row) of each channel (Table 5.3)",
+        per="channel",
+    ),
+    "channel_tilt_deg": Domain(
+        -45, 45, False, False, ("cmu",), 1, "deg", "in-plane camera tilt of each channel (Table 5.4)", per="channel"
+    ),
 }
 
 
@@ -313,8 +345,9 @@ def _format(exc: ValidationError, label: str) -> str:
     return f"dataset config {label}: key {_loc(err) or '(top level)'}: {msg}{more}"
 
 
-def config_from_dict(data: dict[str, Any], label: str = "<dict>", base_dir: Path | None = None,
-                     count: int | None = None) -> DatasetConfig:
+def config_from_dict(
+    data: dict[str, Any], label: str = "<dict>", base_dir: Path | None = None, count: int | None = None
+) -> DatasetConfig:
     """Validate a config dictionary (schema, domains, kinds) and resolve a relative setup path.
 
     Raises
@@ -365,21 +398,26 @@ def _check_domains(cfg: DatasetConfig, label: str) -> None:
                 flat += comps
             bad = [v for v in flat if not (math.isfinite(v) and dom.contains(v))]
             if bad:
-                raise DatasetError(f"{where}: impossible value {bad[0]} {dom.unit} (the {dom.text} must lie in "
-                                   f"{dom.describe()})")
+                raise DatasetError(
+                    f"{where}: impossible value {bad[0]} {dom.unit} (the {dom.text} must lie in {dom.describe()})"
+                )
             continue
         lo, hi = dist.support()  # type: ignore[misc]
         if not (dom.contains(lo) and dom.contains(hi)):
-            raise DatasetError(f"{where}: impossible distribution {dist.kind} {list(getattr(dist, dist.kind))}: it "
-                               f"can give values outside {dom.describe()} {dom.unit} (the {dom.text})")
+            raise DatasetError(
+                f"{where}: impossible distribution {dist.kind} {list(getattr(dist, dist.kind))}: it "
+                f"can give values outside {dom.describe()} {dom.unit} (the {dom.text})"
+            )
     if cfg.vary.exposure_fill is not None and cfg.vary.exposure_s is not None:
         raise DatasetError(f"dataset config {label}: key vary.exposure_s: give exposure_fill or exposure_s, not both")
     if cfg.vary.bow_range_um is not None and cfg.vary.bow_scale is not None:
         raise DatasetError(f"dataset config {label}: key vary.bow_scale: give bow_range_um or bow_scale, not both")
     for table, default in (("grin", GrinSection()), ("cmu", CmuSection())):
         if getattr(cfg, table) != default and kind != table:
-            raise DatasetError(f"dataset config {label}: key {table}: the [{table}] table applies only to {table!r} "
-                               f"samples, not {kind!r}")
+            raise DatasetError(
+                f"dataset config {label}: key {table}: the [{table}] table applies only to {table!r} "
+                f"samples, not {kind!r}"
+            )
 
 
 def load_config(path: str | Path, count: int | None = None) -> DatasetConfig:
@@ -419,8 +457,7 @@ def _sweep_cell(cfg: DatasetConfig, index: int) -> dict[str, Value]:
     return {k: v[int(c)] for (k, v), c in zip(sweeps, cell, strict=True)}
 
 
-def draw_parameters(cfg: DatasetConfig, index: int, groups: dict[str, Sequence[str]] | None = None
-                    ) -> dict[str, Any]:
+def draw_parameters(cfg: DatasetConfig, index: int, groups: dict[str, Sequence[str]] | None = None) -> dict[str, Any]:
     """The varied quantities of sample ``index`` (JSON-ready; vectors as lists).
 
     A quantity with a ``per`` group (:class:`Domain`) becomes ``{member: value}`` over ``groups[per]``
@@ -457,8 +494,9 @@ def _members(dom: Domain, groups: dict[str, Sequence[str]] | None, name: str) ->
 
         given = CHANNEL_NAMES
     if given is None:
-        raise DatasetError(f"key vary.{name}: drawn per {dom.per}; the {dom.per} names come from the setup "
-                           "(use Plan.parameters)")
+        raise DatasetError(
+            f"key vary.{name}: drawn per {dom.per}; the {dom.per} names come from the setup (use Plan.parameters)"
+        )
     return list(given)
 
 
@@ -485,8 +523,10 @@ def base_setup_dict(cfg: DatasetConfig) -> dict[str, Any]:
         raise DatasetError(f"dataset config: key dataset.setup: {exc}") from None
     kind = data.pop("kind", None)
     if kind not in (None, "setup"):
-        raise DatasetError(f"dataset config: key dataset.setup: {cfg.dataset.setup!r} is a {kind!r} preset, not a "
-                           f"Part I setup (kind {cfg.dataset.kind!r})")
+        raise DatasetError(
+            f"dataset config: key dataset.setup: {cfg.dataset.setup!r} is a {kind!r} preset, not a "
+            f"Part I setup (kind {cfg.dataset.kind!r})"
+        )
     return _merge(data, cfg.setup)
 
 
@@ -506,8 +546,11 @@ def part1_setup(cfg: DatasetConfig, base: dict[str, Any], index: int, params: di
     if cfg.dataset.kind == "deflectometry":
         surf = d.setdefault("substrate", {}).setdefault("surface", {})
         surf["seed"] = sample_seed(master, index, "surface")
-        for key, field in (("surface_range_um", "range_um"), ("surface_correlation_length", "correlation_length"),
-                           ("surface_kind", "kind")):
+        for key, field in (
+            ("surface_range_um", "range_um"),
+            ("surface_correlation_length", "correlation_length"),
+            ("surface_kind", "kind"),
+        ):
             if key in params:
                 surf[field] = params[key]
     if "view_angle_deg" in params or "view_distance" in params:
@@ -519,15 +562,21 @@ def part1_setup(cfg: DatasetConfig, base: dict[str, Any], index: int, params: di
         centre = np.asarray(d.get("pattern", {}).get("origin", (0.0, 0.0, 0.0)), dtype=np.float64)
         for k in ("r_0", "phi"):
             cam.pop(k, None)
-        cam.update(origin=(centre + [0.0, -dist * c, dist * s]).tolist(), t_x=[1.0, 0.0, 0.0], t_y=[0.0, s, c],
-                   n_z=[0.0, -c, s])
+        cam.update(
+            origin=(centre + [0.0, -dist * c, dist * s]).tolist(),
+            t_x=[1.0, 0.0, 0.0],
+            t_y=[0.0, s, c],
+            n_z=[0.0, -c, s],
+        )
         cam.setdefault("image_distance", 28.0)
     if "camera_shift" in params:
         cam["origin"] = (np.asarray(cam["origin"], dtype=np.float64) + params["camera_shift"]).tolist()
     if "camera_rotation" in params:
         if cam.get("t_x") is None:
-            raise DatasetError("dataset config: key vary.camera_rotation: needs a camera given by its axes "
-                               "(t_x, t_y, n_z), not by r_0/phi")
+            raise DatasetError(
+                "dataset config: key vary.camera_rotation: needs a camera given by its axes "
+                "(t_x, t_y, n_z), not by r_0/phi"
+            )
         rot = _rotation(params["camera_rotation"])
         for k in ("t_x", "t_y", "n_z"):
             cam[k] = (rot @ np.asarray(cam[k], dtype=np.float64)).tolist()
@@ -541,17 +590,21 @@ def part1_setup(cfg: DatasetConfig, base: dict[str, Any], index: int, params: di
         d.setdefault("sensor", {})["fill_fraction"] = params["exposure_fill"]
     if "exposure_s" in params:
         d.setdefault("sensor", {})["exposure_s"] = params["exposure_s"]
-    d.setdefault("render", {}).update(spp=cfg.dataset.spp, seed=sample_seed(master, index, "render"),
-                                      noise=bool(cfg.dataset.noise or "exposure_fill" in params
-                                                 or "exposure_s" in params))
+    d.setdefault("render", {}).update(
+        spp=cfg.dataset.spp,
+        seed=sample_seed(master, index, "render"),
+        noise=bool(cfg.dataset.noise or "exposure_fill" in params or "exposure_s" in params),
+    )
     d["name"] = f"{d.get('name', 'setup')}-sample-{index:06d}"
     try:
         setup = setup_from_dict(d, f"sample {index}")
         if "defocus" in params:
             g0 = setup.camera_model.focus_distance()
             if g0 is None:
-                raise DatasetError("dataset config: key vary.defocus: needs a thin lens: set camera.f_number in "
-                                   "[setup] or vary f_number")
+                raise DatasetError(
+                    "dataset config: key vary.defocus: needs a thin lens: set camera.f_number in "
+                    "[setup] or vary f_number"
+                )
             cam["focus_distance"] = g0 + float(params["defocus"])
             setup = setup_from_dict(d, f"sample {index}")
     except SetupError as exc:
@@ -566,8 +619,10 @@ def _capability(kind: str) -> None:
         import importlib.util
 
         if importlib.util.find_spec("scenes.mitsuba.cmu") is None:
-            raise DatasetError("sample kind 'cmu' needs the four-channel microscope renderer "
-                               "(scenes.mitsuba.cmu, issue 8), which this installation does not have")
+            raise DatasetError(
+                "sample kind 'cmu' needs the four-channel microscope renderer "
+                "(scenes.mitsuba.cmu, issue 8), which this installation does not have"
+            )
 
 
 @dataclass(frozen=True)
@@ -590,17 +645,22 @@ class Plan:
             scene = base.get("scene")
             want = {"deflectometry": ("deflectometry",), "calibration": ("target", "mirror")}[cfg.dataset.kind]
             if scene not in want:
-                raise DatasetError(f"dataset config: key dataset.setup: {cfg.dataset.setup!r} is a {scene!r} scene; "
-                                   f"{cfg.dataset.kind!r} samples need {' or '.join(want)}")
+                raise DatasetError(
+                    f"dataset config: key dataset.setup: {cfg.dataset.setup!r} is a {scene!r} scene; "
+                    f"{cfg.dataset.kind!r} samples need {' or '.join(want)}"
+                )
         plan = cls(cfg, base)
         if check:
-            for i in (range(cfg.dataset.count) if indices is None else indices):
+            for i in range(cfg.dataset.count) if indices is None else indices:
                 plan.setup_of(i)
         return plan
 
     def to_json(self) -> dict[str, Any]:
-        return {"format": FORMAT_VERSION, "config": self.config.model_dump(mode="json", exclude_none=True),
-                "base_setup": self.base}
+        return {
+            "format": FORMAT_VERSION,
+            "config": self.config.model_dump(mode="json", exclude_none=True),
+            "base_setup": self.base,
+        }
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> Plan:
@@ -670,8 +730,10 @@ def _cmu_base(cfg: DatasetConfig) -> dict[str, Any]:
         r0, c0, h, w = c.window
         cam = setup.camera
         if min(r0, c0) < 0 or min(h, w) < 1 or r0 + h > cam.height_px or c0 + w > cam.width_px:
-            raise DatasetError(f"dataset config: key cmu.window: {list(c.window)} (row0, col0, height, width) must lie "
-                               f"inside the {cam.width_px} x {cam.height_px} px sensor")
+            raise DatasetError(
+                f"dataset config: key cmu.window: {list(c.window)} (row0, col0, height, width) must lie "
+                f"inside the {cam.width_px} x {cam.height_px} px sensor"
+            )
     return json.loads(setup.to_json())
 
 
@@ -715,11 +777,15 @@ def _cmu_sample(plan: Plan, index: int, params: dict[str, Any]) -> CmuSample:
         raise DatasetError(f"sample {index} (parameters {params}): {exc}") from None
     channels = tuple(_cmu_channels(cfg, plan.base))
     per = {k: params.get(k, {}) for k in ("channel_defocus", "channel_tilt_deg", "channel_offset_px")}
-    sample = CmuSample(setup, str(params.get("target", "star")), channels,
-                       {c: float(per["channel_defocus"].get(c, 0.0)) for c in channels},
-                       {c: float(per["channel_tilt_deg"].get(c, 0.0)) for c in channels},
-                       {c: tuple(float(v) for v in per["channel_offset_px"].get(c, (0.0, 0.0))) for c in channels},
-                       params.get("exposure_fill"))
+    sample = CmuSample(
+        setup,
+        str(params.get("target", "star")),
+        channels,
+        {c: float(per["channel_defocus"].get(c, 0.0)) for c in channels},
+        {c: float(per["channel_tilt_deg"].get(c, 0.0)) for c in channels},
+        {c: tuple(float(v) for v in per["channel_offset_px"].get(c, (0.0, 0.0))) for c in channels},
+        params.get("exposure_fill"),
+    )
     if sample.target == "star":
         _check_star_in_image(cfg, sample, index, params)
     return sample
@@ -739,15 +805,21 @@ def _check_star_in_image(cfg: DatasetConfig, sample: CmuSample, index: int, para
         t = math.radians(sample.tilt_deg[ch])
         rot = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
         corners = (rot @ (half * np.array([[-1, -1, 1, 1], [-1, 1, -1, 1]]))).T
-        centre = np.array([0.5 * setup.camera.width_px + sample.offset_px[ch][0] - c0,
-                           0.5 * setup.camera.height_px + sample.offset_px[ch][1] - r0])
+        centre = np.array(
+            [
+                0.5 * setup.camera.width_px + sample.offset_px[ch][0] - c0,
+                0.5 * setup.camera.height_px + sample.offset_px[ch][1] - r0,
+            ]
+        )
         pts = corners + centre
         if pts.min() < 0 or pts[:, 0].max() > w or pts[:, 1].max() > h:
             key = next((k for k in ("channel_offset_px", "channel_tilt_deg") if k in params), "cmu.window")
             key = key if key == "cmu.window" else f"vary.{key}"
-            raise DatasetError(f"sample {index}: key {key}: the Siemens-star frame ({2 * half:.0f} px wide) of channel "
-                               f"{ch} leaves the {w} x {h} px image (offset {list(sample.offset_px[ch])} px, tilt "
-                               f"{sample.tilt_deg[ch]:g} deg); use smaller offsets or a larger window")
+            raise DatasetError(
+                f"sample {index}: key {key}: the Siemens-star frame ({2 * half:.0f} px wide) of channel "
+                f"{ch} leaves the {w} x {h} px image (offset {list(sample.offset_px[ch])} px, tilt "
+                f"{sample.tilt_deg[ch]:g} deg); use smaller offsets or a larger window"
+            )
 
 
 # -- writing one sample (runs on a worker) ----------------------------------------------------------
@@ -829,12 +901,25 @@ def _write_part1(plan: Plan, index: int, stage: _Stage) -> dict[str, Any]:
         names["normals"] = "normals.exr"
     truth = json.loads(stage.path(names["truth"]).read_text())
     cam = setup.camera_model
-    truth.update(camera={"r_c": cam.frame.origin.tolist(), "t_x": cam.frame.tx.tolist(), "t_y": cam.frame.ty.tolist(),
-                         "n_z": cam.frame.nz.tolist(), "b": cam.b, "r_cs": list(cam.r_cs), "c0": cam.c0, "c2": cam.c2,
-                         "focus_distance": cam.focus_distance()},
-                 setup_json=json.loads(setup.to_json()),
-                 seeds={"surface": setup.substrate.surface.seed if setup.substrate else None, "render": seed,
-                        "noise": seed if setup.render.noise else None})
+    truth.update(
+        camera={
+            "r_c": cam.frame.origin.tolist(),
+            "t_x": cam.frame.tx.tolist(),
+            "t_y": cam.frame.ty.tolist(),
+            "n_z": cam.frame.nz.tolist(),
+            "b": cam.b,
+            "r_cs": list(cam.r_cs),
+            "c0": cam.c0,
+            "c2": cam.c2,
+            "focus_distance": cam.focus_distance(),
+        },
+        setup_json=json.loads(setup.to_json()),
+        seeds={
+            "surface": setup.substrate.surface.seed if setup.substrate else None,
+            "render": seed,
+            "noise": seed if setup.render.noise else None,
+        },
+    )
     return {"files": names, "truth": truth}
 
 
@@ -852,15 +937,30 @@ def _write_grin(plan: Plan, index: int, stage: _Stage) -> dict[str, Any]:
     g = plan.config.grin
     whole = setup.array.nx * setup.array.ny > 1 and g.width is None and g.height is None
     centre = (0.0, 0.0) if whole else tuple(float(v) for v in setup.array.axes()[0])  # a window: objective 0
-    img = render_image(setup, stack, tgt, spp=plan.config.dataset.spp, width=g.width, height=g.height,
-                       step_mm=g.step_mm, center=centre, seed=seed)
+    img = render_image(
+        setup,
+        stack,
+        tgt,
+        spp=plan.config.dataset.spp,
+        width=g.width,
+        height=g.height,
+        step_mm=g.step_mm,
+        center=centre,
+        seed=seed,
+    )
     prov = {"seed": seed, "spp": plan.config.dataset.spp, "renderer": "mitsuba-grin", "versions": versions()}
     write_image(stage.path("image.exr"), img, setup.to_json(), prov)
-    truth = {"setup": setup.name, "scene": "grin", "target": {"name": tgt.name, "offset": list(tgt.offset),
-                                                               "period": tgt.period, "feature": tgt.feature},
-             "image_distance_mm": rep.image_distance_mm, "magnification": rep.magnification,
-             "na_object": rep.na_object, "centre_mm": list(centre), "seeds": {"render": seed},
-             "setup_json": json.loads(setup.to_json())}
+    truth = {
+        "setup": setup.name,
+        "scene": "grin",
+        "target": {"name": tgt.name, "offset": list(tgt.offset), "period": tgt.period, "feature": tgt.feature},
+        "image_distance_mm": rep.image_distance_mm,
+        "magnification": rep.magnification,
+        "na_object": rep.na_object,
+        "centre_mm": list(centre),
+        "seeds": {"render": seed},
+        "setup_json": json.loads(setup.to_json()),
+    }
     return {"files": {"image": "image.exr"}, "truth": truth}
 
 
@@ -874,12 +974,17 @@ def _cmu_sensor(bit_depth: int) -> Any:
     from scenes.sensor import EmvaSensor
 
     full_well = 18000.0
-    return EmvaSensor(quantum_efficiency=1.0, full_well_e=full_well, gain_dn_per_e=(2**bit_depth - 96) / full_well,
-                      bit_depth=bit_depth)
+    return EmvaSensor(
+        quantum_efficiency=1.0,
+        full_well_e=full_well,
+        gain_dn_per_e=(2**bit_depth - 96) / full_well,
+        bit_depth=bit_depth,
+    )
 
 
-def _object_to_pixel(setup: Any, opt: Any, channel: str, pose: Any, box: tuple[int, int, int, int], half: float,
-                     n_pupil: int = 15) -> np.ndarray:
+def _object_to_pixel(
+    setup: Any, opt: Any, channel: str, pose: Any, box: tuple[int, int, int, int], half: float, n_pupil: int = 15
+) -> np.ndarray:
     """Affine map (2 x 3) from object (x, y, 1) in mm to (col, row) in the written image's pixel coordinates.
 
     Fitted to the traced spot centroids (numpy tracer, the channel's real plates) of a 3 x 3 object grid of
@@ -902,8 +1007,12 @@ def _object_to_pixel(setup: Any, opt: Any, channel: str, pose: Any, box: tuple[i
         for y0 in (-half, 0.0, half):
             u, v = image_rays(opt, x0, y0, px, py).at(pose.image_distance)
             a, b = rot @ (to_ab @ np.array([u.mean(), v.mean()]))
-            img.append((0.5 * setup.camera.width_px + pose.offset_px[0] + a / p_mm - c0,
-                        0.5 * setup.camera.height_px + pose.offset_px[1] - b / p_mm - r0))
+            img.append(
+                (
+                    0.5 * setup.camera.width_px + pose.offset_px[0] + a / p_mm - c0,
+                    0.5 * setup.camera.height_px + pose.offset_px[1] - b / p_mm - r0,
+                )
+            )
             obj.append((x0, y0, 1.0))
     coef, *_ = np.linalg.lstsq(np.asarray(obj), np.asarray(img), rcond=None)
     return coef.T
@@ -918,11 +1027,13 @@ def _affine_truth(a: np.ndarray, pixel_um: float) -> dict[str, Any]:
     lin = a[:, :2]
     p_mm = pixel_um * 1e-3
     sv = np.linalg.svd(lin, compute_uv=False) * p_mm
-    return {"magnification": float(math.sqrt(abs(np.linalg.det(lin))) * p_mm),
-            "magnification_xy": [float(sv[0]), float(sv[1])],
-            "frame_center_px": [float(a[0, 2]), float(a[1, 2])],
-            "image_tilt_deg": float(math.degrees(math.atan2(-lin[1, 0] - lin[0, 1], lin[0, 0] - lin[1, 1]))),
-            "object_to_pixel": a.tolist()}
+    return {
+        "magnification": float(math.sqrt(abs(np.linalg.det(lin))) * p_mm),
+        "magnification_xy": [float(sv[0]), float(sv[1])],
+        "frame_center_px": [float(a[0, 2]), float(a[1, 2])],
+        "image_tilt_deg": float(math.degrees(math.atan2(-lin[1, 0] - lin[0, 1], lin[0, 0] - lin[1, 1]))),
+        "object_to_pixel": a.tolist(),
+    }
 
 
 def _write_cmu(plan: Plan, index: int, stage: _Stage) -> dict[str, Any]:
@@ -951,10 +1062,16 @@ def _write_cmu(plan: Plan, index: int, stage: _Stage) -> dict[str, Any]:
         fname = f"height_{name}.exr"
         write_heightmap(stage.path(fname), maps[name], scopetwin_element=name)
         files[f"height_{name}"] = fname
-        plates[name] = {"file": fname, "role": role, "bow_range_um": spec.bow_range_um,
-                        "residual_rms_um": spec.residual_rms_um, "residual_seed": spec.residual_seed,
-                        "concave": spec.concave, "height_map": spec.height_map,
-                        "range_um": float(np.ptp(maps[name].z) * 1e3)}
+        plates[name] = {
+            "file": fname,
+            "role": role,
+            "bow_range_um": spec.bow_range_um,
+            "residual_rms_um": spec.residual_rms_um,
+            "residual_seed": spec.residual_seed,
+            "concave": spec.concave,
+            "height_map": spec.height_map,
+            "range_um": float(np.ptp(maps[name].z) * 1e3),
+        }
     scene = unit_scene(setup, maps)
     box = _image_box(cfg, setup)
     noise = bool(cfg.dataset.noise or sample.exposure_fill is not None)
@@ -969,32 +1086,49 @@ def _write_cmu(plan: Plan, index: int, stage: _Stage) -> dict[str, Any]:
         res = focus if sample.defocus[ch] == 0 else analyse(setup, opt, n_pupil=cfg.cmu.n_pupil, image_distance=b)
         pose = CameraPose(b, sample.tilt_deg[ch], sample.offset_px[ch])
         rseed = sample_seed(master, index, f"render:{ch}")
-        img = render_channel(setup, ch, pose, sample.target, spp=spp, window=box, stop=cfg.cmu.stop, seed=rseed,
-                             scene=scene)
+        img = render_channel(
+            setup, ch, pose, sample.target, spp=spp, window=box, stop=cfg.cmu.stop, seed=rseed, scene=scene
+        )
         exposure, nseed = None, None
         if sensor is not None:
             peak = float(np.percentile(img, 99.9))  # Monte-Carlo outliers above it saturate, as hot spots would
             if not peak > 0:
-                raise ScopetwinError(f"sample {index}, channel {ch}: the rendered image is black: cannot choose an "
-                                     "exposure for the noise model")
+                raise ScopetwinError(
+                    f"sample {index}, channel {ch}: the rendered image is black: cannot choose an "
+                    "exposure for the noise model"
+                )
             exposure = sensor.exposure_for(peak, 1.0, fill)
             nseed = sample_seed(master, index, f"noise:{ch}")
             img = sensor.capture(img, 1.0, exposure, rng=nseed)
         fname = f"image_{ch}.exr"
-        prov = {"seed": rseed, "spp": spp, "renderer": "mitsuba-cmu", "channel": ch, "target": sample.target,
-                "noise_seed": nseed, "versions": versions()}
+        prov = {
+            "seed": rseed,
+            "spp": spp,
+            "renderer": "mitsuba-cmu",
+            "channel": ch,
+            "target": sample.target,
+            "noise_seed": nseed,
+            "versions": versions(),
+        }
         write_image(stage.path(fname), img, setup.to_json(), prov, image_distance_mm=float(b), scopetwin_channel=ch)
         files[f"image_{ch}"] = fname
         images.append(img)
         spec = setup.channels[ch]
-        channels[ch] = {"image": fname, "path": list(spec.path), "filter": spec.filter,
-                        "image_distance_mm": float(b), "refocused_image_distance_mm": focus.image_distance_mm,
-                        "defocus_mm": sample.defocus[ch],
-                        "camera": {"tilt_deg": pose.tilt_deg, "offset_px": list(pose.offset_px)},
-                        **_affine_truth(_object_to_pixel(setup, opt, ch, pose, box, half), setup.camera.pixel_um),
-                        "rms_spot_um": res.rms_spot_um, "astigmatism_mm": res.astigmatism_mm,
-                        "transmitted_fraction": res.transmitted_fraction,
-                        "exposure_e_per_unit": exposure, "seeds": {"render": rseed, "noise": nseed}}
+        channels[ch] = {
+            "image": fname,
+            "path": list(spec.path),
+            "filter": spec.filter,
+            "image_distance_mm": float(b),
+            "refocused_image_distance_mm": focus.image_distance_mm,
+            "defocus_mm": sample.defocus[ch],
+            "camera": {"tilt_deg": pose.tilt_deg, "offset_px": list(pose.offset_px)},
+            **_affine_truth(_object_to_pixel(setup, opt, ch, pose, box, half), setup.camera.pixel_um),
+            "rms_spot_um": res.rms_spot_um,
+            "astigmatism_mm": res.astigmatism_mm,
+            "transmitted_fraction": res.transmitted_fraction,
+            "exposure_e_per_unit": exposure,
+            "seeds": {"render": rseed, "noise": nseed},
+        }
     if cfg.dataset.preview:
         from sim.cli import _preview
 
@@ -1002,14 +1136,24 @@ def _write_cmu(plan: Plan, index: int, stage: _Stage) -> dict[str, Any]:
         _preview(stage.path("preview.png"), np.hstack(tiles))
         files["preview"] = "preview.png"
     target = setup.target if sample.target == "star" else setup.cells
-    truth = {"setup": setup.name, "scene": "cmu", "target": {"name": sample.target, **target.model_dump()},
-             "window": list(box), "stop": cfg.cmu.stop, "spp": spp,
-             "sensor": None if sensor is None else {**dataclasses.asdict(sensor), "fill_fraction": fill},
-             "channels": channels, "plates": plates,
-             "seeds": {"residual": {n: s.residual_seed for n, s in setup.splitters.items()},
-                       "cells": setup.cells.seed, "render": {c: v["seeds"]["render"] for c, v in channels.items()},
-                       "noise": {c: v["seeds"]["noise"] for c, v in channels.items()}},
-             "setup_json": json.loads(setup.to_json())}
+    truth = {
+        "setup": setup.name,
+        "scene": "cmu",
+        "target": {"name": sample.target, **target.model_dump()},
+        "window": list(box),
+        "stop": cfg.cmu.stop,
+        "spp": spp,
+        "sensor": None if sensor is None else {**dataclasses.asdict(sensor), "fill_fraction": fill},
+        "channels": channels,
+        "plates": plates,
+        "seeds": {
+            "residual": {n: s.residual_seed for n, s in setup.splitters.items()},
+            "cells": setup.cells.seed,
+            "render": {c: v["seeds"]["render"] for c, v in channels.items()},
+            "noise": {c: v["seeds"]["noise"] for c, v in channels.items()},
+        },
+        "setup_json": json.loads(setup.to_json()),
+    }
     return {"files": files, "truth": truth}
 
 
@@ -1045,8 +1189,13 @@ def generate_sample(plan_json: dict[str, Any], index: int, root: str, threads: i
             from scenes.io import write_json_atomic
 
             truth = out["truth"]
-            truth.update(sample=index, master_seed=plan.config.dataset.master_seed, kind=plan.config.dataset.kind,
-                         parameters=plan.parameters(index), versions=versions())
+            truth.update(
+                sample=index,
+                master_seed=plan.config.dataset.master_seed,
+                kind=plan.config.dataset.kind,
+                parameters=plan.parameters(index),
+                versions=versions(),
+            )
             write_json_atomic(stage / "truth.json", truth)
             body = {**record, "kind": plan.config.dataset.kind, "files": _sample_record(stage)}
             write_json_atomic(stage / SAMPLE_FILE, body)
@@ -1084,8 +1233,10 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
         import dask
         from distributed import Client, LocalCluster
     except ImportError as exc:
-        raise DatasetError(f"Dask distributed is not installed ({exc}); install dask[distributed] or use "
-                           "--workers 0 to work in this process") from None
+        raise DatasetError(
+            f"Dask distributed is not installed ({exc}); install dask[distributed] or use "
+            "--workers 0 to work in this process"
+        ) from None
     if scheduler:
         try:
             client = Client(scheduler, timeout="30s")
@@ -1096,11 +1247,21 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
         finally:
             client.close()
         return
-    with dask.config.set({"distributed.worker.multiprocessing-method": "spawn",
-                          "distributed.scheduler.allowed-failures": 5,
-                          "distributed.worker.memory.terminate": False}):
-        cluster = LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
-                               host="127.0.0.1", dashboard_address=None, silence_logs=logging.ERROR)
+    with dask.config.set(
+        {
+            "distributed.worker.multiprocessing-method": "spawn",
+            "distributed.scheduler.allowed-failures": 5,
+            "distributed.worker.memory.terminate": False,
+        }
+    ):
+        cluster = LocalCluster(
+            n_workers=workers or default_workers(),
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+            silence_logs=logging.ERROR,
+        )
         client = Client(cluster)
         try:
             yield client
@@ -1126,8 +1287,9 @@ def failure_text(err: BaseException) -> str:
     return str(err) if isinstance(err, TaskFailure) else f"{type(err).__name__}: {err}"
 
 
-def run_tasks(func: Callable[..., Any], args: Sequence[tuple], client: Any | None, keys: Sequence[str] | None = None
-              ) -> Iterator[tuple[int, Any, BaseException | None]]:
+def run_tasks(
+    func: Callable[..., Any], args: Sequence[tuple], client: Any | None, keys: Sequence[str] | None = None
+) -> Iterator[tuple[int, Any, BaseException | None]]:
     """Run ``func(*a)`` for every ``a`` in ``args``; yield (position, result, error) as each finishes.
 
     ``client`` None runs in this process, in order. Errors are yielded, not raised, so one bad
@@ -1142,8 +1304,9 @@ def run_tasks(func: Callable[..., Any], args: Sequence[tuple], client: Any | Non
         return
     from distributed import as_completed
 
-    futures = [client.submit(_guarded, func, *a, key=None if keys is None else keys[k], pure=False)
-               for k, a in enumerate(args)]
+    futures = [
+        client.submit(_guarded, func, *a, key=None if keys is None else keys[k], pure=False) for k, a in enumerate(args)
+    ]
     position = {f.key: k for k, f in enumerate(futures)}
     try:
         for fut in as_completed(futures):
@@ -1200,9 +1363,15 @@ def _check_sample(folder: Path, expected: dict[str, Any] | None = None) -> str |
 
 def _manifest_line(rec: dict[str, Any], worker: str) -> dict[str, Any]:
     keep = {k: rec[k] for k in ("index", "name", "kind", "files") if k in rec}
-    return {**keep, "status": rec.get("status", "written"), "seconds": round(float(rec.get("seconds", 0.0)), 3),
-            "worker": worker, "host": socket.gethostname(), "pid": os.getpid(),
-            "finished_utc": datetime.now(UTC).isoformat(timespec="seconds")}
+    return {
+        **keep,
+        "status": rec.get("status", "written"),
+        "seconds": round(float(rec.get("seconds", 0.0)), 3),
+        "worker": worker,
+        "host": socket.gethostname(),
+        "pid": os.getpid(),
+        "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
 
 
 def _append(fh, row: dict[str, Any]) -> None:
@@ -1246,9 +1415,13 @@ def recover(root: Path) -> dict[str, Any]:
             relisted.append(idx)
         kept.append(row)
     write_text_atomic(root / MANIFEST, "".join(json.dumps(r, separators=(",", ":")) + "\n" for r in kept))
-    return {"removed_temporary": sorted(removed_tmp), "dropped_manifest_lines": bad_lines + len(rows) - len(kept)
-            + len(relisted), "corrupt_removed": corrupt, "relisted": relisted, "done": sorted(folders.keys()
-                                                                                                - set(corrupt))}
+    return {
+        "removed_temporary": sorted(removed_tmp),
+        "dropped_manifest_lines": bad_lines + len(rows) - len(kept) + len(relisted),
+        "corrupt_removed": corrupt,
+        "relisted": relisted,
+        "done": sorted(folders.keys() - set(corrupt)),
+    }
 
 
 def _write_plan(root: Path, plan: Plan) -> None:
@@ -1259,8 +1432,10 @@ def _write_plan(root: Path, plan: Plan) -> None:
     if path.exists():
         old = json.loads(path.read_text())
         if old != json.loads(json.dumps(new)):
-            raise DatasetError(f"{root} already holds a different dataset ({CONFIG_FILE} differs); choose another "
-                               "--out or `scopetwin dataset resume` it")
+            raise DatasetError(
+                f"{root} already holds a different dataset ({CONFIG_FILE} differs); choose another "
+                "--out or `scopetwin dataset resume` it"
+            )
         return
     write_json_atomic(path, new)
 
@@ -1278,9 +1453,16 @@ def parse_indices(text: str | None, count: int) -> list[int]:
     return list(range(a, b))
 
 
-def generate(plan: Plan, out: str | Path, scheduler: str | None = None, workers: int | None = None,
-             threads: int | None = None, indices: Sequence[int] | None = None, progress: bool = True,
-             client: Any | None = None) -> dict[str, Any]:
+def generate(
+    plan: Plan,
+    out: str | Path,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    threads: int | None = None,
+    indices: Sequence[int] | None = None,
+    progress: bool = True,
+    client: Any | None = None,
+) -> dict[str, Any]:
     """Generate (or finish) the samples ``indices`` of a dataset in ``out``.
 
     Parameters
@@ -1317,8 +1499,14 @@ def generate(plan: Plan, out: str | Path, scheduler: str | None = None, workers:
     t0 = time.perf_counter()
     failures: dict[int, str] = {}
     written = 0
-    bar = tqdm(total=len(wanted), initial=len(wanted) - len(todo), unit="sample", desc="dataset", disable=not progress,
-               smoothing=0.1)
+    bar = tqdm(
+        total=len(wanted),
+        initial=len(wanted) - len(todo),
+        unit="sample",
+        desc="dataset",
+        disable=not progress,
+        smoothing=0.1,
+    )
     if client is not None:
         ctx: Any = contextlib.nullcontext(client)
     elif workers == 0 and not scheduler:
@@ -1341,13 +1529,22 @@ def generate(plan: Plan, out: str | Path, scheduler: str | None = None, workers:
     for p in (root / SAMPLES).glob(f"{TMP_PREFIX}*"):  # left by a worker that died mid-sample (its task was redone)
         shutil.rmtree(p, ignore_errors=True)
     seconds = time.perf_counter() - t0
-    result = {"out": str(root), "requested": len(wanted), "already_done": len(wanted) - len(todo),
-              "written": written, "failed": failures, "seconds": seconds,
-              "samples_per_minute": 60.0 * len(todo) / seconds if todo and seconds > 0 else None, "recovery": state}
+    result = {
+        "out": str(root),
+        "requested": len(wanted),
+        "already_done": len(wanted) - len(todo),
+        "written": written,
+        "failed": failures,
+        "seconds": seconds,
+        "samples_per_minute": 60.0 * len(todo) / seconds if todo and seconds > 0 else None,
+        "recovery": state,
+    }
     if failures:
         first = next(iter(failures.items()))
-        raise DatasetError(f"{len(failures)} sample(s) failed (first: sample {first[0]}: {first[1]}); the others are "
-                           f"written; fix the cause and run `scopetwin dataset resume {root}`")
+        raise DatasetError(
+            f"{len(failures)} sample(s) failed (first: sample {first[0]}: {first[1]}); the others are "
+            f"written; fix the cause and run `scopetwin dataset resume {root}`"
+        )
     return result
 
 
@@ -1397,9 +1594,19 @@ def verify(root: str | Path) -> dict[str, Any]:
         elif i not in duplicates:
             complete += 1
     extra = sorted(i for i in by_index if not 0 <= i < count)
-    result = {"complete": complete, "missing": missing, "corrupt": corrupt, "duplicates": duplicates,
-              "count": count, "unlisted": unlisted, "temporary": temporary, "stray_folders": stray,
-              "manifest_out_of_range": extra, "bad_manifest_lines": bad}
-    result["ok"] = (complete == count and not (missing or corrupt or duplicates or unlisted or temporary or stray
-                                               or extra or bad))
+    result = {
+        "complete": complete,
+        "missing": missing,
+        "corrupt": corrupt,
+        "duplicates": duplicates,
+        "count": count,
+        "unlisted": unlisted,
+        "temporary": temporary,
+        "stray_folders": stray,
+        "manifest_out_of_range": extra,
+        "bad_manifest_lines": bad,
+    }
+    result["ok"] = complete == count and not (
+        missing or corrupt or duplicates or unlisted or temporary or stray or extra or bad
+    )
     return result

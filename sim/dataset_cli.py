@@ -16,8 +16,12 @@ from typing import Any
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler, e.g. tcp://host:8786")
-    p.add_argument("--workers", type=int, metavar="N",
-                   help="local worker processes (default: one per core; 0: no Dask, work in this process)")
+    p.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="local worker processes (default: one per core; 0: no Dask, work in this process)",
+    )
     p.add_argument("--threads", type=int, metavar="N", help="Dr.Jit threads per worker (default 1 on a local cluster)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
@@ -36,8 +40,10 @@ def _check_workers(args: argparse.Namespace) -> None:
 
 def _report(result: dict[str, Any]) -> None:
     rate = result["samples_per_minute"]
-    print(f"{result['written']} sample(s) written, {result['already_done']} already done, of {result['requested']} "
-          f"in {result['seconds']:.1f} s" + (f" ({rate:.1f} samples/min)" if rate else "") + f" -> {result['out']}")
+    print(
+        f"{result['written']} sample(s) written, {result['already_done']} already done, of {result['requested']} "
+        f"in {result['seconds']:.1f} s" + (f" ({rate:.1f} samples/min)" if rate else "") + f" -> {result['out']}"
+    )
 
 
 def cmd_generate(args: argparse.Namespace) -> dict[str, Any]:
@@ -68,9 +74,11 @@ def cmd_verify(args: argparse.Namespace) -> int:
     from sim.dataset import verify
 
     result = verify(args.dir)
-    print(f"{result['complete']} of {result['count']} samples complete; missing {len(result['missing'])}, corrupt "
-          f"{len(result['corrupt'])}, duplicated {len(result['duplicates'])}, unlisted {len(result['unlisted'])}, "
-          f"temporary {len(result['temporary'])}")
+    print(
+        f"{result['complete']} of {result['count']} samples complete; missing {len(result['missing'])}, corrupt "
+        f"{len(result['corrupt'])}, duplicated {len(result['duplicates'])}, unlisted {len(result['unlisted'])}, "
+        f"temporary {len(result['temporary'])}"
+    )
     for c in result["corrupt"][:10]:
         print(f"  corrupt sample {c['index']}: {c['reason']}")
     if args.json:
@@ -80,8 +88,11 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 def register(subparsers: Any) -> None:
     """Add ``dataset generate | resume | verify`` to the ``scopetwin`` parser."""
-    top = subparsers.add_parser("dataset", help="synthetic datasets with exact truth (local or on a Dask cluster)",
-                                description=__doc__.splitlines()[0])
+    top = subparsers.add_parser(
+        "dataset",
+        help="synthetic datasets with exact truth (local or on a Dask cluster)",
+        description=__doc__.splitlines()[0],
+    )
     sub = top.add_subparsers(dest="dataset_command", required=True)
 
     p = sub.add_parser("generate", help="render a dataset described by a config TOML")

@@ -41,8 +41,14 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     g.add_argument("--spp", type=int, default=16, help="samples per pixel for --image (default 16)")
     g.add_argument("--width", type=int, help="image width in pixels (default: the camera's)")
     g.add_argument("--height", type=int, help="image height in pixels (default: the camera's)")
-    g.add_argument("--target-offset", type=float, nargs=2, default=(0.0, 0.0), metavar=("X", "Y"),
-                   help="shift the target pattern from the axis (mm)")
+    g.add_argument(
+        "--target-offset",
+        type=float,
+        nargs=2,
+        default=(0.0, 0.0),
+        metavar=("X", "Y"),
+        help="shift the target pattern from the axis (mm)",
+    )
     g.add_argument("--seed", type=int, default=0, help="sampler seed for --image")
     g.set_defaults(func=cmd_grin)
     s = sub.add_parser("scan", help="scan-time models (§7.2-7.4) and objective count (§8.2.2)")
@@ -90,25 +96,36 @@ def print_report(rep: Any, setup: Any) -> None:
     """Print ours beside the seed's Zemax figures, and the layout reading used."""
     lay = setup.layout
     print(f"{setup.section} {setup.name}: {setup.description}")
-    print(f"layout: substrate1 {lay.substrate1_side}, substrate2 {lay.substrate2_side}, object distance "
-          f"{'includes' if setup.object.distance_includes_cover else 'excludes'} the {setup.object.cover_thickness} mm "
-          f"cover glass, rod coefficients at "
-          f"{setup.rod1.profile.wavelength_ref_nm or setup.wavelength_nm} nm (design {setup.wavelength_nm} nm)")
+    print(
+        f"layout: substrate1 {lay.substrate1_side}, substrate2 {lay.substrate2_side}, object distance "
+        f"{'includes' if setup.object.distance_includes_cover else 'excludes'} the {setup.object.cover_thickness} mm "
+        f"cover glass, rod coefficients at "
+        f"{setup.rod1.profile.wavelength_ref_nm or setup.wavelength_nm} nm (design {setup.wavelength_nm} nm)"
+    )
     print(f"{'quantity':24s} {'ours':>10s} {'seed':>10s} {'diff':>8s}")
     for label, ours, theirs in _comparison_rows(rep):
-        diff = "-" if theirs is None or (isinstance(theirs, float) and math.isnan(theirs)) or not theirs else \
-            f"{100 * (ours - theirs) / theirs:+.1f}%"
+        diff = (
+            "-"
+            if theirs is None or (isinstance(theirs, float) and math.isnan(theirs)) or not theirs
+            else f"{100 * (ours - theirs) / theirs:+.1f}%"
+        )
         print(f"{label:24s} {_fmt(ours):>10s} {_fmt(theirs):>10s} {diff:>8s}")
-    print(f"EFL {rep.efl_mm:.4f} mm, paraxial image distance {rep.paraxial_image_distance_mm:.3f} mm, real "
-          f"magnification {rep.magnification_real:.3f}, image NA {rep.na_image:.4f}")
+    print(
+        f"EFL {rep.efl_mm:.4f} mm, paraxial image distance {rep.paraxial_image_distance_mm:.3f} mm, real "
+        f"magnification {rep.magnification_real:.3f}, image NA {rep.na_image:.4f}"
+    )
     if rep.rms_spot_at_seed_plane_um:
-        print(f"RMS at the seed's image distance: axis {rep.rms_spot_at_seed_plane_um['axis']:.3f} µm, "
-              f"edge {rep.rms_spot_at_seed_plane_um['edge']:.3f} µm")
+        print(
+            f"RMS at the seed's image distance: axis {rep.rms_spot_at_seed_plane_um['axis']:.3f} µm, "
+            f"edge {rep.rms_spot_at_seed_plane_um['edge']:.3f} µm"
+        )
     print(f"OPD rms (waves): axis {rep.opd_rms_waves['axis']:.3f}, edge {rep.opd_rms_waves['edge']:.3f}")
     for key, r in rep.rods.items():
-        print(f"{key}: L {r['length_mm']:.3f} mm, g {r['g_per_mm']:.5f}/mm, pitch {r['pitch_mm']:.3f} mm "
-              f"({r['pitch_fraction']:.4f} P), EFL {r['efl_mm']:.4f} mm, "
-              f"working distance {r['working_distance_mm']:.4f} mm")
+        print(
+            f"{key}: L {r['length_mm']:.3f} mm, g {r['g_per_mm']:.5f}/mm, pitch {r['pitch_mm']:.3f} mm "
+            f"({r['pitch_fraction']:.4f} P), EFL {r['efl_mm']:.4f} mm, "
+            f"working distance {r['working_distance_mm']:.4f} mm"
+        )
 
 
 def write_spots(path: Path, setup: Any, stack: Any, image_distance: float, na: float) -> None:
@@ -127,8 +144,9 @@ def write_spots(path: Path, setup: Any, stack: Any, image_distance: float, na: f
         cx, cy = x.mean(), y.mean()
         ax.plot((x - cx) * 1e3, (y - cy) * 1e3, ".", ms=1.5)
         ax.set_aspect("equal")
-        ax.set_title(f"field {f:.1f} ({f * setup.object.field_radius * 1e3:.0f} µm): "
-                     f"RMS {rms_radius(x, y) * 1e3:.2f} µm")
+        ax.set_title(
+            f"field {f:.1f} ({f * setup.object.field_radius * 1e3:.0f} µm): RMS {rms_radius(x, y) * 1e3:.2f} µm"
+        )
         ax.set_xlabel("x (µm)")
         ax.set_ylabel("y (µm)")
     fig.suptitle(f"{setup.section} spot diagrams, image plane {image_distance:.3f} mm")
@@ -160,9 +178,11 @@ def cmd_grin(args: argparse.Namespace) -> int:
         rows = sensitivity(setup)
         print(f"\n{'reading':40s} {'m_par':>6s} {'d_par':>7s} {'d_best':>7s} {'NA':>6s} {'rms0':>7s} {'rms1':>7s}")
         for r in rows:
-            print(f"{r['reading']:40s} {r['magnification_paraxial']:6.3f} {r['paraxial_image_distance_mm']:7.3f} "
-                  f"{r['image_distance_mm']:7.3f} {r['na_object']:6.3f} {r['rms_axis_um']:7.3f} "
-                  f"{r['rms_edge_um']:7.3f}")
+            print(
+                f"{r['reading']:40s} {r['magnification_paraxial']:6.3f} {r['paraxial_image_distance_mm']:7.3f} "
+                f"{r['image_distance_mm']:7.3f} {r['na_object']:6.3f} {r['rms_axis_um']:7.3f} "
+                f"{r['rms_edge_um']:7.3f}"
+            )
         result["sensitivity"] = rows
     stack = setup.stack(image_distance=rep.image_distance_mm)
     if rep.stop_radius_mm is not None:
@@ -175,12 +195,18 @@ def cmd_grin(args: argparse.Namespace) -> int:
 
         t0 = time.perf_counter()
         centre = (0.0, 0.0) if setup.array.nx * setup.array.ny > 1 else setup.array.axes()[0]
-        img = render_image(setup, stack, tgt, spp=args.spp, width=args.width, height=args.height, center=centre,
-                           seed=args.seed)
+        img = render_image(
+            setup, stack, tgt, spp=args.spp, width=args.width, height=args.height, center=centre, seed=args.seed
+        )
         seconds = time.perf_counter() - t0
-        write_image(args.out, img, setup.to_json(),
-                    {"seed": "000_a2b7d38b4750eb48", "section": setup.section, "spp": args.spp, "target": tgt.name},
-                    image_distance_mm=float(rep.image_distance_mm), pixel_um=float(setup.camera.pixel_um))
+        write_image(
+            args.out,
+            img,
+            setup.to_json(),
+            {"seed": "000_a2b7d38b4750eb48", "section": setup.section, "spp": args.spp, "target": tgt.name},
+            image_distance_mm=float(rep.image_distance_mm),
+            pixel_um=float(setup.camera.pixel_um),
+        )
         print(f"image of {tgt.name}: {img.shape[1]}x{img.shape[0]} px, {args.spp} spp, {seconds:.2f} s -> {args.out}")
         result["image"] = str(args.out)
         result["seconds"] = seconds
@@ -199,12 +225,24 @@ def cmd_scan(args: argparse.Namespace) -> int:
     t_par = tp.scan_time_parallel(args.lens_diameter, args.w_fov, args.height, args.v_scan, args.n_y)
     geo = tp.demonstrator_geometry(args.sensor_side, args.lens_diameter, args.magnification, args.fov, args.spacing)
     print(f"§7.2 classic: T_I = {classic['t_i_s']:.1f} s, T_M = {classic['t_m_s']:.1f} s, T = {classic['t_s']:.1f} s")
-    print(f"§7.3 scanning with N = {args.n}: T_N = {t_n:.1f} s; eq. 7.2 (N_y = {args.n_y}): T = {t_par:.1f} s, "
-          f"N_scans = {tp.scans_needed(args.lens_diameter, args.w_fov):.2f}")
+    print(
+        f"§7.3 scanning with N = {args.n}: T_N = {t_n:.1f} s; eq. 7.2 (N_y = {args.n_y}): T = {t_par:.1f} s, "
+        f"N_scans = {tp.scans_needed(args.lens_diameter, args.w_fov):.2f}"
+    )
     print("§7.4 scaling: T ~ s^1.5 when N_y ~ 1/s (eq. 7.6): s = 1/4 -> T/8")
-    print(f"§8.2.2: N_max = {geo['n_max']}, d_L,max = {geo['d_l_max_mm']:.3f} mm, N at d_L = {args.spacing} mm: "
-          f"{geo['n_at_d_l']}  (seed: N_max = 2, d_L,max = 2.848 mm)")
+    print(
+        f"§8.2.2: N_max = {geo['n_max']}, d_L,max = {geo['d_l_max_mm']:.3f} mm, N at d_L = {args.spacing} mm: "
+        f"{geo['n_at_d_l']}  (seed: N_max = 2, d_L,max = 2.848 mm)"
+    )
     if args.json is not None:
-        write_json_atomic(args.json, {"classic": classic, "t_n_s": t_n, "t_parallel_s": t_par,
-                                      "n_scans": tp.scans_needed(args.lens_diameter, args.w_fov), **geo})
+        write_json_atomic(
+            args.json,
+            {
+                "classic": classic,
+                "t_n_s": t_n,
+                "t_parallel_s": t_par,
+                "n_scans": tp.scans_needed(args.lens_diameter, args.w_fov),
+                **geo,
+            },
+        )
     return 0

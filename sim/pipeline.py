@@ -69,9 +69,17 @@ def calibrate_from_images(target_setup, mirror_setup, img_target, img_mirror):
     found_m = find_markers_for(img_mirror, mirror_setup)
     xs = tp.centers_local(found_s.ij)
     xm = virtual_coordinates(pp, found_m.ij)
-    result = calibrate_setup(xs, found_s.centroids, prior_s, xm, found_m.centroids, prior_m, target_frame=tframe,
-                             substrate_bias=spot_bias_model(xs, tp.radii(found_s.ij)),
-                             mirror_bias=spot_bias_model(xm, pp.radii(found_m.ij)))
+    result = calibrate_setup(
+        xs,
+        found_s.centroids,
+        prior_s,
+        xm,
+        found_m.centroids,
+        prior_m,
+        target_frame=tframe,
+        substrate_bias=spot_bias_model(xs, tp.radii(found_s.ij)),
+        mirror_bias=spot_bias_model(xm, pp.radii(found_m.ij)),
+    )
     data = calibrated_setup_dict(mirror_setup, result)
     text = toml_dumps(data, "scopetwin run: setup calibrated as in seed §2.7")
     return setup_from_dict(data, "calibrated setup"), text
@@ -85,9 +93,14 @@ def roi_errors(surface_height, truth, sub, step: float = 0.2) -> dict[str, float
     err = (surface_height(xx, yy) - truth.height(xx, yy)) * 1e3
     roi = np.abs(yy) < 0.5 * sub.roi_length
     e = err[roi]
-    return {"roi_absolute_um": float(e.mean()), "roi_shape_um": float(e.std()),
-            "roi_rms_um": float(np.sqrt(np.mean(e**2))), "roi_max_um": float(np.abs(e).max()),
-            "all_rms_um": float(np.sqrt(np.mean(err**2))), "all_max_um": float(np.abs(err).max())}
+    return {
+        "roi_absolute_um": float(e.mean()),
+        "roi_shape_um": float(e.std()),
+        "roi_rms_um": float(np.sqrt(np.mean(e**2))),
+        "roi_max_um": float(np.abs(e).max()),
+        "all_rms_um": float(np.sqrt(np.mean(err**2))),
+        "all_max_um": float(np.abs(err).max()),
+    }
 
 
 def _plots(out: Path, image, found, truth, results: dict[str, Any], sub) -> list[str]:
@@ -246,8 +259,11 @@ def _run(out_dir: Path, spp: int | None, seed: int | None, progress: bool) -> di
         t0 = time.perf_counter()
         rec = Reconstructor.from_setup(s, bias=centroid_bias_step(s))
         res = rec.run(obs, history_path=out / f"{name}-history.json")
-        results[name] = {"result": res, "seconds": time.perf_counter() - t0,
-                         "errors": roi_errors(res.surface.height, heights, sub)}
+        results[name] = {
+            "result": res,
+            "seconds": time.perf_counter() - t0,
+            "errors": roi_errors(res.surface.height, heights, sub),
+        }
     t = tick("detect + reconstruct", t)
 
     truth = marker_truth(setup, heights)
@@ -266,36 +282,54 @@ def _run(out_dir: Path, spp: int | None, seed: int | None, progress: bool) -> di
     for name, r in results.items():
         hm = r["result"].heightmap(heights.z.shape[1] // 2, heights.z.shape[0] // 2)
         write_heightmap(out / f"heights-{name}.exr", hm)
-        err = HeightMap(hm.z - heights.height(*np.meshgrid(hm.x_nodes, hm.y_nodes)), hm.x_min, hm.x_max,
-                        hm.y_min, hm.y_max)
+        err = HeightMap(
+            hm.z - heights.height(*np.meshgrid(hm.x_nodes, hm.y_nodes)), hm.x_min, hm.x_max, hm.y_min, hm.y_max
+        )
         write_heightmap(out / f"error-{name}.exr", err)
         files += [f"heights-{name}.exr", f"error-{name}.exr"]
-    fm = focus_map(results["calibrated"]["result"].surface.height, sub.x_range,
-                   (-0.5 * sub.roi_length, 0.5 * sub.roi_length))
+    fm = focus_map(
+        results["calibrated"]["result"].surface.height, sub.x_range, (-0.5 * sub.roi_length, 0.5 * sub.roi_length)
+    )
     (out / "focusmap.csv").write_text(fm.to_csv())
     files += ["focusmap.csv"] + _plots(out, image, found, heights, results, sub)
 
     summary: dict[str, Any] = {
-        "surface": {"range_um": setup.substrate.surface.range_um,
-                    "correlation_length_mm": setup.substrate.surface.correlation_length,
-                    "seed": setup.substrate.surface.seed},
-        "spp": r_spp, "render_seed": r_seed, "markers": int(len(obs.ij)), "calibration": calibration_note,
-        "reconstructions": {name: {**r["errors"], "outer_iterations": r["result"].outer_iterations,
-                                   "inner_iterations": r["result"].inner_iterations,
-                                   "delta_h_max_um": r["result"].delta_h_max_um, "seconds": r["seconds"],
-                                   "sigma_mm": r["result"].surface.basis.sigma[0],
-                                   "history": r["result"].history_dicts()}
-                            for name, r in results.items()},
+        "surface": {
+            "range_um": setup.substrate.surface.range_um,
+            "correlation_length_mm": setup.substrate.surface.correlation_length,
+            "seed": setup.substrate.surface.seed,
+        },
+        "spp": r_spp,
+        "render_seed": r_seed,
+        "markers": int(len(obs.ij)),
+        "calibration": calibration_note,
+        "reconstructions": {
+            name: {
+                **r["errors"],
+                "outer_iterations": r["result"].outer_iterations,
+                "inner_iterations": r["result"].inner_iterations,
+                "delta_h_max_um": r["result"].delta_h_max_um,
+                "seconds": r["seconds"],
+                "sigma_mm": r["result"].surface.basis.sigma[0],
+                "history": r["result"].history_dicts(),
+            }
+            for name, r in results.items()
+        },
         "exact_markers": {**exact_err, "outer_iterations": res_exact.outer_iterations},
-        "focus_map": fm.summary(), "timings_s": timings, "files": files,
+        "focus_map": fm.summary(),
+        "timings_s": timings,
+        "files": files,
     }
     if calibrated is not None:
         cam_i, cam_c = setup.camera_model, calibrated.camera_model
         pat_i, pat_c = setup.marker_pattern.frame, calibrated.marker_pattern.frame
         summary["calibration_deviation"] = {
-            "camera_r_c_mm": (cam_c.center - cam_i.center).tolist(), "camera_b_mm": cam_c.b - cam_i.b,
+            "camera_r_c_mm": (cam_c.center - cam_i.center).tolist(),
+            "camera_b_mm": cam_c.b - cam_i.b,
             "camera_n_z": (cam_c.frame.nz - cam_i.frame.nz).tolist(),
-            "pattern_r_c_mm": (pat_c.origin - pat_i.origin).tolist(), "pattern_n_z": (pat_c.nz - pat_i.nz).tolist()}
+            "pattern_r_c_mm": (pat_c.origin - pat_i.origin).tolist(),
+            "pattern_n_z": (pat_c.nz - pat_i.nz).tolist(),
+        }
     summary["seconds"] = time.perf_counter() - t_start
     (out / "report.md").write_text(_report(summary))
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
@@ -309,16 +343,21 @@ def _report(s: dict[str, Any]) -> str:
     ex = s["exact_markers"]
     surf = s["surface"]
     lines = [
-        "# scopetwin run: deflectometric reconstruction end to end", "",
+        "# scopetwin run: deflectometric reconstruction end to end",
+        "",
         f"Surface: §1.9 generator, {surf['range_um']:g} µm range, Gaussian low-pass sigma "
         f"{surf['correlation_length_mm']:g} mm, seed {surf['seed']}. Renders: Mitsuba, {s['spp']} spp, "
         "sensor noise on. "
-        f"{s['markers']} markers detected and indexed in the measurement image.", "",
-        f"Calibration: {s['calibration']}.", "",
+        f"{s['markers']} markers detected and indexed in the measurement image.",
+        "",
+        f"Calibration: {s['calibration']}.",
+        "",
         "Reconstruction: Gaussian shifted basis (sigma 12 mm, ridge-regularised, plane terms), centroid-bias "
         "correction in the inner loop, start height by a secant root search on the frame criterion "
-        "(both frame maxima at the frame position).", "",
-        "## ROI errors beside the seed (µm)", "",
+        "(both frame maxima at the frame position).",
+        "",
+        "## ROI errors beside the seed (µm)",
+        "",
         "| reconstruction | ROI RMS | ROI max | absolute (ROI mean) | shape (RMS - mean) | whole RMS | outer | inner "
         "| seed ROI RMS | seed ROI max |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -326,27 +365,40 @@ def _report(s: dict[str, Any]) -> str:
     for name in ("ideal", "calibrated"):
         r = rec[name]
         sd = SEED[name]
-        lines.append(f"| {name} setup | {r['roi_rms_um']:.4f} | {r['roi_max_um']:.4f} | {r['roi_absolute_um']:+.4f} "
-                     f"| {r['roi_shape_um']:.4f} | {r['all_rms_um']:.3f} | {r['outer_iterations']} | "
-                     f"{r['inner_iterations']} | {sd['roi_rms_um']} | {sd['roi_max_um']} |")
-    lines.append(f"| exact marker images, ideal setup | {ex['roi_rms_um']:.4f} | {ex['roi_max_um']:.4f} | "
-                 f"{ex['roi_absolute_um']:+.4f} | {ex['roi_shape_um']:.4f} | {ex['all_rms_um']:.3f} | "
-                 f"{ex['outer_iterations']} | | | |")
+        lines.append(
+            f"| {name} setup | {r['roi_rms_um']:.4f} | {r['roi_max_um']:.4f} | {r['roi_absolute_um']:+.4f} "
+            f"| {r['roi_shape_um']:.4f} | {r['all_rms_um']:.3f} | {r['outer_iterations']} | "
+            f"{r['inner_iterations']} | {sd['roi_rms_um']} | {sd['roi_max_um']} |"
+        )
+    lines.append(
+        f"| exact marker images, ideal setup | {ex['roi_rms_um']:.4f} | {ex['roi_max_um']:.4f} | "
+        f"{ex['roi_absolute_um']:+.4f} | {ex['roi_shape_um']:.4f} | {ex['all_rms_um']:.3f} | "
+        f"{ex['outer_iterations']} | | | |"
+    )
     lines += ["", "Seed figures: §1.10 height distribution 2 (ideal) and §2.8.4 Table 2.7 (calibrated).", ""]
     if "calibration_deviation" in s:
         d = s["calibration_deviation"]
-        lines += ["## Calibration deviation from the ideal setup", "",
-                  f"- camera r_c: {np.round(d['camera_r_c_mm'], 5).tolist()} mm, b: {d['camera_b_mm']:+.2e} mm, "
-                  f"N_z: {np.round(d['camera_n_z'], 7).tolist()}",
-                  f"- pattern r_c: {np.round(d['pattern_r_c_mm'], 5).tolist()} mm, "
-                  f"N_z: {np.round(d['pattern_n_z'], 7).tolist()}", ""]
+        lines += [
+            "## Calibration deviation from the ideal setup",
+            "",
+            f"- camera r_c: {np.round(d['camera_r_c_mm'], 5).tolist()} mm, b: {d['camera_b_mm']:+.2e} mm, "
+            f"N_z: {np.round(d['camera_n_z'], 7).tolist()}",
+            f"- pattern r_c: {np.round(d['pattern_r_c_mm'], 5).tolist()} mm, "
+            f"N_z: {np.round(d['pattern_n_z'], 7).tolist()}",
+            "",
+        ]
     fm = s["focus_map"]
-    lines += ["## Focus map", "",
-              f"{fm['fields']} fields over the ROI (10x / NA 0.45 objective, depth of field "
-              f"{fm['depth_of_field_um']:.2f} µm); focus range {fm['focus_range_um']:.1f} µm = "
-              f"{fm['height_range_over_dof']:.0f} depths of field; {fm['fields_in_focus']} fields lie wholly within "
-              "the depth of field. Table: focusmap.csv.", "",
-              "## Timings (s)", ""]
+    lines += [
+        "## Focus map",
+        "",
+        f"{fm['fields']} fields over the ROI (10x / NA 0.45 objective, depth of field "
+        f"{fm['depth_of_field_um']:.2f} µm); focus range {fm['focus_range_um']:.1f} µm = "
+        f"{fm['height_range_over_dof']:.0f} depths of field; {fm['fields_in_focus']} fields lie wholly within "
+        "the depth of field. Table: focusmap.csv.",
+        "",
+        "## Timings (s)",
+        "",
+    ]
     lines += [f"- {k}: {v:.2f}" for k, v in s["timings_s"].items()]
     lines += ["", f"Total {s['seconds']:.1f} s.", "", "Files: " + ", ".join(s["files"]), ""]
     return "\n".join(lines)

@@ -26,8 +26,7 @@ def _grid(spec: SurfaceSpec, size: tuple[float, float]) -> tuple[Array, Array]:
     return np.meshgrid(x, y)
 
 
-def lowpass_noise(shape: tuple[int, int], spacing: tuple[float, float], correlation_length: float,
-                  seed: int) -> Array:
+def lowpass_noise(shape: tuple[int, int], spacing: tuple[float, float], correlation_length: float, seed: int) -> Array:
     """White noise in [0, 1] low-pass filtered in the Fourier domain (seed §1.9, Fig. 1.9 a-b).
 
     The filter is Gaussian, exp(-2 pi^2 sigma^2 |f|^2) with sigma = ``correlation_length``
@@ -56,7 +55,7 @@ def lowpass_noise(shape: tuple[int, int], spacing: tuple[float, float], correlat
     fx = np.fft.rfftfreq(nx, d=dx)[None, :]
     spectrum *= np.exp(-2.0 * np.pi**2 * correlation_length**2 * (fx**2 + fy**2))
     smooth = np.fft.irfft2(spectrum, s=(ny, nx))
-    return smooth[pad_y: pad_y + shape[0], pad_x: pad_x + shape[1]]
+    return smooth[pad_y : pad_y + shape[0], pad_x : pad_x + shape[1]]
 
 
 def level_on_frame(z: Array, y: Array, roi_length: float) -> Array:

@@ -21,8 +21,9 @@ def _positive(**values: float) -> None:
             raise ThroughputError(f"{name} must be a positive number, got {v!r}")
 
 
-def classic_time(width: float, height: float, d_w: float, d_h: float, exposure_s: float,
-                 velocity: float) -> dict[str, float]:
+def classic_time(
+    width: float, height: float, d_w: float, d_h: float, exposure_s: float, velocity: float
+) -> dict[str, float]:
     """Stop-and-go acquisition with one objective (seed §7.2): T_I, T_M and T = T_I + T_M.
 
     T_I = (W/d_w) τ_e (H/d_h), T_M = ((W/d_w) H + W) / v.
@@ -66,16 +67,19 @@ class ScalingModel:
         _positive(s=s)
         inner = (self.wavelength / (s * self.na) - self.a) / self.b
         if inner <= 0:
-            raise ThroughputError(f"at scale {s:g} the aberration A·s = {self.a * s:g} mm already exceeds the "
-                                  f"diffraction limit λ/NA = {self.wavelength / self.na:g} mm: no field is left")
+            raise ThroughputError(
+                f"at scale {s:g} the aberration A·s = {self.a * s:g} mm already exceeds the "
+                f"diffraction limit λ/NA = {self.wavelength / self.na:g} mm: no field is left"
+            )
         return s * math.sqrt(inner)
 
     def w_fov(self, s: float) -> float:
         """w_FOV,s = 2 r_max,s / m (§7.4)."""
         return 2.0 * self.r_max(s) / self.magnification
 
-    def scan_time(self, s: float, d_l: float, height: float, v_scan: float, n_y: float,
-                  pack_rows: bool = True) -> float:
+    def scan_time(
+        self, s: float, d_l: float, height: float, v_scan: float, n_y: float, pack_rows: bool = True
+    ) -> float:
         """Eq. 7.5 (N_y fixed, T ~ √s for small A) or, with ``pack_rows``, N_y ~ 1/s (eq. 7.6, T ~ s^1.5)."""
         rows = n_y / s if pack_rows else n_y
         return s * d_l / self.w_fov(s) * height / v_scan / rows
@@ -99,13 +103,19 @@ def spacing_max(s: float, d_l_diameter: float, m: float, fov: float) -> float:
     """d_L,max = (S - N_max m FOV) / (N_max - 1) + D_L (§8.2.2)."""
     n = objective_count_max(s, m, fov)
     if n < 2:
-        raise ThroughputError(f"only {n} objective fits on the sensor (S = {s} mm, m FOV = {m * fov:g} mm): "
-                              "no spacing to choose")
+        raise ThroughputError(
+            f"only {n} objective fits on the sensor (S = {s} mm, m FOV = {m * fov:g} mm): no spacing to choose"
+        )
     return (s - n * m * fov) / (n - 1) + d_l_diameter
 
 
-def demonstrator_geometry(s: float = 4.28, d_l_diameter: float = 2.0, m: float = 4.29, fov: float = 0.4,
-                          d_l: float = 2.25) -> dict[str, float]:
+def demonstrator_geometry(
+    s: float = 4.28, d_l_diameter: float = 2.0, m: float = 4.29, fov: float = 0.4, d_l: float = 2.25
+) -> dict[str, float]:
     """The §8.2.2 figures: N_max, d_L,max and N at the chosen d_L (seed: N_max = 2, d_L,max = 2.848 mm)."""
-    return {"n_max": objective_count_max(s, m, fov), "d_l_max_mm": spacing_max(s, d_l_diameter, m, fov),
-            "n_at_d_l": objective_count(s, d_l_diameter, d_l, m, fov), "d_l_mm": d_l}
+    return {
+        "n_max": objective_count_max(s, m, fov),
+        "d_l_max_mm": spacing_max(s, d_l_diameter, m, fov),
+        "n_at_d_l": objective_count(s, d_l_diameter, d_l, m, fov),
+        "d_l_mm": d_l,
+    }

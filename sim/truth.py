@@ -38,12 +38,15 @@ class MarkerTruth:
         """JSON-ready records with the contract's keys (DESIGN.md, `render` truth)."""
         out = []
         for (i, j), (col, row), vis, ok in zip(self.ij, self.center_px, self.visible, self.converged, strict=True):
-            out.append({
-                "i": int(i), "j": int(j),
-                "center_col": float(col) if ok else None,
-                "center_row": float(row) if ok else None,
-                "visible": bool(vis),
-            })
+            out.append(
+                {
+                    "i": int(i),
+                    "j": int(j),
+                    "center_col": float(col) if ok else None,
+                    "center_row": float(row) if ok else None,
+                    "visible": bool(vis),
+                }
+            )
         return out
 
 
@@ -55,8 +58,9 @@ def _flat_guess(scene: AnalyticScene, points: Array) -> Array:
     return cam.project_ideal(points * np.array([1.0, 1.0, -1.0]))
 
 
-def solve_images(scene: AnalyticScene, points: Array, tol: float = 1e-11, max_iter: int = 30,
-                 step: float = 1e-6) -> tuple[Array, NDArray[np.bool_], NDArray[np.bool_]]:
+def solve_images(
+    scene: AnalyticScene, points: Array, tol: float = 1e-11, max_iter: int = 30, step: float = 1e-6
+) -> tuple[Array, NDArray[np.bool_], NDArray[np.bool_]]:
     """Ideal sensor points (u, v) whose traced rays land on the given pattern points.
 
     Parameters
@@ -117,8 +121,9 @@ def solve_images(scene: AnalyticScene, points: Array, tol: float = 1e-11, max_it
     return uv, converged, converged & reaches
 
 
-def marker_truth(setup: Setup, heights: HeightMap | None = None, rim_points: int = 24,
-                 margin_px: float = 0.5) -> MarkerTruth:
+def marker_truth(
+    setup: Setup, heights: HeightMap | None = None, rim_points: int = 24, margin_px: float = 0.5
+) -> MarkerTruth:
     """Image of every marker centre (continuous pixels) and whether the marker is imaged whole.
 
     Parameters

@@ -71,8 +71,16 @@ class BaslerCamera(Camera):
 
     driver = "basler"
 
-    def __init__(self, name: str, *, serial: str | None = None, pixel_size_um: float = 6.45,
-                 gain_db_per_raw: float = 0.0359, trigger_line: str = "Line1", timeout_s: float = 2.0) -> None:
+    def __init__(
+        self,
+        name: str,
+        *,
+        serial: str | None = None,
+        pixel_size_um: float = 6.45,
+        gain_db_per_raw: float = 0.0359,
+        trigger_line: str = "Line1",
+        timeout_s: float = 2.0,
+    ) -> None:
         super().__init__(name, limits=CameraLimits(pixel_size_um=pixel_size_um), timeout_s=timeout_s)
         self.serial = serial
         self.gain_db_per_raw = float(gain_db_per_raw)
@@ -114,8 +122,10 @@ class BaslerCamera(Camera):
             devices = factory.EnumerateDevices()
             chosen = [d for d in devices if self.serial in (None, d.GetSerialNumber())]
             if not chosen:
-                raise DisconnectedError(f"camera {self.name!r}: no Basler camera with serial {self.serial!r} "
-                                        f"(found {[d.GetSerialNumber() for d in devices]})")
+                raise DisconnectedError(
+                    f"camera {self.name!r}: no Basler camera with serial {self.serial!r} "
+                    f"(found {[d.GetSerialNumber() for d in devices]})"
+                )
             self._cam = pylon.InstantCamera(factory.CreateDevice(chosen[0]))
             self._cam.Open()
             self.serial = chosen[0].GetSerialNumber()
@@ -125,8 +135,11 @@ class BaslerCamera(Camera):
             black = self._node("BlackLevel", "BlackLevelRaw")
             fps = self._node("AcquisitionFrameRate", "AcquisitionFrameRateAbs")
             formats = [f for f in self._cam.PixelFormat.Symbolics if f in ("Mono8", "Mono12")]
-            binnings = tuple(b for b in (1, 2, 4) if b <= self._cam.BinningHorizontal.Max) if self._has(
-                "BinningHorizontal") else (1,)
+            binnings = (
+                tuple(b for b in (1, 2, 4) if b <= self._cam.BinningHorizontal.Max)
+                if self._has("BinningHorizontal")
+                else (1,)
+            )
             self.limits = CameraLimits(
                 sensor_shape=(int(self._cam.HeightMax.Value), int(self._cam.WidthMax.Value)),
                 pixel_size_um=self.limits.pixel_size_um,
@@ -211,8 +224,7 @@ class BaslerCamera(Camera):
             cam.TriggerMode.Value = "On"
             cam.TriggerSource.Value = "Software" if trigger_type is TriggerType.SOFTWARE else self.trigger_line_name
             if trigger_type is not TriggerType.SOFTWARE and self._has("TriggerActivation"):
-                cam.TriggerActivation.Value = ("RisingEdge" if trigger_type is TriggerType.RISING_EDGE
-                                               else "FallingEdge")
+                cam.TriggerActivation.Value = "RisingEdge" if trigger_type is TriggerType.RISING_EDGE else "FallingEdge"
             if self._has("ExposureMode"):
                 cam.ExposureMode.Value = "TriggerWidth" if trigger_mode is TriggerMode.BULB else "Timed"
             if self._has("TriggerDelay") or self._has("TriggerDelayAbs"):

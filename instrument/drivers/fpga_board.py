@@ -106,7 +106,7 @@ def split_frames(buffer: bytes) -> tuple[list[Frame], bytes]:
         length = buffer[i + 2]
         if len(buffer) - i < 3 + length:
             break
-        frames.append(decode_frame(buffer[i: i + 3 + length]))
+        frames.append(decode_frame(buffer[i : i + 3 + length]))
         i += 3 + length
     if i < len(buffer) and buffer[i] not in VALID_OPCODES:
         raise ProtocolError(f"FPGA stream: unknown opcode 0x{buffer[i]:02X}")
@@ -126,8 +126,13 @@ def encode_light_config(config: LightConfig, current_step_ma: float) -> bytes:
     index = round(config.current_ma / current_step_ma)
     if not 0 <= index <= 0xFFFF:
         raise OutOfRangeError(f"current {config.current_ma} mA is beyond the board's 16-bit current index")
-    return LIGHT_STRUCT.pack(index, int(config.use_duration), seconds_to_us(config.duration_s),
-                             int(config.listen_global_trigger), seconds_to_us(config.global_trigger_delay_s))
+    return LIGHT_STRUCT.pack(
+        index,
+        int(config.use_duration),
+        seconds_to_us(config.duration_s),
+        int(config.listen_global_trigger),
+        seconds_to_us(config.global_trigger_delay_s),
+    )
 
 
 def decode_light_config(payload: bytes, current_step_ma: float) -> LightConfig:
@@ -137,8 +142,13 @@ def decode_light_config(payload: bytes, current_step_ma: float) -> LightConfig:
     index, use, duration, listen, delay = LIGHT_STRUCT.unpack(payload)
     if use > 1 or listen > 1:
         raise ProtocolError(f"light configuration flags must be 0 or 1, got {use}, {listen}")
-    return LightConfig(current_ma=index * current_step_ma, duration_s=duration * 1e-6, use_duration=bool(use),
-                       listen_global_trigger=bool(listen), global_trigger_delay_s=delay * 1e-6)
+    return LightConfig(
+        current_ma=index * current_step_ma,
+        duration_s=duration * 1e-6,
+        use_duration=bool(use),
+        listen_global_trigger=bool(listen),
+        global_trigger_delay_s=delay * 1e-6,
+    )
 
 
 class FpgaBoard:
@@ -154,8 +164,9 @@ class FpgaBoard:
         Milliamperes per step of the current index.
     """
 
-    def __init__(self, transport: Any, *, timeout_s: float = 1.0, current_step_ma: float = 0.1,
-                 name: str = "FPGA board") -> None:
+    def __init__(
+        self, transport: Any, *, timeout_s: float = 1.0, current_step_ma: float = 0.1, name: str = "FPGA board"
+    ) -> None:
         self.link = Link(transport, timeout_s=timeout_s, name=name)
         self.current_step_ma = float(current_step_ma)
         self.name = name
@@ -174,11 +185,16 @@ class FpgaBoard:
             reply = decode_frame(header + payload)
         if reply.opcode == ERROR:
             code = reply.payload[0] if reply.payload else 0
-            raise ControllerError(f"{self.name}: register 0x{frame.address:02X}: board error {code} "
-                                  f"({BOARD_ERRORS.get(code, 'unknown')})", code)
+            raise ControllerError(
+                f"{self.name}: register 0x{frame.address:02X}: board error {code} "
+                f"({BOARD_ERRORS.get(code, 'unknown')})",
+                code,
+            )
         if reply.opcode != expect or reply.address != frame.address:
-            raise ProtocolError(f"{self.name}: expected reply 0x{expect:02X}/0x{frame.address:02X}, "
-                                f"got 0x{reply.opcode:02X}/0x{reply.address:02X}")
+            raise ProtocolError(
+                f"{self.name}: expected reply 0x{expect:02X}/0x{frame.address:02X}, "
+                f"got 0x{reply.opcode:02X}/0x{reply.address:02X}"
+            )
         return reply.payload
 
     def write(self, address: int, payload: bytes) -> None:

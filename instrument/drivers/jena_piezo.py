@@ -85,8 +85,16 @@ class JenaPiezoFocus(FocusDrive):
 
     driver = "jena-piezo"
 
-    def __init__(self, name: str, transport: Any, *, range_um: tuple[float, float] = (0.0, 400.0),
-                 timeout_s: float = 1.0, tolerance_um: float = 0.05, settle_timeout_s: float = 1.0) -> None:
+    def __init__(
+        self,
+        name: str,
+        transport: Any,
+        *,
+        range_um: tuple[float, float] = (0.0, 400.0),
+        timeout_s: float = 1.0,
+        tolerance_um: float = 0.05,
+        settle_timeout_s: float = 1.0,
+    ) -> None:
         super().__init__(name, range_um=range_um, tolerance_um=tolerance_um, settle_timeout_s=settle_timeout_s)
         self.link = Link(transport, timeout_s=timeout_s, name=f"focus {name!r} (jena piezo)")
         self.closed_loop = True

@@ -200,17 +200,29 @@ class PiGcsStage(Stage):
 
     driver = "pi-gcs"
 
-    def __init__(self, name: str, transport: Any, *, axis: str = "1", travel_mm: tuple[float, float],
-                 max_velocity_mm_s: float, velocity_mm_s: float | None = None, reference: bool = True,
-                 timeout_s: float = 1.0, settle_timeout_s: float = 2.0) -> None:
-        super().__init__(name, travel_mm=travel_mm, max_velocity_mm_s=max_velocity_mm_s,
-                         settle_timeout_s=settle_timeout_s)
+    def __init__(
+        self,
+        name: str,
+        transport: Any,
+        *,
+        axis: str = "1",
+        travel_mm: tuple[float, float],
+        max_velocity_mm_s: float,
+        velocity_mm_s: float | None = None,
+        reference: bool = True,
+        timeout_s: float = 1.0,
+        settle_timeout_s: float = 2.0,
+    ) -> None:
+        super().__init__(
+            name, travel_mm=travel_mm, max_velocity_mm_s=max_velocity_mm_s, settle_timeout_s=settle_timeout_s
+        )
         self.axis = str(axis)
         if not self.axis.isdigit():
             raise RigError(f"stage {name!r}: GCS axis must be a number, got {axis!r}")
         self.controller = PiGcsController(transport, timeout_s=timeout_s, name=f"stage {name!r} (PI GCS)")
-        self._velocity_setting = (None if velocity_mm_s is None
-                                  else self.velocity_range.check(velocity_mm_s, f"stage {name!r} velocity"))
+        self._velocity_setting = (
+            None if velocity_mm_s is None else self.velocity_range.check(velocity_mm_s, f"stage {name!r} velocity")
+        )
         self.reference = bool(reference)
         self.identification = ""
 
@@ -221,8 +233,10 @@ class PiGcsStage(Stage):
         c.command(f"SVO {self.axis} 1")
         low, high = c.axis_values("TMN?", self.axis), c.axis_values("TMX?", self.axis)
         if self.travel.low < low - 1e-9 or self.travel.high > high + 1e-9:
-            raise OutOfRangeError(f"stage {self.name!r}: configured travel {self.travel.as_list()} mm exceeds "
-                                  f"the controller's [{low}, {high}] mm")
+            raise OutOfRangeError(
+                f"stage {self.name!r}: configured travel {self.travel.as_list()} mm exceeds "
+                f"the controller's [{low}, {high}] mm"
+            )
         if self.reference and c.axis_values("FRF?", self.axis) != 1:
             c.command(f"FRF {self.axis}")
             deadline = time.monotonic() + self.settle_timeout_s + (high - low) / self.velocity_range.high

@@ -80,7 +80,7 @@ class FpgaBoardEmulator(PtyEmulator):
             n = 3 + buffer[i + 2]
             if len(buffer) - i < n:
                 break
-            requests.append(buffer[i: i + n])
+            requests.append(buffer[i : i + n])
             i += n
         return requests, buffer[i:]
 

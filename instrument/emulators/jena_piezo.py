@@ -27,8 +27,13 @@ class JenaPiezoEmulator(PtyEmulator):
     protocol = "jena-piezo"
     terminator = b"\r"
 
-    def __init__(self, *, range_um: tuple[float, float] = (0.0, 400.0),
-                 voltage_range_v: tuple[float, float] = (-20.0, 130.0), seed: int = 0) -> None:
+    def __init__(
+        self,
+        *,
+        range_um: tuple[float, float] = (0.0, 400.0),
+        voltage_range_v: tuple[float, float] = (-20.0, 130.0),
+        seed: int = 0,
+    ) -> None:
         super().__init__(seed=seed)
         self.range_um = range_um
         self.voltage_range_v = voltage_range_v

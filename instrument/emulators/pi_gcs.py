@@ -65,9 +65,16 @@ class PiGcsEmulator(PtyEmulator):
     protocol = "pi-gcs"
     terminator = b"\n"
 
-    def __init__(self, *, axes: tuple[str, ...] = ("1",), travel_mm: tuple[float, float] = (0.0, 150.0),
-                 max_velocity_mm_s: float = 50.0, reference_mm: float = 0.0, model: str = "C-863.11",
-                 seed: int = 0) -> None:
+    def __init__(
+        self,
+        *,
+        axes: tuple[str, ...] = ("1",),
+        travel_mm: tuple[float, float] = (0.0, 150.0),
+        max_velocity_mm_s: float = 50.0,
+        reference_mm: float = 0.0,
+        model: str = "C-863.11",
+        seed: int = 0,
+    ) -> None:
         super().__init__(seed=seed)
         self.axes = {a: _Axis(travel_mm[0], travel_mm[1], max_velocity_mm_s, max_velocity_mm_s) for a in axes}
         self.reference_mm = float(reference_mm)
@@ -149,9 +156,15 @@ class PiGcsEmulator(PtyEmulator):
         if cmd == "ERR?":
             code, self.error = self.error, 0
             return f"{code}\n".encode()
-        queries = {"POS?": lambda ax: ax.position(now), "VEL?": lambda ax: ax.velocity,
-                   "ONT?": lambda ax: int(not ax.moving(now)), "SVO?": lambda ax: int(ax.servo),
-                   "FRF?": lambda ax: int(ax.referenced), "TMN?": lambda ax: ax.low, "TMX?": lambda ax: ax.high}
+        queries = {
+            "POS?": lambda ax: ax.position(now),
+            "VEL?": lambda ax: ax.velocity,
+            "ONT?": lambda ax: int(not ax.moving(now)),
+            "SVO?": lambda ax: int(ax.servo),
+            "FRF?": lambda ax: int(ax.referenced),
+            "TMN?": lambda ax: ax.low,
+            "TMX?": lambda ax: ax.high,
+        }
         if cmd in queries:
             names = self._axes_of(args)
             if names is None:

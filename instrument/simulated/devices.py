@@ -78,8 +78,17 @@ class SimDevice:
 class SimStage(SimDevice, Stage):
     """A stage axis that moves instantly in the virtual world."""
 
-    def __init__(self, name: str, world: VirtualWorld, *, travel_mm: tuple[float, float], max_velocity_mm_s: float,
-                 position_mm: float | None = None, timeout_s: float = 1.0, **_: Any) -> None:
+    def __init__(
+        self,
+        name: str,
+        world: VirtualWorld,
+        *,
+        travel_mm: tuple[float, float],
+        max_velocity_mm_s: float,
+        position_mm: float | None = None,
+        timeout_s: float = 1.0,
+        **_: Any,
+    ) -> None:
         Stage.__init__(self, name, travel_mm=travel_mm, max_velocity_mm_s=max_velocity_mm_s)
         self._sim_init(world, timeout_s)
         start = self.travel.low if position_mm is None else self.travel.check(position_mm, f"stage {name!r} start")
@@ -115,8 +124,16 @@ class SimStage(SimDevice, Stage):
 class SimFocus(SimDevice, FocusDrive):
     """A focus drive (µm) that moves instantly in the virtual world."""
 
-    def __init__(self, name: str, world: VirtualWorld, *, range_um: tuple[float, float] = (0.0, 400.0),
-                 position_um: float | None = None, timeout_s: float = 1.0, **_: Any) -> None:
+    def __init__(
+        self,
+        name: str,
+        world: VirtualWorld,
+        *,
+        range_um: tuple[float, float] = (0.0, 400.0),
+        position_um: float | None = None,
+        timeout_s: float = 1.0,
+        **_: Any,
+    ) -> None:
         FocusDrive.__init__(self, name, range_um=range_um)
         self._sim_init(world, timeout_s)
         start = self.range.low if position_um is None else self.range.check(position_um, f"focus {name!r} start")
@@ -134,8 +151,16 @@ class SimFocus(SimDevice, FocusDrive):
 class SimLight(SimDevice, LightSource):
     """A light source in the virtual world; ``shutter`` names the shutter in front of it (halogen)."""
 
-    def __init__(self, name: str, world: VirtualWorld, *, max_current_ma: float, shutter: str | None = None,
-                 timeout_s: float = 1.0, **_: Any) -> None:
+    def __init__(
+        self,
+        name: str,
+        world: VirtualWorld,
+        *,
+        max_current_ma: float,
+        shutter: str | None = None,
+        timeout_s: float = 1.0,
+        **_: Any,
+    ) -> None:
         LightSource.__init__(self, name, max_current_ma=max_current_ma)
         self._sim_init(world, timeout_s)
         world.lights[name] = SimLightState(max_current_ma=float(max_current_ma), shutter=shutter)
@@ -182,8 +207,9 @@ class SimShutter(SimDevice, Shutter):
 class SimTrigger(SimDevice, TriggerController):
     """The FPGA board's trigger section in the virtual world."""
 
-    def __init__(self, name: str, world: VirtualWorld, *, n_camera_lines: int = 4, timeout_s: float = 1.0,
-                 **_: Any) -> None:
+    def __init__(
+        self, name: str, world: VirtualWorld, *, n_camera_lines: int = 4, timeout_s: float = 1.0, **_: Any
+    ) -> None:
         TriggerController.__init__(self, name, n_camera_lines=n_camera_lines)
         self._sim_init(world, timeout_s)
 
@@ -234,9 +260,21 @@ class SimCamera(SimDevice, Camera):
         Reported serial number.
     """
 
-    def __init__(self, name: str, world: VirtualWorld, *, renderer: Renderer, sensor: EmvaSensor | None = None,
-                 photons_per_unit_s: float = 1.0e6, limits: CameraLimits | None = None, trigger_line: int = 0,
-                 seed: int = 0, serial_number: str = "SIM-0001", timeout_s: float = 1.0, **_: Any) -> None:
+    def __init__(
+        self,
+        name: str,
+        world: VirtualWorld,
+        *,
+        renderer: Renderer,
+        sensor: EmvaSensor | None = None,
+        photons_per_unit_s: float = 1.0e6,
+        limits: CameraLimits | None = None,
+        trigger_line: int = 0,
+        seed: int = 0,
+        serial_number: str = "SIM-0001",
+        timeout_s: float = 1.0,
+        **_: Any,
+    ) -> None:
         Camera.__init__(self, name, limits=limits, timeout_s=timeout_s)
         self._sim_init(world, timeout_s)
         self.renderer = renderer
@@ -303,18 +341,20 @@ class SimCamera(SimDevice, Camera):
         """The sensor model at the current gain, black level and bit depth."""
         base = self.sensor
         scale = 10 ** (self.gain_db / 20.0) * 2.0 ** (self.bit_depth - base.bit_depth)
-        return dataclasses.replace(base, gain_dn_per_e=base.gain_dn_per_e * scale, bit_depth=self.bit_depth,
-                                   black_level_dn=self.black_level_dn)
+        return dataclasses.replace(
+            base, gain_dn_per_e=base.gain_dn_per_e * scale, bit_depth=self.bit_depth, black_level_dn=self.black_level_dn
+        )
 
     def render_irradiance(self, levels: dict[str, float]) -> NDArray[np.float32]:
         """The renderer's irradiance for the world as this exposure sees it, cropped to the ROI and binned."""
         state: WorldState = self.world.snapshot(self.name, self.limits.sensor_shape, self.exposure_s, levels)
         image = np.asarray(self.renderer(state), dtype=np.float32)
         if image.shape != tuple(self.limits.sensor_shape):
-            raise OutOfRangeError(f"camera {self.name!r}: renderer returned {image.shape}, sensor is "
-                                  f"{tuple(self.limits.sensor_shape)}")
+            raise OutOfRangeError(
+                f"camera {self.name!r}: renderer returned {image.shape}, sensor is {tuple(self.limits.sensor_shape)}"
+            )
         roi = self.roi
-        return bin_image(image[roi.row: roi.row + roi.rows, roi.col: roi.col + roi.cols], self.binning)
+        return bin_image(image[roi.row : roi.row + roi.rows, roi.col : roi.col + roi.cols], self.binning)
 
     def _expose(self, levels: dict[str, float]) -> None:
         if self._fault == "drop" and self._fault_after <= 0:

@@ -46,8 +46,16 @@ class FlatTextureRenderer:
         Texture seed.
     """
 
-    def __init__(self, *, lights: Sequence[str] | None = None, stage_x: str = "x", stage_y: str = "y",
-                 pixel_mm: float = 0.000645, peak: float = 1.0, seed: int = 0) -> None:
+    def __init__(
+        self,
+        *,
+        lights: Sequence[str] | None = None,
+        stage_x: str = "x",
+        stage_y: str = "y",
+        pixel_mm: float = 0.000645,
+        peak: float = 1.0,
+        seed: int = 0,
+    ) -> None:
         self.lights = None if lights is None else list(lights)
         self.stage_x, self.stage_y = stage_x, stage_y
         self.pixel_mm = float(pixel_mm)
@@ -81,8 +89,17 @@ class WidefieldRenderer:
         Base sampler seed (each frame uses the next one).
     """
 
-    def __init__(self, height_mm: Any, optics: Any, *, lights: Sequence[str] | None = None, stage_x: str = "x",
-                 stage_y: str = "y", focus: str = "focus", seed: int = 0) -> None:
+    def __init__(
+        self,
+        height_mm: Any,
+        optics: Any,
+        *,
+        lights: Sequence[str] | None = None,
+        stage_x: str = "x",
+        stage_y: str = "y",
+        focus: str = "focus",
+        seed: int = 0,
+    ) -> None:
         self.height_mm = height_mm
         self.optics = optics
         self.lights = None if lights is None else list(lights)
@@ -100,8 +117,9 @@ class WidefieldRenderer:
             return np.zeros(state.sensor_shape, np.float32)
         self._seed += 1
         xy = (state.stage_mm.get(self.stage_x, 0.0), state.stage_mm.get(self.stage_y, 0.0))
-        return render_tile(self.height_mm, xy, state.focus_um.get(self.focus, 0.0), self.optics,
-                           radiance_scale=level, seed=self._seed)
+        return render_tile(
+            self.height_mm, xy, state.focus_um.get(self.focus, 0.0), self.optics, radiance_scale=level, seed=self._seed
+        )
 
 
 class DeflectometryRenderer:
@@ -121,8 +139,16 @@ class DeflectometryRenderer:
         Lights that illuminate the pattern.
     """
 
-    def __init__(self, setup: str, *, heights: Any = None, bow_um: float = 40.0, spp: int = 4, seed: int = 0,
-                 lights: Sequence[str] | None = None) -> None:
+    def __init__(
+        self,
+        setup: str,
+        *,
+        heights: Any = None,
+        bow_um: float = 40.0,
+        spp: int = 4,
+        seed: int = 0,
+        lights: Sequence[str] | None = None,
+    ) -> None:
         from scenes.setup import load_setup
 
         self.setup = load_setup(setup)
@@ -138,8 +164,15 @@ class DeflectometryRenderer:
             return None
         sx, sy = self.setup.substrate.size
         r2 = (0.5 * sx) ** 2 + (0.5 * sy) ** 2
-        return HeightMap.from_function(lambda x, y: bow_um * 1e-3 * (1 - (x**2 + y**2) / r2),
-                                       -0.5 * sx, 0.5 * sx, -0.5 * sy, 0.5 * sy, nx=64, ny=128)
+        return HeightMap.from_function(
+            lambda x, y: bow_um * 1e-3 * (1 - (x**2 + y**2) / r2),
+            -0.5 * sx,
+            0.5 * sx,
+            -0.5 * sy,
+            0.5 * sy,
+            nx=64,
+            ny=128,
+        )
 
     def __call__(self, state: WorldState) -> NDArray[np.float32]:
         if self._image is None:
@@ -147,8 +180,10 @@ class DeflectometryRenderer:
 
             self._image = render_setup(self.setup, heights=self.heights, spp=self.spp, seed=self.seed)
         if self._image.shape != tuple(state.sensor_shape):
-            raise RigError(f"deflectometry render {self._image.shape} differs from camera sensor "
-                           f"{tuple(state.sensor_shape)}: set the camera's sensor_shape to the setup's pixels")
+            raise RigError(
+                f"deflectometry render {self._image.shape} differs from camera sensor "
+                f"{tuple(state.sensor_shape)}: set the camera's sensor_shape to the setup's pixels"
+            )
         return self._image * np.float32(light_sum(state, self.lights))
 
 
@@ -168,8 +203,9 @@ def make_renderer(spec: dict[str, Any], *, camera: str) -> Any:
         if kind == "widefield":
             from scenes.mitsuba.widefield import BentSubstrate, WidefieldOptics
 
-            substrate = BentSubstrate(**{k: (tuple(v) if isinstance(v, list) else v)
-                                         for k, v in options.pop("substrate", {}).items()})
+            substrate = BentSubstrate(
+                **{k: (tuple(v) if isinstance(v, list) else v) for k, v in options.pop("substrate", {}).items()}
+            )
             optics_opts = options.pop("optics", {})
             if "pixels" in optics_opts:
                 optics_opts["pixels"] = tuple(optics_opts["pixels"])

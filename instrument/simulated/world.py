@@ -119,11 +119,15 @@ class VirtualWorld:
     def static_levels(self) -> dict[str, float]:
         """Light levels of lights that are on now, for a software-triggered exposure."""
         with self.lock:
-            return {name: (light.config.current_ma / light.max_current_ma if light.on else 0.0)
-                    * self._shutter_factor(light) for name, light in self.lights.items()}
+            return {
+                name: (light.config.current_ma / light.max_current_ma if light.on else 0.0)
+                * self._shutter_factor(light)
+                for name, light in self.lights.items()
+            }
 
-    def levels_for_window(self, start_s: float, exposure_s: float,
-                          intervals: Mapping[str, tuple[float, float]]) -> dict[str, float]:
+    def levels_for_window(
+        self, start_s: float, exposure_s: float, intervals: Mapping[str, tuple[float, float]]
+    ) -> dict[str, float]:
         """Light levels for an exposure ``[start_s, start_s + exposure_s]`` after a trigger.
 
         ``intervals`` gives each triggered light's on-interval relative to the trigger;
@@ -171,10 +175,16 @@ class VirtualWorld:
             for callback in list(self.listeners.get(line, [])):
                 callback(0.0, {})
 
-    def snapshot(self, camera: str, sensor_shape: tuple[int, int], exposure_s: float,
-                 light_levels: Mapping[str, float]) -> WorldState:
+    def snapshot(
+        self, camera: str, sensor_shape: tuple[int, int], exposure_s: float, light_levels: Mapping[str, float]
+    ) -> WorldState:
         """A frozen :class:`WorldState` for one exposure."""
         with self.lock:
-            return WorldState(camera, tuple(sensor_shape), float(exposure_s),
-                              MappingProxyType(dict(self.stage_mm)), MappingProxyType(dict(self.focus_um)),
-                              MappingProxyType(dict(light_levels)))
+            return WorldState(
+                camera,
+                tuple(sensor_shape),
+                float(exposure_s),
+                MappingProxyType(dict(self.stage_mm)),
+                MappingProxyType(dict(self.focus_um)),
+                MappingProxyType(dict(light_levels)),
+            )

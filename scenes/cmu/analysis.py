@@ -58,8 +58,14 @@ def _plate_surfaces(frame: Frame, hm: HeightMap | None, mode: str, setup: CmuSet
     return [Surface(frame, hm, "T", n_glass, 0.0, pw, ph), Surface(frame, hm, "T", 1.0, -t, pw, ph)]
 
 
-def channel_optics(setup: CmuSetup, channel: str, maps: dict[str, HeightMap] | None = None, stop: bool = False,
-                   wavelength_nm: float | None = None, flat: bool = False) -> Optics:
+def channel_optics(
+    setup: CmuSetup,
+    channel: str,
+    maps: dict[str, HeightMap] | None = None,
+    stop: bool = False,
+    wavelength_nm: float | None = None,
+    flat: bool = False,
+) -> Optics:
     """The channel's emission path (§4.1.3) as traceable elements.
 
     ``maps`` overrides plate height maps by element name; ``flat`` makes every plate a perfect flat.
@@ -70,8 +76,9 @@ def channel_optics(setup: CmuSetup, channel: str, maps: dict[str, HeightMap] | N
     wl = wavelength_nm or CHANNEL_WAVELENGTH_NM[channel]
     n_glass = float(fused_silica_index(wl))
     f_o = setup.objective.focal_length
-    obj = ThinLens(axis_frame(np.array([0.0, 0.0, f_o]), np.array([0.0, 0.0, 1.0])), f_o,
-                   0.5 * setup.objective.beam_diameter)
+    obj = ThinLens(
+        axis_frame(np.array([0.0, 0.0, f_o]), np.array([0.0, 0.0, 1.0])), f_o, 0.5 * setup.objective.beam_diameter
+    )
     middle: list = []
     for name, mode in ch.steps():
         spec = setup.element(name)
@@ -84,16 +91,22 @@ def channel_optics(setup: CmuSetup, channel: str, maps: dict[str, HeightMap] | N
     return Optics(obj, middle, tube, st, wl)
 
 
-def perpendicular_optics(setup: CmuSetup, mirror: HeightMap | None, distance: float = 40.0,
-                         stop: bool = False, wavelength_nm: float = 550.0) -> Optics:
+def perpendicular_optics(
+    setup: CmuSetup, mirror: HeightMap | None, distance: float = 40.0, stop: bool = False, wavelength_nm: float = 550.0
+) -> Optics:
     """§5.1.2 / Fig. 5.2: a mirror (perfect, or a splitter's map) perpendicular to the beam, ``distance`` behind
     the objective, and the tube lens ``distance`` after it on the reflected beam (a sequential model, like Zemax's).
     The distance is not in the seed; 40 mm is the unit's element spacing (thesis-cmu)."""
     f_o = setup.objective.focal_length
-    obj = ThinLens(axis_frame(np.array([0.0, 0.0, f_o]), np.array([0.0, 0.0, 1.0])), f_o,
-                   0.5 * setup.objective.beam_diameter)
-    mframe = Frame(np.array([0.0, 0.0, f_o + distance]), np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0]),
-                   np.array([0.0, 0.0, -1.0]))
+    obj = ThinLens(
+        axis_frame(np.array([0.0, 0.0, f_o]), np.array([0.0, 0.0, 1.0])), f_o, 0.5 * setup.objective.beam_diameter
+    )
+    mframe = Frame(
+        np.array([0.0, 0.0, f_o + distance]),
+        np.array([0.0, 1.0, 0.0]),
+        np.array([1.0, 0.0, 0.0]),
+        np.array([0.0, 0.0, -1.0]),
+    )
     mirror_surface = Surface(mframe, mirror, "R", 1.0, 0.0, 0.5 * setup.plate.width, 0.5 * setup.plate.height)
     axis = np.array([0.0, 0.0, -1.0])
     centre = np.array([0.0, 0.0, f_o])
@@ -171,9 +184,14 @@ class ChannelResult:
     psf: dict | None = None
 
     def to_json(self) -> dict:
-        out = {"image_distance_mm": self.image_distance_mm, "magnification": self.magnification,
-               "magnification_xy": list(self.magnification_xy), "rms_spot_um": self.rms_spot_um,
-               "astigmatism_mm": self.astigmatism_mm, "transmitted_fraction": self.transmitted_fraction}
+        out = {
+            "image_distance_mm": self.image_distance_mm,
+            "magnification": self.magnification,
+            "magnification_xy": list(self.magnification_xy),
+            "rms_spot_um": self.rms_spot_um,
+            "astigmatism_mm": self.astigmatism_mm,
+            "transmitted_fraction": self.transmitted_fraction,
+        }
         if self.psf is not None:
             out["psf"] = {k: v for k, v in self.psf.items() if not isinstance(v, np.ndarray)}
         return out
@@ -206,8 +224,9 @@ def astigmatism(opt: Optics, x0: float, y0: float, n: int = 41) -> float:
     return best_focus([fx]) - best_focus([fy])
 
 
-def analyse(setup: CmuSetup, opt: Optics, n_pupil: int = 41, with_psf: bool = False,
-            image_distance: float | None = None) -> ChannelResult:
+def analyse(
+    setup: CmuSetup, opt: Optics, n_pupil: int = 41, with_psf: bool = False, image_distance: float | None = None
+) -> ChannelResult:
     """Refocus, magnification, RMS spots, astigmatism (and the wavefront PSF at the field corner)."""
     px, py = pupil_grid(n_pupil)
     fields = field_points(setup)
@@ -257,8 +276,15 @@ def _remove_plane(w: Array, n: int) -> Array:
     return out
 
 
-def wavefront_psf(opt: Optics, x0: float, y0: float, defocus: float = 0.0, n: int = 128, pad: int = 4,
-                  object_magnification: float | None = None) -> dict:
+def wavefront_psf(
+    opt: Optics,
+    x0: float,
+    y0: float,
+    defocus: float = 0.0,
+    n: int = 128,
+    pad: int = 4,
+    object_magnification: float | None = None,
+) -> dict:
     """PSF and MTF from the ray-traced pupil phase (Fraunhofer, perfect tube lens of focal length f).
 
     Parameters
@@ -300,18 +326,27 @@ def wavefront_psf(opt: Optics, x0: float, y0: float, defocus: float = 0.0, n: in
     rr = np.hypot(*np.meshgrid(freq, freq))
     edges = np.arange(0, freq.max(), freq[1] - freq[0])
     idx = np.digitize(rr.ravel(), edges)
-    prof = np.bincount(idx, mtf.ravel(), minlength=len(edges) + 1)[1:len(edges)] / \
-        np.maximum(np.bincount(idx, minlength=len(edges) + 1)[1:len(edges)], 1)
+    prof = np.bincount(idx, mtf.ravel(), minlength=len(edges) + 1)[1 : len(edges)] / np.maximum(
+        np.bincount(idx, minlength=len(edges) + 1)[1 : len(edges)], 1
+    )
     nu = edges[:-1] + 0.5 * (freq[1] - freq[0])
     below = np.flatnonzero(prof < 0.1)
     nu10 = float(nu[below[0]]) if below.size else float(nu[-1])
     mag = object_magnification or f / opt.objective.f
     nu10_obj = nu10 * mag
     wv = w[ok] / wl_mm
-    return {"wavefront_rms_waves": float(np.std(wv)), "wavefront_pv_waves": float(np.ptp(wv)), "strehl": strehl,
-            "ee80_radius_um": ee80 * 1e3, "psf_pixel_um": du_mm * 1e3, "mtf_10_object_lp_per_mm": nu10_obj,
-            "delta_x_um": 1e3 / (2.0 * nu10_obj), "wavelength_nm": opt.wavelength_nm, "psf": psf.astype(np.float32),
-            "mtf_profile": np.column_stack([nu * mag, prof])}
+    return {
+        "wavefront_rms_waves": float(np.std(wv)),
+        "wavefront_pv_waves": float(np.ptp(wv)),
+        "strehl": strehl,
+        "ee80_radius_um": ee80 * 1e3,
+        "psf_pixel_um": du_mm * 1e3,
+        "mtf_10_object_lp_per_mm": nu10_obj,
+        "delta_x_um": 1e3 / (2.0 * nu10_obj),
+        "wavelength_nm": opt.wavelength_nm,
+        "psf": psf.astype(np.float32),
+        "mtf_profile": np.column_stack([nu * mag, prof]),
+    }
 
 
 def airy_radius_um(opt: Optics) -> float:

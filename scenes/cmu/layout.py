@@ -128,8 +128,9 @@ class TargetSpec(_Model):
     @model_validator(mode="after")
     def _check(self) -> TargetSpec:
         if 2 * self.star_radius >= self.frame_side:
-            raise ValueError(f"the star (diameter {2 * self.star_radius} mm) must fit inside the frame "
-                             f"({self.frame_side} mm)")
+            raise ValueError(
+                f"the star (diameter {2 * self.star_radius} mm) must fit inside the frame ({self.frame_side} mm)"
+            )
         return self
 
 

@@ -122,8 +122,11 @@ class Surface:
         r.advance(lam)
         p = o + np.where(np.isfinite(lam), lam, 0.0)[:, None] * d
         r.alive &= (np.abs(p[:, 0]) <= self.half_width) & (np.abs(p[:, 1]) <= self.half_height)
-        nrm = np.broadcast_to([0.0, 0.0, 1.0], p.shape) if self.heights is None else \
-            self.heights.normals(p[:, 0], p[:, 1])
+        nrm = (
+            np.broadcast_to([0.0, 0.0, 1.0], p.shape)
+            if self.heights is None
+            else self.heights.normals(p[:, 0], p[:, 1])
+        )
         if self.mode == "R":
             dn = reflect(d, nrm)
         else:

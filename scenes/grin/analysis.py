@@ -62,8 +62,14 @@ def marginal_na(stack: Stack, iterations: int = 50) -> float:
 
 def stop_radius_for_na(stack: Stack, na: float) -> float:
     """Height of the on-axis marginal ray of NA ``na`` on the back face of rod 1 (the §8.3.1 aperture)."""
-    st = trace_stack(stack.with_stop_radius(None), np.zeros(1), np.zeros(1), np.zeros(1), np.array([na]),
-                     until_layer=_stop_layer_count(stack))
+    st = trace_stack(
+        stack.with_stop_radius(None),
+        np.zeros(1),
+        np.zeros(1),
+        np.zeros(1),
+        np.array([na]),
+        until_layer=_stop_layer_count(stack),
+    )
     return float(abs(st.y[0]))
 
 
@@ -72,8 +78,9 @@ def chief_ray(stack: Stack, height: float, iterations: int = 40) -> float:
     n = _stop_layer_count(stack)
 
     def y_at_stop(t: float) -> float:
-        st = trace_stack(stack.with_stop_radius(None), np.zeros(1), np.array([height]), np.zeros(1), np.array([t]),
-                         until_layer=n)
+        st = trace_stack(
+            stack.with_stop_radius(None), np.zeros(1), np.array([height]), np.zeros(1), np.array([t]), until_layer=n
+        )
         return float(st.y[0])
 
     a, b = 0.0, -0.1 * np.sign(height) if height else 0.0
@@ -158,8 +165,11 @@ def opd_waves(b: Bundle, image_distance: float, wavelength_nm: float) -> tuple[f
     bq = ux * dx + uy * dy + uz * dz
     cq = dx * dx + dy * dy + dz * dz - radius * radius
     s = -bq - np.sqrt(np.maximum(bq * bq - cq, 0.0))
-    s = np.where(np.abs(s) > np.abs(-bq + np.sqrt(np.maximum(bq * bq - cq, 0.0))),
-                 -bq + np.sqrt(np.maximum(bq * bq - cq, 0.0)), s)
+    s = np.where(
+        np.abs(s) > np.abs(-bq + np.sqrt(np.maximum(bq * bq - cq, 0.0))),
+        -bq + np.sqrt(np.maximum(bq * bq - cq, 0.0)),
+        s,
+    )
     opl = st.opl[keep] + n * s
     opd = (opl - opl[centre]) / (wavelength_nm * 1e-6)
     opd = opd - opd.mean()
@@ -192,8 +202,18 @@ class GrinReport:
     def to_json(self) -> dict[str, Any]:
         """The contract's keys first (DESIGN.md, ``optics grin``), then the extras."""
         d = asdict(self)
-        head = {k: d.pop(k) for k in ("efl_mm", "magnification", "na_object", "airy_um", "rms_spot_um",
-                                      "object_distance_mm", "image_distance_mm")}
+        head = {
+            k: d.pop(k)
+            for k in (
+                "efl_mm",
+                "magnification",
+                "na_object",
+                "airy_um",
+                "rms_spot_um",
+                "object_distance_mm",
+                "image_distance_mm",
+            )
+        }
         return head | d
 
 
@@ -214,8 +234,11 @@ def analyse(setup: GrinSetup, samples: int = 48, stack: Stack | None = None) -> 
     axis, edge = bundles[0], bundles[-1]
     rms = {"axis": rms_radius(*axis.spot(focus)) * 1e3, "edge": rms_radius(*edge.spot(focus)) * 1e3}
     seed_plane = setup.seed.image_distance or setup.image.distance
-    rms_seed = ({"axis": rms_radius(*axis.spot(seed_plane)) * 1e3, "edge": rms_radius(*edge.spot(seed_plane)) * 1e3}
-                if seed_plane else {})
+    rms_seed = (
+        {"axis": rms_radius(*axis.spot(seed_plane)) * 1e3, "edge": rms_radius(*edge.spot(seed_plane)) * 1e3}
+        if seed_plane
+        else {}
+    )
     marg = trace_stack(st, np.zeros(1), np.zeros(1), np.zeros(1), np.array([na * (1 - 1e-9)]))
     na_img = float(np.hypot(marg.tx[0], marg.ty[0]) / marg.n)
     airy = 0.61 * setup.wavelength_nm * 1e-6 / na_img * 1e3
@@ -225,18 +248,36 @@ def analyse(setup: GrinSetup, samples: int = 48, stack: Stack | None = None) -> 
     rods: dict[str, dict[str, float]] = {}
     for key, prof, spec in (("rod1", setup.profile1(), setup.rod1), ("rod2", setup.profile2(), setup.rod2)):
         rp: RodParaxial = rod_paraxial(prof, spec.length)
-        rods[key] = {"length_mm": spec.length, "n0": rp.n0, "g_per_mm": rp.g, "pitch_mm": rp.pitch,
-                     "efl_mm": float(rp.efl), "working_distance_mm": float(rp.bfl),
-                     "pitch_fraction": spec.length / rp.pitch}
+        rods[key] = {
+            "length_mm": spec.length,
+            "n0": rp.n0,
+            "g_per_mm": rp.g,
+            "pitch_mm": rp.pitch,
+            "efl_mm": float(rp.efl),
+            "working_distance_mm": float(rp.bfl),
+            "pitch_fraction": spec.length / rp.pitch,
+        }
     seed = {k: v for k, v in setup.seed.model_dump().items() if v is not None}
     return GrinReport(
-        efl_mm=float(par.efl), magnification=float(abs(par.magnification)), magnification_real=abs(m_real),
-        na_object=float(na), na_image=na_img, airy_um=float(airy), rms_spot_um=rms,
-        rms_spot_at_seed_plane_um=rms_seed, object_distance_mm=setup.object.distance,
-        image_distance_mm=float(focus), paraxial_image_distance_mm=float(par.image_distance),
-        stop_radius_mm=stop, opd_rms_waves={"axis": opd[0][0], "edge": opd[1][0]},
-        opd_pv_waves={"axis": opd[0][1], "edge": opd[1][1]}, rods=rods, wavelength_nm=setup.wavelength_nm,
-        section=setup.section, seed=seed)
+        efl_mm=float(par.efl),
+        magnification=float(abs(par.magnification)),
+        magnification_real=abs(m_real),
+        na_object=float(na),
+        na_image=na_img,
+        airy_um=float(airy),
+        rms_spot_um=rms,
+        rms_spot_at_seed_plane_um=rms_seed,
+        object_distance_mm=setup.object.distance,
+        image_distance_mm=float(focus),
+        paraxial_image_distance_mm=float(par.image_distance),
+        stop_radius_mm=stop,
+        opd_rms_waves={"axis": opd[0][0], "edge": opd[1][0]},
+        opd_pv_waves={"axis": opd[0][1], "edge": opd[1][1]},
+        rods=rods,
+        wavelength_nm=setup.wavelength_nm,
+        section=setup.section,
+        seed=seed,
+    )
 
 
 # -- the published layout's ambiguities ---------------------------------------------------------
@@ -247,10 +288,14 @@ READINGS: dict[str, dict[str, Any]] = {
     "both substrates outer": {"layout": {"substrate1_side": "outer", "substrate2_side": "outer"}},
     "object distance includes cover glass": {"object": {"distance_includes_cover": True}},
     "no cover glass": {"object": {"cover_thickness": 0.0}},
-    "rod values at 587.6 nm, dispersed": {"rod1": {"profile": {"wavelength_ref_nm": 587.56}},
-                                          "rod2": {"profile": {"wavelength_ref_nm": 587.56}}},
-    "rod values at 633 nm, dispersed": {"rod1": {"profile": {"wavelength_ref_nm": 632.8}},
-                                        "rod2": {"profile": {"wavelength_ref_nm": 632.8}}},
+    "rod values at 587.6 nm, dispersed": {
+        "rod1": {"profile": {"wavelength_ref_nm": 587.56}},
+        "rod2": {"profile": {"wavelength_ref_nm": 587.56}},
+    },
+    "rod values at 633 nm, dispersed": {
+        "rod1": {"profile": {"wavelength_ref_nm": 632.8}},
+        "rod2": {"profile": {"wavelength_ref_nm": 632.8}},
+    },
 }
 
 
@@ -268,9 +313,17 @@ def sensitivity(setup: GrinSetup, samples: int = 24) -> list[dict[str, Any]]:
         st = variant.stack()
         par = system_paraxial(st)
         rep = analyse(variant, samples=samples)
-        rows.append({"reading": label, "magnification_paraxial": abs(par.magnification),
-                     "paraxial_image_distance_mm": par.image_distance, "image_distance_mm": rep.image_distance_mm,
-                     "na_object": rep.na_object, "rms_axis_um": rep.rms_spot_um["axis"],
-                     "rms_edge_um": rep.rms_spot_um["edge"], "airy_um": rep.airy_um,
-                     "magnification_real": rep.magnification_real})
+        rows.append(
+            {
+                "reading": label,
+                "magnification_paraxial": abs(par.magnification),
+                "paraxial_image_distance_mm": par.image_distance,
+                "image_distance_mm": rep.image_distance_mm,
+                "na_object": rep.na_object,
+                "rms_axis_um": rep.rms_spot_um["axis"],
+                "rms_edge_um": rep.rms_spot_um["edge"],
+                "airy_um": rep.airy_um,
+                "magnification_real": rep.magnification_real,
+            }
+        )
     return rows

@@ -32,8 +32,9 @@ def illumination_stack(setup: GrinSetup, spec: IlluminationSpec | None = None) -
     lam = ill.wavelength_nm
     img = setup.stack(wavelength_nm=lam)
     by_name = {layer.name: layer for layer in img.layers}
-    rod_ill = RodSpec(length=ill.rod_length, radius=setup.rod1.radius, profile=setup.rod1.profile,
-                      step_mm=setup.rod1.step_mm)
+    rod_ill = RodSpec(
+        length=ill.rod_length, radius=setup.rod1.radius, profile=setup.rod1.profile, step_mm=setup.rod1.step_mm
+    )
     rod1 = setup.rod1 if ill.rod1_length is None else setup.rod1.model_copy(update={"length": ill.rod1_length})
     half_bs = 0.5 * setup.beam_splitter.thickness
     bs = by_name["beam_splitter"]

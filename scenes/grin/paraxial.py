@@ -59,8 +59,11 @@ def stack_matrix(stack: Stack, start: int = 0, stop: int | None = None) -> Matri
     stop = len(stack.layers) - 1 if stop is None else stop
     m = np.eye(2)
     for layer in stack.layers[start:stop]:
-        mat = grin_rod(layer.profile, layer.thickness) if layer.profile is not None else slab(layer.thickness,
-                                                                                               layer.index)
+        mat = (
+            grin_rod(layer.profile, layer.thickness)
+            if layer.profile is not None
+            else slab(layer.thickness, layer.index)
+        )
         m = mat @ m
     return m
 

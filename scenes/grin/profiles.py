@@ -38,8 +38,16 @@ import numpy as np
 from scenes.errors import SetupError
 
 #: numpy namespace for profile formulas (float64 arrays).
-NP = SimpleNamespace(sqrt=np.sqrt, tanh=np.tanh, cosh=np.cosh, where=np.where, maximum=np.maximum,
-                     floor=np.floor, abs=np.abs, minimum=np.minimum)
+NP = SimpleNamespace(
+    sqrt=np.sqrt,
+    tanh=np.tanh,
+    cosh=np.cosh,
+    where=np.where,
+    maximum=np.maximum,
+    floor=np.floor,
+    abs=np.abs,
+    minimum=np.minimum,
+)
 
 #: Fraunhofer F and C lines and the helium d line (nm), for Abbe numbers.
 LAMBDA_F_NM = 486.13
@@ -105,8 +113,9 @@ class RadialProfile(ABC):
         low = n < 1.0
         if low.any():
             i = int(np.argmax(low))
-            raise SetupError(f"profile gives n = {n[i]:.5f} < 1 at r = {r[i]:.4g} mm inside the rod "
-                             f"(radius {radius} mm)")
+            raise SetupError(
+                f"profile gives n = {n[i]:.5f} < 1 at r = {r[i]:.4g} mm inside the rod (radius {radius} mm)"
+            )
 
 
 @dataclass(frozen=True)

@@ -32,8 +32,17 @@ from scenes.grin.setup import Stack
 Array = NDArray[np.float64]
 
 
-def rkn_rod(x: Array, y: Array, tx: Array, ty: Array, tz: Array, profile: RadialProfile, length: float,
-            steps: int, radius: float = np.inf) -> tuple[Array, Array, Array, Array, Array, NDArray[np.bool_]]:
+def rkn_rod(
+    x: Array,
+    y: Array,
+    tx: Array,
+    ty: Array,
+    tz: Array,
+    profile: RadialProfile,
+    length: float,
+    steps: int,
+    radius: float = np.inf,
+) -> tuple[Array, Array, Array, Array, Array, NDArray[np.bool_]]:
     """Sharma-Kumar-Ghatak RKN through a rod of ``length`` (seed §7.5.1 profile), vectorised over rays.
 
     Parameters
@@ -121,8 +130,17 @@ class RayState:
         return self.x + dz * self.tx / tz, self.y + dz * self.ty / tz
 
 
-def trace_stack(stack: Stack, x0: Array, y0: Array, tx0: Array, ty0: Array, *, axis: tuple[float, float] = (0.0, 0.0),
-                stop_radius: float | None = None, until_layer: int | None = None) -> RayState:
+def trace_stack(
+    stack: Stack,
+    x0: Array,
+    y0: Array,
+    tx0: Array,
+    ty0: Array,
+    *,
+    axis: tuple[float, float] = (0.0, 0.0),
+    stop_radius: float | None = None,
+    until_layer: int | None = None,
+) -> RayState:
     """Trace rays from the object plane (z = 0) through every layer but the image gap.
 
     Parameters
@@ -178,8 +196,9 @@ def trace_stack(stack: Stack, x0: Array, y0: Array, tx0: Array, ty0: Array, *, a
             tz2 = n_in * n_in - t2
             alive &= inside & (tz2 > 0)
             tz = np.sqrt(np.maximum(tz2, 1e-300))
-            lx, ly, tx, ty, dopl, ok = rkn_rod(lx, ly, tx, ty, tz, layer.profile, rod.length,
-                                              rod_steps(rod.length, rod.step_mm), rod.radius)
+            lx, ly, tx, ty, dopl, ok = rkn_rod(
+                lx, ly, tx, ty, tz, layer.profile, rod.length, rod_steps(rod.length, rod.step_mm), rod.radius
+            )
             alive &= ok
             x, y = lx + ax, ly + ay
             opl = opl + dopl

@@ -44,7 +44,6 @@ Positive = Annotated[float, Field(gt=0)]
 NonNegative = Annotated[float, Field(ge=0)]
 
 
-
 def _known_glass(name: str) -> str:
     """Validator body: the glass must be in the catalogue (scenes.grin.glass); returns its canonical name."""
     try:
@@ -52,6 +51,7 @@ def _known_glass(name: str) -> str:
     except SetupError as exc:
         raise ValueError(str(exc)) from None
     return name.upper()
+
 
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -243,27 +243,34 @@ class GrinSetup(_Model):
         for key in ("rod1", "rod2"):
             rod: RodSpec = getattr(self, key)
             if rod.length > self.scene_depth:
-                raise ValueError(f"{key}.length = {rod.length} mm is longer than the scene "
-                                 f"(scene_depth = {self.scene_depth} mm)")
+                raise ValueError(
+                    f"{key}.length = {rod.length} mm is longer than the scene (scene_depth = {self.scene_depth} mm)"
+                )
             try:
                 rod.profile.at(self.wavelength_nm).check(rod.radius)
             except SetupError as exc:
                 raise ValueError(f"{key}.profile: {exc}") from None
             if self.array.nx * self.array.ny > 1 and 2 * rod.radius > self.array.pitch:
-                raise ValueError(f"{key}.radius: rods of diameter {2 * rod.radius} mm overlap at the array "
-                                 f"pitch {self.array.pitch} mm")
+                raise ValueError(
+                    f"{key}.radius: rods of diameter {2 * rod.radius} mm overlap at the array "
+                    f"pitch {self.array.pitch} mm"
+                )
         if self.object.distance_includes_cover and self.object.distance <= self.object.cover_thickness:
             raise ValueError("object.distance must exceed the cover glass thickness when it includes it")
         half = 0.5 * self.array.substrate_side
         for x, y in self.array.axes():
             r = max(self.rod1.radius, self.rod2.radius)
             if abs(x) + r > half or abs(y) + r > half:
-                raise ValueError(f"array: an objective at ({x:g}, {y:g}) mm does not fit on the "
-                                 f"{self.array.substrate_side} mm substrate")
+                raise ValueError(
+                    f"array: an objective at ({x:g}, {y:g}) mm does not fit on the "
+                    f"{self.array.substrate_side} mm substrate"
+                )
         stack_length = self.stack(image_distance=self.image.distance or 0.0).length
         if stack_length > self.scene_depth:
-            raise ValueError(f"the objective ({stack_length:.3f} mm from object to image) is longer than the "
-                             f"scene (scene_depth = {self.scene_depth} mm)")
+            raise ValueError(
+                f"the objective ({stack_length:.3f} mm from object to image) is longer than the "
+                f"scene (scene_depth = {self.scene_depth} mm)"
+            )
         return self
 
     def profile1(self) -> RadialProfile:
@@ -336,8 +343,7 @@ class Stack:
         return Stack(layers, self.wavelength_nm, distance, self.stop_z, self.stop_radius)
 
 
-def build_stack(setup: GrinSetup, image_distance: float | None = None,
-                wavelength_nm: float | None = None) -> Stack:
+def build_stack(setup: GrinSetup, image_distance: float | None = None, wavelength_nm: float | None = None) -> Stack:
     """Layers of ``setup`` at ``wavelength_nm`` (default: the design wavelength), object at z = 0.
 
     The order follows the readings in ``setup.layout`` and ``setup.object``; the image-side air gap
@@ -388,7 +394,7 @@ def grin_setup_from_dict(data: dict[str, Any], label: str = "<dict>") -> GrinSet
     data = dict(data)
     kind = data.pop("kind", "grin")
     if kind != "grin":
-        raise SetupError(f"{label} is a {kind!r} setup, not a GRIN objective (kind = \"grin\")")
+        raise SetupError(f'{label} is a {kind!r} setup, not a GRIN objective (kind = "grin")')
     try:
         return GrinSetup.model_validate(data)
     except ValidationError as exc:
@@ -427,8 +433,10 @@ def profile_override(setup: GrinSetup, toml_path: str | Path) -> GrinSetup:
     extra = _read_toml(Path(toml_path))
     unknown = set(extra) - {"rod1", "rod2"}
     if unknown:
-        raise SetupError(f"profile file {toml_path}: only [rod1.profile] / [rod2.profile] tables are allowed, "
-                         f"got {', '.join(sorted(unknown))}")
+        raise SetupError(
+            f"profile file {toml_path}: only [rod1.profile] / [rod2.profile] tables are allowed, "
+            f"got {', '.join(sorted(unknown))}"
+        )
     data = json.loads(setup.model_dump_json())
     for key, table in extra.items():
         if not isinstance(table, dict) or set(table) - {"profile"}:

@@ -45,8 +45,10 @@ class Target:
         """Raise :class:`TargetError` when the pattern disk reaches outside the field of view."""
         reach = (self.offset[0] ** 2 + self.offset[1] ** 2) ** 0.5 + 0.5 * self.diameter
         if reach > field_radius * (1 + 1e-9):
-            raise TargetError(f"target {self.name!r} reaches {reach * 1e3:.1f} µm from the axis, outside the field "
-                              f"of view (radius {field_radius * 1e3:.1f} µm)")
+            raise TargetError(
+                f"target {self.name!r} reaches {reach * 1e3:.1f} µm from the axis, outside the field "
+                f"of view (radius {field_radius * 1e3:.1f} µm)"
+            )
 
     def transmission(self, x: Any, y: Any, xp: Any = NP) -> Any:
         """1 on clear glass, 0 on chrome, at object-plane points (x, y) relative to the objective axis."""

@@ -134,10 +134,16 @@ class BowedPlate(mi.BSDF):
         self.refl, self.trans = mi.Float(t["R"]), mi.Float(t["T"])
         self.index = mi.Float(t["n_glass"])
         self.coated = props.get("face", "front") == "front"
-        self.m_flags = mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide \
+        self.m_flags = (
+            mi.BSDFFlags.DeltaReflection
+            | mi.BSDFFlags.DeltaTransmission
+            | mi.BSDFFlags.FrontSide
             | mi.BSDFFlags.BackSide
-        self.m_components = [mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide,
-                             mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide]
+        )
+        self.m_components = [
+            mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide,
+            mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide,
+        ]
 
     def _gradient(self, x: Any, y: Any) -> tuple[Any, Any]:
         fx = dr.clip((x - self.x0) / self.dx, 0.0, self.nx - 1.001)
@@ -215,8 +221,9 @@ def _grid_1nm(curve_on_grid: np.ndarray) -> np.ndarray:
     return np.interp(wl, spectra.GRID_NM, curve_on_grid)
 
 
-def plate_tables(name: str, frame: Any, hm: HeightMap | None, setup: CmuSetup, is_mirror: bool,
-                 node_mm: float = 0.1) -> str:
+def plate_tables(
+    name: str, frame: Any, hm: HeightMap | None, setup: CmuSetup, is_mirror: bool, node_mm: float = 0.1
+) -> str:
     """Register the gradient and R/T tables of one plate; returns the key for ``scopetwin_bowed_plate``."""
     pw, ph = 0.5 * setup.plate.width, 0.5 * setup.plate.height
     xs = np.arange(-pw, pw + 1e-9, node_mm)
@@ -232,11 +239,23 @@ def plate_tables(name: str, frame: Any, hm: HeightMap | None, setup: CmuSetup, i
     else:
         r, t = spectra.dichroic(name, "R"), spectra.dichroic(name, "T")
     key = f"plate-{name}-{next(_counter)}"
-    _TABLES[key] = {"c": tuple(frame.origin), "tx": tuple(frame.tx), "ty": tuple(frame.ty), "nz": tuple(frame.nz),
-                    "x0": float(xs[0]), "y0": float(ys[0]), "dx": node_mm, "dy": node_mm, "nx": len(xs),
-                    "ny": len(ys), "hx": hx.astype(np.float32), "hy": hy.astype(np.float32),
-                    "R": _grid_1nm(r).astype(np.float32), "T": _grid_1nm(t).astype(np.float32),
-                    "n_glass": fused_silica_index(np.arange(WL0_NM, WL1_NM + 0.5, 1.0)).astype(np.float32)}
+    _TABLES[key] = {
+        "c": tuple(frame.origin),
+        "tx": tuple(frame.tx),
+        "ty": tuple(frame.ty),
+        "nz": tuple(frame.nz),
+        "x0": float(xs[0]),
+        "y0": float(ys[0]),
+        "dx": node_mm,
+        "dy": node_mm,
+        "nx": len(xs),
+        "ny": len(ys),
+        "hx": hx.astype(np.float32),
+        "hy": hy.astype(np.float32),
+        "R": _grid_1nm(r).astype(np.float32),
+        "T": _grid_1nm(t).astype(np.float32),
+        "n_glass": fused_silica_index(np.arange(WL0_NM, WL1_NM + 0.5, 1.0)).astype(np.float32),
+    }
     return key
 
 
@@ -249,8 +268,9 @@ def _lens_dict(frame: Any, f: float, radius: float) -> dict[str, Any]:
     return {"type": "disk", "to_world": mi.ScalarTransform4f(m.tolist()), "bsdf": props}
 
 
-def unit_scene(setup: CmuSetup, maps: dict[str, HeightMap] | None = None, tube_f: float | None = None,
-               flat: bool = False) -> tuple[Any, int]:
+def unit_scene(
+    setup: CmuSetup, maps: dict[str, HeightMap] | None = None, tube_f: float | None = None, flat: bool = False
+) -> tuple[Any, int]:
     """Mitsuba scene of the whole unit: objective, splitters (coated front and uncoated back face), mirrors, four
     tube lenses, object plane.
 
@@ -260,8 +280,9 @@ def unit_scene(setup: CmuSetup, maps: dict[str, HeightMap] | None = None, tube_f
     f_o = setup.objective.focal_length
     T = mi.ScalarTransform4f
     scene: dict[str, Any] = {"type": "scene"}
-    scene["objective"] = _lens_dict(axis_frame(np.array([0, 0, f_o]), np.array([0, 0, 1.0])), f_o,
-                                    0.5 * setup.objective.beam_diameter)
+    scene["objective"] = _lens_dict(
+        axis_frame(np.array([0, 0, f_o]), np.array([0, 0, 1.0])), f_o, 0.5 * setup.objective.beam_diameter
+    )
     for group, is_mirror in ((setup.splitters, False), (setup.mirrors, True)):
         for name, spec in group.items():
             fr = spec.frame()
@@ -270,12 +291,18 @@ def unit_scene(setup: CmuSetup, maps: dict[str, HeightMap] | None = None, tube_f
             m = np.eye(4)
             m[:3, 0], m[:3, 1] = fr.tx * 0.5 * setup.plate.width, fr.ty * 0.5 * setup.plate.height
             m[:3, 2], m[:3, 3] = fr.nz, fr.origin
-            scene[f"plate_{name}"] = {"type": "rectangle", "to_world": T(m.tolist()),
-                                      "bsdf": {"type": "scopetwin_bowed_plate", "key": key}}
+            scene[f"plate_{name}"] = {
+                "type": "rectangle",
+                "to_world": T(m.tolist()),
+                "bsdf": {"type": "scopetwin_bowed_plate", "key": key},
+            }
             if not is_mirror:  # the splitter's uncoated back face, one thickness behind the coated one
                 m[:3, 3] = fr.origin - setup.plate.thickness * fr.nz
-                scene[f"plate_{name}_back"] = {"type": "rectangle", "to_world": T(m.tolist()),
-                                               "bsdf": {"type": "scopetwin_bowed_plate", "key": key, "face": "back"}}
+                scene[f"plate_{name}_back"] = {
+                    "type": "rectangle",
+                    "to_world": T(m.tolist()),
+                    "bsdf": {"type": "scopetwin_bowed_plate", "key": key, "face": "back"},
+                }
     for cname, ch in setup.channels.items():
         fr = axis_frame(np.asarray(ch.tube_center, dtype=np.float64), np.asarray(ch.tube_axis, dtype=np.float64))
         scene[f"tube_{cname}"] = _lens_dict(fr, tube_f or setup.tube.focal_length, 12.5)
@@ -331,9 +358,16 @@ def _wavelength_table(setup: CmuSetup, channel: str, target: Target) -> tuple[np
     return pdf, float(pdf.sum())
 
 
-def _trace_to_object(sc: Any, obj_id: int, ray: Any, thr: Any, sampler: Any,
-                     stop_plane: tuple[np.ndarray, np.ndarray, float] | None = None,
-                     max_depth: int = 12, count: bool = False) -> tuple[Any, Any, Any, Any, Any]:
+def _trace_to_object(
+    sc: Any,
+    obj_id: int,
+    ray: Any,
+    thr: Any,
+    sampler: Any,
+    stop_plane: tuple[np.ndarray, np.ndarray, float] | None = None,
+    max_depth: int = 12,
+    count: bool = False,
+) -> tuple[Any, Any, Any, Any, Any]:
     """Follow rays (from the image side) through the unit's delta BSDFs until they meet the object plane.
 
     ``stop_plane`` (centre, axis, radius): a circular aperture met right after the first interaction (the tube
@@ -387,8 +421,9 @@ class Landing:
     throughput: np.ndarray
 
 
-def land_rays(scene: tuple[Any, int], origins: np.ndarray, directions: np.ndarray, wavelength_nm: float,
-              seed: int = 0) -> Landing:
+def land_rays(
+    scene: tuple[Any, int], origins: np.ndarray, directions: np.ndarray, wavelength_nm: float, seed: int = 0
+) -> Landing:
     """Trace rays from the image side (e.g. a camera plane) through the Mitsuba unit to the object plane.
 
     The renderer's own ray loop (:func:`render_channel` uses it), exposed for per-ray comparison with the float64
@@ -409,21 +444,40 @@ def land_rays(scene: tuple[Any, int], origins: np.ndarray, directions: np.ndarra
     d = np.asarray(directions, dtype=np.float64)
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
     n = len(o)
-    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, k]) for k in range(3)]),
-                   mi.Vector3f(*[mi.Float(d[:, k]) for k in range(3)]), 0.0,
-                   mi.UnpolarizedSpectrum(float(wavelength_nm)))
+    ray = mi.Ray3f(
+        mi.Point3f(*[mi.Float(o[:, k]) for k in range(3)]),
+        mi.Vector3f(*[mi.Float(d[:, k]) for k in range(3)]),
+        0.0,
+        mi.UnpolarizedSpectrum(float(wavelength_nm)),
+    )
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed & 0xFFFFFFFF, n)
     p, thr, hit, n_refl, n_events = _trace_to_object(sc, obj_id, ray, mi.Spectrum(1.0), sampler, count=True)
     pts = np.column_stack([np.asarray(c, dtype=np.float64) for c in (p.x, p.y, p.z)])
-    return Landing(pts, np.asarray(hit, dtype=bool), np.asarray(n_refl, dtype=np.int64),
-                   np.asarray(n_events, dtype=np.int64), np.asarray(dr.mean(thr), dtype=np.float64))
+    return Landing(
+        pts,
+        np.asarray(hit, dtype=bool),
+        np.asarray(n_refl, dtype=np.int64),
+        np.asarray(n_events, dtype=np.int64),
+        np.asarray(dr.mean(thr), dtype=np.float64),
+    )
 
 
-def render_channel(setup: CmuSetup, channel: str, pose: CameraPose, target: Target = "star", spp: int = 16,
-                   window: tuple[int, int, int, int] | None = None, maps: dict[str, HeightMap] | None = None,
-                   tube_f: float | None = None, stop: bool = False, seed: int = 0, flat: bool = False,
-                   max_rays: int = 4_000_000, scene: tuple[Any, int] | None = None) -> np.ndarray:
+def render_channel(
+    setup: CmuSetup,
+    channel: str,
+    pose: CameraPose,
+    target: Target = "star",
+    spp: int = 16,
+    window: tuple[int, int, int, int] | None = None,
+    maps: dict[str, HeightMap] | None = None,
+    tube_f: float | None = None,
+    stop: bool = False,
+    seed: int = 0,
+    flat: bool = False,
+    max_rays: int = 4_000_000,
+    scene: tuple[Any, int] | None = None,
+) -> np.ndarray:
     """Image (float32, row 0 at the top) of the Siemens star or the dummy cells through one channel.
 
     Parameters

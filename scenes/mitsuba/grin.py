@@ -43,8 +43,16 @@ mi = use("mono")
 import drjit as dr  # noqa: E402  (after the variant is set)
 
 #: Dr.Jit namespace for the profile formulas of scenes.grin.profiles.
-DR = SimpleNamespace(sqrt=dr.sqrt, tanh=dr.tanh, cosh=dr.cosh, where=dr.select, maximum=dr.maximum,
-                     floor=dr.floor, abs=dr.abs, minimum=dr.minimum)
+DR = SimpleNamespace(
+    sqrt=dr.sqrt,
+    tanh=dr.tanh,
+    cosh=dr.cosh,
+    where=dr.select,
+    maximum=dr.maximum,
+    floor=dr.floor,
+    abs=dr.abs,
+    minimum=dr.minimum,
+)
 
 KIND_INTERFACE, KIND_OBJECT, KIND_IMAGE, KIND_WALL = 0, 1, 2, 3
 _EPS = {"float32": 2e-4, "float64": 2e-4}
@@ -80,8 +88,19 @@ def _rkn_step(state: tuple[Any, ...], dt: Any, profile: RadialProfile, rr: float
     return x, y, tx, ty, opl, n2_new, k, alive & (r2 <= rr)
 
 
-def rkn_rod_dr(x: Any, y: Any, tx: Any, ty: Any, tz: Any, profile: RadialProfile, length: float, steps: int,
-               radius: float, active: Any = True, interleave: int = 1) -> tuple[Any, Any, Any, Any, Any, Any]:
+def rkn_rod_dr(
+    x: Any,
+    y: Any,
+    tx: Any,
+    ty: Any,
+    tz: Any,
+    profile: RadialProfile,
+    length: float,
+    steps: int,
+    radius: float,
+    active: Any = True,
+    interleave: int = 1,
+) -> tuple[Any, Any, Any, Any, Any, Any]:
     """Sharma-Kumar-Ghatak RKN through one rod in a ``dr.while_loop`` (seed §7.5.1 profile).
 
     Same equations and arguments as :func:`scenes.grin.rkn.rkn_rod`; the arrays are Dr.Jit arrays of
@@ -131,7 +150,7 @@ def rkn_rod_dr(x: Any, y: Any, tx: Any, ty: Any, tz: Any, profile: RadialProfile
     def body(i: Any, *rest: Any) -> tuple[Any, ...]:
         out: list[Any] = [i + 1]
         for g in range(groups):
-            out += _rkn_step(tuple(rest[8 * g: 8 * g + 8]), dts[g], profile, rr)
+            out += _rkn_step(tuple(rest[8 * g : 8 * g + 8]), dts[g], profile, rr)
         return tuple(out)
 
     final = dr.while_loop(state=tuple(state), cond=cond, body=body)
@@ -166,7 +185,6 @@ def _square_mesh(name: str, z: float, half: float) -> Any:
     return mesh
 
 
-
 @dataclass
 class _RodLayer:
     profile: RadialProfile
@@ -196,8 +214,14 @@ class GrinScene:
         A Mitsuba integrator dictionary.
     """
 
-    def __init__(self, setup: GrinSetup, stack: Stack, step_mm: float | None = None,
-                 sensor: dict[str, Any] | None = None, integrator: dict[str, Any] | None = None) -> None:
+    def __init__(
+        self,
+        setup: GrinSetup,
+        stack: Stack,
+        step_mm: float | None = None,
+        sensor: dict[str, Any] | None = None,
+        integrator: dict[str, Any] | None = None,
+    ) -> None:
         use("mono")  # another module may have switched this thread's variant since import
         self.setup = setup
         self.stack = stack
@@ -211,32 +235,52 @@ class GrinScene:
             if layer.rod is None:
                 continue
             steps = rod_steps(layer.rod.length, step_mm or layer.rod.step_mm)
-            self.rods.append(_RodLayer(layer.profile, layer.rod.length, layer.rod.radius, steps, layer.z0, layer.z1,
-                                       layers[i - 1].index if i > 0 else 1.0,
-                                       layers[i + 1].index if i + 1 < len(layers) else 1.0))
+            self.rods.append(
+                _RodLayer(
+                    layer.profile,
+                    layer.rod.length,
+                    layer.rod.radius,
+                    steps,
+                    layer.z0,
+                    layer.z1,
+                    layers[i - 1].index if i > 0 else 1.0,
+                    layers[i + 1].index if i + 1 < len(layers) else 1.0,
+                )
+            )
         # one plane at z = 0 (object), one between consecutive layers, one at the image plane
         for b in range(len(layers) + 1):
             below = layers[b - 1] if b > 0 else None
             above = layers[b] if b < len(layers) else None
             z = above.z0 if above is not None else below.z1
             kind = KIND_OBJECT if below is None else (KIND_IMAGE if above is None else KIND_INTERFACE)
-            planes.append({"z": z, "kind": kind,
-                           "n_minus": below.index if below is not None else 1.0,
-                           "n_plus": above.index if above is not None else 1.0,
-                           "rod_minus": rod_index.get(b - 1, -1) if below is not None else -1,
-                           "rod_plus": rod_index.get(b, -1) if above is not None else -1})
+            planes.append(
+                {
+                    "z": z,
+                    "kind": kind,
+                    "n_minus": below.index if below is not None else 1.0,
+                    "n_plus": above.index if above is not None else 1.0,
+                    "rod_minus": rod_index.get(b - 1, -1) if below is not None else -1,
+                    "rod_plus": rod_index.get(b, -1) if above is not None else -1,
+                }
+            )
         zs = [p["z"] for p in planes]
         if any(b - a <= 1e-9 for a, b in zip(zs[:-1], zs[1:], strict=True)):
-            raise ScopetwinError("GRIN stack has a layer of zero or negative thickness (two planes at one z): "
-                                 f"plane z = {[round(z, 6) for z in zs]}")
+            raise ScopetwinError(
+                "GRIN stack has a layer of zero or negative thickness (two planes at one z): "
+                f"plane z = {[round(z, 6) for z in zs]}"
+            )
         self.planes = planes
         scene: dict[str, Any] = {"type": "scene"}
         for k, p in enumerate(planes):
             scene[f"plane_{k:02d}"] = _square_mesh(f"plane_{k:02d}", p["z"], half)
         for j, rod in enumerate(self.rods):
             for a, (ax, ay) in enumerate(self.axes):
-                scene[f"wall_{j}_{a}"] = {"type": "cylinder", "p0": [ax, ay, rod.z0], "p1": [ax, ay, rod.z1],
-                                          "radius": rod.radius}
+                scene[f"wall_{j}_{a}"] = {
+                    "type": "cylinder",
+                    "p0": [ax, ay, rod.z0],
+                    "p1": [ax, ay, rod.z1],
+                    "radius": rod.radius,
+                }
         if sensor is not None:
             scene["sensor"] = sensor
         if integrator is not None:
@@ -309,9 +353,17 @@ class GrinScene:
             plane += step if j >= 0 else 0
         return out
 
-    def trace(self, p: tuple[Any, Any, Any], t: tuple[Any, Any, Any], n_start: float, precision: Precision = "float64",
-              active: Any = True, max_events: int | None = None, eval_each: bool = False,
-              start: Literal["object", "image"] | None = None) -> dict[str, Any]:
+    def trace(
+        self,
+        p: tuple[Any, Any, Any],
+        t: tuple[Any, Any, Any],
+        n_start: float,
+        precision: Precision = "float64",
+        active: Any = True,
+        max_events: int | None = None,
+        eval_each: bool = False,
+        start: Literal["object", "image"] | None = None,
+    ) -> dict[str, Any]:
         """Trace rays from positions ``p`` with optical direction cosines ``t`` (|t| = n_start) until they meet the
         object or the image plane.
 
@@ -358,10 +410,12 @@ class GrinScene:
             opl = dr.select(hit, opl + n_cur * s, opl)
             up = tz > 0
             n_next = dr.select(up, dr.gather(F, tab["n_plus"], sid, hit), dr.gather(F, tab["n_minus"], sid, hit))
-            rod_next = dr.select(up, dr.gather(mi.Int32, tab["rod_plus"], sid, hit),
-                                 dr.gather(mi.Int32, tab["rod_minus"], sid, hit))
-            rod_prev = dr.select(up, dr.gather(mi.Int32, tab["rod_minus"], sid, hit),
-                                 dr.gather(mi.Int32, tab["rod_plus"], sid, hit))
+            rod_next = dr.select(
+                up, dr.gather(mi.Int32, tab["rod_plus"], sid, hit), dr.gather(mi.Int32, tab["rod_minus"], sid, hit)
+            )
+            rod_prev = dr.select(
+                up, dr.gather(mi.Int32, tab["rod_minus"], sid, hit), dr.gather(mi.Int32, tab["rod_plus"], sid, hit)
+            )
             term = hit & ((kind == KIND_OBJECT) | (kind == KIND_IMAGE))
             done |= term
             term_kind = dr.select(term, kind, term_kind)
@@ -391,8 +445,9 @@ class GrinScene:
                 n_in = rod.profile.index(dr.minimum(r2, rod.radius**2), DR)
                 tzi2 = n_in * n_in - tx * tx - ty * ty
                 tz_in = dr.sqrt(dr.maximum(tzi2, 1e-12))
-                ox, oy, otx, oty, dopl, ok = rkn_rod_dr(lx, ly, tx, ty, tz_in, rod.profile, rod.length, rod.steps,
-                                                        rod.radius, m)
+                ox, oy, otx, oty, dopl, ok = rkn_rod_dr(
+                    lx, ly, tx, ty, tz_in, rod.profile, rod.length, rod.steps, rod.radius, m
+                )
                 alive &= ~m | ok
                 m &= alive
                 px = dr.select(m, ox + ax, px)
@@ -414,8 +469,18 @@ class GrinScene:
             if eval_each:
                 dr.eval(px, py, pz, tx, ty, tz, n_cur, opl, alive, done, term_kind)
         alive &= done
-        return {"x": px, "y": py, "z": pz, "tx": tx, "ty": ty, "tz": tz, "opl": opl, "alive": alive,
-                "kind": term_kind, "n": n_cur}
+        return {
+            "x": px,
+            "y": py,
+            "z": pz,
+            "tx": tx,
+            "ty": ty,
+            "tz": tz,
+            "opl": opl,
+            "alive": alive,
+            "kind": term_kind,
+            "n": n_cur,
+        }
 
 
 # -- plugins -------------------------------------------------------------------------------------
@@ -431,13 +496,15 @@ class GrinIntegrator(mi.SamplingIntegrator):
         self.key = props.get("key", "")
         self.precision = props.get("precision", "float32")
 
-    def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f, medium: Any = None,
-               active: Any = True) -> tuple[Any, Any, list]:
+    def sample(
+        self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f, medium: Any = None, active: Any = True
+    ) -> tuple[Any, Any, list]:
         ctx = _SCENES[self.key]
         gs: GrinScene = ctx["grin"]
         target: Target = ctx["target"]
-        res = gs.trace((ray.o.x, ray.o.y, ray.o.z), (ray.d.x, ray.d.y, ray.d.z), 1.0, self.precision,
-                       active=active, start="image")
+        res = gs.trace(
+            (ray.o.x, ray.o.y, ray.o.z), (ray.d.x, ray.d.y, ray.d.z), 1.0, self.precision, active=active, start="image"
+        )
         ok = res["alive"] & (res["kind"] == KIND_OBJECT)
         x, y = mi.Float(res["x"]), mi.Float(res["y"])
         ax, ay = gs.nearest_axis(x, y)
@@ -467,8 +534,13 @@ class PupilSensor(mi.Sensor):
         self.radius = props.get("pupil_radius", 1.0)
         self.pixel = props.get("pixel", 0.0022)
         self.center = (props.get("cx", 0.0), props.get("cy", 0.0))
-        self.grid = (props.get("nx", 1), props.get("ny", 1), props.get("pitch", 1.0), props.get("x0", 0.0),
-                     props.get("y0", 0.0))
+        self.grid = (
+            props.get("nx", 1),
+            props.get("ny", 1),
+            props.get("pitch", 1.0),
+            props.get("x0", 0.0),
+            props.get("y0", 0.0),
+        )
         size = self.film().size()
         self.width_mm = size[0] * self.pixel
         self.height_mm = size[1] * self.pixel
@@ -494,14 +566,16 @@ class PupilSensor(mi.Sensor):
         weight = dr.pi * self.radius * self.radius * cos2 / dist2
         return mi.Ray3f(q, d, time, []), mi.Spectrum(weight)
 
-    def sample_ray_differential(self, time: Any, sample1: Any, sample2: Any, sample3: Any,
-                                active: Any = True) -> tuple[Any, Any]:
+    def sample_ray_differential(
+        self, time: Any, sample1: Any, sample2: Any, sample3: Any, active: Any = True
+    ) -> tuple[Any, Any]:
         ray, w = self.sample_ray(time, sample1, sample2, sample3, active)
         return mi.RayDifferential3f(ray), w
 
     def bbox(self) -> mi.ScalarBoundingBox3f:
-        return mi.ScalarBoundingBox3f([-self.width_mm, -self.height_mm, self.z_pupil],
-                                      [self.width_mm, self.height_mm, self.z])
+        return mi.ScalarBoundingBox3f(
+            [-self.width_mm, -self.height_mm, self.z_pupil], [self.width_mm, self.height_mm, self.z]
+        )
 
     def to_string(self) -> str:
         return f"PupilSensor[z={self.z}, z_pupil={self.z_pupil}, radius={self.radius}]"
@@ -515,8 +589,16 @@ def register() -> None:
 
 
 # -- high-level uses ------------------------------------------------------------------------------
-def trace_forward(setup: GrinSetup, stack: Stack, x0: np.ndarray, y0: np.ndarray, tx0: np.ndarray, ty0: np.ndarray,
-                  precision: Precision = "float64", step_mm: float | None = None) -> dict[str, np.ndarray]:
+def trace_forward(
+    setup: GrinSetup,
+    stack: Stack,
+    x0: np.ndarray,
+    y0: np.ndarray,
+    tx0: np.ndarray,
+    ty0: np.ndarray,
+    precision: Precision = "float64",
+    step_mm: float | None = None,
+) -> dict[str, np.ndarray]:
     """Rays from object points (z = 0, in the cover glass) to the image plane through the Mitsuba scene.
 
     Object points and results are relative to the first objective's axis (``setup.array.axes()[0]``).
@@ -535,9 +617,18 @@ def trace_forward(setup: GrinSetup, stack: Stack, x0: np.ndarray, y0: np.ndarray
     return out | {"alive": ok}
 
 
-def render_image(setup: GrinSetup, stack: Stack, target: Target, spp: int = 16, width: int | None = None,
-                 height: int | None = None, precision: Precision = "float32", step_mm: float = 0.9,
-                 center: tuple[float, float] | None = None, seed: int = 0) -> np.ndarray:
+def render_image(
+    setup: GrinSetup,
+    stack: Stack,
+    target: Target,
+    spp: int = 16,
+    width: int | None = None,
+    height: int | None = None,
+    precision: Precision = "float32",
+    step_mm: float = 0.9,
+    center: tuple[float, float] | None = None,
+    seed: int = 0,
+) -> np.ndarray:
     """Image of ``target`` through the objective array onto the camera (irradiance, float32, row 0 at the top).
 
     Uses the registered ``scopetwin_grin`` integrator and ``scopetwin_grin_pupil`` sensor with ``mi.render``.
@@ -553,14 +644,29 @@ def render_image(setup: GrinSetup, stack: Stack, target: Target, spp: int = 16, 
     key = f"grin-{next(_counter)}"
     arr = setup.array
     last_rod = [layer for layer in stack.layers if layer.rod is not None][-1]
-    sensor = {"type": "scopetwin_grin_pupil", "z": stack.layers[-1].z1, "z_pupil": last_rod.z1,
-              "pupil_radius": last_rod.rod.radius, "pixel": setup.camera.pixel_um * 1e-3,
-              "nx": arr.nx, "ny": arr.ny, "pitch": arr.pitch,
-              "x0": -0.5 * (arr.nx - 1) * arr.pitch, "y0": -0.5 * (arr.ny - 1) * arr.pitch,
-              "cx": (center or (0.0, 0.0))[0], "cy": (center or (0.0, 0.0))[1],
-              "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
-                       "pixel_format": "luminance", "component_format": "float32"},
-              "sampler": {"type": "independent", "sample_count": spp, "seed": seed}}
+    sensor = {
+        "type": "scopetwin_grin_pupil",
+        "z": stack.layers[-1].z1,
+        "z_pupil": last_rod.z1,
+        "pupil_radius": last_rod.rod.radius,
+        "pixel": setup.camera.pixel_um * 1e-3,
+        "nx": arr.nx,
+        "ny": arr.ny,
+        "pitch": arr.pitch,
+        "x0": -0.5 * (arr.nx - 1) * arr.pitch,
+        "y0": -0.5 * (arr.ny - 1) * arr.pitch,
+        "cx": (center or (0.0, 0.0))[0],
+        "cy": (center or (0.0, 0.0))[1],
+        "film": {
+            "type": "hdrfilm",
+            "width": width,
+            "height": height,
+            "rfilter": {"type": "box"},
+            "pixel_format": "luminance",
+            "component_format": "float32",
+        },
+        "sampler": {"type": "independent", "sample_count": spp, "seed": seed},
+    }
     integrator = {"type": "scopetwin_grin", "key": key, "precision": precision}
     gs = GrinScene(setup, stack, step_mm, sensor=sensor, integrator=integrator)
     _SCENES[key] = {"grin": gs, "target": target}
@@ -572,8 +678,9 @@ def render_image(setup: GrinSetup, stack: Stack, target: Target, spp: int = 16, 
     return out
 
 
-def illuminate(setup: GrinSetup, n_rays: int = 1_000_000, grid: int = 101, precision: Precision = "float32",
-               seed: int = 0) -> dict[str, Any]:
+def illuminate(
+    setup: GrinSetup, n_rays: int = 1_000_000, grid: int = 101, precision: Precision = "float32", seed: int = 0
+) -> dict[str, Any]:
     """Light-trace the §7.5.3 illumination path: irradiance map at the object plane and energy efficiency.
 
     LED points are uniform on the square, directions cosine-weighted (``mi.warp``: a Lambertian
@@ -601,8 +708,9 @@ def illuminate(setup: GrinSetup, n_rays: int = 1_000_000, grid: int = 101, preci
     if ill is None:
         raise ScopetwinError(f"setup {setup.name or setup.section} has no [illumination] table")
     stack = illumination_stack(setup)
-    single = setup.model_copy(update={"array": ArraySpec(nx=1, ny=1, pitch=setup.array.pitch,
-                                                          substrate_side=setup.array.substrate_side)})
+    single = setup.model_copy(
+        update={"array": ArraySpec(nx=1, ny=1, pitch=setup.array.pitch, substrate_side=setup.array.substrate_side)}
+    )
     gs = GrinScene(single, stack)
     sampler = mi.load_dict({"type": "independent", "seed": seed})
     sampler.seed(seed, n_rays)
@@ -631,10 +739,16 @@ def illuminate(setup: GrinSetup, n_rays: int = 1_000_000, grid: int = 101, preci
     in_field = (c[None, :] ** 2 + c[:, None] ** 2) <= r * r
     field_irr = irr[in_field]
     eff = float(inside.sum() * power_per_ray / ill.power_mw)
-    return {"efficiency": eff, "efficiency_of_accepted": eff / accepted if accepted > 0 else 0.0,
-            "accepted_fraction": accepted, "reaching_object": float(ok.mean()),
-            "object_plane_of_accepted": float(ok.mean()) * loss / accepted if accepted > 0 else 0.0,
-            "loss_factor": loss, "fresnel": fresnel_transmission(stack),
-            "splitter_reflectance": ill.splitter_reflectance,
-            "irradiance_mw_per_mm2": irr.astype(np.float32), "extent_mm": r,
-            "uniformity_min_over_max": float(field_irr.min() / field_irr.max()) if field_irr.max() > 0 else 0.0}
+    return {
+        "efficiency": eff,
+        "efficiency_of_accepted": eff / accepted if accepted > 0 else 0.0,
+        "accepted_fraction": accepted,
+        "reaching_object": float(ok.mean()),
+        "object_plane_of_accepted": float(ok.mean()) * loss / accepted if accepted > 0 else 0.0,
+        "loss_factor": loss,
+        "fresnel": fresnel_transmission(stack),
+        "splitter_reflectance": ill.splitter_reflectance,
+        "irradiance_mw_per_mm2": irr.astype(np.float32),
+        "extent_mm": r,
+        "uniformity_min_over_max": float(field_irr.min() / field_irr.max()) if field_irr.max() > 0 else 0.0,
+    }

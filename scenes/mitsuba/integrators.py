@@ -27,7 +27,6 @@ PLUGIN = "scopetwin_mirror"
 DEFAULT_EPS = 1e-3
 
 
-
 def _mi():
     """The mitsuba module with a variant set (``mono`` unless one was chosen already)."""
     import mitsuba as mi

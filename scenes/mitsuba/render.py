@@ -76,8 +76,9 @@ def live_window(setup: Setup, heights: HeightMap | None = None) -> Window | None
         sub = setup.substrate
         z = max(float(np.abs(heights.z).max()), 1e-9)
         z = _Z_STEP * np.ceil(z / _Z_STEP)
-        objects.append(_box_edges((-0.5 * sub.size[0], 0.5 * sub.size[0]),
-                                  (-0.5 * sub.roi_length, 0.5 * sub.roi_length), (-z, z)))
+        objects.append(
+            _box_edges((-0.5 * sub.size[0], 0.5 * sub.size[0]), (-0.5 * sub.roi_length, 0.5 * sub.roi_length), (-z, z))
+        )
     elif setup.scene == "mirror" and setup.mirror is not None:
         mx, my = setup.mirror.size
         objects.append(_box_edges((-0.5 * mx, 0.5 * mx), (-0.5 * my, 0.5 * my), (0.0, 0.0)))
@@ -154,8 +155,13 @@ def load_scene(setup: Setup, heights: HeightMap | None = None, window: Window | 
     return scene
 
 
-def render_window(setup: Setup, heights: HeightMap | None = None, spp: int | None = None,
-                  seed: int | None = None, window: Window | None = None) -> NDArray[np.float32]:
+def render_window(
+    setup: Setup,
+    heights: HeightMap | None = None,
+    spp: int | None = None,
+    seed: int | None = None,
+    window: Window | None = None,
+) -> NDArray[np.float32]:
     """Render a crop (row0, row1, col0, col1) of the image (default: all of it), float32 (rows, cols).
 
     The pixels are exactly those of the full image (same rays, same box filter); the
@@ -179,8 +185,9 @@ def scene_render(scene: Any, spp: int, seed: int) -> NDArray[np.float32]:
     return np.ascontiguousarray(arr[..., 0] if arr.ndim == 3 else arr)
 
 
-def render_setup(setup: Setup, heights: HeightMap | None = None, spp: int | None = None,
-                 seed: int | None = None) -> NDArray[np.float32]:
+def render_setup(
+    setup: Setup, heights: HeightMap | None = None, spp: int | None = None, seed: int | None = None
+) -> NDArray[np.float32]:
     """Render a setup: linear irradiance, float32 (ny, nx), row 0 = top image row.
 
     Parameters

@@ -132,9 +132,16 @@ def mirror_dict(size: tuple[float, float]) -> dict[str, Any]:
     return {"type": "rectangle", "to_world": mi.ScalarTransform4f(m), "bsdf": dict(MIRROR_BSDF)}
 
 
-def scene_dict(setup: Setup, heights: HeightMap | None = None, spp: int | None = None, seed: int | None = None,
-               window: Window | None = None, eps: float = DEFAULT_EPS,
-               vertices: tuple[int, int] = DEFAULT_VERTICES, texel: float = TEXEL) -> dict[str, Any]:
+def scene_dict(
+    setup: Setup,
+    heights: HeightMap | None = None,
+    spp: int | None = None,
+    seed: int | None = None,
+    window: Window | None = None,
+    eps: float = DEFAULT_EPS,
+    vertices: tuple[int, int] = DEFAULT_VERTICES,
+    texel: float = TEXEL,
+) -> dict[str, Any]:
     """The Mitsuba scene dictionary of a setup.
 
     Parameters

@@ -27,7 +27,6 @@ from scenes.mitsuba.variant import register_plugin, use
 PLUGIN = "scopetwin_camera"
 
 
-
 def camera_to_world(camera: Camera) -> NDArray[np.float64]:
     """4x4 camera-to-world matrix with the columns (-T_x, T_y, -N_z, r_c) (float64).
 
@@ -63,8 +62,9 @@ def film_dict(camera: Camera, window: tuple[int, int, int, int] | None = None) -
     return film
 
 
-def sensor_dict(camera: Camera, spp: int, seed: int = 0,
-                window: tuple[int, int, int, int] | None = None) -> dict[str, Any]:
+def sensor_dict(
+    camera: Camera, spp: int, seed: int = 0, window: tuple[int, int, int, int] | None = None
+) -> dict[str, Any]:
     """Scene-dictionary entry of the thesis camera (plugin ``scopetwin_camera``).
 
     Parameters

@@ -41,8 +41,9 @@ def _mi():
     return mi if mi.variant() else use("mono")
 
 
-def grid_arrays(heights: HeightMap, x_range: tuple[float, float], y_range: tuple[float, float],
-                nx: int, ny: int) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.uint32]]:
+def grid_arrays(
+    heights: HeightMap, x_range: tuple[float, float], y_range: tuple[float, float], nx: int, ny: int
+) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.uint32]]:
     """Vertex positions, analytic vertex normals and faces of a heightfield grid.
 
     Parameters
@@ -80,8 +81,15 @@ def grid_arrays(heights: HeightMap, x_range: tuple[float, float], y_range: tuple
     return positions.astype(np.float32), normals.reshape(-1, 3).astype(np.float32), faces.astype(np.uint32)
 
 
-def heightfield_mesh(heights: HeightMap, x_range: tuple[float, float], y_range: tuple[float, float],
-                     nx: int, ny: int, name: str = "heightfield", bsdf: dict[str, Any] | None = None) -> Any:
+def heightfield_mesh(
+    heights: HeightMap,
+    x_range: tuple[float, float],
+    y_range: tuple[float, float],
+    nx: int,
+    ny: int,
+    name: str = "heightfield",
+    bsdf: dict[str, Any] | None = None,
+) -> Any:
     """A ``mitsuba.Mesh`` of the surface over a rectangle, with analytic vertex normals.
 
     ``bsdf`` is a scene-dictionary BSDF (default: a perfect mirror, :data:`MIRROR_BSDF`).
@@ -99,8 +107,9 @@ def heightfield_mesh(heights: HeightMap, x_range: tuple[float, float], y_range: 
     return mesh
 
 
-def substrate_shapes(heights: HeightMap, size: tuple[float, float], roi_length: float,
-                     vertices: tuple[int, int] = DEFAULT_VERTICES) -> dict[str, Any]:
+def substrate_shapes(
+    heights: HeightMap, size: tuple[float, float], roi_length: float, vertices: tuple[int, int] = DEFAULT_VERTICES
+) -> dict[str, Any]:
     """Scene-dictionary entries of the substrate: the mirroring ROI and the black frame regions.
 
     Parameters
@@ -132,8 +141,6 @@ def substrate_shapes(heights: HeightMap, size: tuple[float, float], roi_length: 
     strip = 0.5 * sy - half_roi
     if strip > 1e-9:
         n_strip = max(2, math.ceil(strip / dy) + 1)
-        out["frame_low"] = heightfield_mesh(heights, xr, (-0.5 * sy, -half_roi), nx, n_strip, "frame_low",
-                                            BLACK_BSDF)
-        out["frame_high"] = heightfield_mesh(heights, xr, (half_roi, 0.5 * sy), nx, n_strip, "frame_high",
-                                             BLACK_BSDF)
+        out["frame_low"] = heightfield_mesh(heights, xr, (-0.5 * sy, -half_roi), nx, n_strip, "frame_low", BLACK_BSDF)
+        out["frame_high"] = heightfield_mesh(heights, xr, (half_roi, 0.5 * sy), nx, n_strip, "frame_high", BLACK_BSDF)
     return out

@@ -38,8 +38,11 @@ def _find_llvm(pinned: str | None) -> str | None:
     if pinned and os.path.exists(pinned):
         return pinned
     for version in range(25, 15, -1):
-        for pattern in (f"/usr/lib/*/libLLVM-{version}.so*", f"/usr/lib/*/libLLVM.so.{version}*",
-                        f"/usr/lib/llvm-{version}/lib/libLLVM*.so*"):
+        for pattern in (
+            f"/usr/lib/*/libLLVM-{version}.so*",
+            f"/usr/lib/*/libLLVM.so.{version}*",
+            f"/usr/lib/llvm-{version}/lib/libLLVM*.so*",
+        ):
             hits = sorted(glob.glob(pattern))
             if hits:
                 return hits[0]

@@ -62,8 +62,12 @@ class BentSubstrate:
         xp = np.asarray(x, dtype=np.float64) - self.center_mm[0]
         yp = np.asarray(y, dtype=np.float64) - self.center_mm[1]
         r2 = self.radius_mm**2
-        return (self.tilt_x * xp + self.tilt_y * yp + self.bow_mm * (xp**2 + yp**2) / r2
-                + self.saddle_mm * (xp**2 - yp**2) / r2)
+        return (
+            self.tilt_x * xp
+            + self.tilt_y * yp
+            + self.bow_mm * (xp**2 + yp**2) / r2
+            + self.saddle_mm * (xp**2 - yp**2) / r2
+        )
 
 
 @dataclass(frozen=True)
@@ -153,16 +157,20 @@ def _texture_lattice(seed: int, n: int, sigma_px: float) -> NDArray[np.float32]:
     return (0.15 + 0.85 / (1.0 + np.exp(-2.5 * (smooth - 0.5)))).astype(np.float32)
 
 
-def sample_texture(x_mm: NDArray[np.float64], y_mm: NDArray[np.float64],
-                   optics: WidefieldOptics) -> NDArray[np.float32]:
+def sample_texture(
+    x_mm: NDArray[np.float64], y_mm: NDArray[np.float64], optics: WidefieldOptics
+) -> NDArray[np.float32]:
     """Fluorescent radiance of the sample at sample coordinates (mm); a fixed periodic function."""
     lattice_step = optics.feature_um * 1e-3 / 2.0
     n = int(round(optics.texture_period_mm / lattice_step))
     lattice = _texture_lattice(int(optics.texture_seed), n, 2.0)
     rows = np.asarray(y_mm) / lattice_step
     cols = np.asarray(x_mm) / lattice_step
-    return ndimage.map_coordinates(lattice, [rows.ravel(), cols.ravel()], order=1, mode="grid-wrap").reshape(
-        np.shape(x_mm)).astype(np.float32)
+    return (
+        ndimage.map_coordinates(lattice, [rows.ravel(), cols.ravel()], order=1, mode="grid-wrap")
+        .reshape(np.shape(x_mm))
+        .astype(np.float32)
+    )
 
 
 def patch_half_size_mm(optics: WidefieldOptics) -> float:
@@ -170,8 +178,14 @@ def patch_half_size_mm(optics: WidefieldOptics) -> float:
     return 0.5 * max(optics.field_mm) * math.sqrt(2.0) + optics.blur_radius_mm(optics.max_defocus_mm) + 0.01
 
 
-def tile_scene_dict(height_mm: HeightFunction, stage_xy_mm: tuple[float, float], focus_um: float,
-                    optics: WidefieldOptics, radiance_scale: float = 1.0, seed: int = 0) -> dict[str, Any]:
+def tile_scene_dict(
+    height_mm: HeightFunction,
+    stage_xy_mm: tuple[float, float],
+    focus_um: float,
+    optics: WidefieldOptics,
+    radiance_scale: float = 1.0,
+    seed: int = 0,
+) -> dict[str, Any]:
     """The Mitsuba scene dictionary of one tile (sample patch around the stage position + thin-lens camera).
 
     Coordinates are the objective's: the optical axis is the z axis, and the sample
@@ -190,8 +204,9 @@ def tile_scene_dict(height_mm: HeightFunction, stage_xy_mm: tuple[float, float],
     texcoords = np.stack([(uu + half) / (2 * half), (vv + half) / (2 * half)], axis=-1).reshape(-1, 2)
     col, row = np.meshgrid(np.arange(n_vert - 1), np.arange(n_vert - 1))
     v00 = (row * n_vert + col).ravel()
-    faces = np.concatenate([np.stack([v00, v00 + 1, v00 + n_vert + 1], -1),
-                            np.stack([v00, v00 + n_vert + 1, v00 + n_vert], -1)])
+    faces = np.concatenate(
+        [np.stack([v00, v00 + 1, v00 + n_vert + 1], -1), np.stack([v00, v00 + n_vert + 1, v00 + n_vert], -1)]
+    )
     texel = optics.object_pixel_mm / 2.0
     n_tex = int(math.ceil(2 * half / texel))
     t = (np.arange(n_tex) + 0.5) / n_tex * 2 * half - half
@@ -200,11 +215,18 @@ def tile_scene_dict(height_mm: HeightFunction, stage_xy_mm: tuple[float, float],
 
     props = mi.Properties()
     props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "uniform", "value": 0.0}})
-    props["emitter"] = mi.load_dict({
-        "type": "area",
-        "radiance": {"type": "bitmap", "data": mi.TensorXf(radiance[..., None]), "raw": True, "filter_type": "bilinear",
-                     "wrap_mode": "clamp"},
-    })
+    props["emitter"] = mi.load_dict(
+        {
+            "type": "area",
+            "radiance": {
+                "type": "bitmap",
+                "data": mi.TensorXf(radiance[..., None]),
+                "raw": True,
+                "filter_type": "bilinear",
+                "wrap_mode": "clamp",
+            },
+        }
+    )
     mesh = mi.Mesh("sample", len(positions), len(faces), props=props, has_vertex_texcoords=True)
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(positions.astype(np.float32).ravel())
@@ -228,17 +250,28 @@ def tile_scene_dict(height_mm: HeightFunction, stage_xy_mm: tuple[float, float],
             "aperture_radius": optics.aperture_radius_mm,
             "focus_distance": d,
             "to_world": mi.ScalarTransform4f(to_world),
-            "film": {"type": "hdrfilm", "width": int(cols), "height": int(rows), "rfilter": {"type": "box"},
-                     "pixel_format": "luminance", "component_format": "float32"},
+            "film": {
+                "type": "hdrfilm",
+                "width": int(cols),
+                "height": int(rows),
+                "rfilter": {"type": "box"},
+                "pixel_format": "luminance",
+                "component_format": "float32",
+            },
             "sampler": {"type": "multijitter", "sample_count": int(optics.spp), "seed": int(seed)},
         },
         "sample": mesh,
     }
 
 
-def render_tile(height_mm: HeightFunction, stage_xy_mm: tuple[float, float], focus_um: float,
-                optics: WidefieldOptics | None = None, radiance_scale: float = 1.0,
-                seed: int = 0) -> NDArray[np.float32]:
+def render_tile(
+    height_mm: HeightFunction,
+    stage_xy_mm: tuple[float, float],
+    focus_um: float,
+    optics: WidefieldOptics | None = None,
+    radiance_scale: float = 1.0,
+    seed: int = 0,
+) -> NDArray[np.float32]:
     """Render one widefield frame: linear irradiance, float32 (rows, cols), row 0 = top.
 
     Parameters

@@ -22,5 +22,7 @@ def rendered():
     from scenes.mitsuba.render import render_setup
     from scenes.setup import load_setup
 
-    return (render_setup(load_setup("thesis-2.8.3-substrate"), None, spp=16, seed=1),
-            render_setup(load_setup("thesis-2.8.3-mirror"), None, spp=16, seed=2))
+    return (
+        render_setup(load_setup("thesis-2.8.3-substrate"), None, spp=16, seed=1),
+        render_setup(load_setup("thesis-2.8.3-mirror"), None, spp=16, seed=2),
+    )

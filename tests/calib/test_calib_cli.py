@@ -51,8 +51,22 @@ def test_calibrate_json(images, tmp_path):
 
 def test_calibrate_setup_writes_loadable_toml(images, tmp_path):
     out, js = tmp_path / "setup.toml", tmp_path / "setup.json"
-    assert run(["calibrate-setup", "--substrate-image", str(images / "substrate.exr"), "--mirror-image",
-                str(images / "mirror.exr"), "--out", str(out), "--json", str(js)]) == 0
+    assert (
+        run(
+            [
+                "calibrate-setup",
+                "--substrate-image",
+                str(images / "substrate.exr"),
+                "--mirror-image",
+                str(images / "mirror.exr"),
+                "--out",
+                str(out),
+                "--json",
+                str(js),
+            ]
+        )
+        == 0
+    )
     s = load_setup(out)
     truth = load_setup("thesis-2.8.3-mirror")
     assert np.linalg.norm(s.marker_pattern.frame.origin - truth.marker_pattern.frame.origin) < 5e-3
@@ -65,10 +79,39 @@ def test_errors_exit_2_and_write_nothing(images, tmp_path):
     # a mirror image is not a calibration target
     assert run(["calibrate", str(images / "mirror.exr"), "--json", str(out)]) == 2
     # a face-on view cannot give a free b
-    assert run(["calibrate", str(images / "substrate.exr"), "--lens", "free", "--target",
-                "thesis-2.8.1-perpendicular", "--nz-estimate", "0,0,-1", "--json", str(out)]) == 2
+    assert (
+        run(
+            [
+                "calibrate",
+                str(images / "substrate.exr"),
+                "--lens",
+                "free",
+                "--target",
+                "thesis-2.8.1-perpendicular",
+                "--nz-estimate",
+                "0,0,-1",
+                "--json",
+                str(out),
+            ]
+        )
+        == 2
+    )
     assert run(["calibrate", str(tmp_path / "missing.exr"), "--json", str(out)]) == 2
     toml = tmp_path / "s.toml"
-    assert run(["calibrate-setup", "--substrate-image", str(images / "mirror.exr"), "--mirror-image",
-                str(images / "mirror.exr"), "--out", str(toml), "--json", str(out)]) == 2
+    assert (
+        run(
+            [
+                "calibrate-setup",
+                "--substrate-image",
+                str(images / "mirror.exr"),
+                "--mirror-image",
+                str(images / "mirror.exr"),
+                "--out",
+                str(toml),
+                "--json",
+                str(out),
+            ]
+        )
+        == 2
+    )
     assert not out.exists() and not toml.exists()

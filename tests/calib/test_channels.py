@@ -16,8 +16,16 @@ PIXEL_UM = 6.45
 SPEC = TargetSpec()
 
 
-def star_image(m: float, center: tuple[float, float], tilt_deg: float, sigma_px: float, size: int = 860,
-               ss: int = 3, noise: float = 0.0, seed: int = 0) -> np.ndarray:
+def star_image(
+    m: float,
+    center: tuple[float, float],
+    tilt_deg: float,
+    sigma_px: float,
+    size: int = 860,
+    ss: int = 3,
+    noise: float = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
     """Box-integrated image (ss x ss samples per pixel) of the target at magnification m, content rotated by
     +tilt (counter-clockwise as displayed) about ``center`` (x = col, y = row), then a Gaussian blur."""
     off = (np.arange(ss) + 0.5) / ss

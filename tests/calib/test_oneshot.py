@@ -178,8 +178,9 @@ def test_bias_correction_converges_to_the_truth(angular):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", CalibrationWarning)
         raw = calibrate(xy, centroids, prior, lens="fixed")
-    cal, est, rounds = calibrate_bias_corrected(xy, centroids, prior, spot_bias_model(xy, radii, supersample=2),
-                                                lens="fixed")
+    cal, est, rounds = calibrate_bias_corrected(
+        xy, centroids, prior, spot_bias_model(xy, radii, supersample=2), lens="fixed"
+    )
     assert np.abs(raw.camera.center - s.camera_model.center).max() > 1e-3
     assert np.abs(cal.camera.center - s.camera_model.center).max() < 1e-6
     assert np.abs(est - bias).max() < 1e-5

@@ -31,8 +31,12 @@ def setups():
 def exact_inputs(ss, sm):
     ts, tm = marker_truth(ss), marker_truth(sm)
     vs, vm = ts.visible, tm.visible
-    return (ss.marker_pattern.centers_local(ts.ij[vs]), ts.center_px[vs],
-            virtual_coordinates(sm.marker_pattern, tm.ij[vm]), tm.center_px[vm])
+    return (
+        ss.marker_pattern.centers_local(ts.ij[vs]),
+        ts.center_px[vs],
+        virtual_coordinates(sm.marker_pattern, tm.ij[vm]),
+        tm.center_px[vm],
+    )
 
 
 def test_frame_transfer_round_trip():
@@ -60,8 +64,16 @@ def test_per_view_thin_lens_misplaces_the_pattern(setups):
     """The seed's way (a thin-lens b per view) fails when the camera focus does not fit the mirror distance."""
     ss, sm = setups
     xs, ps_, xm, pm_ = exact_inputs(ss, sm)
-    res = calibrate_setup(xs, ps_, Prior.from_camera(ss.camera_model, 25.0), xm, pm_, mirror_prior(sm),
-                          lens="thin-lens", share_intrinsics=False)
+    res = calibrate_setup(
+        xs,
+        ps_,
+        Prior.from_camera(ss.camera_model, 25.0),
+        xm,
+        pm_,
+        mirror_prior(sm),
+        lens="thin-lens",
+        share_intrinsics=False,
+    )
     err = np.linalg.norm(res.pattern.origin - sm.marker_pattern.frame.origin)
     assert err > 1.0  # mm: b = 27.1 from the thin-lens equation at 326 mm against the camera's real 28 mm
 
@@ -92,9 +104,16 @@ def test_rendered_images_meet_the_issue_targets(setups, rendered):
     fs, fm = find_markers_for(img_s, ss), find_markers_for(img_m, sm)
     xs = ss.marker_pattern.centers_local(fs.ij)
     xm = virtual_coordinates(sm.marker_pattern, fm.ij)
-    res = calibrate_setup(xs, fs.centroids, Prior.from_camera(ss.camera_model, 25.0), xm, fm.centroids,
-                          mirror_prior(sm), substrate_bias=spot_bias_model(xs, ss.marker_pattern.radii(fs.ij)),
-                          mirror_bias=spot_bias_model(xm, sm.marker_pattern.radii(fm.ij)))
+    res = calibrate_setup(
+        xs,
+        fs.centroids,
+        Prior.from_camera(ss.camera_model, 25.0),
+        xm,
+        fm.centroids,
+        mirror_prior(sm),
+        substrate_bias=spot_bias_model(xs, ss.marker_pattern.radii(fs.ij)),
+        mirror_bias=spot_bias_model(xm, sm.marker_pattern.radii(fm.ij)),
+    )
     cam, pat = ss.camera_model.frame, sm.marker_pattern.frame
     assert np.linalg.norm(res.camera.center - cam.origin) < 2e-3
     assert np.linalg.norm(res.pattern.origin - pat.origin) < 5e-3

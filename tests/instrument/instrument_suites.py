@@ -94,13 +94,26 @@ class LightSuite:
         assert not device.is_on
 
     def test_configure_keeps_all_fields(self, device):
-        cfg = device.configure(current_ma=device.current_range.high * 0.25, duration_s=0.0125, use_duration=True,
-                               listen_global_trigger=True, global_trigger_delay_s=0.002)
+        cfg = device.configure(
+            current_ma=device.current_range.high * 0.25,
+            duration_s=0.0125,
+            use_duration=True,
+            listen_global_trigger=True,
+            global_trigger_delay_s=0.002,
+        )
         assert device.config == cfg
         assert cfg.current_ma == pytest.approx(device.current_range.high * 0.25)
 
-    @pytest.mark.parametrize("changes", [{"current_ma": 1e9}, {"current_ma": -1.0}, {"duration_s": 1e4},
-                                         {"global_trigger_delay_s": -1e-3}, {"colour": 3}])
+    @pytest.mark.parametrize(
+        "changes",
+        [
+            {"current_ma": 1e9},
+            {"current_ma": -1.0},
+            {"duration_s": 1e4},
+            {"global_trigger_delay_s": -1e-3},
+            {"colour": 3},
+        ],
+    )
     def test_bad_settings_send_nothing(self, device, io_count, changes):
         before = io_count()
         with pytest.raises(OutOfRangeError):
@@ -179,16 +192,19 @@ class CameraSuite:
         assert device.saturation_dn == 2 ** max(device.limits.bit_depths) - 1
         assert device.serial_number
 
-    @pytest.mark.parametrize("call", [
-        lambda c: c.set_exposure_s(c.limits.exposure_s.high * 2),
-        lambda c: c.set_exposure_s(-1.0),
-        lambda c: c.set_roi(0, 0, c.sensor_shape[0] + 1, 8),
-        lambda c: c.set_roi(c.sensor_shape[0] - 4, 0, 8, 8),
-        lambda c: c.set_binning(3),
-        lambda c: c.set_bit_depth(7),
-        lambda c: c.set_gain_db(c.limits.gain_db.high + 1),
-        lambda c: c.set_trigger(TriggerType.SOFTWARE, TriggerMode.BULB),
-    ])
+    @pytest.mark.parametrize(
+        "call",
+        [
+            lambda c: c.set_exposure_s(c.limits.exposure_s.high * 2),
+            lambda c: c.set_exposure_s(-1.0),
+            lambda c: c.set_roi(0, 0, c.sensor_shape[0] + 1, 8),
+            lambda c: c.set_roi(c.sensor_shape[0] - 4, 0, 8, 8),
+            lambda c: c.set_binning(3),
+            lambda c: c.set_bit_depth(7),
+            lambda c: c.set_gain_db(c.limits.gain_db.high + 1),
+            lambda c: c.set_trigger(TriggerType.SOFTWARE, TriggerMode.BULB),
+        ],
+    )
     def test_bad_settings_send_nothing(self, device, io_count, call):
         before = io_count()
         with pytest.raises(OutOfRangeError):

@@ -56,9 +56,9 @@ def test_tile_scan_focus_map_vs_fixed_focus(tmp_path):
         assert frame.shape == (256, 256)
     s_map = np.array([m.sharpness for m in mapped])
     s_fixed = np.array([f.sharpness for f in fixed])
-    assert s_map.min() > 0.6 * s_map.max()                    # every focus-map tile is in focus
+    assert s_map.min() > 0.6 * s_map.max()  # every focus-map tile is in focus
     blurred = s_fixed < 0.2 * s_map
-    assert blurred.sum() >= 2 * len(positions) // 3            # most fixed-focus tiles are blurred
+    assert blurred.sum() >= 2 * len(positions) // 3  # most fixed-focus tiles are blurred
     centre = [i for i, m in enumerate(mapped) if m.index == (1, 1)][0]
     assert s_fixed[centre] == pytest.approx(s_map[centre], rel=0.1)  # where the fixed focus is right, it is sharp
 
@@ -67,7 +67,8 @@ SIMULTANEOUS_RIG = """
 [devices.trigger]
 kind = "trigger"
 driver = "sim"
-""" + "".join(f"""
+""" + "".join(
+    f"""
 [devices.led{i}]
 kind = "light"
 driver = "sim"
@@ -79,7 +80,9 @@ sensor_shape = [48, 64]
 trigger_line = {i}
 seed = {i}
 renderer = {{ kind = "texture", lights = ["led{i}"], peak = 1.0, seed = {i} }}
-""" for i in range(4))
+"""
+    for i in range(4)
+)
 
 
 def _four_channel_rig(tmp_path):
@@ -97,8 +100,10 @@ def test_simultaneous_capture_on_global_trigger(tmp_path):
         paths = simultaneous_capture(rig, tmp_path / "out", {f"cam{i}": f"led{i}" for i in range(4)}, exposure)
         assert not rig.world.any_light_on()
         assert [e[0] for e in rig.world.events].count("global-trigger") == 1
-        expected = [EmvaSensor().mean_dn(rig[f"cam{i}"].render_irradiance({f"led{i}": 0.25 * (i + 1)}), 1.0e6,
-                                         exposure).mean() for i in range(4)]
+        expected = [
+            EmvaSensor().mean_dn(rig[f"cam{i}"].render_irradiance({f"led{i}": 0.25 * (i + 1)}), 1.0e6, exposure).mean()
+            for i in range(4)
+        ]
     for i in range(4):
         frame, _ = read_image(paths[f"cam{i}"])
         assert frame.mean() == pytest.approx(expected[i], rel=0.03)
@@ -110,8 +115,13 @@ def test_global_trigger_delay_sets_the_dose(tmp_path, light_delay_fraction):
     exposure = 0.01
     with open_rig(_four_channel_rig(tmp_path)) as rig:
         cam, led, board = rig["cam0"], rig.light("led0"), rig.trigger()
-        led.configure(current_ma=1000.0, use_duration=True, duration_s=exposure, listen_global_trigger=True,
-                      global_trigger_delay_s=light_delay_fraction * exposure)
+        led.configure(
+            current_ma=1000.0,
+            use_duration=True,
+            duration_s=exposure,
+            listen_global_trigger=True,
+            global_trigger_delay_s=light_delay_fraction * exposure,
+        )
         cam.set_exposure_s(exposure)
         cam.set_trigger(TriggerType.RISING_EDGE)
         board.configure_camera_line(0, True, 0.0)
@@ -136,8 +146,14 @@ def test_failures_keep_frames_and_switch_lights_off(tmp_path):
                 stage_emulator.fault = Fault.DROP
 
         with pytest.raises((DisconnectedError, InstrumentTimeout)):
-            tile_scan(rig, out, grid((1.0, 1.2), (2.0, 2.2), 3, 2), focus_map=lambda x, y: 150.0 + 10 * x,
-                      light="uv", on_tile=after_tile)
+            tile_scan(
+                rig,
+                out,
+                grid((1.0, 1.2), (2.0, 2.2), 3, 2),
+                focus_map=lambda x, y: 150.0 + 10 * x,
+                light="uv",
+                on_tile=after_tile,
+            )
         assert not board.any_light_on()
     manifest = json.loads((out / "manifest.json").read_text())
     assert not manifest["complete"] and manifest["error"]

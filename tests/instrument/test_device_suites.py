@@ -87,8 +87,13 @@ class TestFpgaLightOnEmulator(EmulatorIo, LightSuite):
         yield from _initialized(FpgaLight("uv", FpgaBoard(wire[1]), channel=2, max_current_ma=500.0))
 
     def test_board_holds_table_4_2_config(self, device, wire):
-        cfg = device.configure(current_ma=123.4, duration_s=0.25, use_duration=True, listen_global_trigger=True,
-                               global_trigger_delay_s=0.0015)
+        cfg = device.configure(
+            current_ma=123.4,
+            duration_s=0.25,
+            use_duration=True,
+            listen_global_trigger=True,
+            global_trigger_delay_s=0.0015,
+        )
         assert device.read_config() == cfg
         assert wire[0].light_config[2] == bytes([0x04, 0xD2, 1, 0x00, 0x03, 0xD0, 0x90, 1, 0, 0, 0x05, 0xDC])
 
@@ -139,6 +144,11 @@ class TestSimCamera(SimIo, CameraSuite):
         light = SimLight("led", world, max_current_ma=100.0)
         light.initialize()
         light.switch_on(50.0)
-        cam = SimCamera("cam", world, renderer=FlatTextureRenderer(peak=0.5),
-                        limits=CameraLimits(sensor_shape=(64, 80)), timeout_s=0.05)
+        cam = SimCamera(
+            "cam",
+            world,
+            renderer=FlatTextureRenderer(peak=0.5),
+            limits=CameraLimits(sensor_shape=(64, 80)),
+            timeout_s=0.05,
+        )
         yield from _initialized(cam)

@@ -25,8 +25,11 @@ from instrument.errors import (
 )
 
 TIMEOUT_S = 0.3
-EXPECTED = {Fault.SILENT: (InstrumentTimeout,), Fault.GARBAGE: (ProtocolError,),
-            Fault.DROP: (DisconnectedError, InstrumentTimeout)}
+EXPECTED = {
+    Fault.SILENT: (InstrumentTimeout,),
+    Fault.GARBAGE: (ProtocolError,),
+    Fault.DROP: (DisconnectedError, InstrumentTimeout),
+}
 
 
 def _check_fault(emulator, fault, operation):
@@ -99,8 +102,11 @@ def test_fuzz_pi_decoders(raw_lines):
         lines = pi_gcs.decode_lines(raw_lines)
     except DOCUMENTED:
         return
-    for parse in (pi_gcs.parse_axis_values, lambda ls: pi_gcs.parse_error_code(ls[0]),
-                  lambda ls: pi_gcs.parse_motion_status(ls[0])):
+    for parse in (
+        pi_gcs.parse_axis_values,
+        lambda ls: pi_gcs.parse_error_code(ls[0]),
+        lambda ls: pi_gcs.parse_motion_status(ls[0]),
+    ):
         try:
             parse(lines)
         except DOCUMENTED:
@@ -173,9 +179,14 @@ def test_fuzz_drivers_on_random_replies(raw):
     board = FpgaBoard(_RandomReplies(raw), timeout_s=0.005)
     controller = pi_gcs.PiGcsController(_RandomReplies(raw), timeout_s=0.005)
     focus = JenaPiezoFocus("focus", _RandomReplies(raw), timeout_s=0.005)
-    for call in (lambda: board.read(fpga.LIGHT_ACTION), lambda: board.write(fpga.GLOBAL_TRIGGER, b"\x01"),
-                 lambda: controller.axis_values("POS?", "1"), controller.motion_mask, controller.error_code,
-                 focus._read_value):
+    for call in (
+        lambda: board.read(fpga.LIGHT_ACTION),
+        lambda: board.write(fpga.GLOBAL_TRIGGER, b"\x01"),
+        lambda: controller.axis_values("POS?", "1"),
+        controller.motion_mask,
+        controller.error_code,
+        focus._read_value,
+    ):
         try:
             call()
         except InstrumentError:

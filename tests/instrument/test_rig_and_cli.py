@@ -59,18 +59,27 @@ def texture_rig(tmp_path):
 def test_presets_load(name):
     rig = load_rig(RIGS / f"{name}.toml")
     try:
-        assert rig.devices and {d.kind for d in rig.devices.values()} <= {"camera", "stage", "focus", "light",
-                                                                            "shutter", "trigger"}
+        assert rig.devices and {d.kind for d in rig.devices.values()} <= {
+            "camera",
+            "stage",
+            "focus",
+            "light",
+            "shutter",
+            "trigger",
+        }
     finally:
         rig.close()
 
 
-@pytest.mark.parametrize("edit, match", [
-    (('driver = "sim"\ntravel_mm = [0.0, 150.0]', 'driver = "warp"\ntravel_mm = [0.0, 150.0]'), "unknown driver"),
-    (("position_um = 100.0", "position_um = 100.0\ncolour = 3"), "unknown field"),
-    (("max_current_ma = 700.0", "max_current_ma = 700.0\nshutter = 3"), "shutter must be str"),
-    (("travel_mm = [0.0, 150.0]", "travel_mm = [0.0]"), "two numbers"),
-])
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (('driver = "sim"\ntravel_mm = [0.0, 150.0]', 'driver = "warp"\ntravel_mm = [0.0, 150.0]'), "unknown driver"),
+        (("position_um = 100.0", "position_um = 100.0\ncolour = 3"), "unknown field"),
+        (("max_current_ma = 700.0", "max_current_ma = 700.0\nshutter = 3"), "shutter must be str"),
+        (("travel_mm = [0.0, 150.0]", "travel_mm = [0.0]"), "two numbers"),
+    ],
+)
 def test_bad_rig_files_name_the_problem(tmp_path, edit, match):
     path = tmp_path / "bad.toml"
     path.write_text(TEXTURE_RIG.replace(*edit, 1))
@@ -130,12 +139,15 @@ def test_micro_manager_mda_runs_on_simulated_rig(texture_rig):
     with open_rig(texture_rig) as rig:
         rig.light().configure(current_ma=350.0)
         core = load_into_core(rig)
-        seq = useq.MDASequence(stage_positions=[(10000.0, 10000.0, 100.0), (10250.0, 10050.0, 120.0)],
-                               z_plan={"range": 4.0, "step": 2.0})
+        seq = useq.MDASequence(
+            stage_positions=[(10000.0, 10000.0, 100.0), (10250.0, 10050.0, 120.0)], z_plan={"range": 4.0, "step": 2.0}
+        )
         seen = []
         core.mda.events.frameReady.connect(
-            lambda img, event, meta: seen.append((img.copy(), event.x_pos, event.z_pos, rig.stage("x").position_mm,
-                                                  rig.focus().position_um)))
+            lambda img, event, meta: seen.append(
+                (img.copy(), event.x_pos, event.z_pos, rig.stage("x").position_mm, rig.focus().position_um)
+            )
+        )
         core.mda.run(seq)
         assert not rig.light().is_on
     assert len(seen) == 6

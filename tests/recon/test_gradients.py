@@ -40,8 +40,12 @@ def test_gradients_round_trip_and_eq_1_2(rng: np.random.Generator) -> None:
 
 def test_gradients_in_a_rotated_base_frame(rng: np.random.Generator) -> None:
     a = 0.3
-    frame = Frame(np.array([1.0, 2.0, 3.0]), np.array([np.cos(a), np.sin(a), 0.0]),
-                  np.array([-np.sin(a), np.cos(a), 0.0]), np.array([0.0, 0.0, 1.0]))
+    frame = Frame(
+        np.array([1.0, 2.0, 3.0]),
+        np.array([np.cos(a), np.sin(a), 0.0]),
+        np.array([-np.sin(a), np.cos(a), 0.0]),
+        np.array([0.0, 0.0, 1.0]),
+    )
     hx, hy = rng.normal(0, 0.01, 50), rng.normal(0, 0.01, 50)
     n_global = normals_from_gradients(hx, hy, frame)
     gx, gy = gradients_from_normals(n_global, frame)

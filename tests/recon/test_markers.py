@@ -19,8 +19,9 @@ from recon.markers import (
 NONE = np.iinfo(np.int32).min
 
 
-def cone_image(shape: tuple[int, int], centres: np.ndarray, radii: np.ndarray, peak: float = 1.0,
-               sub: int = 8) -> np.ndarray:
+def cone_image(
+    shape: tuple[int, int], centres: np.ndarray, radii: np.ndarray, peak: float = 1.0, sub: int = 8
+) -> np.ndarray:
     """Pixel-integrated (sub x sub samples) cone spots g = peak*(1 - r/R), the pattern's marker shape."""
     rows, cols = shape
     out = np.zeros(shape)
@@ -36,8 +37,9 @@ def cone_image(shape: tuple[int, int], centres: np.ndarray, radii: np.ndarray, p
     return out
 
 
-def grid_points(n: int, step: float, origin: tuple[float, float], warp: float = 0.0,
-                rot: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def grid_points(
+    n: int, step: float, origin: tuple[float, float], warp: float = 0.0, rot: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Indices (i, j) in [-n, n]^2 and image points of a rotated grid with a quadratic (bow-like) warp."""
     i, j = np.meshgrid(np.arange(-n, n + 1), np.arange(-n, n + 1), indexing="ij")
     ij = np.stack([i.ravel(), j.ravel()], axis=-1)
@@ -98,7 +100,7 @@ def test_flood_indexes_a_warped_grid_with_missing_and_spurious_spots(rng, warp):
     reached = got[:, 0] != NONE
     assert reached.mean() > 0.97
     np.testing.assert_array_equal(got[reached], ij[reached])
-    assert np.all(found[len(ij):, 0] == NONE)
+    assert np.all(found[len(ij) :, 0] == NONE)
 
 
 def test_fourier_axes_find_periods_and_tilt():

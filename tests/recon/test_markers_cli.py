@@ -35,7 +35,6 @@ def case(tmp_path_factory) -> tuple[Path, Path, object]:
     return toml, image, marker_truth(setup)
 
 
-
 def test_register_adds_the_markers_command():
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers(dest="command"))

@@ -109,8 +109,9 @@ def test_too_few_markers_next_to_a_frame_region(flat) -> None:
 
 
 def test_camera_that_cannot_see_the_substrate() -> None:
-    away = load_setup("thesis-1.10-deflectometry", {"camera": {"t_y": [0.0, -0.5145, -0.8575],
-                                                              "n_z": [0.0, 0.8575, -0.5145]}})
+    away = load_setup(
+        "thesis-1.10-deflectometry", {"camera": {"t_y": [0.0, -0.5145, -0.8575], "n_z": [0.0, 0.8575, -0.5145]}}
+    )
     with pytest.raises(SubstrateNotVisibleError, match="cannot see the substrate"):
         Reconstructor.from_setup(away, FAST)
 
@@ -171,8 +172,19 @@ def test_cli_reconstructs_a_rendered_image(tmp_path: Path) -> None:
     image = tmp_path / "meas.exr"
     write_image(image, render_setup(SETUP, truth, spp=4, seed=0), SETUP.to_json())
     out = tmp_path / "heights.exr"
-    result = _cli(["reconstruct", str(image), "--setup", "thesis-1.10-deflectometry", "--out", str(out),
-                   "--no-bias-correction", "--sigma", "12"])
+    result = _cli(
+        [
+            "reconstruct",
+            str(image),
+            "--setup",
+            "thesis-1.10-deflectometry",
+            "--out",
+            str(out),
+            "--no-bias-correction",
+            "--sigma",
+            "12",
+        ]
+    )
     assert {"heights", "outer_iterations", "inner_iterations", "delta_h_max_um", "seconds"} <= set(result)
     hm = read_heightmap(out)
     assert (hm.x_min, hm.x_max, hm.y_min, hm.y_max) == pytest.approx((-12.6, 12.6, -28.5, 28.5), abs=1e-6)
@@ -188,6 +200,7 @@ def test_misindexed_markers_are_an_error_not_a_tilted_map(tilt, tmp_path: Path) 
     shifted = MarkerObservations(obs.ij + np.array([0, 1]), obs.px)  # every marker one row off
     keep = shifted.ij[:, 1] <= 16
     with pytest.raises(InconsistentError, match="cannot lie on the holding frame"):
-        reconstruct(SETUP, MarkerObservations(shifted.ij[keep], shifted.px[keep]), config=FAST,
-                    history_path=tmp_path / "h.json")
+        reconstruct(
+            SETUP, MarkerObservations(shifted.ij[keep], shifted.px[keep]), config=FAST, history_path=tmp_path / "h.json"
+        )
     assert json.loads((tmp_path / "h.json").read_text())["converged"] is True

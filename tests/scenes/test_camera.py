@@ -9,8 +9,7 @@ from scenes.setup import load_setup, preset_names
 
 
 def _cameras():
-    cams = [load_setup(n).camera_model for n in preset_names() if n.startswith("thesis-1") or
-            n.startswith("thesis-2")]
+    cams = [load_setup(n).camera_model for n in preset_names() if n.startswith("thesis-1") or n.startswith("thesis-2")]
     base = cams[0]
     cams.append(base.with_(r_cs=(0.0465, -0.031), c0=1.002, c2=0.00123))
     cams.append(base.with_(c2=-0.004))

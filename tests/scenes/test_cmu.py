@@ -123,8 +123,9 @@ def test_spherical_mirror_refocus_matches_thin_lens_formula(setup) -> None:
 
 def test_45_degree_astigmatism_from_coddington(setup) -> None:
     """A sphere at 45°: tangential/sagittal focal powers 2/(R cos45), 2 cos45/R; focal difference ~ f^2 dphi."""
-    s = setup.model_copy(update={"splitters": {k: v.model_copy(update={"residual_rms_um": 0.0})
-                                               for k, v in setup.splitters.items()}})
+    s = setup.model_copy(
+        update={"splitters": {k: v.model_copy(update={"residual_rms_um": 0.0}) for k, v in setup.splitters.items()}}
+    )
     opt = channel_optics(s, "red")
     g = (np.arange(41) + 0.5) / 41 * 0.2 - 0.1  # paraxial fans
     z = np.zeros_like(g)

@@ -87,8 +87,9 @@ def _direction_keeping_landing(opt, o, d):
 @pytest.fixture(scope="module")
 def bowed(mc, setup):
     """Plate maps with every splitter bowed (the 61002BS given a convex 9.4 µm bow here), and their scene."""
-    bs = setup.splitters["61002BS"].model_copy(update={"bow_range_um": 9.4, "residual_rms_um": 0.1,
-                                                         "residual_seed": 4, "concave": False})
+    bs = setup.splitters["61002BS"].model_copy(
+        update={"bow_range_um": 9.4, "residual_rms_um": 0.1, "residual_seed": 4, "concave": False}
+    )
     elements = {**setup.splitters, "61002BS": bs, **setup.mirrors}
     maps = {name: plate_heightmap(spec, setup.plate) for name, spec in elements.items()}
     return maps, mc.unit_scene(setup, maps)
@@ -137,8 +138,13 @@ def test_transmitted_plates_shift_the_beam_at_the_objective_aperture(mc, setup, 
     for ch, spec in setup.channels.items():
         opt = channel_optics(setup, ch, maps)
         b = analyse(setup, opt, n_pupil=11).image_distance_mm
-        big = Optics(dataclasses.replace(opt.objective, radius=1.1 * opt.objective.radius), opt.middle, opt.tube,
-                     None, opt.wavelength_nm)
+        big = Optics(
+            dataclasses.replace(opt.objective, radius=1.1 * opt.objective.radius),
+            opt.middle,
+            opt.tube,
+            None,
+            opt.wavelength_nm,
+        )
         n_refl, n_events = _path_counts(spec)
         for rim, inside in ((0.98, True), (1.02, False)):
             r = image_rays(big, 0.0, 0.0, rim / 1.1 * np.cos(phi), rim / 1.1 * np.sin(phi))

@@ -72,8 +72,9 @@ def test_single_rod_paraxial_matches_abcd(length):
     ref = rod_paraxial(prof, length)
     h = 1e-4
     # collimated ray of height h in air -> T⊥ = 0 inside; exit slope in air = T_x (n_air = 1)
-    x, _, tx, _, _, _ = rkn_rod(np.array([h]), np.zeros(1), np.zeros(1), np.zeros(1),
-                                np.array([prof.index(h * h)]), prof, length, 400)
+    x, _, tx, _, _, _ = rkn_rod(
+        np.array([h]), np.zeros(1), np.zeros(1), np.zeros(1), np.array([prof.index(h * h)]), prof, length, 400
+    )
     u = tx[0] / np.sqrt(1 - tx[0] ** 2)
     efl = -h / u
     bfl = -x[0] / u

@@ -97,8 +97,13 @@ def test_coincident_planes_are_rejected(realized):
 
     s, st = realized
     last = st.layers[-1]
-    bad = Stack((*st.layers, Layer("empty", last.z1, last.z1, last.glass, last.index, None, None)),
-                st.wavelength_nm, st.image_distance, st.stop_z, st.stop_radius)
+    bad = Stack(
+        (*st.layers, Layer("empty", last.z1, last.z1, last.glass, last.index, None, None)),
+        st.wavelength_nm,
+        st.image_distance,
+        st.stop_z,
+        st.stop_radius,
+    )
     with pytest.raises(ScopetwinError, match="zero or negative thickness"):
         grin.GrinScene(s, bad)
 

@@ -16,8 +16,7 @@ def test_heightmap_round_trip(tmp_path, rng):
     back = read_heightmap(tmp_path / "z.exr")
     np.testing.assert_array_equal(back.z, hm.z.astype(np.float32))
     # extents are EXR float attributes (32-bit): a few nm at these sizes
-    np.testing.assert_allclose([back.x_min, back.x_max, back.y_min, back.y_max], [-12.6, 12.6, -28.5, 28.5],
-                               atol=1e-6)
+    np.testing.assert_allclose([back.x_min, back.x_max, back.y_min, back.y_max], [-12.6, 12.6, -28.5, 28.5], atol=1e-6)
     assert [p.name for p in tmp_path.iterdir()] == ["z.exr"]
 
 

@@ -8,8 +8,9 @@ from scenes.sensor import EmvaSensor
 
 
 def test_photon_transfer_mean_and_variance():
-    s = EmvaSensor(quantum_efficiency=0.5, full_well_e=20000, dark_noise_e=8, gain_dn_per_e=0.2,
-                   black_level_dn=40, bit_depth=12)
+    s = EmvaSensor(
+        quantum_efficiency=0.5, full_well_e=20000, dark_noise_e=8, gain_dn_per_e=0.2, black_level_dn=40, bit_depth=12
+    )
     flat = np.full((400, 400), 0.5)
     img = s.capture(flat, photons_per_unit_s=2e4, exposure_s=1.0, rng=3)
     mu_e = 0.5 * 0.5 * 2e4  # 5000 e-

@@ -6,8 +6,14 @@ from scenes.errors import SetupError
 from scenes.setup import load_setup, preset_info, preset_names
 
 PART_ONE = [
-    "thesis-1.10-deflectometry", "thesis-2.8.1-perpendicular", "thesis-2.8.1-angular", "thesis-2.8.3-substrate",
-    "thesis-2.8.3-mirror", "thesis-2.8.5-distortion", "thesis-2.9.1-target-6x4", "thesis-2.9.1-target-4x4",
+    "thesis-1.10-deflectometry",
+    "thesis-2.8.1-perpendicular",
+    "thesis-2.8.1-angular",
+    "thesis-2.8.3-substrate",
+    "thesis-2.8.3-mirror",
+    "thesis-2.8.5-distortion",
+    "thesis-2.9.1-target-6x4",
+    "thesis-2.9.1-target-4x4",
 ]
 
 

@@ -49,10 +49,12 @@ def test_render_deflectometry_with_user_surface(tmp_path, capsys):
     hm = HeightMap.from_function(lambda x, y: -1e-5 * y**2 + 0.0081225, -12.6, 12.6, -28.5, 28.5, 32, 64)
     write_heightmap(tmp_path / "z.exr", hm)
     setup = tmp_path / "d.toml"
-    setup.write_text('base = "thesis-1.10-deflectometry"\n[camera]\npixels = [68, 51]\npixel_pitch = 0.093\n'
-                     "[render]\nspp = 1\n")
-    code, _, err = _run(capsys, "render", setup, "--out", tmp_path / "o", "--surface", tmp_path / "z.exr",
-                        "--renderer", "analytic")
+    setup.write_text(
+        'base = "thesis-1.10-deflectometry"\n[camera]\npixels = [68, 51]\npixel_pitch = 0.093\n[render]\nspp = 1\n'
+    )
+    code, _, err = _run(
+        capsys, "render", setup, "--out", tmp_path / "o", "--surface", tmp_path / "z.exr", "--renderer", "analytic"
+    )
     assert code == 0, err
     back = read_heightmap(tmp_path / "o" / "surface.exr")
     np.testing.assert_allclose(back.z, hm.z, atol=1e-9)
@@ -91,9 +93,13 @@ def test_unknown_preset(tmp_path, capsys):
 def test_unreadable_and_wrong_channel_surface(tmp_path, capsys):
     (tmp_path / "junk.exr").write_text("junk")
     write_image(tmp_path / "image.exr", np.zeros((8, 8)))
-    for name, message in (("junk.exr", "not a readable OpenEXR"), ("image.exr", "no channel 'Z'"),
-                          ("missing.exr", "does not exist")):
-        code, _, err = _run(capsys, "render", "thesis-1.10-deflectometry", "--out", tmp_path / "out",
-                            "--surface", tmp_path / name)
+    for name, message in (
+        ("junk.exr", "not a readable OpenEXR"),
+        ("image.exr", "no channel 'Z'"),
+        ("missing.exr", "does not exist"),
+    ):
+        code, _, err = _run(
+            capsys, "render", "thesis-1.10-deflectometry", "--out", tmp_path / "out", "--surface", tmp_path / name
+        )
         assert code == 2 and message in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["image.exr", "junk.exr"]

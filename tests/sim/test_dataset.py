@@ -38,17 +38,20 @@ def _cfg(**over) -> dict:
     return base
 
 
-@pytest.mark.parametrize(("data", "key"), [
-    (_cfg(dataset={"colour": "red"}), "dataset.colour"),
-    (_cfg(vary={"surface_rnage_um": {"uniform": [1, 2]}}), "vary.surface_rnage_um"),
-    (_cfg(vary={"surface_range_um": {"uniform": [-5.0, 10.0]}}), "vary.surface_range_um"),
-    (_cfg(vary={"surface_correlation_length": {"normal": [12.0, 1.0]}}), "vary.surface_correlation_length"),
-    (_cfg(vary={"surface_range_um": {"uniform": [50.0, 10.0]}}), "vary.surface_range_um"),
-    (_cfg(vary={"exposure_fill": {"sweep": [0.5, 1.5]}}), "vary.exposure_fill"),
-    (_cfg(vary={"view_angle_deg": {"fixed": 45.0}}), "vary.view_angle_deg"),
-    (_cfg(vary={"surface_kind": {"choice": ["random", "wavy"]}}), "vary.surface_kind"),
-    (_cfg(vary={"camera_shift": {"uniform": [0, 1], "normal": [0, 1]}}), "vary.camera_shift"),
-])
+@pytest.mark.parametrize(
+    ("data", "key"),
+    [
+        (_cfg(dataset={"colour": "red"}), "dataset.colour"),
+        (_cfg(vary={"surface_rnage_um": {"uniform": [1, 2]}}), "vary.surface_rnage_um"),
+        (_cfg(vary={"surface_range_um": {"uniform": [-5.0, 10.0]}}), "vary.surface_range_um"),
+        (_cfg(vary={"surface_correlation_length": {"normal": [12.0, 1.0]}}), "vary.surface_correlation_length"),
+        (_cfg(vary={"surface_range_um": {"uniform": [50.0, 10.0]}}), "vary.surface_range_um"),
+        (_cfg(vary={"exposure_fill": {"sweep": [0.5, 1.5]}}), "vary.exposure_fill"),
+        (_cfg(vary={"view_angle_deg": {"fixed": 45.0}}), "vary.view_angle_deg"),
+        (_cfg(vary={"surface_kind": {"choice": ["random", "wavy"]}}), "vary.surface_kind"),
+        (_cfg(vary={"camera_shift": {"uniform": [0, 1], "normal": [0, 1]}}), "vary.camera_shift"),
+    ],
+)
 def test_bad_config_names_the_key(data, key):
     with pytest.raises(DatasetError, match=key.replace(".", r"\.")):
         config_from_dict(data, "cfg.toml")
@@ -76,8 +79,9 @@ def test_cmu_kind_names_the_missing_capability(monkeypatch):
     import importlib.util
 
     real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "scenes.mitsuba.cmu" else
-                        real(name, *a))
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "scenes.mitsuba.cmu" else real(name, *a)
+    )
     cfg = config_from_dict({"dataset": {"kind": "cmu", "setup": "thesis-cmu", "count": 1, "master_seed": 0}})
     with pytest.raises(DatasetError, match=r"scenes\.mitsuba\.cmu"):
         Plan.build(cfg)
@@ -120,8 +124,7 @@ def test_determinism_truth_verify_and_resume(tmp_path):
         hm = read_heightmap(a / SAMPLES / f"{i:06d}" / "surface.exr")
         assert np.ptp(hm.z) * 1e3 == pytest.approx(params["surface_range_um"], rel=1e-5)
         assert truth["parameters"] == params and truth["sample"] == i
-        assert truth["setup_json"]["substrate"]["surface"]["correlation_length"] == params[
-            "surface_correlation_length"]
+        assert truth["setup_json"]["substrate"]["surface"]["correlation_length"] == params["surface_correlation_length"]
         assert sum(m["visible"] for m in truth["markers"]) > 10
         image, attrs = read_image(a / SAMPLES / f"{i:06d}" / "image.exr")
         assert image.shape == (128, 170) and "scopetwin_setup" in attrs

@@ -71,26 +71,32 @@ def _data(**over: dict) -> dict:
     return data
 
 
-@pytest.mark.parametrize(("over", "key"), [
-    ({"cmu": {"colour": "red"}}, "cmu.colour"),
-    ({"vary": {"channel_tilt_deg": {"uniform": [-50.0, 1.0]}}}, "vary.channel_tilt_deg"),
-    ({"vary": {"target": {"choice": ["star", "dots-25"]}}}, "vary.target"),
-    ({"vary": {"bow_range_um": {"fixed": 5.0}}}, "vary.bow_scale"),
-    ({"vary": {"residual_rms_um": {"normal": [0.1, 0.05]}}}, "vary.residual_rms_um"),
-    ({"vary": {"surface_range_um": {"fixed": 5.0}}}, "vary.surface_range_um"),
-    ({"grin": {"width": 64}}, "grin"),
-])
+@pytest.mark.parametrize(
+    ("over", "key"),
+    [
+        ({"cmu": {"colour": "red"}}, "cmu.colour"),
+        ({"vary": {"channel_tilt_deg": {"uniform": [-50.0, 1.0]}}}, "vary.channel_tilt_deg"),
+        ({"vary": {"target": {"choice": ["star", "dots-25"]}}}, "vary.target"),
+        ({"vary": {"bow_range_um": {"fixed": 5.0}}}, "vary.bow_scale"),
+        ({"vary": {"residual_rms_um": {"normal": [0.1, 0.05]}}}, "vary.residual_rms_um"),
+        ({"vary": {"surface_range_um": {"fixed": 5.0}}}, "vary.surface_range_um"),
+        ({"grin": {"width": 64}}, "grin"),
+    ],
+)
 def test_bad_config_names_the_key(over, key):
     with pytest.raises(DatasetError, match=key.replace(".", r"\.")):
         config_from_dict(_data(**over), "cfg.toml")
 
 
-@pytest.mark.parametrize(("over", "key"), [
-    ({"cmu": {"channels": ["green", "uv"]}}, "cmu.channels"),
-    ({"cmu": {"window": [0, 0, 200, 100]}}, "cmu.window"),
-    ({"setup": {"splitters": {"770DCXR": {"bow_range_um": -1.0}}}}, "bow_range_um"),
-    ({"vary": {"channel_offset_px": {"uniform": [-40.0, 40.0]}}}, "vary.channel_offset_px"),
-])
+@pytest.mark.parametrize(
+    ("over", "key"),
+    [
+        ({"cmu": {"channels": ["green", "uv"]}}, "cmu.channels"),
+        ({"cmu": {"window": [0, 0, 200, 100]}}, "cmu.window"),
+        ({"setup": {"splitters": {"770DCXR": {"bow_range_um": -1.0}}}}, "bow_range_um"),
+        ({"vary": {"channel_offset_px": {"uniform": [-40.0, 40.0]}}}, "vary.channel_offset_px"),
+    ],
+)
 def test_impossible_sample_rejected_before_work(over, key):
     """Found when the plan checks every sample's unit and cameras, before anything is rendered."""
     with pytest.raises(DatasetError, match=key.replace(".", r"\.")):
@@ -160,8 +166,13 @@ def test_determinism_and_truth(tmp_path):
         img, attrs = read_image(folder / t["image"])
         assert img.shape == (144, 160) and img.dtype == np.float32
         assert json.loads(attrs["scopetwin_provenance"])["channel"] == ch and "scopetwin_setup" in attrs
-        meas = measure_channel(img, setup["camera"]["pixel_um"], setup["target"]["frame_side"] * 1e3,
-                               setup["target"]["star_radius"] * 1e3, setup["target"]["spokes"])
+        meas = measure_channel(
+            img,
+            setup["camera"]["pixel_um"],
+            setup["target"]["frame_side"] * 1e3,
+            setup["target"]["star_radius"] * 1e3,
+            setup["target"]["spokes"],
+        )
         # the renderer refracts at both plate faces: the images follow the exact tracer's truth.
         # Tolerances of calib.channels' own tests: 0.2 % in magnification, 0.5 px in position
         assert meas.magnification == pytest.approx(t["magnification"], rel=0.002)

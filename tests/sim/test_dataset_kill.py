@@ -31,9 +31,26 @@ COUNT = 8
 
 def _start(cfg: Path, out: Path) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.Popen([sys.executable, "-m", "sim.cli", "dataset", "generate", str(cfg), "--out",
-                             str(out), "--workers", "2", "--quiet"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, start_new_session=True)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "sim.cli",
+            "dataset",
+            "generate",
+            str(cfg),
+            "--out",
+            str(out),
+            "--workers",
+            "2",
+            "--quiet",
+        ],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
 
 
 def _finished(out: Path) -> int:
@@ -92,8 +109,11 @@ def test_kill_resume_verify(tmp_path, victim):
             os.kill(proc.pid, signal.SIGKILL)
             proc.wait(timeout=30)
             # the orphaned workers notice their parent is gone and exit by themselves
-            _wait(lambda: not any(p.is_running() and p.status() != psutil.STATUS_ZOMBIE for p in family), 60,
-                  "the orphaned workers to exit")
+            _wait(
+                lambda: not any(p.is_running() and p.status() != psutil.STATUS_ZOMBIE for p in family),
+                60,
+                "the orphaned workers to exit",
+            )
             assert verify(out)["complete"] < COUNT
         else:
             worker = _workers(proc)[0]

@@ -10,8 +10,15 @@ def test_run_reconstructs_the_default_substrate(tmp_path, capsys):
     code = main(["run", "--out", str(out), "--spp", "4", "--quiet", "--json", str(tmp_path / "run.json")])
     assert code == 0, capsys.readouterr().err
     summary = json.loads((tmp_path / "run.json").read_text())
-    for name in ("report.md", "truth-heights.exr", "measurement.exr", "heights-calibrated.exr", "error.png",
-                 "calibrated-setup.toml", "focusmap.csv"):
+    for name in (
+        "report.md",
+        "truth-heights.exr",
+        "measurement.exr",
+        "heights-calibrated.exr",
+        "error.png",
+        "calibrated-setup.toml",
+        "focusmap.csv",
+    ):
         assert (out / name).is_file(), name
     # 40 µm surface, noise on, 4 spp: both reconstructions well inside the seed's 0.414 µm ROI RMS
     for which in ("ideal", "calibrated"):

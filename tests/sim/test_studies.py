@@ -49,8 +49,9 @@ def _square(x: float) -> float:
 def test_runner_writes_report_with_seed_ours_ratio(tmp_path, monkeypatch):
     def demo(ctx: StudyContext) -> StudyResult:
         values = ctx.map(_square, [(1.0,), (3.0,)], "demo")
-        return StudyResult("Demo", "intro", [Table("Table X", [Row("a", 2.0, values[1], "µm")])],
-                           summary={"values": values})
+        return StudyResult(
+            "Demo", "intro", [Table("Table X", [Row("a", 2.0, values[1], "µm")])], summary={"values": values}
+        )
 
     monkeypatch.setitem(studies.STUDIES, "demo", demo)
     res = run_study("demo", tmp_path / "demo", workers=0, progress=False)
@@ -68,10 +69,18 @@ def test_runner_writes_report_with_seed_ours_ratio(tmp_path, monkeypatch):
 def test_calibration_view_task_recovers_the_camera(tmp_path):
     """A generated 60° calibration view (noise-free): centroids and camera recovered against the truth."""
     ctx = StudyContext(tmp_path, None, progress=False)
-    cfg = {"dataset": {"kind": "calibration", "setup": "thesis-2.8.1-perpendicular", "count": 1, "master_seed": 3,
-                       "spp": 16, "preview": False},
-           "setup": {"camera": {"pixels": [680, 512], "pixel_pitch": 0.0093}},
-           "vary": {"view_angle_deg": {"fixed": 60.0}, "view_distance": {"fixed": 233.24}}}
+    cfg = {
+        "dataset": {
+            "kind": "calibration",
+            "setup": "thesis-2.8.1-perpendicular",
+            "count": 1,
+            "master_seed": 3,
+            "spp": 16,
+            "preview": False,
+        },
+        "setup": {"camera": {"pixels": [680, 512], "pixel_pitch": 0.0093}},
+        "vary": {"view_angle_deg": {"fixed": 60.0}, "view_distance": {"fixed": 233.24}},
+    }
     root = ctx.dataset(cfg, "views")
     row = studies.calibration_view_task(str(root / "samples" / "000000"))
     assert row["markers"] == 99

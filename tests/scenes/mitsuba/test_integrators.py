@@ -38,20 +38,28 @@ def test_back_of_the_target_and_empty_space_are_black():
 
     small = {"camera": {"pixels": [136, 102], "pixel_pitch": 0.0465}}
     front = load_setup("thesis-2.8.1-perpendicular", overrides=small)
-    back = load_setup("thesis-2.8.1-perpendicular", overrides={
-        **small, "pattern": {"t_y": [0.0, -1.0, 0.0], "n_z": [0.0, 0.0, -1.0]}})
+    back = load_setup(
+        "thesis-2.8.1-perpendicular", overrides={**small, "pattern": {"t_y": [0.0, -1.0, 0.0], "n_z": [0.0, 0.0, -1.0]}}
+    )
     img_front = render_setup(front, spp=4)
     img_back = render_setup(back, spp=4)
     assert img_front.max() > 0.5
     assert np.all(img_back == 0)
     # pixels whose rays miss the target plate entirely stay black
     cam, pattern = front.camera_model, front.marker_pattern
-    corners = cam.project(pattern.frame.to_global(np.array(
-        [[sx * pattern.size_x / 2, sy * pattern.size_y / 2, 0] for sx in (-1, 1) for sy in (-1, 1)])))
+    corners = cam.project(
+        pattern.frame.to_global(
+            np.array([[sx * pattern.size_x / 2, sy * pattern.size_y / 2, 0] for sx in (-1, 1) for sy in (-1, 1)])
+        )
+    )
     lo, hi = corners.min(axis=0), corners.max(axis=0)
     cols = np.arange(cam.nx) + 0.5
     rows = np.arange(cam.ny) + 0.5
-    off = (cols[None, :] < lo[0] - 1) | (cols[None, :] > hi[0] + 1) | (rows[:, None] < lo[1] - 1) | (
-        rows[:, None] > hi[1] + 1)
+    off = (
+        (cols[None, :] < lo[0] - 1)
+        | (cols[None, :] > hi[0] + 1)
+        | (rows[:, None] < lo[1] - 1)
+        | (rows[:, None] > hi[1] + 1)
+    )
     assert off.sum() > 1000
     assert np.all(img_front[off] == 0)

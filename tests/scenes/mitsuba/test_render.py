@@ -16,8 +16,11 @@ def spot_centroids(image: np.ndarray, window: tuple[int, int, int, int]) -> np.n
     """Grey-weighted centroids (x_px, y_px) of the spots lying wholly inside a rendered window."""
     labels, n = ndimage.label(image > 0)
     objects = ndimage.find_objects(labels)
-    keep = [k + 1 for k, (rs, cs) in enumerate(objects)
-            if rs.start > 0 and cs.start > 0 and rs.stop < image.shape[0] and cs.stop < image.shape[1]]
+    keep = [
+        k + 1
+        for k, (rs, cs) in enumerate(objects)
+        if rs.start > 0 and cs.start > 0 and rs.stop < image.shape[0] and cs.stop < image.shape[1]
+    ]
     c = np.array(ndimage.center_of_mass(image.astype(np.float64), labels, keep))
     return c[:, ::-1] + 0.5 + [window[2], window[0]]
 
@@ -84,8 +87,9 @@ def test_holding_frame_regions_are_black_as_in_the_analytic_model():
     from scenes.surface import HeightMap, Substrate
 
     setup = load_setup("thesis-1.10-deflectometry")
-    heights = HeightMap.from_function(lambda x, y: -0.03 * (1 - (y / 28.5) ** 2) + 0.0003 * x,
-                                      -12.6, 12.6, -28.5, 28.5, nx=32, ny=64)
+    heights = HeightMap.from_function(
+        lambda x, y: -0.03 * (1 - (y / 28.5) ** 2) + 0.0003 * x, -12.6, 12.6, -28.5, 28.5, nx=32, ny=64
+    )
     cam = setup.camera_model
     sub = Substrate(heights, *setup.substrate.size, setup.substrate.roi_length)
     # the image row where camera rays meet y = -24 mm on the base plane
@@ -114,8 +118,7 @@ def test_thin_lens_in_focus_keeps_the_spots_in_place():
     from scenes.mitsuba.render import render_window
     from scenes.mitsuba.variant import use
 
-    setup = load_setup("thesis-2.8.1-perpendicular", overrides={
-        "camera": {"f_number": 4.0, "focus_distance": 233.24}})
+    setup = load_setup("thesis-2.8.1-perpendicular", overrides={"camera": {"f_number": 4.0, "focus_distance": 233.24}})
     assert setup.camera_model.lens == ThinLens(25.0, 4.0, 233.24)
     use("mono")
     window = (300, 560, 420, 840)
@@ -130,8 +133,10 @@ def test_render_setup_full_frame_contract():
     """(ny, nx) float32, row 0 on top, defaults from setup.render, same seed -> same bytes."""
     from scenes.mitsuba.render import render_setup
 
-    setup = load_setup("thesis-2.8.1-perpendicular", overrides={
-        "camera": {"pixels": [136, 102], "pixel_pitch": 0.0465}, "render": {"spp": 4, "seed": 7}})
+    setup = load_setup(
+        "thesis-2.8.1-perpendicular",
+        overrides={"camera": {"pixels": [136, 102], "pixel_pitch": 0.0465}, "render": {"spp": 4, "seed": 7}},
+    )
     a = render_setup(setup)
     b = render_setup(setup, spp=4, seed=7)
     c = render_setup(setup, seed=8)
@@ -150,8 +155,7 @@ def test_rendering_in_another_thread_gives_the_same_image():
 
     from scenes.mitsuba.render import render_setup
 
-    setup = load_setup("thesis-2.8.3-mirror", overrides={
-        "camera": {"pixels": [136, 102], "pixel_pitch": 0.0465}})
+    setup = load_setup("thesis-2.8.3-mirror", overrides={"camera": {"pixels": [136, 102], "pixel_pitch": 0.0465}})
     here = render_setup(setup, spp=4, seed=3)
     with ThreadPoolExecutor(max_workers=1) as pool:
         there = pool.submit(render_setup, setup, None, 4, 3).result()

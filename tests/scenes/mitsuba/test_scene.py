@@ -18,8 +18,9 @@ def _heights(setup) -> HeightMap | None:
     if setup.scene != "deflectometry":
         return None
     sx, sy = setup.substrate.size
-    return HeightMap.from_function(lambda x, y: -0.02 * (y / (0.5 * sy)) ** 2, -0.5 * sx, 0.5 * sx,
-                                   -0.5 * sy, 0.5 * sy, nx=16, ny=32)
+    return HeightMap.from_function(
+        lambda x, y: -0.02 * (y / (0.5 * sy)) ** 2, -0.5 * sx, 0.5 * sx, -0.5 * sy, 0.5 * sy, nx=16, ny=32
+    )
 
 
 def test_there_are_setup_presets():
@@ -35,8 +36,11 @@ def test_scene_builds_for_every_setup_preset(name):
     setup = load_setup(name)
     scene = mi.load_dict(build_scene(setup, _heights(setup)))
     ids = {s.id() for s in scene.shapes()}
-    expected = {"deflectometry": {"pattern", "substrate_roi", "frame_low", "frame_high"},
-                "mirror": {"pattern", "mirror"}, "target": {"pattern"}}[setup.scene]
+    expected = {
+        "deflectometry": {"pattern", "substrate_roi", "frame_low", "frame_high"},
+        "mirror": {"pattern", "mirror"},
+        "target": {"pattern"},
+    }[setup.scene]
     assert ids == expected
     assert len(scene.emitters()) == 1
     film = scene.sensors()[0].film()
@@ -60,8 +64,7 @@ def test_window_outside_the_image_is_a_setup_error():
         scene_dict(load_setup("thesis-2.8.1-perpendicular"), window=(0, 2000, 0, 10))
 
 
-@pytest.mark.parametrize("name", ["thesis-1.10-deflectometry", "thesis-2.8.1-perpendicular",
-                                  "thesis-2.9.1-target-4x4"])
+@pytest.mark.parametrize("name", ["thesis-1.10-deflectometry", "thesis-2.8.1-perpendicular", "thesis-2.9.1-target-4x4"])
 def test_fast_marker_texture_equals_pattern_texture(name):
     from scenes.mitsuba.scene import marker_texture
 

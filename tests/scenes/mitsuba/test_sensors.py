@@ -25,8 +25,7 @@ def _sensor(camera, spp=4, window=None):
 
 def _sample(mi, sensor, film_xy, aperture=None):
     ap = np.full_like(film_xy, 0.5) if aperture is None else aperture
-    ray, weight = sensor.sample_ray(0.0, 0.5, mi.Point2f(film_xy[:, 0], film_xy[:, 1]),
-                                    mi.Point2f(ap[:, 0], ap[:, 1]))
+    ray, weight = sensor.sample_ray(0.0, 0.5, mi.Point2f(film_xy[:, 0], film_xy[:, 1]), mi.Point2f(ap[:, 0], ap[:, 1]))
     return np.array(ray.o, dtype=np.float64).T, np.array(ray.d, dtype=np.float64).T, np.array(weight)
 
 
@@ -89,8 +88,15 @@ def test_to_world_convention_matches_mitsuba_perspective(rng):
     cam = _cameras()["angular"]
     mi, sensor = _sensor(cam)
     fov = np.degrees(2 * np.arctan(cam.nx * cam.pitch / 2 / cam.b))
-    persp = mi.load_dict({"type": "perspective", "fov": fov, "fov_axis": "x",
-                          "to_world": mi.ScalarTransform4f(camera_to_world(cam)), "film": film_dict(cam)})
+    persp = mi.load_dict(
+        {
+            "type": "perspective",
+            "fov": fov,
+            "fov_axis": "x",
+            "to_world": mi.ScalarTransform4f(camera_to_world(cam)),
+            "film": film_dict(cam),
+        }
+    )
     film_xy = rng.random((N_RAYS, 2))
     _, d, _ = _sample(mi, sensor, film_xy)
     _, d_p, _ = _sample(mi, persp, film_xy)

@@ -17,7 +17,13 @@ def _bow() -> HeightMap:
     """A smooth 40 µm bow with a tilt in x, over the §1.10 substrate."""
     return HeightMap.from_function(
         lambda x, y: -0.032 * ((x / 12.6) ** 2 * 0.25 + (y / 28.5) ** 2) + 0.0004 * x,
-        -12.6, 12.6, -28.5, 28.5, nx=64, ny=128)
+        -12.6,
+        12.6,
+        -28.5,
+        28.5,
+        nx=64,
+        ny=128,
+    )
 
 
 def test_grid_arrays_are_the_surface_with_analytic_normals():

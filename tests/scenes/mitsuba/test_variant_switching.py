@@ -28,12 +28,12 @@ def test_renderers_reselect_their_variant_when_interleaved():
     stack = rod.stack(image_distance=11.4)
 
     def star():
-        return cmu.render_channel(unit, "nir", cmu.CameraPose(164.5), "star", spp=2, window=(480, 656, 48, 48),
-                                  flat=True)
+        return cmu.render_channel(
+            unit, "nir", cmu.CameraPose(164.5), "star", spp=2, window=(480, 656, 48, 48), flat=True
+        )
 
     def rods():
-        return grin.render_image(rod, stack, target("grid-25"), spp=2, width=32, height=32,
-                                 center=rod.array.axes()[0])
+        return grin.render_image(rod, stack, target("grid-25"), spp=2, width=32, height=32, center=rod.array.axes()[0])
 
     first = [render_setup(part1, spp=4, seed=0), star(), rods()]
     again = [rods(), star(), render_setup(part1, spp=4, seed=0)][::-1]
