@@ -22,6 +22,7 @@ Coordinates
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -64,6 +65,87 @@ class ThinLens:
 
 
 @dataclass(frozen=True)
+class PixelGrid:
+    """The sensor's pixel grid: continuous pixel coordinates <-> sensor coordinates (DESIGN.md, "Camera").
+
+    The one definition of the pixel convention, used by every renderer (Part I, the CMU channels, the GRIN image
+    plane), the datasets and the analyses. Pixel (row, col) covers [col, col+1) x [row, row+1); the column grows
+    along T_x (u), the row against T_y (v)::
+
+        u = (x_px - nx/2) * pitch + x_cs        v = (ny/2 - y_px) * pitch + y_cs
+
+    The scalar forms :meth:`uv` / :meth:`xy` use arithmetic only, so they run on numpy arrays and on Dr.Jit arrays
+    alike (the Mitsuba sensors call them with ``dr.llvm.Float``).
+
+    Parameters
+    ----------
+    nx, ny : int
+        Pixel counts (columns, rows).
+    pitch : float
+        Pixel size (square pixels), mm.
+    r_cs : tuple of float
+        (x_cs, y_cs): the grid centre relative to the optical-axis foot, mm (seed §2.5.1).
+    """
+
+    nx: int
+    ny: int
+    pitch: float
+    r_cs: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if int(self.nx) != self.nx or int(self.ny) != self.ny or self.nx < 1 or self.ny < 1:
+            raise GeometryError(f"camera pixel counts must be positive integers, got {self.nx} x {self.ny}")
+        if not self.pitch > 0:
+            raise GeometryError(f"camera pixel pitch must be > 0 mm, got {self.pitch}")
+        object.__setattr__(self, "r_cs", (float(self.r_cs[0]), float(self.r_cs[1])))
+
+    @property
+    def width_mm(self) -> float:
+        """Sensor width nx*pitch, mm."""
+        return self.nx * self.pitch
+
+    @property
+    def height_mm(self) -> float:
+        """Sensor height ny*pitch, mm."""
+        return self.ny * self.pitch
+
+    def uv(self, x_px: Any, y_px: Any) -> tuple[Any, Any]:
+        """Sensor (u, v), mm, of continuous pixel coordinates given as separate arrays (numpy or Dr.Jit)."""
+        return (x_px - 0.5 * self.nx) * self.pitch + self.r_cs[0], (0.5 * self.ny - y_px) * self.pitch + self.r_cs[1]
+
+    def xy(self, u: Any, v: Any) -> tuple[Any, Any]:
+        """Continuous pixel coordinates (x_px, y_px) of sensor points (u, v), mm (numpy or Dr.Jit)."""
+        return (u - self.r_cs[0]) / self.pitch + 0.5 * self.nx, 0.5 * self.ny - (v - self.r_cs[1]) / self.pitch
+
+    def pixel_to_sensor(self, px: ArrayLike) -> Array:
+        """Continuous pixel coordinates (..., 2) as (x_px, y_px) -> sensor (u, v), mm."""
+        p = np.asarray(px, dtype=np.float64)
+        return np.stack(self.uv(p[..., 0], p[..., 1]), axis=-1)
+
+    def sensor_to_pixel(self, uv: ArrayLike) -> Array:
+        """Sensor (u, v), mm, (..., 2) -> continuous pixel coordinates (x_px, y_px)."""
+        q = np.asarray(uv, dtype=np.float64)
+        return np.stack(self.xy(q[..., 0], q[..., 1]), axis=-1)
+
+    def pixel_centers(self, rows: slice | None = None, cols: slice | None = None) -> Array:
+        """Continuous coordinates of pixel centres, shape (n_rows, n_cols, 2) as (x_px, y_px)."""
+        r = np.arange(self.ny)[rows if rows is not None else slice(None)] + 0.5
+        c = np.arange(self.nx)[cols if cols is not None else slice(None)] + 0.5
+        cc, rr = np.meshgrid(c, r)
+        return np.stack([cc, rr], axis=-1)
+
+    def contains(self, px: ArrayLike, margin: float = 0.0) -> NDArray[np.bool_]:
+        """True where continuous pixel coordinates lie inside the image (shrunk by ``margin`` px)."""
+        p = np.asarray(px, dtype=np.float64)
+        return (
+            (p[..., 0] >= margin)
+            & (p[..., 0] <= self.nx - margin)
+            & (p[..., 1] >= margin)
+            & (p[..., 1] <= self.ny - margin)
+        )
+
+
+@dataclass(frozen=True)
 class Camera:
     """Pinhole camera of seed §1.6.2 / §2.5.2 with optional distortion and thin lens.
 
@@ -98,10 +180,7 @@ class Camera:
     def __post_init__(self) -> None:
         if not self.b > 0:
             raise GeometryError(f"camera image distance b must be > 0 mm, got {self.b}")
-        if int(self.nx) != self.nx or int(self.ny) != self.ny or self.nx < 1 or self.ny < 1:
-            raise GeometryError(f"camera pixel counts must be positive integers, got {self.nx} x {self.ny}")
-        if not self.pitch > 0:
-            raise GeometryError(f"camera pixel pitch must be > 0 mm, got {self.pitch}")
+        PixelGrid(self.nx, self.ny, self.pitch, self.r_cs)  # validates the grid fields
         if not self.c0 > 0:
             raise GeometryError(f"distortion coefficient c0 must be > 0, got {self.c0}")
         object.__setattr__(self, "r_cs", (float(self.r_cs[0]), float(self.r_cs[1])))
@@ -164,26 +243,22 @@ class Camera:
         rho = 2.0 * s / (self.c0 + np.sqrt(disc))
         return rd / (self.c0 + self.c2 * rho)
 
+    @property
+    def grid(self) -> PixelGrid:
+        """The camera's pixel grid (the pixel <-> sensor convention)."""
+        return PixelGrid(self.nx, self.ny, self.pitch, self.r_cs)
+
     def pixel_to_sensor(self, px: ArrayLike) -> Array:
         """Continuous pixel coordinates (x_px, y_px) -> distorted sensor (u, v), mm."""
-        p = np.asarray(px, dtype=np.float64)
-        u = (p[..., 0] - 0.5 * self.nx) * self.pitch + self.r_cs[0]
-        v = (0.5 * self.ny - p[..., 1]) * self.pitch + self.r_cs[1]
-        return np.stack([u, v], axis=-1)
+        return self.grid.pixel_to_sensor(px)
 
     def sensor_to_pixel(self, uv: ArrayLike) -> Array:
         """Distorted sensor (u, v), mm -> continuous pixel coordinates (x_px, y_px)."""
-        q = np.asarray(uv, dtype=np.float64)
-        x = (q[..., 0] - self.r_cs[0]) / self.pitch + 0.5 * self.nx
-        y = 0.5 * self.ny - (q[..., 1] - self.r_cs[1]) / self.pitch
-        return np.stack([x, y], axis=-1)
+        return self.grid.sensor_to_pixel(uv)
 
     def pixel_centers(self, rows: slice | None = None, cols: slice | None = None) -> Array:
         """Continuous coordinates of pixel centres, shape (n_rows, n_cols, 2) as (x_px, y_px)."""
-        r = np.arange(self.ny)[rows if rows is not None else slice(None)] + 0.5
-        c = np.arange(self.nx)[cols if cols is not None else slice(None)] + 0.5
-        cc, rr = np.meshgrid(c, r)
-        return np.stack([cc, rr], axis=-1)
+        return self.grid.pixel_centers(rows, cols)
 
     # -- world mappings ----------------------------------------------------------------
     def sensor_points(self, uv_ideal: ArrayLike) -> Array:
@@ -250,13 +325,7 @@ class Camera:
 
     def in_image(self, px: ArrayLike, margin: float = 0.0) -> NDArray[np.bool_]:
         """True where continuous pixel coordinates lie inside the image (shrunk by ``margin`` px)."""
-        p = np.asarray(px, dtype=np.float64)
-        return (
-            (p[..., 0] >= margin)
-            & (p[..., 0] <= self.nx - margin)
-            & (p[..., 1] >= margin)
-            & (p[..., 1] <= self.ny - margin)
-        )
+        return self.grid.contains(px, margin)
 
     def as_dict(self) -> dict:
         """JSON-ready camera parameters with the contract's keys (DESIGN.md, `calibrate`)."""
