@@ -21,19 +21,10 @@ def main() -> None:
     args = ap.parse_args()
     from scenes.cmu.analysis import analyse, channel_optics
     from scenes.cmu.layout import load_cmu_setup
-    from sim.cmu_cli import cmd_cmu
+    from sim.cli import main as scopetwin
 
     t0 = time.perf_counter()
-    ns = argparse.Namespace(
-        setup="thesis-cmu",
-        splitter_maps=[],
-        stop=False,
-        json=args.out / "cmu.json",
-        out=args.out,
-        spp=args.spp,
-        no_cells=False,
-    )
-    cmd_cmu(ns)
+    scopetwin(["optics", "cmu", "--json", str(args.out / "cmu.json"), "--out", str(args.out), "--spp", str(args.spp)])
     print(
         f"\noptics cmu with renders ({args.spp} spp, 1392x1040 px, 4 channels x star + cells): "
         f"{time.perf_counter() - t0:.1f} s"

@@ -17,7 +17,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from sim.dataset import Plan, dask_client, generate, generate_sample, load_config
+from sim.datasets.config import load_config
+from sim.datasets.plan import Plan
+from sim.datasets.runner import dask_client
+from sim.datasets.store import generate, generate_sample
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -21,7 +21,8 @@ from typing import Any
 
 import numpy as np
 
-#: Arithmetic operations in one RKN step of :func:`scenes.mitsuba.grin._rkn_step` with the polynomial profile
+#: Arithmetic operations in one RKN step (:func:`scenes.grin.rkn.rkn_step`, the one numpy and Dr.Jit run) with the
+#: polynomial profile
 #: (counted from the formulas: 2 profile evaluations of 9, 3 r² of 3, the updates and the OPL).
 OPS_PER_STEP = 96
 
@@ -130,13 +131,18 @@ def main() -> None:
     if args.no_image:
         return
 
+    from scenes.mitsuba.variant import choose
+
+    variant = choose("mono")
     setup = load_grin_setup("thesis-8.3.2-grin-realized")
     rep = analyse(setup, samples=24)
     stack = setup.stack(image_distance=rep.image_distance_mm)
     tgt = target("grid-25")
     centre = setup.array.axes()[0]
     paths = args.width * args.height * args.spp
-    grin.render_image(setup, stack, tgt, spp=1, width=64, height=48, center=centre)  # compile (cached kernels)
+    grin.render_image(
+        setup, stack, tgt, spp=1, width=64, height=48, center=centre, variant=variant
+    )  # compile (cached kernels)
     # where the time goes: the same render with the rods' RKN loops replaced by straight lines (Mitsuba
     # intersections, pupil sampling, film and the interface logic remain), at --spp / 8, scaled to --spp
     spp_b = max(1, args.spp // 8)
@@ -161,12 +167,19 @@ def main() -> None:
     part = {}
     for label, fn in (("full", rkn), ("no RKN", straight)):
         grin.rkn_rod_dr = fn
-        grin.render_image(setup, stack, tgt, spp=1, width=64, height=48, center=centre)
+        grin.render_image(setup, stack, tgt, spp=1, width=64, height=48, center=centre, variant=variant)
         part[label] = (
             min(
                 _timed(
                     lambda: grin.render_image(
-                        setup, stack, tgt, spp=spp_b, width=args.width, height=args.height, center=centre
+                        setup,
+                        stack,
+                        tgt,
+                        spp=spp_b,
+                        width=args.width,
+                        height=args.height,
+                        center=centre,
+                        variant=variant,
                     ),
                     lambda: None,
                 )
@@ -184,7 +197,9 @@ def main() -> None:
     tim = []
     for _ in range(args.image_repeat):
         t0 = time.perf_counter()
-        img = grin.render_image(setup, stack, tgt, spp=args.spp, width=args.width, height=args.height, center=centre)
+        img = grin.render_image(
+            setup, stack, tgt, spp=args.spp, width=args.width, height=args.height, center=centre, variant=variant
+        )
         tim.append(time.perf_counter() - t0)
         ref_t = _timed(ref_fn, dr.sync_thread)
         print(

@@ -43,7 +43,19 @@ PART_I_PRESETS = (
     "thesis-2.9.1-target-4x4",
 )
 # keys whose values legitimately differ between two runs of the same seeds
-_VOLATILE = {"seconds", "report", "results", "plots", "image", "truth", "surface_path", "heights", "where", "out"}
+_VOLATILE = {
+    "seconds",
+    "timings_s",
+    "report",
+    "results",
+    "plots",
+    "image",
+    "truth",
+    "surface_path",
+    "heights",
+    "where",
+    "out",
+}
 
 
 def _scopetwin(*args: str) -> None:

@@ -38,7 +38,7 @@ def bowed_heights(range_um: float = 40.0) -> HeightMap:
     return HeightMap.from_function(lambda xx, yy: -scale * (bow(xx, yy) - z.min()), -12.6, 12.6, -28.5, 28.5)
 
 
-def time_mitsuba(setup, heights, spp_list: list[int], repeats: int) -> dict[int, dict[str, float]]:
+def time_mitsuba(setup, heights, spp_list: list[int], repeats: int, variant: str) -> dict[int, dict[str, float]]:
     import drjit as dr
 
     from scenes.mitsuba.render import live_window, load_scene, render_setup, render_window
@@ -48,19 +48,19 @@ def time_mitsuba(setup, heights, spp_list: list[int], repeats: int) -> dict[int,
     traced_px = nx * ny if window is None else (window[1] - window[0]) * (window[3] - window[2])
     print(f"live window {window}: {traced_px / (nx * ny):.0%} of the pixels can see light and are traced")
     t0 = time.perf_counter()
-    load_scene(setup, heights, window)
+    load_scene(setup, heights, window, variant)
     load_s = time.perf_counter() - t0
     print(f"scene load (texture, mesh, plugins; first call): {load_s:.2f} s")
     out = {}
     for spp in spp_list:
         t0 = time.perf_counter()
-        render_setup(setup, heights, spp=spp, seed=0)  # compiles (or loads from the kernel cache)
+        render_setup(setup, heights, spp=spp, seed=0, variant=variant)  # compiles (or loads from the kernel cache)
         dr.sync_thread()
         first = time.perf_counter() - t0
         wall, cpu = [], []
         for k in range(repeats):
             t0, c0 = time.perf_counter(), time.process_time()
-            render_setup(setup, heights, spp=spp, seed=k + 1)
+            render_setup(setup, heights, spp=spp, seed=k + 1, variant=variant)
             dr.sync_thread()
             wall.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
@@ -78,12 +78,12 @@ def time_mitsuba(setup, heights, spp_list: list[int], repeats: int) -> dict[int,
             f"first {first:.2f} s), {rays / best / 1e6:6.1f} M traced camera rays/s"
         )
     if window is not None and 16 in spp_list:
-        render_window(setup, heights, spp=16, seed=0)  # the uncropped scene: load + compile
+        render_window(setup, heights, spp=16, seed=0, variant=variant)  # the uncropped scene: load + compile
         dr.sync_thread()
         wall = []
         for k in range(repeats):
             t0 = time.perf_counter()
-            render_window(setup, heights, spp=16, seed=k + 1)
+            render_window(setup, heights, spp=16, seed=k + 1, variant=variant)
             dr.sync_thread()
             wall.append(time.perf_counter() - t0)
         print(
@@ -122,17 +122,17 @@ def main() -> None:
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args()
 
-    from scenes.mitsuba.variant import use
+    from scenes.mitsuba.variant import choose
 
-    mi = use("mono")
+    variant = choose("mono")
     setup = load_setup(PRESET)
     heights = bowed_heights()
     z = heights.z
     print(
         f"{PRESET}: {setup.camera.pixels[0]}x{setup.camera.pixels[1]} px, bow {1e3 * (z.max() - z.min()):.1f} µm, "
-        f"variant {mi.variant()}, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}"
+        f"variant {variant}, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}"
     )
-    mit = time_mitsuba(setup, heights, args.spp, args.repeats)
+    mit = time_mitsuba(setup, heights, args.spp, args.repeats, variant)
     ref_spp = 16 if 16 in args.spp else args.spp[0]
     ana = time_analytic(setup, heights, ref_spp, args.window)
     # like for like: rays per second where rays are traced (Mitsuba culls pixels that see nothing, the numpy

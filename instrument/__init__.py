@@ -2,7 +2,10 @@
 
 ``open_rig(path)`` opens a rig TOML (simulated devices, hardware drivers, or drivers
 on emulators) as a context manager; acquisition routines live in
-:mod:`instrument.acquisition`, the ``rig`` command in :mod:`instrument.cli`.
+:mod:`instrument.acquisition`, Micro-Manager interop (pymmcore-plus, MDA) in
+:mod:`instrument.micromanager`, python-microscope adapters in
+:mod:`instrument.pymicroscope`, the emulator server behind ``scopetwin emulate`` in
+:mod:`instrument.emulators.serve`; the ``rig`` command in :mod:`sim.cli.rig`.
 """
 
 from instrument.errors import (

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from instrument.devices import Camera, LightSource, TriggerMode, TriggerType
+from instrument.devices import CameraDevice, LightSource, TriggerMode, TriggerType
 from instrument.errors import InstrumentError, OutOfRangeError
 from instrument.rig import Rig
 from scenes.io import write_image, write_json_atomic
@@ -101,7 +101,7 @@ def _run(writer: FrameWriter, rig: Rig) -> Iterator[None]:
 
 
 def choose_exposure(
-    camera: Camera, target_fraction: float = 0.7, percentile: float = 99.5, max_iterations: int = 6
+    camera: CameraDevice, target_fraction: float = 0.7, percentile: float = 99.5, max_iterations: int = 6
 ) -> float:
     """Set the exposure so the ``percentile`` grey value sits at ``target_fraction`` of the ADC range.
 
@@ -245,7 +245,7 @@ def grid(
         raise OutOfRangeError(f"tile grid needs nx, ny >= 1, got {nx} x {ny}")
     xs = np.linspace(x_range_mm[0], x_range_mm[1], nx) if nx > 1 else np.array([x_range_mm[0]])
     ys = np.linspace(y_range_mm[0], y_range_mm[1], ny) if ny > 1 else np.array([y_range_mm[0]])
-    out = []
+    out: list[tuple[int, int, float, float]] = []
     for iy, y in enumerate(ys):
         order = range(nx) if iy % 2 == 0 else range(nx - 1, -1, -1)
         out.extend((ix, iy, float(xs[ix]), float(y)) for ix in order)

@@ -1,6 +1,6 @@
 """Device protocols of the microscope's control surface (seed §4.3.2).
 
-One abstract class per kind of device: :class:`Camera`, :class:`Stage`,
+One abstract class per kind of device: :class:`CameraDevice`, :class:`Stage`,
 :class:`FocusDrive`, :class:`LightSource`, :class:`Shutter` and
 :class:`TriggerController`. Their public methods validate every request
 against limits held as data (:class:`Range`), raising
@@ -556,6 +556,9 @@ class CameraLimits:
         ``(rows, cols)`` of the full sensor (1040 x 1392 for the scA1400-30gm, seed §4.1.4).
     pixel_size_um : float
         Pixel pitch in µm (6.45 for the ICX285AL).
+    magnification : float
+        Magnification of the optics in front of the sensor (10 for the seed's 10x objective with its
+        tube lens, §4.1.2): an image pixel covers ``pixel_size_um / magnification`` of the sample.
     exposure_s, gain_db, black_level_dn, fps : Range
         Allowed settings.
     bit_depths : tuple of int
@@ -566,12 +569,22 @@ class CameraLimits:
 
     sensor_shape: tuple[int, int] = (1040, 1392)
     pixel_size_um: float = 6.45
+    magnification: float = 1.0
     exposure_s: Range = field(default_factory=lambda: Range(20e-6, 10.0, "s"))
     gain_db: Range = field(default_factory=lambda: Range(0.0, 24.0, "dB"))
     black_level_dn: Range = field(default_factory=lambda: Range(0.0, 255.0, "DN"))
     fps: Range = field(default_factory=lambda: Range(0.1, 30.0, "Hz"))
     bit_depths: tuple[int, ...] = (8, 12)
     binnings: tuple[int, ...] = (1, 2, 4)
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.magnification) and self.magnification > 0):
+            raise OutOfRangeError(f"camera magnification must be a positive number, got {self.magnification}")
+
+    @property
+    def sample_pixel_um(self) -> float:
+        """Size of one (unbinned) image pixel on the sample, in µm."""
+        return self.pixel_size_um / self.magnification
 
 
 @dataclass(frozen=True)
@@ -584,8 +597,11 @@ class Roi:
     cols: int
 
 
-class Camera(Device):
-    """A monochrome camera (seed §4.1.4, control surface of §4.3.2 'Cameras').
+class CameraDevice(Device):
+    """A monochrome camera device (seed §4.1.4, control surface of §4.3.2 'Cameras').
+
+    The device that delivers frames; not to be confused with :class:`scenes.camera.Camera`, the
+    thesis's pinhole camera *model* (§1.6.2) that calibration estimates.
 
     Frames come back as float32 digital numbers, shape ``(rows, cols)`` of the
     binned ROI, whatever the world behind the camera.
@@ -867,7 +883,7 @@ class Camera(Device):
 
 
 DEVICE_CLASSES: dict[str, type[Device]] = {
-    "camera": Camera,
+    "camera": CameraDevice,
     "stage": Stage,
     "focus": FocusDrive,
     "light": LightSource,

@@ -14,12 +14,15 @@ Format (DESIGN.md, 'Rig files')::
     [devices.focus]
     kind = "focus"
     driver = "jena-piezo"
-    port = "/dev/ttyS0"       # a device path or any pyserial URL (emu://jena-piezo for the emulator)
-    baudrate = 9600
+    port = "/dev/ttyS0"       # a device path or any pyserial URL (emu://jena-piezo?model=nv40-1 for the emulator)
+    model = "nv40-1"          # nv40-1 | nv40-3 | 30dv50: the dialect, default baud rate and XON/XOFF
     range_um = [0.0, 400.0]
 
 Devices on one port share one transport (the FPGA board drives lights, the
-shutter and the trigger lines). :func:`open_rig` is a context manager: on every
+shutter and the trigger lines). When simulated devices share a rig with drivers
+on in-process emulators (``emu://`` ports), the simulated world probes the
+emulators (:func:`connect_emulators`): a simulated camera sees the board's
+lights and the stages' and focus drive's positions. :func:`open_rig` is a context manager: on every
 exit, exception included, it switches every light off, closes shutters, stops
 camera acquisition and closes transports; it never moves an axis.
 """
@@ -27,14 +30,15 @@ camera acquisition and closes transports; it never moves an axis.
 from __future__ import annotations
 
 import contextlib
+import functools
 import tomllib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 from instrument.devices import (
-    Camera,
+    CameraDevice,
     CameraLimits,
     Device,
     FocusDrive,
@@ -48,7 +52,6 @@ from instrument.errors import InstrumentError, RigError
 
 KINDS = ("camera", "stage", "focus", "light", "shutter", "trigger")
 DRIVERS = ("sim", "pi-gcs", "jena-piezo", "fpga-board", "basler")
-D = TypeVar("D", bound=Device)
 
 
 @dataclass
@@ -64,13 +67,14 @@ class _Context:
             self.world = VirtualWorld()
         return self.world
 
-    def transport(self, name: str, table: dict[str, Any], default_baud: int) -> Any:
+    def transport(self, name: str, table: dict[str, Any], default_baud: int, default_xonxoff: bool = False) -> Any:
         from instrument.transport import open_transport
 
         port = _take(table, "port", str, name)
         baud = int(table.pop("baudrate", default_baud))
+        xonxoff = _take(table, "xonxoff", bool, name, default_xonxoff)
         if port not in self.transports:
-            self.transports[port] = open_transport(port, baudrate=baud, timeout_s=0.02)
+            self.transports[port] = open_transport(port, baudrate=baud, timeout_s=0.02, xonxoff=xonxoff)
         return self.transports[port]
 
 
@@ -100,7 +104,8 @@ def _camera_limits(name: str, t: dict[str, Any]) -> CameraLimits:
     return CameraLimits(
         sensor_shape=(shape[0], shape[1]),
         pixel_size_um=_take(t, "pixel_size_um", float, name, defaults.pixel_size_um),
-        exposure_s=Range(*exposure, "s"),
+        magnification=_take(t, "magnification", float, name, defaults.magnification),
+        exposure_s=Range(exposure[0], exposure[1], "s"),
     )
 
 
@@ -152,11 +157,11 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
             )
         else:
             from instrument.simulated.renderers import make_renderer
-            from scenes.sensor import EmvaSensor
+            from scenes.emva1288 import EmvaSensor
 
             limits = _camera_limits(name, t)
-            try:
-                sensor = EmvaSensor(**t.pop("sensor", {}))
+            try:  # the rig's ``sensor`` table: the fields of the EMVA 1288 model
+                emva = EmvaSensor(**t.pop("sensor", {}))
             except TypeError as exc:
                 raise RigError(f"camera {name!r}: bad sensor field ({exc})") from exc
             renderer = make_renderer(t.pop("renderer", {"kind": "texture"}), camera=name)
@@ -164,7 +169,7 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
                 name,
                 world,
                 renderer=renderer,
-                sensor=sensor,
+                emva=emva,
                 limits=limits,
                 photons_per_unit_s=_take(t, "photons_per_unit_s", float, name, 1.0e6),
                 trigger_line=_take(t, "trigger_line", int, name, 0),
@@ -181,22 +186,30 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
             transport,
             axis=str(t.pop("axis", "1")),
             travel_mm=_take(t, "travel_mm", tuple, name),
-            max_velocity_mm_s=_take(t, "max_velocity_mm_s", float, name),
+            max_velocity_mm_s=_take(t, "max_velocity_mm_s", float, name, None),  # None: read from the controller
             velocity_mm_s=_take(t, "velocity_mm_s", float, name, None),
             reference=_take(t, "reference", bool, name, True),
             timeout_s=timeout_s,
         )
     elif key == ("focus", "jena-piezo"):
-        from instrument.drivers.jena_piezo import JenaPiezoFocus
+        from instrument.drivers.jena_piezo import JenaPiezoFocus, dialect_of
 
-        transport = ctx.transport(name, t, 9600)
+        dialect = dialect_of(_take(t, "model", str, name, "nv40-1"))  # the model sets baud rate and XON/XOFF
+        transport = ctx.transport(name, t, dialect.baudrate, dialect.xonxoff)
         device = JenaPiezoFocus(
-            name, transport, range_um=_take(t, "range_um", tuple, name, (0.0, 400.0)), timeout_s=timeout_s
+            name,
+            transport,
+            model=dialect.model,
+            channel=_take(t, "channel", int, name, 0),
+            range_um=_take(t, "range_um", tuple, name, (0.0, 400.0)),
+            voltage_range_v=_take(t, "voltage_range_v", tuple, name, (-20.0, 130.0)),
+            closed_loop=_take(t, "closed_loop", bool, name, True),
+            timeout_s=timeout_s,
         )
     elif driver == "fpga-board" and kind in ("light", "shutter", "trigger"):
         from instrument.drivers.fpga_board import FpgaBoard, FpgaLight, FpgaShutter, FpgaTrigger
 
-        port = t.get("port")
+        port = str(t.get("port"))
         transport = ctx.transport(name, t, 115200)
         step = _take(t, "current_step_ma", float, name, 0.1)
         if port not in ctx.boards:
@@ -225,7 +238,11 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
             name,
             serial=_take(t, "serial", str, name, None),
             pixel_size_um=_take(t, "pixel_size_um", float, name, 6.45),
+            magnification=_take(t, "magnification", float, name, 1.0),
+            gain_db_per_raw=_take(t, "gain_db_per_raw", float, name, 0.0359),
             trigger_line=_take(t, "trigger_input", str, name, "Line1"),
+            packet_size=_take(t, "packet_size", int, name, None),  # GevSCPSPacketSize, bytes
+            inter_packet_delay=_take(t, "inter_packet_delay", int, name, None),  # GevSCPD, ticks
             timeout_s=timeout_s,
         )
     else:
@@ -263,40 +280,63 @@ class Rig:
             raise RigError(f"rig {self.name!r} has no device {name!r}; devices: {sorted(self.devices)}")
         return self.devices[name]
 
-    def of_kind(self, cls: type[D]) -> list[D]:
-        """All devices that are instances of ``cls``, in file order."""
-        return [d for d in self.devices.values() if isinstance(d, cls)]
+    def of_kind(self, kind: str) -> list[Device]:
+        """All devices of ``kind`` (``"camera"``, ``"stage"``, ``"focus"``, ``"light"``, ...), in file order."""
+        return [d for d in self.devices.values() if d.kind == kind]
 
-    def _one(self, cls: type[D], name: str | None, what: str) -> D:
+    def lights(self) -> list[LightSource]:
+        """Every light source, in file order."""
+        return [d for d in self.devices.values() if isinstance(d, LightSource)]
+
+    def shutters(self) -> list[Shutter]:
+        """Every shutter, in file order."""
+        return [d for d in self.devices.values() if isinstance(d, Shutter)]
+
+    def _one(self, kind: str, name: str | None, what: str) -> Device:
         if name is not None:
             device = self[name]
-            if not isinstance(device, cls):
+            if device.kind != kind:
                 raise RigError(f"device {name!r} of rig {self.name!r} is a {device.kind}, not a {what}")
             return device
-        found = self.of_kind(cls)
+        found = self.of_kind(kind)
         if not found:
             raise RigError(f"rig {self.name!r} has no {what}")
         return found[0]
 
-    def camera(self, name: str | None = None) -> Camera:
+    def camera(self, name: str | None = None) -> CameraDevice:
         """A camera by name (default: the first)."""
-        return self._one(Camera, name, "camera")
+        device = self._one("camera", name, "camera")
+        if not isinstance(device, CameraDevice):
+            raise RigError(f"device {device.name!r} says it is a camera but is a {type(device).__name__}")
+        return device
 
     def stage(self, name: str) -> Stage:
         """A stage axis by name."""
-        return self._one(Stage, name, "stage")
+        device = self._one("stage", name, "stage")
+        if not isinstance(device, Stage):
+            raise RigError(f"device {device.name!r} says it is a stage but is a {type(device).__name__}")
+        return device
 
     def focus(self, name: str | None = None) -> FocusDrive:
         """The focus drive (default: the first)."""
-        return self._one(FocusDrive, name, "focus drive")
+        device = self._one("focus", name, "focus drive")
+        if not isinstance(device, FocusDrive):
+            raise RigError(f"device {device.name!r} says it is a focus drive but is a {type(device).__name__}")
+        return device
 
     def light(self, name: str | None = None) -> LightSource:
         """A light by name (default: the first)."""
-        return self._one(LightSource, name, "light")
+        device = self._one("light", name, "light")
+        if not isinstance(device, LightSource):
+            raise RigError(f"device {device.name!r} says it is a light but is a {type(device).__name__}")
+        return device
 
     def trigger(self, name: str | None = None) -> TriggerController:
         """The trigger controller (default: the first)."""
-        return self._one(TriggerController, name, "trigger controller")
+        device = self._one("trigger", name, "trigger controller")
+        if not isinstance(device, TriggerController):
+            raise RigError(f"device {device.name!r} says it is a trigger controller but is a {type(device).__name__}")
+        return device
 
     def initialize(self) -> None:
         """Initialize every device in file order."""
@@ -306,13 +346,18 @@ class Rig:
     def lights_off(self) -> list[str]:
         """Switch every light off and close every shutter; return the failures (never raises)."""
         failures = []
-        for device in [*self.of_kind(LightSource), *self.of_kind(Shutter)]:
-            if not device.initialized:
-                continue
-            try:
-                device.switch_off() if isinstance(device, LightSource) else device.close()
-            except InstrumentError as exc:
-                failures.append(f"{device.name}: {exc}")
+        for light in self.lights():
+            if light.initialized:
+                try:
+                    light.switch_off()
+                except InstrumentError as exc:
+                    failures.append(f"{light.name}: {exc}")
+        for shutter in self.shutters():
+            if shutter.initialized:
+                try:
+                    shutter.close()
+                except InstrumentError as exc:
+                    failures.append(f"{shutter.name}: {exc}")
         return failures
 
     def close(self) -> list[str]:
@@ -361,8 +406,50 @@ def load_rig(path: str | Path) -> Rig:
             with contextlib.suppress(Exception):
                 transport.close()
         raise
+    if ctx.world is not None:
+        connect_emulators(ctx.world, devices)
     rig_name = str(data.get("rig", {}).get("name", p.stem))
     return Rig(rig_name, devices, ctx.world, ctx.transports, str(p))
+
+
+def _emulator_of(transport: Any) -> Any:
+    return getattr(transport, "emulator", None)
+
+
+def connect_emulators(world: Any, devices: dict[str, Device]) -> list[str]:
+    """Let the simulated world see drivers that talk to in-process emulators; return the names connected.
+
+    A light on an FPGA board emulator becomes a light probe (its relative current while the
+    board says it is on), a PI stage on a GCS emulator a stage probe (its position, mid-move
+    included), a jena focus drive on its emulator a focus probe. Devices on real ports are
+    left alone: the world cannot see real hardware.
+    """
+    from instrument.drivers.fpga_board import FpgaLight
+    from instrument.drivers.jena_piezo import JenaPiezoFocus
+    from instrument.drivers.pi_gcs import PiGcsStage
+    from instrument.emulators import FpgaBoardEmulator, JenaPiezoEmulator, PiGcsEmulator
+
+    connected = []
+    for name, device in devices.items():
+        if isinstance(device, FpgaLight):
+            board = _emulator_of(device.board.link.transport)
+            if isinstance(board, FpgaBoardEmulator):
+                world.light_probes[name] = functools.partial(
+                    board.light_level, device.channel, device.board.current_step_ma, device.current_range.high
+                )
+                connected.append(name)
+        elif isinstance(device, PiGcsStage):
+            controller = _emulator_of(device.controller.link.transport)
+            if isinstance(controller, PiGcsEmulator) and device.axis in controller.axes:
+                world.stage_probes[name] = functools.partial(controller.position_mm, device.axis)
+                connected.append(name)
+        elif isinstance(device, JenaPiezoFocus):
+            piezo = _emulator_of(device.link.transport)
+            if isinstance(piezo, JenaPiezoEmulator):
+                channel = piezo.channels[device.channel]
+                world.focus_probes[name] = lambda c=channel: c.position_um
+                connected.append(name)
+    return connected
 
 
 @contextlib.contextmanager

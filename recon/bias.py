@@ -32,10 +32,28 @@ per marker are traced. The model is the pinhole camera; a thin lens's symmetric 
 not move a first moment to first order.
 
 The correction to add to a measured centroid is ``center - centroid``.
+
+Two evaluations of the one model
+--------------------------------
+* :func:`predict_spots` (above): the continuous first moment, for any model (a plane target,
+  :class:`PlaneTarget`, or the deflectometry setup, :func:`model_for_setup`); it serves the
+  reconstruction (:func:`recon.reconstruct.centroid_bias_step`) and :func:`correct_centroids`.
+* :func:`spot_centroids` / :func:`spot_bias_model`: the same marker (g = 1 - r/r_m) through the same
+  pinhole camera onto a plane target, evaluated on the pixels as :func:`recon.markers.centroids` sees
+  them: each pixel integrates ``supersample``^2 stratified ray samples (box filter), and the centroid is
+  taken over the pixels above a threshold, at pixel centres. It serves the bias-corrected one-shot
+  calibration (:func:`calib.oneshot.calibrate_bias_corrected`).
+
+With threshold 0 both predict the whole-spot first moment; they differ by the pixel sampling of the
+second (its midpoint rule over the cone's kinks): on the seed's calibration presets (§2.8.1-§2.9.1,
+all markers in view) by 4e-5 px RMS face-on and 1e-4 to 2e-4 px RMS (at most 4.4e-4 px) on the oblique
+views, where the bias itself is 0.03-0.07 px RMS. Both are kept, each where it was used, so that the
+figures of ``scopetwin run`` and ``scopetwin study thesis`` do not change.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -45,7 +63,7 @@ from numpy.typing import ArrayLike, NDArray
 from scenes.analytic import AnalyticScene
 from scenes.camera import Camera
 from scenes.errors import ScopetwinError
-from scenes.geometry import Array, intersect_plane
+from scenes.geometry import Array, Frame, intersect_plane
 from scenes.pattern import MarkerPattern
 from scenes.setup import Setup
 from scenes.surface import HeightMap
@@ -75,11 +93,30 @@ class PlaneTarget:
 
     def pattern_hits(self, origins: Array, dirs: Array) -> tuple[Array, NDArray[np.bool_]]:
         """Local (x, y) where rays meet the target plane; True where they reach its front side."""
-        frame = self.pattern.frame
-        lam = intersect_plane(origins, dirs, frame)
-        ok = ((dirs @ frame.nz) < 0) & np.isfinite(lam) & (lam > 0)
-        local = frame.to_local(origins + np.where(ok, lam, 0.0)[:, None] * dirs)
-        return local[:, :2], ok
+        return plane_hits(self.pattern.frame, origins, dirs)
+
+
+def plane_hits(frame: Frame, origins: Array, dirs: Array) -> tuple[Array, NDArray[np.bool_]]:
+    """Where rays meet a plane target: local (x, y) in ``frame``, mm, and whether they reach its front side.
+
+    Parameters
+    ----------
+    frame : Frame
+        The target's plane (its local z = 0; the front side faces +N_z).
+    origins, dirs : ndarray, (n, 3)
+        Rays.
+
+    Returns
+    -------
+    xy : ndarray, (n, 2)
+        Local coordinates of the hits (of the ray origin where the ray does not reach the front side).
+    reaches : ndarray of bool, (n,)
+        The ray meets the plane ahead of its origin, coming from the front.
+    """
+    lam = intersect_plane(origins, dirs, frame)
+    ok = ((dirs @ frame.nz) < 0) & np.isfinite(lam) & (lam > 0)
+    local = frame.to_local(origins + np.where(ok, lam, 0.0)[:, None] * dirs)
+    return local[:, :2], ok
 
 
 def model_for_setup(setup: Setup, heights: HeightMap | None = None, camera: Camera | None = None) -> Model:
@@ -271,3 +308,136 @@ def correct_centroids(centroids: ArrayLike, ij: ArrayLike, model: Model, **kwarg
     c = np.asarray(centroids, dtype=np.float64).reshape(-1, 2)
     pred = predict_spots(model, ij, guess_px=c, **kwargs)
     return c + pred.correction, pred
+
+
+# -- the pixel-sampled evaluation on a plane target (the bias-corrected calibration) ----------
+def spot_centroids(
+    camera: Camera,
+    xy: ArrayLike,
+    radii: ArrayLike,
+    threshold: float,
+    background: float = 0.0,
+    radiance: float = 1.0,
+    supersample: int = 4,
+    chunk: int = 2_000_000,
+) -> Array:
+    """Predicted centroids of fading round markers on the target plane z = 0 (seed §1.5.1, §1.6.3).
+
+    Each marker (grey value g = 1 - r/r_m, seed §1.6.3) is imaged through ``camera`` (pinhole,
+    distortion; rays meet the target as in :class:`PlaneTarget`, :func:`plane_hits`) into a pixel
+    window; pixels integrate their area (``supersample``^2 stratified points, box filter); the
+    centroid is then taken as :func:`recon.markers.centroids` takes it: pixels above ``threshold``
+    weighted by their value minus ``background``, at pixel centres.
+
+    Parameters
+    ----------
+    camera : Camera
+        The camera in target coordinates.
+    xy : array_like (n, 2)
+        Marker centres, mm.
+    radii : array_like (n,)
+        Marker radii, mm.
+    threshold, background, radiance : float
+        Spot threshold and background level of the image, and the radiance of a marker centre.
+
+    Returns
+    -------
+    ndarray (n, 2)
+        Centroids, continuous px (NaN for markers not wholly in front of the camera).
+    """
+    target_plane = Frame.identity()  # the target's own coordinates: markers at (x, y, 0)
+    xy = np.asarray(xy, dtype=np.float64)
+    radii = np.asarray(radii, dtype=np.float64)
+    n = len(xy)
+    t = np.linspace(0.0, 2.0 * np.pi, 48, endpoint=False)
+    rim = np.concatenate(
+        [xy[:, None, :] + radii[:, None, None] * np.stack([np.cos(t), np.sin(t)], -1), np.zeros((n, len(t), 1))],
+        axis=-1,
+    )
+    rim_px = camera.project(rim)
+    lo = np.floor(np.nanmin(rim_px, axis=1)).astype(int) - 1
+    hi = np.ceil(np.nanmax(rim_px, axis=1)).astype(int) + 1
+    out = np.full((n, 2), np.nan)
+    s = supersample
+    sub = (np.arange(s) + 0.5) / s
+    off = np.stack(np.meshgrid(sub, sub), -1).reshape(-1, 2)  # (s*s, 2) within a pixel
+    order = np.argsort((hi - lo).prod(axis=1))
+    start = 0
+    while start < n:
+        # group markers with windows of one size so that one array holds them
+        k = order[start]
+        wx, wy = hi[k] - lo[k]
+        group = [k]
+        total = wx * wy * s * s
+        j = start + 1
+        while j < n and total < chunk:
+            group.append(order[j])
+            total += wx * wy * s * s
+            j += 1
+        start = j
+        g_idx = np.asarray(group)
+        size = (hi[g_idx] - lo[g_idx]).max(axis=0)
+        cols = np.arange(size[0])
+        rows = np.arange(size[1])
+        cc, rr = np.meshgrid(cols, rows)  # (H, W)
+        base = np.stack([cc, rr], -1).reshape(-1, 2).astype(np.float64)  # (P, 2) pixel corners
+        pix = lo[g_idx][:, None, None, :] + base[None, :, None, :] + off[None, None, :, :]  # (m, P, S, 2)
+        o, d = camera.rays(pix.reshape(-1, 2))
+        hit, reaches = plane_hits(target_plane, o, d)
+        hit = hit.reshape(len(g_idx), -1, 2) - xy[g_idx][:, None, :]
+        r = np.hypot(hit[..., 0], hit[..., 1]) / radii[g_idx][:, None]
+        grey = radiance * np.clip(1.0 - r, 0.0, 1.0)
+        grey = np.where(reaches.reshape(len(g_idx), -1), grey, 0.0)
+        val = grey.reshape(len(g_idx), -1, s * s).mean(axis=2)  # (m, P) pixel values
+        w = np.where(val > threshold, val - background, 0.0)
+        centres = base + 0.5
+        mass = w.sum(axis=1)
+        c = (w @ centres) / np.where(mass > 0, mass, np.nan)[:, None]
+        out[g_idx] = c + lo[g_idx]
+    return out
+
+
+def spot_bias_model(
+    xy: ArrayLike,
+    radii: ArrayLike,
+    threshold: float = 0.0,
+    background: float = 0.0,
+    radiance: float = 1.0,
+    supersample: int | None = None,
+) -> Callable[[Camera], Array]:
+    """The centroid bias of a plane target as a function of the camera: centroid minus image of the centre, px.
+
+    The ``predict_bias`` of :func:`calib.oneshot.calibrate_bias_corrected`: for a camera (in target
+    coordinates) it returns :func:`spot_centroids` minus the image of each marker's centre, the
+    pixel-sampled evaluation of this module's model (module docstring).
+
+    Parameters
+    ----------
+    xy : array_like (n, 2)
+        Marker centres in target coordinates (the target plane z = 0), mm.
+    radii : array_like (n,)
+        Marker radii, mm.
+    threshold, background, radiance : float
+        As in :func:`spot_centroids`; the defaults (threshold 0) model the whole-spot first moment of
+        :func:`recon.markers.centroids`.
+    supersample : int, optional
+        Points per pixel side; None: enough for about 40 samples across a spot radius (2 to 8).
+
+    Returns
+    -------
+    callable
+        ``predict(camera) -> ndarray (n, 2)``, the bias of each marker, px.
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    radii = np.asarray(radii, dtype=np.float64)
+    X = np.column_stack([xy, np.zeros(len(xy))])
+
+    def predict(camera: Camera) -> Array:
+        s = supersample
+        if s is None:
+            d = float(np.median(-(X - camera.center) @ camera.frame.nz))
+            r_px = float(np.min(radii)) * camera.b / d / camera.pitch
+            s = int(np.clip(np.ceil(40.0 / max(r_px, 1e-3)), 2, 8))
+        return spot_centroids(camera, xy, radii, threshold, background, radiance, s) - camera.project(X)
+
+    return predict

@@ -5,14 +5,9 @@ depth of field, so without a map the microscope must search the focus at every p
 With the height map h(x, y) of the substrate (seed §1.4), every field of view of the
 microscope gets its focus position in advance: focus = reference + sign * (h(x, y) - h_ref).
 
-Depth of field of the objective (the usual wave-optical plus detector term):
-
-    DOF = lambda * n / NA^2 + n * e / (M * NA)
-
-with wavelength lambda, immersion index n, numerical aperture NA, lateral magnification M and
-camera pixel pitch e. Defaults: the seed's microscope objective (§4, 10x, NA 0.45, air), green
-emission (520 nm), the MIPOS500 piezo drive's 0-400 µm range; the pixel pitch (6.45 µm) is an
-assumption, not a figure from the seed.
+Depth of field and field of view come from the one model of the objective,
+:class:`scenes.objective.Objective` (10x, NA 0.45, air; DOF = lambda n / NA^2 + n e / (M NA)).
+Defaults: that objective, green emission (520 nm), the MIPOS500 piezo drive's 0-400 µm range.
 """
 
 from __future__ import annotations
@@ -22,48 +17,17 @@ import io
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from scenes.errors import ScopetwinError
 from scenes.geometry import Array
+from scenes.objective import Objective
+
+__all__ = ["FocusMap", "FocusMapError", "Objective", "focus_map"]
 
 
 class FocusMapError(ScopetwinError, ValueError):
     """A focus map that cannot be made (empty ROI, focus outside the drive's range)."""
-
-
-@dataclass(frozen=True)
-class Objective:
-    """Microscope objective and camera for the depth of field (defaults: seed §4, 10x / NA 0.45)."""
-
-    magnification: float = 10.0
-    na: float = 0.45
-    wavelength_nm: float = 520.0
-    immersion_index: float = 1.0
-    pixel_pitch_um: float = 6.45
-    sensor_px: tuple[int, int] = (1392, 1040)
-
-    def __post_init__(self) -> None:
-        if not (
-            self.magnification > 0
-            and 0 < self.na < self.immersion_index
-            and self.wavelength_nm > 0
-            and self.pixel_pitch_um > 0
-        ):
-            raise FocusMapError("objective needs magnification > 0, 0 < NA < n, wavelength > 0 and pixel pitch > 0")
-
-    @property
-    def depth_of_field_um(self) -> float:
-        """DOF = lambda n / NA^2 + n e / (M NA), µm."""
-        lam_um = self.wavelength_nm * 1e-3
-        n = self.immersion_index
-        return lam_um * n / self.na**2 + n * self.pixel_pitch_um / (self.magnification * self.na)
-
-    @property
-    def field_of_view_mm(self) -> tuple[float, float]:
-        """Object-side field (x, y), mm."""
-        w, h = self.sensor_px
-        scale = self.pixel_pitch_um * 1e-3 / self.magnification
-        return w * scale, h * scale
 
 
 @dataclass(frozen=True)
@@ -92,7 +56,7 @@ class FocusMap:
     depth_of_field_um: float
 
     @property
-    def in_focus(self) -> Array:
+    def in_focus(self) -> NDArray[np.bool_]:
         """True where the whole field lies within the depth of field around its focus."""
         return self.spread_um <= self.depth_of_field_um
 

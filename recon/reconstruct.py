@@ -2,7 +2,8 @@
 
 Inner loop (self-consistent surface for a start height H, §1.4 and Fig. 1.4): start
 with the plane z = H (or the previous outer run's surface moved to H); trace every
-marker's camera ray to the current surface (secant iteration, §1.6.4), form the
+marker's camera ray to the current surface (secant iteration, §1.6.4,
+:func:`scenes.surface.secant_intersection`), form the
 normal from the camera ray and the ray to the marker centre (§1.7.1), turn it into a
 gradient (§1.7.3), fit the shifted basis functions (§1.8) and set the bias so that the
 surface's mean height over the region of interest is H (eq. 1.5). Stop when the RMS
@@ -12,7 +13,7 @@ inner iteration.
 
 Outer loop (start height, eq. 1.3-1.4): evaluate the maxima of the reconstructed
 surface over the two holding-frame regions, where there are no data and the surface
-is extrapolated. Criteria:
+is extrapolated. Criteria (:func:`recon.frame_criterion.frame_criterion`):
 
 * ``"delta"`` — the seed's Delta h_max = max_region1 - max_region2 = 0 (eq. 1.3);
 * ``"level"`` — both maxima at the frame position: (max_1 + max_2)/2 = z_frame. The
@@ -50,14 +51,15 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from recon.frame_criterion import FrameCriterion, frame_criterion, frame_distance
 from recon.gradients import marker_gradients
-from recon.sbf import BasisKind, SBFSurface, ShiftedBasis, fit_gradients
+from recon.shifted_basis import BasisKind, SBFSurface, ShiftedBasis, fit_gradients
 from scenes.camera import Camera
 from scenes.errors import ScopetwinError
 from scenes.geometry import Array, Frame
 from scenes.pattern import MarkerPattern
 from scenes.setup import Setup
-from scenes.surface import HeightMap
+from scenes.surface import HeightMap, secant_intersection
 
 #: A centroid-bias step: (current surface, marker indices (n, 2), measured image positions (n, 2) px)
 #: -> corrected image positions of the marker centres (n, 2) px.
@@ -151,7 +153,7 @@ class ReconstructionConfig:
     tilt : bool
         Add the unpenalised plane terms x, y.
     regularization : float
-        Relative ridge weight (see :func:`recon.sbf.fit_gradients`).
+        Relative ridge weight (see :func:`recon.shifted_basis.fit_gradients`).
     inner_tol_um, inner_max : float, int
         Inner loop stops when the RMS height change over the ROI is below ``inner_tol_um``.
     outer_tol_um, outer_max : float, int
@@ -190,7 +192,7 @@ class ReconstructionConfig:
     inner_max: int = 12
     outer_tol_um: float = 1e-4
     outer_max: int = 30
-    criterion: Literal["level", "delta"] = "level"
+    criterion: FrameCriterion = "level"
     search: Literal["secant", "thesis"] = "secant"
     warm_start: bool = True
     grid_step: float = 0.5
@@ -361,36 +363,35 @@ def single_thread_blas() -> contextlib.AbstractContextManager:
 def intersect_surface(
     surface: SBFSurface, origins: Array, dirs: Array, frame: Frame | None = None, tol: float = 1e-10, max_iter: int = 30
 ) -> tuple[Array, NDArray[np.bool_]]:
-    """Ray parameters where rays meet z = f(x, y) (secant iteration of seed §1.6.4, eq. 1.6).
+    """Ray parameters where rays meet a fitted surface z = f(x, y) (secant iteration of seed §1.6.4, eq. 1.6).
 
-    The iteration starts at the rays' intersections with the planes z = offset and z = f there,
-    which is close to the root for a nearly flat substrate. Returns (lambda, converged).
+    :func:`scenes.surface.secant_intersection`, started at the rays' intersections with the plane
+    z = offset and with the plane z = f there, which is close to the root for a nearly flat substrate.
+
+    Parameters
+    ----------
+    surface : SBFSurface
+        The current surface estimate (§1.8), in the coordinates of ``frame``.
+    origins, dirs : ndarray, (n, 3)
+        Camera rays, global coordinates.
+    frame : Frame, optional
+        The substrate's base plane (None: the rays are given in it).
+    tol, max_iter : float, int
+        Convergence threshold on |f|, mm, and largest number of secant steps.
+
+    Returns
+    -------
+    lam : ndarray, (n,)
+        Ray parameters (meaningful where ``ok``).
+    ok : ndarray of bool, (n,)
+        Converged, and in front of the ray origin (lam > 0).
     """
     o = frame.to_local(origins) if frame is not None else np.asarray(origins, dtype=np.float64)
     d = frame.vectors_to_local(dirs) if frame is not None else np.asarray(dirs, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         lam0 = (surface.offset - o[:, 2]) / d[:, 2]
-
-    def f(lam: Array) -> Array:
-        p = o + lam[:, None] * d
-        return surface.height(p[:, 0], p[:, 1]) - p[:, 2]
-
-    f0 = f(np.where(np.isfinite(lam0), lam0, 0.0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam1 = lam0 + f0 / d[:, 2]
-    f1 = f(np.where(np.isfinite(lam1), lam1, 0.0))
-    for _ in range(max_iter):
-        done = np.abs(f1) < tol
-        if np.all(done | ~np.isfinite(lam1)):
-            break
-        den = f1 - f0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            new = np.where(done, lam1, np.where(den != 0, (lam0 * f1 - lam1 * f0) / den, lam1))
-        lam0, f0 = lam1, f1
-        lam1 = new
-        f1 = f(np.where(np.isfinite(lam1), lam1, 0.0))
-    ok = np.isfinite(lam1) & (np.abs(f1) < tol) & (lam1 > 0)
-    return lam1, ok
+    lam, converged = secant_intersection(surface, o, d, lam0, tol=tol, max_iter=max_iter)
+    return lam, converged & (lam > 0)
 
 
 def check_substrate_visible(camera: Camera, sub: Substrate2D) -> None:
@@ -469,6 +470,7 @@ class Reconstructor:
         self.bias = bias
         check_substrate_visible(camera, substrate)
         self.sigma_scores: dict[float, float] = {}
+        self._last: SBFSurface | None = None
         self._use_basis(self.config.make_basis(substrate))
 
     def _use_basis(self, basis: ShiftedBasis) -> None:
@@ -584,15 +586,6 @@ class Reconstructor:
                 break
         return surface, rms_changes, resid, used
 
-    def _criterion(self, m1: float, m2: float) -> float:
-        if self.config.criterion == "delta":
-            return m1 - m2
-        return 0.5 * (m1 + m2) - self.sub.frame_z
-
-    def _d_min(self, m1: float, m2: float) -> float:
-        d1, d2 = m1 - self.sub.frame_z, m2 - self.sub.frame_z
-        return d1 if abs(d1) <= abs(d2) else d2
-
     def _outer(
         self, markers: MarkerObservations, h_start: float, history: list[OuterStep], surfaces: list[SBFSurface]
     ) -> bool:
@@ -605,7 +598,7 @@ class Reconstructor:
             init = _predict_surface(surfaces, values, h) if cfg.warm_start else None
             surf, changes, resid, used = self.inner_loop(h, markers, init)
             m1, m2 = self.frame_maxima(surf)
-            crit = self._criterion(m1, m2)
+            crit = frame_criterion(m1, m2, self.sub.frame_z, cfg.criterion)
             history.append(
                 OuterStep(
                     h * 1e3,
@@ -625,7 +618,7 @@ class Reconstructor:
             if abs(crit) <= tol:
                 self._last = surf
                 return True
-            d_min = self._d_min(m1, m2)
+            d_min = frame_distance(m1, m2, self.sub.frame_z)
             thesis_step = h - d_min if d_min != 0 else h - crit
             h_new = thesis_step if cfg.search == "thesis" else _secant_step(values, thesis_step)
             if not np.isfinite(h_new):
@@ -666,6 +659,8 @@ class Reconstructor:
                 h_found = history[-1].start_height_um * 1e-3
                 converged = self._outer(markers, h_found, history, [])
         seconds = time.perf_counter() - t0
+        if self._last is None:
+            raise ReconstructionError(f"the start-height loop ran no inner loop (outer_max = {cfg.outer_max})")
         result = ReconstructionResult(self._last, self.sub, history, converged, seconds, cfg)
         last = history[-1]
         other = (
@@ -764,7 +759,12 @@ def reconstruct(
     frame_z : float
         z of the holding frame in the substrate's base frame, mm.
     """
-    obs = markers if isinstance(markers, MarkerObservations) else MarkerObservations(np.asarray(markers), px)
+    if isinstance(markers, MarkerObservations):
+        obs = markers
+    elif px is None:
+        raise ReconstructionError("marker indices need their image positions px")
+    else:
+        obs = MarkerObservations(np.asarray(markers), np.asarray(px, dtype=np.float64))
     return Reconstructor.from_setup(setup, config, bias, frame_z).run(obs, history_path)
 
 

@@ -64,6 +64,16 @@ class ThinLens:
         return 0.5 * self.focal_length / self.f_number
 
 
+def _is_zero(value: Any) -> bool:
+    """True for a Python/numpy number that is exactly 0 (never for an array)."""
+    return isinstance(value, int | float | np.floating) and float(value) == 0.0
+
+
+def _plus(value: Any, term: Any) -> Any:
+    """``value + term``, leaving out a term that is exactly 0 (adding +0.0 never changes a value here)."""
+    return value if _is_zero(term) else value + term
+
+
 @dataclass(frozen=True)
 class PixelGrid:
     """The sensor's pixel grid: continuous pixel coordinates <-> sensor coordinates (DESIGN.md, "Camera").
@@ -109,13 +119,57 @@ class PixelGrid:
         """Sensor height ny*pitch, mm."""
         return self.ny * self.pitch
 
-    def uv(self, x_px: Any, y_px: Any) -> tuple[Any, Any]:
-        """Sensor (u, v), mm, of continuous pixel coordinates given as separate arrays (numpy or Dr.Jit)."""
-        return (x_px - 0.5 * self.nx) * self.pitch + self.r_cs[0], (0.5 * self.ny - y_px) * self.pitch + self.r_cs[1]
+    @staticmethod
+    def map_uv(
+        x_px: Any,
+        y_px: Any,
+        nx: float,
+        ny: float,
+        pitch: Any,
+        r_cs: tuple[Any, Any] = (0.0, 0.0),
+        shift_px: tuple[float, float] = (0.0, 0.0),
+    ) -> tuple[Any, Any]:
+        """The convention itself, with the grid given field by field (numpy, Dr.Jit or Python numbers).
 
-    def xy(self, u: Any, v: Any) -> tuple[Any, Any]:
-        """Continuous pixel coordinates (x_px, y_px) of sensor points (u, v), mm (numpy or Dr.Jit)."""
-        return (u - self.r_cs[0]) / self.pitch + 0.5 * self.nx, 0.5 * self.ny - (v - self.r_cs[1]) / self.pitch
+        ``u = ((x_px - nx/2) - shift_x) * pitch + x_cs``, ``v = ((ny/2 - y_px) + shift_y) * pitch + y_cs``.
+        A renderer whose pitch and r_cs live in opaque Dr.Jit variables (the Part I sensor, so that a new camera
+        reuses the compiled kernel) calls this form; :meth:`uv` is it with the grid's own fields. ``shift_px``
+        moves the image content by (+shift_x, +shift_y) px (a camera's in-plane offset given in pixels, as the
+        CMU poses are); terms that are exactly zero (Python numbers) are left out, so no operation is emitted
+        into a Dr.Jit kernel for them.
+        """
+        u = x_px - 0.5 * nx
+        v = 0.5 * ny - y_px
+        if not _is_zero(shift_px[0]):
+            u = u - shift_px[0]
+        if not _is_zero(shift_px[1]):
+            v = v + shift_px[1]
+        return _plus(u * pitch, r_cs[0]), _plus(v * pitch, r_cs[1])
+
+    def uv(self, x_px: Any, y_px: Any, shift_px: tuple[float, float] = (0.0, 0.0)) -> tuple[Any, Any]:
+        """Sensor (u, v), mm, of continuous pixel coordinates given as separate arrays (numpy or Dr.Jit).
+
+        ``shift_px``: see :meth:`map_uv` (the image content moved by that many pixels).
+        """
+        return self.map_uv(x_px, y_px, self.nx, self.ny, self.pitch, self.r_cs, shift_px)
+
+    def uv_film(self, fx: Any, fy: Any) -> tuple[Any, Any]:
+        """Sensor (u, v), mm, of film coordinates (fx, fy) = (x_px/nx, y_px/ny) in [0, 1)^2 (Mitsuba's film samples).
+
+        The same convention as :meth:`uv` (``uv(fx*nx, fy*ny)`` up to rounding), written on the sensor's size:
+        ``u = (fx - 1/2) * nx*pitch + x_cs``, ``v = (1/2 - fy) * ny*pitch + y_cs``.
+        """
+        return _plus((fx - 0.5) * self.width_mm, self.r_cs[0]), _plus((0.5 - fy) * self.height_mm, self.r_cs[1])
+
+    def xy(self, u: Any, v: Any, shift_px: tuple[float, float] = (0.0, 0.0)) -> tuple[Any, Any]:
+        """Continuous pixel coordinates (x_px, y_px) of sensor points (u, v), mm (numpy or Dr.Jit): uv undone."""
+        a = (u - self.r_cs[0]) / self.pitch
+        b = (v - self.r_cs[1]) / self.pitch
+        if not _is_zero(shift_px[0]):
+            a = a + shift_px[0]
+        if not _is_zero(shift_px[1]):
+            b = b - shift_px[1]
+        return a + 0.5 * self.nx, 0.5 * self.ny - b
 
     def pixel_to_sensor(self, px: ArrayLike) -> Array:
         """Continuous pixel coordinates (..., 2) as (x_px, y_px) -> sensor (u, v), mm."""
@@ -133,6 +187,10 @@ class PixelGrid:
         c = np.arange(self.nx)[cols if cols is not None else slice(None)] + 0.5
         cc, rr = np.meshgrid(c, r)
         return np.stack([cc, rr], axis=-1)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready grid: ``nx``, ``ny``, ``pitch`` (mm), ``r_cs`` (mm) -- the one writer of a camera's grid."""
+        return {"nx": self.nx, "ny": self.ny, "pitch": self.pitch, "r_cs": list(self.r_cs)}
 
     def contains(self, px: ArrayLike, margin: float = 0.0) -> NDArray[np.bool_]:
         """True where continuous pixel coordinates lie inside the image (shrunk by ``margin`` px)."""
@@ -316,6 +374,7 @@ class Camera:
         if self.lens is None:
             return o, d
         g = self.focus_distance()
+        assert g is not None  # a thin lens has a plane in focus
         f = self.frame
         depth = -(d @ f.nz)
         focus = o + (g / depth)[..., None] * d
@@ -327,22 +386,38 @@ class Camera:
         """True where continuous pixel coordinates lie inside the image (shrunk by ``margin`` px)."""
         return self.grid.contains(px, margin)
 
-    def as_dict(self) -> dict:
-        """JSON-ready camera parameters with the contract's keys (DESIGN.md, `calibrate`)."""
+    def as_dict(
+        self,
+        *,
+        pose: tuple[ArrayLike, float, float] | None = None,
+        focus: bool = False,
+        grid: bool = True,
+    ) -> dict[str, Any]:
+        """JSON-ready camera parameters with the contract's keys (DESIGN.md, `calibrate`): the one camera writer.
+
+        Always the frame and image distance (``r_c``, ``t_x``, ``t_y``, ``n_z``, ``b``), then, with ``pose`` =
+        (r_0, phi, g), the optimisation parameters of §2.5.2 (``g``, ``r_0`` as its x, y, ``phi``), the
+        principal-point offset and distortion (``r_cs``, ``c0``, ``c2``), with ``focus`` the thin lens's
+        ``focus_distance`` (None for a pinhole), and with ``grid`` the rest of the pixel grid
+        (:meth:`PixelGrid.as_dict`: ``nx``, ``ny``, ``pitch``).
+        """
         f = self.frame
-        out = {
+        cells = self.grid.as_dict()
+        out: dict[str, Any] = {
             "r_c": f.origin.tolist(),
             "t_x": f.tx.tolist(),
             "t_y": f.ty.tolist(),
             "n_z": f.nz.tolist(),
             "b": self.b,
-            "r_cs": list(self.r_cs),
-            "c0": self.c0,
-            "c2": self.c2,
-            "nx": self.nx,
-            "ny": self.ny,
-            "pitch": self.pitch,
         }
+        if pose is not None:
+            r0, phi, g = pose
+            out |= {"g": float(g), "r_0": [float(v) for v in np.asarray(r0)[:2]], "phi": float(phi)}
+        out |= {"r_cs": cells["r_cs"], "c0": self.c0, "c2": self.c2}
+        if focus:
+            out["focus_distance"] = self.focus_distance()
+        if grid:
+            out |= {"nx": cells["nx"], "ny": cells["ny"], "pitch": cells["pitch"]}
         return out
 
 

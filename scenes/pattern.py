@@ -50,8 +50,9 @@ class MarkerPattern:
         Radius of the reference marker, mm (larger than ``radius``).
     layout : {"deflectometry", "calibration"}
         Where the reference marker is and how indices run (module docstring).
-    size_x, size_y : float or None
-        Extent of the emitting plate, mm (centred on r_c). None: the marker grid plus one pitch.
+    size_x, size_y : float
+        Extent of the emitting plate, mm (centred on r_c). 0 (the default; None is taken as 0): the marker grid
+        plus one pitch, (n + 1) * pitch, filled in on construction.
     """
 
     frame: Frame
@@ -62,8 +63,8 @@ class MarkerPattern:
     radius: float
     ref_radius: float
     layout: Layout = "deflectometry"
-    size_x: float | None = None
-    size_y: float | None = None
+    size_x: float = 0.0
+    size_y: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("n_x", "n_y"):
@@ -83,9 +84,9 @@ class MarkerPattern:
             raise GeometryError(
                 f"markers overlap: radius {self.radius} + ref_radius {self.ref_radius} mm exceed the pitch {pitch} mm"
             )
-        if self.size_x is None:
+        if not self.size_x:  # 0 or None: derived from the grid
             object.__setattr__(self, "size_x", (self.n_x + 1) * self.pitch_x)
-        if self.size_y is None:
+        if not self.size_y:
             object.__setattr__(self, "size_y", (self.n_y + 1) * self.pitch_y)
         lo_x, hi_x = self._axis_range(self.n_x, self.pitch_x)
         lo_y, hi_y = self._axis_range(self.n_y, self.pitch_y)

@@ -22,13 +22,15 @@ from functools import cached_property
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from scenes.camera import Camera, ThinLens
+from scenes.camera_spec import CameraGridSpec
+from scenes.emva1288 import EmvaSensor
 from scenes.errors import GeometryError, SetupError
 from scenes.geometry import Frame
 from scenes.pattern import MarkerPattern
-from scenes.sensor import EmvaSensor
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
 
@@ -42,9 +44,14 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+def _make_frame(origin: Vec3, t_x: Vec3, t_y: Vec3, n_z: Vec3) -> Frame:
+    """The :class:`Frame` of four 3-tuples (a setup's TOML values)."""
+    return Frame(*(np.asarray(v, dtype=np.float64) for v in (origin, t_x, t_y, n_z)))
+
+
 def _frame(origin: Vec3, t_x: Vec3, t_y: Vec3, n_z: Vec3) -> Frame:
     try:
-        return Frame(origin, t_x, t_y, n_z)
+        return _make_frame(origin, t_x, t_y, n_z)
     except GeometryError as exc:
         raise ValueError(str(exc)) from None
 
@@ -63,11 +70,12 @@ class FrameSpec(_Model):
         return self
 
     def frame(self) -> Frame:
-        return Frame(self.origin, self.t_x, self.t_y, self.n_z)
+        """The frame (r_c, T_x, T_y, N_z)."""
+        return _make_frame(self.origin, self.t_x, self.t_y, self.n_z)
 
 
-class CameraSpec(_Model):
-    """Camera of seed §1.6.2 / §2.5.2.
+class CameraSpec(CameraGridSpec):
+    """Camera of seed §1.6.2 / §2.5.2: the pixel grid (:class:`scenes.camera_spec.CameraGridSpec`) and the pose.
 
     Give the pose either as axes (``t_x``, ``t_y``, ``n_z`` and ``image_distance``)
     or as the optimisation parameters of §2.5.2 (``r_0``, ``phi``; b then follows from
@@ -111,24 +119,34 @@ class CameraSpec(_Model):
             raise ValueError(str(exc)) from None
         return self
 
+    def grid_fields(self) -> tuple[int, int, float, tuple[float, float]]:
+        """(nx, ny, pitch, r_cs) from ``pixels``, ``pixel_pitch`` (mm) and ``r_cs``."""
+        return self.pixels[0], self.pixels[1], self.pixel_pitch, self.r_cs
+
     def camera(self) -> Camera:
+        """The camera model of seed §1.6.2 / §2.5.2 (pose, :meth:`grid`, distortion, thin lens)."""
         lens = None
         if self.f_number is not None:
             lens = ThinLens(self.focal_length, self.f_number, self.focus_distance)
-        common = dict(r_cs=self.r_cs, c0=self.c0, c2=self.c2, lens=lens)
-        nx, ny = self.pixels
+        grid = self.grid()
+        nx, ny, pitch = grid.nx, grid.ny, grid.pitch
         if self.t_x is not None:
-            frame = Frame(self.origin, self.t_x, self.t_y, self.n_z)  # type: ignore[arg-type]
-            return Camera(frame, float(self.image_distance), nx, ny, self.pixel_pitch, **common)  # type: ignore[arg-type]
+            assert self.t_y is not None and self.n_z is not None and self.image_distance is not None  # _check
+            frame = _make_frame(self.origin, self.t_x, self.t_y, self.n_z)
+            return Camera(frame, float(self.image_distance), nx, ny, pitch, grid.r_cs, self.c0, self.c2, lens)
+        assert self.r_0 is not None and self.phi is not None  # _check
         cam = Camera.from_pose(
             self.origin,
             self.r_0,
             float(self.phi),
             self.focal_length,
             nx,
-            ny,  # type: ignore[arg-type]
-            self.pixel_pitch,
-            **common,
+            ny,
+            pitch,
+            r_cs=grid.r_cs,
+            c0=self.c0,
+            c2=self.c2,
+            lens=lens,
         )
         if self.image_distance is not None:
             cam = cam.with_(b=self.image_distance)
@@ -159,7 +177,7 @@ class PatternSpec(FrameSpec):
         return self
 
     def pattern(self) -> MarkerPattern:
-        sx, sy = self.size if self.size is not None else (None, None)
+        sx, sy = self.size if self.size is not None else (0.0, 0.0)
         return MarkerPattern(
             self.frame(),
             self.markers[0],
@@ -223,8 +241,11 @@ class RenderSpec(_Model):
     noise: bool = Field(False, description="apply the EMVA sensor model")
 
 
-class SensorSpec(_Model):
-    """EMVA 1288 sensor and exposure (see :class:`scenes.sensor.EmvaSensor`)."""
+class NoiseModelSpec(_Model):
+    """The camera's EMVA 1288 noise model and exposure (:class:`scenes.emva1288.EmvaSensor`).
+
+    The setup field that holds it keeps its TOML key ``[sensor]``.
+    """
 
     quantum_efficiency: Annotated[float, Field(gt=0, le=1)] = 0.55
     full_well_e: Positive = 18000.0
@@ -259,7 +280,7 @@ class Setup(_Model):
     substrate: SubstrateSpec | None = None
     mirror: MirrorSpec | None = None
     render: RenderSpec = RenderSpec()
-    sensor: SensorSpec = SensorSpec()
+    sensor: NoiseModelSpec = NoiseModelSpec()
 
     @model_validator(mode="after")
     def _check(self) -> Setup:

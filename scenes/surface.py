@@ -12,7 +12,9 @@ Height maps follow DESIGN.md's file contract: node (row k, column l) is at
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -20,6 +22,99 @@ from scipy.interpolate import RectBivariateSpline
 
 from scenes.errors import GeometryError
 from scenes.geometry import Array, Frame, intersect_plane, normalize
+
+#: A surface given by a function: heights h(x, y), mm, of local base-plane points (vectorised).
+HeightFunction = Callable[[Array, Array], Array]
+
+
+class HeightModel(Protocol):
+    """A surface given by a model with a ``height`` method (:class:`HeightMap`, a fitted basis surface, ...)."""
+
+    def height(self, x: Array, y: Array) -> Array:
+        """h(x, y), mm, of local base-plane points."""
+        ...
+
+
+def secant_intersection(
+    surface: HeightModel | HeightFunction,
+    origins: ArrayLike,
+    directions: ArrayLike,
+    lam0: ArrayLike,
+    lam1: ArrayLike | None = None,
+    tol: float = 1e-10,
+    max_iter: int = 60,
+) -> tuple[Array, NDArray[np.bool_]]:
+    """Ray parameters where rays meet the surface z = h(x, y), by the secant iteration (seed §1.6.4, eq. 1.6).
+
+    The root of f(lambda) = h(x(lambda), y(lambda)) - z(lambda) along each ray is searched by
+    lambda_{k+1} = (lambda_{k-1} f_k - lambda_k f_{k-1}) / (f_k - f_{k-1}), vectorised over the rays;
+    a ray stops when |f| < ``tol`` (its value is kept), or when a step is undefined (f_k = f_{k-1}) or
+    not finite. Only the rays still iterating are evaluated.
+
+    Parameters
+    ----------
+    surface : HeightModel or callable
+        The surface: an object with ``height(x, y)`` (a :class:`HeightMap`, a fitted height model) or a
+        function ``h(x, y)``, in the base-plane coordinates of ``origins`` and ``directions``.
+    origins, directions : array_like, (n, 3)
+        Rays in the surface's base-plane (local) coordinates.
+    lam0 : array_like, (n,)
+        First start value of the ray parameter (NaN or inf: the ray is not traced).
+    lam1 : array_like, (n,), optional
+        Second start value. None: the intersection with the plane z = h at the first start point,
+        lambda_1 = lambda_0 + f(lambda_0) / d_z (one Newton step with the slope of a flat surface).
+    tol : float
+        Convergence threshold on |f|, mm.
+    max_iter : int
+        Largest number of secant steps.
+
+    Returns
+    -------
+    lam : ndarray, (n,)
+        Last iterate of each ray (the hit where ``converged``).
+    converged : ndarray of bool, (n,)
+        Where |f(lam)| < ``tol`` was reached. Whether the hit is in front of the camera (lam > 0) or on
+        the substrate is for the caller to decide.
+    """
+    height = surface.height if hasattr(surface, "height") else surface
+    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    n = len(o)
+
+    def f(lam: Array, idx: NDArray[np.intp] | None = None) -> Array:
+        oo, dd = (o, d) if idx is None else (o[idx], d[idx])
+        p = oo + lam[:, None] * dd
+        return np.asarray(height(p[:, 0], p[:, 1]), dtype=np.float64) - p[:, 2]
+
+    lam_prev = np.array(lam0, dtype=np.float64).reshape(n)
+    f_prev = f(np.where(np.isfinite(lam_prev), lam_prev, 0.0))
+    if lam1 is None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam_cur = lam_prev + f_prev / d[:, 2]
+    else:
+        lam_cur = np.array(lam1, dtype=np.float64).reshape(n)
+    active = np.isfinite(lam_cur)
+    f_cur = f(np.where(active, lam_cur, 0.0))
+    converged = np.zeros(n, dtype=bool)
+    for _ in range(max_iter):
+        done = active & (np.abs(f_cur) < tol)
+        converged |= done
+        active &= ~done
+        if not active.any():
+            break
+        a = np.flatnonzero(active)
+        den = f_cur[a] - f_prev[a]
+        ok = den != 0
+        with np.errstate(invalid="ignore", over="ignore"):
+            new = np.where(ok, (lam_prev[a] * f_cur[a] - lam_cur[a] * f_prev[a]) / np.where(ok, den, 1.0), np.nan)
+        lam_prev[a], f_prev[a] = lam_cur[a], f_cur[a]
+        lam_cur[a] = new
+        good = np.isfinite(new)
+        active[a[~good]] = False
+        ag = a[good]
+        f_cur[ag] = f(lam_cur[ag], ag)
+    converged |= active & (np.abs(f_cur) < tol)
+    return lam_cur, converged
 
 
 @dataclass(frozen=True)
@@ -164,8 +259,8 @@ class Substrate:
     ) -> tuple[Array, NDArray[np.bool_]]:
         """Ray parameters of the intersection with the surface by the secant iteration (seed §1.6.4, eq. 1.6).
 
-        f(lambda) = h(r_perp(lambda)) - z(lambda) in the base frame; lambda_0 = 0 (the ray
-        origin), lambda_1 = the base-plane intersection; iterate until |f| < ``tol`` mm.
+        :func:`secant_intersection` on f(lambda) = h(r_perp(lambda)) - z(lambda) in the base frame;
+        lambda_0 = 0 (the ray origin), lambda_1 = the base-plane intersection; iterate until |f| < ``tol`` mm.
 
         Returns
         -------
@@ -181,37 +276,10 @@ class Substrate:
         shape = o.shape[:-1]
         o = o.reshape(-1, 3)
         d = d.reshape(-1, 3)
-
-        def f(lam: Array, idx: NDArray) -> Array:
-            p = o[idx] + lam[:, None] * d[idx]
-            return self.heights.height(p[:, 0], p[:, 1]) - p[:, 2]
-
-        n = len(o)
-        lam_prev = np.zeros(n)
-        lam_cur = intersect_plane(o, d, Frame.identity())
-        idx = np.arange(n)
-        f_prev = f(lam_prev, idx)
-        f_cur = f(lam_cur, idx)
-        result = np.full(n, np.nan)
-        active = np.isfinite(lam_cur)
-        for _ in range(max_iter):
-            done = active & (np.abs(f_cur) < tol)
-            result[done] = lam_cur[done]
-            active &= ~done
-            if not active.any():
-                break
-            a = np.flatnonzero(active)
-            den = f_cur[a] - f_prev[a]
-            ok = den != 0
-            new = np.where(ok, (lam_prev[a] * f_cur[a] - lam_cur[a] * f_prev[a]) / np.where(ok, den, 1.0), np.nan)
-            lam_prev[a], f_prev[a] = lam_cur[a], f_cur[a]
-            lam_cur[a] = new
-            good = np.isfinite(new)
-            active[a[~good]] = False
-            ag = a[good]
-            f_cur[ag] = f(lam_cur[ag], ag)
-        converged = np.isfinite(result)
-        return result.reshape(shape), converged.reshape(shape)
+        lam, converged = secant_intersection(
+            self.heights, o, d, np.zeros(len(o)), intersect_plane(o, d, Frame.identity()), tol, max_iter
+        )
+        return np.where(converged, lam, np.nan).reshape(shape), converged.reshape(shape)
 
     def points_and_normals(self, origins: ArrayLike, directions: ArrayLike) -> tuple[Array, Array, NDArray]:
         """Global hit points and unit normals of rays on the surface; mask of hits inside the ROI."""

@@ -18,12 +18,16 @@ from __future__ import annotations
 import json
 import time
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from scenes.errors import ScopetwinError
+from scenes.setup import Setup
+from scenes.surface import HeightMap
 
 MEASUREMENT = "thesis-1.10-deflectometry"
 TARGET = "thesis-2.8.3-substrate"
@@ -33,24 +37,20 @@ MIRROR = "thesis-2.8.3-mirror"
 SEED = {"ideal": {"roi_rms_um": 0.091, "roi_max_um": 0.357}, "calibrated": {"roi_rms_um": 0.414, "roi_max_um": 1.162}}
 
 
-def render_with_noise(setup, heights, spp: int, seed: int):
-    """Mitsuba render plus the EMVA sensor model (the setup's exposure or a fill fraction of the full well)."""
+def render_with_noise(setup: Setup, heights: HeightMap | None, spp: int, seed: int) -> NDArray[np.float32]:
+    """Mitsuba render plus the EMVA sensor model (:func:`sim.measurement.apply_sensor`), as float32."""
     from scenes.mitsuba.render import render_setup
+    from sim.measurement import apply_sensor
 
     image = render_setup(setup, heights, spp=spp, seed=seed)
-    sensor = setup.sensor.sensor()
-    exposure = setup.sensor.exposure_s
-    if exposure is None:
-        peak = float(image.max())
-        if peak <= 0:
-            raise ScopetwinError(f"the render of {setup.name} is black: no exposure can be chosen")
-        exposure = sensor.exposure_for(peak, setup.sensor.photons_per_unit_s, setup.sensor.fill_fraction)
-    return np.asarray(sensor.capture(image, setup.sensor.photons_per_unit_s, exposure, rng=seed), dtype=np.float32)
+    return np.asarray(apply_sensor(setup, image, seed), dtype=np.float32)
 
 
-def calibrate_from_images(target_setup, mirror_setup, img_target, img_mirror):
+def calibrate_from_images(
+    target_setup: Setup, mirror_setup: Setup, img_target: NDArray[Any], img_mirror: NDArray[Any]
+) -> tuple[Setup, str]:
     """Setup calibration of §2.7 with calib/ (bias-corrected): the calibrated deflectometry setup and its TOML."""
-    from calib.oneshot import Prior, spot_bias_model
+    from calib.oneshot import Prior
     from calib.setup_calibration import (
         calibrate_setup,
         calibrated_setup_dict,
@@ -58,6 +58,7 @@ def calibrate_from_images(target_setup, mirror_setup, img_target, img_mirror):
         toml_dumps,
         virtual_coordinates,
     )
+    from recon.bias import spot_bias_model
     from recon.markers import find_markers_for
     from scenes.setup import setup_from_dict
 
@@ -85,7 +86,9 @@ def calibrate_from_images(target_setup, mirror_setup, img_target, img_mirror):
     return setup_from_dict(data, "calibrated setup"), text
 
 
-def roi_errors(surface_height, truth, sub, step: float = 0.2) -> dict[str, float]:
+def roi_errors(
+    surface_height: Callable[[NDArray[Any], NDArray[Any]], NDArray[Any]], truth: HeightMap, sub: Any, step: float = 0.2
+) -> dict[str, float]:
     """Errors of a reconstruction against the truth: ROI absolute/shape/RMS/max and whole-substrate RMS/max, µm."""
     xs = np.linspace(-0.5 * sub.size_x, 0.5 * sub.size_x, int(round(sub.size_x / step)) + 1)
     ys = np.linspace(-0.5 * sub.size_y, 0.5 * sub.size_y, int(round(sub.size_y / step)) + 1)
@@ -103,7 +106,9 @@ def roi_errors(surface_height, truth, sub, step: float = 0.2) -> dict[str, float
     }
 
 
-def _plots(out: Path, image, found, truth, results: dict[str, Any], sub) -> list[str]:
+def _plots(
+    out: Path, image: NDArray[Any], found: Any, truth: HeightMap, results: dict[str, Any], sub: Any
+) -> list[str]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -202,7 +207,6 @@ def _run(out_dir: Path, spp: int | None, seed: int | None, progress: bool) -> di
     from recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
     from scenes.io import write_heightmap, write_image
     from scenes.setup import load_setup
-    from scenes.surface import HeightMap
     from sim.surfaces import surface_for
     from sim.truth import marker_truth
 
@@ -293,11 +297,14 @@ def _run(out_dir: Path, spp: int | None, seed: int | None, progress: bool) -> di
     (out / "focusmap.csv").write_text(fm.to_csv())
     files += ["focusmap.csv"] + _plots(out, image, found, heights, results, sub)
 
+    surface = setup.substrate.surface if setup.substrate is not None else None
+    if surface is None:
+        raise ScopetwinError(f"setup {setup.name} has no substrate surface to compare with")
     summary: dict[str, Any] = {
         "surface": {
-            "range_um": setup.substrate.surface.range_um,
-            "correlation_length_mm": setup.substrate.surface.correlation_length,
-            "seed": setup.substrate.surface.seed,
+            "range_um": surface.range_um,
+            "correlation_length_mm": surface.correlation_length,
+            "seed": surface.seed,
         },
         "spp": r_spp,
         "render_seed": r_seed,

@@ -2,14 +2,25 @@
 
 Optional dependency: ``pip install scopetwin[hardware]`` (pypylon). The driver
 probes the feature names of both GenICam generations: ``ExposureTime`` (µs,
-SFNC 2) or ``ExposureTimeAbs`` (µs, older GigE models such as the scA series),
-``Gain`` (dB) or ``GainRaw``, ``BlackLevel`` or ``BlackLevelRaw``,
-``AcquisitionFrameRate`` or ``AcquisitionFrameRateAbs``, ``TriggerDelay`` or
-``TriggerDelayAbs``. Every exposure is triggered (``TriggerMode=On``):
-``Software`` for a software trigger, ``Line1`` for the FPGA board's camera line.
+SFNC 2), ``ExposureTimeAbs`` (µs, older GigE models such as the scA series) or
+``ExposureTimeRaw`` (steps of ``ExposureTimeBaseAbs`` µs); ``Gain`` (dB) or
+``GainRaw`` (steps of ``gain_db_per_raw`` dB); ``BlackLevel`` or
+``BlackLevelRaw``; ``AcquisitionFrameRate`` or ``AcquisitionFrameRateAbs``;
+``TriggerDelay`` or ``TriggerDelayAbs``. Every exposure is triggered
+(``TriggerMode=On``): ``Software`` for a software trigger, ``Line1`` for the
+FPGA board's camera line.
+
+Pixel formats: ``Mono8`` (8 bit), ``Mono12`` or, on cameras without it such as
+the scout scA1400-30gm, ``Mono12Packed`` (12 bit, unpacked here by
+:func:`unpack_mono12packed`), and ``Mono16`` (16 bit). GigE transport: the
+rig's ``packet_size`` (bytes, ``GevSCPSPacketSize``) and ``inter_packet_delay``
+(ticks, ``GevSCPD``) are set at initialisation.
+
 The driver also runs against pylon's camera emulator (``PYLON_CAMEMU=1``),
 whose image-file mode (:meth:`BaslerCamera.set_node` ``ImageFilename``) serves
-rendered frames.
+rendered frames; tests drive the GigE branches through a fake node map (every
+node object may offer ``is_available()``, which :func:`node_available` asks
+before GenICam's ``IsAvailable``).
 """
 
 from __future__ import annotations
@@ -21,8 +32,61 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from instrument.devices import Camera, CameraLimits, Range, Roi, TriggerMode, TriggerType
-from instrument.errors import DisconnectedError, InstrumentTimeout, ProtocolError, RigError
+from instrument.devices import CameraDevice, CameraLimits, Range, Roi, TriggerMode, TriggerType
+from instrument.errors import DisconnectedError, InstrumentTimeout, OutOfRangeError, ProtocolError, RigError
+
+#: Pixel format for each bit depth, in order of preference.
+PIXEL_FORMATS: dict[int, tuple[str, ...]] = {8: ("Mono8",), 12: ("Mono12", "Mono12Packed"), 16: ("Mono16",)}
+
+
+def unpack_mono12packed(buffer: bytes | bytearray | memoryview, width: int, height: int) -> NDArray[np.uint16]:
+    """Unpack a GigE Vision ``Mono12Packed`` image: two 12-bit pixels in three bytes.
+
+    Byte 0 holds bits 11-4 of the first pixel, byte 1 bits 3-0 of the first pixel in its low
+    nibble and bits 3-0 of the second pixel in its high nibble, byte 2 bits 11-4 of the second
+    pixel. The packing runs over the whole image (a row of odd width ends mid-group).
+
+    Parameters
+    ----------
+    buffer : bytes-like
+        At least ``ceil(width * height * 3 / 2)`` bytes.
+    width, height : int
+        Image size in pixels.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(height, width)`` uint16 array of 12-bit values.
+
+    Raises
+    ------
+    ProtocolError
+        If the buffer is too short.
+    """
+    n = int(width) * int(height)
+    need = (3 * n + 1) // 2
+    raw = np.frombuffer(buffer, dtype=np.uint8)
+    if raw.size < need:
+        raise ProtocolError(f"Mono12Packed: {raw.size} bytes for {width} x {height} pixels, need {need}")
+    groups = (n + 1) // 2
+    padded = np.zeros(groups * 3, dtype=np.uint16)
+    padded[:need] = raw[:need]
+    b = padded.reshape(groups, 3)
+    out = np.empty((groups, 2), dtype=np.uint16)
+    out[:, 0] = (b[:, 0] << 4) | (b[:, 1] & 0x0F)
+    out[:, 1] = (b[:, 2] << 4) | (b[:, 1] >> 4)
+    return out.reshape(-1)[:n].reshape(int(height), int(width))
+
+
+def node_available(node: Any) -> bool:
+    """Whether a GenICam node exists and is available (a test double may answer ``is_available()``)."""
+    if node is None:
+        return False
+    probe = getattr(node, "is_available", None)
+    if callable(probe):
+        return bool(probe())
+    _, genicam = _pylon()
+    return bool(genicam.IsAvailable(node))
 
 
 def _pylon() -> tuple[Any, Any]:
@@ -50,7 +114,7 @@ def pylon_errors(name: str) -> Iterator[None]:
         raise ProtocolError(f"camera {name!r}: {str(exc)[:200]}") from exc
 
 
-class BaslerCamera(Camera):
+class BaslerCamera(CameraDevice):
     """A Basler camera via pypylon.
 
     Parameters
@@ -61,10 +125,16 @@ class BaslerCamera(Camera):
         Serial number to open (default: the first camera found).
     pixel_size_um : float
         Pixel pitch (not readable from every model).
+    magnification : float
+        Magnification of the optics in front of the camera (for the sample-side pixel size).
     gain_db_per_raw : float
         dB per ``GainRaw`` step for models without ``Gain`` in dB.
     trigger_line : str
         Input line wired to the FPGA board's camera output.
+    packet_size : int, optional
+        GigE stream packet size in bytes (``GevSCPSPacketSize``), e.g. 1500 or 9000 with jumbo frames.
+    inter_packet_delay : int, optional
+        GigE inter-packet delay in timestamp ticks (``GevSCPD``).
     timeout_s : float
         Longest wait for a frame beyond its exposure.
     """
@@ -77,30 +147,42 @@ class BaslerCamera(Camera):
         *,
         serial: str | None = None,
         pixel_size_um: float = 6.45,
+        magnification: float = 1.0,
         gain_db_per_raw: float = 0.0359,
         trigger_line: str = "Line1",
+        packet_size: int | None = None,
+        inter_packet_delay: int | None = None,
         timeout_s: float = 2.0,
     ) -> None:
-        super().__init__(name, limits=CameraLimits(pixel_size_um=pixel_size_um), timeout_s=timeout_s)
+        super().__init__(
+            name, limits=CameraLimits(pixel_size_um=pixel_size_um, magnification=magnification), timeout_s=timeout_s
+        )
         self.serial = serial
         self.gain_db_per_raw = float(gain_db_per_raw)
         self.trigger_line_name = trigger_line
+        for what, value in (("packet_size", packet_size), ("inter_packet_delay", inter_packet_delay)):
+            if value is not None and (isinstance(value, bool) or int(value) < 0):
+                raise RigError(f"camera {name!r}: {what} must be a non-negative integer, got {value!r}")
+        self.packet_size = None if packet_size is None else int(packet_size)
+        self.inter_packet_delay = None if inter_packet_delay is None else int(inter_packet_delay)
         self._cam: Any = None
+        self._gain_scale = 1.0
+        self._pixel_format = ""
 
     # node helpers ---------------------------------------------------------------------------------
-    def _node(self, *names: str) -> Any:
-        _, genicam = _pylon()
+    def _find(self, *names: str) -> tuple[str, Any]:
         nodemap = self._cam.GetNodeMap()
         for n in names:
             node = nodemap.GetNode(n)
-            if node is not None and genicam.IsAvailable(node):
-                return node
+            if node_available(node):
+                return n, node
         raise ProtocolError(f"camera {self.name!r} has none of the features {names}")
 
+    def _node(self, *names: str) -> Any:
+        return self._find(*names)[1]
+
     def _has(self, name: str) -> bool:
-        _, genicam = _pylon()
-        node = self._cam.GetNodeMap().GetNode(name)
-        return node is not None and genicam.IsAvailable(node)
+        return node_available(self._cam.GetNodeMap().GetNode(name))
 
     def set_node(self, name: str, value: Any) -> None:
         """Set any GenICam feature by name (e.g. the emulator's ``ImageFilename``)."""
@@ -113,6 +195,11 @@ class BaslerCamera(Camera):
         self._require()
         with pylon_errors(self.name):
             return self._node(name).GetValue()
+
+    @property
+    def pixel_format(self) -> str:
+        """The pixel format in use (``Mono8``, ``Mono12``, ``Mono12Packed`` or ``Mono16``)."""
+        return self._pixel_format
 
     # lifecycle ---------------------------------------------------------------------------------------
     def _do_initialize(self) -> None:
@@ -129,43 +216,81 @@ class BaslerCamera(Camera):
             self._cam = pylon.InstantCamera(factory.CreateDevice(chosen[0]))
             self._cam.Open()
             self.serial = chosen[0].GetSerialNumber()
-            exposure = self._node("ExposureTime", "ExposureTimeAbs")
-            gain = self._node("Gain", "GainRaw")
-            gain_scale = 1.0 if gain.GetNode().GetName() == "Gain" else self.gain_db_per_raw
-            black = self._node("BlackLevel", "BlackLevelRaw")
-            fps = self._node("AcquisitionFrameRate", "AcquisitionFrameRateAbs")
-            formats = [f for f in self._cam.PixelFormat.Symbolics if f in ("Mono8", "Mono12")]
-            binnings = (
-                tuple(b for b in (1, 2, 4) if b <= self._cam.BinningHorizontal.Max)
-                if self._has("BinningHorizontal")
-                else (1,)
-            )
-            self.limits = CameraLimits(
-                sensor_shape=(int(self._cam.HeightMax.Value), int(self._cam.WidthMax.Value)),
-                pixel_size_um=self.limits.pixel_size_um,
-                exposure_s=Range(exposure.Min * 1e-6, exposure.Max * 1e-6, "s"),
-                gain_db=Range(gain.Min * gain_scale, gain.Max * gain_scale, "dB"),
-                black_level_dn=Range(float(black.Min), float(black.Max), "DN"),
-                fps=Range(max(float(fps.Min), 1e-3), float(fps.Max), "Hz"),
-                bit_depths=tuple(sorted(int(f[4:]) for f in formats)) or (8,),
-                binnings=binnings,
-            )
-            self._gain_scale = gain_scale
-            self._cam.OffsetX.Value = 0
-            self._cam.OffsetY.Value = 0
-            self._cam.Width.Value = self._cam.WidthMax.Value
-            self._cam.Height.Value = self._cam.HeightMax.Value
-            self._roi = Roi(0, 0, *self.limits.sensor_shape)
-            self._do_set_bit_depth(max(self.limits.bit_depths))
-            self._bit_depth = max(self.limits.bit_depths)
-            self._exposure_s = float(exposure.Value) * 1e-6
-            self._do_set_trigger(TriggerType.SOFTWARE, TriggerMode.ONCE, 0.0)
+            self.configure_from_nodes()
+
+    def configure_from_nodes(self) -> None:
+        """Read the limits from the node map and apply the rig's settings (called by initialisation).
+
+        Raises
+        ------
+        ProtocolError
+            A feature the driver needs is missing, or the rig asks for a GigE transport setting
+            the camera does not offer.
+        """
+        cam = self._cam
+        exposure_name, exposure = self._find("ExposureTime", "ExposureTimeAbs", "ExposureTimeRaw")
+        exposure_scale_us = (
+            float(self._node("ExposureTimeBaseAbs").Value) if exposure_name == "ExposureTimeRaw" else 1.0
+        )
+        gain_name, gain = self._find("Gain", "GainRaw")
+        gain_scale = 1.0 if gain_name == "Gain" else self.gain_db_per_raw
+        black = self._node("BlackLevel", "BlackLevelRaw")
+        fps = self._node("AcquisitionFrameRate", "AcquisitionFrameRateAbs")
+        symbolics = tuple(cam.PixelFormat.Symbolics)
+        depths = tuple(bits for bits, names in PIXEL_FORMATS.items() if any(n in symbolics for n in names))
+        binnings = (
+            tuple(b for b in (1, 2, 4) if b <= cam.BinningHorizontal.Max) if self._has("BinningHorizontal") else (1,)
+        )
+        self._exposure_name, self._exposure_scale_us = exposure_name, exposure_scale_us
+        self._gain_name, self._gain_scale = gain_name, gain_scale
+        self._formats = symbolics
+        self.limits = CameraLimits(
+            sensor_shape=(int(cam.HeightMax.Value), int(cam.WidthMax.Value)),
+            pixel_size_um=self.limits.pixel_size_um,
+            magnification=self.limits.magnification,
+            exposure_s=Range(exposure.Min * exposure_scale_us * 1e-6, exposure.Max * exposure_scale_us * 1e-6, "s"),
+            gain_db=Range(gain.Min * gain_scale, gain.Max * gain_scale, "dB"),
+            black_level_dn=Range(float(black.Min), float(black.Max), "DN"),
+            fps=Range(max(float(fps.Min), 1e-3), float(fps.Max), "Hz"),
+            bit_depths=depths or (8,),
+            binnings=binnings,
+        )
+        self._apply_transport()
+        cam.OffsetX.Value = 0
+        cam.OffsetY.Value = 0
+        cam.Width.Value = cam.WidthMax.Value
+        cam.Height.Value = cam.HeightMax.Value
+        self._roi = Roi(0, 0, *self.limits.sensor_shape)
+        bits = 12 if 12 in self.limits.bit_depths else max(self.limits.bit_depths)  # the seed's ADC depth
+        self._do_set_bit_depth(bits)
+        self._bit_depth = bits
+        self._exposure_s = float(exposure.Value) * exposure_scale_us * 1e-6
+        self._do_set_trigger(TriggerType.SOFTWARE, TriggerMode.ONCE, 0.0)
+
+    def _apply_transport(self) -> None:
+        for feature, value in (("GevSCPSPacketSize", self.packet_size), ("GevSCPD", self.inter_packet_delay)):
+            if value is None:
+                continue
+            if not self._has(feature):
+                raise ProtocolError(f"camera {self.name!r} has no {feature} (not a GigE camera?)")
+            node = self._node(feature)
+            if not node.Min <= value <= node.Max:
+                raise OutOfRangeError(f"camera {self.name!r}: {feature} {value} outside [{node.Min}, {node.Max}]")
+            node.Value = int(value)
 
     def _do_shutdown(self) -> None:
         if self._cam is not None:
             with contextlib.suppress(Exception):
                 self._cam.Close()
             self._cam = None
+
+    def _limits(self) -> dict[str, Any]:
+        extra: dict[str, Any] = {}
+        if self.packet_size is not None:
+            extra["packet_size"] = self.packet_size
+        if self.inter_packet_delay is not None:
+            extra["inter_packet_delay"] = self.inter_packet_delay
+        return {**super()._limits(), **extra}
 
     # settings --------------------------------------------------------------------------------------
     def _do_get_serial_number(self) -> str:
@@ -192,19 +317,24 @@ class BaslerCamera(Camera):
             self._apply_roi(self.roi, binning)
 
     def _do_set_bit_depth(self, bits: int) -> None:
+        choices = [f for f in PIXEL_FORMATS.get(bits, ()) if f in self._formats]
+        if not choices:
+            raise OutOfRangeError(f"camera {self.name!r} offers no {bits}-bit pixel format ({self._formats})")
         with pylon_errors(self.name):
-            self._cam.PixelFormat.Value = f"Mono{bits}"
+            self._cam.PixelFormat.Value = choices[0]
+        self._pixel_format = choices[0]
 
     def _do_set_exposure_s(self, exposure_s: float) -> float:
         with pylon_errors(self.name):
-            node = self._node("ExposureTime", "ExposureTimeAbs")
-            node.Value = exposure_s * 1e6
-            return float(node.Value) * 1e-6
+            node = self._node(self._exposure_name)
+            steps = exposure_s * 1e6 / self._exposure_scale_us
+            node.Value = int(round(steps)) if self._exposure_name == "ExposureTimeRaw" else steps
+            return float(node.Value) * self._exposure_scale_us * 1e-6
 
     def _do_set_gain_db(self, gain_db: float) -> None:
         with pylon_errors(self.name):
-            node = self._node("Gain", "GainRaw")
-            node.Value = gain_db if self._gain_scale == 1.0 else int(round(gain_db / self._gain_scale))
+            node = self._node(self._gain_name)
+            node.Value = gain_db if self._gain_name == "Gain" else int(round(gain_db / self._gain_scale))
 
     def _do_set_black_level_dn(self, black_level_dn: float) -> None:
         with pylon_errors(self.name):
@@ -247,6 +377,15 @@ class BaslerCamera(Camera):
             self._cam.WaitForFrameTriggerReady(int(self.timeout_s * 1000), pylon.TimeoutHandling_ThrowException)
             self._cam.ExecuteSoftwareTrigger()
 
+    def frame_from_result(self, result: Any) -> NDArray[np.float32]:
+        """The float32 frame of a grab result, unpacking ``Mono12Packed`` (any other format via ``Array``)."""
+        if self._pixel_format == "Mono12Packed":
+            if int(getattr(result, "PaddingX", 0)):
+                raise ProtocolError(f"camera {self.name!r}: Mono12Packed rows with padding are not supported")
+            frame = unpack_mono12packed(result.GetBuffer(), int(result.Width), int(result.Height))
+            return frame.astype(np.float32)
+        return np.asarray(result.Array, dtype=np.float32).copy()
+
     def _do_read_frame(self, timeout_s: float) -> NDArray[np.float32]:
         pylon, _ = _pylon()
         with pylon_errors(self.name):
@@ -256,6 +395,6 @@ class BaslerCamera(Camera):
             try:
                 if not result.GrabSucceeded():
                     raise ProtocolError(f"camera {self.name!r}: frame lost ({result.GetErrorDescription()})")
-                return np.asarray(result.Array, dtype=np.float32).copy()
+                return self.frame_from_result(result)
             finally:
                 result.Release()

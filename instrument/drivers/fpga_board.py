@@ -1,11 +1,11 @@
-"""Driver of the FPGA light/trigger board (seed §4.3.1) and its binary frames (Table 4.2).
+"""Driver of the FPGA light/trigger board (seed §4.3.1) and its binary packets (Table 4.2).
 
-Every frame is ``opcode, address, length, payload[length]`` with multi-byte
+Every packet is ``opcode, address, length, payload[length]`` with multi-byte
 fields big-endian. The seed documents the write of a light-source
 configuration (Table 4.2): opcode 0x01, the light's address, length 12, then
 current index (16 bit), use-duration flag (8 bit), duration (32 bit), listen to
 global trigger (8 bit), global trigger delay (32 bit). The rest of the map
-below follows the same frame layout; it is this project's assumption about the
+below follows the same packet layout; it is this project's assumption about the
 board (the seed shows only Table 4.2), and the emulator implements the same map:
 
 ========  ==========================  ===================================
@@ -25,7 +25,7 @@ same address (an empty payload for a write, the register for a read) or
 ``0xFF, address, 1, code`` for an error. Durations and delays count
 microseconds; the current index counts steps of ``current_step_ma``.
 
-:func:`decode_frame` and :func:`split_frames` raise only
+:func:`decode_packet` and :func:`split_packets` raise only
 :class:`~instrument.errors.ProtocolError`.
 """
 
@@ -54,28 +54,28 @@ BOARD_ERRORS = {1: "unknown opcode", 2: "unknown address", 3: "wrong length", 4:
 
 
 @dataclass(frozen=True)
-class Frame:
-    """One board frame: ``opcode, address, len(payload), payload``."""
+class Packet:
+    """One board packet: ``opcode, address, len(payload), payload``."""
 
     opcode: int
     address: int
     payload: bytes = b""
 
     def encode(self) -> bytes:
-        """The frame's bytes (Table 4.2 layout)."""
-        return encode_frame(self)
+        """The packet's bytes (Table 4.2 layout)."""
+        return encode_packet(self)
 
 
-def encode_frame(frame: Frame) -> bytes:
-    """Encode a frame; raise ``OutOfRangeError`` for fields that do not fit a byte."""
-    for what, value in (("opcode", frame.opcode), ("address", frame.address), ("length", len(frame.payload))):
+def encode_packet(packet: Packet) -> bytes:
+    """Encode a packet; raise ``OutOfRangeError`` for fields that do not fit a byte."""
+    for what, value in (("opcode", packet.opcode), ("address", packet.address), ("length", len(packet.payload))):
         if not 0 <= value <= 0xFF:
-            raise OutOfRangeError(f"FPGA frame {what} {value} does not fit one byte")
-    return bytes([frame.opcode, frame.address, len(frame.payload)]) + bytes(frame.payload)
+            raise OutOfRangeError(f"FPGA packet {what} {value} does not fit one byte")
+    return bytes([packet.opcode, packet.address, len(packet.payload)]) + bytes(packet.payload)
 
 
-def decode_frame(data: bytes) -> Frame:
-    """Decode exactly one complete frame.
+def decode_packet(data: bytes) -> Packet:
+    """Decode exactly one complete packet.
 
     Raises
     ------
@@ -83,34 +83,34 @@ def decode_frame(data: bytes) -> Frame:
         Unknown opcode, or a length byte that disagrees with the data.
     """
     if len(data) < 3:
-        raise ProtocolError(f"FPGA frame too short: {bytes(data[:16])!r}")
+        raise ProtocolError(f"FPGA packet too short: {bytes(data[:16])!r}")
     opcode, address, length = data[0], data[1], data[2]
     if opcode not in VALID_OPCODES:
-        raise ProtocolError(f"FPGA frame with unknown opcode 0x{opcode:02X}")
+        raise ProtocolError(f"FPGA packet with unknown opcode 0x{opcode:02X}")
     if len(data) != 3 + length:
-        raise ProtocolError(f"FPGA frame length byte {length} but {len(data) - 3} payload bytes")
-    return Frame(opcode, address, bytes(data[3:]))
+        raise ProtocolError(f"FPGA packet length byte {length} but {len(data) - 3} payload bytes")
+    return Packet(opcode, address, bytes(data[3:]))
 
 
-def split_frames(buffer: bytes) -> tuple[list[Frame], bytes]:
-    """Split a byte stream into complete frames and the incomplete rest.
+def split_packets(buffer: bytes) -> tuple[list[Packet], bytes]:
+    """Split a byte stream into complete packets and the incomplete rest.
 
     Raises
     ------
     ProtocolError
-        At the first byte that cannot start a frame.
+        At the first byte that cannot start a packet.
     """
-    frames: list[Frame] = []
+    packets: list[Packet] = []
     i = 0
     while len(buffer) - i >= 3:
         length = buffer[i + 2]
         if len(buffer) - i < 3 + length:
             break
-        frames.append(decode_frame(buffer[i : i + 3 + length]))
+        packets.append(decode_packet(buffer[i : i + 3 + length]))
         i += 3 + length
     if i < len(buffer) and buffer[i] not in VALID_OPCODES:
         raise ProtocolError(f"FPGA stream: unknown opcode 0x{buffer[i]:02X}")
-    return frames, bytes(buffer[i:])
+    return packets, bytes(buffer[i:])
 
 
 def seconds_to_us(seconds: float) -> int:
@@ -173,37 +173,37 @@ class FpgaBoard:
         self._users = 0
         self._lock = threading.Lock()
 
-    def _exchange(self, frame: Frame, expect: int) -> bytes:
+    def _exchange(self, packet: Packet, expect: int) -> bytes:
         with self.link.lock:
-            self.link.write(frame.encode())
+            self.link.write(packet.encode())
             deadline = time.monotonic() + self.link.timeout_s
             header = self.link.read_exact(3, deadline)
             opcode, address, length = header
             if opcode not in VALID_OPCODES:
                 raise ProtocolError(f"{self.name}: reply with unknown opcode 0x{opcode:02X}")
             payload = self.link.read_exact(length, deadline) if length else b""
-            reply = decode_frame(header + payload)
+            reply = decode_packet(header + payload)
         if reply.opcode == ERROR:
             code = reply.payload[0] if reply.payload else 0
             raise ControllerError(
-                f"{self.name}: register 0x{frame.address:02X}: board error {code} "
+                f"{self.name}: register 0x{packet.address:02X}: board error {code} "
                 f"({BOARD_ERRORS.get(code, 'unknown')})",
                 code,
             )
-        if reply.opcode != expect or reply.address != frame.address:
+        if reply.opcode != expect or reply.address != packet.address:
             raise ProtocolError(
-                f"{self.name}: expected reply 0x{expect:02X}/0x{frame.address:02X}, "
+                f"{self.name}: expected reply 0x{expect:02X}/0x{packet.address:02X}, "
                 f"got 0x{reply.opcode:02X}/0x{reply.address:02X}"
             )
         return reply.payload
 
     def write(self, address: int, payload: bytes) -> None:
         """Write a register and wait for the acknowledgement."""
-        self._exchange(Frame(WRITE, address, payload), ACK_WRITE)
+        self._exchange(Packet(WRITE, address, payload), ACK_WRITE)
 
     def read(self, address: int) -> bytes:
         """Read a register."""
-        return self._exchange(Frame(READ, address), ACK_READ)
+        return self._exchange(Packet(READ, address), ACK_READ)
 
     def identify(self) -> str:
         """The board's identification string."""

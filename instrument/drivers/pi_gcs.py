@@ -8,7 +8,10 @@ one and turns a non-zero code into an exception. ``#5`` (the single byte 0x05)
 returns the motion status as a hexadecimal bit mask of moving axes.
 
 Commands used: ``*IDN?``, ``SVO``, ``FRF``/``FRF?``, ``MOV``, ``MVR``, ``POS?``,
-``VEL``/``VEL?``, ``ONT?``, ``TMN?``/``TMX?``, ``HLT``, ``ERR?`` and ``#5``.
+``VEL``/``VEL?``, ``ONT?``, ``TMN?``/``TMX?``, ``SPA?`` (parameter 0xA, the maximum
+closed-loop velocity, read when the rig states no ``max_velocity_mm_s``), ``HLT``,
+``ERR?`` and ``#5``. Error codes are named from PI's published list
+(:mod:`instrument.drivers.gcs_errors`).
 
 The decoders (:func:`decode_lines`, :func:`parse_axis_values`,
 :func:`parse_error_code`, :func:`parse_motion_status`) raise only
@@ -21,22 +24,16 @@ import re
 import time
 from typing import Any
 
-from instrument.devices import Stage
+from instrument.devices import Range, Stage
+from instrument.drivers.gcs_errors import describe_error
 from instrument.errors import ControllerError, InstrumentTimeout, OutOfRangeError, ProtocolError, RigError
 from instrument.transport import Link
 
-#: GCS error codes the driver names (PI's documented numbers).
-GCS_ERRORS: dict[int, str] = {
-    1: "parameter syntax error",
-    2: "unknown command",
-    5: "move attempted on an unreferenced axis or with servo off",
-    7: "position out of limits",
-    8: "velocity out of limits",
-    10: "controller was stopped by command",
-    15: "invalid axis identifier",
-    17: "parameter out of range",
-}
+#: GCS errors that mean "a value beyond a limit": position, velocity, parameter out of range.
 RANGE_ERRORS = {7, 8, 17}
+#: Parameter id of the maximum closed-loop velocity (C-863 manual: the largest value ``VEL`` accepts).
+MAX_VELOCITY_PARAMETER = 0xA
+_SPA = re.compile(r"^\s*([A-Za-z0-9_]+)\s+(0[xX][0-9A-Fa-f]+|\d+)\s*=\s*(\S+)\s*$")
 MOTION_STATUS = b"\x05"
 _PAIR = re.compile(r"^\s*([A-Za-z0-9_]+)\s*=\s*(\S+)\s*$")
 
@@ -151,7 +148,7 @@ class PiGcsController:
             if check:
                 code = self.error_code()
                 if code:
-                    text = f"{self.name}: {command!r} failed with GCS error {code} ({GCS_ERRORS.get(code, 'error')})"
+                    text = f"{self.name}: {command!r} failed with GCS error {code} ({describe_error(code)})"
                     if code in RANGE_ERRORS:
                         raise OutOfRangeError(text)
                     raise ControllerError(text, code)
@@ -162,6 +159,23 @@ class PiGcsController:
         if axis not in values:
             raise ProtocolError(f"{self.name}: {query} {axis} answered no value for axis {axis}")
         return values[axis]
+
+    def parameter(self, axis: str, parameter: int) -> float:
+        """``SPA? axis 0xID``: a numeric parameter of ``axis`` from the controller's volatile memory.
+
+        Raises
+        ------
+        ProtocolError
+            If the answer is not ``axis 0xID=number`` (a controller error is read with ``ERR?``).
+        """
+        lines = self.query(f"SPA? {axis} 0x{parameter:X}")
+        m = _SPA.match(lines[0]) if len(lines) == 1 else None
+        if m is None or m.group(1) != axis or int(m.group(2), 0) != parameter:
+            raise ProtocolError(f"{self.name}: SPA? {axis} 0x{parameter:X} answered {lines[:2]!r}")
+        try:
+            return float(m.group(3))
+        except ValueError as exc:
+            raise ProtocolError(f"{self.name}: SPA? answered a non-number {m.group(3)!r}") from exc
 
     def motion_mask(self) -> int:
         """Bit mask of moving axes (``#5``)."""
@@ -188,8 +202,9 @@ class PiGcsStage(Stage):
         GCS axis identifier (``"1"`` on a C-863).
     travel_mm : tuple of float
         Allowed travel, checked before any command; must lie within the controller's ``TMN?``/``TMX?``.
-    max_velocity_mm_s : float
-        Velocity limit.
+    max_velocity_mm_s : float, optional
+        Velocity limit; ``None`` reads it from the controller at initialisation (parameter 0xA,
+        the maximum closed-loop velocity).
     velocity_mm_s : float, optional
         Velocity to set at initialisation.
     reference : bool
@@ -207,22 +222,27 @@ class PiGcsStage(Stage):
         *,
         axis: str = "1",
         travel_mm: tuple[float, float],
-        max_velocity_mm_s: float,
+        max_velocity_mm_s: float | None = None,
         velocity_mm_s: float | None = None,
         reference: bool = True,
         timeout_s: float = 1.0,
         settle_timeout_s: float = 2.0,
     ) -> None:
+        from_controller = max_velocity_mm_s is None
         super().__init__(
-            name, travel_mm=travel_mm, max_velocity_mm_s=max_velocity_mm_s, settle_timeout_s=settle_timeout_s
+            name,
+            travel_mm=travel_mm,
+            max_velocity_mm_s=1.0e9 if max_velocity_mm_s is None else max_velocity_mm_s,
+            settle_timeout_s=settle_timeout_s,
         )
         self.axis = str(axis)
         if not self.axis.isdigit():
             raise RigError(f"stage {name!r}: GCS axis must be a number, got {axis!r}")
         self.controller = PiGcsController(transport, timeout_s=timeout_s, name=f"stage {name!r} (PI GCS)")
-        self._velocity_setting = (
-            None if velocity_mm_s is None else self.velocity_range.check(velocity_mm_s, f"stage {name!r} velocity")
-        )
+        self.velocity_from_controller = from_controller
+        self._velocity_setting = velocity_mm_s
+        if not from_controller and velocity_mm_s is not None:
+            self.velocity_range.check(velocity_mm_s, f"stage {name!r} velocity")
         self.reference = bool(reference)
         self.identification = ""
 
@@ -231,6 +251,10 @@ class PiGcsStage(Stage):
         self.identification = " ".join(c.query("*IDN?"))
         c.error_code()  # clear a stale error
         c.command(f"SVO {self.axis} 1")
+        if self.velocity_from_controller:
+            self.velocity_range = Range(1e-6, self.read_max_velocity(), "mm/s")
+            if self._velocity_setting is not None:
+                self.velocity_range.check(self._velocity_setting, f"stage {self.name!r} velocity")
         low, high = c.axis_values("TMN?", self.axis), c.axis_values("TMX?", self.axis)
         if self.travel.low < low - 1e-9 or self.travel.high > high + 1e-9:
             raise OutOfRangeError(
@@ -246,6 +270,24 @@ class PiGcsStage(Stage):
                 time.sleep(0.005)
         if self._velocity_setting is not None:
             self._do_set_velocity(self._velocity_setting)
+
+    def read_max_velocity(self) -> float:
+        """The controller's velocity limit in mm/s: parameter 0xA (maximum closed-loop velocity).
+
+        A controller without ``SPA?`` for 0xA (GCS error 54, unknown parameter) is asked ``VEL?``,
+        whose current value is then the limit.
+        """
+        c = self.controller
+        try:
+            value = c.parameter(self.axis, MAX_VELOCITY_PARAMETER)
+        except InstrumentTimeout:
+            code = c.error_code()
+            if code == 0:
+                raise
+            value = c.axis_values("VEL?", self.axis)
+        if not value > 0 or value != value or value == float("inf"):
+            raise ProtocolError(f"stage {self.name!r}: controller reports a velocity limit of {value} mm/s")
+        return value
 
     def _do_safe_state(self) -> None:
         """Nothing to make safe: the stage stays where it is (no parking)."""

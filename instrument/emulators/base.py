@@ -10,7 +10,12 @@ test prove that nothing was sent when a limit check failed.
 
 Faults (:class:`Fault`) change how answers go out: ``SILENT`` stops answering,
 ``GARBAGE`` answers bytes that do not follow the protocol, ``DROP`` sends half a
-frame and hangs the line up.
+reply and hangs the line up.
+
+:meth:`PtyEmulator.state` describes the emulated device (for logs and for the
+simulated devices of the same rig); :attr:`PtyEmulator.on_request`, when set,
+is called after every request with ``(request, reply, state)`` — the hook behind
+``scopetwin emulate --log`` (:func:`instrument.emulators.serve.serve`).
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ import select
 import threading
 import time
 import tty
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -54,6 +61,7 @@ class PtyEmulator:
 
     protocol = "base"
     terminator = b"\n"
+    on_request: Callable[[bytes, bytes, dict[str, Any]], None] | None = None
 
     def __init__(self, *, seed: int = 0) -> None:
         self.port = ""
@@ -137,6 +145,11 @@ class PtyEmulator:
                     except Exception as exc:  # noqa: BLE001 - an emulator bug must not kill the line
                         self.errors.append(f"{request[:40]!r}: {exc!r}")
                         continue
+                    if self.on_request is not None:
+                        try:
+                            self.on_request(request, reply, self.state())
+                        except Exception as exc:  # noqa: BLE001 - a failing log must not kill the line
+                            self.errors.append(f"log: {exc!r}")
                     if reply:
                         self._send(reply)
                         if self._master < 0:
@@ -171,6 +184,10 @@ class PtyEmulator:
     def handle(self, request: bytes) -> bytes:
         """Answer one request (empty bytes: no answer)."""
         raise NotImplementedError
+
+    def state(self) -> dict[str, Any]:
+        """The emulated device's state as JSON-ready data (subclasses describe theirs)."""
+        return {}
 
     def garbage(self, n: int) -> bytes:
         """Bytes that break the protocol, ending with the terminator so a line reader sees a reply."""

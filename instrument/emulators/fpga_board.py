@@ -1,4 +1,4 @@
-"""Emulator of the FPGA light/trigger board (seed §4.3.1, Table 4.2 frames) on a pseudo-terminal.
+"""Emulator of the FPGA light/trigger board (seed §4.3.1, Table 4.2 packets) on a pseudo-terminal.
 
 Implements the register map of :mod:`instrument.drivers.fpga_board`. Lights
 switch on by their action register or by the global trigger (when listening,
@@ -6,24 +6,28 @@ after their delay), and off by the action register or when their duration
 ends (``use_duration``). Every switching and trigger pulse is recorded in
 :attr:`FpgaBoardEmulator.events` with its time, so tests can check that lights
 ended up off and that cameras and lights were triggered together.
+
+The emulator shares the register *addresses* with the driver but not its
+encoders: it reads the Table 4.2 payload byte by byte as the seed's table lays
+it out (:func:`read_light_config`), so a field swapped in the driver's struct
+cannot pass a round trip through the emulator.
 """
 
 from __future__ import annotations
 
 import time
+from typing import Any
 
 from instrument.drivers.fpga_board import (
     ACK_READ,
     ACK_WRITE,
     CAMERA_CONFIG,
     CAMERA_PULSE,
-    CAMERA_STRUCT,
     ERROR,
     GLOBAL_TRIGGER,
     IDENTIFICATION,
     LIGHT_ACTION,
     LIGHT_CONFIG,
-    LIGHT_STRUCT,
     N_CAMERA_LINES,
     N_LIGHTS,
     N_TTL,
@@ -32,6 +36,38 @@ from instrument.drivers.fpga_board import (
     WRITE,
 )
 from instrument.emulators.base import PtyEmulator
+
+#: Table 4.2, byte 2: "12 (number of following bytes)".
+LIGHT_CONFIG_LENGTH = 12
+#: Camera line configuration: listen (byte 3), delay in µs (bytes 4-7, MSB first).
+CAMERA_CONFIG_LENGTH = 5
+
+
+def read_light_config(payload: bytes) -> tuple[int, int, int, int, int]:
+    """The fields of a light configuration, read by the byte numbers of seed Table 4.2.
+
+    Parameters
+    ----------
+    payload : bytes
+        Bytes 3-14 of the packet (the 12 bytes after the length byte).
+
+    Returns
+    -------
+    tuple of int
+        ``(current_index, use_duration, duration_us, listen_global_trigger, global_trigger_delay_us)``.
+    """
+    b = payload
+    current_index = (b[0] << 8) | b[1]  # bytes 3 (MSB), 4 (LSB)
+    use_duration = b[2]  # byte 5
+    duration_us = (b[3] << 24) | (b[4] << 16) | (b[5] << 8) | b[6]  # bytes 6 (MSB) .. 9 (LSB)
+    listen = b[7]  # byte 10
+    delay_us = (b[8] << 24) | (b[9] << 16) | (b[10] << 8) | b[11]  # bytes 11 (MSB) .. 14 (LSB)
+    return current_index, use_duration, duration_us, listen, delay_us
+
+
+def read_camera_config(payload: bytes) -> tuple[int, int]:
+    """``(listen, delay_us)`` of a camera line configuration (1 byte flag, 32-bit delay, MSB first)."""
+    return payload[0], int.from_bytes(payload[1:5], "big")
 
 
 class FpgaBoardEmulator(PtyEmulator):
@@ -49,8 +85,8 @@ class FpgaBoardEmulator(PtyEmulator):
     def __init__(self, *, max_current_index: int = 0xFFFF, seed: int = 0) -> None:
         super().__init__(seed=seed)
         self.max_current_index = int(max_current_index)
-        self.light_config = {i: bytes(LIGHT_STRUCT.size) for i in range(N_LIGHTS)}
-        self.camera_config = {i: bytes(CAMERA_STRUCT.size) for i in range(N_CAMERA_LINES)}
+        self.light_config = {i: bytes(LIGHT_CONFIG_LENGTH) for i in range(N_LIGHTS)}
+        self.camera_config = {i: bytes(CAMERA_CONFIG_LENGTH) for i in range(N_CAMERA_LINES)}
         self.ttl = dict.fromkeys(range(N_TTL), 0)
         self._on_from = dict.fromkeys(range(N_LIGHTS), float("inf"))
         self._on_until = dict.fromkeys(range(N_LIGHTS), float("-inf"))
@@ -66,8 +102,42 @@ class FpgaBoardEmulator(PtyEmulator):
         """Whether any light output is on now."""
         return any(self.light_on(i) for i in range(N_LIGHTS))
 
+    def lights_on(self) -> list[int]:
+        """The channels that emit now."""
+        return [i for i in range(N_LIGHTS) if self.light_on(i)]
+
+    def light_level(self, channel: int, current_step_ma: float, max_current_ma: float) -> float:
+        """Relative output of light ``channel`` now: its current over ``max_current_ma``, 0 when off.
+
+        This is what a simulated camera of the same rig sees (the world's light probe).
+        """
+        with self._lock:
+            if not self.light_on(channel):
+                return 0.0
+            index = read_light_config(self.light_config[channel])[0]
+        return index * float(current_step_ma) / float(max_current_ma)
+
+    def state(self) -> dict[str, Any]:
+        """``lights_on`` (channels that emit now), the TTL outputs and each light's configuration."""
+        with self._lock:
+            configs = {ch: read_light_config(raw) for ch, raw in self.light_config.items()}
+            return {
+                "lights_on": self.lights_on(),
+                "ttl": [self.ttl[k] for k in range(N_TTL)],
+                "lights": {
+                    str(ch): {
+                        "current_index": c[0],
+                        "use_duration": bool(c[1]),
+                        "duration_us": c[2],
+                        "listen_global_trigger": bool(c[3]),
+                        "global_trigger_delay_us": c[4],
+                    }
+                    for ch, c in configs.items()
+                },
+            }
+
     def _switch_on(self, channel: int, start: float) -> None:
-        _, use, duration_us, _, _ = LIGHT_STRUCT.unpack(self.light_config[channel])
+        _, use, duration_us, _, _ = read_light_config(self.light_config[channel])
         self._on_from[channel] = start
         self._on_until[channel] = start + duration_us * 1e-6 if use else float("inf")
         self.events.append((start, "light-on", channel))
@@ -114,9 +184,9 @@ class FpgaBoardEmulator(PtyEmulator):
 
     def _write_register(self, address: int, payload: bytes, now: float) -> int:
         if LIGHT_CONFIG <= address < LIGHT_CONFIG + N_LIGHTS:
-            if len(payload) != LIGHT_STRUCT.size:
+            if len(payload) != LIGHT_CONFIG_LENGTH:
                 return 3
-            index, use, _, listen, _ = LIGHT_STRUCT.unpack(payload)
+            index, use, _, listen, _ = read_light_config(payload)
             if index > self.max_current_index or use > 1 or listen > 1:
                 return 4
             self.light_config[address - LIGHT_CONFIG] = payload
@@ -132,7 +202,7 @@ class FpgaBoardEmulator(PtyEmulator):
                 self.events.append((now, "light-off", channel))
             return 0
         if CAMERA_CONFIG <= address < CAMERA_CONFIG + N_CAMERA_LINES:
-            if len(payload) != CAMERA_STRUCT.size:
+            if len(payload) != CAMERA_CONFIG_LENGTH:
                 return 3
             if payload[0] > 1:
                 return 4
@@ -153,17 +223,17 @@ class FpgaBoardEmulator(PtyEmulator):
                 return 3 if len(payload) != 1 else 4
             self.events.append((now, "global-trigger", 0))
             for ch in range(N_LIGHTS):
-                _, _, _, listen, delay_us = LIGHT_STRUCT.unpack(self.light_config[ch])
+                _, _, _, listen, delay_us = read_light_config(self.light_config[ch])
                 if listen:
                     self._switch_on(ch, now + delay_us * 1e-6)
             for line in range(N_CAMERA_LINES):
-                listen, delay_us = CAMERA_STRUCT.unpack(self.camera_config[line])
+                listen, delay_us = read_camera_config(self.camera_config[line])
                 if listen:
                     self.events.append((now + delay_us * 1e-6, "camera-pulse", line))
             return 0
         return 2
 
     def garbage(self, n: int) -> bytes:
-        """A reply whose opcode byte no frame may start with."""
+        """A reply whose opcode byte no packet may start with."""
         body = self._rng.integers(0, 0x100, size=max(n - 1, 2), dtype="uint8").tobytes()
         return bytes([0xA5]) + body

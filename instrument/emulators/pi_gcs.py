@@ -1,20 +1,89 @@
-"""Emulator of a PI GCS stage controller (C-863 class) on a pseudo-terminal.
+"""Emulator of a PI GCS 2.0 stage controller (C-863 Mercury class) on a pseudo-terminal.
 
-Speaks the subset of GCS the driver uses (see :mod:`instrument.drivers.pi_gcs`):
-LF-terminated commands, silent set commands with an error code kept for
-``ERR?``, multi-line answers for multi-axis queries (every line but the last
-ends with a space), and the single-byte ``#5`` motion status. Axes move at their
-velocity in real time, so ``#5`` and ``ONT?`` change while a move runs.
+Speaks what the project's driver (:mod:`instrument.drivers.pi_gcs`) and PI's own
+Python client (pipython's ``GCSDevice`` and ``pitools``) send: LF-terminated
+commands; set commands are silent and keep an error code for ``ERR?``; queries
+answer one line per item, every line but the last ending in a space before the
+LF; the single bytes ``#5`` (motion mask), ``#7`` (controller ready) and ``#24``
+(stop all) are answered or obeyed at once. Axes move at their velocity in real
+time, so ``#5`` and ``ONT?`` change while a move runs.
+
+Like a controller, the emulator is silent where a controller is: after a set
+command, after an unknown command (error 2, also for an unknown query) and
+after a query on an unknown axis (error 15). Commands understood (GCS 2.0, as
+listed by the C-863's ``HLP?``):
+
+``*IDN?``, ``CSV?``, ``VER?``, ``HLP?``, ``HPA?``, ``ERR?``, ``SAI?`` (``SAI? ALL``),
+``CST``/``CST?``, ``TRS?``, ``LIM?``, ``RON``/``RON?``, ``SVO``/``SVO?``, ``FRF``/``FRF?``,
+``FNL``, ``FPL``, ``POS``/``POS?``, ``MOV``/``MOV?``, ``MVR``, ``ONT?``, ``VEL``/``VEL?``,
+``TMN?``, ``TMX?``, ``SPA``/``SPA?``, ``HLT``, ``STP``, ``#5``, ``#7``, ``#24``.
+
+Parameters (``SPA?``/``SPA``, ids of the C-863 manual): 0xA maximum closed-loop
+velocity (the largest value ``VEL`` accepts), 0x49 closed-loop velocity (what
+``VEL`` sets), 0x3C stage name (what ``CST`` sets).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 from instrument.emulators.base import PtyEmulator
 
 CONTROL_BYTES = {0x05: "#5", 0x07: "#7", 0x18: "#24"}
+
+#: GCS error codes the emulator sets (PI's numbers).
+E_PARAM_SYNTAX, E_UNKNOWN_COMMAND, E_MOVE_WITHOUT_REF_OR_NO_SERVO, E_POS_OUT_OF_LIMITS = 1, 2, 5, 7
+E_STOP, E_INVALID_AXIS, E_PARAM_OUT_OF_RANGE, E_UNKNOWN_PARAMETER = 10, 15, 17, 54
+E_REF_WITH_REF_DISABLED = 50
+
+#: Commands listed by ``HLP?`` (and so reported as supported to pipython), with a description.
+COMMANDS: dict[str, str] = {
+    "#5": "Request Motion Status",
+    "#7": "Request Controller Ready Status",
+    "#24": "Stop All Axes",
+    "*IDN?": "Get Device Identification",
+    "CST": "Set Assignment Of Stages To Axes",
+    "CST?": "Get Assignment Of Stages To Axes",
+    "CSV?": "Get Current Syntax Version",
+    "ERR?": "Get Error Number",
+    "FNL": "Fast Reference Move To Negative Limit",
+    "FPL": "Fast Reference Move To Positive Limit",
+    "FRF": "Fast Reference Move To Reference Switch",
+    "FRF?": "Get Referencing Result",
+    "HLP?": "Get List Of Available Commands",
+    "HLT": "Halt Motion Smoothly",
+    "HPA?": "Get List Of Available Parameters",
+    "LIM?": "Indicate Limit Switches",
+    "MOV": "Set Target Position",
+    "MOV?": "Get Target Position",
+    "MVR": "Set Target Relative To Current Position",
+    "ONT?": "Get On Target State",
+    "POS": "Set Real Position",
+    "POS?": "Get Real Position",
+    "RON": "Set Reference Mode",
+    "RON?": "Get Reference Mode",
+    "SAI?": "Get List Of Current Axis Identifiers",
+    "SPA": "Set Volatile Memory Parameters",
+    "SPA?": "Get Volatile Memory Parameters",
+    "STP": "Stop All Axes",
+    "SVO": "Set Servo Mode",
+    "SVO?": "Get Servo Mode",
+    "TMN?": "Get Minimum Commandable Position",
+    "TMX?": "Get Maximum Commandable Position",
+    "TRS?": "Indicate Reference Switch",
+    "VEL": "Set Closed-Loop Velocity",
+    "VEL?": "Get Closed-Loop Velocity",
+    "VER?": "Get Versions Of Firmware And Drivers",
+}
+
+#: Parameters listed by ``HPA?``: id -> (data type, description); all per axis.
+PARAMETERS: dict[int, tuple[str, str]] = {
+    0x0A: ("FLOAT", "Maximum closed-loop velocity (phys. unit/s)"),
+    0x3C: ("CHAR", "Stage name"),
+    0x49: ("FLOAT", "Closed-loop velocity (phys. unit/s)"),
+}
 
 
 @dataclass
@@ -23,11 +92,14 @@ class _Axis:
     high: float
     max_velocity: float
     velocity: float
+    stage: str = "M-404.6PD"
     start: float = 0.0
     target: float = 0.0
     t0: float = 0.0
     servo: bool = False
     referenced: bool = False
+    reference_mode: bool = True
+    extra: dict[int, str] = field(default_factory=dict)
 
     def position(self, now: float) -> float:
         travelled = self.velocity * max(0.0, now - self.t0)
@@ -46,7 +118,7 @@ class _Axis:
 
 
 class PiGcsEmulator(PtyEmulator):
-    """A GCS controller with one or more linear axes.
+    """A GCS 2.0 controller with one or more linear axes.
 
     Parameters
     ----------
@@ -55,11 +127,13 @@ class PiGcsEmulator(PtyEmulator):
     travel_mm : tuple of float
         Hardware travel limits (``TMN?``/``TMX?``), e.g. (0, 150) for an M-404.6PD.
     max_velocity_mm_s : float
-        Largest velocity ``VEL`` accepts.
+        Largest velocity ``VEL`` accepts (parameter 0xA).
     reference_mm : float
-        Position after a reference move.
+        Position after a reference move to the reference switch (``FRF``).
     model : str
         Controller model in the ``*IDN?`` answer.
+    stage : str
+        Stage name reported by ``CST?``.
     """
 
     protocol = "pi-gcs"
@@ -73,15 +147,45 @@ class PiGcsEmulator(PtyEmulator):
         max_velocity_mm_s: float = 50.0,
         reference_mm: float = 0.0,
         model: str = "C-863.11",
+        stage: str = "M-404.6PD",
         seed: int = 0,
     ) -> None:
         super().__init__(seed=seed)
-        self.axes = {a: _Axis(travel_mm[0], travel_mm[1], max_velocity_mm_s, max_velocity_mm_s) for a in axes}
+        self.axes = {
+            a: _Axis(travel_mm[0], travel_mm[1], max_velocity_mm_s, max_velocity_mm_s, stage=stage) for a in axes
+        }
         self.reference_mm = float(reference_mm)
         self.model = model
         self.error = 0
         self.commands: list[str] = []
 
+    def position_mm(self, axis: str = "1") -> float:
+        """Where ``axis`` is now (mm), mid-move included."""
+        return self.axes[axis].position(time.monotonic())
+
+    # state for logs ----------------------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        """Position (mm), servo and referenced of the first axis, and the same per axis (plus target, moving)."""
+        now = time.monotonic()
+        first = next(iter(self.axes.values()))
+        return {
+            "position_mm": first.position(now),
+            "servo": first.servo,
+            "referenced": first.referenced,
+            "axes": {
+                name: {
+                    "position_mm": ax.position(now),
+                    "target_mm": ax.target,
+                    "servo": ax.servo,
+                    "referenced": ax.referenced,
+                    "moving": ax.moving(now),
+                }
+                for name, ax in self.axes.items()
+            },
+            "error": self.error,
+        }
+
+    # framing -----------------------------------------------------------------------------------
     def split(self, buffer: bytes) -> tuple[list[bytes], bytes]:
         requests: list[bytes] = []
         line = bytearray()
@@ -112,15 +216,13 @@ class PiGcsEmulator(PtyEmulator):
                 mask = sum(1 << i for i, ax in enumerate(self.axes.values()) if ax.moving(now))
                 return f"{mask:X}\n".encode()
             if name == "#7":
-                return b"\xb1\n"
-            for ax in self.axes.values():  # #24: stop all
-                ax.go(ax.position(now), now)
-            self._set_error(10)
+                return b"\xb1\n"  # 0xB1: controller ready
+            self._stop_all(now)
             return b""
         try:
             text = request.decode("ascii").strip()
         except UnicodeDecodeError:
-            self._set_error(1)
+            self._set_error(E_PARAM_SYNTAX)
             return b""
         if not text:
             return b""
@@ -130,38 +232,79 @@ class PiGcsEmulator(PtyEmulator):
         try:
             return self._dispatch(cmd, args, now)
         except (ValueError, IndexError):
-            self._set_error(1)
+            self._set_error(E_PARAM_SYNTAX)
             return b""
 
-    def _targets(self, args: list[str]) -> list[tuple[str, float]] | None:
+    def _stop_all(self, now: float) -> None:
+        for ax in self.axes.values():
+            ax.go(ax.position(now), now)
+        self._set_error(E_STOP)
+
+    # argument helpers --------------------------------------------------------------------------------
+    def _pairs(self, args: list[str]) -> list[tuple[str, str]] | None:
         if not args or len(args) % 2:
-            self._set_error(1)
+            self._set_error(E_PARAM_SYNTAX)
             return None
-        pairs = [(args[i], float(args[i + 1])) for i in range(0, len(args), 2)]
+        pairs = [(args[i], args[i + 1]) for i in range(0, len(args), 2)]
         if any(a not in self.axes for a, _ in pairs):
-            self._set_error(15)
+            self._set_error(E_INVALID_AXIS)
             return None
         return pairs
+
+    def _targets(self, args: list[str]) -> list[tuple[str, float]] | None:
+        pairs = self._pairs(args)
+        return None if pairs is None else [(a, float(v)) for a, v in pairs]
 
     def _axes_of(self, args: list[str]) -> list[str] | None:
         names = args or list(self.axes)
         if any(a not in self.axes for a in names):
-            self._set_error(15)
+            self._set_error(E_INVALID_AXIS)
             return None
         return names
 
+    def _param(self, ax: _Axis, pid: int) -> str:
+        values: dict[int, object] = {0x0A: ax.max_velocity, 0x3C: ax.stage, 0x49: ax.velocity}
+        return _fmt(values[pid])
+
+    # commands ------------------------------------------------------------------------------------
     def _dispatch(self, cmd: str, args: list[str], now: float) -> bytes:
         if cmd == "*IDN?":
             return f"(c)2024 Physik Instrumente (PI) GmbH & Co. KG, {self.model}, 0000000001, 1.0.0-emu\n".encode()
         if cmd == "ERR?":
             code, self.error = self.error, 0
             return f"{code}\n".encode()
+        if cmd == "CSV?":
+            return b"2.0\n"
+        if cmd == "VER?":
+            return self._lines([f"FW_ARM: V1.0.0 scopetwin emulator of the {self.model}"])
+        if cmd == "HLP?":
+            return self._lines(
+                ["The following commands are valid:"]
+                + [f"{name} {text}" for name, text in COMMANDS.items()]
+                + ["end of help"]
+            )
+        if cmd == "HPA?":
+            lines = ["The following parameters are valid:"]
+            lines += [
+                f"0x{pid:X}=\t0\t{len(self.axes)}\t{kind}\tmotion\t{text}" for pid, (kind, text) in PARAMETERS.items()
+            ]
+            return self._lines([*lines, "end of help"])
+        if cmd == "SAI?":
+            if args and [a.upper() for a in args] != ["ALL"]:
+                self._set_error(E_PARAM_SYNTAX)
+                return b""
+            return self._lines(list(self.axes))
         queries = {
             "POS?": lambda ax: ax.position(now),
+            "MOV?": lambda ax: ax.target,
             "VEL?": lambda ax: ax.velocity,
             "ONT?": lambda ax: int(not ax.moving(now)),
             "SVO?": lambda ax: int(ax.servo),
             "FRF?": lambda ax: int(ax.referenced),
+            "RON?": lambda ax: int(ax.reference_mode),
+            "TRS?": lambda ax: 1,  # the M-404 / M-414 stages have a reference switch
+            "LIM?": lambda ax: 1,  # ... and limit switches
+            "CST?": lambda ax: ax.stage,
             "TMN?": lambda ax: ax.low,
             "TMX?": lambda ax: ax.high,
         }
@@ -170,43 +313,45 @@ class PiGcsEmulator(PtyEmulator):
             if names is None:
                 return b""
             return self._lines([f"{a}={_fmt(queries[cmd](self.axes[a]))}" for a in names])
+        if cmd == "SPA?":
+            return self._spa_query(args)
+        if cmd == "SPA":
+            self._spa_set(args)
+            return b""
+        if cmd == "CST":
+            for a, stage_name in self._pairs(args) or []:
+                self.axes[a].stage = stage_name
+            return b""
         if cmd == "SVO":
-            pairs = self._targets(args)
-            for a, v in pairs or []:
+            for a, v in self._targets(args) or []:
                 self.axes[a].servo = bool(int(v))
             return b""
-        if cmd == "FRF":
-            names = self._axes_of(args)
-            for a in names or []:
+        if cmd == "RON":
+            for a, v in self._targets(args) or []:
+                self.axes[a].reference_mode = bool(int(v))
+            return b""
+        if cmd in ("FRF", "FNL", "FPL"):
+            self._reference(cmd, args)
+            return b""
+        if cmd == "POS":
+            pairs = self._targets(args)
+            for a, v in pairs or []:
                 ax = self.axes[a]
-                if not ax.servo:
-                    self._set_error(5)
-                    continue
-                ax.start = ax.target = self.reference_mm
+                if ax.reference_mode:  # POS is only allowed with reference mode off
+                    self._set_error(E_PARAM_OUT_OF_RANGE)
+                    return b""
+                ax.start = ax.target = v
+                ax.t0 = now
                 ax.referenced = True
             return b""
         if cmd in ("MOV", "MVR"):
-            pairs = self._targets(args)
-            if pairs is None:
-                return b""
-            for a, v in pairs:
-                ax = self.axes[a]
-                if not (ax.servo and ax.referenced):
-                    self._set_error(5)
-                    return b""
-                target = v if cmd == "MOV" else ax.target + v
-                if not ax.low <= target <= ax.high:
-                    self._set_error(7)
-                    return b""
-            for a, v in pairs:
-                ax = self.axes[a]
-                ax.go(v if cmd == "MOV" else ax.target + v, now)
+            self._move(cmd, args, now)
             return b""
         if cmd == "VEL":
             pairs = self._targets(args)
             for a, v in pairs or []:
                 if not 0 < v <= self.axes[a].max_velocity:
-                    self._set_error(17)
+                    self._set_error(E_PARAM_OUT_OF_RANGE)
                     return b""
             for a, v in pairs or []:
                 ax = self.axes[a]
@@ -214,15 +359,94 @@ class PiGcsEmulator(PtyEmulator):
                 ax.velocity = v
             return b""
         if cmd == "HLT":
-            names = self._axes_of(args)
-            for a in names or []:
+            for a in self._axes_of(args) or []:
                 ax = self.axes[a]
                 ax.go(ax.position(now), now)
-            self._set_error(10)
+            self._set_error(E_STOP)
             return b""
-        self._set_error(2)
+        if cmd == "STP":
+            self._stop_all(now)
+            return b""
+        self._set_error(E_UNKNOWN_COMMAND)
         return b""
 
+    def _reference(self, cmd: str, args: list[str]) -> None:
+        names = self._axes_of(args)
+        for a in names or []:
+            ax = self.axes[a]
+            if not ax.servo:
+                self._set_error(E_MOVE_WITHOUT_REF_OR_NO_SERVO)
+                continue
+            if not ax.reference_mode:
+                self._set_error(E_REF_WITH_REF_DISABLED)
+                continue
+            position = {"FRF": self.reference_mm, "FNL": ax.low, "FPL": ax.high}[cmd]
+            ax.start = ax.target = position
+            ax.referenced = True
 
-def _fmt(value: float) -> str:
+    def _move(self, cmd: str, args: list[str], now: float) -> None:
+        pairs = self._targets(args)
+        if pairs is None:
+            return
+        for a, v in pairs:
+            ax = self.axes[a]
+            if not (ax.servo and (ax.referenced or not ax.reference_mode)):
+                self._set_error(E_MOVE_WITHOUT_REF_OR_NO_SERVO)
+                return
+            target = v if cmd == "MOV" else ax.target + v
+            if not ax.low <= target <= ax.high:
+                self._set_error(E_POS_OUT_OF_LIMITS)
+                return
+        for a, v in pairs:
+            ax = self.axes[a]
+            ax.go(v if cmd == "MOV" else ax.target + v, now)
+
+    def _spa_items(self, args: list[str]) -> list[tuple[str, int]] | None:
+        if len(args) % 2:
+            self._set_error(E_PARAM_SYNTAX)
+            return None
+        items = [(args[i], int(args[i + 1], 0)) for i in range(0, len(args), 2)]
+        if not items:
+            items = [(a, pid) for a in self.axes for pid in PARAMETERS]
+        if any(a not in self.axes for a, _ in items):
+            self._set_error(E_INVALID_AXIS)
+            return None
+        if any(pid not in PARAMETERS for _, pid in items):
+            self._set_error(E_UNKNOWN_PARAMETER)
+            return None
+        return items
+
+    def _spa_query(self, args: list[str]) -> bytes:
+        items = self._spa_items(args)
+        if items is None:
+            return b""
+        return self._lines([f"{a} 0x{pid:X}={self._param(self.axes[a], pid)}" for a, pid in items])
+
+    def _spa_set(self, args: list[str]) -> None:
+        if not args or len(args) % 3:
+            self._set_error(E_PARAM_SYNTAX)
+            return
+        for i in range(0, len(args), 3):
+            a, pid, value = args[i], int(args[i + 1], 0), args[i + 2]
+            if a not in self.axes:
+                self._set_error(E_INVALID_AXIS)
+                return
+            if pid not in PARAMETERS:
+                self._set_error(E_UNKNOWN_PARAMETER)
+                return
+            ax = self.axes[a]
+            if pid == 0x3C:
+                ax.stage = value
+                continue
+            number = float(value)
+            if pid == 0x0A:
+                ax.max_velocity = number
+            elif pid == 0x49:
+                if not 0 < number <= ax.max_velocity:
+                    self._set_error(E_PARAM_OUT_OF_RANGE)
+                    return
+                ax.velocity = number
+
+
+def _fmt(value: object) -> str:
     return f"{value:.6f}" if isinstance(value, float) else str(value)

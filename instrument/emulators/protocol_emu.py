@@ -16,13 +16,15 @@ from typing import Any
 
 from serial.serialposix import Serial as PosixSerial
 
+from instrument.emulators.base import PtyEmulator
 from instrument.errors import RigError
 
 
-def _value(key: str, text: str) -> Any:
+def option_value(key: str, text: str) -> Any:
+    """An emulator option from text: ``axes`` a name list, ``model``/``stage`` text, else numbers."""
     if key == "axes":
         return tuple(t for t in text.split(",") if t)
-    if key == "model":
+    if key in ("model", "stage"):
         return text
     try:
         numbers = [float(t) for t in text.split(",")]
@@ -39,14 +41,15 @@ def parse_url(url: str) -> tuple[str, dict[str, Any]]:
     if parts.scheme.lower() != "emu":
         raise RigError(f"not an emu:// URL: {url!r}")
     name = (parts.netloc + parts.path).strip("/")
-    options = {k: _value(k, v) for k, v in urllib.parse.parse_qsl(parts.query, keep_blank_values=False)}
+    options = {k: option_value(k, v) for k, v in urllib.parse.parse_qsl(parts.query, keep_blank_values=False)}
     return name, options
 
 
 class Serial(PosixSerial):
     """A pyserial port whose other end is an in-process emulator."""
 
-    emulator = None
+    emulator: PtyEmulator | None = None
+    portstr: str
 
     def open(self) -> None:
         """Start the emulator named by the URL and open its pseudo-terminal."""
@@ -57,14 +60,15 @@ class Serial(PosixSerial):
         if name not in EMULATORS:
             raise RigError(f"emu:// names an unknown emulator {name!r}; known: {sorted(EMULATORS)}")
         try:
-            self.emulator = EMULATORS[name](**options)
+            emulator = EMULATORS[name](**options)
         except TypeError as exc:
             raise RigError(f"emu://{name}: bad option ({exc})") from exc
-        self.port = self.emulator.start()
+        self.emulator = emulator
+        self.port = emulator.start()
         try:
             super().open()
         except Exception:
-            self.emulator.stop()
+            emulator.stop()
             raise
         self._port = self.portstr = url
 

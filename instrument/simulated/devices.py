@@ -2,7 +2,7 @@
 
 Stages and the focus drive move instantly; lights, shutters and triggers change
 the world; the camera renders the world's state through a renderer and the
-EMVA 1288 sensor model (:class:`scenes.sensor.EmvaSensor`): exposure scales
+EMVA 1288 sensor model (:class:`scenes.emva1288.EmvaSensor`): exposure scales
 signal and shot noise, the full well and the ADC saturate (12 bit by default),
 gain (dB) scales the system gain, and hardware-triggered exposures happen when
 the world's global trigger fires on the camera's line.
@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from instrument.devices import (
-    Camera,
+    CameraDevice,
     CameraLimits,
     FocusDrive,
     LightConfig,
@@ -37,7 +37,7 @@ from instrument.devices import (
 )
 from instrument.errors import DisconnectedError, InstrumentTimeout, OutOfRangeError
 from instrument.simulated.world import Renderer, SimLightState, VirtualWorld, WorldState
-from scenes.sensor import EmvaSensor
+from scenes.emva1288 import EmvaSensor
 
 FAULTS = ("timeout", "disconnect", "drop")
 
@@ -235,7 +235,7 @@ def bin_image(image: NDArray[np.float32], binning: int) -> NDArray[np.float32]:
     return view.sum(axis=(1, 3), dtype=np.float64).astype(np.float32)
 
 
-class SimCamera(SimDevice, Camera):
+class SimCamera(SimDevice, CameraDevice):
     """A camera that renders the virtual world and applies the EMVA 1288 model.
 
     Parameters
@@ -246,8 +246,9 @@ class SimCamera(SimDevice, Camera):
         The shared world.
     renderer : callable
         ``WorldState -> irradiance`` (float32, ``sensor_shape``, radiance units).
-    sensor : EmvaSensor
-        Sensor physics at 0 dB gain and 12 bit (its ``bit_depth`` is the ADC's).
+    emva : EmvaSensor
+        EMVA 1288 sensor physics (:mod:`scenes.emva1288`) at 0 dB gain and 12 bit (its ``bit_depth`` is
+        the ADC's); the rig file's ``sensor`` table holds its fields.
     photons_per_unit_s : float
         Photons per pixel and second at irradiance 1.
     limits : CameraLimits
@@ -266,7 +267,7 @@ class SimCamera(SimDevice, Camera):
         world: VirtualWorld,
         *,
         renderer: Renderer,
-        sensor: EmvaSensor | None = None,
+        emva: EmvaSensor | None = None,
         photons_per_unit_s: float = 1.0e6,
         limits: CameraLimits | None = None,
         trigger_line: int = 0,
@@ -275,16 +276,16 @@ class SimCamera(SimDevice, Camera):
         timeout_s: float = 1.0,
         **_: Any,
     ) -> None:
-        Camera.__init__(self, name, limits=limits, timeout_s=timeout_s)
+        CameraDevice.__init__(self, name, limits=limits, timeout_s=timeout_s)
         self._sim_init(world, timeout_s)
         self.renderer = renderer
-        self.sensor = sensor or EmvaSensor()
+        self.emva = emva or EmvaSensor()
         self.photons_per_unit_s = float(photons_per_unit_s)
         self.trigger_line = int(trigger_line)
         self._rng = np.random.default_rng(seed)
         self._serial = serial_number
         self._frames: collections.deque[NDArray[np.float32]] = collections.deque()
-        self._black_level_dn = self.sensor.black_level_dn
+        self._black_level_dn = self.emva.black_level_dn
         self.frames_rendered = 0
 
     # settings hooks: the world is instantaneous, the base class keeps the values
@@ -337,9 +338,9 @@ class SimCamera(SimDevice, Camera):
         self._io("software-trigger")
         self._expose(self.world.static_levels())
 
-    def effective_sensor(self) -> EmvaSensor:
-        """The sensor model at the current gain, black level and bit depth."""
-        base = self.sensor
+    def effective_emva(self) -> EmvaSensor:
+        """The EMVA 1288 model at the current gain, black level and bit depth."""
+        base = self.emva
         scale = 10 ** (self.gain_db / 20.0) * 2.0 ** (self.bit_depth - base.bit_depth)
         return dataclasses.replace(
             base, gain_dn_per_e=base.gain_dn_per_e * scale, bit_depth=self.bit_depth, black_level_dn=self.black_level_dn
@@ -362,7 +363,7 @@ class SimCamera(SimDevice, Camera):
         if self._fault == "drop":
             self._fault_after -= 1
         irradiance = self.render_irradiance(levels)
-        frame = self.effective_sensor().capture(irradiance, self.photons_per_unit_s, self.exposure_s, self._rng)
+        frame = self.effective_emva().capture(irradiance, self.photons_per_unit_s, self.exposure_s, self._rng)
         self.frames_rendered += 1
         self._frames.append(frame)
 

@@ -203,9 +203,10 @@ def make_renderer(spec: dict[str, Any], *, camera: str) -> Any:
         if kind == "widefield":
             from scenes.mitsuba.widefield import BentSubstrate, WidefieldOptics
 
-            substrate = BentSubstrate(
-                **{k: (tuple(v) if isinstance(v, list) else v) for k, v in options.pop("substrate", {}).items()}
-            )
+            substrate_opts: dict[str, Any] = {
+                k: (tuple(v) if isinstance(v, list) else v) for k, v in options.pop("substrate", {}).items()
+            }
+            substrate = BentSubstrate(**substrate_opts)
             optics_opts = options.pop("optics", {})
             if "pixels" in optics_opts:
                 optics_opts["pixels"] = tuple(optics_opts["pixels"])

@@ -6,13 +6,19 @@ shutters, camera trigger lines, and the global trigger. A simulated camera
 asks the world for a :class:`WorldState` snapshot (what its exposure sees)
 and passes it to a **renderer**: any callable ``WorldState -> irradiance``
 (float32 image, radiance units, the full sensor). The camera then applies the
-EMVA 1288 sensor model (:class:`scenes.sensor.EmvaSensor`).
+EMVA 1288 sensor model (:class:`scenes.emva1288.EmvaSensor`).
 
 Light levels in the snapshot are relative radiant outputs (``current /
 max_current``), weighted by the fraction of the exposure the light was on: for
 a global trigger, a light listening with delay ``d_l`` and duration ``T_l``
 overlaps an exposure ``[d_c, d_c + t_exp]`` by ``|[d_l, d_l+T_l] ∩ [d_c, d_c+t_exp]|``
 (seed §4.3.2, 'Global Trigger'). A light behind a closed shutter contributes 0.
+
+Devices outside the world (hardware drivers on in-process emulators, as in
+``rigs/emulated-hardware.toml``) are seen through **probes**: callables that
+return a light's relative level, a stage position (mm) or a focus position (µm)
+from the emulator's state; :func:`instrument.rig.load_rig` registers them, so a
+simulated camera sees the board's lights and the stages' positions.
 """
 
 from __future__ import annotations
@@ -95,6 +101,13 @@ class VirtualWorld:
         self.listeners: dict[int, list[Callable[[float, dict[str, tuple[float, float]]], None]]] = {}
         self.io_log: list[tuple[str, str]] = []
         self.events: list[tuple[str, str]] = []
+        self.light_probes: dict[str, Callable[[], float]] = {}
+        self.stage_probes: dict[str, Callable[[], float]] = {}
+        self.focus_probes: dict[str, Callable[[], float]] = {}
+
+    def probed_levels(self) -> dict[str, float]:
+        """Relative levels of the lights outside the world, as their probes report them now."""
+        return {name: float(probe()) for name, probe in self.light_probes.items()}
 
     def record(self, device: str, operation: str) -> None:
         """Log one device operation."""
@@ -109,9 +122,9 @@ class VirtualWorld:
             self.events.append(("light-on" if on else "light-off", name))
 
     def any_light_on(self) -> bool:
-        """Whether any light is on."""
+        """Whether any light is on (probed lights included)."""
         with self.lock:
-            return any(light.on for light in self.lights.values())
+            return any(light.on for light in self.lights.values()) or any(v > 0 for v in self.probed_levels().values())
 
     def _shutter_factor(self, light: SimLightState) -> float:
         return 1.0 if light.shutter is None or self.shutters.get(light.shutter, False) else 0.0
@@ -119,11 +132,12 @@ class VirtualWorld:
     def static_levels(self) -> dict[str, float]:
         """Light levels of lights that are on now, for a software-triggered exposure."""
         with self.lock:
-            return {
+            levels = {
                 name: (light.config.current_ma / light.max_current_ma if light.on else 0.0)
                 * self._shutter_factor(light)
                 for name, light in self.lights.items()
             }
+            return {**levels, **self.probed_levels()}
 
     def levels_for_window(
         self, start_s: float, exposure_s: float, intervals: Mapping[str, tuple[float, float]]
@@ -145,7 +159,7 @@ class VirtualWorld:
                     continue
                 fraction = _overlap(t0, t1, start_s, start_s + exposure_s) / max(exposure_s, 1e-12)
                 levels[name] = fraction * light.config.current_ma / light.max_current_ma * self._shutter_factor(light)
-            return levels
+            return {**levels, **self.probed_levels()}  # probed lights: as they are now, all along
 
     # triggers ---------------------------------------------------------------------------------------
     def fire_global_trigger(self) -> None:
@@ -182,9 +196,9 @@ class VirtualWorld:
         with self.lock:
             return WorldState(
                 camera,
-                tuple(sensor_shape),
+                (int(sensor_shape[0]), int(sensor_shape[1])),
                 float(exposure_s),
-                MappingProxyType(dict(self.stage_mm)),
-                MappingProxyType(dict(self.focus_um)),
+                MappingProxyType({**self.stage_mm, **{n: float(p()) for n, p in self.stage_probes.items()}}),
+                MappingProxyType({**self.focus_um, **{n: float(p()) for n, p in self.focus_probes.items()}}),
                 MappingProxyType(dict(light_levels)),
             )

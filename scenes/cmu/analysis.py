@@ -7,7 +7,9 @@ wavefront PSF/MTF and the 4 mm aperture stop.
   b and the minimum is closed form.
 * **Magnification**: spot centroids of a 3x3 grid of object points (+-0.25 mm, the Siemens-star frame) on the
   refocused plane, fitted by an affine map; m = sqrt|det A| (m_x, m_y: the singular values).
-* **Spots**: RMS radius about the centroid; "outer bound" = the corner of the 0.8978 x 0.6708 mm field.
+* **Spots**: RMS radius about the centroid (:func:`scenes.spots.rms_radius`, pupil sampled by
+  :func:`scenes.spots.pupil_disk`, as for the GRIN objectives); "outer bound" = the corner of the 0.8978 x 0.6708 mm
+  field.
 * **Astigmatism**: best focus of the pupil x-fan and y-fan separately; their difference.
 * **Wavefront PSF/MTF**: the object point's plane wave after the perfect objective is traced through the plates
   to a plane normal to the beam at the tube lens; its optical path (piston and tilt removed) is the pupil phase;
@@ -17,14 +19,16 @@ wavefront PSF/MTF and the 4 mm aperture stop.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from scenes.cmu.layout import CmuSetup
 from scenes.cmu.plates import fused_silica_index, plate_heightmap
-from scenes.cmu.trace import Rays, Stop, Surface, System, ThinLens, axis_frame
+from scenes.cmu.trace import PerfectLens, Rays, Stop, Surface, System, axis_frame
 from scenes.errors import ScopetwinError
 from scenes.geometry import Array, Frame, normalize
+from scenes.spots import pupil_disk, rms_radius
 from scenes.surface import HeightMap
 
 #: Emission-band centres of Table 3.1, nm (the wavelength of each channel's analysis).
@@ -36,9 +40,9 @@ FIELD_FRACTIONS = (0.0, 0.7, 1.0)
 class Optics:
     """A traced configuration: objective, the elements in between, optional stop, the tube lens."""
 
-    objective: ThinLens
+    objective: PerfectLens
     middle: list
-    tube: ThinLens
+    tube: PerfectLens
     stop: Stop | None
     wavelength_nm: float
 
@@ -76,7 +80,7 @@ def channel_optics(
     wl = wavelength_nm or CHANNEL_WAVELENGTH_NM[channel]
     n_glass = float(fused_silica_index(wl))
     f_o = setup.objective.focal_length
-    obj = ThinLens(
+    obj = PerfectLens(
         axis_frame(np.array([0.0, 0.0, f_o]), np.array([0.0, 0.0, 1.0])), f_o, 0.5 * setup.objective.beam_diameter
     )
     middle: list = []
@@ -86,7 +90,7 @@ def channel_optics(
         middle += _plate_surfaces(spec.frame(), hm, mode, setup, n_glass)
     axis = normalize(np.asarray(ch.tube_axis, dtype=np.float64))
     centre = np.asarray(ch.tube_center, dtype=np.float64)
-    tube = ThinLens(axis_frame(centre, axis), setup.tube.focal_length)
+    tube = PerfectLens(axis_frame(centre, axis), setup.tube.focal_length)
     st = Stop(axis_frame(centre - setup.tube.stop_gap * axis, axis), 0.5 * setup.tube.stop_diameter) if stop else None
     return Optics(obj, middle, tube, st, wl)
 
@@ -98,7 +102,7 @@ def perpendicular_optics(
     the objective, and the tube lens ``distance`` after it on the reflected beam (a sequential model, like Zemax's).
     The distance is not in the seed; 40 mm is the unit's element spacing (thesis-cmu)."""
     f_o = setup.objective.focal_length
-    obj = ThinLens(
+    obj = PerfectLens(
         axis_frame(np.array([0.0, 0.0, f_o]), np.array([0.0, 0.0, 1.0])), f_o, 0.5 * setup.objective.beam_diameter
     )
     mframe = Frame(
@@ -110,20 +114,12 @@ def perpendicular_optics(
     mirror_surface = Surface(mframe, mirror, "R", 1.0, 0.0, 0.5 * setup.plate.width, 0.5 * setup.plate.height)
     axis = np.array([0.0, 0.0, -1.0])
     centre = np.array([0.0, 0.0, f_o])
-    tube = ThinLens(axis_frame(centre, axis), setup.tube.focal_length)
+    tube = PerfectLens(axis_frame(centre, axis), setup.tube.focal_length)
     st = Stop(axis_frame(centre - setup.tube.stop_gap * axis, axis), 0.5 * setup.tube.stop_diameter) if stop else None
     return Optics(obj, [mirror_surface], tube, st, wavelength_nm)
 
 
 # -- ray bundles ------------------------------------------------------------------------------------------
-def pupil_grid(n: int) -> tuple[Array, Array]:
-    """Square grid of n x n points on [-1, 1]^2 kept inside the unit circle (uniform pupil sampling)."""
-    g = (np.arange(n) + 0.5) / n * 2.0 - 1.0
-    px, py = np.meshgrid(g, g)
-    inside = px**2 + py**2 <= 1.0
-    return px[inside], py[inside]
-
-
 @dataclass
 class ImageRays:
     """Rays after the tube lens in its frame: u = u0 + b su, v = v0 + b sv on the plane at distance b."""
@@ -148,11 +144,6 @@ def image_rays(opt: Optics, x0: float, y0: float, px: Array, py: Array) -> Image
     loc = fr.to_local(r.o[r.alive])
     d = fr.vectors_to_local(r.d[r.alive])
     return ImageRays(loc[:, 0], loc[:, 1], d[:, 0] / d[:, 2], d[:, 1] / d[:, 2])
-
-
-def rms_radius(u: Array, v: Array) -> float:
-    """RMS distance from the centroid."""
-    return float(np.sqrt(np.mean((u - u.mean()) ** 2 + (v - v.mean()) ** 2)))
 
 
 def best_focus(bundles: list[ImageRays]) -> float:
@@ -201,7 +192,7 @@ def magnification(opt: Optics, b: float, half: float = 0.25, n_pupil: int = 15) 
     """Affine fit of spot centroids of a 3x3 object grid (+-``half`` mm) on the plane b.
 
     Returns (sqrt|det A|, singular values of A)."""
-    px, py = pupil_grid(n_pupil)
+    px, py = pupil_disk(n_pupil)
     obj, img = [], []
     for x0 in (-half, 0.0, half):
         for y0 in (-half, 0.0, half):
@@ -228,7 +219,7 @@ def analyse(
     setup: CmuSetup, opt: Optics, n_pupil: int = 41, with_psf: bool = False, image_distance: float | None = None
 ) -> ChannelResult:
     """Refocus, magnification, RMS spots, astigmatism (and the wavefront PSF at the field corner)."""
-    px, py = pupil_grid(n_pupil)
+    px, py = pupil_disk(n_pupil)
     fields = field_points(setup)
     bundles = {k: image_rays(opt, x, y, px, py) for k, (x, y) in fields.items()}
     b = best_focus(list(bundles.values())) if image_distance is None else image_distance
@@ -242,7 +233,7 @@ def analyse(
 
 
 # -- wavefront ------------------------------------------------------------------------------------------
-def pupil_wavefront(opt: Optics, x0: float, y0: float, n: int = 128) -> dict[str, Array]:
+def pupil_wavefront(opt: Optics, x0: float, y0: float, n: int = 128) -> dict[str, Any]:
     """Optical path (mm) of the object point's plane wave from the objective to the plane through the tube lens
     normal to the beam, on an n x n grid over the objective's clear aperture; NaN outside the (stopped) pupil.
 

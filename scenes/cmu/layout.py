@@ -15,6 +15,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from scenes.camera_spec import PixelGridSpec
 from scenes.errors import SetupError
 from scenes.geometry import Frame
 
@@ -51,8 +52,8 @@ class TubeSpec(_Model):
     stop_gap: Positive = 5.0
 
 
-class CameraSpec(_Model):
-    """Basler scA1400-30gm (§4.1.4)."""
+class CmuCameraSpec(PixelGridSpec):
+    """A channel camera: Basler scA1400-30gm, 1392 x 1040 px of 6.45 µm, 12 bit (§4.1.4); TOML table ``[camera]``."""
 
     width_px: Annotated[int, Field(gt=0)] = 1392
     height_px: Annotated[int, Field(gt=0)] = 1040
@@ -152,7 +153,7 @@ class CmuSetup(_Model):
     description: str = ""
     objective: ObjectiveSpec = ObjectiveSpec()
     tube: TubeSpec = TubeSpec()
-    camera: CameraSpec = CameraSpec()
+    camera: CmuCameraSpec = CmuCameraSpec()
     plate: PlateSpec = PlateSpec()
     splitters: dict[str, ElementSpec]
     mirrors: dict[str, ElementSpec] = {}

@@ -102,7 +102,7 @@ class Fluorophore:
         """Emission spectrum normalised to unit area on :data:`GRID_NM` (photons per nm, relative)."""
         e = fraser_suzuki(GRID_NM, self.emission_nm, self.emission_fwhm_nm, -self.skew)
         e /= np.trapezoid(e, GRID_NM)
-        return np.interp(wl_nm, GRID_NM, e, left=0.0, right=0.0)
+        return np.interp(np.asarray(wl_nm, dtype=np.float64), GRID_NM, e, left=0.0, right=0.0)
 
 
 #: Seed §3.3 (peaks, quantum yields); widths estimated from the published spectra (not in the seed).
@@ -236,7 +236,7 @@ def camera_qe(wl_nm: ArrayLike = GRID_NM) -> Array:
         ],
         dtype=np.float64,
     )
-    return np.interp(wl_nm, pts[:, 0], pts[:, 1])
+    return np.interp(np.asarray(wl_nm, dtype=np.float64), pts[:, 0], pts[:, 1])
 
 
 # -- the four channels' paths (§4.1.3) ----------------------------------------------------------------
@@ -278,7 +278,7 @@ def excitation_at_object(channel: str, wl_nm: ArrayLike = GRID_NM) -> Array:
     _check_channel(channel)
     s = SOURCES[channel].spectrum(GRID_NM) * path_curve(EXCITATION_PATHS[channel], GRID_NM)
     s = s * TABLE_4_1_MW[channel] / np.trapezoid(s, GRID_NM)
-    return np.interp(wl_nm, GRID_NM, s, left=0.0, right=0.0)
+    return np.interp(np.asarray(wl_nm, dtype=np.float64), GRID_NM, s, left=0.0, right=0.0)
 
 
 def detection_response(channel: str, wl_nm: ArrayLike = GRID_NM, include_splitters: bool = True) -> Array:

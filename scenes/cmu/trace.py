@@ -53,7 +53,7 @@ class Rays:
 
 
 @dataclass(frozen=True)
-class ThinLens:
+class PerfectLens:
     """Perfect lens of focal length ``f`` in the plane of ``frame`` (axis N_z), clear radius ``radius``."""
 
     frame: Frame

@@ -17,6 +17,9 @@ seed does not say how its figures were set up):
   RMS² of a fixed ray set is quadratic in the plane distance), i.e. an image-distance
   optimisation for the RMS spot as in §8.3.2 -- with our layout, never with the seed's numbers.
 * Airy radius: 0.61 λ / NA_image, NA_image the image-space sine of the on-axis marginal ray.
+
+The pupil sampling, the RMS spot radius and the Airy radius are those of :mod:`scenes.spots`, shared with the
+microscope unit's analysis (:mod:`scenes.cmu.analysis`).
 """
 
 from __future__ import annotations
@@ -30,17 +33,10 @@ from numpy.typing import NDArray
 from scenes.grin.paraxial import RodParaxial, rod_paraxial, system_paraxial
 from scenes.grin.rkn import RayState, trace_stack
 from scenes.grin.setup import GrinSetup, Stack
+from scenes.spots import airy_radius, pupil_disk, rms_radius
 
 Array = NDArray[np.float64]
 FIELDS = (0.0, 0.7, 1.0)
-
-
-def pupil_disk(n: int) -> tuple[Array, Array]:
-    """Square grid of n x n points clipped to the unit disk (Zemax 'rectangular' pupil sampling)."""
-    u = (np.arange(n) + 0.5) / n * 2.0 - 1.0
-    px, py = np.meshgrid(u, u)
-    keep = px * px + py * py <= 1.0
-    return px[keep], py[keep]
 
 
 def _stop_layer_count(stack: Stack) -> int:
@@ -71,6 +67,21 @@ def stop_radius_for_na(stack: Stack, na: float) -> float:
         until_layer=_stop_layer_count(stack),
     )
     return float(abs(st.y[0]))
+
+
+def best_focus(bundles: list[Bundle]) -> float:
+    """Image distance minimising Σ RMS² over the bundles (closed form, RMS² is quadratic in the distance)."""
+    num = den = 0.0
+    for b in bundles:
+        st = b.state
+        keep = st.alive
+        tz = st.tz[keep]
+        for pos, t in ((st.x[keep], st.tx[keep]), (st.y[keep], st.ty[keep])):
+            u = t / tz
+            du = u - u.mean()
+            num += float(np.mean((pos - pos.mean()) * du))
+            den += float(np.mean(du * du))
+    return -num / den
 
 
 def chief_ray(stack: Stack, height: float, iterations: int = 40) -> float:
@@ -120,28 +131,6 @@ def bundle(stack: Stack, height: float, na: float, samples: int = 48) -> Bundle:
     t_chief = chief_ray(stack, height)
     st = trace_stack(stack, np.zeros_like(px), np.full_like(px, height), na * px, t_chief + na * py)
     return Bundle(height, st, px, py)
-
-
-def rms_radius(x: Array, y: Array) -> float:
-    """RMS distance of the points from their centroid (mm)."""
-    if x.size == 0:
-        return float("nan")
-    return float(np.sqrt(np.mean((x - x.mean()) ** 2 + (y - y.mean()) ** 2)))
-
-
-def best_focus(bundles: list[Bundle]) -> float:
-    """Image distance minimising Σ RMS² over the bundles (closed form, RMS² is quadratic in the distance)."""
-    num = den = 0.0
-    for b in bundles:
-        st = b.state
-        keep = st.alive
-        tz = st.tz[keep]
-        for pos, t in ((st.x[keep], st.tx[keep]), (st.y[keep], st.ty[keep])):
-            u = t / tz
-            du = u - u.mean()
-            num += float(np.mean((pos - pos.mean()) * du))
-            den += float(np.mean(du * du))
-    return -num / den
 
 
 def opd_waves(b: Bundle, image_distance: float, wavelength_nm: float) -> tuple[float, float]:
@@ -241,7 +230,7 @@ def analyse(setup: GrinSetup, samples: int = 48, stack: Stack | None = None) -> 
     )
     marg = trace_stack(st, np.zeros(1), np.zeros(1), np.zeros(1), np.array([na * (1 - 1e-9)]))
     na_img = float(np.hypot(marg.tx[0], marg.ty[0]) / marg.n)
-    airy = 0.61 * setup.wavelength_nm * 1e-6 / na_img * 1e3
+    airy = airy_radius(setup.wavelength_nm, na_img) * 1e3
     ex, ey = edge.spot(focus)
     m_real = float(ey.mean() / h)
     opd = [opd_waves(b, focus, setup.wavelength_nm) for b in (axis, edge)]

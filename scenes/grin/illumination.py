@@ -17,7 +17,7 @@ numbers are in :func:`scenes.mitsuba.grin.illuminate`.
 
 from __future__ import annotations
 
-from scenes.grin.glass import AIR
+from scenes.grin.glass import AIR, Glass
 from scenes.grin.setup import GrinSetup, IlluminationSpec, Layer, RodSpec, Stack
 
 
@@ -38,7 +38,7 @@ def illumination_stack(setup: GrinSetup, spec: IlluminationSpec | None = None) -
     rod1 = setup.rod1 if ill.rod1_length is None else setup.rod1.model_copy(update={"length": ill.rod1_length})
     half_bs = 0.5 * setup.beam_splitter.thickness
     bs = by_name["beam_splitter"]
-    seq: list[tuple[str, object, float, RodSpec | None]] = [
+    seq: list[tuple[str, Glass, float, RodSpec | None]] = [
         ("led_gap", AIR, ill.led_distance, None),
         ("rod_illumination", AIR, rod_ill.length, rod_ill),
         ("splitter_in", bs.glass, half_bs, None),

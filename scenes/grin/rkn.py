@@ -15,13 +15,16 @@ reduces to conservation of the transverse optical direction cosines (T_x, T_y) =
 (:func:`scenes.geometry.refract` gives the same for a plane normal to z; this form keeps the
 state exact in float64 and needs no normal vectors).
 
-This module is the independent cross-check of the Dr.Jit/Mitsuba tracer in
-``scenes.mitsuba.grin``: same equations, plain numpy, float64.
+The RKN step itself (:func:`rkn_step`) is written once, over an array namespace (as the profiles are):
+:func:`rkn_rod` runs it on numpy float64 arrays, and the ``dr.while_loop`` body of the Dr.Jit/Mitsuba tracer
+(:func:`scenes.mitsuba.grin.rkn_rod_dr`) calls the same function on Dr.Jit arrays. This module is the independent
+cross-check of that tracer: same step, plain numpy, float64, everything else (the layer stack) traced separately.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,6 +33,61 @@ from scenes.grin.profiles import NP, RadialProfile
 from scenes.grin.setup import Stack
 
 Array = NDArray[np.float64]
+
+
+def rkn_step(
+    x: Any, y: Any, tx: Any, ty: Any, opl: Any, n2: Any, k: Any, dt: Any, profile: RadialProfile, xp: Any = NP
+) -> tuple[Any, Any, Any, Any, Any, Any, Any, Any]:
+    """One Sharma-Kumar-Ghatak Runge-Kutta-Nystrom step of a ray in a radial GRIN medium (seed §7.5.1 profiles).
+
+    Integrates d²R/dt² = D(R) = ½∇n² with T = dR/dt over one step ``dt`` (Sharma, Kumar & Ghatak, Appl. Opt. 21,
+    984 (1982)); D = 2 n dn/d(r²) (x, y) = k (x, y) comes from :meth:`RadialProfile.sharma`. The optical path
+    dOPL/dt = n² is integrated by Simpson's rule on the stage points. Written once over the array namespace
+    ``xp`` (only arithmetic and ``profile.sharma(r2, xp)``): numpy (:func:`rkn_rod`) and Dr.Jit (the
+    ``dr.while_loop`` body of :func:`scenes.mitsuba.grin.rkn_rod_dr`) run this same function.
+
+    Parameters
+    ----------
+    x, y : array
+        Ray heights at the start of the step (mm).
+    tx, ty : array
+        Transverse optical direction cosines T = n dR/ds.
+    opl : array
+        Optical path so far (mm).
+    n2, k : array
+        n² and k = 2 n dn/d(r²) at (x, y), carried from the step before (``profile.sharma``).
+    dt : array or float
+        Step in the Sharma parameter t (dt = ds/n = Δz/T_z).
+    profile : RadialProfile
+        The monochromatic index profile.
+    xp : namespace
+        Array namespace of the profile formulas (``scenes.grin.profiles.NP`` or the Dr.Jit one).
+
+    Returns
+    -------
+    x, y, tx, ty, opl, n2, k : array
+        The state after the step (n² and k at the new point, for the next step).
+    r2 : array
+        x² + y² at the new point (for the wall test).
+    """
+    ax, ay = dt * k * x, dt * k * y
+    x1 = x + dt * (0.5 * tx + 0.125 * ax)
+    y1 = y + dt * (0.5 * ty + 0.125 * ay)
+    n2_1, k1 = profile.sharma(x1 * x1 + y1 * y1, xp)
+    bx, by = dt * k1 * x1, dt * k1 * y1
+    x2 = x + dt * (tx + 0.5 * bx)
+    y2 = y + dt * (ty + 0.5 * by)
+    _, k2 = profile.sharma(x2 * x2 + y2 * y2, xp)
+    cx, cy = dt * k2 * x2, dt * k2 * y2
+    # (Dr.Jit turns a division by a Python number into a multiplication by its reciprocal, numpy divides)
+    x = x + dt * (tx + (ax + 2.0 * bx) / 6.0)
+    y = y + dt * (ty + (ay + 2.0 * by) / 6.0)
+    tx = tx + (ax + 4.0 * bx + cx) / 6.0
+    ty = ty + (ay + 4.0 * by + cy) / 6.0
+    r2 = x * x + y * y
+    n2_new, k = profile.sharma(r2, xp)
+    opl = opl + dt / 6.0 * (n2 + 4.0 * n2_1 + n2_new)
+    return x, y, tx, ty, opl, n2_new, k, r2
 
 
 def rkn_rod(
@@ -80,23 +138,7 @@ def rkn_rod(
     alive = r2 <= radius * radius
     n2, k = profile.sharma(r2, NP)
     for _ in range(steps):
-        ax, ay = dt * k * x, dt * k * y
-        x1 = x + dt * (0.5 * tx + 0.125 * ax)
-        y1 = y + dt * (0.5 * ty + 0.125 * ay)
-        n2_1, k1 = profile.sharma(x1 * x1 + y1 * y1, NP)
-        bx, by = dt * k1 * x1, dt * k1 * y1
-        x2 = x + dt * (tx + 0.5 * bx)
-        y2 = y + dt * (ty + 0.5 * by)
-        _, k2 = profile.sharma(x2 * x2 + y2 * y2, NP)
-        cx, cy = dt * k2 * x2, dt * k2 * y2
-        x = x + dt * (tx + (ax + 2.0 * bx) / 6.0)
-        y = y + dt * (ty + (ay + 2.0 * by) / 6.0)
-        tx = tx + (ax + 4.0 * bx + cx) / 6.0
-        ty = ty + (ay + 4.0 * by + cy) / 6.0
-        r2 = x * x + y * y
-        n2_new, k = profile.sharma(r2, NP)
-        opl = opl + dt / 6.0 * (n2 + 4.0 * n2_1 + n2_new)
-        n2 = n2_new
+        x, y, tx, ty, opl, n2, k, r2 = rkn_step(x, y, tx, ty, opl, n2, k, dt, profile, NP)
         alive &= r2 <= radius * radius
     return x, y, tx, ty, opl, alive
 
@@ -187,17 +229,18 @@ def trace_stack(
             y = y + layer.thickness * ty / tz
             opl = opl + layer.thickness * n * n / tz
         else:
-            rod = layer.rod
+            rod, profile = layer.rod, layer.profile
+            assert profile is not None  # a rod layer carries its profile (build_stack)
             lx, ly = x - ax, y - ay
             r2 = lx * lx + ly * ly
             inside = r2 <= rod.radius**2
-            n_rod = np.asarray(layer.profile.index(np.minimum(r2, rod.radius**2))) * np.ones_like(x)
+            n_rod = np.asarray(profile.index(np.minimum(r2, rod.radius**2))) * np.ones_like(x)
             n_in = np.where(inside, n_rod, 1.0)
             tz2 = n_in * n_in - t2
             alive &= inside & (tz2 > 0)
             tz = np.sqrt(np.maximum(tz2, 1e-300))
             lx, ly, tx, ty, dopl, ok = rkn_rod(
-                lx, ly, tx, ty, tz, layer.profile, rod.length, rod_steps(rod.length, rod.step_mm), rod.radius
+                lx, ly, tx, ty, tz, profile, rod.length, rod_steps(rod.length, rod.step_mm), rod.radius
             )
             alive &= ok
             x, y = lx + ax, ly + ay

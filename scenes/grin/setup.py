@@ -30,6 +30,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from scenes.camera_spec import PixelGridSpec
 from scenes.errors import SetupError
 from scenes.grin.glass import AIR, Glass, glass
 from scenes.grin.profiles import (
@@ -177,12 +178,12 @@ class ArraySpec(_Model):
         return [(x0 + i * self.pitch, y0 + j * self.pitch) for j in range(self.ny) for i in range(self.nx)]
 
 
-class CameraSpec(_Model):
+class GrinCameraSpec(PixelGridSpec):
     """The camera behind the objective (seed §8.4.3: AVT Guppy, 2.2 µm pixels; S_min = 4.28 mm, §8.2.2)."""
 
-    pixel_um: Positive = 2.2
     width_px: Annotated[int, Field(ge=1)] = 2592
     height_px: Annotated[int, Field(ge=1)] = 1944
+    pixel_um: Positive = 2.2
 
 
 class IlluminationSpec(_Model):
@@ -233,7 +234,7 @@ class GrinSetup(_Model):
     image: ImageSpec = ImageSpec()
     aperture: ApertureSpec = ApertureSpec()
     array: ArraySpec = ArraySpec()
-    camera: CameraSpec = CameraSpec()
+    camera: GrinCameraSpec = GrinCameraSpec()
     illumination: IlluminationSpec | None = None
     seed: SeedNumbers = SeedNumbers()
     scene_depth: Positive = 40.0

@@ -1,6 +1,8 @@
 """The Mitsuba 3 realisation of the world model.
 
 This is the only package of scopetwin that imports Mitsuba, and it does so
-lazily: ``import scenes`` never loads it. Call :func:`scenes.mitsuba.variant.use`
-(or any builder here, which calls it) before touching ``mitsuba``.
+lazily: ``import scenes`` never loads it, and importing a module of this package
+sets no variant. Every builder and renderer here takes its ``variant`` explicitly
+(default :func:`scenes.mitsuba.variant.choose` of its kind, resolved when it is
+called) and sets it for the call (:func:`scenes.mitsuba.variant.mitsuba`).
 """

@@ -1,6 +1,7 @@
 """The compact microscope unit in Mitsuba's spectral variant (seed ch. 4-5): plugins and channel images.
 
-Plugins (registered idempotently by :func:`register`):
+Plugins (registered idempotently, per thread and variant, by :func:`register`; importing this module sets no
+variant: every builder and renderer takes ``variant``, default ``choose("spectral")``):
 
 * BSDF ``scopetwin_ideal_lens`` on a ``disk``: the perfect lens of :mod:`scenes.cmu.trace` (slopes
   s' = s - (x, y)/f in the lens frame), delta transmission, weight 1 - the objective (f = 16.45 mm) and the
@@ -31,29 +32,30 @@ its samples: the monochrome camera's electrons per unit exposure (relative).
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Any, Literal
 
+import drjit as _drjit
+import mitsuba as _mitsuba
 import numpy as np
 
 from scenes.cmu import spectra
-from scenes.cmu.analysis import channel_optics, image_rays, pupil_grid
+from scenes.cmu.analysis import channel_optics, image_rays
 from scenes.cmu.layout import CmuSetup
 from scenes.cmu.plates import fused_silica_index, plate_heightmap
 from scenes.cmu.targets import dummy_cells, siemens_star
 from scenes.cmu.trace import axis_frame
 from scenes.errors import ScopetwinError
-from scenes.mitsuba.variant import register_plugin, use
+from scenes.mitsuba.variant import mitsuba, register_plugin, resolve
+from scenes.spots import pupil_disk
 from scenes.surface import HeightMap
 
-mi = use("spectral")
-import drjit as dr  # noqa: E402  (after the variant is set)
-
+# The mitsuba module, no variant set: its variant-dependent names (mi.Float, mi.BSDF, ...) are looked up
+# when a function runs, after that function has set its variant (no variant is set at import).
+mi: Any = _mitsuba  # typed Any: its names are built per variant at run time (pyproject.toml [tool.mypy])
+dr: Any = _drjit
 DR = SimpleNamespace(sqrt=dr.sqrt, atan2=dr.atan2, sin=dr.sin, where=dr.select, abs=dr.abs, maximum=dr.maximum)
-_TABLES: dict[str, dict[str, Any]] = {}
-_counter = itertools.count()
 #: Spectral tables are sampled at 1 nm from WL0_NM.
 WL0_NM, WL1_NM = 300.0, 1000.0
 
@@ -85,134 +87,155 @@ def _delta_sample(si: Any, wo_world: Any, flag: Any) -> Any:
     return bs
 
 
-class IdealLens(mi.BSDF):
-    """BSDF ``scopetwin_ideal_lens``: properties ``f`` (mm) and the lens frame ``c_*``, ``tx_*``, ``ty_*``, ``nz_*``."""
+def _perfect_lens_class(mi: Any) -> type:
+    """The BSDF class of ``scopetwin_ideal_lens`` for the variant of ``mi`` (Mitsuba classes are per variant)."""
 
-    def __init__(self, props: mi.Properties) -> None:
-        super().__init__(props)
-        self.f = props.get("f", 100.0)
-        self.c, self.tx, self.ty, self.nz = (_vec(props, k) for k in ("c", "tx", "ty", "nz"))
-        self.m_flags = mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
-        self.m_components = [self.m_flags]
+    class PerfectLensBSDF(mi.BSDF):
+        """BSDF ``scopetwin_ideal_lens``: the perfect lens (:class:`scenes.cmu.trace.PerfectLens`).
 
-    def sample(self, ctx: Any, si: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any]:
-        d = -si.to_world(si.wi)
-        q = si.p - mi.Point3f(self.c)
-        x, y = dr.dot(q, mi.Vector3f(self.tx)), dr.dot(q, mi.Vector3f(self.ty))
-        dz = dr.dot(d, mi.Vector3f(self.nz))
-        az = dr.maximum(dr.abs(dz), 1e-12)
-        sx = dr.dot(d, mi.Vector3f(self.tx)) / az - x / self.f
-        sy = dr.dot(d, mi.Vector3f(self.ty)) / az - y / self.f
-        out = dr.normalize(sx * mi.Vector3f(self.tx) + sy * mi.Vector3f(self.ty) + dr.sign(dz) * mi.Vector3f(self.nz))
-        return _delta_sample(si, out, mi.BSDFFlags.DeltaTransmission), mi.Spectrum(1.0)
+        Properties ``f`` (mm) and the lens frame ``c_*``, ``tx_*``, ``ty_*``, ``nz_*``.
+        """
 
-    def eval(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
-        return mi.Spectrum(0.0)
+        def __init__(self, props: mi.Properties) -> None:
+            super().__init__(props)
+            self.f = props.get("f", 100.0)
+            self.c, self.tx, self.ty, self.nz = (_vec(props, k) for k in ("c", "tx", "ty", "nz"))
+            self.m_flags = mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
+            self.m_components = [self.m_flags]
 
-    def pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
-        return mi.Float(0.0)
+        def sample(self, ctx: Any, si: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any]:
+            d = -si.to_world(si.wi)
+            q = si.p - mi.Point3f(self.c)
+            x, y = dr.dot(q, mi.Vector3f(self.tx)), dr.dot(q, mi.Vector3f(self.ty))
+            dz = dr.dot(d, mi.Vector3f(self.nz))
+            az = dr.maximum(dr.abs(dz), 1e-12)
+            sx = dr.dot(d, mi.Vector3f(self.tx)) / az - x / self.f
+            sy = dr.dot(d, mi.Vector3f(self.ty)) / az - y / self.f
+            out = dr.normalize(
+                sx * mi.Vector3f(self.tx) + sy * mi.Vector3f(self.ty) + dr.sign(dz) * mi.Vector3f(self.nz)
+            )
+            return _delta_sample(si, out, mi.BSDFFlags.DeltaTransmission), mi.Spectrum(1.0)
 
-    def eval_pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> tuple[Any, Any]:
-        return mi.Spectrum(0.0), mi.Float(0.0)
+        def eval(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
+            return mi.Spectrum(0.0)
 
-    def to_string(self) -> str:
-        return f"IdealLens[f={self.f}]"
+        def pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
+            return mi.Float(0.0)
 
+        def eval_pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> tuple[Any, Any]:
+            return mi.Spectrum(0.0), mi.Float(0.0)
 
-class BowedPlate(mi.BSDF):
-    """BSDF ``scopetwin_bowed_plate``: ``key`` names the tables registered by :func:`plate_tables`; ``face`` is
-    ``"front"`` (coated: dichroic reflection/transmission, default) or ``"back"`` (uncoated: refraction only)."""
+        def to_string(self) -> str:
+            return f"PerfectLensBSDF[f={self.f}]"
 
-    def __init__(self, props: mi.Properties) -> None:
-        super().__init__(props)
-        self.key = props.get("key", "")
-        t = _TABLES[self.key]
-        self.c, self.tx, self.ty, self.nz = (mi.ScalarVector3f(*t[k]) for k in ("c", "tx", "ty", "nz"))
-        self.x0, self.y0, self.dx, self.dy = t["x0"], t["y0"], t["dx"], t["dy"]
-        self.nx, self.ny = t["nx"], t["ny"]
-        self.hx, self.hy = mi.Float(t["hx"].ravel()), mi.Float(t["hy"].ravel())
-        self.refl, self.trans = mi.Float(t["R"]), mi.Float(t["T"])
-        self.index = mi.Float(t["n_glass"])
-        self.coated = props.get("face", "front") == "front"
-        self.m_flags = (
-            mi.BSDFFlags.DeltaReflection
-            | mi.BSDFFlags.DeltaTransmission
-            | mi.BSDFFlags.FrontSide
-            | mi.BSDFFlags.BackSide
-        )
-        self.m_components = [
-            mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide,
-            mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide,
-        ]
-
-    def _gradient(self, x: Any, y: Any) -> tuple[Any, Any]:
-        fx = dr.clip((x - self.x0) / self.dx, 0.0, self.nx - 1.001)
-        fy = dr.clip((y - self.y0) / self.dy, 0.0, self.ny - 1.001)
-        ix, iy = mi.UInt32(dr.floor(fx)), mi.UInt32(dr.floor(fy))
-        wx, wy = fx - dr.floor(fx), fy - dr.floor(fy)
-        i00 = iy * self.nx + ix
-        out = []
-        for tab in (self.hx, self.hy):
-            a = dr.gather(mi.Float, tab, i00) * (1 - wx) + dr.gather(mi.Float, tab, i00 + 1) * wx
-            b = dr.gather(mi.Float, tab, i00 + self.nx) * (1 - wx) + dr.gather(mi.Float, tab, i00 + self.nx + 1) * wx
-            out.append(a * (1 - wy) + b * wy)
-        return out[0], out[1]
-
-    def _refract(self, d: Any, n: Any, n_glass: Any) -> tuple[Any, Any]:
-        """Snell's law at this face: air on the +N_z side of the front face and on the -N_z side of the back face.
-
-        Returns the refracted direction and a mask of rays that are not totally internally reflected."""
-        from_plus = dr.dot(d, n) < 0.0
-        into_glass = from_plus == self.coated
-        eta = dr.select(into_glass, 1.0 / n_glass, n_glass)
-        m = dr.select(from_plus, n, -n)  # the normal facing the incident side
-        c = -dr.dot(d, m)
-        k = 1.0 - eta * eta * (1.0 - c * c)
-        return dr.normalize(eta * d + (eta * c - dr.sqrt(dr.maximum(k, 0.0))) * m), k >= 0.0
-
-    def sample(self, ctx: Any, si: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any]:
-        d = -si.to_world(si.wi)
-        tx, ty, nz = mi.Vector3f(self.tx), mi.Vector3f(self.ty), mi.Vector3f(self.nz)
-        q = si.p - mi.Point3f(self.c)
-        hx, hy = self._gradient(dr.dot(q, tx), dr.dot(q, ty))
-        n = dr.normalize(nz - hx * tx - hy * ty)
-        d_t, ok = self._refract(d, n, _lookup(self.index, si.wavelengths[0]))
-        if not self.coated:  # the uncoated back face: refraction only
-            bs = _delta_sample(si, d_t, mi.BSDFFlags.DeltaTransmission)
-            bs.sampled_component = mi.UInt32(1)
-            return bs, dr.select(ok, mi.Spectrum(1.0), mi.Spectrum(0.0))
-        r = _lookup_spectrum(self.refl, si.wavelengths)
-        t = _lookup_spectrum(self.trans, si.wavelengths)
-        rm, tm = dr.mean(r), dr.mean(t)
-        p = rm / dr.maximum(rm + tm, 1e-12)
-        reflect = sample1 < p
-        d_r = d - 2.0 * dr.dot(d, n) * n
-        wo = dr.select(reflect, d_r, d_t)
-        flag = dr.select(reflect, mi.UInt32(+mi.BSDFFlags.DeltaReflection), mi.UInt32(+mi.BSDFFlags.DeltaTransmission))
-        bs = _delta_sample(si, wo, mi.BSDFFlags.DeltaReflection)
-        bs.sampled_type = flag
-        bs.sampled_component = dr.select(reflect, mi.UInt32(0), mi.UInt32(1))
-        w = dr.select(reflect, r / dr.maximum(p, 1e-12), dr.select(ok, t / dr.maximum(1.0 - p, 1e-12), 0.0))
-        return bs, w
-
-    def eval(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
-        return mi.Spectrum(0.0)
-
-    def pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
-        return mi.Float(0.0)
-
-    def eval_pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> tuple[Any, Any]:
-        return mi.Spectrum(0.0), mi.Float(0.0)
-
-    def to_string(self) -> str:
-        return f"BowedPlate[{self.key}]"
+    return PerfectLensBSDF
 
 
-def register() -> None:
-    """Register the BSDFs ``scopetwin_ideal_lens`` and ``scopetwin_bowed_plate`` (idempotent per thread/variant)."""
-    use("spectral")  # another renderer may have switched this thread's variant since import
-    register_plugin("bsdf", "scopetwin_ideal_lens", lambda _mi: IdealLens)
-    register_plugin("bsdf", "scopetwin_bowed_plate", lambda _mi: BowedPlate)
+def _bowed_plate_class(mi: Any) -> type:
+    """The BSDF class of ``scopetwin_bowed_plate`` for the variant of ``mi``."""
+
+    class BowedPlate(mi.BSDF):
+        """BSDF ``scopetwin_bowed_plate``: the plate's frame and tables come as properties (:func:`plate_tables`);
+        ``face`` is ``"front"`` (coated: dichroic reflection/transmission, default) or ``"back"`` (uncoated:
+        refraction only). The tables are the BSDF's own (Dr.Jit arrays), so they are freed with the scene."""
+
+        def __init__(self, props: mi.Properties) -> None:
+            super().__init__(props)
+            self.key = props.get("name", "")
+            self.c, self.tx, self.ty, self.nz = (_vec(props, k) for k in ("c", "tx", "ty", "nz"))
+            self.x0, self.y0, self.dx, self.dy = (props.get(k) for k in ("x0", "y0", "dx", "dy"))
+            self.nx, self.ny = props.get("nx"), props.get("ny")
+            self.hx, self.hy = props.get("hx").array, props.get("hy").array
+            self.refl, self.trans = props.get("R").array, props.get("T").array
+            self.index = props.get("n_glass").array
+            self.coated = props.get("face", "front") == "front"
+            self.m_flags = (
+                mi.BSDFFlags.DeltaReflection
+                | mi.BSDFFlags.DeltaTransmission
+                | mi.BSDFFlags.FrontSide
+                | mi.BSDFFlags.BackSide
+            )
+            self.m_components = [
+                mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide,
+                mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide,
+            ]
+
+        def _gradient(self, x: Any, y: Any) -> tuple[Any, Any]:
+            fx = dr.clip((x - self.x0) / self.dx, 0.0, self.nx - 1.001)
+            fy = dr.clip((y - self.y0) / self.dy, 0.0, self.ny - 1.001)
+            ix, iy = mi.UInt32(dr.floor(fx)), mi.UInt32(dr.floor(fy))
+            wx, wy = fx - dr.floor(fx), fy - dr.floor(fy)
+            i00 = iy * self.nx + ix
+            out = []
+            for tab in (self.hx, self.hy):
+                a = dr.gather(mi.Float, tab, i00) * (1 - wx) + dr.gather(mi.Float, tab, i00 + 1) * wx
+                b = (
+                    dr.gather(mi.Float, tab, i00 + self.nx) * (1 - wx)
+                    + dr.gather(mi.Float, tab, i00 + self.nx + 1) * wx
+                )
+                out.append(a * (1 - wy) + b * wy)
+            return out[0], out[1]
+
+        def _refract(self, d: Any, n: Any, n_glass: Any) -> tuple[Any, Any]:
+            """Snell's law at this face: air on the +N_z side of the front face and on the -N_z side of the back face.
+
+            Returns the refracted direction and a mask of rays that are not totally internally reflected."""
+            from_plus = dr.dot(d, n) < 0.0
+            into_glass = from_plus == self.coated
+            eta = dr.select(into_glass, 1.0 / n_glass, n_glass)
+            m = dr.select(from_plus, n, -n)  # the normal facing the incident side
+            c = -dr.dot(d, m)
+            k = 1.0 - eta * eta * (1.0 - c * c)
+            return dr.normalize(eta * d + (eta * c - dr.sqrt(dr.maximum(k, 0.0))) * m), k >= 0.0
+
+        def sample(self, ctx: Any, si: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any]:
+            d = -si.to_world(si.wi)
+            tx, ty, nz = mi.Vector3f(self.tx), mi.Vector3f(self.ty), mi.Vector3f(self.nz)
+            q = si.p - mi.Point3f(self.c)
+            hx, hy = self._gradient(dr.dot(q, tx), dr.dot(q, ty))
+            n = dr.normalize(nz - hx * tx - hy * ty)
+            d_t, ok = self._refract(d, n, _lookup(self.index, si.wavelengths[0]))
+            if not self.coated:  # the uncoated back face: refraction only
+                bs = _delta_sample(si, d_t, mi.BSDFFlags.DeltaTransmission)
+                bs.sampled_component = mi.UInt32(1)
+                return bs, dr.select(ok, mi.Spectrum(1.0), mi.Spectrum(0.0))
+            r = _lookup_spectrum(self.refl, si.wavelengths)
+            t = _lookup_spectrum(self.trans, si.wavelengths)
+            rm, tm = dr.mean(r), dr.mean(t)
+            p = rm / dr.maximum(rm + tm, 1e-12)
+            reflect = sample1 < p
+            d_r = d - 2.0 * dr.dot(d, n) * n
+            wo = dr.select(reflect, d_r, d_t)
+            flag = dr.select(
+                reflect, mi.UInt32(+mi.BSDFFlags.DeltaReflection), mi.UInt32(+mi.BSDFFlags.DeltaTransmission)
+            )
+            bs = _delta_sample(si, wo, mi.BSDFFlags.DeltaReflection)
+            bs.sampled_type = flag
+            bs.sampled_component = dr.select(reflect, mi.UInt32(0), mi.UInt32(1))
+            w = dr.select(reflect, r / dr.maximum(p, 1e-12), dr.select(ok, t / dr.maximum(1.0 - p, 1e-12), 0.0))
+            return bs, w
+
+        def eval(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
+            return mi.Spectrum(0.0)
+
+        def pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
+            return mi.Float(0.0)
+
+        def eval_pdf(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> tuple[Any, Any]:
+            return mi.Spectrum(0.0), mi.Float(0.0)
+
+        def to_string(self) -> str:
+            return f"BowedPlate[{self.key}]"
+
+    return BowedPlate
+
+
+def register(variant: str | None = None) -> None:
+    """Register ``scopetwin_ideal_lens`` and ``scopetwin_bowed_plate`` for ``variant`` (default
+    ``choose("spectral")``) in this thread; idempotent per thread and variant."""
+    variant = resolve(variant, "spectral")
+    register_plugin("bsdf", "scopetwin_ideal_lens", _perfect_lens_class, variant)
+    register_plugin("bsdf", "scopetwin_bowed_plate", _bowed_plate_class, variant)
 
 
 # -- the scene ----------------------------------------------------------------------------------------------
@@ -222,9 +245,20 @@ def _grid_1nm(curve_on_grid: np.ndarray) -> np.ndarray:
 
 
 def plate_tables(
-    name: str, frame: Any, hm: HeightMap | None, setup: CmuSetup, is_mirror: bool, node_mm: float = 0.1
-) -> str:
-    """Register the gradient and R/T tables of one plate; returns the key for ``scopetwin_bowed_plate``."""
+    name: str,
+    frame: Any,
+    hm: HeightMap | None,
+    setup: CmuSetup,
+    is_mirror: bool,
+    node_mm: float = 0.1,
+    variant: str | None = None,
+) -> dict[str, Any]:
+    """The properties of one plate's ``scopetwin_bowed_plate`` BSDF: its frame, gradient and R/T tables.
+
+    The tables travel in the scene dictionary (``mi.TensorXf`` of ``variant``, default ``choose("spectral")``), so
+    the BSDF owns them and they are freed with the scene (nothing is kept in this module).
+    """
+    mi = mitsuba(resolve(variant, "spectral"))
     pw, ph = 0.5 * setup.plate.width, 0.5 * setup.plate.height
     xs = np.arange(-pw, pw + 1e-9, node_mm)
     ys = np.arange(-ph, ph + 1e-9, node_mm)
@@ -238,25 +272,23 @@ def plate_tables(
         t = np.zeros_like(r)
     else:
         r, t = spectra.dichroic(name, "R"), spectra.dichroic(name, "T")
-    key = f"plate-{name}-{next(_counter)}"
-    _TABLES[key] = {
-        "c": tuple(frame.origin),
-        "tx": tuple(frame.tx),
-        "ty": tuple(frame.ty),
-        "nz": tuple(frame.nz),
+    props: dict[str, Any] = {"type": "scopetwin_bowed_plate", "name": name}
+    for k, v in (("c", frame.origin), ("tx", frame.tx), ("ty", frame.ty), ("nz", frame.nz)):
+        props |= {f"{k}_x": float(v[0]), f"{k}_y": float(v[1]), f"{k}_z": float(v[2])}
+    tables = {
         "x0": float(xs[0]),
         "y0": float(ys[0]),
         "dx": node_mm,
         "dy": node_mm,
         "nx": len(xs),
         "ny": len(ys),
-        "hx": hx.astype(np.float32),
-        "hy": hy.astype(np.float32),
-        "R": _grid_1nm(r).astype(np.float32),
-        "T": _grid_1nm(t).astype(np.float32),
-        "n_glass": fused_silica_index(np.arange(WL0_NM, WL1_NM + 0.5, 1.0)).astype(np.float32),
+        "hx": mi.TensorXf(hx.astype(np.float32)),
+        "hy": mi.TensorXf(hy.astype(np.float32)),
+        "R": mi.TensorXf(_grid_1nm(r).astype(np.float32)),
+        "T": mi.TensorXf(_grid_1nm(t).astype(np.float32)),
+        "n_glass": mi.TensorXf(fused_silica_index(np.arange(WL0_NM, WL1_NM + 0.5, 1.0)).astype(np.float32)),
     }
-    return key
+    return props | tables
 
 
 def _lens_dict(frame: Any, f: float, radius: float) -> dict[str, Any]:
@@ -269,14 +301,20 @@ def _lens_dict(frame: Any, f: float, radius: float) -> dict[str, Any]:
 
 
 def unit_scene(
-    setup: CmuSetup, maps: dict[str, HeightMap] | None = None, tube_f: float | None = None, flat: bool = False
+    setup: CmuSetup,
+    maps: dict[str, HeightMap] | None = None,
+    tube_f: float | None = None,
+    flat: bool = False,
+    variant: str | None = None,
 ) -> tuple[Any, int]:
     """Mitsuba scene of the whole unit: objective, splitters (coated front and uncoated back face), mirrors, four
     tube lenses, object plane.
 
-    Returns (scene, shape id of the object plane).
+    Built in ``variant`` (default ``choose("spectral")``, resolved now). The plates' tables belong to the scene's
+    BSDFs: dropping the scene frees them. Returns (scene, shape id of the object plane).
     """
-    register()
+    variant = resolve(variant, "spectral")
+    register(variant)
     f_o = setup.objective.focal_length
     T = mi.ScalarTransform4f
     scene: dict[str, Any] = {"type": "scene"}
@@ -287,21 +325,21 @@ def unit_scene(
         for name, spec in group.items():
             fr = spec.frame()
             hm = None if flat else (maps or {}).get(name) or plate_heightmap(spec, setup.plate)
-            key = plate_tables(name, fr, hm, setup, is_mirror)
+            bsdf = plate_tables(name, fr, hm, setup, is_mirror, variant=variant)
             m = np.eye(4)
             m[:3, 0], m[:3, 1] = fr.tx * 0.5 * setup.plate.width, fr.ty * 0.5 * setup.plate.height
             m[:3, 2], m[:3, 3] = fr.nz, fr.origin
             scene[f"plate_{name}"] = {
                 "type": "rectangle",
                 "to_world": T(m.tolist()),
-                "bsdf": {"type": "scopetwin_bowed_plate", "key": key},
+                "bsdf": bsdf,
             }
             if not is_mirror:  # the splitter's uncoated back face, one thickness behind the coated one
                 m[:3, 3] = fr.origin - setup.plate.thickness * fr.nz
                 scene[f"plate_{name}_back"] = {
                     "type": "rectangle",
                     "to_world": T(m.tolist()),
-                    "bsdf": {"type": "scopetwin_bowed_plate", "key": key, "face": "back"},
+                    "bsdf": bsdf | {"face": "back"},
                 }
     for cname, ch in setup.channels.items():
         fr = axis_frame(np.asarray(ch.tube_center, dtype=np.float64), np.asarray(ch.tube_axis, dtype=np.float64))
@@ -332,7 +370,7 @@ class CameraPose:
 def sensor_axes(setup: CmuSetup, channel: str) -> tuple[np.ndarray, np.ndarray]:
     """Unit 2-vectors (tube-lens frame) of the images of object +x and +y in the flat channel."""
     opt = channel_optics(setup, channel, flat=True)
-    px, py = pupil_grid(5)
+    px, py = pupil_disk(5)
     out = []
     for x0, y0 in ((0.1, 0.0), (0.0, 0.1)):
         r = image_rays(opt, x0, y0, px, py)
@@ -422,7 +460,12 @@ class Landing:
 
 
 def land_rays(
-    scene: tuple[Any, int], origins: np.ndarray, directions: np.ndarray, wavelength_nm: float, seed: int = 0
+    scene: tuple[Any, int],
+    origins: np.ndarray,
+    directions: np.ndarray,
+    wavelength_nm: float,
+    seed: int = 0,
+    variant: str | None = None,
 ) -> Landing:
     """Trace rays from the image side (e.g. a camera plane) through the Mitsuba unit to the object plane.
 
@@ -437,8 +480,10 @@ def land_rays(
         All four spectral lanes carry this wavelength (dichroic R/T and the glass index are taken there).
     seed : int
         Seed of the reflect/transmit choices at the splitters.
+    variant : str, optional
+        The variant the scene was built in (default ``choose("spectral")``).
     """
-    use("spectral")
+    mitsuba(resolve(variant, "spectral"))
     sc, obj_id = scene
     o = np.asarray(origins, dtype=np.float64)
     d = np.asarray(directions, dtype=np.float64)
@@ -477,6 +522,7 @@ def render_channel(
     flat: bool = False,
     max_rays: int = 4_000_000,
     scene: tuple[Any, int] | None = None,
+    variant: str | None = None,
 ) -> np.ndarray:
     """Image (float32, row 0 at the top) of the Siemens star or the dummy cells through one channel.
 
@@ -489,22 +535,25 @@ def render_channel(
     stop : bool
         The 4 mm aperture in front of the tube lens (§5.1.2).
     scene : optional
-        A scene from :func:`unit_scene` to reuse.
+        A scene from :func:`unit_scene` to reuse (built in the same ``variant``).
+    variant : str, optional
+        Mitsuba variant (default ``choose("spectral")``, resolved now).
     """
-    use("spectral")
+    variant = resolve(variant, "spectral")
+    mitsuba(variant)
     if channel not in setup.channels:
         raise ScopetwinError(f"unknown channel {channel!r} (channels: {', '.join(setup.channels)})")
     if spp < 1:
         raise ScopetwinError(f"spp must be >= 1, got {spp}")
     cam = setup.camera
     row0, col0, hgt, wid = window or (0, 0, cam.height_px, cam.width_px)
-    sc, obj_id = scene or unit_scene(setup, maps, tube_f, flat)
+    sc, obj_id = scene or unit_scene(setup, maps, tube_f, flat, variant)
     ch = setup.channels[channel]
     lens = axis_frame(np.asarray(ch.tube_center, dtype=np.float64), np.asarray(ch.tube_axis, dtype=np.float64))
     L0, LX, LY, LZ = (mi.ScalarVector3f(*[float(c) for c in v]) for v in (lens.origin, lens.tx, lens.ty, lens.nz))
     ex, ey = sensor_axes(setup, channel)
     ang = np.deg2rad(pose.tilt_deg)
-    p_mm = cam.pixel_um * 1e-3
+    grid = cam.grid()
     pdf, norm = _wavelength_table(setup, channel, target)
     dist = mi.ContinuousDistribution([WL0_NM, WL1_NM], pdf[:-1] + 1e-30)
     star_spec = setup.target
@@ -529,9 +578,8 @@ def render_channel(
         row = mi.Float(idx // wid) + row0
         col = mi.Float(idx % wid) + col0
         s_pix = sampler.next_2d()
-        # pixel centre-relative sensor coordinates (cols along ex, rows against ey), then tilt and offset
-        a = (col + s_pix.x - 0.5 * cam.width_px - pose.offset_px[0]) * p_mm
-        b = (0.5 * cam.height_px - (row + s_pix.y) + pose.offset_px[1]) * p_mm
+        # sensor coordinates of the pixel grid (cols along ex, rows against ey), content shifted by the offset
+        a, b = grid.uv(col + s_pix.x, row + s_pix.y, shift_px=pose.offset_px)
         ca, sa = float(np.cos(-ang)), float(np.sin(-ang))
         a, b = ca * a - sa * b, sa * a + ca * b
         u = a * float(ex[0]) + b * float(ey[0])

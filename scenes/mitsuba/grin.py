@@ -12,7 +12,8 @@ Precision: ``"float32"`` runs the whole path in single precision (fast, for imag
 ``"float64"`` keeps the ray state in ``Float64`` and takes from Mitsuba's float32 intersection
 only *which* plane is hit, recomputing the hit point exactly from the plane's z (for analysis).
 
-Plugins (registered idempotently by :func:`register`):
+Plugins (registered idempotently, per thread and variant, by :func:`register`; importing this module sets no
+variant: every builder and renderer takes ``variant``, default ``choose("mono")``):
 
 * integrator ``scopetwin_grin`` -- traces sensor rays backwards through the objective to the object
   plane and returns the transmission of the test target there (a Lambertian backlight of radiance 1);
@@ -23,24 +24,28 @@ Plugins (registered idempotently by :func:`register`):
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Any, Literal
 
+import drjit as _drjit
+import mitsuba as _mitsuba
 import numpy as np
 
+from scenes.camera import PixelGrid
 from scenes.errors import ScopetwinError
 from scenes.grin.profiles import RadialProfile
-from scenes.grin.rkn import rod_steps
+from scenes.grin.rkn import rkn_step, rod_steps
 from scenes.grin.setup import GrinSetup, Stack
 from scenes.grin.targets import Target
-from scenes.mitsuba.variant import register_plugin, use
+from scenes.mitsuba.variant import mitsuba, register_plugin, resolve
 
 Precision = Literal["float32", "float64"]
 
-mi = use("mono")
-import drjit as dr  # noqa: E402  (after the variant is set)
+# The mitsuba module, no variant set: its variant-dependent names (mi.Float, mi.Sensor, ...) are looked
+# up when a function runs, after that function has set its variant (no variant is set at import).
+mi: Any = _mitsuba  # typed Any: its names are built per variant at run time (pyproject.toml [tool.mypy])
+dr: Any = _drjit
 
 #: Dr.Jit namespace for the profile formulas of scenes.grin.profiles.
 DR = SimpleNamespace(
@@ -58,34 +63,20 @@ KIND_INTERFACE, KIND_OBJECT, KIND_IMAGE, KIND_WALL = 0, 1, 2, 3
 _EPS = {"float32": 2e-4, "float64": 2e-4}
 
 
-def float_type(precision: Precision) -> type:
-    """Dr.Jit float type of the ray state."""
+def float_type(precision: Precision, variant: str | None = None) -> type:
+    """Dr.Jit float type of the ray state in ``variant`` (default ``choose("mono")``; the variant is set)."""
     if precision not in ("float32", "float64"):
         raise ScopetwinError(f"precision must be 'float32' or 'float64', got {precision!r}")
-    return mi.Float64 if precision == "float64" else mi.Float
+    m = mitsuba(resolve(variant, "mono"))
+    return m.Float64 if precision == "float64" else m.Float
 
 
 # -- the integrator core -------------------------------------------------------------------------
-def _rkn_step(state: tuple[Any, ...], dt: Any, profile: RadialProfile, rr: float) -> tuple[Any, ...]:
-    """One SKG-RKN step of (x, y, tx, ty, opl, n2, k, alive); (n2, k) are carried from the step before."""
+def _rkn_state_step(state: tuple[Any, ...], dt: Any, profile: RadialProfile, rr: float) -> tuple[Any, ...]:
+    """The loop state (x, y, tx, ty, opl, n2, k, alive) after one :func:`scenes.grin.rkn.rkn_step` on Dr.Jit arrays."""
     x, y, tx, ty, opl, n2, k, alive = state
-    ax, ay = dt * k * x, dt * k * y
-    x1 = x + dt * (0.5 * tx + 0.125 * ax)
-    y1 = y + dt * (0.5 * ty + 0.125 * ay)
-    n2_1, k1 = profile.sharma(x1 * x1 + y1 * y1, DR)
-    bx, by = dt * k1 * x1, dt * k1 * y1
-    x2 = x + dt * (tx + 0.5 * bx)
-    y2 = y + dt * (ty + 0.5 * by)
-    _, k2 = profile.sharma(x2 * x2 + y2 * y2, DR)
-    cx, cy = dt * k2 * x2, dt * k2 * y2
-    x = x + dt * (tx + (ax + 2.0 * bx) * (1.0 / 6.0))
-    y = y + dt * (ty + (ay + 2.0 * by) * (1.0 / 6.0))
-    tx = tx + (ax + 4.0 * bx + cx) * (1.0 / 6.0)
-    ty = ty + (ay + 4.0 * by + cy) * (1.0 / 6.0)
-    r2 = x * x + y * y
-    n2_new, k = profile.sharma(r2, DR)
-    opl = opl + dt * (1.0 / 6.0) * (n2 + 4.0 * n2_1 + n2_new)
-    return x, y, tx, ty, opl, n2_new, k, alive & (r2 <= rr)
+    x, y, tx, ty, opl, n2, k, r2 = rkn_step(x, y, tx, ty, opl, n2, k, dt, profile, DR)
+    return x, y, tx, ty, opl, n2, k, alive & (r2 <= rr)
 
 
 def rkn_rod_dr(
@@ -103,8 +94,9 @@ def rkn_rod_dr(
 ) -> tuple[Any, Any, Any, Any, Any, Any]:
     """Sharma-Kumar-Ghatak RKN through one rod in a ``dr.while_loop`` (seed §7.5.1 profile).
 
-    Same equations and arguments as :func:`scenes.grin.rkn.rkn_rod`; the arrays are Dr.Jit arrays of
-    any float type (float32 or float64 state). Returns (x, y, tx, ty, opl, alive) on the exit face.
+    Same equations and arguments as :func:`scenes.grin.rkn.rkn_rod`, and the same step: the loop body calls
+    :func:`scenes.grin.rkn.rkn_step` with the Dr.Jit namespace. The arrays are Dr.Jit arrays of any float type
+    (float32 or float64 state). Returns (x, y, tx, ty, opl, alive) on the exit face.
 
     ``interleave`` > 1 splits the rays into that many groups advanced side by side in one loop body.
     One RKN step is a long chain of dependent operations, so a SIMD packet waits on latency; independent
@@ -150,13 +142,13 @@ def rkn_rod_dr(
     def body(i: Any, *rest: Any) -> tuple[Any, ...]:
         out: list[Any] = [i + 1]
         for g in range(groups):
-            out += _rkn_step(tuple(rest[8 * g : 8 * g + 8]), dts[g], profile, rr)
+            out += _rkn_state_step(tuple(rest[8 * g : 8 * g + 8]), dts[g], profile, rr)
         return tuple(out)
 
     final = dr.while_loop(state=tuple(state), cond=cond, body=body)
     res = [[final[1 + 8 * g + j] for j in (0, 1, 2, 3, 4, 7)] for g in range(groups)]
     if groups == 1:
-        return tuple(res[0])  # type: ignore[return-value]
+        return tuple(res[0])
     dr.eval(*[v for r in res for v in r])
     idx = dr.arange(UInt, n)
     g_of = idx // size
@@ -167,7 +159,7 @@ def rkn_rod_dr(
         for g in range(1, groups):
             v = dr.select(g_of == g, dr.gather(type(res[g][j]), res[g][j], local), v)
         merged.append(v)
-    return tuple(merged)  # type: ignore[return-value]
+    return tuple(merged)
 
 
 # -- the scene -------------------------------------------------------------------------------------
@@ -212,6 +204,8 @@ class GrinScene:
         A Mitsuba sensor dictionary to put in the scene (the pupil sensor for images).
     integrator : dict, optional
         A Mitsuba integrator dictionary.
+    variant : str, optional
+        The Mitsuba variant the scene is built and traced in (default ``choose("mono")``, resolved now).
     """
 
     def __init__(
@@ -221,8 +215,12 @@ class GrinScene:
         step_mm: float | None = None,
         sensor: dict[str, Any] | None = None,
         integrator: dict[str, Any] | None = None,
+        variant: str | None = None,
     ) -> None:
-        use("mono")  # another module may have switched this thread's variant since import
+        self.variant = resolve(variant, "mono")
+        mitsuba(self.variant)
+        if sensor is not None or integrator is not None:
+            register(self.variant)
         self.setup = setup
         self.stack = stack
         self.axes = np.array(setup.array.axes(), dtype=np.float64)
@@ -234,6 +232,7 @@ class GrinScene:
         for i, layer in enumerate(layers):
             if layer.rod is None:
                 continue
+            assert layer.profile is not None  # a rod layer carries its profile (build_stack)
             steps = rod_steps(layer.rod.length, step_mm or layer.rod.step_mm)
             self.rods.append(
                 _RodLayer(
@@ -251,7 +250,11 @@ class GrinScene:
         for b in range(len(layers) + 1):
             below = layers[b - 1] if b > 0 else None
             above = layers[b] if b < len(layers) else None
-            z = above.z0 if above is not None else below.z1
+            if above is not None:
+                z = above.z0
+            else:
+                assert below is not None  # b = len(layers) >= 1
+                z = below.z1
             kind = KIND_OBJECT if below is None else (KIND_IMAGE if above is None else KIND_INTERFACE)
             planes.append(
                 {
@@ -290,7 +293,7 @@ class GrinScene:
         size = int(ids.max()) + 1
         tab = {k: np.zeros(size) for k in ("z", "n_minus", "n_plus")}
         itab = {k: np.full(size, -1, dtype=np.int32) for k in ("rod_minus", "rod_plus")}
-        kind = np.full(size, KIND_WALL, dtype=np.int32)
+        kinds = np.full(size, KIND_WALL, dtype=np.int32)
         for sid, shape in zip(ids, self.scene.shapes(), strict=True):
             name = shape.id()
             if name.startswith("plane_"):
@@ -299,10 +302,10 @@ class GrinScene:
                     tab[key][sid] = p[key]
                 for key in itab:
                     itab[key][sid] = p[key]
-                kind[sid] = p["kind"]
+                kinds[sid] = p["kind"]
         self._tab_np = tab
         self._itab_np = itab
-        self._kind_np = kind
+        self._kind_np = kinds
         self.stop_z = stack.stop_z
         self.stop_radius = stack.stop_radius
         self.z_image = planes[-1]["z"]
@@ -312,7 +315,7 @@ class GrinScene:
     def tables(self, precision: Precision) -> dict[str, Any]:
         """Dr.Jit copies of the shape tables in the state's float type."""
         if precision not in self._tables:
-            F = float_type(precision)
+            F = float_type(precision, self.variant)
             t = {k: F(v) for k, v in self._tab_np.items()}
             t |= {k: mi.Int32(v) for k, v in self._itab_np.items()}
             t["kind"] = mi.Int32(self._kind_np)
@@ -373,7 +376,7 @@ class GrinScene:
         Returns a dict with ``x, y, z`` (hit point on the terminal plane), ``tx, ty, tz``, ``opl``,
         ``alive`` (reached a terminal plane unabsorbed) and ``kind`` (KIND_OBJECT / KIND_IMAGE).
         """
-        F = float_type(precision)
+        F = float_type(precision, self.variant)
         tab = self.tables(precision)
         px, py, pz = (F(v) for v in p)
         tx, ty, tz = (F(v) for v in t)
@@ -484,108 +487,130 @@ class GrinScene:
 
 
 # -- plugins -------------------------------------------------------------------------------------
-_SCENES: dict[str, dict[str, Any]] = {}
-_counter = itertools.count()
+def _integrator_class(mi: Any) -> type:
+    """The integrator class of ``scopetwin_grin`` for the variant of ``mi`` (Mitsuba classes are per variant)."""
+
+    class GrinIntegrator(mi.SamplingIntegrator):
+        """Integrator ``scopetwin_grin``: backward trace through the GRIN objective to the target (seed §8.5)."""
+
+        def __init__(self, props: mi.Properties) -> None:
+            super().__init__(props)
+            self.precision = props.get("precision", "float32")
+            #: (GrinScene, Target) of the render in progress, set by :func:`render_image` for the call only
+            self.context: tuple[GrinScene, Target] | None = None
+
+        def sample(
+            self,
+            scene: mi.Scene,
+            sampler: mi.Sampler,
+            ray: mi.RayDifferential3f,
+            medium: Any = None,
+            active: Any = True,
+        ) -> tuple[Any, Any, list]:
+            if self.context is None:
+                raise ScopetwinError("scopetwin_grin renders only through scenes.mitsuba.grin.render_image")
+            gs, target = self.context
+            res = gs.trace(
+                (ray.o.x, ray.o.y, ray.o.z),
+                (ray.d.x, ray.d.y, ray.d.z),
+                1.0,
+                self.precision,
+                active=active,
+                start="image",
+            )
+            ok = res["alive"] & (res["kind"] == KIND_OBJECT)
+            x, y = mi.Float(res["x"]), mi.Float(res["y"])
+            ax, ay = gs.nearest_axis(x, y)
+            value = target.transmission(x - ax, y - ay, DR)
+            return mi.Spectrum(dr.select(ok, value, 0.0)), mi.Bool(ok), []
+
+        def aov_names(self) -> list[str]:
+            return []
+
+        def to_string(self) -> str:
+            return f"GrinIntegrator[precision={self.precision}]"
+
+    return GrinIntegrator
 
 
-class GrinIntegrator(mi.SamplingIntegrator):
-    """Integrator ``scopetwin_grin``: backward trace through the GRIN objective to the target (seed §8.5)."""
+def _pupil_sensor_class(mi: Any) -> type:
+    """The sensor class of ``scopetwin_grin_pupil`` for the variant of ``mi``."""
 
-    def __init__(self, props: mi.Properties) -> None:
-        super().__init__(props)
-        self.key = props.get("key", "")
-        self.precision = props.get("precision", "float32")
+    class PupilSensor(mi.Sensor):
+        """Sensor ``scopetwin_grin_pupil``: bare image plane sampling the exit-pupil disk of the nearest objective.
 
-    def sample(
-        self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f, medium: Any = None, active: Any = True
-    ) -> tuple[Any, Any, list]:
-        ctx = _SCENES[self.key]
-        gs: GrinScene = ctx["grin"]
-        target: Target = ctx["target"]
-        res = gs.trace(
-            (ray.o.x, ray.o.y, ray.o.z), (ray.d.x, ray.d.y, ray.d.z), 1.0, self.precision, active=active, start="image"
-        )
-        ok = res["alive"] & (res["kind"] == KIND_OBJECT)
-        x, y = mi.Float(res["x"]), mi.Float(res["y"])
-        ax, ay = gs.nearest_axis(x, y)
-        value = target.transmission(x - ax, y - ay, DR)
-        return mi.Spectrum(dr.select(ok, value, 0.0)), mi.Bool(ok), []
+        Properties: ``z`` (image plane), ``z_pupil`` (plane of the pupil disk), ``pupil_radius``, ``pixel``
+        (pitch, mm), ``nx``, ``ny``, ``pitch`` (objective grid), ``x0``, ``y0`` (the grid's first axis), ``cx``, ``cy``
+        (image-plane point at the sensor's centre).
+        Pixel (row, col) covers u in [(col - W/2) p, (col + 1 - W/2) p] + cx, v from the top row down (DESIGN.md;
+        the convention of :class:`scenes.camera.PixelGrid`, whose ``uv_film`` maps the film samples).
+        """
 
-    def aov_names(self) -> list[str]:
-        return []
+        def __init__(self, props: mi.Properties) -> None:
+            super().__init__(props)
+            self.z = props.get("z", 0.0)
+            self.z_pupil = props.get("z_pupil", 0.0)
+            self.radius = props.get("pupil_radius", 1.0)
+            self.pixel = props.get("pixel", 0.0022)
+            self.center = (props.get("cx", 0.0), props.get("cy", 0.0))
+            self.grid = (
+                props.get("nx", 1),
+                props.get("ny", 1),
+                props.get("pitch", 1.0),
+                props.get("x0", 0.0),
+                props.get("y0", 0.0),
+            )
+            size = self.film().size()
+            #: the camera's pixel grid, centred on the image-plane point (cx, cy) (scenes.camera.PixelGrid)
+            self.pixel_grid = PixelGrid(int(size[0]), int(size[1]), self.pixel, self.center)
+            self.width_mm = self.pixel_grid.width_mm
+            self.height_mm = self.pixel_grid.height_mm
 
-    def to_string(self) -> str:
-        return f"GrinIntegrator[key={self.key}, precision={self.precision}]"
+        def _axis(self, u: Any, v: Any) -> tuple[Any, Any]:
+            nx, ny, pitch, x0, y0 = self.grid
+            ix = dr.clip(dr.round((u - x0) / pitch), 0, nx - 1)
+            iy = dr.clip(dr.round((v - y0) / pitch), 0, ny - 1)
+            return x0 + ix * pitch, y0 + iy * pitch
 
+        def sample_ray(
+            self, time: Any, sample1: Any, sample2: Any, sample3: Any, active: Any = True
+        ) -> tuple[Any, Any]:
+            u, v = self.pixel_grid.uv_film(sample2.x, sample2.y)
+            ax, ay = self._axis(u, v)
+            r = self.radius * dr.sqrt(sample3.x)
+            phi = 2.0 * dr.pi * sample3.y
+            q = mi.Point3f(u, v, self.z)
+            p = mi.Point3f(ax + r * dr.cos(phi), ay + r * dr.sin(phi), self.z_pupil)
+            d = p - q
+            dist2 = dr.squared_norm(d)
+            d = d * dr.rsqrt(dist2)
+            cos2 = d.z * d.z
+            weight = dr.pi * self.radius * self.radius * cos2 / dist2
+            return mi.Ray3f(q, d, time, []), mi.Spectrum(weight)
 
-class PupilSensor(mi.Sensor):
-    """Sensor ``scopetwin_grin_pupil``: bare image plane sampling the exit-pupil disk of the nearest objective.
+        def sample_ray_differential(
+            self, time: Any, sample1: Any, sample2: Any, sample3: Any, active: Any = True
+        ) -> tuple[Any, Any]:
+            ray, w = self.sample_ray(time, sample1, sample2, sample3, active)
+            return mi.RayDifferential3f(ray), w
 
-    Properties: ``z`` (image plane), ``z_pupil`` (plane of the pupil disk), ``pupil_radius``, ``pixel``
-    (pitch, mm), ``nx``, ``ny``, ``pitch`` (objective grid), ``x0``, ``y0`` (the grid's first axis), ``cx``, ``cy``
-    (image-plane point at the sensor's centre).
-    Pixel (row, col) covers u in [(col - W/2) p, (col + 1 - W/2) p], v from the top row down (DESIGN.md).
-    """
+        def bbox(self) -> mi.ScalarBoundingBox3f:
+            return mi.ScalarBoundingBox3f(
+                [-self.width_mm, -self.height_mm, self.z_pupil], [self.width_mm, self.height_mm, self.z]
+            )
 
-    def __init__(self, props: mi.Properties) -> None:
-        super().__init__(props)
-        self.z = props.get("z", 0.0)
-        self.z_pupil = props.get("z_pupil", 0.0)
-        self.radius = props.get("pupil_radius", 1.0)
-        self.pixel = props.get("pixel", 0.0022)
-        self.center = (props.get("cx", 0.0), props.get("cy", 0.0))
-        self.grid = (
-            props.get("nx", 1),
-            props.get("ny", 1),
-            props.get("pitch", 1.0),
-            props.get("x0", 0.0),
-            props.get("y0", 0.0),
-        )
-        size = self.film().size()
-        self.width_mm = size[0] * self.pixel
-        self.height_mm = size[1] * self.pixel
+        def to_string(self) -> str:
+            return f"PupilSensor[z={self.z}, z_pupil={self.z_pupil}, radius={self.radius}]"
 
-    def _axis(self, u: Any, v: Any) -> tuple[Any, Any]:
-        nx, ny, pitch, x0, y0 = self.grid
-        ix = dr.clip(dr.round((u - x0) / pitch), 0, nx - 1)
-        iy = dr.clip(dr.round((v - y0) / pitch), 0, ny - 1)
-        return x0 + ix * pitch, y0 + iy * pitch
-
-    def sample_ray(self, time: Any, sample1: Any, sample2: Any, sample3: Any, active: Any = True) -> tuple[Any, Any]:
-        u = self.center[0] + (sample2.x - 0.5) * self.width_mm
-        v = self.center[1] + (0.5 - sample2.y) * self.height_mm
-        ax, ay = self._axis(u, v)
-        r = self.radius * dr.sqrt(sample3.x)
-        phi = 2.0 * dr.pi * sample3.y
-        q = mi.Point3f(u, v, self.z)
-        p = mi.Point3f(ax + r * dr.cos(phi), ay + r * dr.sin(phi), self.z_pupil)
-        d = p - q
-        dist2 = dr.squared_norm(d)
-        d = d * dr.rsqrt(dist2)
-        cos2 = d.z * d.z
-        weight = dr.pi * self.radius * self.radius * cos2 / dist2
-        return mi.Ray3f(q, d, time, []), mi.Spectrum(weight)
-
-    def sample_ray_differential(
-        self, time: Any, sample1: Any, sample2: Any, sample3: Any, active: Any = True
-    ) -> tuple[Any, Any]:
-        ray, w = self.sample_ray(time, sample1, sample2, sample3, active)
-        return mi.RayDifferential3f(ray), w
-
-    def bbox(self) -> mi.ScalarBoundingBox3f:
-        return mi.ScalarBoundingBox3f(
-            [-self.width_mm, -self.height_mm, self.z_pupil], [self.width_mm, self.height_mm, self.z]
-        )
-
-    def to_string(self) -> str:
-        return f"PupilSensor[z={self.z}, z_pupil={self.z_pupil}, radius={self.radius}]"
+    return PupilSensor
 
 
-def register() -> None:
-    """Register ``scopetwin_grin`` and ``scopetwin_grin_pupil`` with Mitsuba (idempotent, per thread/variant)."""
-    use("mono")  # another renderer may have switched this thread's variant since import
-    register_plugin("integrator", "scopetwin_grin", lambda _mi: GrinIntegrator)
-    register_plugin("sensor", "scopetwin_grin_pupil", lambda _mi: PupilSensor)
+def register(variant: str | None = None) -> None:
+    """Register ``scopetwin_grin`` and ``scopetwin_grin_pupil`` for ``variant`` (default ``choose("mono")``) in this
+    thread; idempotent per thread and variant."""
+    variant = resolve(variant, "mono")
+    register_plugin("integrator", "scopetwin_grin", _integrator_class, variant)
+    register_plugin("sensor", "scopetwin_grin_pupil", _pupil_sensor_class, variant)
 
 
 # -- high-level uses ------------------------------------------------------------------------------
@@ -598,14 +623,16 @@ def trace_forward(
     ty0: np.ndarray,
     precision: Precision = "float64",
     step_mm: float | None = None,
+    variant: str | None = None,
 ) -> dict[str, np.ndarray]:
     """Rays from object points (z = 0, in the cover glass) to the image plane through the Mitsuba scene.
 
     Object points and results are relative to the first objective's axis (``setup.array.axes()[0]``).
+    ``variant``: the Mitsuba variant (default ``choose("mono")``).
 
     Returns numpy arrays ``x, y`` on the image plane, ``tx, ty``, ``opl`` and ``alive``.
     """
-    gs = GrinScene(setup, stack, step_mm)
+    gs = GrinScene(setup, stack, step_mm, variant=variant)
     ax, ay = setup.array.axes()[0]
     n0 = stack.layers[0].index
     tz = np.sqrt(n0 * n0 - tx0**2 - ty0**2)
@@ -628,6 +655,7 @@ def render_image(
     step_mm: float = 0.9,
     center: tuple[float, float] | None = None,
     seed: int = 0,
+    variant: str | None = None,
 ) -> np.ndarray:
     """Image of ``target`` through the objective array onto the camera (irradiance, float32, row 0 at the top).
 
@@ -637,19 +665,20 @@ def render_image(
     pixel; 0.17 % of the rays at NA 0.45 change fate at the rod wall (the wall is tested at the step points).
     ``center``: the point of the image plane (mm) at the middle of the sensor; default the array's centre
     (the whole demonstrator image, Fig. 8.16); pass an objective's axis for a one-objective window.
+    ``variant``: the Mitsuba variant (default ``choose("mono")``, resolved now).
     """
-    register()
+    variant = resolve(variant, "mono")
     width = width or setup.camera.width_px
     height = height or setup.camera.height_px
-    key = f"grin-{next(_counter)}"
     arr = setup.array
     last_rod = [layer for layer in stack.layers if layer.rod is not None][-1]
+    assert last_rod.rod is not None
     sensor = {
         "type": "scopetwin_grin_pupil",
         "z": stack.layers[-1].z1,
         "z_pupil": last_rod.z1,
         "pupil_radius": last_rod.rod.radius,
-        "pixel": setup.camera.pixel_um * 1e-3,
+        "pixel": setup.camera.pitch_mm,
         "nx": arr.nx,
         "ny": arr.ny,
         "pitch": arr.pitch,
@@ -667,19 +696,25 @@ def render_image(
         },
         "sampler": {"type": "independent", "sample_count": spp, "seed": seed},
     }
-    integrator = {"type": "scopetwin_grin", "key": key, "precision": precision}
-    gs = GrinScene(setup, stack, step_mm, sensor=sensor, integrator=integrator)
-    _SCENES[key] = {"grin": gs, "target": target}
+    integrator = {"type": "scopetwin_grin", "precision": precision}
+    gs = GrinScene(setup, stack, step_mm, sensor=sensor, integrator=integrator, variant=variant)
+    integ = gs.scene.integrator()
+    integ.context = (gs, target)  # for this render only: the integrator must not keep the scene alive
     try:
         img = mi.render(gs.scene, spp=spp)
         out = np.array(img, dtype=np.float32)[..., 0]
     finally:
-        _SCENES.pop(key, None)
+        integ.context = None
     return out
 
 
 def illuminate(
-    setup: GrinSetup, n_rays: int = 1_000_000, grid: int = 101, precision: Precision = "float32", seed: int = 0
+    setup: GrinSetup,
+    n_rays: int = 1_000_000,
+    grid: int = 101,
+    precision: Precision = "float32",
+    seed: int = 0,
+    variant: str | None = None,
 ) -> dict[str, Any]:
     """Light-trace the §7.5.3 illumination path: irradiance map at the object plane and energy efficiency.
 
@@ -711,7 +746,7 @@ def illuminate(
     single = setup.model_copy(
         update={"array": ArraySpec(nx=1, ny=1, pitch=setup.array.pitch, substrate_side=setup.array.substrate_side)}
     )
-    gs = GrinScene(single, stack)
+    gs = GrinScene(single, stack, variant=variant)
     sampler = mi.load_dict({"type": "independent", "seed": seed})
     sampler.seed(seed, n_rays)
     pos = sampler.next_2d()

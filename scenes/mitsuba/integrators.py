@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from scenes.mitsuba.variant import register_plugin, use
+from scenes.mitsuba.variant import register_plugin, resolve
 
 PLUGIN = "scopetwin_mirror"
 
@@ -27,21 +27,13 @@ PLUGIN = "scopetwin_mirror"
 DEFAULT_EPS = 1e-3
 
 
-def _mi():
-    """The mitsuba module with a variant set (``mono`` unless one was chosen already)."""
-    import mitsuba as mi
-
-    return mi if mi.variant() else use("mono")
-
-
-def integrator_dict(eps: float = DEFAULT_EPS) -> dict[str, Any]:
-    """Scene-dictionary entry of the mirror integrator."""
-    _mi()
-    register()
+def integrator_dict(eps: float = DEFAULT_EPS, variant: str | None = None) -> dict[str, Any]:
+    """Scene-dictionary entry of the mirror integrator (registered for ``variant``, default ``choose("mono")``)."""
+    register(variant)
     return {"type": PLUGIN, "eps": float(eps)}
 
 
-def _make_class(mi) -> type:
+def _make_class(mi: Any) -> type:
     import drjit as dr
 
     class MirrorIntegrator(mi.SamplingIntegrator):
@@ -92,7 +84,6 @@ def _make_class(mi) -> type:
     return MirrorIntegrator
 
 
-def register() -> None:
-    """Register ``scopetwin_mirror`` for the current variant in this thread (idempotent)."""
-    _mi()
-    register_plugin("integrator", PLUGIN, _make_class)
+def register(variant: str | None = None) -> None:
+    """Register ``scopetwin_mirror`` for ``variant`` (default ``choose("mono")``) in this thread (idempotent)."""
+    register_plugin("integrator", PLUGIN, _make_class, resolve(variant, "mono"))

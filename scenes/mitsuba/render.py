@@ -5,8 +5,9 @@ or in a perfect mirror renders as the pattern radiance (1.0 by default); row 0 i
 top image row and pixel (row, col) integrates [col, col+1) x [row, row+1) with a box
 filter (the physical pixel), sampled by ``multijitter``.
 
-Loaded scenes are cached per thread (the last few setups / height maps), so rendering
-the same scene again with another seed or spp costs only the render itself.
+Loaded scenes are cached per thread (the last few setups / height maps, per variant), so rendering
+the same scene again with another seed or spp costs only the render itself. Every function takes the
+Mitsuba ``variant`` explicitly (default ``choose("mono")``, resolved at call time) and sets it for the call.
 
 Pixels that provably see nothing are not traced: :func:`live_window` bounds the image of
 everything that can send light to the camera (the substrate's ROI, the mirror, the pattern
@@ -24,7 +25,7 @@ from numpy.typing import NDArray
 
 from scenes.errors import SetupError
 from scenes.mitsuba.scene import Window, scene_dict
-from scenes.mitsuba.variant import use
+from scenes.mitsuba.variant import mitsuba, resolve
 from scenes.setup import Setup
 from scenes.surface import HeightMap
 
@@ -102,25 +103,7 @@ def live_window(setup: Setup, heights: HeightMap | None = None) -> Window | None
     return (r0, r1, c0, c1)
 
 
-def _mono() -> Any:
-    """``use("mono")``, remembered per thread.
-
-    :func:`scenes.mitsuba.variant.use` searches the file system for the LLVM and CUDA libraries on
-    every call (~70 ms, two calls per render: most of a render's fixed cost); the variant it set is
-    kept here and ``use`` is asked again only when the thread's variant has changed since.
-    """
-    name = getattr(_local, "variant", None)
-    if name is not None:
-        import mitsuba as mi
-
-        if mi.variant() == name:
-            return mi
-    mi = use("mono")
-    _local.variant = mi.variant()
-    return mi
-
-
-def build_scene(setup: Setup, heights: HeightMap | None = None) -> dict:
+def build_scene(setup: Setup, heights: HeightMap | None = None, variant: str | None = None) -> dict:
     """The Mitsuba scene dictionary of a setup (see :func:`scenes.mitsuba.scene.scene_dict`).
 
     Raises
@@ -128,28 +111,32 @@ def build_scene(setup: Setup, heights: HeightMap | None = None) -> dict:
     SetupError
         ``heights`` missing for a deflectometry setup.
     """
-    return scene_dict(setup, heights)
+    return scene_dict(setup, heights, variant=variant)
 
 
-def _scene_key(setup: Setup, window: Window | None) -> str:
+def _scene_key(setup: Setup, window: Window | None, variant: str) -> str:
     data = setup.model_dump(mode="json", exclude={"render", "sensor", "name", "description", "section"})
-    return repr((data, None if window is None else tuple(int(w) for w in window)))
+    return repr((variant, data, None if window is None else tuple(int(w) for w in window)))
 
 
-def load_scene(setup: Setup, heights: HeightMap | None = None, window: Window | None = None) -> Any:
-    """The loaded ``mitsuba.Scene`` of a setup, cached per thread (keyed by setup and height-map identity)."""
-    _mono()
+def load_scene(
+    setup: Setup, heights: HeightMap | None = None, window: Window | None = None, variant: str | None = None
+) -> Any:
+    """The loaded ``mitsuba.Scene`` of a setup, cached per thread (keyed by variant, setup and height-map identity).
+
+    ``variant``: the Mitsuba variant (default ``choose("mono")``).
+    """
+    variant = resolve(variant, "mono")
+    mi = mitsuba(variant)
     if setup.scene == "deflectometry" and heights is None:
         raise SetupError("a deflectometry render needs the substrate's height map (heights=HeightMap(...))")
-    key = _scene_key(setup, window)
+    key = _scene_key(setup, window, variant)
     cache: list[tuple[str, Any, Any]] = getattr(_local, "scenes", None) or []
     _local.scenes = cache
     for k, h, scene in cache:
         if k == key and (setup.scene != "deflectometry" or h is heights):
             return scene
-    import mitsuba as mi
-
-    scene = mi.load_dict(scene_dict(setup, heights, window=window))
+    scene = mi.load_dict(scene_dict(setup, heights, window=window, variant=variant))
     cache.append((key, heights if setup.scene == "deflectometry" else None, scene))
     del cache[:-_CACHE_SIZE]
     return scene
@@ -161,32 +148,39 @@ def render_window(
     spp: int | None = None,
     seed: int | None = None,
     window: Window | None = None,
+    variant: str | None = None,
 ) -> NDArray[np.float32]:
     """Render a crop (row0, row1, col0, col1) of the image (default: all of it), float32 (rows, cols).
 
     The pixels are exactly those of the full image (same rays, same box filter); the
-    sample pattern differs from a full render with the same seed.
+    sample pattern differs from a full render with the same seed. ``variant``: the Mitsuba
+    variant (default ``choose("mono")``).
     """
     import drjit as dr
 
+    variant = resolve(variant, "mono")
     spp = int(spp or setup.render.spp)
     seed = int(setup.render.seed if seed is None else seed)
-    scene = load_scene(setup, heights, window)
-    image = scene_render(scene, spp, seed)
+    scene = load_scene(setup, heights, window, variant)
+    image = scene_render(scene, spp, seed, variant)
     dr.sync_thread()
     return image
 
 
-def scene_render(scene: Any, spp: int, seed: int) -> NDArray[np.float32]:
-    """Render a loaded scene; the single luminance channel as float32 (rows, cols)."""
-    mi = _mono()
+def scene_render(scene: Any, spp: int, seed: int, variant: str | None = None) -> NDArray[np.float32]:
+    """Render a loaded scene (built in ``variant``, default ``choose("mono")``); luminance as float32 (rows, cols)."""
+    mi = mitsuba(resolve(variant, "mono"))
     img = mi.render(scene, spp=int(spp), seed=int(seed))
     arr = np.asarray(img, dtype=np.float32)
     return np.ascontiguousarray(arr[..., 0] if arr.ndim == 3 else arr)
 
 
 def render_setup(
-    setup: Setup, heights: HeightMap | None = None, spp: int | None = None, seed: int | None = None
+    setup: Setup,
+    heights: HeightMap | None = None,
+    spp: int | None = None,
+    seed: int | None = None,
+    variant: str | None = None,
 ) -> NDArray[np.float32]:
     """Render a setup: linear irradiance, float32 (ny, nx), row 0 = top image row.
 
@@ -198,6 +192,8 @@ def render_setup(
         The substrate's height map over its extents; required for ``deflectometry``.
     spp, seed : int, optional
         Samples per pixel and sampler seed (default ``setup.render``).
+    variant : str, optional
+        Mitsuba variant (default ``choose("mono")``, resolved now).
 
     Raises
     ------
@@ -207,8 +203,8 @@ def render_setup(
     cam = setup.camera_model
     window = live_window(setup, heights) if (setup.scene != "deflectometry" or heights is not None) else None
     if window is None:
-        return render_window(setup, heights, spp, seed, None)
+        return render_window(setup, heights, spp, seed, None, variant)
     r0, r1, c0, c1 = window
     image = np.zeros((cam.ny, cam.nx), dtype=np.float32)
-    image[r0:r1, c0:c1] = render_window(setup, heights, spp, seed, window)
+    image[r0:r1, c0:c1] = render_window(setup, heights, spp, seed, window, variant)
     return image

@@ -25,7 +25,7 @@ from scenes.errors import SetupError
 from scenes.mitsuba.integrators import DEFAULT_EPS, integrator_dict
 from scenes.mitsuba.sensors import sensor_dict
 from scenes.mitsuba.shapes import DEFAULT_VERTICES, MIRROR_BSDF, substrate_shapes
-from scenes.mitsuba.variant import use
+from scenes.mitsuba.variant import mitsuba, resolve
 from scenes.pattern import MarkerPattern
 from scenes.setup import Setup
 from scenes.surface import HeightMap
@@ -38,12 +38,6 @@ Window = tuple[int, int, int, int]  # row0, row1, col0, col1 (half-open), as sce
 _texture_cache: dict[tuple[str, float], NDArray[np.float32]] = {}
 _texture_lock = threading.Lock()
 _TEXTURE_CACHE_SIZE = 4
-
-
-def _mi():
-    import mitsuba as mi
-
-    return mi if mi.variant() else use("mono")
 
 
 def marker_texture(pattern: MarkerPattern, texel: float = TEXEL) -> NDArray[np.float32]:
@@ -101,12 +95,13 @@ def pattern_to_world(pattern: MarkerPattern) -> NDArray[np.float64]:
     return m
 
 
-def pattern_dict(setup: Setup, texel: float = TEXEL) -> dict[str, Any]:
+def pattern_dict(setup: Setup, texel: float = TEXEL, variant: str | None = None) -> dict[str, Any]:
     """The pattern (or calibration target): a rectangle carrying an area emitter with the marker raster.
 
-    The area emitter emits on the side of the pattern's N_z only.
+    The area emitter emits on the side of the pattern's N_z only. ``variant``: the Mitsuba variant
+    (default ``choose("mono")``).
     """
-    mi = _mi()
+    mi = mitsuba(resolve(variant, "mono"))
     tex = pattern_texture(setup, texel)
     return {
         "type": "rectangle",
@@ -125,9 +120,12 @@ def pattern_dict(setup: Setup, texel: float = TEXEL) -> dict[str, Any]:
     }
 
 
-def mirror_dict(size: tuple[float, float]) -> dict[str, Any]:
-    """A perfect flat mirror of ``size`` (x, y) mm in the plane z = 0, centred on the origin (§2.7.2)."""
-    mi = _mi()
+def mirror_dict(size: tuple[float, float], variant: str | None = None) -> dict[str, Any]:
+    """A perfect flat mirror of ``size`` (x, y) mm in the plane z = 0, centred on the origin (§2.7.2).
+
+    ``variant``: the Mitsuba variant (default ``choose("mono")``).
+    """
+    mi = mitsuba(resolve(variant, "mono"))
     m = np.diag([0.5 * float(size[0]), 0.5 * float(size[1]), 1.0, 1.0])
     return {"type": "rectangle", "to_world": mi.ScalarTransform4f(m), "bsdf": dict(MIRROR_BSDF)}
 
@@ -141,6 +139,7 @@ def scene_dict(
     eps: float = DEFAULT_EPS,
     vertices: tuple[int, int] = DEFAULT_VERTICES,
     texel: float = TEXEL,
+    variant: str | None = None,
 ) -> dict[str, Any]:
     """The Mitsuba scene dictionary of a setup.
 
@@ -160,13 +159,15 @@ def scene_dict(
         Heightfield vertex counts over the whole substrate.
     texel : float
         Pattern texel size, mm.
+    variant : str, optional
+        Mitsuba variant the dictionary's objects are built in (default ``choose("mono")``).
 
     Raises
     ------
     SetupError
         A deflectometry setup without ``heights``, or a window outside the image.
     """
-    _mi()
+    variant = resolve(variant, "mono")
     cam = setup.camera_model
     if window is not None:
         r0, r1, c0, c1 = window
@@ -176,17 +177,17 @@ def scene_dict(
     seed = int(setup.render.seed if seed is None else seed)
     scene: dict[str, Any] = {
         "type": "scene",
-        "integrator": integrator_dict(eps),
-        "sensor": sensor_dict(cam, spp, seed, window),
-        "pattern": pattern_dict(setup, texel),
+        "integrator": integrator_dict(eps, variant),
+        "sensor": sensor_dict(cam, spp, seed, window, variant),
+        "pattern": pattern_dict(setup, texel, variant),
     }
     if setup.scene == "deflectometry":
         if heights is None:
             raise SetupError("a deflectometry render needs the substrate's height map (heights=HeightMap(...))")
         sub = setup.substrate
         assert sub is not None  # guaranteed by Setup validation
-        scene.update(substrate_shapes(heights, sub.size, sub.roi_length, vertices))
+        scene.update(substrate_shapes(heights, sub.size, sub.roi_length, vertices, variant))
     elif setup.scene == "mirror":
         assert setup.mirror is not None  # guaranteed by Setup validation
-        scene["mirror"] = mirror_dict(setup.mirror.size)
+        scene["mirror"] = mirror_dict(setup.mirror.size, variant)
     return scene

@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.camera import Camera
-from scenes.mitsuba.variant import register_plugin, use
+from scenes.camera import Camera, PixelGrid
+from scenes.mitsuba.variant import mitsuba, register_plugin, resolve
 
 PLUGIN = "scopetwin_camera"
 
@@ -63,7 +63,11 @@ def film_dict(camera: Camera, window: tuple[int, int, int, int] | None = None) -
 
 
 def sensor_dict(
-    camera: Camera, spp: int, seed: int = 0, window: tuple[int, int, int, int] | None = None
+    camera: Camera,
+    spp: int,
+    seed: int = 0,
+    window: tuple[int, int, int, int] | None = None,
+    variant: str | None = None,
 ) -> dict[str, Any]:
     """Scene-dictionary entry of the thesis camera (plugin ``scopetwin_camera``).
 
@@ -77,10 +81,14 @@ def sensor_dict(
         Sampler seed.
     window : (row0, row1, col0, col1), optional
         Crop window (half-open pixel ranges); default the whole image.
+    variant : str, optional
+        Mitsuba variant (default ``choose("mono")``).
     """
-    mi = _mi()
-    register()
+    variant = resolve(variant, "mono")
+    mi = mitsuba(variant)
+    register(variant)
     lens = camera.lens
+    focus = camera.focus_distance()  # None for a pinhole
     return {
         "type": PLUGIN,
         "to_world": mi.ScalarTransform4f(camera_to_world(camera)),
@@ -91,20 +99,13 @@ def sensor_dict(
         "c0": float(camera.c0),
         "c2": float(camera.c2),
         "aperture_radius": float(lens.aperture_radius) if lens is not None else 0.0,
-        "focus_distance": float(camera.focus_distance()) if lens is not None else 1.0,
+        "focus_distance": float(focus) if focus is not None else 1.0,
         "film": film_dict(camera, window),
         "sampler": {"type": "multijitter", "sample_count": int(spp), "seed": int(seed)},
     }
 
 
-def _mi():
-    """The mitsuba module with a variant set (``mono`` unless one was chosen already)."""
-    import mitsuba as mi
-
-    return mi if mi.variant() else use("mono")
-
-
-def _make_class(mi) -> type:
+def _make_class(mi: Any) -> type:
     """Define the sensor class for the current variant (Mitsuba classes are per variant)."""
     import drjit as dr
 
@@ -138,8 +139,8 @@ def _make_class(mi) -> type:
             offset = film.crop_offset()
             x_px = dr.fma(film_sample.x, float(crop[0]), float(offset[0]))
             y_px = dr.fma(film_sample.y, float(crop[1]), float(offset[1]))
-            u_d = (x_px - 0.5 * float(size[0])) * self.pitch + self.x_cs
-            v_d = (0.5 * float(size[1]) - y_px) * self.pitch + self.y_cs
+            # the pixel grid's convention (scenes.camera.PixelGrid), on the opaque pitch and r_cs
+            u_d, v_d = PixelGrid.map_uv(x_px, y_px, float(size[0]), float(size[1]), self.pitch, (self.x_cs, self.y_cs))
             s = dr.sqrt(dr.fma(u_d, u_d, v_d * v_d))
             rho = 2.0 * s / (self.c0 + dr.sqrt(dr.fma(4.0 * self.c2, s, self.c0 * self.c0)))
             k = dr.rcp(dr.fma(self.c2, rho, self.c0))
@@ -182,10 +183,9 @@ def _make_class(mi) -> type:
     return ThesisCamera
 
 
-def register() -> None:
-    """Register ``scopetwin_camera`` for the current variant in this thread (idempotent).
+def register(variant: str | None = None) -> None:
+    """Register ``scopetwin_camera`` for ``variant`` (default ``choose("mono")``) in this thread (idempotent).
 
     Mitsuba's Python plugin registry is per thread and per variant (NOTES-rendering.md).
     """
-    _mi()
-    register_plugin("sensor", PLUGIN, _make_class)
+    register_plugin("sensor", PLUGIN, _make_class, resolve(variant, "mono"))

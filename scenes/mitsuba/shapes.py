@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scenes.errors import SetupError
-from scenes.mitsuba.variant import use
+from scenes.mitsuba.variant import mitsuba, resolve
 from scenes.surface import HeightMap
 
 #: Vertex counts (x, y) of the mesh over the whole substrate (NOTES-rendering.md: enough for §1.10).
@@ -32,13 +32,6 @@ DEFAULT_VERTICES = (256, 512)
 MIRROR_BSDF: dict[str, Any] = {"type": "conductor", "material": "none"}
 #: Black: reflects nothing.
 BLACK_BSDF: dict[str, Any] = {"type": "diffuse", "reflectance": {"type": "uniform", "value": 0.0}}
-
-
-def _mi():
-    """The mitsuba module with a variant set (``mono`` unless one was chosen already)."""
-    import mitsuba as mi
-
-    return mi if mi.variant() else use("mono")
 
 
 def grid_arrays(
@@ -89,12 +82,14 @@ def heightfield_mesh(
     ny: int,
     name: str = "heightfield",
     bsdf: dict[str, Any] | None = None,
+    variant: str | None = None,
 ) -> Any:
     """A ``mitsuba.Mesh`` of the surface over a rectangle, with analytic vertex normals.
 
-    ``bsdf`` is a scene-dictionary BSDF (default: a perfect mirror, :data:`MIRROR_BSDF`).
+    ``bsdf`` is a scene-dictionary BSDF (default: a perfect mirror, :data:`MIRROR_BSDF`); ``variant`` the
+    Mitsuba variant (default ``choose("mono")``).
     """
-    mi = _mi()
+    mi = mitsuba(resolve(variant, "mono"))
     positions, normals, faces = grid_arrays(heights, x_range, y_range, nx, ny)
     props = mi.Properties()
     props["bsdf"] = mi.load_dict(bsdf if bsdf is not None else MIRROR_BSDF)
@@ -108,7 +103,11 @@ def heightfield_mesh(
 
 
 def substrate_shapes(
-    heights: HeightMap, size: tuple[float, float], roi_length: float, vertices: tuple[int, int] = DEFAULT_VERTICES
+    heights: HeightMap,
+    size: tuple[float, float],
+    roi_length: float,
+    vertices: tuple[int, int] = DEFAULT_VERTICES,
+    variant: str | None = None,
 ) -> dict[str, Any]:
     """Scene-dictionary entries of the substrate: the mirroring ROI and the black frame regions.
 
@@ -122,6 +121,8 @@ def substrate_shapes(
         Length of the region of interest along y, mm; |y| >= roi_length/2 is holding frame.
     vertices : (int, int)
         Vertex counts (x, y) the whole substrate would have; every part keeps this spacing.
+    variant : str, optional
+        Mitsuba variant (default ``choose("mono")``).
 
     Returns
     -------
@@ -131,16 +132,25 @@ def substrate_shapes(
     """
     if not isinstance(heights, HeightMap):
         raise SetupError(f"the substrate's heights must be a scenes.surface.HeightMap, got {type(heights).__name__}")
+    variant = resolve(variant, "mono")
     sx, sy = (float(s) for s in size)
     nx, ny = vertices
     dy = sy / (ny - 1)
     half_roi = 0.5 * float(roi_length)
     xr = (-0.5 * sx, 0.5 * sx)
     n_roi = max(2, math.ceil(2 * half_roi / dy) + 1)
-    out = {"substrate_roi": heightfield_mesh(heights, xr, (-half_roi, half_roi), nx, n_roi, "substrate_roi")}
+    out = {
+        "substrate_roi": heightfield_mesh(
+            heights, xr, (-half_roi, half_roi), nx, n_roi, "substrate_roi", variant=variant
+        )
+    }
     strip = 0.5 * sy - half_roi
     if strip > 1e-9:
         n_strip = max(2, math.ceil(strip / dy) + 1)
-        out["frame_low"] = heightfield_mesh(heights, xr, (-0.5 * sy, -half_roi), nx, n_strip, "frame_low", BLACK_BSDF)
-        out["frame_high"] = heightfield_mesh(heights, xr, (half_roi, 0.5 * sy), nx, n_strip, "frame_high", BLACK_BSDF)
+        out["frame_low"] = heightfield_mesh(
+            heights, xr, (-0.5 * sy, -half_roi), nx, n_strip, "frame_low", BLACK_BSDF, variant
+        )
+        out["frame_high"] = heightfield_mesh(
+            heights, xr, (half_roi, 0.5 * sy), nx, n_strip, "frame_high", BLACK_BSDF, variant
+        )
     return out

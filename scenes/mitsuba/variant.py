@@ -1,5 +1,9 @@
 """The one place where scopetwin chooses and sets the Mitsuba variant.
 
+Nothing sets a variant at import time: every builder and renderer of :mod:`scenes.mitsuba` takes a
+``variant`` argument (default :func:`choose` of its kind, resolved at call time by :func:`resolve`) and
+sets it for the call with :func:`mitsuba`; plugins are registered per variant by :func:`register_plugin`.
+
 Order of choice: the environment variable ``SCOPETWIN_MI_VARIANT`` if set;
 otherwise ``cuda_ad_*`` when a CUDA device is usable, else ``llvm_ad_*``
 (``mono`` for the monochrome setups, ``spectral`` for the spectral microscope).
@@ -13,8 +17,10 @@ import ctypes.util
 import functools
 import glob
 import os
+import sys
 import threading
-from typing import Literal
+from collections.abc import Callable
+from typing import Any, Literal
 
 from scenes.errors import ScopetwinError
 
@@ -63,8 +69,33 @@ def choose(kind: Kind = "mono") -> str:
     return f"{backend}_ad_{kind}"
 
 
-def use(kind: Kind = "mono"):
-    """Set the variant for ``kind`` (in this thread) and return the ``mitsuba`` module.
+def resolve(variant: str | None, kind: Kind = "mono") -> str:
+    """The variant a builder or renderer runs in: ``variant`` if given, else :func:`choose` (resolved now)."""
+    return variant if variant else choose(kind)
+
+
+def unavailable(variant: str) -> str | None:
+    """Why ``variant`` cannot run on this machine (what to install), or None when it can; sets no variant."""
+    if variant.startswith("llvm") and _llvm_library() is None:
+        return (
+            "Mitsuba's llvm variants need a shared LLVM library >= 16 and none was found: "
+            "install it with `apt-get install -y libllvm19` (or set DRJIT_LIBLLVM_PATH)"
+        )
+    try:
+        import mitsuba as mi
+    except ImportError as exc:  # pragma: no cover - mitsuba is a hard dependency
+        return f"mitsuba is not installed: {exc}"
+    if variant not in mi.variants():
+        return f"Mitsuba variant {variant!r} is not available; have {mi.variants()}"
+    return None
+
+
+def mitsuba(variant: str) -> Any:
+    """Set ``variant`` in this thread (if it is not set already) and return the ``mitsuba`` module.
+
+    The one helper every builder and renderer of :mod:`scenes.mitsuba` calls with its explicit variant; nothing
+    relies on whatever variant happens to be current. A ``cuda_*`` variant that cannot start (no usable GPU)
+    falls back to the matching ``llvm_*`` one.
 
     Raises
     ------
@@ -72,31 +103,22 @@ def use(kind: Kind = "mono"):
         If Mitsuba is not installed, the variant is unknown, or the LLVM
         library is missing (the message names the package to install).
     """
-    name = choose(kind)
-    import sys
-
     mi_loaded = sys.modules.get("mitsuba")
-    if mi_loaded is not None and mi_loaded.variant() == name:
+    if mi_loaded is not None and mi_loaded.variant() == variant:
         return mi_loaded
-    if name.startswith("llvm") and _llvm_library() is None:
-        raise MitsubaUnavailable(
-            "Mitsuba's llvm variants need a shared LLVM library >= 16 and none was found: "
-            "install it with `apt-get install -y libllvm19` (or set DRJIT_LIBLLVM_PATH)"
-        )
-    try:
-        import mitsuba as mi
-    except ImportError as exc:  # pragma: no cover - mitsuba is a hard dependency
-        raise MitsubaUnavailable(f"mitsuba is not installed: {exc}") from exc
+    name = variant
+    reason = unavailable(name)
+    if reason is not None:
+        raise MitsubaUnavailable(reason)
+    import mitsuba as mi
+
     with _lock:
         if mi.variant() != name:
-            if name not in mi.variants():
-                raise MitsubaUnavailable(f"Mitsuba variant {name!r} is not available; have {mi.variants()}")
             if name.startswith("cuda"):
                 try:
                     mi.set_variant(name)
                 except Exception:  # no usable GPU after all: fall back to LLVM
-                    name = name.replace("cuda", "llvm", 1)
-                    mi.set_variant(name)
+                    mi.set_variant(name.replace("cuda", "llvm", 1))
             else:
                 mi.set_variant(name)
     return mi
@@ -104,7 +126,6 @@ def use(kind: Kind = "mono"):
 
 def set_thread_count(n: int) -> None:
     """Number of Dr.Jit worker threads of the LLVM backend (one per Dask worker process on a local cluster)."""
-    use("mono")
     import drjit as dr
 
     dr.set_thread_count(int(n))
@@ -114,15 +135,14 @@ _plugin_classes: dict[tuple[str, str], type] = {}
 _plugin_done = threading.local()
 
 
-def register_plugin(kind: str, name: str, make_class) -> None:
-    """Register the Python plugin ``name`` of ``kind`` (``integrator``, ``sensor``, ``bsdf``, ...) once.
+def register_plugin(kind: str, name: str, make_class: Callable[[Any], type], variant: str) -> None:
+    """Register the Python plugin ``name`` of ``kind`` (``integrator``, ``sensor``, ``bsdf``, ...) for ``variant``.
 
-    Mitsuba's Python plugin registry is per thread and per variant (NOTES-rendering.md), so the
-    registration is remembered per thread and variant; the plugin class, built by ``make_class(mi)``
-    against the current variant's base classes, is built once per variant.
+    Sets ``variant`` in this thread (:func:`mitsuba`). Mitsuba's Python plugin registry is per thread and per
+    variant (NOTES-rendering.md), so the registration is remembered per thread and variant; the plugin class,
+    built by ``make_class(mi)`` against that variant's base classes, is built once per variant.
     """
-    import mitsuba as mi
-
+    mi = mitsuba(variant)
     key = (mi.variant(), name)
     done = getattr(_plugin_done, "keys", None)
     if done is None:

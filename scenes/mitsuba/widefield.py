@@ -22,6 +22,9 @@ is sharp only where the focus follows it, which is what the seed's focus map
 Geometric optics only (no diffraction): a 10x/0.45 objective's Airy radius
 (~0.7 µm at 520 nm) is about one object-side pixel, so the blur of any
 defocus beyond ~1.5 µm is dominated by the geometric disc modelled here.
+The objective's numbers and formulas are those of :class:`scenes.objective.Objective`
+(the model the focus map uses too); the frame's pixel grid is a :class:`scenes.camera.PixelGrid`
+in the object plane.
 """
 
 from __future__ import annotations
@@ -36,8 +39,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from scenes.camera import PixelGrid
 from scenes.errors import SetupError
-from scenes.mitsuba.variant import use
+from scenes.mitsuba.variant import mitsuba, resolve
+from scenes.objective import Objective
 
 HeightFunction = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
 
@@ -102,10 +107,10 @@ class WidefieldOptics:
         Samples per pixel.
     """
 
-    magnification: float = 10.0
-    na: float = 0.45
+    magnification: float = Objective.magnification
+    na: float = Objective.na
     working_distance_mm: float = 2.0
-    pixel_pitch_mm: float = 0.00645
+    pixel_pitch_mm: float = Objective.pixel_pitch_um * 1e-3
     pixels: tuple[int, int] = (256, 256)
     focus_ref_um: float = 200.0
     feature_um: float = 1.0
@@ -123,23 +128,39 @@ class WidefieldOptics:
             raise SetupError("widefield frame needs at least 8x8 pixels, pixel pitch > 0 and spp >= 1")
 
     @property
+    def objective(self) -> Objective:
+        """The objective model (:class:`scenes.objective.Objective`) of these optics."""
+        return Objective(
+            magnification=self.magnification,
+            na=self.na,
+            pixel_pitch_um=self.pixel_pitch_mm * 1e3,
+            sensor_px=(int(self.pixels[0]), int(self.pixels[1])),
+        )
+
+    @property
     def object_pixel_mm(self) -> float:
-        """Pixel size in the object plane, mm."""
+        """Pixel size in the object plane, mm (the pitch e / M in mm, as given)."""
         return self.pixel_pitch_mm / self.magnification
+
+    @property
+    def object_grid(self) -> PixelGrid:
+        """The frame's pixel grid in the object plane (pitch :attr:`object_pixel_mm`, centred on the axis)."""
+        return PixelGrid(int(self.pixels[0]), int(self.pixels[1]), self.object_pixel_mm)
 
     @property
     def field_mm(self) -> tuple[float, float]:
         """Field of view ``(x, y)`` in the object plane, mm."""
-        return self.pixels[0] * self.object_pixel_mm, self.pixels[1] * self.object_pixel_mm
+        grid = self.object_grid
+        return grid.width_mm, grid.height_mm
 
     @property
     def aperture_radius_mm(self) -> float:
         """Thin-lens aperture radius giving the numerical aperture at the working distance."""
-        return self.working_distance_mm * math.tan(math.asin(self.na))
+        return self.objective.aperture_radius_mm(self.working_distance_mm)
 
     def blur_radius_mm(self, defocus_mm: float) -> float:
         """Radius of the geometric blur disc of a point ``defocus_mm`` away from the plane in focus."""
-        return abs(defocus_mm) * math.tan(math.asin(self.na))
+        return self.objective.blur_radius_mm(defocus_mm)
 
     def focal_plane_z_mm(self, focus_um: float) -> float:
         """Height of the plane in focus for a focus-drive position (µm)."""
@@ -185,13 +206,14 @@ def tile_scene_dict(
     optics: WidefieldOptics,
     radiance_scale: float = 1.0,
     seed: int = 0,
+    variant: str | None = None,
 ) -> dict[str, Any]:
     """The Mitsuba scene dictionary of one tile (sample patch around the stage position + thin-lens camera).
 
     Coordinates are the objective's: the optical axis is the z axis, and the sample
-    point ``stage_xy_mm`` lies on it.
+    point ``stage_xy_mm`` lies on it. ``variant``: the Mitsuba variant (default ``choose("mono")``).
     """
-    mi = use("mono")
+    mi = mitsuba(resolve(variant, "mono"))
     sx, sy = (float(v) for v in stage_xy_mm)
     half = patch_half_size_mm(optics)
     n_vert = max(4, int(math.ceil(2 * half / optics.mesh_step_mm)) + 1)
@@ -271,6 +293,7 @@ def render_tile(
     optics: WidefieldOptics | None = None,
     radiance_scale: float = 1.0,
     seed: int = 0,
+    variant: str | None = None,
 ) -> NDArray[np.float32]:
     """Render one widefield frame: linear irradiance, float32 (rows, cols), row 0 = top.
 
@@ -288,12 +311,15 @@ def render_tile(
         Multiplies the sample's radiance (excitation light level).
     seed : int
         Sampler seed.
+    variant : str, optional
+        Mitsuba variant (default ``choose("mono")``, resolved now).
     """
     import drjit as dr
 
+    variant = resolve(variant, "mono")
     optics = optics or WidefieldOptics()
-    mi = use("mono")
-    scene = mi.load_dict(tile_scene_dict(height_mm, stage_xy_mm, focus_um, optics, radiance_scale, seed))
+    mi = mitsuba(variant)
+    scene = mi.load_dict(tile_scene_dict(height_mm, stage_xy_mm, focus_um, optics, radiance_scale, seed, variant))
     image = np.asarray(mi.render(scene, spp=int(optics.spp), seed=int(seed)), dtype=np.float32)
     dr.sync_thread()
     return np.ascontiguousarray(image[..., 0] if image.ndim == 3 else image)

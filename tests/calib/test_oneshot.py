@@ -15,9 +15,8 @@ from calib.oneshot import (
     calibrate,
     calibrate_bias_corrected,
     linear_approximation,
-    spot_bias_model,
-    spot_centroids,
 )
+from recon.bias import spot_bias_model, spot_centroids
 from scenes.camera import Camera, pose_parameters
 
 ROUND_OFF_MM = 1e-9  # float64 round-off on ~200 mm (the seed's Tables 2.2/2.3 reach 1e-13 mm)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.oneshot import Prior, spot_bias_model
+from calib.oneshot import Prior
 from calib.setup_calibration import (
     calibrate_setup,
     compose,
@@ -14,6 +14,7 @@ from calib.setup_calibration import (
     virtual_coordinates,
     write_setup_toml,
 )
+from recon.bias import spot_bias_model
 from scenes.geometry import Frame
 from scenes.setup import load_setup
 from sim.truth import marker_truth

@@ -3,8 +3,12 @@
 Each suite is mixed into a concrete test class that provides two fixtures:
 ``device`` (an initialised device) and ``io_count`` (a callable returning how
 much I/O has happened so far: bytes an emulator received, or operations a
-simulated world logged). The same tests run against the simulated device and
-the driver talking to its emulator through a pseudo-terminal.
+simulated world logged). The trigger suite also needs ``trigger_events``: a
+callable returning the trigger events the world or the emulator recorded so far,
+as ``(kind, line)`` pairs (``("global-trigger", -1)``, ``("camera-pulse", 3)``).
+The same tests run against the simulated device and the driver talking to its
+emulator through a pseudo-terminal. Every test asserts something that fails when
+the device does nothing.
 """
 
 from __future__ import annotations
@@ -147,10 +151,15 @@ class ShutterSuite:
 class TriggerSuite:
     """The trigger controller: camera lines and the global trigger."""
 
-    def test_fire_and_pulse(self, device):
+    def test_fire_and_pulse(self, device, trigger_events):
+        before = len(trigger_events())
         device.configure_camera_line(0, True, 0.001)
         device.fire()
         device.trigger_camera(3)
+        new = trigger_events()[before:]
+        assert ("global-trigger", -1) in new and ("camera-pulse", 3) in new
+        assert new.index(("global-trigger", -1)) < new.index(("camera-pulse", 3))  # in the order sent
+        assert ("camera-pulse", 2) not in new  # only the line asked for
 
     @pytest.mark.parametrize("line", [-1, 4, 1.5])
     def test_bad_line_sends_nothing(self, device, io_count, line):

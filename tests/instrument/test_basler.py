@@ -12,7 +12,7 @@ from instrument_suites import CameraSuite  # noqa: E402
 from instrument.drivers.basler import BaslerCamera  # noqa: E402
 from instrument.simulated.renderers import FlatTextureRenderer  # noqa: E402
 from instrument.simulated.world import WorldState  # noqa: E402
-from scenes.sensor import EmvaSensor  # noqa: E402
+from scenes.emva1288 import EmvaSensor  # noqa: E402
 
 
 class _CountingProxy:

@@ -119,6 +119,13 @@ class TestSimTrigger(SimIo, TriggerSuite):
     def device(self, world):
         yield from _initialized(SimTrigger("trigger", world))
 
+    @pytest.fixture
+    def trigger_events(self, world):
+        def events():
+            return [(k, int(n) if n else -1) for k, n in world.events if k in ("global-trigger", "camera-pulse")]
+
+        return events
+
 
 class TestFpgaTriggerOnEmulator(EmulatorIo, TriggerSuite):
     @pytest.fixture
@@ -128,6 +135,19 @@ class TestFpgaTriggerOnEmulator(EmulatorIo, TriggerSuite):
     @pytest.fixture
     def device(self, wire):
         yield from _initialized(FpgaTrigger("trigger", FpgaBoard(wire[1])))
+
+    @pytest.fixture
+    def trigger_events(self, wire):
+        def events():
+            out = []
+            for _, kind, line in wire[0].events:
+                if kind == "global-trigger":
+                    out.append((kind, -1))
+                elif kind == "camera-pulse":
+                    out.append((kind, line))
+            return out
+
+        return events
 
     def test_global_trigger_pulses_listening_lines(self, device, wire):
         device.configure_camera_line(1, True, 0.002)

@@ -114,10 +114,10 @@ def test_fuzz_pi_decoders(raw_lines):
 
 
 @settings(max_examples=300, deadline=None)
-@given(st.binary(max_size=40))
-def test_fuzz_jena_decoder(raw):
+@given(st.binary(max_size=40), st.sampled_from(sorted(jena_piezo.DIALECTS)))
+def test_fuzz_jena_decoder(raw, model):
     try:
-        value = jena_piezo.decode_reply(raw)
+        value = jena_piezo.decode_reply(raw, jena_piezo.DIALECTS[model])
     except DOCUMENTED:
         return
     assert isinstance(value, float)
@@ -126,7 +126,7 @@ def test_fuzz_jena_decoder(raw):
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=64))
 def test_fuzz_fpga_decoders(raw):
-    for decode in (fpga.decode_frame, fpga.split_frames, lambda b: fpga.decode_light_config(b, 0.1)):
+    for decode in (fpga.decode_packet, fpga.split_packets, lambda b: fpga.decode_light_config(b, 0.1)):
         try:
             decode(raw)
         except DOCUMENTED:
@@ -139,9 +139,9 @@ def test_light_config_roundtrip(index, use, duration_us, listen, delay_us):
     cfg = LightConfig(index * 0.1, duration_us * 1e-6, use, listen, delay_us * 1e-6)
     payload = fpga.encode_light_config(cfg, 0.1)
     assert len(payload) == 12  # Table 4.2: 12 bytes follow the length byte
-    frame = fpga.Frame(fpga.WRITE, fpga.LIGHT_CONFIG, payload).encode()
+    frame = fpga.Packet(fpga.WRITE, fpga.LIGHT_CONFIG, payload).encode()
     assert frame[:3] == bytes([0x01, 0x10, 12])
-    back = fpga.decode_light_config(fpga.decode_frame(frame).payload, 0.1)
+    back = fpga.decode_light_config(fpga.decode_packet(frame).payload, 0.1)
     assert back.use_duration == use and back.listen_global_trigger == listen
     assert round(back.current_ma / 0.1) == index
     assert round(back.duration_s * 1e6) == duration_us and round(back.global_trigger_delay_s * 1e6) == delay_us
@@ -185,7 +185,7 @@ def test_fuzz_drivers_on_random_replies(raw):
         lambda: controller.axis_values("POS?", "1"),
         controller.motion_mask,
         controller.error_code,
-        focus._read_value,
+        focus._read_raw,
     ):
         try:
             call()

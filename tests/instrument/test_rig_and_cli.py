@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from instrument import open_rig
-from instrument.cli import register
 from instrument.errors import RigError
 from instrument.rig import load_rig
 from scenes.io import read_image
+from sim.cli.rig import register
 
 RIGS = Path(__file__).resolve().parents[2] / "rigs"
 
@@ -134,7 +134,7 @@ def test_cli_move_position_info_acquire(texture_rig, tmp_path, capsys):
 def test_micro_manager_mda_runs_on_simulated_rig(texture_rig):
     useq = pytest.importorskip("useq", reason="useq-schema (optional extra 'mm') is not installed")
     pytest.importorskip("pymmcore_plus", reason="pymmcore-plus (optional extra 'mm') is not installed")
-    from instrument.mm import load_into_core
+    from instrument.micromanager import load_into_core
 
     with open_rig(texture_rig) as rig:
         rig.light().configure(current_ma=350.0)

@@ -1,4 +1,4 @@
-"""`scopetwin markers IMAGE.exr --pattern SETUP [--json PATH] [--overlay PNG]` (recon.markers_cli)."""
+"""`scopetwin markers IMAGE.exr --pattern SETUP [--json PATH] [--overlay PNG]` (sim.cli.markers)."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
-from recon.markers_cli import register
 from scenes.analytic import render
 from scenes.io import write_image
 from scenes.setup import load_setup
 from sim.cli import main as scopetwin_main
+from sim.cli.markers import register
 from sim.truth import marker_truth
 
 SETUP_TOML = """base = "thesis-2.8.1-angular"

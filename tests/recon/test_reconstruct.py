@@ -143,7 +143,7 @@ def test_basis_scale_is_chosen_from_the_data_on_a_rough_surface() -> None:
 def _cli(argv: list[str]) -> dict:
     import argparse
 
-    from recon.reconstruct_cli import register
+    from sim.cli.reconstruct import register
 
     parser = argparse.ArgumentParser(prog="scopetwin")
     register(parser.add_subparsers(dest="command", required=True))
@@ -204,3 +204,34 @@ def test_misindexed_markers_are_an_error_not_a_tilted_map(tilt, tmp_path: Path) 
             SETUP, MarkerObservations(shifted.ij[keep], shifted.px[keep]), config=FAST, history_path=tmp_path / "h.json"
         )
     assert json.loads((tmp_path / "h.json").read_text())["converged"] is True
+
+
+def test_one_secant_intersection_for_height_maps_fitted_surfaces_and_functions() -> None:
+    """scenes.surface.secant_intersection (seed §1.6.4) serves the truth tracer and the reconstruction alike."""
+    from recon.reconstruct import Substrate2D, intersect_surface
+    from recon.shifted_basis import SBFSurface
+    from scenes.surface import Substrate, secant_intersection
+
+    sub = SETUP.substrate
+    basis = ReconstructionConfig.realtime().make_basis(Substrate2D.from_setup(SETUP))
+    rng = np.random.default_rng(3)
+    fitted = SBFSurface(basis, rng.normal(0.0, 2e-3, basis.n_terms), 0.01)
+    cam = SETUP.camera_model
+    origins, dirs = cam.rays(rng.uniform([0.2 * cam.nx, 0.2 * cam.ny], [0.8 * cam.nx, 0.8 * cam.ny], (500, 2)))
+    lam, ok = intersect_surface(fitted, origins, dirs)
+    assert ok.mean() > 0.9
+    hit = origins[ok] + lam[ok, None] * dirs[ok]
+    assert np.max(np.abs(fitted.height(hit[:, 0], hit[:, 1]) - hit[:, 2])) < 1e-10
+    # the same surface as a plain function, started as the holding-frame model starts (ray origin, base plane)
+    lam_f, ok_f = secant_intersection(
+        lambda x, y: fitted.height(x, y), origins, dirs, np.zeros(len(origins)), -origins[:, 2] / dirs[:, 2]
+    )
+    assert ok_f[ok].all() and np.max(np.abs(lam_f[ok] - lam[ok])) < 1e-8
+    # and sampled into a height map: the substrate model's intersection finds the same points
+    heights = fitted.heightmap(
+        (-0.5 * sub.size[0], 0.5 * sub.size[0]), (-0.5 * sub.size[1], 0.5 * sub.size[1]), 256, 512
+    )
+    lam_h, ok_h = Substrate(heights, sub.size[0], sub.size[1], sub.roi_length).intersect(origins, dirs)
+    on = (np.abs((origins + lam[:, None] * dirs)[:, :2]) < 0.5 * np.array(sub.size) - 0.5).all(axis=1)
+    both = ok & ok_h & on  # a height map continues constantly beyond its extents, the fitted surface does not
+    assert both.mean() > 0.5 and np.max(np.abs(lam_h[both] - lam[both])) < 1e-4

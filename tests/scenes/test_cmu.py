@@ -12,12 +12,12 @@ from scenes.cmu.analysis import (
     channel_optics,
     image_rays,
     perpendicular_optics,
-    pupil_grid,
     wavefront_psf,
 )
 from scenes.cmu.layout import load_cmu_setup
 from scenes.cmu.plates import bow_radius, fused_silica_index, plate_heightmap
 from scenes.errors import SetupError
+from scenes.spots import pupil_disk
 from scenes.surface import HeightMap
 
 
@@ -161,7 +161,7 @@ def test_wavefront_psf_limits(setup) -> None:
     assert defocused["strehl"] < 0.2
 
 
-def test_pupil_grid_uniform() -> None:
-    px, py = pupil_grid(40)
+def test_pupil_disk_uniform() -> None:
+    px, py = pupil_disk(40)
     assert np.all(px**2 + py**2 <= 1.0)
     assert np.mean(px**2 + py**2) == pytest.approx(0.5, rel=0.02)

@@ -1,4 +1,4 @@
-"""``optics cmu`` (sim.cmu_cli): the JSON contract of DESIGN.md and the user errors."""
+"""``optics cmu`` (sim.cli.optics): the JSON contract of DESIGN.md and the user errors."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import json
 import pytest
 
 from scenes.errors import ScopetwinError
-from sim.cmu_cli import cmd_cmu, register_cmu
+from sim.cli import main
+from sim.cli.optics import cmd_cmu, register_cmu
 
 
 def _parse(argv: list[str]) -> argparse.Namespace:
@@ -21,7 +22,7 @@ def _parse(argv: list[str]) -> argparse.Namespace:
 
 def test_json_contract(tmp_path) -> None:
     out = tmp_path / "cmu.json"
-    assert cmd_cmu(_parse(["--json", str(out)])) == 0
+    assert main(["optics", "cmu", "--json", str(out)]) == 0
     data = json.loads(out.read_text())
     assert set(data["channels"]) == {"blue", "green", "red", "nir"}
     for ch in data["channels"].values():

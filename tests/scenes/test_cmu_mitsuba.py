@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 from calib.channels import measure_channel, relative_pose
-from scenes.cmu.analysis import CHANNEL_WAVELENGTH_NM, Optics, analyse, channel_optics, image_rays, pupil_grid
+from scenes.cmu.analysis import CHANNEL_WAVELENGTH_NM, Optics, analyse, channel_optics, image_rays
 from scenes.cmu.layout import load_cmu_setup
 from scenes.cmu.plates import plate_heightmap
 from scenes.cmu.trace import Rays, System
+from scenes.spots import pupil_disk
 
 pytestmark = pytest.mark.mitsuba
 WINDOW = (90, 266, 860, 860)  # rows 90..949, cols 266..1125: the whole 775 px frame at m = 10
@@ -69,7 +70,7 @@ def test_rendered_bowed_channel_matches_numpy_tracer(mc, setup) -> None:
 
 def _reversed_tracer_rays(opt, b: float, x0: float, y0: float, n_pupil: int):
     """The float64 tracer's rays of object point (x0, y0), reversed at the image plane b: (origins, directions)."""
-    r = image_rays(opt, x0, y0, *pupil_grid(n_pupil))
+    r = image_rays(opt, x0, y0, *pupil_disk(n_pupil))
     u, v = r.at(b)
     fr = opt.tube.frame
     o = fr.origin + u[:, None] * fr.tx + v[:, None] * fr.ty + b * fr.nz

@@ -14,7 +14,9 @@ N0, G = 1.62893, 0.3074745
 
 def _dr_rkn(x, y, tx, ty, tz, profile, length, steps, radius=10.0):
     grin = pytest.importorskip("scenes.mitsuba.grin")
-    F = grin.mi.Float64
+    from scenes.mitsuba.variant import choose, mitsuba
+
+    F = mitsuba(choose("mono")).Float64  # the variant is chosen here, not by importing the renderer
     out = grin.rkn_rod_dr(F(x), F(y), F(tx), F(ty), F(tz), profile, length, steps, radius)
     return tuple(np.asarray(v, dtype=np.float64) for v in out[:5])
 

@@ -1,4 +1,4 @@
-"""sim.dataset: config validation before work, per-sample determinism, truth, verify and resume (issue 9)."""
+"""sim.datasets: config validation before work, per-sample determinism, truth, verify and resume (issue 9)."""
 
 from __future__ import annotations
 
@@ -14,19 +14,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_dataset_common import write_tiny  # noqa: E402
 
 from sim.cli import main as scopetwin_main
-from sim.dataset import (  # noqa: E402
-    MANIFEST,
-    SAMPLES,
-    DatasetError,
-    Plan,
-    config_from_dict,
-    draw_parameters,
-    generate,
-    load_config,
-    load_plan,
-    recover,
-    verify,
-)
+from sim.datasets.config import DatasetError, config_from_dict, load_config  # noqa: E402
+from sim.datasets.plan import Plan  # noqa: E402
+from sim.datasets.seeding import draw_parameters  # noqa: E402
+from sim.datasets.store import MANIFEST, SAMPLES, generate, load_plan, recover, verify  # noqa: E402
 
 pytestmark = pytest.mark.mitsuba
 

@@ -1,4 +1,4 @@
-"""sim.dataset, sample kind 'cmu' (issue 9, seed Part II): config checks before work, per-sample determinism,
+"""sim.datasets, sample kind 'cmu' (issue 9, seed Part II): config checks before work, per-sample determinism,
 and truth: calib.channels recovers each camera's known magnification, frame centre and tilt from the images.
 
 The unit is the thesis-cmu preset with a 160 x 144 px sensor and a Siemens star scaled to a 0.075 mm frame
@@ -15,16 +15,10 @@ import numpy as np
 import pytest
 
 from sim.cli import main as scopetwin_main
-from sim.dataset import (
-    SAMPLES,
-    DatasetError,
-    Plan,
-    config_from_dict,
-    draw_parameters,
-    generate,
-    load_config,
-    verify,
-)
+from sim.datasets.config import DatasetError, config_from_dict, load_config
+from sim.datasets.plan import Plan
+from sim.datasets.seeding import draw_parameters
+from sim.datasets.store import SAMPLES, generate, verify
 
 pytestmark = pytest.mark.mitsuba
 

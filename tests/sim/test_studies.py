@@ -7,9 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from sim import studies
 from sim.cli import main as scopetwin_main
-from sim.studies import Row, StudyContext, StudyError, StudyResult, Table, ratio, require, run_study, table_markdown
+from sim.studies import runner
+from sim.studies.context import StudyContext, StudyError, StudyResult, require
+from sim.studies.runner import run_study
+from sim.studies.tables import Row, Table, ratio, table_markdown
+from sim.studies.tasks import calibration_view_task
 
 
 def test_ratio_and_table_rows():
@@ -30,7 +33,7 @@ def test_missing_capability_is_named_and_nothing_is_written(tmp_path, monkeypatc
     def needs_missing(ctx):
         require("demo", {"calib.not_there_yet": "channel registration"})
 
-    monkeypatch.setitem(studies.STUDIES, "demo", needs_missing)
+    monkeypatch.setitem(runner.STUDIES, "demo", needs_missing)
     out = tmp_path / "demo"
     with pytest.raises(StudyError, match="channel registration"):
         run_study("demo", out, workers=0, progress=False)
@@ -53,7 +56,7 @@ def test_runner_writes_report_with_seed_ours_ratio(tmp_path, monkeypatch):
             "Demo", "intro", [Table("Table X", [Row("a", 2.0, values[1], "µm")])], summary={"values": values}
         )
 
-    monkeypatch.setitem(studies.STUDIES, "demo", demo)
+    monkeypatch.setitem(runner.STUDIES, "demo", demo)
     res = run_study("demo", tmp_path / "demo", workers=0, progress=False)
     report = (tmp_path / "demo" / "report.md").read_text()
     assert "| a [µm] | 2 | 9 | 4.5 |" in report
@@ -82,7 +85,7 @@ def test_calibration_view_task_recovers_the_camera(tmp_path):
         "vary": {"view_angle_deg": {"fixed": 60.0}, "view_distance": {"fixed": 233.24}},
     }
     root = ctx.dataset(cfg, "views")
-    row = studies.calibration_view_task(str(root / "samples" / "000000"))
+    row = calibration_view_task(str(root / "samples" / "000000"))
     assert row["markers"] == 99
     assert row["corrected_rms_px"] < 0.03
     assert row["corrected_rms_px"] <= row["raw_rms_px"] + 1e-3

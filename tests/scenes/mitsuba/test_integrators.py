@@ -12,23 +12,23 @@ pytestmark = pytest.mark.mitsuba
 WINDOW = (380, 650, 520, 840)
 
 
-def _render(setup, eps: float, window=WINDOW, spp: int = 4) -> np.ndarray:
+def _render(variant: str, setup, eps: float, window=WINDOW, spp: int = 4) -> np.ndarray:
     from scenes.mitsuba.render import scene_render
     from scenes.mitsuba.scene import scene_dict
-    from scenes.mitsuba.variant import use
+    from scenes.mitsuba.variant import mitsuba
 
-    mi = use("mono")
-    return scene_render(mi.load_dict(scene_dict(setup, window=window, eps=eps)), spp, 1)
+    mi = mitsuba(variant)
+    return scene_render(mi.load_dict(scene_dict(setup, window=window, eps=eps, variant=variant)), spp, 1, variant)
 
 
-def test_reflected_ray_offset_along_the_ray_moves_nothing():
+def test_reflected_ray_offset_along_the_ray_moves_nothing(mono_variant):
     """Starting the reflected ray 0.1 µm or 10 µm further along it gives the same image.
 
     (An offset along the normal, as in Mitsuba's spawn_ray, would move the reflected ray sideways.)
     """
     setup = load_setup("thesis-2.8.3-mirror")
-    near = _render(setup, 1e-4)
-    far = _render(setup, 1e-2)
+    near = _render(mono_variant, setup, 1e-4)
+    far = _render(mono_variant, setup, 1e-2)
     assert near.max() > 0.9
     assert np.abs(near - far).max() < 1e-4
 

@@ -114,15 +114,13 @@ def test_holding_frame_regions_are_black_as_in_the_analytic_model():
     assert diff.max() < 0.1  # pixels cut by the edge: 64 different samples each
 
 
-def test_thin_lens_in_focus_keeps_the_spots_in_place():
+def test_thin_lens_in_focus_keeps_the_spots_in_place(mono_variant):
     from scenes.mitsuba.render import render_window
-    from scenes.mitsuba.variant import use
 
     setup = load_setup("thesis-2.8.1-perpendicular", overrides={"camera": {"f_number": 4.0, "focus_distance": 233.24}})
     assert setup.camera_model.lens == ThinLens(25.0, 4.0, 233.24)
-    use("mono")
     window = (300, 560, 420, 840)
-    image = render_window(setup, spp=64, seed=2, window=window)
+    image = render_window(setup, spp=64, seed=2, window=window, variant=mono_variant)
     found = spot_centroids(image, window)
     err = match(found, setup.camera_model.project(setup.marker_pattern.centers()))
     assert len(err) >= 6

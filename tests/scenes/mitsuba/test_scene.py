@@ -28,13 +28,12 @@ def test_there_are_setup_presets():
 
 
 @pytest.mark.parametrize("name", SETUP_PRESETS)
-def test_scene_builds_for_every_setup_preset(name):
+def test_scene_builds_for_every_setup_preset(name, mi_mono, mono_variant):
     from scenes.mitsuba.render import build_scene
-    from scenes.mitsuba.variant import use
 
-    mi = use("mono")
+    mi = mi_mono
     setup = load_setup(name)
-    scene = mi.load_dict(build_scene(setup, _heights(setup)))
+    scene = mi.load_dict(build_scene(setup, _heights(setup), mono_variant))
     ids = {s.id() for s in scene.shapes()}
     expected = {
         "deflectometry": {"pattern", "substrate_roi", "frame_low", "frame_high"},

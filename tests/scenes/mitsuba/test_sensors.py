@@ -15,12 +15,12 @@ N_RAYS = 4000
 DIR_TOL = 3e-7
 
 
-def _sensor(camera, spp=4, window=None):
+def _sensor(variant, camera, spp=4, window=None):
     from scenes.mitsuba.sensors import sensor_dict
-    from scenes.mitsuba.variant import use
+    from scenes.mitsuba.variant import mitsuba
 
-    mi = use("mono")
-    return mi, mi.load_dict(sensor_dict(camera, spp, 0, window))
+    mi = mitsuba(variant)
+    return mi, mi.load_dict(sensor_dict(camera, spp, 0, window, variant))
 
 
 def _sample(mi, sensor, film_xy, aperture=None):
@@ -41,9 +41,9 @@ def _cameras():
 
 
 @pytest.mark.parametrize("name", list(_cameras()))
-def test_pinhole_rays_equal_camera_rays(name, rng):
+def test_pinhole_rays_equal_camera_rays(name, rng, mono_variant):
     cam = _cameras()[name]
-    mi, sensor = _sensor(cam)
+    mi, sensor = _sensor(mono_variant, cam)
     px = rng.uniform([0, 0], [cam.nx, cam.ny], size=(N_RAYS, 2))
     o, d, w = _sample(mi, sensor, px / [cam.nx, cam.ny])
     o_ref, d_ref = cam.rays(px)
@@ -55,10 +55,10 @@ def test_pinhole_rays_equal_camera_rays(name, rng):
     assert np.abs(back - px).max() < 2e-3
 
 
-def test_crop_window_maps_to_full_image_pixels(rng):
+def test_crop_window_maps_to_full_image_pixels(rng, mono_variant):
     cam = _cameras()["distortion"]
     window = (100, 164, 900, 1000)  # rows 100..163, cols 900..999
-    mi, sensor = _sensor(cam, window=window)
+    mi, sensor = _sensor(mono_variant, cam, window=window)
     r0, r1, c0, c1 = window
     px = rng.uniform([c0, r0], [c1, r1], size=(N_RAYS, 2))
     film_xy = (px - [c0, r0]) / [c1 - c0, r1 - r0]
@@ -66,9 +66,9 @@ def test_crop_window_maps_to_full_image_pixels(rng):
     assert np.abs(d - cam.rays(px)[1]).max() <= DIR_TOL
 
 
-def test_thin_lens_rays_equal_camera_lens_rays(rng):
+def test_thin_lens_rays_equal_camera_lens_rays(rng, mono_variant):
     cam = _cameras()["offset"].with_(lens=ThinLens(25.0, 2.8, 230.0), c2=0.00123)
-    mi, sensor = _sensor(cam)
+    mi, sensor = _sensor(mono_variant, cam)
     px = rng.uniform([0, 0], [cam.nx, cam.ny], size=(N_RAYS, 2))
     ap = rng.random((N_RAYS, 2))
     o, d, _ = _sample(mi, sensor, px / [cam.nx, cam.ny], ap)
@@ -81,12 +81,12 @@ def test_thin_lens_rays_equal_camera_lens_rays(rng):
     assert spread.max() > 0.9 * cam.lens.aperture_radius
 
 
-def test_to_world_convention_matches_mitsuba_perspective(rng):
+def test_to_world_convention_matches_mitsuba_perspective(rng, mono_variant):
     """Without offset and distortion the plugin and Mitsuba's own perspective sensor agree."""
     from scenes.mitsuba.sensors import camera_to_world, film_dict
 
     cam = _cameras()["angular"]
-    mi, sensor = _sensor(cam)
+    mi, sensor = _sensor(mono_variant, cam)
     fov = np.degrees(2 * np.arctan(cam.nx * cam.pitch / 2 / cam.b))
     persp = mi.load_dict(
         {

@@ -43,13 +43,12 @@ def test_grid_arrays_are_the_surface_with_analytic_normals():
     assert np.all(np.cross(b - a, c - a)[:, 2] > 0)
 
 
-def test_mesh_hits_and_shading_normals_follow_the_spline(rng):
+def test_mesh_hits_and_shading_normals_follow_the_spline(rng, mi_mono, mono_variant):
     from scenes.mitsuba.shapes import substrate_shapes
-    from scenes.mitsuba.variant import use
 
-    mi = use("mono")
+    mi = mi_mono
     h = _bow()
-    shapes = substrate_shapes(h, SIZE, ROI)
+    shapes = substrate_shapes(h, SIZE, ROI, variant=mono_variant)
     scene = mi.load_dict({"type": "scene", **shapes})
     xy = rng.uniform([-12.5, -28.4], [12.5, 28.4], size=(5000, 2))
     origin = np.concatenate([xy, np.full((len(xy), 1), 10.0)], axis=1)

@@ -1,0 +1,69 @@
+"""One-shot camera calibration from ONE image of a planar marker target (seed chapter 2).
+
+Two steps, as in the seed, each in a module named after its section:
+
+1. :mod:`calib.oneshot.linear` — :func:`linear_approximation` (§2.4): the affine model u = A x + B y + C,
+   v = D x + E y + F fitted by least squares, then principal point, magnification (complex square root,
+   eqs. 2.23-2.29, both equations), T_x, T_y, N_z (sign s chosen by the coarse N_z estimate), b from the thin-lens
+   equation, g, r_c and the tilt angle phi.
+2. :mod:`calib.oneshot.refinement` — :func:`refine` (§2.5): the reprojection error of the pinhole model of
+   :mod:`scenes.camera` (:mod:`calib.oneshot.reprojection`, §2.5.1-2.5.3) minimised over
+   p = (r_c, r_0, phi) [, b] [, r_cs, c0, c2] with :func:`scipy.optimize.least_squares` (Levenberg-Marquardt,
+   analytic Jacobian: the per-marker chain rule is written out, the 7-parameter frame map of §2.5.2 is
+   differentiated by complex step, which is exact to round-off), and the parameter covariance.
+
+:mod:`calib.oneshot.calibration` runs both (:func:`calibrate`); :mod:`calib.oneshot.bias_correction` alternates
+calibration and the centroid-bias correction of :mod:`recon.bias` (:func:`calibrate_bias_corrected` with
+:func:`recon.bias.spot_bias_model`);
+:mod:`calib.oneshot.camera_parameters` holds the a-priori values (:class:`Prior`, §2.1) and the derived camera
+parameters (§2.3). This package's namespace is that public API.
+
+Image distance b: ``lens="thin-lens"`` derives b = g f/(g - f) from the focal length as the seed does (§2.5.2);
+``lens="free"`` estimates b as a parameter (it is determined only when the target is seen obliquely: a face-on view
+fixes b/g alone); ``lens="fixed"`` keeps an a-priori b; ``lens="auto"`` is free when the view is oblique enough and
+thin-lens otherwise.
+
+All coordinates of the calibration are those of the TARGET (its local frame: markers at (x, y, 0), seed §2.2).
+Pixel coordinates are continuous (x_px, y_px) = (column, row) as in :mod:`scenes.camera`. Lengths in mm, angles in
+rad.
+"""
+
+from calib.oneshot.bias_correction import calibrate_bias_corrected
+from calib.oneshot.calibration import calibrate
+from calib.oneshot.camera_parameters import (
+    AUTO_FREE_TILT,
+    LENS_MODES,
+    MAX_SIGMA_B,
+    MIN_MARKERS,
+    PRIOR_NOISE_PX,
+    CalibrationError,
+    CalibrationWarning,
+    LensMode,
+    Prior,
+    axis_point,
+    camera_dict,
+    tilt_phi,
+)
+from calib.oneshot.linear import LinearResult, linear_approximation
+from calib.oneshot.refinement import Calibration, refine
+
+__all__ = [
+    "AUTO_FREE_TILT",
+    "LENS_MODES",
+    "MAX_SIGMA_B",
+    "MIN_MARKERS",
+    "PRIOR_NOISE_PX",
+    "Calibration",
+    "CalibrationError",
+    "CalibrationWarning",
+    "LensMode",
+    "LinearResult",
+    "Prior",
+    "axis_point",
+    "calibrate",
+    "calibrate_bias_corrected",
+    "camera_dict",
+    "linear_approximation",
+    "refine",
+    "tilt_phi",
+]

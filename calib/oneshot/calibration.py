@@ -1,0 +1,172 @@
+"""One-shot calibration: linear approximation (seed §2.4) then non-linear refinement (§2.5).
+
+:func:`calibrate` runs :func:`~calib.oneshot.linear.linear_approximation` and
+:func:`~calib.oneshot.refinement.refine`, checks the mirror-ambiguous pose (the other sign s of §2.4.2) and chooses
+how the image distance b is obtained (``lens``, see :mod:`calib.oneshot`).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from calib.oneshot.camera_parameters import (
+    AUTO_FREE_TILT,
+    LENS_MODES,
+    MAX_SIGMA_B,
+    PRIOR_NOISE_PX,
+    CalibrationError,
+    CalibrationWarning,
+    LensMode,
+    Prior,
+    axis_point,
+    check_points,
+    format_vector,
+    tilt_phi,
+)
+from calib.oneshot.linear import LinearResult, linear_approximation
+from calib.oneshot.refinement import Calibration, refine
+from scenes.camera import Camera
+
+
+def _start_of(camera: Camera, linear: LinearResult) -> LinearResult:
+    """A LinearResult-like start from another linear camera (the alternative sign)."""
+    r0, g = axis_point(camera.frame)
+    return LinearResult(
+        linear.coefficients,
+        linear.m_x,
+        linear.m_y,
+        linear.m,
+        -linear.sign,
+        camera,
+        r0,
+        g,
+        tilt_phi(camera.frame),
+        linear.camera,
+    )
+
+
+def calibrate(
+    xy: ArrayLike,
+    px: ArrayLike,
+    prior: Prior,
+    lens: LensMode = "auto",
+    distortion: bool = False,
+    b: float | None = None,
+    residual_warn_px: float = 1.0,
+) -> Calibration:
+    """One-shot calibration: linear approximation (§2.4) then non-linear refinement (§2.5).
+
+    Parameters
+    ----------
+    xy : array_like (n, 2)
+        Marker centres in target coordinates, mm (seed §2.2).
+    px : array_like (n, 2)
+        Their images, continuous pixel coordinates (col, row).
+    prior : Prior
+        A-priori values (seed §2.1).
+    lens : {"auto", "thin-lens", "free", "fixed"}
+        How the image distance b is obtained (module docstring).
+    distortion : bool
+        Refine r_cs, c0, c2 too (seed §2.5.1, §2.8.5).
+    b : float, optional
+        A-priori b for ``lens="fixed"``.
+    residual_warn_px : float
+        A final RMS residual above this adds a warning (wrong indexing, outliers).
+
+    Raises
+    ------
+    CalibrationError
+        Degenerate or hopeless input: too few or collinear markers, an edge-on or mirror-inverted
+        view, an N_z estimate pointing the wrong way, a free b from a (nearly) face-on view.
+    """
+    if lens not in LENS_MODES:
+        raise CalibrationError(f"lens mode must be one of {', '.join(LENS_MODES)}, got {lens!r}")
+    xy, px = check_points(xy, px)
+    b_lin = (b if b is not None else prior.image_distance) if lens == "fixed" else None
+    if lens == "fixed" and b_lin is None:
+        raise CalibrationError("lens mode 'fixed' needs an a-priori image distance b")
+    lin = linear_approximation(xy, px, prior, b_lin)
+    tilt = float(np.arccos(np.clip(lin.camera.frame.nz[2], -1, 1)))
+    notes: list[str] = []
+    if lin.m_disagreement > 0.05:
+        notes.append(
+            f"the two magnification equations of §2.4.2 disagree by {100 * lin.m_disagreement:.1f} %: "
+            "the linear start is poor"
+        )
+
+    def run(start: LinearResult | Calibration, how: str) -> Calibration:
+        return refine(xy, px, prior, start, how, distortion, b)
+
+    mode = "thin-lens" if lens == "auto" else lens
+    cal = run(lin, mode)
+    # the mirror-ambiguous pose (other sign s): keep the N_z estimate's choice unless the data clearly reject it
+    alt_nz = lin.alternative.frame.nz
+    est = np.asarray(prior.nz_estimate)
+    undecided = abs(est @ (lin.camera.frame.nz - alt_nz)) < 1e-3 * np.linalg.norm(lin.camera.frame.nz - alt_nz)
+    suspicious = cal.residual_rms_px > 2 * PRIOR_NOISE_PX or undecided
+    if suspicious and np.arccos(np.clip(alt_nz @ lin.camera.frame.nz, -1, 1)) > 1e-3:
+        try:
+            alt = run(_start_of(lin.alternative, lin), mode)
+        except CalibrationError:
+            alt = None
+        if alt is not None and not undecided and np.sum(alt.residual_px**2) < 0.25 * np.sum(cal.residual_px**2):
+            notes.append(
+                f"the N_z estimate {format_vector(prior.nz_estimate)} picked the mirror-ambiguous "
+                f"pose that fits worse (rms {cal.residual_rms_px:.3g} px against "
+                f"{alt.residual_rms_px:.3g} px); the better-fitting pose is used"
+            )
+            cal = alt
+        elif alt is not None and undecided and np.sum(alt.residual_px**2) < np.sum(cal.residual_px**2):
+            cal = alt
+        if undecided:
+            notes.append(
+                f"the N_z estimate {format_vector(est)} does not tell the two mirror-ambiguous poses "
+                "apart; the better-fitting one is used"
+            )
+    if lens == "free" and not (cal.sigma_b_prior is not None and cal.sigma_b_prior <= MAX_SIGMA_B):
+        raise CalibrationError(
+            f"the view is too close to face-on (tilt {np.rad2deg(tilt):.2f} deg) to estimate the image distance b: "
+            f"its standard deviation at {PRIOR_NOISE_PX} px centroid noise would be {cal.sigma_b_prior:.3g} mm "
+            f"(limit {MAX_SIGMA_B} mm); use the thin-lens or fixed mode"
+        )
+    if lens == "auto" and not distortion and tilt >= AUTO_FREE_TILT:
+        cal = _choose_lens(cal, run(cal, "free"))
+    if cal.residual_rms_px > residual_warn_px:
+        notes.append(
+            f"the residual is large ({cal.residual_rms_px:.3g} px rms): check the marker indexing and the "
+            "a-priori values"
+        )
+    for note in notes:
+        warnings.warn(note, CalibrationWarning, stacklevel=2)
+    return with_notes(cal, lin, notes)
+
+
+def _choose_lens(thin: Calibration, free: Calibration, z_limit: float = 3.0) -> Calibration:
+    """Thin-lens or free b (issue 4, item 5): free only where the data reject the thin-lens b.
+
+    A free b costs a lot of precision (b and g are strongly correlated), so the seed's thin-lens
+    b is kept unless it lies more than ``z_limit`` standard deviations of the free estimate away
+    from it, or the free b is not determined (``sigma_b_prior`` above :data:`MAX_SIGMA_B`).
+    """
+    sb = free.sigma["b"]
+    determined = free.sigma_b_prior is not None and free.sigma_b_prior <= MAX_SIGMA_B
+    z = abs(free.camera.b - thin.camera.b) / sb if sb > 0 else float("inf")
+    use_free = determined and z > z_limit
+    test = {
+        "b_thin_lens": thin.camera.b,
+        "b_free": free.camera.b,
+        "sigma_b_free": sb,
+        "z": z,
+        "z_limit": z_limit,
+        "chosen": "free" if use_free else "thin-lens",
+    }
+    return replace(free if use_free else thin, lens_test=test)
+
+
+def with_notes(cal: Calibration, lin: LinearResult, notes: list[str]) -> Calibration:
+    """``cal`` with the linear start ``lin`` and the warnings ``notes`` added to its own."""
+    return replace(cal, linear=lin, warnings=tuple(cal.warnings) + tuple(notes))

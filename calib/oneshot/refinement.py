@@ -1,0 +1,269 @@
+"""Non-linear refinement of the one-shot calibration and its covariance (seed §2.5.4).
+
+:func:`refine` minimises the reprojection error of :class:`~calib.oneshot.reprojection.ReprojectionModel` with
+:func:`scipy.optimize.least_squares` (Levenberg-Marquardt, analytic Jacobian), starting from the linear
+approximation (§2.4) or an earlier :class:`Calibration`; the parameter covariance (J^T J)^-1, scaled by the residual
+variance, gives the standard deviations of the parameters and of b, g, T_x, T_y, N_z.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.optimize import least_squares
+
+from calib.oneshot.camera_parameters import (
+    PRIOR_NOISE_PX,
+    CalibrationError,
+    Prior,
+    camera_dict,
+    check_points,
+    wrap_angle,
+)
+from calib.oneshot.linear import LinearResult
+from calib.oneshot.reprojection import ReprojectionModel
+from scenes.camera import Camera
+from scenes.errors import GeometryError
+from scenes.geometry import Array, Frame
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Result of a one-shot calibration (target coordinates).
+
+    Attributes
+    ----------
+    camera : Camera
+        The refined camera (frame, b, r_cs, c0, c2).
+    r_0 : ndarray (2,)
+        Axis point in the target plane, mm.
+    phi, g : float
+        Tilt angle, rad; object distance |r_c - r_0|, mm.
+    linear : LinearResult
+        The §2.4 start values.
+    lens : str
+        How b was obtained: "thin-lens", "free" or "fixed".
+    parameters : dict
+        Refined parameter vector by name.
+    sigma : dict
+        Standard deviations (covariance (J^T J)^-1 scaled by the residual variance) of the
+        parameters and of derived quantities (b, g, T_x, T_y, N_z), same units.
+    sigma_b_prior : float or None
+        Standard deviation of a free b at the a-priori centroid noise :data:`PRIOR_NOISE_PX`, mm.
+    residual_px : ndarray (n, 2)
+        Model minus measurement, px.
+    warnings : tuple of str
+        Everything the calibration wants the user to know.
+    nfev : int
+        Function evaluations of the refinement.
+    """
+
+    camera: Camera
+    r_0: Array
+    phi: float
+    g: float
+    linear: LinearResult
+    lens: str
+    distortion: bool
+    parameters: dict
+    sigma: dict
+    sigma_b_prior: float | None
+    residual_px: Array
+    warnings: tuple[str, ...]
+    nfev: int
+    lens_test: dict | None = None
+
+    @property
+    def residual_rms_px(self) -> float:
+        """RMS of the residual vector lengths, px."""
+        return float(np.sqrt(np.mean(np.sum(self.residual_px**2, axis=1))))
+
+    @property
+    def residual_max_px(self) -> float:
+        """Largest residual vector length, px."""
+        return float(np.max(np.linalg.norm(self.residual_px, axis=1)))
+
+    @property
+    def residual_pv_px(self) -> float:
+        """Peak-to-valley of the residual components (largest max - min of u and v), px."""
+        r = self.residual_px
+        return float(np.max(r.max(axis=0) - r.min(axis=0)))
+
+    @property
+    def focal_length(self) -> float:
+        """Thin-lens focal length that b and g imply, f = g b / (g + b), mm."""
+        return self.g * self.camera.b / (self.g + self.camera.b)
+
+    @property
+    def tilt(self) -> float:
+        """Angle between the optical axis and the target normal, rad."""
+        return float(np.arccos(np.clip(self.camera.frame.nz[2], -1.0, 1.0)))
+
+    def to_global(self, plane: Frame) -> Camera:
+        """The camera in the global frame, given the target's frame (target local -> global)."""
+        f = self.camera.frame
+        frame = Frame(
+            plane.to_global(f.origin),
+            plane.vectors_to_global(f.tx),
+            plane.vectors_to_global(f.ty),
+            plane.vectors_to_global(f.nz),
+        )
+        return self.camera.with_(frame=frame)
+
+    def as_dict(self, plane: Frame | None = None) -> dict:
+        """JSON-ready result with the keys of DESIGN.md's ``calibrate`` contract (lengths mm, angles rad)."""
+        cam = self.to_global(plane) if plane is not None else self.camera
+        pitch_um = self.camera.pitch * 1e3
+        return {
+            "camera": camera_dict(cam, self.r_0, self.phi, self.g),
+            "linear": {
+                **camera_dict(self.linear.camera, self.linear.r_0, self.linear.phi, self.linear.g),
+                "m_x": self.linear.m_x,
+                "m_y": self.linear.m_y,
+                "m_disagreement": self.linear.m_disagreement,
+                "sign": self.linear.sign,
+            },
+            "lens": self.lens,
+            "distortion": self.distortion,
+            "focal_length": self.focal_length,
+            "tilt": self.tilt,
+            "markers": int(len(self.residual_px)),
+            "residual_rms_px": self.residual_rms_px,
+            "residual_rms_um": self.residual_rms_px * pitch_um,
+            "residual_max_px": self.residual_max_px,
+            "residual_max_um": self.residual_max_px * pitch_um,
+            "residual_pv_px": self.residual_pv_px,
+            "residual_pv_um": self.residual_pv_px * pitch_um,
+            "uncertainty": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.sigma.items()},
+            "sigma_b_at_prior_noise": self.sigma_b_prior,
+            "lens_test": self.lens_test,
+            "nfev": self.nfev,
+            "warnings": list(self.warnings),
+        }
+
+
+def _solve(model: ReprojectionModel, p0: Array, max_nfev: int) -> tuple[Array, Array, Array, int, int]:
+    def fun(p: Array) -> Array:
+        return model.evaluate(p, False)[0]
+
+    def jac(p: Array) -> Array:
+        return model.residual_and_jacobian(p)[1]
+
+    out = least_squares(
+        fun, p0, jac=jac, method="lm", x_scale="jac", ftol=1e-15, xtol=1e-15, gtol=1e-15, max_nfev=max_nfev
+    )
+    res, jmat = model.residual_and_jacobian(out.x)
+    return out.x, res, jmat, int(out.nfev), int(out.status)
+
+
+def _covariance(jmat: Array) -> Array:
+    """(J^T J)^-1 from the eigen-decomposition of J^T J, column-scaled (pseudo-inverse where rank-deficient)."""
+    scale = np.linalg.norm(jmat, axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    js = jmat / scale
+    w, v = np.linalg.eigh(js.T @ js)
+    tol = w[-1] * 1e-13 * max(jmat.shape)
+    inv = np.where(w > tol, 1.0 / np.where(w > tol, w, 1.0), np.inf)
+    with np.errstate(invalid="ignore"):
+        return ((v * inv) @ v.T) / np.outer(scale, scale)
+
+
+def _sigmas(model: ReprojectionModel, p: Array, cov: Array, scale: float) -> dict:
+    """Standard deviations of the parameters and of b, g, T_x, T_y, N_z (first-order propagation)."""
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None)) * scale
+    sig: dict = {name: float(v) for name, v in zip(model.names, sd, strict=True)}
+    sig["r_c"] = sd[0:3]
+    sig["r_0"] = sd[3:5]
+    _, dfr = model.frame_and_jac(p)
+    ncols = 7 if model.lens == "free" else 6
+    jf = dfr[:, :ncols]
+    cf = cov[:ncols, :ncols]
+    with np.errstate(invalid="ignore"):
+        var = np.einsum("ij,jk,ik->i", jf, cf, jf)
+    vs = np.sqrt(np.clip(np.nan_to_num(var, nan=np.inf), 0, None)) * scale
+    sig["n_z"], sig["t_x"], sig["t_y"] = vs[0:3], vs[3:6], vs[6:9]
+    sig["b"], sig["g"] = float(vs[9]), float(vs[10])
+    return sig
+
+
+def refine(
+    xy: ArrayLike,
+    px: ArrayLike,
+    prior: Prior,
+    start: LinearResult | Calibration,
+    lens: str = "thin-lens",
+    distortion: bool = False,
+    b: float | None = None,
+    max_nfev: int = 200,
+) -> Calibration:
+    """Non-linear refinement of seed §2.5 by Levenberg-Marquardt (``scipy.optimize.least_squares``).
+
+    Parameters
+    ----------
+    xy, px : array_like (n, 2)
+        Marker coordinates (target frame, mm) and their images (continuous px).
+    prior : Prior
+        A-priori values (focal length, format, fixed distortion).
+    start : LinearResult or Calibration
+        Start values (camera, r_0, phi).
+    lens : {"thin-lens", "free", "fixed"}
+        How b is obtained (module docstring).
+    distortion : bool
+        Also refine r_cs, c2 and (unless b is free) c0 (seed §2.5.1).
+    b : float, optional
+        The image distance for ``lens="fixed"`` (default: ``prior.image_distance``).
+    """
+    if lens not in ("thin-lens", "free", "fixed"):
+        raise CalibrationError(f"lens mode must be thin-lens, free or fixed here, got {lens!r}")
+    b_fixed = float(b if b is not None else (prior.image_distance or 0.0))
+    if lens == "fixed" and not b_fixed > 0:
+        raise CalibrationError("lens mode 'fixed' needs an a-priori image distance b")
+    model = ReprojectionModel(
+        np.asarray(xy, dtype=np.float64), np.asarray(px, dtype=np.float64), prior, lens, distortion, b_fixed
+    )
+    check_points(model.xy, model.px, len(model.names))
+    cam0 = start.camera
+    r00, phi0 = np.asarray(start.r_0, dtype=np.float64), float(start.phi)
+    p0 = model.start(cam0, r00, phi0)
+    if lens == "thin-lens" and not np.linalg.norm(cam0.center - np.append(r00, 0.0)) > prior.focal_length:
+        raise CalibrationError("the start camera is closer to the target than the focal length")
+    try:
+        p, res, jmat, nfev, status = _solve(model, p0, max_nfev)
+    except GeometryError as exc:
+        raise CalibrationError(f"the refinement failed: {exc}") from None
+    if status <= 0:
+        raise CalibrationError("the non-linear refinement did not converge (too many evaluations)")
+    notes: list[str] = []
+    dof = max(len(res) - len(p), 1)
+    s2 = float(res @ res) / dof
+    cov = _covariance(jmat)
+    sig = _sigmas(model, p, cov, np.sqrt(s2))
+    sigma_b_prior = None
+    if lens == "free":
+        sigma_b_prior = float(np.sqrt(cov[6, 6]) * PRIOR_NOISE_PX) if np.isfinite(cov[6, 6]) else float("inf")
+    dvec = model.X - p[0:3]
+    camera = model.camera(p)
+    if np.any(dvec @ camera.frame.nz >= 0):
+        raise CalibrationError("the refinement ended with markers behind the camera: the start values are unusable")
+    r0 = p[3:5].copy()
+    g = float(np.linalg.norm(camera.center - np.append(r0, 0.0)))
+    resid = res.reshape(2, -1).T
+    start_lin = start.linear if isinstance(start, Calibration) else start
+    params = {name: float(v) for name, v in zip(model.names, p, strict=True)}
+    return Calibration(
+        camera,
+        r0,
+        wrap_angle(float(p[5])),
+        g,
+        start_lin,
+        lens,
+        distortion,
+        params,
+        sig,
+        sigma_b_prior,
+        resid,
+        tuple(notes),
+        nfev,
+    )

@@ -1,0 +1,285 @@
+"""``scopetwin calibrate`` and ``scopetwin calibrate-setup`` (DESIGN.md, "Command line"; seed ch. 2).
+
+:func:`register` adds both sub-commands to the ``scopetwin`` parser; each sets ``func`` to a
+function that takes the parsed arguments and returns the JSON-ready result (the caller writes
+``--json``). Bad input raises :class:`~scenes.errors.ScopetwinError` before anything is written.
+
+Markers are found and indexed with :func:`recon.markers.find_markers_for` (seed §1.5, §2.6;
+whole-spot first-moment centroids). Their centroid bias (perspective makes a round marker's
+image asymmetric) is corrected by alternating calibration and the spot model
+:func:`recon.bias.spot_bias_model` until the parameters settle (``--no-bias-correction``
+switches it off).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calib.oneshot import (
+    LENS_MODES,
+    Calibration,
+    CalibrationError,
+    Prior,
+    calibrate,
+    calibrate_bias_corrected,
+)
+from recon.bias import spot_bias_model
+from scenes.errors import ScopetwinError
+from scenes.geometry import Frame
+from scenes.setup import Setup
+
+
+def _markers(image: NDArray, setup: Setup, path: str) -> Any:
+    """Found and indexed markers of an image (recon.markers, seed §1.5 / §2.6)."""
+    from recon.markers import find_markers_for
+
+    found = find_markers_for(image, setup)
+    if len(found) < 6:
+        raise CalibrationError(f"{path}: only {len(found)} markers were found and indexed")
+    return found
+
+
+def _calibrate(xy: NDArray[Any], px: NDArray[Any], prior: Prior, bias: Any, **kw: Any) -> Calibration:
+    if bias is None:
+        return calibrate(xy, px, prior, **kw)
+    return calibrate_bias_corrected(xy, px, prior, bias, **kw)[0]
+
+
+def _vec3(text: str) -> tuple[float, float, float]:
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise CalibrationError(f"--nz-estimate must be three numbers X,Y,Z, got {text!r}") from None
+    if len(vals) != 3:
+        raise CalibrationError(f"--nz-estimate must be three numbers X,Y,Z, got {text!r}")
+    return vals[0], vals[1], vals[2]
+
+
+def _load_image(path: str) -> tuple[NDArray, Setup | None]:
+    from scenes.io import read_image
+    from scenes.setup import setup_from_json
+
+    image, attrs = read_image(path)
+    header = attrs.get("scopetwin_setup")
+    setup = None
+    if isinstance(header, bytes):
+        header = header.decode()
+    if isinstance(header, str) and header:
+        setup = setup_from_json(header)
+    return image, setup
+
+
+def _setup(arg: str | None, header: Setup | None, image: str, what: str) -> Setup:
+    from scenes.setup import load_setup
+
+    if arg is not None:
+        return load_setup(arg)
+    if header is None:
+        raise ScopetwinError(f"{image} carries no setup in its header: give {what}")
+    return header
+
+
+def _prior(setup: Setup, plane: Frame, args: argparse.Namespace) -> Prior:
+    cam = setup.camera_model
+    f = args.focal_length if args.focal_length is not None else setup.camera.focal_length
+    changes: dict[str, Any] = {}
+    if args.pixel_pitch is not None:
+        changes["pitch"] = args.pixel_pitch
+    if getattr(args, "nz_estimate", None) is not None:
+        changes["nz_estimate"] = _vec3(args.nz_estimate)
+    if getattr(args, "image_distance", None) is not None:
+        changes["image_distance"] = args.image_distance
+    return Prior.from_camera(cam, f, plane=plane, **changes)
+
+
+def _check_image_format(image: NDArray, prior: Prior, path: str) -> None:
+    if image.shape != (prior.ny, prior.nx):
+        raise CalibrationError(
+            f"{path} has {image.shape[1]} x {image.shape[0]} pixels but the setup's camera has {prior.nx} x {prior.ny}"
+        )
+
+
+def cmd_calibrate(args: argparse.Namespace) -> dict[str, Any]:
+    """One-shot calibration from one image of the target of ``--target`` (seed §2.4-2.5)."""
+    t0 = time.perf_counter()
+    image, header = _load_image(args.image)
+    setup = _setup(args.target, header, args.image, "--target SETUP")
+    if setup.scene != "target":
+        raise CalibrationError(f"setup {setup.name} is a {setup.scene} scene, not a calibration target")
+    pattern = setup.marker_pattern
+    plane = pattern.frame
+    prior = _prior(setup, plane, args)
+    _check_image_format(image, prior, args.image)
+    found = _markers(image, setup, args.image)
+    xy = pattern.centers_local(found.ij)
+    bias = None if args.no_bias_correction else spot_bias_model(xy, pattern.radii(found.ij))
+    cal = _calibrate(
+        xy, found.centroids, prior, bias, lens=args.lens, distortion=args.distortion, b=args.image_distance
+    )
+    out = cal.as_dict(plane=plane)
+    out.update(
+        {
+            "image": str(args.image),
+            "target": setup.name,
+            "markers_used": int(len(found.ij)),
+            "markers_rejected": int(found.rejected),
+            "bias_corrected": bias is not None,
+            "seconds": time.perf_counter() - t0,
+        }
+    )
+    c = out["camera"]
+    print(
+        f"calibrated {args.image}: r_c = ({c['r_c'][0]:.4f}, {c['r_c'][1]:.4f}, {c['r_c'][2]:.4f}) mm, "
+        f"b = {c['b']:.4f} mm ({cal.lens}), residual {cal.residual_rms_px:.4f} px rms, {len(found.ij)} markers"
+    )
+    for w in cal.warnings:
+        print(f"warning: {w}")
+    return out
+
+
+def cmd_calibrate_setup(args: argparse.Namespace) -> dict[str, Any]:
+    """Calibration of the deflectometry setup from the substrate and mirror images (seed §2.7)."""
+    from calib.setup_calibration import calibrate_setup, mirror_prior, virtual_coordinates, write_setup_toml
+
+    t0 = time.perf_counter()
+    img_s, head_s = _load_image(args.substrate_image)
+    img_m, head_m = _load_image(args.mirror_image)
+    target = _setup(args.target, head_s, args.substrate_image, "--target SETUP")
+    nominal = _setup(args.pattern_setup, head_m, args.mirror_image, "--pattern-setup SETUP")
+    if nominal.scene != "mirror":
+        raise CalibrationError(
+            f"the pattern setup {nominal.name} is a {nominal.scene} scene; the mirror image needs "
+            "a mirror scene (seed §2.7.2)"
+        )
+    if target.scene != "target":
+        raise CalibrationError(f"the target setup {target.name} is a {target.scene} scene, not a calibration target")
+    tframe = target.marker_pattern.frame
+    prior_s = _prior(target, tframe, args)
+    _check_image_format(img_s, prior_s, args.substrate_image)
+    pm = mirror_prior(nominal, args.focal_length)
+    if args.pixel_pitch is not None:
+        pm = Prior(
+            pm.focal_length, pm.nx, pm.ny, args.pixel_pitch, pm.nz_estimate, pm.r_cs, pm.c0, pm.c2, pm.image_distance
+        )
+    _check_image_format(img_m, pm, args.mirror_image)
+    tp = target.marker_pattern
+    pp = nominal.marker_pattern
+    found_s = _markers(img_s, target, args.substrate_image)
+    found_m = _markers(img_m, nominal, args.mirror_image)
+    xs = tp.centers_local(found_s.ij)
+    xm = virtual_coordinates(pp, found_m.ij)
+    bias_s = bias_m = None
+    if not args.no_bias_correction:
+        bias_s = spot_bias_model(xs, tp.radii(found_s.ij))
+        bias_m = spot_bias_model(xm, pp.radii(found_m.ij))
+    result = calibrate_setup(
+        xs,
+        found_s.centroids,
+        prior_s,
+        xm,
+        found_m.centroids,
+        pm,
+        target_frame=tframe,
+        lens=args.lens,
+        distortion=args.distortion,
+        share_intrinsics=not args.per_view_lens,
+        substrate_bias=bias_s,
+        mirror_bias=bias_m,
+    )
+    text = write_setup_toml(args.out, nominal, result)
+    out = result.as_dict()
+    out.update(
+        {
+            "setup_toml": str(args.out),
+            "toml": text,
+            "markers_used": {"substrate": int(len(found_s.ij)), "mirror": int(len(found_m.ij))},
+            "seconds": time.perf_counter() - t0,
+        }
+    )
+    o = result.pattern.origin
+    print(
+        f"calibrated setup -> {args.out}: camera r_c = {np.round(result.camera.center, 4).tolist()} mm, "
+        f"pattern centre = ({o[0]:.4f}, {o[1]:.4f}, {o[2]:.4f}) mm"
+    )
+    for w in result.substrate.warnings + result.mirror.warnings:
+        print(f"warning: {w}")
+    return out
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
+    p.add_argument("--focal-length", type=float, metavar="F", help="a-priori focal length, mm (default: the setup's)")
+    p.add_argument("--pixel-pitch", type=float, metavar="P", help="pixel size, mm (default: the setup's)")
+    p.add_argument(
+        "--lens",
+        choices=LENS_MODES,
+        default="auto",
+        help="image distance b: thin-lens from f (seed), free parameter, fixed, or auto (default)",
+    )
+    p.add_argument("--distortion", action="store_true", help="also refine r_cs, c0, c2 (seed §2.5.1)")
+    p.add_argument(
+        "--no-bias-correction",
+        action="store_true",
+        help="use the raw centroids (default: alternate calibration and centroid-bias correction)",
+    )
+
+
+def _quiet(func: Any) -> Any:
+    """Run a command with CalibrationWarnings silenced: the command prints them itself."""
+    import functools
+    import warnings
+
+    from calib.oneshot import CalibrationWarning
+
+    @functools.wraps(func)
+    def run(args: argparse.Namespace) -> dict[str, Any]:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", CalibrationWarning)
+            return func(args)
+
+    return run
+
+
+def register(subparsers: Any) -> None:
+    """Add ``calibrate`` and ``calibrate-setup`` to the ``scopetwin`` sub-command parsers."""
+    h = "one-shot camera calibration from one image of a marker target (seed ch. 2)"
+    p = subparsers.add_parser("calibrate", help=h, description=h)
+    p.set_defaults(func=_quiet(cmd_calibrate))
+    p.add_argument("image", help="camera image (OpenEXR, channel Y)")
+    p.add_argument(
+        "--target",
+        metavar="SETUP",
+        help="setup (preset or TOML) with the target and the a-priori camera (default: the setup in the image header)",
+    )
+    p.add_argument(
+        "--nz-estimate",
+        metavar="X,Y,Z",
+        help="coarse sensor normal in target coordinates (default: the setup camera's)",
+    )
+    p.add_argument("--image-distance", type=float, metavar="B", help="a-priori b for --lens fixed, mm")
+    _common(p)
+
+    h = "calibrate the deflectometry setup from a substrate-target image and a mirror image (seed §2.7)"
+    p = subparsers.add_parser("calibrate-setup", help=h, description=h)
+    p.set_defaults(func=_quiet(cmd_calibrate_setup))
+    p.add_argument("--substrate-image", required=True, metavar="A.exr", help="target on the holding frame")
+    p.add_argument("--mirror-image", required=True, metavar="B.exr", help="pattern seen in a flat mirror on the frame")
+    p.add_argument("--target", metavar="SETUP", help="setup of the substrate image (default: its header)")
+    p.add_argument(
+        "--pattern-setup",
+        metavar="SETUP",
+        help="setup with the pattern and a-priori camera of the mirror image (default: its header)",
+    )
+    p.add_argument(
+        "--per-view-lens",
+        action="store_true",
+        help="the seed's way: each view its own thin-lens b (default: the mirror view keeps the "
+        "substrate view's b and distortion)",
+    )
+    p.add_argument("--out", required=True, metavar="setup.toml", help="calibrated setup TOML to write")
+    _common(p)

@@ -1,0 +1,61 @@
+"""``scopetwin markers IMAGE.exr --pattern SETUP [--json PATH] [--overlay PNG]`` (issue 3, DESIGN.md contract).
+
+Finds, filters and indexes the markers of a camera image (:func:`recon.markers.find_markers_for`) with
+the pattern, camera and reflecting region of a setup (preset name or TOML path). The result is the
+``markers`` JSON of DESIGN.md, ``{"markers": [{i, j, col, row, area}], "rejected": n}`` (continuous
+pixel coordinates; (i, j) are positions on the pattern), with a ``saturated`` flag per marker and the
+rejection reasons added. ``--overlay`` writes a PNG of the image with every marker's index drawn
+(:func:`sim.figures.write_overlay`).
+
+Bad input (missing or unreadable image, NaNs, unknown setup, an image whose size is not the
+setup's camera, no reference marker, ...) raises a :class:`~scenes.errors.ScopetwinError`; the
+command line turns it into exit code 2 and writes nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from recon.markers import MarkerError, find_markers_for
+from scenes.io import read_image
+from scenes.setup import load_setup
+from sim.figures import write_overlay
+
+
+def cmd_markers(args: argparse.Namespace) -> dict[str, Any]:
+    """Handler of ``scopetwin markers``: returns the JSON-ready result (the caller writes ``--json``)."""
+    setup = load_setup(args.pattern)
+    image, _ = read_image(args.image)
+    cam = setup.camera_model
+    if image.shape != (cam.ny, cam.nx):
+        raise MarkerError(
+            f"image {args.image} is {image.shape[1]}x{image.shape[0]} px but setup {args.pattern} "
+            f"has a {cam.nx}x{cam.ny} px camera"
+        )
+    markers = find_markers_for(image, setup)
+    result = markers.as_json()
+    if args.overlay:
+        write_overlay(args.overlay, image, markers)
+    print(
+        f"{len(markers)} markers indexed, {markers.rejected} candidates rejected, "
+        f"{int(markers.saturated.sum())} saturated ({args.image})"
+    )
+    return result
+
+
+def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add ``markers`` to a ``scopetwin`` subparsers object (sets ``func`` = :func:`cmd_markers`)."""
+    help_ = "find and index the markers of a camera image (seed §1.5, §2.6)"
+    p = subparsers.add_parser("markers", help=help_, description=help_)
+    p.add_argument("image", help="camera image (OpenEXR, channel Y)")
+    p.add_argument(
+        "--pattern",
+        required=True,
+        metavar="SETUP",
+        help="setup (preset name or TOML path) giving the pattern, camera and reflecting region",
+    )
+    p.add_argument("--json", metavar="PATH", help="write the indexed markers here (DESIGN.md `markers`)")
+    p.add_argument("--overlay", metavar="PNG", help="write a picture of the image with the indices drawn")
+    p.set_defaults(func=cmd_markers)
+    return p

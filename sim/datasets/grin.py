@@ -1,0 +1,79 @@
+"""GRIN samples (kind ``grin``, seed Part III §8.5): the objective array's setup and target, and the writer."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from scenes.errors import ScopetwinError
+from sim.datasets.config import SAMPLE_PACKAGES, DatasetConfig, DatasetError
+from sim.datasets.seeding import sample_seed
+from sim.measurement import StagedOutput, versions
+
+
+def grin_base(cfg: DatasetConfig) -> dict[str, Any]:
+    """The GRIN setup every sample starts from (preset/TOML plus ``[setup]``), as a JSON dictionary."""
+    from scenes.grin.setup import load_grin_setup
+
+    try:
+        setup = load_grin_setup(cfg.dataset.setup, cfg.setup or None)
+    except ScopetwinError as exc:
+        raise DatasetError(f"dataset config: key dataset.setup / [setup]: {exc}") from None
+    return json.loads(setup.to_json())
+
+
+def grin_sample(base: dict[str, Any], index: int, params: dict[str, Any]) -> tuple[Any, Any]:
+    """The GRIN setup and §8.5 target (name and offset varied) of sample ``index``; the target must fit the field."""
+    from scenes.grin.setup import grin_setup_from_dict
+    from scenes.grin.targets import target
+
+    setup = grin_setup_from_dict(base, f"sample {index}")
+    tgt = target(str(params.get("target", "grid-25")), tuple(params.get("target_offset", (0.0, 0.0))))
+    try:
+        tgt.check_field(setup.object.field_radius)
+    except ScopetwinError as exc:
+        raise DatasetError(f"sample {index}: key vary.target_offset: {exc}") from None
+    return setup, tgt
+
+
+def write_grin(cfg: DatasetConfig, index: int, sample: tuple[Any, Any], stage: StagedOutput) -> dict[str, Any]:
+    """Render sample ``index`` (setup and target) at best focus (seed §8.3) into ``stage``; returns files and truth."""
+    from scenes.grin.analysis import analyse
+    from scenes.io import write_image
+    from scenes.mitsuba.grin import render_image
+
+    setup, tgt = sample
+    rep = analyse(setup, samples=16)
+    stack = setup.stack(image_distance=rep.image_distance_mm)
+    if rep.stop_radius_mm is not None:
+        stack = stack.with_stop_radius(rep.stop_radius_mm)
+    seed = sample_seed(cfg.dataset.master_seed, index, "render")
+    g = cfg.grin
+    whole = setup.array.nx * setup.array.ny > 1 and g.width is None and g.height is None
+    axis0 = setup.array.axes()[0]
+    centre = (0.0, 0.0) if whole else (float(axis0[0]), float(axis0[1]))  # a window: objective 0
+    img = render_image(
+        setup,
+        stack,
+        tgt,
+        spp=cfg.dataset.spp,
+        width=g.width,
+        height=g.height,
+        step_mm=g.step_mm,
+        center=centre,
+        seed=seed,
+    )
+    prov = {"seed": seed, "spp": cfg.dataset.spp, "renderer": "mitsuba-grin", "versions": versions(SAMPLE_PACKAGES)}
+    write_image(stage.path("image.exr"), img, setup.to_json(), prov)
+    truth = {
+        "setup": setup.name,
+        "scene": "grin",
+        "target": {"name": tgt.name, "offset": list(tgt.offset), "period": tgt.period, "feature": tgt.feature},
+        "image_distance_mm": rep.image_distance_mm,
+        "magnification": rep.magnification,
+        "na_object": rep.na_object,
+        "centre_mm": list(centre),
+        "seeds": {"render": seed},
+        "setup_json": json.loads(setup.to_json()),
+    }
+    return {"files": {"image": "image.exr"}, "truth": truth}

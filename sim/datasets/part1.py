@@ -1,0 +1,187 @@
+"""Part I samples (kinds ``deflectometry`` and ``calibration``): each sample's setup and its writer.
+
+A sample is one measurement (:mod:`sim.measurement`): image, truth (marker images, camera, seeds), the surface's
+height map and normals (deflectometry), preview.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from scenes.errors import SetupError
+from scenes.setup import Setup
+from scenes.surface import HeightMap
+from sim.datasets.config import DatasetConfig, DatasetError, merge
+from sim.datasets.seeding import sample_seed
+from sim.measurement import StagedOutput, render_measurement, write_measurement
+
+
+def base_setup_dict(cfg: DatasetConfig) -> dict[str, Any]:
+    """The setup (Part I) dictionary every sample starts from: the preset/TOML chain plus ``[setup]``."""
+    from scenes.setup import resolve_toml
+
+    try:
+        data, _ = resolve_toml(cfg.dataset.setup)
+    except SetupError as exc:
+        raise DatasetError(f"dataset config: key dataset.setup: {exc}") from None
+    kind = data.pop("kind", None)
+    if kind not in (None, "setup"):
+        raise DatasetError(
+            f"dataset config: key dataset.setup: {cfg.dataset.setup!r} is a {kind!r} preset, not a "
+            f"Part I setup (kind {cfg.dataset.kind!r})"
+        )
+    return merge(data, cfg.setup)
+
+
+def _rotation(rotvec: Sequence[float]) -> np.ndarray:
+    """Rotation matrix of a rotation vector (axis * angle, rad)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.asarray(rotvec, dtype=np.float64)).as_matrix()
+
+
+def part1_setup(cfg: DatasetConfig, base: dict[str, Any], index: int, params: dict[str, Any]) -> Setup:
+    """The validated :class:`scenes.setup.Setup` of sample ``index`` (varied quantities applied).
+
+    Parameters
+    ----------
+    cfg : DatasetConfig
+        The dataset config.
+    base : dict
+        The setup dictionary every sample starts from (:func:`base_setup_dict`).
+    index : int
+        The sample.
+    params : dict
+        Its varied quantities (:func:`sim.datasets.seeding.draw_parameters`).
+    """
+    from scenes.setup import setup_from_dict
+
+    d = json.loads(json.dumps(base))
+    cam = d.setdefault("camera", {})
+    master = cfg.dataset.master_seed
+    if cfg.dataset.kind == "deflectometry":
+        surf = d.setdefault("substrate", {}).setdefault("surface", {})
+        surf["seed"] = sample_seed(master, index, "surface")
+        for key, field in (
+            ("surface_range_um", "range_um"),
+            ("surface_correlation_length", "correlation_length"),
+            ("surface_kind", "kind"),
+        ):
+            if key in params:
+                surf[field] = params[key]
+    if "view_angle_deg" in params or "view_distance" in params:
+        if d.get("scene") != "target":
+            raise DatasetError("dataset config: key vary.view_angle_deg: the viewing-angle scan needs a target scene")
+        a = math.radians(float(params.get("view_angle_deg", 90.0)))
+        dist = float(params.get("view_distance", math.dist(cam.get("origin", (0, 0, 0)), (0, 0, 0))))
+        s, c = math.sin(a), math.cos(a)
+        centre = np.asarray(d.get("pattern", {}).get("origin", (0.0, 0.0, 0.0)), dtype=np.float64)
+        for k in ("r_0", "phi"):
+            cam.pop(k, None)
+        cam.update(
+            origin=(centre + [0.0, -dist * c, dist * s]).tolist(),
+            t_x=[1.0, 0.0, 0.0],
+            t_y=[0.0, s, c],
+            n_z=[0.0, -c, s],
+        )
+        cam.setdefault("image_distance", 28.0)
+    if "camera_shift" in params:
+        cam["origin"] = (np.asarray(cam["origin"], dtype=np.float64) + params["camera_shift"]).tolist()
+    if "camera_rotation" in params:
+        if cam.get("t_x") is None:
+            raise DatasetError(
+                "dataset config: key vary.camera_rotation: needs a camera given by its axes "
+                "(t_x, t_y, n_z), not by r_0/phi"
+            )
+        rot = _rotation(params["camera_rotation"])
+        for k in ("t_x", "t_y", "n_z"):
+            cam[k] = (rot @ np.asarray(cam[k], dtype=np.float64)).tolist()
+    if "f_number" in params:
+        cam["f_number"] = params["f_number"]
+    if "distortion_c2" in params:
+        cam["c2"] = params["distortion_c2"]
+    if "principal_offset" in params:
+        cam["r_cs"] = list(params["principal_offset"])
+    if "exposure_fill" in params:
+        d.setdefault("sensor", {})["fill_fraction"] = params["exposure_fill"]
+    if "exposure_s" in params:
+        d.setdefault("sensor", {})["exposure_s"] = params["exposure_s"]
+    d.setdefault("render", {}).update(
+        spp=cfg.dataset.spp,
+        seed=sample_seed(master, index, "render"),
+        noise=bool(cfg.dataset.noise or "exposure_fill" in params or "exposure_s" in params),
+    )
+    d["name"] = f"{d.get('name', 'setup')}-sample-{index:06d}"
+    try:
+        setup = setup_from_dict(d, f"sample {index}")
+        if "defocus" in params:
+            g0 = setup.camera_model.focus_distance()
+            if g0 is None:
+                raise DatasetError(
+                    "dataset config: key vary.defocus: needs a thin lens: set camera.f_number in "
+                    "[setup] or vary f_number"
+                )
+            cam["focus_distance"] = g0 + float(params["defocus"])
+            setup = setup_from_dict(d, f"sample {index}")
+    except SetupError as exc:
+        raise DatasetError(f"sample {index} (parameters {params}): {exc}") from None
+    return setup
+
+
+def write_normals(path: Path, heights: HeightMap) -> None:
+    """Unit surface normals at the height-map nodes: channels NX, NY, NZ (plus Z), extents as in the contract."""
+    import OpenEXR
+
+    from scenes.io import EXTENT_KEYS, atomic_path
+
+    xx, yy = np.meshgrid(heights.x_nodes, heights.y_nodes)
+    n = heights.normals(xx, yy)
+    chans = {"NX": n[..., 0], "NY": n[..., 1], "NZ": n[..., 2], "Z": heights.z}
+    chans = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in chans.items()}
+    header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header.update(zip(EXTENT_KEYS, (heights.x_min, heights.x_max, heights.y_min, heights.y_max), strict=True))
+    with atomic_path(path) as tmp:
+        OpenEXR.File(header, chans).write(str(tmp))
+
+
+def write_part1(cfg: DatasetConfig, index: int, setup: Setup, stage: StagedOutput) -> dict[str, Any]:
+    """Render and write Part I sample ``index`` (its ``setup``) into ``stage``; returns its files and truth."""
+    from sim.surfaces import surface_for
+
+    heights = surface_for(setup)
+    spp, seed = setup.render.spp, setup.render.seed
+    image, _ = render_measurement(setup, heights, spp, seed, setup.render.noise)
+    names = write_measurement(stage, "", setup, heights, image, spp, seed, "mitsuba")
+    if not cfg.dataset.preview:
+        stage.path(names.pop("preview")).unlink()
+    if heights is not None:
+        write_normals(stage.path("normals.exr"), heights)
+        names["normals"] = "normals.exr"
+    truth = json.loads(stage.path(names["truth"]).read_text())
+    cam = setup.camera_model
+    truth.update(
+        camera={
+            "r_c": cam.frame.origin.tolist(),
+            "t_x": cam.frame.tx.tolist(),
+            "t_y": cam.frame.ty.tolist(),
+            "n_z": cam.frame.nz.tolist(),
+            "b": cam.b,
+            "r_cs": list(cam.r_cs),
+            "c0": cam.c0,
+            "c2": cam.c2,
+            "focus_distance": cam.focus_distance(),
+        },
+        setup_json=json.loads(setup.to_json()),
+        seeds={
+            "surface": setup.substrate.surface.seed if setup.substrate else None,
+            "render": seed,
+            "noise": seed if setup.render.noise else None,
+        },
+    )
+    return {"files": names, "truth": truth}

@@ -1,0 +1,102 @@
+"""The plan of a dataset: a validated config with its resolved base setup, what every worker gets.
+
+:meth:`Plan.build` resolves the base setup of the sample kind and (by default) builds every requested sample's
+setup, so a config that would fail on sample 917 fails before any work.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from sim.datasets import cmu, grin, part1
+from sim.datasets.config import DatasetConfig, DatasetError, config_from_dict
+from sim.datasets.seeding import draw_parameters
+from sim.measurement import StagedOutput
+
+FORMAT_VERSION = 1
+
+
+def _capability(kind: str) -> None:
+    """Raise when the renderer of a sample kind is not part of this installation."""
+    if kind == "cmu":
+        import importlib.util
+
+        if importlib.util.find_spec("scenes.mitsuba.cmu") is None:
+            raise DatasetError(
+                "sample kind 'cmu' needs the four-channel microscope renderer "
+                "(scenes.mitsuba.cmu, issue 8), which this installation does not have"
+            )
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A validated config with its resolved base setup: what is sent to every worker."""
+
+    config: DatasetConfig
+    base: dict[str, Any]
+
+    @classmethod
+    def build(cls, cfg: DatasetConfig, indices: Iterable[int] | None = None, check: bool = True) -> Plan:
+        """Resolve the base setup and (``check``) build every requested sample's setup to validate it."""
+        _capability(cfg.dataset.kind)
+        if cfg.dataset.kind == "grin":
+            base = grin.grin_base(cfg)
+        elif cfg.dataset.kind == "cmu":
+            base = cmu.cmu_base(cfg)
+        else:
+            base = part1.base_setup_dict(cfg)
+            scene = base.get("scene")
+            want = {"deflectometry": ("deflectometry",), "calibration": ("target", "mirror")}[cfg.dataset.kind]
+            if scene not in want:
+                raise DatasetError(
+                    f"dataset config: key dataset.setup: {cfg.dataset.setup!r} is a {scene!r} scene; "
+                    f"{cfg.dataset.kind!r} samples need {' or '.join(want)}"
+                )
+        plan = cls(cfg, base)
+        if check:
+            for i in range(cfg.dataset.count) if indices is None else indices:
+                plan.setup_of(i)
+        return plan
+
+    def to_json(self) -> dict[str, Any]:
+        """The plan as stored in ``dataset.json`` and sent to the workers."""
+        return {
+            "format": FORMAT_VERSION,
+            "config": self.config.model_dump(mode="json", exclude_none=True),
+            "base_setup": self.base,
+        }
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any], label: str = "dataset.json") -> Plan:
+        """A plan from :meth:`to_json` (``label`` names the source in error messages)."""
+        if data.get("format") != FORMAT_VERSION:
+            raise DatasetError(f"dataset format {data.get('format')!r} is not supported (expected {FORMAT_VERSION})")
+        return cls(config_from_dict(data["config"], label), data["base_setup"])
+
+    def parameters(self, index: int) -> dict[str, Any]:
+        """The varied quantities of sample ``index`` (:func:`~sim.datasets.seeding.draw_parameters`)."""
+        groups: dict[str, Sequence[str]] | None = None
+        if self.config.dataset.kind == "cmu":
+            groups = {"splitter": list(self.base["splitters"]), "channel": cmu.cmu_channels(self.config, self.base)}
+        return draw_parameters(self.config, index, groups)
+
+    def setup_of(self, index: int) -> Any:
+        """What sample ``index`` renders: a Part I :class:`~scenes.setup.Setup`, a GRIN (setup, target) pair or a
+        :class:`~sim.datasets.cmu.CmuSample`, validated."""
+        params = self.parameters(index)
+        if self.config.dataset.kind == "grin":
+            return grin.grin_sample(self.base, index, params)
+        if self.config.dataset.kind == "cmu":
+            return cmu.cmu_sample(self.config, self.base, index, params)
+        return part1.part1_setup(self.config, self.base, index, params)
+
+    def write_sample(self, index: int, stage: StagedOutput) -> dict[str, Any]:
+        """Render sample ``index`` and write its files into ``stage``; returns ``{"files", "truth"}``."""
+        writers: dict[str, Callable[[DatasetConfig, int, Any, StagedOutput], dict[str, Any]]] = {
+            "grin": grin.write_grin,
+            "cmu": cmu.write_cmu,
+        }
+        writer = writers.get(self.config.dataset.kind, part1.write_part1)
+        return writer(self.config, index, self.setup_of(index), stage)

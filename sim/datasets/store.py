@@ -1,0 +1,381 @@
+"""The dataset folder: atomic sample writes, the manifest, recovery after a kill, generation and verification.
+
+See :mod:`sim.datasets` for the layout. A sample folder is staged under a temporary name in ``DIR/samples`` and
+renamed into place when complete (:class:`sim.measurement.StagedOutput`); ``resume`` removes temporary folders,
+re-lists finished samples the manifest lost (a killed client) and renders only what is missing; ``verify`` checks
+every sample against the manifest and its own hashes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import shutil
+import socket
+import time
+from collections.abc import Sequence
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import IO, Any
+
+from sim.datasets.config import SAMPLE_PACKAGES, DatasetError
+from sim.datasets.plan import Plan
+from sim.datasets.runner import dask_client, failure_text, init_worker, run_tasks
+from sim.measurement import StagedOutput, versions
+
+CONFIG_FILE = "dataset.json"
+MANIFEST = "manifest.jsonl"
+SAMPLES = "samples"
+TMP_PREFIX = ".tmp-"
+SAMPLE_FILE = "sample.json"
+
+
+def sha256_file(path: Path) -> str:
+    """SHA-256 of a file's bytes (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def sample_name(index: int) -> str:
+    """The folder name of sample ``index`` (six digits)."""
+    return f"{index:06d}"
+
+
+def _sample_record(folder: Path) -> dict[str, Any]:
+    files = {}
+    for f in sorted(folder.iterdir()):
+        if f.name != SAMPLE_FILE and f.is_file():
+            files[f.name] = {"sha256": sha256_file(f), "bytes": f.stat().st_size}
+    return files
+
+
+def generate_sample(plan_json: dict[str, Any], index: int, root: str, threads: int | None = None) -> dict[str, Any]:
+    """Render sample ``index`` into ``root/samples/NNNNNN`` atomically; return its manifest record.
+
+    Runs on a worker (any worker: the result depends only on the plan and ``index``). A sample
+    folder that already exists is not redone (``status: "exists"``).
+    """
+    from scenes.io import write_json_atomic
+
+    init_worker(threads)
+    t0 = time.perf_counter()
+    samples = Path(root) / SAMPLES
+    final = samples / sample_name(index)
+    record = {"index": index, "name": sample_name(index)}
+    if not (final / SAMPLE_FILE).is_file():
+        plan = Plan.from_json(plan_json, CONFIG_FILE)
+        with StagedOutput(final, prefix=f"{TMP_PREFIX}{sample_name(index)}-") as stage:
+            out = plan.write_sample(index, stage)
+            truth = out["truth"]
+            truth.update(
+                sample=index,
+                master_seed=plan.config.dataset.master_seed,
+                kind=plan.config.dataset.kind,
+                parameters=plan.parameters(index),
+                versions=versions(SAMPLE_PACKAGES),
+            )
+            write_json_atomic(stage.path("truth.json"), truth)
+            body = {**record, "kind": plan.config.dataset.kind, "files": _sample_record(stage.stage)}
+            write_json_atomic(stage.path(SAMPLE_FILE), body)
+            # False: another run finished the same sample first (identical bytes): keep theirs
+            status = "written" if stage.rename() else "exists"
+    else:
+        status = "exists"
+    body = json.loads((final / SAMPLE_FILE).read_text())
+    return {**body, "status": status, "seconds": time.perf_counter() - t0}
+
+
+# -- the dataset folder: manifest, recovery, generation, verification -------------------------------
+def _read_manifest(root: Path) -> tuple[list[dict[str, Any]], int]:
+    """Parsed manifest lines and the number of unreadable ones (a line cut by a kill)."""
+    path = root / MANIFEST
+    if not path.exists():
+        return [], 0
+    rows, bad = [], 0
+    for line in path.read_text().splitlines():
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+            int(row["index"])
+            rows.append(row)
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+            bad += 1
+    return rows, bad
+
+
+def _check_sample(folder: Path, expected: dict[str, Any] | None = None) -> str | None:
+    """None if the folder's files match its sample.json (and ``expected`` hashes); else the reason."""
+    try:
+        body = json.loads((folder / SAMPLE_FILE).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        return f"{SAMPLE_FILE} unreadable ({exc.__class__.__name__})"
+    files = body.get("files", {})
+    if expected is not None and expected != files:
+        return "hashes differ from the manifest"
+    present = {f.name for f in folder.iterdir() if f.name != SAMPLE_FILE}
+    if present != set(files):
+        return f"files differ from {SAMPLE_FILE}: {sorted(present ^ set(files))}"
+    for name, meta in files.items():
+        p = folder / name
+        if p.stat().st_size != meta["bytes"] or sha256_file(p) != meta["sha256"]:
+            return f"{name} does not match its hash"
+    return None
+
+
+def _manifest_line(rec: dict[str, Any], worker: str) -> dict[str, Any]:
+    keep: dict[str, Any] = {k: rec[k] for k in ("index", "name", "kind", "files") if k in rec}
+    return {
+        **keep,
+        "status": rec.get("status", "written"),
+        "seconds": round(float(rec.get("seconds", 0.0)), 3),
+        "worker": worker,
+        "host": socket.gethostname(),
+        "pid": os.getpid(),
+        "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
+
+
+def _append(fh: IO[str], row: dict[str, Any]) -> None:
+    fh.write(json.dumps(row, separators=(",", ":")) + "\n")
+    fh.flush()
+    os.fsync(fh.fileno())
+
+
+def recover(root: Path) -> dict[str, Any]:
+    """Tidy a dataset folder after an interruption; return what was done.
+
+    Removes temporary sample folders, drops unreadable/duplicate manifest lines and lines of
+    samples that are gone or corrupt, deletes corrupt sample folders (they are redone), and lists
+    finished samples the manifest does not know (the client died between rename and manifest).
+    """
+    from scenes.io import write_text_atomic
+
+    samples = root / SAMPLES
+    samples.mkdir(parents=True, exist_ok=True)
+    removed_tmp = []
+    for p in samples.iterdir():
+        if p.name.startswith(".") and p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+            removed_tmp.append(p.name)
+    rows, bad_lines = _read_manifest(root)
+    listed: dict[int, dict[str, Any]] = {}
+    for line in rows:
+        listed.setdefault(int(line["index"]), line)
+    kept: list[dict[str, Any]] = []
+    corrupt: list[int] = []
+    relisted: list[int] = []
+    folders = {int(p.name): p for p in samples.iterdir() if p.is_dir() and p.name.isdigit()}
+    for idx, folder in sorted(folders.items()):
+        reason = _check_sample(folder)
+        if reason is not None:
+            shutil.rmtree(folder, ignore_errors=True)
+            corrupt.append(idx)
+            continue
+        row = listed.get(idx)
+        body = json.loads((folder / SAMPLE_FILE).read_text())
+        if row is None or row.get("files") != body["files"]:
+            row = _manifest_line({**body, "status": "recovered"}, "recovered")
+            relisted.append(idx)
+        kept.append(row)
+    write_text_atomic(root / MANIFEST, "".join(json.dumps(r, separators=(",", ":")) + "\n" for r in kept))
+    return {
+        "removed_temporary": sorted(removed_tmp),
+        "dropped_manifest_lines": bad_lines + len(rows) - len(kept) + len(relisted),
+        "corrupt_removed": corrupt,
+        "relisted": relisted,
+        "done": sorted(folders.keys() - set(corrupt)),
+    }
+
+
+def _write_plan(root: Path, plan: Plan) -> None:
+    from scenes.io import write_json_atomic
+
+    path = root / CONFIG_FILE
+    new = plan.to_json()
+    if path.exists():
+        old = json.loads(path.read_text())
+        if old != json.loads(json.dumps(new)):
+            raise DatasetError(
+                f"{root} already holds a different dataset ({CONFIG_FILE} differs); choose another "
+                "--out or `scopetwin dataset resume` it"
+            )
+        return
+    write_json_atomic(path, new)
+
+
+def parse_indices(text: str | None, count: int) -> list[int]:
+    """``"A:B"`` -> [A, B) within [0, count); None -> all."""
+    if text is None:
+        return list(range(count))
+    try:
+        a, b = (int(t) if t else d for t, d in zip(text.split(":"), (0, count), strict=True))
+    except ValueError:
+        raise DatasetError(f"--indices must look like A:B (half-open), got {text!r}") from None
+    if not 0 <= a < b <= count:
+        raise DatasetError(f"--indices {text} must satisfy 0 <= A < B <= count ({count})")
+    return list(range(a, b))
+
+
+def generate(
+    plan: Plan,
+    out: str | Path,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    threads: int | None = None,
+    indices: Sequence[int] | None = None,
+    progress: bool = True,
+    client: Any | None = None,
+) -> dict[str, Any]:
+    """Generate (or finish) the samples ``indices`` of a dataset in ``out``.
+
+    Parameters
+    ----------
+    plan : Plan
+        Validated config (:meth:`Plan.build` checks every sample's setup before this is called).
+    out : path
+        Dataset folder (created; a folder holding another dataset is refused).
+    scheduler : str, optional
+        Address of an existing Dask scheduler (``tcp://host:8786``), used unchanged.
+    workers : int, optional
+        Local worker processes (default one per core); 0 works in this process without Dask.
+    threads : int, optional
+        Dr.Jit threads per worker (default: 1 on the local cluster, the library default elsewhere).
+    indices : sequence of int, optional
+        Which samples (default all ``count``).
+    progress : bool
+        Show a progress bar (rate and ETA).
+    client : distributed.Client, optional
+        Use this client (and its cluster) instead of opening one.
+    """
+    from tqdm import tqdm
+
+    root = Path(out)
+    root.mkdir(parents=True, exist_ok=True)
+    _write_plan(root, plan)
+    state = recover(root)
+    wanted = list(range(plan.config.dataset.count)) if indices is None else list(indices)
+    done = set(state["done"])
+    todo = [i for i in wanted if i not in done]
+    if threads is None and scheduler is None and workers != 0:
+        threads = 1
+    plan_json = plan.to_json()
+    t0 = time.perf_counter()
+    failures: dict[int, str] = {}
+    written = 0
+    bar = tqdm(
+        total=len(wanted),
+        initial=len(wanted) - len(todo),
+        unit="sample",
+        desc="dataset",
+        disable=not progress,
+        smoothing=0.1,
+    )
+    if client is not None:
+        ctx: Any = contextlib.nullcontext(client)
+    elif workers == 0 and not scheduler:
+        ctx = contextlib.nullcontext(None)
+    else:
+        ctx = dask_client(scheduler, workers)
+    tag = hashlib.sha256(json.dumps(plan_json, sort_keys=True).encode()).hexdigest()[:12]
+    with ctx as client, open(root / MANIFEST, "a") as fh:
+        where = "local" if client is None else str(client.scheduler.address)
+        args = [(plan_json, i, str(root.resolve()), threads) for i in todo]
+        keys = [f"scopetwin-sample-{tag}-{i:06d}" for i in todo]
+        for k, rec, err in run_tasks(generate_sample, args, client, keys):
+            if err is not None:
+                failures[todo[k]] = failure_text(err)
+            else:
+                _append(fh, _manifest_line(rec, where))
+                written += rec["status"] == "written"
+            bar.update(1)
+    bar.close()
+    for p in (root / SAMPLES).glob(f"{TMP_PREFIX}*"):  # left by a worker that died mid-sample (its task was redone)
+        shutil.rmtree(p, ignore_errors=True)
+    seconds = time.perf_counter() - t0
+    result = {
+        "out": str(root),
+        "requested": len(wanted),
+        "already_done": len(wanted) - len(todo),
+        "written": written,
+        "failed": failures,
+        "seconds": seconds,
+        "samples_per_minute": 60.0 * len(todo) / seconds if todo and seconds > 0 else None,
+        "recovery": state,
+    }
+    if failures:
+        first = next(iter(failures.items()))
+        raise DatasetError(
+            f"{len(failures)} sample(s) failed (first: sample {first[0]}: {first[1]}); the others are "
+            f"written; fix the cause and run `scopetwin dataset resume {root}`"
+        )
+    return result
+
+
+def load_plan(root: str | Path) -> Plan:
+    """The plan stored in a dataset folder."""
+    path = Path(root) / CONFIG_FILE
+    if not path.is_file():
+        raise DatasetError(f"{root} is not a dataset folder (no {CONFIG_FILE})")
+    try:
+        return Plan.from_json(json.loads(path.read_text()))
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{path} is not valid JSON: {exc}") from None
+
+
+def verify(root: str | Path) -> dict[str, Any]:
+    """Check every sample against the manifest and its hashes (DESIGN.md ``dataset verify`` contract).
+
+    Returns ``{"complete": n, "missing": [...], "corrupt": [...], "duplicates": [...]}`` plus ``count``,
+    ``unlisted`` (finished folders the manifest lacks), ``temporary`` (left-over temporary folders),
+    ``bad_manifest_lines`` and ``ok``.
+    """
+    root = Path(root)
+    plan = load_plan(root)
+    count = plan.config.dataset.count
+    rows, bad = _read_manifest(root)
+    by_index: dict[int, list[dict[str, Any]]] = {}
+    for row in rows:
+        by_index.setdefault(int(row["index"]), []).append(row)
+    samples = root / SAMPLES
+    entries = list(samples.iterdir()) if samples.is_dir() else []
+    temporary = sorted(p.name for p in entries if p.name.startswith("."))
+    folders = {p.name: p for p in entries if p.is_dir() and not p.name.startswith(".")}
+    duplicates = sorted(i for i, r in by_index.items() if len(r) > 1)
+    stray = sorted(n for n in folders if not (n.isdigit() and len(n) == 6 and int(n) < count))
+    missing, corrupt, unlisted, complete = [], [], [], 0
+    for i in range(count):
+        folder = folders.get(sample_name(i))
+        if folder is None:
+            missing.append(i)
+            continue
+        listed = by_index.get(i)
+        reason = _check_sample(folder, listed[0]["files"] if listed else None)
+        if reason is not None:
+            corrupt.append({"index": i, "reason": reason})
+        elif not listed:
+            unlisted.append(i)
+        elif i not in duplicates:
+            complete += 1
+    extra = sorted(i for i in by_index if not 0 <= i < count)
+    result = {
+        "complete": complete,
+        "missing": missing,
+        "corrupt": corrupt,
+        "duplicates": duplicates,
+        "count": count,
+        "unlisted": unlisted,
+        "temporary": temporary,
+        "stray_folders": stray,
+        "manifest_out_of_range": extra,
+        "bad_manifest_lines": bad,
+    }
+    result["ok"] = complete == count and not (
+        missing or corrupt or duplicates or unlisted or temporary or stray or extra or bad
+    )
+    return result

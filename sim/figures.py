@@ -1,0 +1,83 @@
+"""Pictures the commands write beside their numbers: the indexed-marker overlay (seed §1.5, §2.6) and the GRIN spot
+diagrams (seed §8.3). Each is written atomically; a path that cannot be written is a user error."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from recon.markers import MarkerError, Markers
+from scenes.io import atomic_path
+
+
+def overlay_image(image: NDArray[Any], markers: Markers) -> NDArray[np.uint8]:
+    """8-bit BGR picture of the image with the indexed markers (green, index "i,j"), the reference (yellow)
+    and the rejected candidates (red circles)."""
+    import cv2
+
+    img = np.asarray(image, dtype=np.float64)
+    lo = markers.spots.background
+    hi = float(np.percentile(markers.peak, 90)) if len(markers) else float(img.max())
+    grey = np.clip((img - lo) / max(hi - lo, 1e-300), 0.0, 1.0) ** 0.5 * 255.0
+    out = cv2.cvtColor(grey.astype(np.uint8), cv2.COLOR_GRAY2BGR)
+    kept = {tuple(np.round(c, 6)) for c in markers.centroids}
+    for c in markers.spots.centroids:
+        if tuple(np.round(c, 6)) not in kept:
+            cv2.circle(out, (int(c[0]), int(c[1])), 6, (0, 0, 255), 1, cv2.LINE_AA)
+    scale = 0.3 if len(markers) > 200 else 0.45
+    for (i, j), (col, row) in zip(markers.ij, markers.centroids, strict=True):
+        ref = i == 0 and j == 0
+        colour = (0, 255, 255) if ref else (0, 255, 0)
+        p = (int(round(col - 0.5)), int(round(row - 0.5)))
+        cv2.drawMarker(out, p, colour, cv2.MARKER_CROSS, 6, 1)
+        cv2.putText(out, f"{i},{j}", (p[0] + 3, p[1] - 3), cv2.FONT_HERSHEY_SIMPLEX, scale, colour, 1, cv2.LINE_AA)
+    return np.asarray(out, dtype=np.uint8)
+
+
+def write_overlay(path: str | Path, image: NDArray[Any], markers: Markers) -> None:
+    """Write the overlay PNG atomically; a path that cannot be written is a :class:`MarkerError`."""
+    import cv2
+
+    dest = Path(path)
+    if dest.suffix.lower() != ".png":
+        raise MarkerError(f"overlay must be a .png file, got {dest}")
+    ok, data = cv2.imencode(".png", overlay_image(image, markers))
+    if not ok:  # pragma: no cover - OpenCV cannot fail on a valid 8-bit image
+        raise MarkerError("could not encode the overlay PNG")
+    try:
+        with atomic_path(dest) as tmp:
+            tmp.write_bytes(data.tobytes())
+    except OSError as exc:
+        raise MarkerError(f"cannot write overlay {dest}: {exc.strerror or exc}") from None
+
+
+def write_spots(path: Path, setup: Any, stack: Any, image_distance: float, na: float) -> None:
+    """Spot diagrams of a GRIN objective (seed §8.3) at field 0, 0.7, 1 on the best-focus plane (PNG, atomic)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from scenes.grin.analysis import FIELDS, bundle
+    from scenes.spots import rms_radius
+
+    fig, axes = plt.subplots(1, len(FIELDS), figsize=(4 * len(FIELDS), 4))
+    for ax, f in zip(axes, FIELDS, strict=True):
+        b = bundle(stack, f * setup.object.field_radius, na)
+        x, y = b.spot(image_distance)
+        cx, cy = x.mean(), y.mean()
+        ax.plot((x - cx) * 1e3, (y - cy) * 1e3, ".", ms=1.5)
+        ax.set_aspect("equal")
+        ax.set_title(
+            f"field {f:.1f} ({f * setup.object.field_radius * 1e3:.0f} µm): RMS {rms_radius(x, y) * 1e3:.2f} µm"
+        )
+        ax.set_xlabel("x (µm)")
+        ax.set_ylabel("y (µm)")
+    fig.suptitle(f"{setup.section} spot diagrams, image plane {image_distance:.3f} mm")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)

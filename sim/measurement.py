@@ -1,0 +1,228 @@
+"""One rendered measurement: render (plus the sensor model), write image + truth + preview, staged output folders.
+
+A measurement is what ``scopetwin render`` writes and what every Part I dataset sample holds (DESIGN.md,
+"Images"): the camera image as OpenEXR (channel ``Y``; the setup and the provenance in the header), its truth
+JSON (the image of every marker centre, seed §1.5 / §2.6, and the height map of the surface), and an 8-bit
+preview PNG.
+
+:class:`StagedOutput` is the one stage-then-rename helper of the package: every command and library function
+that writes an output folder (``render``, ``run``, a study report, a dataset sample) collects its files in a
+hidden staging folder beside the destination and moves them into place only when everything succeeded, so an
+interrupted or failed job leaves no partial output behind.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata as md
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scenes.errors import ScopetwinError
+from scenes.io import write_json_atomic
+from scenes.setup import Setup
+from scenes.surface import HeightMap
+
+#: Packages whose versions a rendered image's provenance records.
+PROVENANCE_PACKAGES = ("scopetwin", "mitsuba", "drjit", "numpy")
+
+
+class StagedOutput:
+    """Collects output files in a hidden staging folder beside ``out`` and moves them into place on success.
+
+    Two ways to finish: :meth:`commit` moves the staged entries into ``out`` (created if needed; an entry of the
+    same name is replaced), :meth:`rename` renames the whole staging folder to ``out`` in one atomic step (POSIX)
+    and refuses when ``out`` already exists. :meth:`discard` removes the staging folder. Used as a context manager,
+    the folder is discarded when the block raises or when it was neither committed nor renamed.
+
+    Parameters
+    ----------
+    out : Path
+        The destination folder.
+    prefix : str, optional
+        Name prefix of the staging folder (default ``.NAME.staging-``); it is created in ``out``'s parent folder
+        with the permissions a new folder gets under the current umask.
+    """
+
+    def __init__(self, out: str | Path, prefix: str | None = None) -> None:
+        self.out = Path(out)
+        self.out.parent.mkdir(parents=True, exist_ok=True)
+        self.stage = Path(tempfile.mkdtemp(prefix=prefix or f".{self.out.name}.staging-", dir=self.out.parent))
+        umask = os.umask(0)
+        os.umask(umask)
+        self.stage.chmod(0o777 & ~umask)  # mkdtemp makes 0700; a finished folder gets the usual permissions
+
+    def path(self, name: str) -> Path:
+        """Where the file ``name`` is written while staged."""
+        return self.stage / name
+
+    def commit(self) -> dict[str, Path]:
+        """Move every staged entry into ``out``; returns ``{name: final path}``."""
+        self.out.mkdir(parents=True, exist_ok=True)
+        moved = {}
+        for f in sorted(self.stage.iterdir()):
+            dest = self.out / f.name
+            if dest.is_dir() and not dest.is_symlink():
+                shutil.rmtree(dest)
+            f.replace(dest)
+            moved[f.name] = dest
+        self.stage.rmdir()
+        return moved
+
+    def rename(self) -> bool:
+        """Rename the staging folder to ``out`` (atomic); False, and the stage discarded, when ``out`` exists."""
+        try:
+            os.rename(self.stage, self.out)
+        except OSError:  # ``out`` exists (e.g. another worker finished it first)
+            self.discard()
+            return False
+        return True
+
+    def discard(self) -> None:
+        """Remove the staging folder and everything in it."""
+        shutil.rmtree(self.stage, ignore_errors=True)
+
+    def __enter__(self) -> StagedOutput:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.stage.exists():
+            self.discard()
+
+
+def versions(packages: Sequence[str] = PROVENANCE_PACKAGES) -> dict[str, str]:
+    """Installed versions of ``packages`` ("unknown" for one that is not installed)."""
+    out = {}
+    for pkg in packages:
+        try:
+            out[pkg] = md.version(pkg)
+        except md.PackageNotFoundError:
+            out[pkg] = "unknown"
+    return out
+
+
+def provenance(seed: int, spp: int, renderer: str) -> dict[str, Any]:
+    """The ``scopetwin_provenance`` header of a rendered image (DESIGN.md "Images"): seed, spp, renderer, versions."""
+    return {"seed": seed, "spp": spp, "renderer": renderer, "versions": versions()}
+
+
+def write_preview(path: Path, image: NDArray[Any]) -> None:
+    """An 8-bit PNG of an image: scaled to its 99.9th percentile, gamma 1/2.2."""
+    import cv2
+
+    top = float(np.percentile(image, 99.9)) or 1.0
+    img8 = np.clip(255.0 * (np.clip(image / top, 0, 1) ** (1 / 2.2)), 0, 255).astype(np.uint8)
+    if not cv2.imwrite(str(path), img8):
+        raise ScopetwinError(f"could not write the preview {path}")
+
+
+def load_measurement(
+    setup_arg: str, surface: str | None, spp: int | None, seed: int | None, noise: bool | None
+) -> tuple[Setup, HeightMap | None]:
+    """A setup (preset name or TOML) with render overrides, and its surface (``surface`` EXR or the generated one).
+
+    Raises
+    ------
+    ScopetwinError
+        The setup cannot be loaded, or ``surface`` is given for a scene without a substrate.
+    """
+    from scenes.io import read_heightmap
+    from scenes.setup import load_setup
+    from sim.surfaces import surface_for
+
+    overrides: dict[str, Any] = {}
+    render_over = {k: v for k, v in (("spp", spp), ("seed", seed), ("noise", noise)) if v is not None}
+    if render_over:
+        overrides["render"] = render_over
+    setup = load_setup(setup_arg, overrides)
+    if surface is not None:
+        if setup.scene != "deflectometry":
+            raise ScopetwinError(f"--surface applies to deflectometry setups; {setup.name} is a {setup.scene} scene")
+        return setup, read_heightmap(surface)
+    return setup, surface_for(setup)
+
+
+def render_measurement(
+    setup: Setup, heights: HeightMap | None, spp: int, seed: int, noise: bool, renderer: str = "mitsuba"
+) -> tuple[NDArray[np.float32], float]:
+    """Render one setup and, with ``noise``, apply the EMVA 1288 sensor model (seed §1.11 camera class).
+
+    Without a fixed exposure the exposure fills the setup's fraction of the full well at the image peak.
+
+    Returns
+    -------
+    image : ndarray
+        The image (row, col).
+    seconds : float
+        Wall time of render and sensor model.
+    """
+    t0 = time.perf_counter()
+    if renderer == "analytic":
+        from scenes.analytic import render
+
+        image = render(setup, heights, spp=spp, seed=seed)
+    else:
+        from scenes.mitsuba.render import render_setup
+
+        image = render_setup(setup, heights, spp=spp, seed=seed)
+    if noise:
+        image = apply_sensor(setup, image, seed)
+    return image, time.perf_counter() - t0
+
+
+def apply_sensor(setup: Setup, image: NDArray[Any], seed: int) -> NDArray[Any]:
+    """The setup's EMVA 1288 sensor model applied to a rendered irradiance image (seed §1.11 camera class).
+
+    The exposure is the setup's ``sensor.exposure_s`` or, without one, the exposure at which the image peak fills
+    ``sensor.fill_fraction`` of the full well; ``seed`` seeds the photon and read noise.
+
+    Raises
+    ------
+    ScopetwinError
+        The image is black, so no exposure can be chosen.
+    """
+    sensor = setup.sensor.sensor()
+    exposure = setup.sensor.exposure_s
+    if exposure is None:
+        peak = float(image.max())
+        if peak <= 0:
+            raise ScopetwinError("the rendered image is black: cannot choose an exposure for the noise model")
+        exposure = sensor.exposure_for(peak, setup.sensor.photons_per_unit_s, setup.sensor.fill_fraction)
+    return sensor.capture(image, setup.sensor.photons_per_unit_s, exposure, rng=seed)
+
+
+def write_measurement(
+    stage: StagedOutput,
+    prefix: str,
+    setup: Setup,
+    heights: HeightMap | None,
+    image: NDArray[Any],
+    spp: int,
+    seed: int,
+    renderer: str,
+) -> dict[str, str]:
+    """Write image EXR, truth JSON (and height map), preview PNG into the staging folder; returns the file names.
+
+    The truth holds the image of every marker centre (:func:`sim.truth.marker_truth`, seed §1.5 / §2.6).
+    """
+    from scenes.io import write_heightmap, write_image
+    from sim.truth import marker_truth
+
+    names = {"image": f"{prefix}image.exr", "truth": f"{prefix}truth.json", "preview": f"{prefix}preview.png"}
+    write_image(stage.path(names["image"]), image, setup.to_json(), provenance(seed, spp, renderer))
+    truth: dict[str, Any] = {"setup": setup.name, "scene": setup.scene, "surface": None}
+    if heights is not None:
+        names["surface"] = f"{prefix}surface.exr"
+        write_heightmap(stage.path(names["surface"]), heights)
+        truth["surface"] = names["surface"]
+    truth["markers"] = marker_truth(setup, heights).as_records()
+    write_json_atomic(stage.path(names["truth"]), truth)
+    write_preview(stage.path(names["preview"]), image)
+    return names

@@ -1,0 +1,103 @@
+"""Running a study: the cluster (or this process), the staged report folder, ``report.md`` and ``results.json``."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from sim.datasets.runner import dask_client, init_worker
+from sim.measurement import StagedOutput
+from sim.studies import angle, noise, surface, thesis
+from sim.studies.context import StudyContext, StudyError, StudyResult
+from sim.studies.tables import jsonable, table_json, table_markdown
+
+#: The studies by name (``scopetwin study NAME``).
+STUDIES: dict[str, Callable[[StudyContext], StudyResult]] = {
+    "thesis": thesis.thesis,
+    "noise": noise.noise,
+    "angle": angle.angle,
+    "surface": surface.surface,
+}
+
+
+# -- running and writing -------------------------------------------------------------------------------------
+def report_markdown(name: str, res: StudyResult, seconds: float, where: str) -> str:
+    """The ``report.md`` of a study: title, intro, problems, every table, the plots."""
+    lines = [
+        f"# {res.title}",
+        "",
+        res.intro,
+        "",
+        f"`scopetwin study {name}`: {seconds:.0f} s on {where}. Figures: {', '.join(res.plots) or 'none'}; "
+        "machine-readable: results.json.",
+        "",
+    ]
+    if res.notes:
+        lines += ["## Problems", ""] + [f"- {n}" for n in res.notes] + [""]
+    lines += ["## Tables", ""]
+    for t in res.tables:
+        lines += [table_markdown(t)]
+    for p in res.plots:
+        lines += [f"![{p}]({p})", ""]
+    return "\n".join(lines)
+
+
+def run_study(
+    name: str,
+    out: str | Path,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    threads: int | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run study ``name`` and write ``report.md``, ``results.json`` and plots into ``out`` (on success only).
+
+    ``workers`` 0 runs every task in this process; otherwise an embedded LocalCluster (or ``scheduler``).
+    """
+    if name not in STUDIES:
+        raise StudyError(f"unknown study {name!r} (known: {', '.join(STUDIES)})")
+    out = Path(out)
+    staged = StagedOutput(out)
+    stage = staged.stage
+    t0 = time.perf_counter()
+    if threads is None and scheduler is None and workers != 0:
+        threads = 1
+    try:
+        ctx_mgr = contextlib.nullcontext(None) if (workers == 0 and not scheduler) else dask_client(scheduler, workers)
+        with ctx_mgr as client:
+            if client is not None and threads:
+                client.run(init_worker, threads)
+            where = (
+                "this process"
+                if client is None
+                else (f"Dask at {client.scheduler.address} ({len(client.scheduler_info()['workers'])} workers)")
+            )
+            res = STUDIES[name](StudyContext(stage, client, progress, threads))
+        seconds = time.perf_counter() - t0
+        (stage / "report.md").write_text(report_markdown(name, res, seconds, where))
+        summary = {
+            "study": name,
+            "seconds": seconds,
+            "where": where,
+            "tables": [table_json(t) for t in res.tables],
+            "plots": res.plots,
+            "notes": res.notes,
+            "data": res.summary,
+        }
+        (stage / "results.json").write_text(json.dumps(jsonable(summary), indent=2) + "\n")
+        staged.commit()
+    except BaseException:
+        staged.discard()
+        raise
+    return {
+        "study": name,
+        "report": str(out / "report.md"),
+        "results": str(out / "results.json"),
+        "seconds": seconds,
+        "plots": [str(out / p) for p in res.plots],
+        "notes": res.notes,
+    }

@@ -1,0 +1,184 @@
+"""Worker tasks shared by the studies: reconstruct a rendered measurement, calibrate a rendered view, compare.
+
+Every task is a module-level function of plain arguments (it runs on a Dask worker) and returns a JSON-ready dict.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scenes.errors import ScopetwinError
+from scenes.geometry import Frame
+from scenes.setup import Setup
+from scenes.surface import HeightMap
+from sim.datasets.config import merge
+
+THESIS_DEFLECTOMETRY = "thesis-1.10-deflectometry"
+
+
+def quiet() -> None:
+    """Silence warnings in a worker task (the tables report what matters)."""
+    warnings.simplefilter("ignore")
+
+
+def frame_deviation(frame: Frame, truth: Frame) -> dict[str, list[float]]:
+    """Differences of origin and axes (ours - truth)."""
+    return {
+        "r": (frame.origin - truth.origin).tolist(),
+        "t_x": (frame.tx - truth.tx).tolist(),
+        "t_y": (frame.ty - truth.ty).tolist(),
+        "n_z": (frame.nz - truth.nz).tolist(),
+    }
+
+
+def axis_angle(frame: Frame, truth: Frame) -> float:
+    """Rotation angle between two frames, rad."""
+    r = np.stack([frame.tx, frame.ty, frame.nz]) @ np.stack([truth.tx, truth.ty, truth.nz]).T
+    return float(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def measurement_setup(surface_seed: int, spp: int, overrides: dict[str, Any] | None = None) -> Setup:
+    """The §1.10 measurement setup with surface seed ``surface_seed`` (render seed 0, ``spp``), plus ``overrides``."""
+    from scenes.setup import load_setup
+
+    over = {"substrate": {"surface": {"seed": int(surface_seed)}}, "render": {"spp": spp, "seed": 0}}
+    if overrides:
+        over = merge(over, overrides)
+    return load_setup(THESIS_DEFLECTOMETRY, over)
+
+
+def reconstruct(
+    setup: Setup,
+    heights: HeightMap,
+    image: NDArray[Any],
+    recon_setup: Setup | None = None,
+    config: str = "default",
+) -> dict[str, Any]:
+    """Find markers with the nominal setup, reconstruct with ``recon_setup`` (default: the same), compare."""
+    from recon.markers import find_markers_for
+    from recon.reconstruct import (
+        MarkerObservations,
+        ReconstructionConfig,
+        Reconstructor,
+        Substrate2D,
+        centroid_bias_step,
+    )
+    from sim.pipeline import roi_errors
+
+    rs = recon_setup or setup
+    found = find_markers_for(image, setup)
+    cfg = None
+    if config == "thesis":
+        cfg = ReconstructionConfig.thesis(literal_axes=False)
+    elif config.startswith("spacing="):
+        cfg = ReconstructionConfig(spacing=float(config.split("=")[1]))
+    t0 = time.perf_counter()
+    res = Reconstructor.from_setup(rs, cfg, bias=centroid_bias_step(rs)).run(
+        MarkerObservations(found.ij, found.centroids)
+    )
+    errs = roi_errors(res.surface.height, heights, Substrate2D.from_setup(setup))
+    return {
+        **errs,
+        "outer_iterations": res.outer_iterations,
+        "inner_iterations": res.inner_iterations,
+        "delta_h_max_um": res.delta_h_max_um,
+        "markers": int(len(found.ij)),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+CALIB_MODULES = {
+    "recon.markers": "marker detection and indexing",
+    "recon.bias": "centroid-bias prediction",
+    "calib.oneshot": "one-shot camera calibration",
+}
+
+
+def read_sample(folder: str) -> tuple[Any, np.ndarray, dict[str, Any]]:
+    """A dataset sample's setup, image and truth."""
+    from scenes.io import read_image
+    from scenes.setup import setup_from_dict
+
+    p = Path(folder)
+    truth = json.loads((p / "truth.json").read_text())
+    image, _ = read_image(p / "image.exr")
+    return setup_from_dict(truth["setup_json"], str(p)), image, truth
+
+
+def calibration_view_task(folder: str) -> dict[str, Any]:
+    """Centroid and one-shot calibration errors of one calibration-view sample against its truth."""
+    from calib.oneshot import Prior, calibrate, calibrate_bias_corrected
+    from recon.bias import correct_centroids, model_for_setup, spot_bias_model
+    from recon.markers import find_markers_for
+
+    quiet()
+    setup, image, truth = read_sample(folder)
+    try:
+        found = find_markers_for(image, setup)
+    except ScopetwinError as exc:  # e.g. too little light to find the markers: a result, not a crash
+        return {"folder": folder, "parameters": truth["parameters"], "error": f"{type(exc).__name__}: {exc}"}
+    key = {(m["i"], m["j"]): (m["center_col"], m["center_row"]) for m in truth["markers"]}
+    true_px = np.array([key[(int(i), int(j))] for i, j in found.ij], dtype=np.float64)
+    corrected, _ = correct_centroids(found.centroids, found.ij, model_for_setup(setup))
+    raw_err = np.linalg.norm(found.centroids - true_px, axis=1)
+    cor_err = np.linalg.norm(corrected - true_px, axis=1)
+    pat = setup.marker_pattern
+    xy = pat.centers_local(found.ij)
+    prior = Prior.from_camera(setup.camera_model, setup.camera.focal_length, plane=pat.frame)
+    cam_t = setup.camera_model
+    out = {
+        "folder": folder,
+        "parameters": truth["parameters"],
+        "markers": int(len(found.ij)),
+        "raw_rms_px": float(np.sqrt(np.mean(raw_err**2))),
+        "raw_max_px": float(raw_err.max()),
+        "corrected_rms_px": float(np.sqrt(np.mean(cor_err**2))),
+        "corrected_max_px": float(cor_err.max()),
+    }
+    for label, fn in (
+        ("raw", lambda: calibrate(xy, found.centroids, prior)),
+        (
+            "corrected",
+            lambda: calibrate_bias_corrected(xy, found.centroids, prior, spot_bias_model(xy, pat.radii(found.ij)))[0],
+        ),
+    ):
+        try:
+            cal = fn()
+            cam = cal.to_global(pat.frame)
+            out[f"{label}_r_c_um"] = float(np.linalg.norm(cam.center - cam_t.center) * 1e3)
+            out[f"{label}_angle_urad"] = axis_angle(cam.frame, cam_t.frame) * 1e6
+            out[f"{label}_b_um"] = float((cam.b - cam_t.b) * 1e3)
+            out[f"{label}_residual_rms_px"] = cal.residual_rms_px
+        except ScopetwinError as exc:
+            out[f"{label}_error"] = str(exc)
+    return out
+
+
+def calibration_dataset(
+    kind_vary: dict[str, Any], setup: str, count: int, seed: int, noise: bool, spp: int
+) -> dict[str, Any]:
+    """The config dict of a calibration-view dataset (kind ``calibration``, no previews)."""
+    return {
+        "dataset": {
+            "kind": "calibration",
+            "setup": setup,
+            "count": count,
+            "master_seed": seed,
+            "spp": spp,
+            "noise": noise,
+            "preview": False,
+        },
+        "vary": kind_vary,
+    }
+
+
+def sample_folders(root: Path) -> list[str]:
+    """The finished sample folders of a dataset, in index order."""
+    return [str(p) for p in sorted((root / "samples").iterdir()) if p.is_dir() and p.name.isdigit()]
