@@ -142,8 +142,7 @@ def main() -> int:
         print(f"recorded {len(now['renders'])} renders and {len(now['figures'])} figure sets -> {args.record}")
         return 0
     recorded = json.loads(args.check.read_text())
-    if args.quick:
-        recorded["figures"] = {}
+    recorded["figures"] = {} if args.quick else _figures(recorded["figures"])
     found: list[str] = []
     _diff(recorded, now, "", found)
     for line in found:
