@@ -10,14 +10,21 @@
 
 Every frame is written atomically (OpenEXR via :func:`scenes.io.write_image`)
 the moment it is grabbed, with a ``manifest.json`` rewritten atomically after
-each frame, so a failure leaves every finished frame readable on disk. Lights
-are switched off on every exit path (and :func:`instrument.open_rig` does it again).
+each frame; SIGINT, SIGTERM and SIGHUP are held while a frame and its manifest
+entry are written (:func:`instrument.interrupts.deferred_signals`), so a failure
+or a signal leaves every finished frame readable on disk and listed in the
+manifest, never one without the other. Lights are switched off on every exit
+path (and :func:`instrument.open_rig` does it again). :class:`FrameWriter` also
+keeps a PNG preview of the latest frame beside the frames, and records each
+frame's signal above the black level (``signal_dn``), so a caller can tell an
+acquisition that saw nothing (:func:`dark_frames`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import signal
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -29,8 +36,9 @@ from scipy import ndimage
 
 from instrument.devices import CameraDevice, LightSource, TriggerMode, TriggerType
 from instrument.errors import InstrumentError, OutOfRangeError
+from instrument.interrupts import deferred_signals
 from instrument.rig import Rig
-from scenes.io import write_image, write_json_atomic
+from scenes.io import atomic_path, write_image, write_json_atomic
 
 FocusMap = Callable[[float, float], float]
 
@@ -48,6 +56,51 @@ def sharpness(frame: NDArray, black_level_dn: float = 0.0) -> float:
     return float(band.var() / mean**2) if mean > 0 else 0.0
 
 
+PREVIEW_NAME = "preview.png"
+SIGNAL_PERCENTILE = 99.5
+DARK_FRACTION = 0.01
+
+
+def signal_dn(frame: NDArray, black_level_dn: float = 0.0) -> float:
+    """The frame's bright end above the black level: the 99.5th percentile grey value minus the black level (DN)."""
+    return float(np.percentile(np.asarray(frame, dtype=np.float64), SIGNAL_PERCENTILE)) - float(black_level_dn)
+
+
+def dark_frames(signals_dn: Sequence[float], black_level_dn: float, saturation_dn: float) -> bool:
+    """Whether every frame lacks signal: each :func:`signal_dn` below 1 % of the range above the black level.
+
+    Sensor noise alone (read noise and dark current of a few DN) stays well below that threshold
+    (41 DN for a 12-bit camera), so an acquisition with the light off or unseen is told apart from a
+    dim one.
+    """
+    limit = DARK_FRACTION * (float(saturation_dn) - float(black_level_dn))
+    return bool(signals_dn) and all(s < limit for s in signals_dn)
+
+
+def write_preview(path: str | Path, frame: NDArray, low: float | None = None, high: float | None = None) -> Path:
+    """An 8-bit PNG of ``frame`` scaled linearly from ``low`` (black) to ``high`` (white), written atomically.
+
+    Without bounds the frame's 0.5th and 99.5th percentiles are used. With the camera's black level and
+    saturation as bounds a dark frame looks dark, as it should.
+    """
+    import cv2
+
+    img = np.asarray(frame, dtype=np.float64)
+    lo = float(np.percentile(img, 0.5)) if low is None else float(low)
+    hi = float(np.percentile(img, 99.5)) if high is None else float(high)
+    scaled = np.clip((img - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
+    ok, data = cv2.imencode(".png", np.rint(scaled * 255.0).astype(np.uint8))
+    if not ok:  # pragma: no cover - OpenCV cannot fail on a valid 8-bit image
+        raise InstrumentError(f"could not encode the preview {path}")
+    dest = Path(path)
+    try:
+        with atomic_path(dest) as tmp:
+            tmp.write_bytes(data.tobytes())
+    except OSError as exc:
+        raise InstrumentError(f"cannot write the preview {dest}: {exc.strerror or exc}") from None
+    return dest
+
+
 class FrameWriter:
     """Writes frames atomically, one file each, with a manifest rewritten after every frame.
 
@@ -57,47 +110,93 @@ class FrameWriter:
         Output folder (created).
     meta : dict
         Run-level metadata stored in the manifest.
+    display_range : (float, float), optional
+        Grey values shown black and white in the PNG preview (default: each frame's own range).
+    preview : bool
+        Keep ``preview.png`` (the latest frame) beside the frames, rewritten by :meth:`finish`.
     """
 
-    def __init__(self, directory: str | Path, meta: dict[str, Any] | None = None) -> None:
+    def __init__(
+        self,
+        directory: str | Path,
+        meta: dict[str, Any] | None = None,
+        *,
+        display_range: tuple[float, float] | None = None,
+        preview: bool = True,
+    ) -> None:
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
         self.manifest: dict[str, Any] = {"meta": dict(meta or {}), "frames": [], "complete": False, "error": None}
+        self.display_range = display_range
+        self.preview = preview
+        self._last: NDArray | None = None
 
     def write(self, name: str, frame: NDArray, **info: Any) -> Path:
-        """Write ``frame`` as ``name.exr`` and record ``info`` in the manifest."""
+        """Write ``frame`` as ``name.exr`` and record ``info`` in the manifest.
+
+        SIGINT, SIGTERM and SIGHUP wait until both are done: a frame on disk is in the manifest.
+        """
         path = self.directory / f"{name}.exr"
-        write_image(path, np.asarray(frame, dtype=np.float32), provenance={"frame": name, **_jsonable(info)})
-        self.manifest["frames"].append({"name": name, "path": path.name, **_jsonable(info)})
-        self._flush()
+        data = np.asarray(frame, dtype=np.float32)
+        entry = {"name": name, "path": path.name, **_jsonable(info)}
+        with deferred_signals():
+            write_image(path, data, provenance={"frame": name, **_jsonable(info)})
+            self.manifest["frames"].append(entry)
+            self._flush()
+        self._last = data
         return path
 
     def finish(self, error: BaseException | None = None) -> None:
-        """Mark the run complete, or record the error that ended it."""
+        """Mark the run complete, or record the error that ended it; write the preview of the latest frame."""
         self.manifest["complete"] = error is None
-        self.manifest["error"] = None if error is None else f"{type(error).__name__}: {error}"
-        self._flush()
+        self.manifest["error"] = None if error is None else _error_text(error)
+        with deferred_signals():
+            self._flush()
+            if self.preview and self._last is not None:
+                low, high = self.display_range if self.display_range is not None else (None, None)
+                write_preview(self.directory / PREVIEW_NAME, self._last, low, high)
 
     def _flush(self) -> None:
         write_json_atomic(self.directory / "manifest.json", self.manifest)
+
+
+def _error_text(error: BaseException) -> str:
+    """``Terminated: SIGTERM`` (the CLI's exception carries the signal number), ``KeyboardInterrupt: SIGINT``, or
+    ``TypeName: message``."""
+    signum = getattr(error, "signum", None)
+    if signum is None and type(error) is KeyboardInterrupt:
+        signum = signal.SIGINT
+    if signum is not None:
+        return f"{type(error).__name__}: {signal.Signals(int(signum)).name}"
+    return f"{type(error).__name__}: {error}"
 
 
 def _jsonable(info: dict[str, Any]) -> dict[str, Any]:
     return json.loads(json.dumps(info, default=float))
 
 
+def _display_range(cam: CameraDevice) -> tuple[float, float]:
+    return float(cam.black_level_dn), float(cam.saturation_dn)
+
+
 @contextlib.contextmanager
 def _run(writer: FrameWriter, rig: Rig) -> Iterator[None]:
-    """Record success or failure in the manifest and switch all lights off on every exit."""
+    """Record success or failure in the manifest and switch all lights off on every exit.
+
+    The lights go off first (a signal during the clean-up waits until it is done), then the manifest
+    records how the run ended.
+    """
     try:
         yield
     except BaseException as exc:
+        with deferred_signals():
+            rig.lights_off()
         writer.finish(exc)
         raise
     else:
+        with deferred_signals():
+            rig.lights_off()
         writer.finish()
-    finally:
-        rig.lights_off()
 
 
 def choose_exposure(
@@ -136,13 +235,22 @@ def deflectometry_capture(
     Returns the frame's path.
     """
     cam, lamp = rig.camera(camera), rig.light(light)
-    writer = FrameWriter(out_dir, {"routine": "deflectometry", "rig": rig.name, "camera": cam.name})
+    writer = FrameWriter(
+        out_dir, {"routine": "deflectometry", "rig": rig.name, "camera": cam.name}, display_range=_display_range(cam)
+    )
     with _run(writer, rig):
         lamp.switch_on(lamp.current_range.high if lamp.current_ma == 0 else None)
         exposure = choose_exposure(cam, target_fraction)
         frame = cam.grab()
         lamp.switch_off()
-        return writer.write("deflectometry", frame, exposure_s=exposure, camera=cam.name, light=lamp.name)
+        return writer.write(
+            "deflectometry",
+            frame,
+            exposure_s=exposure,
+            camera=cam.name,
+            light=lamp.name,
+            signal_dn=signal_dn(frame, cam.black_level_dn),
+        )
 
 
 def calibration_capture(
@@ -155,9 +263,21 @@ def calibration_capture(
     exposure_s: float | None = None,
     target_fraction: float = 0.7,
 ) -> list[Path]:
-    """Frames of a calibration target (light on, fixed or automatic exposure), written as they come."""
+    """Frames of a calibration target (light on, fixed or automatic exposure), written as they come.
+
+    Each manifest entry has the frame's ``exposure_s`` and ``signal_dn`` (:func:`signal_dn`).
+
+    Raises
+    ------
+    OutOfRangeError
+        ``n_frames`` below 1 (nothing is opened or switched on).
+    """
+    if int(n_frames) != n_frames or n_frames < 1:
+        raise OutOfRangeError(f"number of frames must be a positive integer, got {n_frames}")
     cam, lamp = rig.camera(camera), rig.light(light)
-    writer = FrameWriter(out_dir, {"routine": "calibration", "rig": rig.name, "camera": cam.name})
+    writer = FrameWriter(
+        out_dir, {"routine": "calibration", "rig": rig.name, "camera": cam.name}, display_range=_display_range(cam)
+    )
     paths = []
     with _run(writer, rig):
         lamp.switch_on(lamp.current_range.high if lamp.current_ma == 0 else None)
@@ -166,7 +286,15 @@ def calibration_capture(
         else:
             cam.set_exposure_s(exposure_s)
         for i in range(int(n_frames)):
-            paths.append(writer.write(f"calibration_{i:03d}", cam.grab(), exposure_s=cam.exposure_s))
+            frame = cam.grab()
+            paths.append(
+                writer.write(
+                    f"calibration_{i:03d}",
+                    frame,
+                    exposure_s=cam.exposure_s,
+                    signal_dn=signal_dn(frame, cam.black_level_dn),
+                )
+            )
     return paths
 
 
@@ -289,6 +417,7 @@ def tile_scan(
             "rig": rig.name,
             "focus": "map" if focus_map is not None else f"fixed {fixed_focus_um} um",
         },
+        display_range=_display_range(cam),
     )
     results: list[TileResult] = []
     with _run(writer, rig):
@@ -331,10 +460,13 @@ __all__ = [
     "TileResult",
     "calibration_capture",
     "choose_exposure",
+    "dark_frames",
     "deflectometry_capture",
     "grid",
     "results_json",
     "sharpness",
+    "signal_dn",
     "simultaneous_capture",
     "tile_scan",
+    "write_preview",
 ]

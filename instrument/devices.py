@@ -639,6 +639,7 @@ class CameraDevice(Device):
         return {
             "sensor_shape": list(lim.sensor_shape),
             "pixel_size_um": lim.pixel_size_um,
+            "magnification": lim.magnification,
             "exposure_s": lim.exposure_s.as_list(),
             "bit_depths": list(lim.bit_depths),
         }

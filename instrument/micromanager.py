@@ -27,6 +27,7 @@ it is the library function behind ``scopetwin rig RIG mda``.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,7 @@ import numpy as np
 
 from instrument.devices import CameraDevice, FocusDrive, LightSource, Stage
 from instrument.errors import RigError
+from instrument.interrupts import deferred_signals
 from instrument.rig import Rig
 
 CHANNEL_GROUP = "Channel"
@@ -324,6 +326,9 @@ def run_mda(
         pymmcore-plus / ome-writers handler.
     on_frame : callable, optional
         Called with ``(image, event, metadata)`` for every plane (e.g. a progress bar).
+        SIGINT, SIGTERM or SIGHUP during the run cancel it at the next event boundary: the output
+        writers close (the planes acquired so far stay readable), the lights go off, and then the
+        signal is delivered to its handler as usual.
     core : UniMMCore, optional
         A core already loaded with :func:`load_into_core`.
 
@@ -352,14 +357,29 @@ def run_mda(
             on_frame(image, event, meta)
 
     core.mda.events.frameReady.connect(record)
-    try:
-        if output is None:
-            core.mda.run(seq)
-        else:
-            core.mda.run(seq, output=output)
-    finally:
-        core.mda.events.frameReady.disconnect(record)
-        rig.lights_off()
+    interrupted = threading.Event()
+    done = threading.Event()
+
+    def cancel_when_interrupted() -> None:  # the runner's lock is never taken inside a signal handler
+        while not done.wait(0.02):
+            if interrupted.is_set():
+                core.mda.cancel()  # a no-op until the run starts; then it ends at the next event boundary
+
+    watcher = threading.Thread(target=cancel_when_interrupted, name="mda-cancel", daemon=True)
+    watcher.start()
+    # SIGINT / SIGTERM / SIGHUP cancel the run: the writers close their files (every plane written so far
+    # stays readable), the lights go off, then the signal is delivered as usual
+    with deferred_signals(on_signal=lambda _signum: interrupted.set()):
+        try:
+            if output is None:
+                core.mda.run(seq)
+            else:
+                core.mda.run(seq, output=output)
+        finally:
+            done.set()
+            watcher.join()
+            core.mda.events.frameReady.disconnect(record)
+            rig.lights_off()
     return {
         "planes": len(frames),
         "pixel_size_um": core.getPixelSizeUm(),

@@ -25,6 +25,8 @@ from instrument.devices import CameraDevice, FocusDrive, LightSource, Stage
 from instrument.errors import InstrumentError, RigError
 from instrument.rig import Rig
 
+LOCALHOST = "127.0.0.1"
+
 
 def _microscope() -> tuple[Any, Any]:
     try:
@@ -95,7 +97,9 @@ def make_device_classes() -> dict[str, type]:
             return True
 
         def _do_disable(self) -> None:
-            self.light.switch_off()
+            # python-microscope disables again from __del__, after the rig may have closed (lights off already)
+            if self.light.initialized:
+                self.light.switch_off()
 
         def _do_shutdown(self) -> None:
             # python-microscope also shuts down from __del__: never raise, the rig closes the line anyway
@@ -296,11 +300,16 @@ def serve_devices(
     """Expose ``devices`` through Pyro (python-microscope's transport) on 127.0.0.1 until ``stop`` is set.
 
     Each device gets its own daemon on ``port``, ``port + 1``, ... (the layout of python-microscope's
-    device server, one port per device). ``ready`` receives name -> Pyro URI once the daemons run, so
-    a client (``microscope.clients.Client(uri)``, Cockpit) can connect. Without ``stop`` it serves
-    until the process ends. Returns the URIs.
+    device server, one port per device; ``port = 0``: a free port each). ``ready`` receives name -> Pyro
+    URI once the daemons run, so a client (``microscope.clients.Client(uri)``, Cockpit) can connect.
+    Without ``stop`` it serves until the process ends. Returns the URIs.
+
+    Raises
+    ------
+    RigError
+        A port outside 0..65535 (for the last device), or a port already in use.
     """
-    _microscope()
+    _, mabc = _microscope()
     import Pyro4  # type: ignore[import-untyped]  # Pyro4 ships no type information
 
     Pyro4.config.SERIALIZERS_ACCEPTED.add("pickle")
@@ -309,10 +318,18 @@ def serve_devices(
     uris: dict[str, str] = {}
     daemons = []
     try:
+        if int(port) < 0 or int(port) + len(devices) - 1 > 65535:
+            raise RigError(f"device server ports {port}..{int(port) + len(devices) - 1} are outside 0..65535")
         for i, (name, device) in enumerate(devices.items()):
-            daemon = Pyro4.Daemon(host="127.0.0.1", port=int(port) + i)
+            try:
+                daemon = Pyro4.Daemon(host=LOCALHOST, port=int(port) + i if port else 0)
+            except OSError as exc:
+                raise RigError(f"cannot serve {name!r} on {LOCALHOST}:{int(port) + i}: {exc.strerror or exc}") from None
             daemons.append(daemon)
             uris[name] = str(daemon.register(device, objectId=name))
+            if isinstance(device, mabc.Stage):  # as python-microscope's device server: axes travel as proxies
+                for axis in device.axes.values():
+                    daemon.register(axis)
         for d in daemons:
             threading.Thread(target=d.requestLoop, daemon=True, name="pyro-daemon").start()
         if ready is not None:

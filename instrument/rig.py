@@ -22,7 +22,10 @@ Devices on one port share one transport (the FPGA board drives lights, the
 shutter and the trigger lines). When simulated devices share a rig with drivers
 on in-process emulators (``emu://`` ports), the simulated world probes the
 emulators (:func:`connect_emulators`): a simulated camera sees the board's
-lights and the stages' and focus drive's positions. :func:`open_rig` is a context manager: on every
+lights and the stages' and focus drive's positions. An ``emu://`` emulator lives as long as
+the rig that opened it: each :func:`open_rig` (each ``scopetwin rig`` command) starts it fresh,
+so state such as a stage position does not carry over; ``scopetwin emulate KIND`` runs one in
+its own process whose port a rig names like a device path. :func:`open_rig` is a context manager: on every
 exit, exception included, it switches every light off, closes shutters, stops
 camera acquisition and closes transports; it never moves an axis.
 """
@@ -49,6 +52,7 @@ from instrument.devices import (
     TriggerController,
 )
 from instrument.errors import InstrumentError, RigError
+from instrument.interrupts import deferred_signals
 
 KINDS = ("camera", "stage", "focus", "light", "shutter", "trigger")
 DRIVERS = ("sim", "pi-gcs", "jena-piezo", "fpga-board", "basler")
@@ -264,16 +268,29 @@ class Rig:
         Devices by name, in file order.
     world : VirtualWorld or None
         The shared world when any device is simulated.
+    ports : dict
+        Device name -> the ``port`` its table names (devices on a serial line only).
     """
 
     def __init__(
-        self, name: str, devices: dict[str, Device], world: Any = None, transports: dict | None = None, path: str = ""
+        self,
+        name: str,
+        devices: dict[str, Device],
+        world: Any = None,
+        transports: dict | None = None,
+        path: str = "",
+        ports: dict[str, str] | None = None,
     ) -> None:
         self.name = name
         self.devices = devices
         self.world = world
         self.path = path
+        self.ports = dict(ports or {})
         self._transports = transports or {}
+
+    def emulated_ports(self) -> dict[str, str]:
+        """Devices on ``emu://`` ports: in-process emulators that start fresh with every :func:`open_rig`."""
+        return {name: port for name, port in self.ports.items() if port.lower().startswith("emu://")}
 
     def __getitem__(self, name: str) -> Device:
         if name not in self.devices:
@@ -375,7 +392,13 @@ class Rig:
 
     def describe(self) -> dict[str, Any]:
         """Rig name and each device's description (JSON-ready)."""
-        return {"rig": self.name, "path": self.path, "devices": [d.describe() for d in self.devices.values()]}
+        devices = []
+        for name, device in self.devices.items():
+            entry = device.describe()
+            if name in self.ports:
+                entry["port"] = self.ports[name]
+            devices.append(entry)
+        return {"rig": self.name, "path": self.path, "devices": devices}
 
 
 def load_rig(path: str | Path) -> Rig:
@@ -396,6 +419,7 @@ def load_rig(path: str | Path) -> Rig:
         raise RigError(f"rig file {str(p)!r} has no [devices.NAME] tables")
     ctx = _Context()
     devices: dict[str, Device] = {}
+    ports = {name: str(table["port"]) for name, table in tables.items() if isinstance(table, dict) and "port" in table}
     try:
         for name, table in tables.items():
             if not isinstance(table, dict):
@@ -409,7 +433,7 @@ def load_rig(path: str | Path) -> Rig:
     if ctx.world is not None:
         connect_emulators(ctx.world, devices)
     rig_name = str(data.get("rig", {}).get("name", p.stem))
-    return Rig(rig_name, devices, ctx.world, ctx.transports, str(p))
+    return Rig(rig_name, devices, ctx.world, ctx.transports, str(p), ports)
 
 
 def _emulator_of(transport: Any) -> Any:
@@ -457,6 +481,8 @@ def open_rig(path: str | Path, on_close: Callable[[list[str]], None] | None = No
     """Open a rig as a context manager: devices initialized on entry; on every exit lights off,
     shutters closed, acquisition stopped, transports closed (axes stay where they are).
 
+    A signal (SIGINT, SIGTERM, SIGHUP) that arrives while the rig closes is held until it is closed.
+
     ``on_close`` receives the list of failures while closing (normally empty).
     """
     rig = load_rig(path)
@@ -464,6 +490,7 @@ def open_rig(path: str | Path, on_close: Callable[[list[str]], None] | None = No
         rig.initialize()
         yield rig
     finally:
-        failures = rig.close()
+        with deferred_signals():  # a SIGINT/SIGTERM/SIGHUP now waits until every light is off
+            failures = rig.close()
         if on_close is not None:
             on_close(failures)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import io
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +46,9 @@ class FocusMap:
         is below the depth of field.
     depth_of_field_um : float
         The objective's depth of field, µm.
+    std_um : ndarray or None
+        Standard uncertainty of the height in each field (the largest over its samples), µm, when the height map
+        came with one (:class:`recon.reconstruct.Uncertainty`).
     """
 
     x_mm: Array
@@ -54,28 +58,42 @@ class FocusMap:
     focus_um: Array
     spread_um: Array
     depth_of_field_um: float
+    std_um: Array | None = None
 
     @property
     def in_focus(self) -> NDArray[np.bool_]:
         """True where the whole field lies within the depth of field around its focus."""
         return self.spread_um <= self.depth_of_field_um
 
+    @property
+    def interval_in_dof(self) -> NDArray[np.bool_]:
+        """True where the field's 95 % interval stays in the depth of field: spread/2 + 1.96 u <= DOF/2.
+
+        The focus is set on the field's centre height; the true heights of the field lie, with 95 % probability,
+        within half its spread plus 1.96 standard uncertainties of it. Without an uncertainty: :attr:`in_focus`.
+        """
+        if self.std_um is None:
+            return self.in_focus
+        return 0.5 * self.spread_um + 1.96 * self.std_um <= 0.5 * self.depth_of_field_um
+
     def to_csv(self) -> str:
         """The table a rig executes: index, stage x/y (mm), focus (µm), spread (µm), whole field in focus."""
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
-        w.writerow(["index", "stage_x_mm", "stage_y_mm", "focus_um", "spread_um", "field_in_focus"])
+        head = ["index", "stage_x_mm", "stage_y_mm", "focus_um", "spread_um", "field_in_focus"]
+        w.writerow(head + (["std_um", "interval_in_dof"] if self.std_um is not None else []))
         for k in range(len(self.x_mm)):
-            w.writerow(
-                [
-                    k,
-                    f"{self.stage_x_mm[k]:.4f}",
-                    f"{self.stage_y_mm[k]:.4f}",
-                    f"{self.focus_um[k]:.3f}",
-                    f"{self.spread_um[k]:.3f}",
-                    int(self.in_focus[k]),
-                ]
-            )
+            row = [
+                k,
+                f"{self.stage_x_mm[k]:.4f}",
+                f"{self.stage_y_mm[k]:.4f}",
+                f"{self.focus_um[k]:.3f}",
+                f"{self.spread_um[k]:.3f}",
+                int(self.in_focus[k]),
+            ]
+            if self.std_um is not None:
+                row += [f"{self.std_um[k]:.4f}", int(self.interval_in_dof[k])]
+            w.writerow(row)
         return buf.getvalue()
 
     def summary(self) -> dict:
@@ -85,6 +103,14 @@ class FocusMap:
             "focus_range_um": float(np.ptp(self.focus_um)) if len(self.focus_um) else 0.0,
             "fields_in_focus": int(self.in_focus.sum()),
             "height_range_over_dof": float(np.ptp(self.focus_um) / self.depth_of_field_um),
+            **(
+                {
+                    "std_max_um": float(self.std_um.max()) if len(self.std_um) else 0.0,
+                    "fields_interval_leaves_dof": int((~self.interval_in_dof).sum()),
+                }
+                if self.std_um is not None
+                else {}
+            ),
         }
 
 
@@ -99,6 +125,7 @@ def focus_map(
     stage_offset_mm: tuple[float, float] = (0.0, 0.0),
     piezo_range_um: tuple[float, float] = (0.0, 400.0),
     samples: int = 5,
+    height_std: Callable[[Array, Array], Array] | None = None,
 ) -> FocusMap:
     """Focus positions over a serpentine raster of fields covering the ROI.
 
@@ -122,6 +149,10 @@ def focus_map(
         Travel of the focus drive; a focus outside it is an error.
     samples : int
         Height samples per field side for the spread.
+    height_std : callable, optional
+        u(x, y), the height's standard uncertainty in mm (e.g. ``ReconstructionResult.std_heightmap().height``):
+        each field carries the largest over its samples, and :attr:`FocusMap.interval_in_dof` flags fields whose
+        95 % interval leaves the depth of field.
 
     Raises
     ------
@@ -153,6 +184,17 @@ def focus_map(
             f"{int(bad.sum())} focus positions fall outside the drive's {lo}-{hi} µm travel "
             f"(range {focus.min():.1f}-{focus.max():.1f} µm); change the reference position"
         )
+    std = None
+    if height_std is not None:
+        std = np.max(np.asarray(height_std(xf[:, None] + ox.ravel()[None], yf[:, None] + oy.ravel()[None])), axis=1)
+        std = np.clip(std, 0.0, None) * 1e3
     return FocusMap(
-        xf, yf, xf + stage_offset_mm[0], yf + stage_offset_mm[1], focus, np.ptp(hs, axis=1) * 1e3, obj.depth_of_field_um
+        xf,
+        yf,
+        xf + stage_offset_mm[0],
+        yf + stage_offset_mm[1],
+        focus,
+        np.ptp(hs, axis=1) * 1e3,
+        obj.depth_of_field_um,
+        std,
     )

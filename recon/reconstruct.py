@@ -172,6 +172,18 @@ class ReconstructionConfig:
         Each frame region needs at least ``min_edge_markers`` markers within ``edge_band`` mm of it.
     method : {"lstsq", "normal"}
         Linear solver of the fit.
+    posterior : {"correct", "report", "off"}
+        After convergence, read the fit as a Gaussian process (:mod:`recon.posterior`: smooth + broadband prior,
+        scales and amplitudes by evidence) and give every reconstruction its uncertainty (absolute height, shape,
+        per node); ``"correct"`` also replaces the extrapolated frame maxima of the fitted surface by their
+        posterior mean (a Newton step on the start height, criterion ``level`` only); ``"off"``: neither.
+    evidence_points : int
+        Gradient observations (an even subsample) entering the evidence maximisation.
+    posterior_iterations : int
+        Most Newton steps on the start height with the posterior frame criterion (``posterior = "correct"``).
+    posterior_points : int
+        Most gradient observations entering the posterior (:func:`_posterior_subset`: all of the outermost
+        along y, an even subsample of the rest).
     consistency_um : float
         After convergence the criterion not searched on must hold too: |Delta h_max| (criterion
         ``level``) or |mean frame maximum - frame position| (criterion ``delta``) above this is an
@@ -202,6 +214,10 @@ class ReconstructionConfig:
     min_edge_markers: int = 5
     method: Literal["lstsq", "normal"] = "lstsq"
     consistency_um: float = 10.0
+    posterior: Literal["correct", "report", "off"] = "correct"
+    evidence_points: int = 250
+    posterior_points: int = 800
+    posterior_iterations: int = 4
 
     @classmethod
     def thesis(cls, literal_axes: bool = True, **changes: Any) -> ReconstructionConfig:
@@ -226,6 +242,7 @@ class ReconstructionConfig:
             search="thesis",
             warm_start=False,
             consistency_um=float("inf"),
+            posterior="report",
         )
         return replace(base, **changes)
 
@@ -241,6 +258,7 @@ class ReconstructionConfig:
             outer_tol_um=2e-3,
             grid_step=1.0,
             frame_step=0.3,
+            posterior="off",
         )
         return replace(base, **changes)
 
@@ -299,9 +317,51 @@ class OuterStep:
     sigma_mm: float
 
 
+@dataclass(frozen=True)
+class Uncertainty:
+    """Standard uncertainties of a reconstruction (from :func:`recon.posterior.frame_posterior`).
+
+    Attributes
+    ----------
+    absolute_um : float
+        Of the absolute height (the ROI mean), µm: the posterior spread of the frame criterion's shape functional,
+        plus the offset of the fitted surface's value from the posterior mean when no correction was applied,
+        divided by the criterion's slope in the start height.
+    shape_um : float
+        Of the shape (RMS over the ROI after removing the mean), µm: sqrt of the mean posterior variance of the
+        height contrasts plus the mean squared difference between the fitted and the posterior-mean contrasts.
+    node_std : HeightMap
+        Standard uncertainty of the height at the nodes of a coarse grid over the whole substrate, mm
+        (absolute and shape parts together).
+    correction_um : float
+        Start-height correction applied from the posterior (0 when ``posterior`` is ``"report"``), µm.
+    slope : float
+        d criterion / d start height of the outer loop (from its last two runs; 1 when unknown).
+    hyper : dict
+        The prior chosen by evidence (:meth:`recon.posterior.Hyper.as_dict`).
+    """
+
+    absolute_um: float
+    shape_um: float
+    node_std: HeightMap
+    correction_um: float
+    slope: float
+    hyper: dict[str, float]
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready (the contract's ``uncertainty`` object plus details)."""
+        return {
+            "absolute_um": self.absolute_um,
+            "shape_um": self.shape_um,
+            "correction_um": self.correction_um,
+            "criterion_slope": self.slope,
+            "prior": self.hyper,
+        }
+
+
 @dataclass
 class ReconstructionResult:
-    """The reconstructed surface with its iteration history."""
+    """The reconstructed surface with its iteration history and (``config.posterior`` on) its uncertainty."""
 
     surface: SBFSurface
     substrate: Substrate2D
@@ -309,6 +369,7 @@ class ReconstructionResult:
     converged: bool
     seconds: float
     config: ReconstructionConfig
+    uncertainty: Uncertainty | None = None
 
     @property
     def outer_iterations(self) -> int:
@@ -327,6 +388,16 @@ class ReconstructionResult:
         """The surface on a node grid covering the whole substrate (DESIGN.md height-map contract)."""
         return self.surface.heightmap(self.substrate.x_range, self.substrate.y_range, nx, ny)
 
+    def std_heightmap(self, nx: int = 128, ny: int = 288) -> HeightMap | None:
+        """The per-node standard uncertainty on the same node grid as :meth:`heightmap` (bicubic), mm; or None."""
+        if self.uncertainty is None:
+            return None
+        xs = np.linspace(*self.substrate.x_range, nx)
+        ys = np.linspace(*self.substrate.y_range, ny)
+        xx, yy = np.meshgrid(xs, ys)
+        z = np.clip(self.uncertainty.node_std.height(xx, yy), 0.0, None)
+        return HeightMap(z, xs[0], xs[-1], ys[0], ys[-1])
+
     def history_dicts(self) -> list[dict[str, Any]]:
         return [asdict(s) for s in self.history]
 
@@ -341,6 +412,7 @@ class ReconstructionResult:
             "start_height_um": self.history[-1].start_height_um,
             "sigma_mm": list(self.surface.basis.sigma),
             "basis_functions": self.surface.basis.n_basis,
+            **({"uncertainty": self.uncertainty.summary()} if self.uncertainty is not None else {}),
             "history": self.history_dicts(),
         }
 
@@ -471,6 +543,7 @@ class Reconstructor:
         check_substrate_visible(camera, substrate)
         self.sigma_scores: dict[float, float] = {}
         self._last: SBFSurface | None = None
+        self._post_delta: tuple[float, float] | None = None
         self._use_basis(self.config.make_basis(substrate))
 
     def _use_basis(self, basis: ShiftedBasis) -> None:
@@ -669,7 +742,19 @@ class Reconstructor:
             else abs(0.5 * (last.max_region1_um + last.max_region2_um) - self.sub.frame_z * 1e3)
         )
         if converged and other <= cfg.consistency_um:
+            if cfg.posterior != "off":
+                self._posterior(markers, result)
             return result
+        if converged and cfg.posterior != "off" and cfg.criterion == "level":
+            # the fitted surface's extrapolated Delta h_max can be microns off on surfaces with medium-scale
+            # content; the posterior's Delta h_max (frame maxima from the data, with its spread) decides instead
+            self._post_delta = None
+            self._posterior(markers, result)
+            if self._post_delta is not None:
+                d_mean, d_std = self._post_delta
+                other = abs(d_mean) * 1e3
+                if other <= cfg.consistency_um + 3.0 * d_std * 1e3:
+                    return result
         path = Path(history_path) if history_path is not None else None
         if path is not None:
             from scenes.io import write_json_atomic
@@ -688,6 +773,99 @@ class Reconstructor:
             f"the reconstructed surface cannot lie on the holding frame: {what} is {other:.3g} µm "
             f"(> {cfg.consistency_um} µm) — are the markers indexed correctly and is the setup right?{where}"
         )
+
+    def _posterior(self, markers: MarkerObservations, result: ReconstructionResult) -> None:
+        """Uncertainty of the converged surface and (``posterior = "correct"``) the posterior start height.
+
+        The gradient data are traced through the converged surface; the prior is chosen by evidence
+        (:func:`recon.posterior.fit_hyper`) and the posterior of the frame criterion's shape functional D (frame
+        maxima relative to the ROI mean) compared with the fitted surface's D. The start height solves
+        H + D(H) = z_frame; with the posterior D in place of the extrapolated one this is solved by Newton steps
+        H <- H + (D_fit - D_post) / slope (slope = dF/dH of the outer loop), each followed by the inner loop at the
+        new H, so the traced gradients — which depend on H (a wrong H tilts them) — follow the start height.
+        """
+        from recon.posterior import GradientGP, PosteriorError, fit_hyper, frame_posterior
+
+        cfg = self.config
+        sub = self.sub
+        rx, ry = sub.roi_grid(cfg.grid_step)
+        axes = (np.unique(rx), np.unique(ry))
+        same = [s for s in result.history if s.sigma_mm == result.history[-1].sigma_mm]
+        slope = 1.0
+        if len(same) >= 2 and same[-1].start_height_um != same[-2].start_height_um:
+            slope = (same[-1].criterion_um - same[-2].criterion_um) / (
+                same[-1].start_height_um - same[-2].start_height_um
+            )
+        if not 0.2 < abs(slope) < 5.0:
+            slope = 1.0
+        correcting = cfg.posterior == "correct" and cfg.criterion == "level"
+        surf = result.surface
+        h0 = self._roi_mean(surf.coef) + surf.offset
+        ij, px_meas, targets = self._prepare(markers)
+        hyper = None
+        tried: list[tuple[float, float, SBFSurface]] = []  # (H, F_post(H), surface) of each step
+        for it in range(cfg.posterior_iterations if correcting else 1):
+            px = self.bias(surf, ij, px_meas) if self.bias is not None else px_meas
+            xy, hx, hy, _ = self._trace(surf, px, targets)
+            try:
+                hyper = hyper or fit_hyper(xy, hx, hy, max_points=cfg.evidence_points)
+                gp = GradientGP(*_posterior_subset(xy, hx, hy, cfg.posterior_points), hyper)
+                post = frame_posterior(gp, sub.x_range, sub.y_range, sub.roi_length, axes)
+            except PosteriorError:
+                return
+            # the fitted surface's frame maxima on the posterior's own frame points (same discretisation)
+            m1 = float(np.max(surf.height(post.frame1[:, 0], post.frame1[:, 1])))
+            m2 = float(np.max(surf.height(post.frame2[:, 0], post.frame2[:, 1])))
+            h = self._roi_mean(surf.coef) + surf.offset
+            self._post_delta = (post.delta_mean, post.delta_std)
+            if cfg.criterion == "level":
+                err, spread = (0.5 * (m1 + m2) - h) - post.d_mean, post.d_std
+            else:
+                err, spread = (m1 - m2) - post.delta_mean, post.delta_std
+            if not correcting:
+                break
+            # F_post(H) = H + D_post(H) - z_frame; the fitted surface satisfies H + D_fit(H) ~ z_frame
+            f_post = h + post.d_mean - sub.frame_z
+            tried.append((h, f_post, surf))
+            if len(tried) >= 2 and tried[-1][0] != tried[-2][0]:
+                (ha, fa, _), (hb, fb, _) = tried[-2], tried[-1]
+                s_post = (fb - fa) / (hb - ha)
+                s_post = s_post if 0.2 < abs(s_post) < 5.0 else slope
+            else:
+                s_post = slope
+            step = -f_post / s_post
+            if abs(step) * 1e3 <= cfg.outer_tol_um or it == cfg.posterior_iterations - 1:
+                surf = surf.shifted(surf.offset + step)  # the last, small step without another inner loop
+                break
+            surf = self.inner_loop(h + step, markers, surf)[0]
+        if correcting:
+            u_abs = spread / abs(slope)
+        else:
+            u_abs = float(np.hypot(err, spread)) / abs(slope)
+        h_final = self._roi_mean(surf.coef) + surf.offset
+        nxx, nyy = np.meshgrid(post.node_x, post.node_y)
+        fit_c = surf.height(nxx, nyy) - h_final
+        dev2 = (fit_c - post.contrast_mean) ** 2
+        u_shape = float(np.sqrt(np.mean(post.contrast_std[post.roi] ** 2 + dev2[post.roi])))
+        node = np.sqrt(u_abs**2 + post.contrast_std**2 + dev2)
+        std_map = HeightMap(node, post.node_x[0], post.node_x[-1], post.node_y[0], post.node_y[-1])
+        result.surface = surf
+        result.uncertainty = Uncertainty(
+            u_abs * 1e3, u_shape * 1e3, std_map, (h_final - h0) * 1e3, slope, hyper.as_dict() if hyper else {}
+        )
+
+
+def _posterior_subset(xy: Array, hx: Array, hy: Array, budget: int) -> tuple[Array, Array, Array]:
+    """At most ``budget`` observations for the posterior: the outer half of the budget nearest the frame regions
+    (largest |y|) in full, an even subsample of the interior for the rest; the extrapolation rests on the former."""
+    if len(xy) <= budget:
+        return xy, hx, hy
+    order = np.argsort(-np.abs(xy[:, 1]))
+    outer = order[: budget // 2]
+    inner = order[budget // 2 :]
+    inner = inner[np.linspace(0, len(inner) - 1, budget - len(outer)).round().astype(int)]
+    keep = np.sort(np.concatenate([outer, inner]))
+    return xy[keep], hx[keep], hy[keep]
 
 
 def _predict_surface(surfaces: list[SBFSurface], values: list[tuple[float, float]], h: float) -> SBFSurface | None:

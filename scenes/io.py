@@ -8,6 +8,7 @@ sees a half-written file and a failure leaves nothing behind.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import tempfile
@@ -54,6 +55,14 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             os.unlink(tmp)
 
 
+def exr_write_error(path: str | Path, exc: RuntimeError) -> OSError:
+    """The OSError for OpenEXR's RuntimeError on a failed write (ENOSPC when the disk is full), naming ``path``."""
+    text = str(exc)
+    if "No space left on device" in text:
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+    return OSError(errno.EIO, f"could not write the EXR file ({text})", str(path))
+
+
 def write_text_atomic(path: str | Path, text: str) -> None:
     """Write a text file atomically."""
     with atomic_path(path) as tmp:
@@ -65,17 +74,28 @@ def write_json_atomic(path: str | Path, data: Any) -> None:
     write_text_atomic(path, json.dumps(data, indent=2) + "\n")
 
 
-def _write_exr(path: str | Path, channel: str, data: NDArray, attrs: dict[str, Any]) -> None:
+def _write_exr(
+    path: str | Path, channel: str, data: NDArray, attrs: dict[str, Any], extra: dict[str, NDArray] | None = None
+) -> None:
     arr = np.ascontiguousarray(np.asarray(data, dtype=np.float32))
     if arr.ndim != 2:
         raise FileFormatError(f"an EXR channel must be a 2-D array, got shape {arr.shape}")
+    channels = {channel: arr}
+    for name, values in (extra or {}).items():
+        more = np.ascontiguousarray(np.asarray(values, dtype=np.float32))
+        if more.shape != arr.shape:
+            raise FileFormatError(f"EXR channel {name!r} is {more.shape}, channel {channel!r} is {arr.shape}")
+        channels[name] = more
     header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     for key, value in attrs.items():
         if key in _RESERVED:
             raise FileFormatError(f"EXR attribute name {key!r} is reserved")
         header[key] = value if isinstance(value, str | float | int) else json.dumps(value)
     with atomic_path(path) as tmp:
-        OpenEXR.File(header, {channel: arr}).write(str(tmp))
+        try:
+            OpenEXR.File(header, channels).write(str(tmp))
+        except RuntimeError as exc:
+            raise exr_write_error(path, exc) from None
 
 
 def _read_exr(path: str | Path, channel: str) -> tuple[NDArray[np.float32], dict[str, Any]]:
@@ -125,10 +145,29 @@ def read_image(path: str | Path) -> tuple[NDArray[np.float32], dict[str, Any]]:
     return data, attrs
 
 
-def write_heightmap(path: str | Path, heights: HeightMap, **attrs: Any) -> None:
-    """Write a height map in the contract's format (channel ``Z`` in mm, extents as header attributes)."""
+def write_heightmap(path: str | Path, heights: HeightMap, std: HeightMap | None = None, **attrs: Any) -> None:
+    """Write a height map in the contract's format (channel ``Z`` in mm, extents as header attributes).
+
+    ``std``: the per-node standard uncertainty of a reconstruction on the same nodes, written as channel ``Z_std``
+    (mm; DESIGN.md, the reconstruct contract).
+    """
     extents = dict(zip(EXTENT_KEYS, (heights.x_min, heights.x_max, heights.y_min, heights.y_max), strict=True))
-    _write_exr(path, "Z", heights.z, {**extents, **attrs})
+    extra = None
+    if std is not None:
+        if std.z.shape != heights.z.shape:
+            raise FileFormatError(f"Z_std has {std.z.shape} nodes but Z has {heights.z.shape}")
+        extra = {"Z_std": std.z}
+    _write_exr(path, "Z", heights.z, {**extents, **attrs}, extra)
+
+
+def read_heightmap_std(path: str | Path) -> HeightMap | None:
+    """The ``Z_std`` channel of a height-map EXR (per-node standard uncertainty, mm), or None when it has none."""
+    hm = read_heightmap(path)
+    try:
+        data, _ = _read_exr(path, "Z_std")
+    except FileFormatError:
+        return None
+    return HeightMap(data.astype(np.float64), hm.x_min, hm.x_max, hm.y_min, hm.y_max)
 
 
 def read_heightmap(path: str | Path) -> HeightMap:

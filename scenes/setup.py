@@ -30,6 +30,7 @@ from scenes.camera_spec import CameraGridSpec
 from scenes.emva1288 import EmvaSensor
 from scenes.errors import GeometryError, SetupError
 from scenes.geometry import Frame
+from scenes.limits import check_image_size
 from scenes.pattern import MarkerPattern
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
@@ -41,7 +42,9 @@ PositiveInt = Annotated[int, Field(gt=0)]
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """Base of the setup tables: unknown keys and non-finite numbers (``inf``, ``nan``) are rejected."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 def _make_frame(origin: Vec3, t_x: Vec3, t_y: Vec3, n_z: Vec3) -> Frame:
@@ -79,8 +82,11 @@ class CameraSpec(CameraGridSpec):
 
     Give the pose either as axes (``t_x``, ``t_y``, ``n_z`` and ``image_distance``)
     or as the optimisation parameters of §2.5.2 (``r_0``, ``phi``; b then follows from
-    the thin-lens equation b = g f/(g - f) with g = |r_c - r_0|).
+    the thin-lens equation b = g f/(g - f) with g = |r_c - r_0|). Every number must be finite, and one image of
+    ``pixels`` must fit in this machine's memory (:func:`scenes.limits.check_image_size`).
     """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     origin: Vec3 = Field(description="camera centre r_c, mm")
     t_x: Vec3 | None = None
@@ -100,6 +106,7 @@ class CameraSpec(CameraGridSpec):
 
     @model_validator(mode="after")
     def _check(self) -> CameraSpec:
+        check_image_size(self.pixels[0], self.pixels[1], "pixels")
         axes = (self.t_x, self.t_y, self.n_z)
         pose = (self.r_0, self.phi)
         if all(a is not None for a in axes):
@@ -193,22 +200,53 @@ class PatternSpec(FrameSpec):
 
 
 class SurfaceSpec(_Model):
-    """How the substrate's height map is made (by :mod:`sim.surfaces`) or where it is read from."""
+    """How the substrate's height map is made (by :mod:`sim.surfaces`) or where it is read from.
 
-    kind: Literal["random", "plane", "sphere", "saddle", "cylinder", "file"] = "random"
+    ``random`` is the seed's §1.9 generator (Gaussian low-pass of scale ``correlation_length``); ``psd`` draws a
+    Gaussian random surface from a power spectral density as glass flatness and waviness are specified: the
+    K-correlation (ABC) model PSD(f) = A / (1 + (B f)^2)^(C/2) (``spectrum = "abc"``, B = ``correlation_length``,
+    C = ``psd_exponent``) or a power law f^-C rolled off below f = 1/B (``spectrum = "power"``), times a Gaussian
+    high-frequency roll-off of scale ``psd_rolloff_mm`` (waviness: without it the spectrum's tail bends the glass
+    far beyond what deflectometry images resolve). Both are levelled on the frame and scaled to ``range_um`` like
+    §1.9. ``broadband_rms_nm`` adds a flat-spectrum part of that RMS at wavelengths between
+    ``broadband_min_wavelength_mm`` and ``broadband_wavelength_mm`` (kinds ``random`` and ``psd``), the nm-level
+    short-wavelength content real glass has.
+    """
+
+    kind: Literal["random", "psd", "plane", "sphere", "saddle", "cylinder", "file"] = "random"
     range_um: float = Field(40.0, ge=0, description="peak-to-valley height range, µm (§1.10: 40 µm)")
-    correlation_length: Positive = Field(12.0, description="low-pass correlation length, mm (§1.9)")
+    correlation_length: Positive = Field(12.0, description="low-pass correlation length (§1.9) or PSD B, mm")
     seed: int = Field(1, ge=0)
     grid: tuple[Annotated[int, Field(ge=4)], Annotated[int, Field(ge=4)]] = Field(
         (256, 512), description="height-map nodes (nx, ny)"
     )
     path: str | None = Field(None, description="height-map EXR (kind = 'file')")
+    spectrum: Literal["abc", "power"] = Field("abc", description="PSD model of kind 'psd'")
+    psd_exponent: float = Field(3.0, gt=0, le=12, description="C of the ABC model / power-law exponent")
+    psd_rolloff_mm: float = Field(
+        6.0, ge=0, description="high-frequency roll-off of kind 'psd': PSD x exp(-4 pi^2 s^2 f^2), s in mm"
+    )
+    broadband_rms_nm: float = Field(0.0, ge=0, le=1000, description="RMS of the broadband part, nm")
+    broadband_wavelength_mm: Positive = Field(4.0, description="longest wavelength of the broadband part, mm")
+    broadband_min_wavelength_mm: Positive = Field(0.5, description="shortest wavelength of the broadband part, mm")
 
     @model_validator(mode="after")
     def _check(self) -> SurfaceSpec:
         if self.kind == "file" and not self.path:
             raise ValueError("surface kind 'file' needs a path")
+        if self.broadband_min_wavelength_mm >= self.broadband_wavelength_mm:
+            raise ValueError(
+                f"broadband_min_wavelength_mm ({self.broadband_min_wavelength_mm}) must be below "
+                f"broadband_wavelength_mm ({self.broadband_wavelength_mm})"
+            )
+        if self.broadband_rms_nm > 0 and self.kind not in ("random", "psd"):
+            raise ValueError(f"broadband_rms_nm needs surface kind 'random' or 'psd', not {self.kind!r}")
         return self
+
+
+#: 4-byte numbers per height-map node while a surface is generated and written (float64 noise, its FFT, the
+#: filtered and levelled copies): an estimate for :func:`scenes.limits.check_image_size`.
+SURFACE_FLOATS_PER_NODE = 24
 
 
 class SubstrateSpec(_Model):
@@ -224,6 +262,8 @@ class SubstrateSpec(_Model):
             raise ValueError(f"size must be > 0 mm, got {self.size}")
         if self.roi_length > self.size[1]:
             raise ValueError(f"roi_length {self.roi_length} mm exceeds the substrate length {self.size[1]} mm")
+        nx, ny = self.surface.grid
+        check_image_size(nx, ny, "surface.grid", SURFACE_FLOATS_PER_NODE)
         return self
 
 
@@ -236,8 +276,8 @@ class MirrorSpec(_Model):
 class RenderSpec(_Model):
     """Rendering options."""
 
-    spp: PositiveInt = Field(16, description="samples per pixel")
-    seed: int = Field(0, ge=0)
+    spp: PositiveInt = Field(16, le=2**31 - 1, description="samples per pixel (the render time is checked on use)")
+    seed: int = Field(0, ge=0, le=2**32 - 1, description="sampler seed (Mitsuba takes 32 bits)")
     noise: bool = Field(False, description="apply the EMVA sensor model")
 
 
@@ -331,6 +371,8 @@ def _read_toml(path: Path) -> dict[str, Any]:
             return tomllib.load(fh)
     except OSError as exc:
         raise SetupError(f"cannot read setup file {path}: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise SetupError(f"setup file {path} is not a text (TOML) file") from None
     except tomllib.TOMLDecodeError as exc:
         raise SetupError(f"setup file {path} is not valid TOML: {exc}") from None
 

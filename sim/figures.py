@@ -13,9 +13,38 @@ from recon.markers import MarkerError, Markers
 from scenes.io import atomic_path
 
 
+def label_step(centroids: NDArray[Any], label_width_px: float) -> int:
+    """Every how many-th marker (along i and j) gets a label, so that labels of width ``label_width_px`` do not
+    run together: the smallest k with k x (median marker spacing) >= 1.3 x the label width."""
+    pts = np.asarray(centroids, dtype=np.float64).reshape(-1, 2)
+    if len(pts) < 2:
+        return 1
+    from scipy.spatial import cKDTree
+
+    dist, _ = cKDTree(pts).query(pts, k=2)
+    spacing = float(np.median(dist[:, 1]))
+    if not spacing > 0:
+        return 1
+    return max(1, int(np.ceil(1.3 * label_width_px / spacing)))
+
+
+def _text(out: NDArray[Any], text: str, org: tuple[int, int], scale: float, colour: tuple[int, int, int]) -> None:
+    """Text with a dark halo, legible on bright and dark ground."""
+    import cv2
+
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    cv2.putText(out, text, org, font, scale, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(out, text, org, font, scale, colour, 1, cv2.LINE_AA)
+
+
 def overlay_image(image: NDArray[Any], markers: Markers) -> NDArray[np.uint8]:
-    """8-bit BGR picture of the image with the indexed markers (green, index "i,j"), the reference (yellow)
-    and the rejected candidates (red circles)."""
+    """8-bit BGR picture of the image with the indexed markers (green crosses), the reference (yellow) and the
+    rejected candidates (red circles).
+
+    Every marker gets a cross; the index "i,j" is written (with a dark halo) beside every k-th marker along i and
+    j, k chosen from the marker spacing so that the labels do not run together (:func:`label_step`), and beside
+    the reference marker (0, 0).
+    """
     import cv2
 
     img = np.asarray(image, dtype=np.float64)
@@ -27,13 +56,18 @@ def overlay_image(image: NDArray[Any], markers: Markers) -> NDArray[np.uint8]:
     for c in markers.spots.centroids:
         if tuple(np.round(c, 6)) not in kept:
             cv2.circle(out, (int(c[0]), int(c[1])), 6, (0, 0, 255), 1, cv2.LINE_AA)
-    scale = 0.3 if len(markers) > 200 else 0.45
+    scale = 0.4
+    if len(markers):
+        widest = max((f"{i},{j}" for i, j in markers.ij), key=len)
+        (tw, _), _ = cv2.getTextSize(widest, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+        step = label_step(markers.centroids, tw)
     for (i, j), (col, row) in zip(markers.ij, markers.centroids, strict=True):
         ref = i == 0 and j == 0
         colour = (0, 255, 255) if ref else (0, 255, 0)
         p = (int(round(col - 0.5)), int(round(row - 0.5)))
         cv2.drawMarker(out, p, colour, cv2.MARKER_CROSS, 6, 1)
-        cv2.putText(out, f"{i},{j}", (p[0] + 3, p[1] - 3), cv2.FONT_HERSHEY_SIMPLEX, scale, colour, 1, cv2.LINE_AA)
+        if ref or (i % step == 0 and j % step == 0):
+            _text(out, f"{i},{j}", (p[0] + 4, p[1] - 4), scale, colour)
     return np.asarray(out, dtype=np.uint8)
 
 

@@ -8,17 +8,22 @@ preview PNG.
 :class:`StagedOutput` is the one stage-then-rename helper of the package: every command and library function
 that writes an output folder (``render``, ``run``, a study report, a dataset sample) collects its files in a
 hidden staging folder beside the destination and moves them into place only when everything succeeded, so an
-interrupted or failed job leaves no partial output behind.
+interrupted or failed job leaves no partial output behind. Inside :func:`deferred_commits` (the command line)
+the move waits until the ``--json`` result is written; a dataset sample's stage is locked (``lock=True``) so a
+clean-up in another process removes only stages of dead processes (:func:`remove_stale_stage`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import importlib.metadata as md
 import os
 import shutil
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +47,10 @@ class StagedOutput:
     and refuses when ``out`` already exists. :meth:`discard` removes the staging folder. Used as a context manager,
     the folder is discarded when the block raises or when it was neither committed nor renamed.
 
+    Inside :func:`deferred_commits` (the command line runs every command in one), :meth:`commit` only records the
+    stage and returns where its entries will be; the command line moves them into place after it has written the
+    ``--json`` file, so a failing ``--json`` leaves no result behind (:mod:`sim.cli.outputs`).
+
     Parameters
     ----------
     out : Path
@@ -49,12 +58,17 @@ class StagedOutput:
     prefix : str, optional
         Name prefix of the staging folder (default ``.NAME.staging-``); it is created in ``out``'s parent folder
         with the permissions a new folder gets under the current umask.
+    lock : bool
+        Hold an exclusive ``flock`` on the staging folder until it is renamed or discarded, so that a clean-up in
+        another process (:func:`remove_stale_stage`) can tell a live stage from one left by a dead process. A
+        stage that was removed and re-created meanwhile is never renamed into place.
     """
 
-    def __init__(self, out: str | Path, prefix: str | None = None) -> None:
+    def __init__(self, out: str | Path, prefix: str | None = None, lock: bool = False) -> None:
         self.out = Path(out)
         self.out.parent.mkdir(parents=True, exist_ok=True)
         self.stage = Path(tempfile.mkdtemp(prefix=prefix or f".{self.out.name}.staging-", dir=self.out.parent))
+        self._lock_fd: int | None = _lock_folder(self.stage) if lock else None
         umask = os.umask(0)
         os.umask(umask)
         self.stage.chmod(0o777 & ~umask)  # mkdtemp makes 0700; a finished folder gets the usual permissions
@@ -63,8 +77,21 @@ class StagedOutput:
         """Where the file ``name`` is written while staged."""
         return self.stage / name
 
+    def planned(self) -> dict[str, Path]:
+        """``{name: final path}`` of the staged entries, as :meth:`commit` will place them."""
+        return {f.name: self.out / f.name for f in sorted(self.stage.iterdir())}
+
     def commit(self) -> dict[str, Path]:
-        """Move every staged entry into ``out``; returns ``{name: final path}``."""
+        """Move every staged entry into ``out``; returns ``{name: final path}`` (deferred: see the class)."""
+        pending = _DEFERRED.get()
+        if pending is not None:
+            if self not in pending:
+                pending.append(self)
+            return self.planned()
+        return self.commit_now()
+
+    def commit_now(self) -> dict[str, Path]:
+        """Move every staged entry into ``out`` now, deferred or not; returns ``{name: final path}``."""
         self.out.mkdir(parents=True, exist_ok=True)
         moved = {}
         for f in sorted(self.stage.iterdir()):
@@ -74,27 +101,117 @@ class StagedOutput:
             f.replace(dest)
             moved[f.name] = dest
         self.stage.rmdir()
+        self._unlock()
         return moved
 
     def rename(self) -> bool:
-        """Rename the staging folder to ``out`` (atomic); False, and the stage discarded, when ``out`` exists."""
+        """Rename the staging folder to ``out`` (atomic); False, and the stage discarded, when ``out`` exists.
+
+        Raises
+        ------
+        ScopetwinError
+            The locked staging folder was removed (and re-created) by someone else while it was being written.
+        """
+        if self._lock_fd is not None and not _same_folder(self._lock_fd, self.stage):
+            self._unlock()
+            self.discard()
+            raise ScopetwinError(f"the staging folder {self.stage} was removed while it was written; not renamed")
         try:
             os.rename(self.stage, self.out)
         except OSError:  # ``out`` exists (e.g. another worker finished it first)
             self.discard()
             return False
+        finally:
+            self._unlock()
         return True
 
     def discard(self) -> None:
         """Remove the staging folder and everything in it."""
         shutil.rmtree(self.stage, ignore_errors=True)
+        self._unlock()
+
+    def _unlock(self) -> None:
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
 
     def __enter__(self) -> StagedOutput:
         return self
 
     def __exit__(self, *exc: object) -> None:
         if self.stage.exists():
+            pending = _DEFERRED.get()
+            if exc[0] is None and pending is not None and self in pending:
+                return  # committed, deferred: the command line moves it into place
             self.discard()
+        self._unlock()
+
+
+#: The stages whose commit is deferred (None: commits happen at once).
+_DEFERRED: ContextVar[list[StagedOutput] | None] = ContextVar("scopetwin_deferred_commits", default=None)
+
+
+@contextlib.contextmanager
+def deferred_commits() -> Iterator[list[StagedOutput]]:
+    """Within the block, :meth:`StagedOutput.commit` only records its stage in the yielded list.
+
+    The caller finishes them with :meth:`StagedOutput.commit_now` (or discards them); on leaving the block, stages
+    that are still pending are discarded, so nothing half-done is left when the caller failed before finishing.
+    """
+    pending: list[StagedOutput] = []
+    token = _DEFERRED.set(pending)
+    try:
+        yield pending
+    finally:
+        _DEFERRED.reset(token)
+        for stage in pending:
+            if stage.stage.exists():
+                stage.discard()
+
+
+def _lock_folder(folder: Path) -> int | None:
+    """An open descriptor of ``folder`` holding an exclusive flock on it (None where the file system has none)."""
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:  # e.g. a network file system without flock on folders: no lock, as before
+        os.close(fd)
+        return None
+    return fd
+
+
+def _same_folder(fd: int, path: Path) -> bool:
+    try:
+        a, b = os.fstat(fd), os.stat(path)
+    except OSError:
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
+
+
+def remove_stale_stage(folder: Path) -> bool:
+    """Remove a staging folder unless a live process holds its lock (:class:`StagedOutput` ``lock=True``).
+
+    Returns True when the folder was removed (or was already gone), False when it is in use.
+    """
+    try:
+        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    except FileNotFoundError:
+        return True
+    except OSError:  # not a folder (a stray file): remove it
+        with contextlib.suppress(OSError):
+            folder.unlink()
+        return True
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False
+        except OSError:
+            pass  # no flock on this file system: the folder counts as stale
+        shutil.rmtree(folder, ignore_errors=True)
+        return True
+    finally:
+        os.close(fd)
 
 
 def versions(packages: Sequence[str] = PROVENANCE_PACKAGES) -> dict[str, str]:

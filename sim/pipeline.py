@@ -174,7 +174,87 @@ def _plots(
     return names
 
 
-def run_pipeline(out_dir: Path, spp: int | None, seed: int | None, progress: bool) -> dict[str, Any]:
+def run_setups(
+    setup_name: str | None, surface_path: str | Path | None, over: dict[str, Any]
+) -> tuple[Setup, Setup, Setup]:
+    """The measurement setup and the two calibration setups (target on the frame, pattern in a flat mirror).
+
+    Default: the §1.10 preset and the §2.8.3 calibration presets. With ``setup_name`` (a preset name or TOML),
+    the measurement is that setup and both calibration scenes take its camera (the mirror scene also its pattern
+    and substrate), so the calibration describes the user's rig. ``surface_path`` (a height-map EXR of the
+    contract) replaces the substrate's surface; it must cover the substrate.
+    """
+    from scenes.io import read_heightmap
+    from scenes.setup import load_setup
+
+    over = json.loads(json.dumps(over))
+    if surface_path is not None:
+        path = Path(surface_path)
+        over.setdefault("substrate", {})["surface"] = {"kind": "file", "path": str(path.resolve())}
+    setup = load_setup(setup_name or MEASUREMENT, over)
+    if setup.scene != "deflectometry" or setup.substrate is None:
+        raise ScopetwinError(f"setup {setup_name} is a {setup.scene!r} scene; run needs a deflectometry setup")
+    if surface_path is not None:
+        hm = read_heightmap(surface_path)
+        sx, sy = setup.substrate.size
+        tol = 1e-6
+        if (
+            hm.x_min > -0.5 * sx + tol
+            or hm.x_max < 0.5 * sx - tol
+            or hm.y_min > -0.5 * sy + tol
+            or hm.y_max < 0.5 * sy - tol
+        ):
+            raise ScopetwinError(
+                f"--surface {surface_path}: the height map covers x {hm.x_min:g}..{hm.x_max:g}, y {hm.y_min:g}.."
+                f"{hm.y_max:g} mm but the substrate is {sx:g} x {sy:g} mm (centred): it must cover it"
+            )
+    render_over: dict[str, Any] = {"render": dict(over.get("render", {}))}
+    if setup_name is None:
+        return setup, load_setup(TARGET, render_over), load_setup(MIRROR, render_over)
+    camera = setup.camera.model_dump(exclude_none=True)
+    target = load_setup(TARGET, {**render_over, "camera": camera})
+    mirror = load_setup(
+        MIRROR,
+        {
+            **render_over,
+            "camera": camera,
+            "pattern": setup.pattern.model_dump(exclude_none=True) if setup.pattern is not None else {},
+            "substrate": setup.substrate.model_dump(exclude_none=True),
+        },
+    )
+    return setup, target, mirror
+
+
+def surface_description(setup: Setup) -> str:
+    """One line naming the substrate surface of a setup (family and parameters, or the file)."""
+    if setup.substrate is None:
+        return "no substrate"
+    s = setup.substrate.surface
+    bb = f", broadband {s.broadband_rms_nm:g} nm RMS" if s.broadband_rms_nm > 0 else ""
+    if s.kind == "file":
+        return f"height map {s.path}"
+    if s.kind == "random":
+        return (
+            f"§1.9 generator, {s.range_um:g} µm range, Gaussian low-pass sigma {s.correlation_length:g} mm{bb}, "
+            f"seed {s.seed}"
+        )
+    if s.kind == "psd":
+        model = "K-correlation (ABC)" if s.spectrum == "abc" else "power law"
+        return (
+            f"PSD surface ({model}, B {s.correlation_length:g} mm, C {s.psd_exponent:g}, roll-off "
+            f"{s.psd_rolloff_mm:g} mm), {s.range_um:g} µm range{bb}, seed {s.seed}"
+        )
+    return f"analytic {s.kind}, {s.range_um:g} µm range"
+
+
+def run_pipeline(
+    out_dir: Path,
+    spp: int | None,
+    seed: int | None,
+    progress: bool,
+    setup: str | None = None,
+    surface: str | Path | None = None,
+) -> dict[str, Any]:
     """Simulate, render, calibrate, reconstruct and compare; write the report folder into ``out_dir``.
 
     Parameters
@@ -187,6 +267,10 @@ def run_pipeline(out_dir: Path, spp: int | None, seed: int | None, progress: boo
         Seed of the surface and of the renders (default: the preset's surface seed, render seed 0).
     progress : bool
         Show a progress bar.
+    setup : str, optional
+        Measurement setup (preset name or TOML; default the §1.10 preset), see :func:`run_setups`.
+    surface : path, optional
+        Height-map EXR of the substrate (default: the setup's own surface).
 
     Returns
     -------
@@ -196,17 +280,23 @@ def run_pipeline(out_dir: Path, spp: int | None, seed: int | None, progress: boo
     from recon.reconstruct import single_thread_blas
 
     with single_thread_blas():  # small dense problems: threaded BLAS only costs (recon.reconstruct)
-        return _run(Path(out_dir), spp, seed, progress)
+        return _run(Path(out_dir), spp, seed, progress, setup, surface)
 
 
-def _run(out_dir: Path, spp: int | None, seed: int | None, progress: bool) -> dict[str, Any]:
+def _run(
+    out_dir: Path,
+    spp: int | None,
+    seed: int | None,
+    progress: bool,
+    setup_name: str | None,
+    surface_file: str | Path | None,
+) -> dict[str, Any]:
     from tqdm import tqdm
 
     from recon.focusmap import focus_map
     from recon.markers import find_markers_for
     from recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
     from scenes.io import write_heightmap, write_image
-    from scenes.setup import load_setup
     from sim.surfaces import surface_for
     from sim.truth import marker_truth
 
@@ -229,10 +319,7 @@ def _run(out_dir: Path, spp: int | None, seed: int | None, progress: bool) -> di
     if seed is not None:
         over["render"]["seed"] = seed
         over["substrate"] = {"surface": {"seed": seed}}
-    setup = load_setup(MEASUREMENT, over)
-    render_over = {"render": dict(over["render"])}
-    target_setup = load_setup(TARGET, render_over)
-    mirror_setup = load_setup(MIRROR, render_over)
+    setup, target_setup, mirror_setup = run_setups(setup_name, surface_file, over)
     heights = surface_for(setup)
     assert heights is not None
     sub = Substrate2D.from_setup(setup)
@@ -285,14 +372,21 @@ def _run(out_dir: Path, spp: int | None, seed: int | None, progress: bool) -> di
         files.append("calibrated-setup.toml")
     for name, r in results.items():
         hm = r["result"].heightmap(heights.z.shape[1] // 2, heights.z.shape[0] // 2)
-        write_heightmap(out / f"heights-{name}.exr", hm)
+        write_heightmap(
+            out / f"heights-{name}.exr", hm, r["result"].std_heightmap(heights.z.shape[1] // 2, heights.z.shape[0] // 2)
+        )
         err = HeightMap(
             hm.z - heights.height(*np.meshgrid(hm.x_nodes, hm.y_nodes)), hm.x_min, hm.x_max, hm.y_min, hm.y_max
         )
         write_heightmap(out / f"error-{name}.exr", err)
         files += [f"heights-{name}.exr", f"error-{name}.exr"]
+    cal_res = results["calibrated"]["result"]
+    cal_std = cal_res.std_heightmap()
     fm = focus_map(
-        results["calibrated"]["result"].surface.height, sub.x_range, (-0.5 * sub.roi_length, 0.5 * sub.roi_length)
+        cal_res.surface.height,
+        sub.x_range,
+        (-0.5 * sub.roi_length, 0.5 * sub.roi_length),
+        height_std=cal_std.height if cal_std is not None else None,
     )
     (out / "focusmap.csv").write_text(fm.to_csv())
     files += ["focusmap.csv"] + _plots(out, image, found, heights, results, sub)
@@ -301,10 +395,14 @@ def _run(out_dir: Path, spp: int | None, seed: int | None, progress: bool) -> di
     if surface is None:
         raise ScopetwinError(f"setup {setup.name} has no substrate surface to compare with")
     summary: dict[str, Any] = {
+        "setup": setup.name,
         "surface": {
+            "kind": surface.kind,
+            "description": surface_description(setup),
             "range_um": surface.range_um,
             "correlation_length_mm": surface.correlation_length,
             "seed": surface.seed,
+            "broadband_rms_nm": surface.broadband_rms_nm,
         },
         "spp": r_spp,
         "render_seed": r_seed,
@@ -318,11 +416,16 @@ def _run(out_dir: Path, spp: int | None, seed: int | None, progress: bool) -> di
                 "delta_h_max_um": r["result"].delta_h_max_um,
                 "seconds": r["seconds"],
                 "sigma_mm": r["result"].surface.basis.sigma[0],
+                **({"uncertainty": r["result"].uncertainty.summary()} if r["result"].uncertainty is not None else {}),
                 "history": r["result"].history_dicts(),
             }
             for name, r in results.items()
         },
-        "exact_markers": {**exact_err, "outer_iterations": res_exact.outer_iterations},
+        "exact_markers": {
+            **exact_err,
+            "outer_iterations": res_exact.outer_iterations,
+            **({"uncertainty": res_exact.uncertainty.summary()} if res_exact.uncertainty is not None else {}),
+        },
         "focus_map": fm.summary(),
         "timings_s": timings,
         "files": files,
@@ -352,8 +455,7 @@ def _report(s: dict[str, Any]) -> str:
     lines = [
         "# scopetwin run: deflectometric reconstruction end to end",
         "",
-        f"Surface: §1.9 generator, {surf['range_um']:g} µm range, Gaussian low-pass sigma "
-        f"{surf['correlation_length_mm']:g} mm, seed {surf['seed']}. Renders: Mitsuba, {s['spp']} spp, "
+        f"Setup: {s['setup']}. Surface: {surf['description']}. Renders: Mitsuba, {s['spp']} spp, "
         "sensor noise on. "
         f"{s['markers']} markers detected and indexed in the measurement image.",
         "",
@@ -361,25 +463,35 @@ def _report(s: dict[str, Any]) -> str:
         "",
         "Reconstruction: Gaussian shifted basis (sigma 12 mm, ridge-regularised, plane terms), centroid-bias "
         "correction in the inner loop, start height by a secant root search on the frame criterion "
-        "(both frame maxima at the frame position).",
+        "(both frame maxima at the frame position); the frame maxima and the uncertainties from the Gaussian-"
+        "process reading of the fit (recon.posterior: prior chosen by evidence).",
         "",
         "## ROI errors beside the seed (µm)",
         "",
-        "| reconstruction | ROI RMS | ROI max | absolute (ROI mean) | shape (RMS - mean) | whole RMS | outer | inner "
-        "| seed ROI RMS | seed ROI max |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "u: one standard uncertainty as reported by the reconstruction (no truth used).",
+        "",
+        "| reconstruction | ROI RMS | ROI max | absolute (ROI mean) | u(absolute) | shape (RMS - mean) | u(shape) "
+        "| whole RMS | outer | inner | seed ROI RMS | seed ROI max |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+
+    def u_cells(r: dict[str, Any]) -> tuple[str, str]:
+        u = r.get("uncertainty")
+        return (f"{u['absolute_um']:.4f}", f"{u['shape_um']:.4f}") if u else ("", "")
+
     for name in ("ideal", "calibrated"):
         r = rec[name]
         sd = SEED[name]
+        ua, us = u_cells(r)
         lines.append(
-            f"| {name} setup | {r['roi_rms_um']:.4f} | {r['roi_max_um']:.4f} | {r['roi_absolute_um']:+.4f} "
-            f"| {r['roi_shape_um']:.4f} | {r['all_rms_um']:.3f} | {r['outer_iterations']} | "
+            f"| {name} setup | {r['roi_rms_um']:.4f} | {r['roi_max_um']:.4f} | {r['roi_absolute_um']:+.4f} | {ua} "
+            f"| {r['roi_shape_um']:.4f} | {us} | {r['all_rms_um']:.3f} | {r['outer_iterations']} | "
             f"{r['inner_iterations']} | {sd['roi_rms_um']} | {sd['roi_max_um']} |"
         )
+    ua, us = u_cells(ex)
     lines.append(
         f"| exact marker images, ideal setup | {ex['roi_rms_um']:.4f} | {ex['roi_max_um']:.4f} | "
-        f"{ex['roi_absolute_um']:+.4f} | {ex['roi_shape_um']:.4f} | {ex['all_rms_um']:.3f} | "
+        f"{ex['roi_absolute_um']:+.4f} | {ua} | {ex['roi_shape_um']:.4f} | {us} | {ex['all_rms_um']:.3f} | "
         f"{ex['outer_iterations']} | | | |"
     )
     lines += ["", "Seed figures: §1.10 height distribution 2 (ideal) and §2.8.4 Table 2.7 (calibrated).", ""]
@@ -401,7 +513,14 @@ def _report(s: dict[str, Any]) -> str:
         f"{fm['fields']} fields over the ROI (10x / NA 0.45 objective, depth of field "
         f"{fm['depth_of_field_um']:.2f} µm); focus range {fm['focus_range_um']:.1f} µm = "
         f"{fm['height_range_over_dof']:.0f} depths of field; {fm['fields_in_focus']} fields lie wholly within "
-        "the depth of field. Table: focusmap.csv.",
+        "the depth of field"
+        + (
+            f"; {fm['fields_interval_leaves_dof']} fields' 95 % height interval leaves it (largest height "
+            f"uncertainty {fm['std_max_um']:.3f} µm)"
+            if "fields_interval_leaves_dof" in fm
+            else ""
+        )
+        + ". Table: focusmap.csv.",
         "",
         "## Timings (s)",
         "",

@@ -20,8 +20,12 @@ parameters (§2.3). This package's namespace is that public API.
 
 Image distance b: ``lens="thin-lens"`` derives b = g f/(g - f) from the focal length as the seed does (§2.5.2);
 ``lens="free"`` estimates b as a parameter (it is determined only when the target is seen obliquely: a face-on view
-fixes b/g alone); ``lens="fixed"`` keeps an a-priori b; ``lens="auto"`` is free when the view is oblique enough and
-thin-lens otherwise.
+fixes b/g alone); ``lens="fixed"`` keeps an a-priori b; ``lens="auto"`` keeps the a-priori b where the prior has
+one (the image distance the camera's description states, :meth:`Prior.from_camera`) and the thin-lens b where it
+has none, and
+estimates b freely instead when the view is oblique enough and the data reject that b (issue 14 item 4: the
+thin-lens b assumes the target in focus, which costs ~10 µm of r_c along the axis when the target lies 0.1 mm
+off the focus plane; a free b scatters by 6-23 µm at realistic sensor noise).
 
 All coordinates of the calibration are those of the TARGET (its local frame: markers at (x, y, 0), seed §2.2).
 Pixel coordinates are continuous (x_px, y_px) = (column, row) as in :mod:`scenes.camera`. Lengths in mm, angles in

@@ -144,6 +144,27 @@ class Calibration:
         }
 
 
+#: A-priori standard deviations of the distortion parameters that one view may not determine (issue 14 item 6):
+#: the principal-point offset r_cs (mm; 0.25 mm is ~54 px of the seed's 4.65 µm pixels) and c0 (which only
+#: scales the image, like b). They enter the refinement as pseudo-observations at the prior's values.
+DISTORTION_PRIOR_SIGMA = {"x_cs": 0.25, "y_cs": 0.25, "c0": 0.01}
+
+
+def _undetermined(jmat: Array, model: ReprojectionModel, share: float = 0.5) -> list[str]:
+    """Parameters with a pseudo-observation that the data hardly determine (the prior holds >= ``share`` of them).
+
+    The information on parameter k is the k-th diagonal of (J^T J)^-1's inverse; the share of the a-priori
+    pseudo-observation in it is w_k^2 times the posterior variance.
+    """
+    cov = _covariance(jmat)
+    out = []
+    for k, w in model.prior_weight.items():
+        i = model.names.index(k)
+        if not np.isfinite(cov[i, i]) or w * w * cov[i, i] >= share:
+            out.append(k)
+    return out
+
+
 def _solve(model: ReprojectionModel, p0: Array, max_nfev: int) -> tuple[Array, Array, Array, int, int]:
     def fun(p: Array) -> Array:
         return model.evaluate(p, False)[0]
@@ -159,12 +180,18 @@ def _solve(model: ReprojectionModel, p0: Array, max_nfev: int) -> tuple[Array, A
 
 
 def _covariance(jmat: Array) -> Array:
-    """(J^T J)^-1 from the eigen-decomposition of J^T J, column-scaled (pseudo-inverse where rank-deficient)."""
+    """(J^T J)^-1 from the SVD of the column-scaled J (infinite along directions J does not determine).
+
+    The singular values of J itself (not the eigenvalues of J^T J) resolve weakly determined directions down to
+    ~1e-13 of the strongest, such as the principal point held only by its a-priori pseudo-observation.
+    """
     scale = np.linalg.norm(jmat, axis=0)
     scale = np.where(scale > 0, scale, 1.0)
     js = jmat / scale
-    w, v = np.linalg.eigh(js.T @ js)
-    tol = w[-1] * 1e-13 * max(jmat.shape)
+    _, sv, vt = np.linalg.svd(js, full_matrices=False)
+    v = vt.T
+    w = sv * sv
+    tol = (sv[0] * 1e-13 * max(jmat.shape) ** 0.5) ** 2
     inv = np.where(w > tol, 1.0 / np.where(w > tol, w, 1.0), np.inf)
     with np.errstate(invalid="ignore"):
         return ((v * inv) @ v.T) / np.outer(scale, scale)
@@ -220,15 +247,20 @@ def refine(
     b_fixed = float(b if b is not None else (prior.image_distance or 0.0))
     if lens == "fixed" and not b_fixed > 0:
         raise CalibrationError("lens mode 'fixed' needs an a-priori image distance b")
-    model = ReprojectionModel(
-        np.asarray(xy, dtype=np.float64), np.asarray(px, dtype=np.float64), prior, lens, distortion, b_fixed
-    )
+    xy_a, px_a = np.asarray(xy, dtype=np.float64), np.asarray(px, dtype=np.float64)
+
+    def model_for(noise_px: float) -> ReprojectionModel:
+        weights = {k: noise_px / v for k, v in DISTORTION_PRIOR_SIGMA.items()} if distortion else {}
+        return ReprojectionModel(xy_a, px_a, prior, lens, distortion, b_fixed, prior_weight=weights)
+
+    model = model_for(PRIOR_NOISE_PX)
     check_points(model.xy, model.px, len(model.names))
     cam0 = start.camera
     r00, phi0 = np.asarray(start.r_0, dtype=np.float64), float(start.phi)
     p0 = model.start(cam0, r00, phi0)
     if lens == "thin-lens" and not np.linalg.norm(cam0.center - np.append(r00, 0.0)) > prior.focal_length:
         raise CalibrationError("the start camera is closer to the target than the focal length")
+    n_data = 2 * len(model.xy)
     try:
         p, res, jmat, nfev, status = _solve(model, p0, max_nfev)
     except GeometryError as exc:
@@ -236,8 +268,29 @@ def refine(
     if status <= 0:
         raise CalibrationError("the non-linear refinement did not converge (too many evaluations)")
     notes: list[str] = []
-    dof = max(len(res) - len(p), 1)
-    s2 = float(res @ res) / dof
+    dof = max(n_data - len(p) + len(model.prior_weight), 1)
+    s2 = float(res[:n_data] @ res[:n_data]) / dof
+    if distortion:
+        # first the a-priori r_cs, c0 weighed at the a-priori centroid noise (a well-posed problem that converges
+        # quickly); then at the noise the residuals show: where the data determine every parameter, once more from
+        # there (the a-priori values then hardly pull); where they do not, the first estimate is kept, and the
+        # covariance carries the a-priori standard deviation (DISTORTION_PRIOR_SIGMA) in those directions
+        model = model_for(max(float(np.sqrt(s2)), 1e-9))
+        res, jmat = model.residual_and_jacobian(p)
+        undetermined = _undetermined(jmat, model)
+        if not undetermined:
+            try:
+                p2, res2, jmat2, nfev2, status2 = _solve(model, p, max_nfev)
+            except GeometryError:
+                status2 = 0
+            if status2 > 0:
+                p, res, jmat, nfev = p2, res2, jmat2, nfev + nfev2
+                s2 = float(res[:n_data] @ res[:n_data]) / dof
+        else:
+            notes.append(
+                f"this view hardly determines {', '.join(undetermined)} (no distortion shows where the optical "
+                "axis is): kept near the a-priori values, within their a-priori uncertainty"
+            )
     cov = _covariance(jmat)
     sig = _sigmas(model, p, cov, np.sqrt(s2))
     sigma_b_prior = None
@@ -249,7 +302,7 @@ def refine(
         raise CalibrationError("the refinement ended with markers behind the camera: the start values are unusable")
     r0 = p[3:5].copy()
     g = float(np.linalg.norm(camera.center - np.append(r0, 0.0)))
-    resid = res.reshape(2, -1).T
+    resid = res[:n_data].reshape(2, -1).T
     start_lin = start.linear if isinstance(start, Calibration) else start
     params = {name: float(v) for name, v in zip(model.names, p, strict=True)}
     return Calibration(

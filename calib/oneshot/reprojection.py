@@ -63,6 +63,14 @@ class ReprojectionModel:
     b_fixed : float
         The image distance of ``lens="fixed"``, mm.
 
+    prior_weight : dict, optional
+        Pseudo-observations of estimated parameters at their a-priori values (``prior.r_cs``, ``prior.c0``):
+        ``{name: w}`` appends the residual ``w * (p[name] - a-priori value)`` (px) after the 2n marker
+        residuals. One view of a plane fixes a homography (8 numbers) and cannot separate r_cs from the pose, nor
+        c0 from the distance along the axis, when there is no distortion to show where the optical axis is
+        (issue 14 item 6); the pseudo-observations keep those directions at the a-priori values instead of
+        letting the optimiser wander along them.
+
     Attributes
     ----------
     names : list of str
@@ -77,6 +85,7 @@ class ReprojectionModel:
     b_fixed: float
     names: list[str] = field(default_factory=list)
     fixed_dist: dict = field(default_factory=dict)
+    prior_weight: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.names = ["x_c", "y_c", "z_c", "x_0", "y_0", "phi"]
@@ -94,6 +103,16 @@ class ReprojectionModel:
             "c2": self.prior.c2,
         }
         self.X = np.column_stack([self.xy, np.zeros(len(self.xy))])
+        self.prior_weight = {k: float(w) for k, w in self.prior_weight.items() if k in self.names and w > 0}
+
+    def _prior_rows(self, p: Array) -> tuple[Array, Array]:
+        """Residuals and Jacobian rows of the pseudo-observations (:attr:`prior_weight`)."""
+        names = list(self.prior_weight)
+        res = np.array([self.prior_weight[k] * (p[self.names.index(k)] - self.fixed_dist[k]) for k in names])
+        jac = np.zeros((len(names), len(self.names)))
+        for row, k in enumerate(names):
+            jac[row, self.names.index(k)] = self.prior_weight[k]
+        return res, jac
 
     def get(self, p: Array, name: str) -> float:
         """Parameter ``name`` of ``p``, or its fixed value when it is not estimated."""
@@ -115,7 +134,8 @@ class ReprojectionModel:
         return out[0].real, (out[1:].imag / _CSTEP).T
 
     def evaluate(self, p: Array, jac: bool) -> tuple[Array, Array | None]:
-        """Residuals model - measurement (2n,: all x, then all y), px, and their Jacobian if ``jac`` (goal, §2.5.3)."""
+        """Residuals model - measurement (2n,: all x, then all y; then the pseudo-observations), px, and their
+        Jacobian if ``jac`` (goal, §2.5.3)."""
         fr, dfr = self.frame_and_jac(p)
         nz, tx, ty, b = fr[0:3], fr[3:6], fr[6:9], fr[9]
         rc = p[0:3]
@@ -134,7 +154,8 @@ class ReprojectionModel:
         pr = self.prior
         x = (k * u - xcs) / pr.pitch + 0.5 * pr.nx
         y = 0.5 * pr.ny - (k * v - ycs) / pr.pitch
-        res = np.concatenate([x - self.px[:, 0], y - self.px[:, 1]])
+        pres, pjac = self._prior_rows(p)
+        res = np.concatenate([x - self.px[:, 0], y - self.px[:, 1], pres])
         if not jac:
             return res, None
         # derivatives w.r.t. the 7 base parameters (x_c, y_c, z_c, x_0, y_0, phi, b)
@@ -168,7 +189,7 @@ class ReprojectionModel:
             elif name == "c2":
                 jx.append((rho * u / pr.pitch)[:, None])
                 jy.append((-rho * v / pr.pitch)[:, None])
-        return res, np.vstack([np.hstack(jx), np.hstack(jy)])
+        return res, np.vstack([np.hstack(jx), np.hstack(jy), pjac])
 
     def residual_and_jacobian(self, p: Array) -> tuple[Array, Array]:
         """Residuals (2n,) and their Jacobian (2n, n_params) at ``p``."""

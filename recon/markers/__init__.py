@@ -25,6 +25,7 @@ from recon.markers.grid_identification import fourier_axes, nearest_spacing, ori
 from recon.markers.identification import (
     Markers,
     expected_axes,
+    expected_reference,
     find_markers,
     find_markers_for,
     index_range,
@@ -42,6 +43,7 @@ __all__ = [
     "centroids",
     "check_image",
     "expected_axes",
+    "expected_reference",
     "filter_spots",
     "find_markers",
     "find_markers_for",

@@ -3,7 +3,8 @@
 :func:`find_markers` runs centroid search (:mod:`recon.markers.centroid_search`, §1.5.1), filtering
 (:mod:`recon.markers.filtering`, §1.5.2), grid identification (:mod:`recon.markers.grid_identification`,
 §1.5.3 / §2.6.1) and indexing (:mod:`recon.markers.indexing`, §1.5.4) and returns the :class:`Markers`.
-:func:`find_markers_for` takes layout, axis hint, view, region and index range from a setup: the nominal geometry
+:func:`find_markers_for` takes layout, axis hint, view, region, index range and the reference marker's nominal image
+from a setup: the nominal geometry
 (a flat substrate or mirror in z = 0) tells where the axes and the reflecting region lie in the image
 (:func:`expected_axes`, :func:`region_for_setup`, :func:`index_range`).
 """
@@ -89,6 +90,7 @@ def find_markers(
     saturation: float | None = None,
     area_range: tuple[float, float] = (0.7, 1.4),
     region_margin: float = 0.5,
+    reference_hint: Array | None = None,
 ) -> Markers:
     """Find, filter and index the markers of an image (seed §1.5 and §2.6).
 
@@ -115,6 +117,9 @@ def find_markers(
         See :func:`centroids`.
     area_range : (float, float)
         Accepted area relative to the neighbours' median (§1.5.2).
+    reference_hint : ndarray, (2,), optional
+        Nominal image of the reference marker (px, e.g. from :func:`expected_reference`): the reference is
+        looked for near it first (:func:`recon.markers.filtering.find_reference`).
 
     Raises
     ------
@@ -125,7 +130,14 @@ def find_markers(
         raise MarkerError(f"layout must be 'deflectometry' or 'calibration', got {layout!r}")
     mirrored = (layout == "deflectometry") if mirrored is None else bool(mirrored)
     spots = centroids(image, threshold=threshold, saturation=saturation)
-    filt = filter_spots(spots, np.shape(image), region=region, area_range=area_range, region_margin=region_margin)
+    filt = filter_spots(
+        spots,
+        np.shape(image),
+        region=region,
+        area_range=area_range,
+        region_margin=region_margin,
+        reference_hint=reference_hint,
+    )
     keep = np.flatnonzero(filt.keep)
     if len(keep) < 3:
         raise MarkerError(f"too few markers left after filtering ({len(keep)})")
@@ -137,7 +149,7 @@ def find_markers(
         h = hint if hint is not None else np.array([[1.0, 0.0], [0.0, 1.0 if mirrored else -1.0]])
         steps = fourier_axes(image, pts[ref], nearest_spacing(pts))
         axes = orient_axes(steps, np.asarray(h, dtype=np.float64))
-    ij = index_grid(pts, ref, axes)
+    ij = index_grid(pts, ref, axes, blockers=spots.centroids)
     found = ij[:, 0] != np.iinfo(np.int32).min
     reasons = dict(filt.reasons)
     reasons["not_indexed"] = int((~found).sum())
@@ -177,6 +189,11 @@ def expected_axes(setup: Setup) -> Array:
     pat = setup.marker_pattern
     px = _seen_points(setup, pat.centers(np.array([[0, 0], [1, 0], [0, 1]])))
     return np.stack([px[1] - px[0], px[2] - px[0]])
+
+
+def expected_reference(setup: Setup) -> Array:
+    """Image (px) of the reference marker (0, 0) that the nominal setup predicts (flat reflector in z = 0)."""
+    return _seen_points(setup, setup.marker_pattern.centers(np.array([[0, 0]])))[0]
 
 
 def region_for_setup(setup: Setup, heights: HeightMap | None = None, per_side: int = 8) -> Region | None:
@@ -230,6 +247,7 @@ def find_markers_for(image: NDArray, setup: Setup, heights: HeightMap | None = N
         mirrored=setup.scene != "target",
         region=region_for_setup(setup, heights),
         index_range=index_range(setup),
+        reference_hint=expected_reference(setup),
     )
     opts.update(kwargs)
     return find_markers(image, **opts)

@@ -49,7 +49,15 @@ def _grow_table(table: NDArray, off: int) -> tuple[NDArray, int]:
     return out, new_off
 
 
-def index_grid(points: Array, ref: int, axes: Array, tol: float = 0.3, check: float = 0.25) -> NDArray[np.int64]:
+def index_grid(
+    points: Array,
+    ref: int,
+    axes: Array,
+    tol: float = 0.3,
+    check: float = 0.25,
+    blockers: Array | None = None,
+    gap: float = 0.3,
+) -> NDArray[np.int64]:
     """Index spots relative to the reference marker by a flood over the eight neighbours (seed §1.5.4).
 
     From each indexed marker the positions of its eight neighbours are predicted with the *local*
@@ -72,6 +80,11 @@ def index_grid(points: Array, ref: int, axes: Array, tol: float = 0.3, check: fl
         Row of the reference marker in ``points``; it gets index (0, 0).
     axes : ndarray, (2, 2)
         Rows: image steps of +T_x and +T_y at the reference.
+    blockers : ndarray, (k, 2), optional
+        Every spot of the image, rejected ones included. A step whose midpoint lies within ``gap`` times its
+        length of one of them passes over a marker and is refused (issue 14 item 5: where a strongly bent
+        substrate squeezes rows of markers into small or merged spots that filtering rejects, the flood
+        otherwise steps across them and numbers everything beyond wrongly).
 
     Returns
     -------
@@ -85,6 +98,7 @@ def index_grid(points: Array, ref: int, axes: Array, tol: float = 0.3, check: fl
         return ij
     pts = np.asarray(points, dtype=np.float64)
     tree = cKDTree(pts)
+    btree = cKDTree(np.asarray(blockers, dtype=np.float64)) if blockers is not None and len(blockers) else None
     # table of spot rows by index (i + off, j + off); it grows as the flood spreads, always keeping
     # two indices of room beyond every assigned marker (neighbour look-ups go one step further)
     off = 16
@@ -110,6 +124,11 @@ def index_grid(points: Array, ref: int, axes: Array, tol: float = 0.3, check: fl
         sid = np.zeros(free.shape, dtype=np.intp)
         dist[free], sid[free] = tree.query(pred[free])
         ok = free & (dist < tol * step[:, None]) & ~assigned[sid]
+        if btree is not None and ok.any():
+            pp, kk = np.nonzero(ok)
+            a, c = pts[frontier[pp]], pts[sid[pp, kk]]
+            over = btree.query_ball_point(0.5 * (a + c), gap * np.linalg.norm(c - a, axis=1), return_length=True) > 0
+            ok[pp[over], kk[over]] = False
         par, k = np.nonzero(ok)
         if par.size == 0:
             break

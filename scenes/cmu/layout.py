@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from scenes.camera_spec import PixelGridSpec
 from scenes.errors import SetupError
 from scenes.geometry import Frame
+from scenes.limits import check_image_size
 
 Vec3 = tuple[float, float, float]
 Positive = Annotated[float, Field(gt=0)]
@@ -25,7 +26,9 @@ CHANNEL_NAMES = ("blue", "green", "red", "nir")
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """Base of the unit's tables: unknown keys and non-finite numbers (``inf``, ``nan``) are rejected."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 def _unit(v: Vec3, name: str) -> np.ndarray:
@@ -53,12 +56,22 @@ class TubeSpec(_Model):
 
 
 class CmuCameraSpec(PixelGridSpec):
-    """A channel camera: Basler scA1400-30gm, 1392 x 1040 px of 6.45 µm, 12 bit (§4.1.4); TOML table ``[camera]``."""
+    """A channel camera: Basler scA1400-30gm, 1392 x 1040 px of 6.45 µm, 12 bit (§4.1.4); TOML table ``[camera]``.
+
+    Numbers must be finite and one image must fit in this machine's memory (:func:`scenes.limits.check_image_size`).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     width_px: Annotated[int, Field(gt=0)] = 1392
     height_px: Annotated[int, Field(gt=0)] = 1040
     pixel_um: Positive = 6.45
     bit_depth: Annotated[int, Field(ge=1, le=16)] = 12
+
+    @model_validator(mode="after")
+    def _fits(self) -> CmuCameraSpec:
+        check_image_size(self.width_px, self.height_px, "width_px x height_px")
+        return self
 
 
 class PlateSpec(_Model):

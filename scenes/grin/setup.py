@@ -40,8 +40,12 @@ from scenes.grin.profiles import (
     RadialProfile,
     SechProfile,
 )
+from scenes.limits import check_image_size
 
 Positive = Annotated[float, Field(gt=0)]
+#: Most RKN steps through one rod: 0.01 mm steps (float64 position error ~0.005 nm, NOTES-rendering.md) through a
+#: 40 mm rod are 4000; beyond 1e5 a trace only costs time.
+MAX_RKN_STEPS = 100_000
 NonNegative = Annotated[float, Field(ge=0)]
 
 
@@ -55,7 +59,9 @@ def _known_glass(name: str) -> str:
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """Base of the GRIN setup tables: unknown keys and non-finite numbers (``inf``, ``nan``) are rejected."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 # -- profiles -------------------------------------------------------------------------------
@@ -122,6 +128,15 @@ class RodSpec(_Model):
     profile: ProfileSpec = PolynomialSpec()
     step_mm: Positive = 0.1
 
+    @model_validator(mode="after")
+    def _steps(self) -> RodSpec:
+        if self.length / self.step_mm > MAX_RKN_STEPS:
+            raise ValueError(
+                f"step_mm = {self.step_mm:g} mm gives {self.length / self.step_mm:.3g} RKN steps through the "
+                f"{self.length:g} mm rod, more than {MAX_RKN_STEPS} (the trace time grows with the steps)"
+            )
+        return self
+
 
 class PlateSpec(_Model):
     """A homogeneous plate of ``thickness`` mm of a catalogue glass."""
@@ -179,11 +194,21 @@ class ArraySpec(_Model):
 
 
 class GrinCameraSpec(PixelGridSpec):
-    """The camera behind the objective (seed §8.4.3: AVT Guppy, 2.2 µm pixels; S_min = 4.28 mm, §8.2.2)."""
+    """The camera behind the objective (seed §8.4.3: AVT Guppy, 2.2 µm pixels; S_min = 4.28 mm, §8.2.2).
+
+    Numbers must be finite and one image must fit in this machine's memory (:func:`scenes.limits.check_image_size`).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     width_px: Annotated[int, Field(ge=1)] = 2592
     height_px: Annotated[int, Field(ge=1)] = 1944
     pixel_um: Positive = 2.2
+
+    @model_validator(mode="after")
+    def _fits(self) -> GrinCameraSpec:
+        check_image_size(self.width_px, self.height_px, "width_px x height_px")
+        return self
 
 
 class IlluminationSpec(_Model):
@@ -206,7 +231,9 @@ class IlluminationSpec(_Model):
 
 
 class SeedNumbers(_Model):
-    """The seed's Zemax figures for this design (for side-by-side printing only, never for tuning)."""
+    """The seed's Zemax figures for this design (for side-by-side printing only, never for tuning; nan: not given)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=True)
 
     magnification: float | None = None
     na_object: float | None = None
@@ -444,3 +471,71 @@ def profile_override(setup: GrinSetup, toml_path: str | Path) -> GrinSetup:
             raise SetupError(f"profile file {toml_path}: [{key}] may only contain a 'profile' table")
         data[key]["profile"] = table["profile"]
     return grin_setup_from_dict(_merge({}, data), str(toml_path))
+
+
+# -- image windows ----------------------------------------------------------------------------
+#: Margin of an objective's image disk over |m| x the target's reach: 5 % for aberrations and distortion at the
+#: field edge (the seed's RMS edge spots are a few µm), plus 4 pixels.
+IMAGE_DISK_MARGIN = 0.05
+IMAGE_DISK_MARGIN_PX = 4
+
+
+def image_disks(setup: GrinSetup, magnification: float, reach_mm: float) -> list[tuple[float, float, float]]:
+    """(x, y, radius) in mm on the image plane of each objective's image of the object disk of radius ``reach_mm``.
+
+    The objectives' axes are parallel (seed §8.2.2), so objective k images its field around its own axis (x_k,
+    y_k); the target is chrome outside its disk (seed §8.5), so outside these disks the image is black.
+    """
+    radius = abs(magnification) * reach_mm * (1 + IMAGE_DISK_MARGIN) + IMAGE_DISK_MARGIN_PX * setup.camera.pitch_mm
+    return [(x, y, radius) for x, y in setup.array.axes()]
+
+
+def _window_misses(disks: list[tuple[float, float, float]], cx: float, cy: float, hx: float, hy: float) -> bool:
+    for x, y, r in disks:
+        dx = max(abs(x - cx) - hx, 0.0)
+        dy = max(abs(y - cy) - hy, 0.0)
+        if dx * dx + dy * dy < r * r:
+            return False
+    return True
+
+
+def check_image_window(
+    setup: GrinSetup,
+    width: int,
+    height: int,
+    center: tuple[float, float],
+    magnification: float,
+    reach_mm: float,
+) -> None:
+    """Refuse an image window that misses the image of every objective (it would render all black, issue 15).
+
+    Parameters
+    ----------
+    width, height : int
+        The image in pixels (of ``setup.camera.pixel_um``), centred on ``center`` (mm, image plane).
+    magnification : float
+        The objective's lateral magnification (its sign is ignored).
+    reach_mm : float
+        How far the lit part of the target reaches from an objective's axis, mm (offset + radius).
+
+    Raises
+    ------
+    SetupError
+        Naming the window, the lens centres, the radius of their image disks and the smallest square image
+        (in pixels, centred the same) that would see one of them.
+    """
+    p = setup.camera.pitch_mm
+    hx, hy = 0.5 * width * p, 0.5 * height * p
+    disks = image_disks(setup, magnification, reach_mm)
+    cx, cy = center
+    if not _window_misses(disks, cx, cy, hx, hy):
+        return
+    need = min(max(abs(x - cx), abs(y - cy)) - r / 2**0.5 for x, y, r in disks)  # a square reaching a disk
+    side_px = int(2 * max(need, 0.0) / p) + 2
+    centres = ", ".join(f"({x:g}, {y:g})" for x, y, _ in disks)
+    raise SetupError(
+        f"the {width} x {height} px image ({2 * hx:.3g} x {2 * hy:.3g} mm centred on ({cx:g}, {cy:g}) mm) misses "
+        f"the image of every objective: lens centres {centres} mm, each imaging its field into a disk of radius "
+        f"{disks[0][2]:.3g} mm; the image would be black. Use the camera's full size (no --width/--height) or at "
+        f"least --width {side_px} --height {side_px}"
+    )

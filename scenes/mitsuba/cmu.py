@@ -47,6 +47,7 @@ from scenes.cmu.plates import fused_silica_index, plate_heightmap
 from scenes.cmu.targets import dummy_cells, siemens_star
 from scenes.cmu.trace import axis_frame
 from scenes.errors import ScopetwinError
+from scenes.limits import check_render
 from scenes.mitsuba.variant import mitsuba, register_plugin, resolve
 from scenes.spots import pupil_disk
 from scenes.surface import HeightMap
@@ -547,6 +548,7 @@ def render_channel(
         raise ScopetwinError(f"spp must be >= 1, got {spp}")
     cam = setup.camera
     row0, col0, hgt, wid = window or (0, 0, cam.height_px, cam.width_px)
+    check_render(wid, hgt, spp, f"{setup.name or 'CMU'} {target} image, channel {channel}", "cmu")
     sc, obj_id = scene or unit_scene(setup, maps, tube_f, flat, variant)
     ch = setup.channels[channel]
     lens = axis_frame(np.asarray(ch.tube_center, dtype=np.float64), np.asarray(ch.tube_axis, dtype=np.float64))

@@ -38,6 +38,7 @@ from scenes.grin.profiles import RadialProfile
 from scenes.grin.rkn import rkn_step, rod_steps
 from scenes.grin.setup import GrinSetup, Stack
 from scenes.grin.targets import Target
+from scenes.limits import check_render
 from scenes.mitsuba.variant import mitsuba, register_plugin, resolve
 
 Precision = Literal["float32", "float64"]
@@ -665,11 +666,13 @@ def render_image(
     pixel; 0.17 % of the rays at NA 0.45 change fate at the rod wall (the wall is tested at the step points).
     ``center``: the point of the image plane (mm) at the middle of the sensor; default the array's centre
     (the whole demonstrator image, Fig. 8.16); pass an objective's axis for a one-objective window.
-    ``variant``: the Mitsuba variant (default ``choose("mono")``, resolved now).
+    ``variant``: the Mitsuba variant (default ``choose("mono")``, resolved now). A size or ``spp`` below 1, or a
+    render beyond the memory or time limit, is a :class:`scenes.limits.LimitError` before anything is allocated.
     """
+    width = setup.camera.width_px if width is None else int(width)
+    height = setup.camera.height_px if height is None else int(height)
+    check_render(width, height, int(spp), f"GRIN image of {setup.name or setup.section}", "grin")
     variant = resolve(variant, "mono")
-    width = width or setup.camera.width_px
-    height = height or setup.camera.height_px
     arr = setup.array
     last_rod = [layer for layer in stack.layers if layer.rod is not None][-1]
     assert last_rod.rod is not None

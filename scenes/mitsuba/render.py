@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scenes.errors import SetupError
+from scenes.limits import check_render
 from scenes.mitsuba.scene import Window, scene_dict
 from scenes.mitsuba.variant import mitsuba, resolve
 from scenes.setup import Setup
@@ -199,8 +200,12 @@ def render_setup(
     ------
     SetupError
         ``heights`` missing for a deflectometry setup.
+    LimitError
+        The image or the render work exceeds the memory available or the render time limit
+        (:func:`scenes.limits.check_render`), checked before anything is allocated.
     """
     cam = setup.camera_model
+    check_render(cam.nx, cam.ny, int(spp or setup.render.spp), f"render {setup.name}")
     window = live_window(setup, heights) if (setup.scene != "deflectometry" or heights is not None) else None
     if window is None:
         return render_window(setup, heights, spp, seed, None, variant)

@@ -9,16 +9,29 @@ One module per command group, each with a ``register(subparsers)`` that adds its
 :mod:`sim.cli.reconstruct` ``reconstruct IMAGE --setup SETUP --out Z.exr``
 :mod:`sim.cli.calibrate` ``calibrate IMAGE``, ``calibrate-setup``
 :mod:`sim.cli.optics`    ``optics grin | cmu | scan``
-:mod:`sim.cli.rig`       ``rig RIG.toml info | move | position | acquire``
+:mod:`sim.cli.rig`       ``rig RIG.toml info | move | position | acquire | mda | serve``
+:mod:`sim.cli.emulate`   ``emulate pi-gcs | jena-piezo | fpga-board``
 :mod:`sim.cli.dataset`   ``dataset generate | resume | verify``
 :mod:`sim.cli.study`     ``study NAME``
 =======================  =====================================================================================
+
+:mod:`sim.cli.outputs` checks and writes the outputs every command declares (below).
 
 Every command function takes the parsed arguments and returns its result as a JSON-ready dict; :func:`main`
 writes it to ``--json PATH`` when given. A command whose result decides the exit status (``dataset verify``:
 1 when the dataset is incomplete) sets ``exit_code`` (a function of the result) beside ``func`` in its parser's
 defaults. Bad input gives one line ``scopetwin: error: ...`` on stderr and exit code 2, and leaves no partial
 output behind.
+
+Around every command :func:`main` applies the two policies of issue 15:
+
+* **outputs** (:mod:`sim.cli.outputs`): the paths a command declares (``set_defaults(outputs=[("out", "dir"),
+  ("json", "file")])``, sized by an optional ``estimate``) are checked before it runs — writable, a folder where a
+  folder is needed, enough free space — and ``--json`` is written before the staged results are moved into place;
+  a failed write (a full disk) is one line, exit 2, and what the command created is removed;
+* **signals** (:mod:`sim.signals`): SIGTERM and SIGHUP raise :class:`~sim.signals.Terminated`, a
+  ``KeyboardInterrupt``, so every command cleans up as after Ctrl-C; the command ends with one line
+  ``scopetwin: interrupted by SIGTERM`` and exit status 128 + n (130 for Ctrl-C, 143 for SIGTERM, 129 for SIGHUP).
 """
 
 from __future__ import annotations
@@ -28,8 +41,9 @@ import sys
 from collections.abc import Sequence
 
 from scenes.errors import ScopetwinError
-from scenes.io import write_json_atomic
-from sim.cli import calibrate, dataset, markers, optics, reconstruct, render, rig, run, study
+from sim import signals
+from sim.cli import calibrate, dataset, emulate, markers, optics, reconstruct, render, rig, run, study
+from sim.cli.outputs import OutputTransaction, describe_os_error
 
 EXIT_BAD_INPUT = 2
 
@@ -49,24 +63,30 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.register(sub)
     optics.register(sub)
     rig.register(sub)
+    emulate.register(sub)
     dataset.register(sub)
     study.register(sub)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run one ``scopetwin`` command; returns the exit status (0, 1 from ``exit_code``, 2 bad input, 130)."""
+    """Run one ``scopetwin`` command; returns the exit status (0; 1 from ``exit_code``; 2 bad input or a failed
+    write; 128 + n after signal n: 130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        result = args.func(args)
-        if getattr(args, "json", None):
-            write_json_atomic(args.json, result)
+        with signals.terminate_on_signals():
+            with OutputTransaction(args) as tx:
+                result = args.func(args)
+                tx.finish(result)
     except ScopetwinError as exc:
         print(f"scopetwin: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        print("scopetwin: interrupted", file=sys.stderr)
-        return 130
+    except OSError as exc:  # a write that failed late (a full disk, a folder removed meanwhile), a lost device
+        print(f"scopetwin: error: {describe_os_error(exc)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt as exc:  # Ctrl-C, and SIGTERM/SIGHUP as signals.Terminated
+        print(f"scopetwin: {signals.describe(exc)}", file=sys.stderr)
+        return signals.exit_status(exc)
     exit_code = getattr(args, "exit_code", None)
     return int(exit_code(result)) if exit_code is not None else 0

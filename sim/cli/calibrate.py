@@ -32,6 +32,7 @@ from recon.bias import spot_bias_model
 from scenes.errors import ScopetwinError
 from scenes.geometry import Frame
 from scenes.setup import Setup
+from sim.cli.options import finite_vector, positive_float
 
 
 def _markers(image: NDArray, setup: Setup, path: str) -> Any:
@@ -44,20 +45,37 @@ def _markers(image: NDArray, setup: Setup, path: str) -> Any:
     return found
 
 
+#: How the calibration's note about the mirror-ambiguous pose (calib.oneshot.calibration) starts.
+_AMBIGUOUS = "does not tell the two mirror-ambiguous poses"
+
+
+def _warnings(cal: Calibration, view: str, nz_estimate: Any, what_to_do: str) -> list[str]:
+    """The calibration's notes as the lines to print, the mirror-ambiguity note said in plain words.
+
+    A planar target seen in perspective fits two camera poses nearly equally well (seed §2.4.2: the sign s of the
+    linear approximation); the a-priori sensor normal N_z picks one. When it lies midway, the calibration keeps
+    the pose with the smaller residual, which is right whenever that residual is small.
+    """
+    lines = []
+    for note in cal.warnings:
+        if _AMBIGUOUS in note:
+            est = ", ".join(f"{v:.3g}" for v in np.round(np.asarray(nz_estimate, dtype=np.float64), 6) + 0.0)
+            note = (
+                f"{view}: the a-priori sensor normal ({est}) lies midway between the two camera poses that fit a "
+                "flat target about equally well (seed §2.4.2), so the pose with the smaller residual "
+                f"({cal.residual_rms_px:.3g} px rms) was kept. No action is needed when that residual is small "
+                f"(well below 1 px); otherwise {what_to_do}"
+            )
+        else:
+            note = f"{view}: {note}"
+        lines.append(f"warning: {note}")
+    return lines
+
+
 def _calibrate(xy: NDArray[Any], px: NDArray[Any], prior: Prior, bias: Any, **kw: Any) -> Calibration:
     if bias is None:
         return calibrate(xy, px, prior, **kw)
     return calibrate_bias_corrected(xy, px, prior, bias, **kw)[0]
-
-
-def _vec3(text: str) -> tuple[float, float, float]:
-    try:
-        vals = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        raise CalibrationError(f"--nz-estimate must be three numbers X,Y,Z, got {text!r}") from None
-    if len(vals) != 3:
-        raise CalibrationError(f"--nz-estimate must be three numbers X,Y,Z, got {text!r}")
-    return vals[0], vals[1], vals[2]
 
 
 def _load_image(path: str) -> tuple[NDArray, Setup | None]:
@@ -91,7 +109,7 @@ def _prior(setup: Setup, plane: Frame, args: argparse.Namespace) -> Prior:
     if args.pixel_pitch is not None:
         changes["pitch"] = args.pixel_pitch
     if getattr(args, "nz_estimate", None) is not None:
-        changes["nz_estimate"] = _vec3(args.nz_estimate)
+        changes["nz_estimate"] = tuple(args.nz_estimate)
     if getattr(args, "image_distance", None) is not None:
         changes["image_distance"] = args.image_distance
     return Prior.from_camera(cam, f, plane=plane, **changes)
@@ -137,8 +155,9 @@ def cmd_calibrate(args: argparse.Namespace) -> dict[str, Any]:
         f"calibrated {args.image}: r_c = ({c['r_c'][0]:.4f}, {c['r_c'][1]:.4f}, {c['r_c'][2]:.4f}) mm, "
         f"b = {c['b']:.4f} mm ({cal.lens}), residual {cal.residual_rms_px:.4f} px rms, {len(found.ij)} markers"
     )
-    for w in cal.warnings:
-        print(f"warning: {w}")
+    hint = "give --nz-estimate X,Y,Z close to the true sensor normal (target coordinates) to choose the pose."
+    for line in _warnings(cal, args.image, prior.nz_estimate, hint):
+        print(line)
     return out
 
 
@@ -206,15 +225,20 @@ def cmd_calibrate_setup(args: argparse.Namespace) -> dict[str, Any]:
         f"calibrated setup -> {args.out}: camera r_c = {np.round(result.camera.center, 4).tolist()} mm, "
         f"pattern centre = ({o[0]:.4f}, {o[1]:.4f}, {o[2]:.4f}) mm"
     )
-    for w in result.substrate.warnings + result.mirror.warnings:
-        print(f"warning: {w}")
+    hint = "give the setup's camera (in --target / --pattern-setup) a pose closer to the real one."
+    for line in _warnings(result.substrate, "substrate view", prior_s.nz_estimate, hint) + _warnings(
+        result.mirror, "mirror view", pm.nz_estimate, hint
+    ):
+        print(line)
     return out
 
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
-    p.add_argument("--focal-length", type=float, metavar="F", help="a-priori focal length, mm (default: the setup's)")
-    p.add_argument("--pixel-pitch", type=float, metavar="P", help="pixel size, mm (default: the setup's)")
+    p.add_argument(
+        "--focal-length", type=positive_float(), metavar="F", help="a-priori focal length, mm (default: the setup's)"
+    )
+    p.add_argument("--pixel-pitch", type=positive_float(), metavar="P", help="pixel size, mm (default: the setup's)")
     p.add_argument(
         "--lens",
         choices=LENS_MODES,
@@ -258,15 +282,16 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument(
         "--nz-estimate",
+        type=finite_vector(3),
         metavar="X,Y,Z",
         help="coarse sensor normal in target coordinates (default: the setup camera's)",
     )
-    p.add_argument("--image-distance", type=float, metavar="B", help="a-priori b for --lens fixed, mm")
+    p.add_argument("--image-distance", type=positive_float(), metavar="B", help="a-priori b for --lens fixed, mm")
     _common(p)
 
     h = "calibrate the deflectometry setup from a substrate-target image and a mirror image (seed §2.7)"
     p = subparsers.add_parser("calibrate-setup", help=h, description=h)
-    p.set_defaults(func=_quiet(cmd_calibrate_setup))
+    p.set_defaults(func=_quiet(cmd_calibrate_setup), outputs=[("out", "file"), ("json", "file")])
     p.add_argument("--substrate-image", required=True, metavar="A.exr", help="target on the holding frame")
     p.add_argument("--mirror-image", required=True, metavar="B.exr", help="pattern seen in a flat mirror on the frame")
     p.add_argument("--target", metavar="SETUP", help="setup of the substrate image (default: its header)")

@@ -1,32 +1,53 @@
 """``scopetwin dataset generate | resume | verify`` (DESIGN.md "Scale"; :mod:`sim.datasets`).
 
-``generate CONFIG.toml --out DIR`` checks the whole config (every sample's setup) before any
-work, then renders the samples on an embedded Dask LocalCluster (``--workers N`` processes, one
-thread each, 127.0.0.1 only), on an existing cluster (``--scheduler tcp://host:8786``), or in this
-process (``--workers 0``). ``resume DIR`` finishes an interrupted set; ``verify DIR`` checks it
-(exit code 1 when anything is missing, corrupt, duplicated or left over).
+``generate CONFIG.toml --out DIR`` checks the whole config (every sample's setup), the output folder
+and the free space for the samples' estimated size before any work, then renders the samples on an
+embedded Dask LocalCluster (``--workers N`` processes, one thread each, 127.0.0.1 only), on an existing
+cluster (``--scheduler tcp://host:8786``), or in this process (``--workers 0``). One run at a time
+holds a dataset folder: a second run on it is refused with one line naming the holder's host and pid.
+``resume DIR`` finishes an interrupted set and says what it found and repaired; ``verify DIR``
+checks it (exit code 1 when anything is missing, corrupt, duplicated or left over). Ctrl-C, SIGTERM
+and SIGHUP stop a run with every finished sample listed in the manifest.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 from typing import Any
 
+from sim.cli.options import nonnegative_int, positive_int
+from sim.cli.outputs import check_space, human_bytes
 from sim.datasets.config import DatasetError, load_config
 from sim.datasets.plan import Plan
-from sim.datasets.store import generate, load_plan, parse_indices, verify
+from sim.datasets.runner import check_scheduler
+from sim.datasets.store import SAMPLE_FILE, SAMPLES, generate, load_plan, parse_indices, sample_name, verify
+
+#: Plain text for ``--help`` (the module docstring is reST).
+DESCRIPTION = (
+    "Synthetic datasets with exact truth. generate CONFIG.toml --out DIR checks the whole config, the output folder "
+    "and the free space before any work, then renders the samples on a local Dask cluster (--workers N), an existing "
+    "one (--scheduler tcp://host:8786) or in this process (--workers 0). resume DIR finishes an interrupted dataset "
+    "and says what it repaired; verify DIR checks every sample (exit 1 when anything is missing or corrupt). One run "
+    "at a time holds a dataset folder."
+)
 
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler, e.g. tcp://host:8786")
     p.add_argument(
         "--workers",
-        type=int,
+        type=nonnegative_int(1024),
         metavar="N",
         help="local worker processes (default: one per core; 0: no Dask, work in this process)",
     )
-    p.add_argument("--threads", type=int, metavar="N", help="Dr.Jit threads per worker (default 1 on a local cluster)")
+    p.add_argument(
+        "--threads",
+        type=positive_int(1024),
+        metavar="N",
+        help="Dr.Jit threads per worker (default 1 on a local cluster)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
 
@@ -38,6 +59,32 @@ def _check_workers(args: argparse.Namespace) -> None:
         raise DatasetError(f"--threads must be > 0, got {args.threads}")
     if args.scheduler and args.workers is not None:
         raise DatasetError("give --scheduler (an existing cluster) or --workers (a local one), not both")
+    if args.scheduler:
+        check_scheduler(args.scheduler)
+
+
+def _check_space(plan: Plan, root: Path, indices: list[int], option: str) -> None:
+    """Refuse before any work when the samples still to render would not fit on the file system of ``root``."""
+    todo = [i for i in indices if not (root / SAMPLES / sample_name(i) / SAMPLE_FILE).is_file()]
+    if todo:
+        each = plan.sample_bytes(todo[0])
+        check_space(root, len(todo) * each, f"{option} {root} ({len(todo)} sample(s) of about {human_bytes(each)})")
+
+
+def _report_recovery(state: dict[str, Any], always: bool) -> None:
+    """What the run found in the folder and repaired (``resume`` always says it; ``generate`` when it did anything)."""
+    repaired = (
+        state["relisted"] or state["removed_temporary"] or state["corrupt_removed"] or state["dropped_manifest_lines"]
+    )
+    if not (always or repaired):
+        return
+    kept = f", {len(state['kept_temporary'])} kept (a live writer)" if state["kept_temporary"] else ""
+    print(
+        f"found {state['listed']} sample(s) listed, {len(state['relisted'])} re-listed from disk, "
+        f"{len(state['removed_temporary'])} temporary folder(s) removed{kept}, {len(state['corrupt_removed'])} "
+        f"corrupt sample(s) removed, {state['dropped_manifest_lines']} manifest line(s) dropped; "
+        f"{state['requeued']} sample(s) queued"
+    )
 
 
 def _report(result: dict[str, Any]) -> None:
@@ -54,7 +101,9 @@ def cmd_generate(args: argparse.Namespace) -> dict[str, Any]:
     cfg = load_config(args.config, args.count)
     indices = parse_indices(args.indices, cfg.dataset.count)
     plan = Plan.build(cfg, indices)  # every sample's setup is validated before any work
+    _check_space(plan, Path(args.out), indices, "--out")
     result = generate(plan, args.out, args.scheduler, args.workers, args.threads, indices, not args.quiet)
+    _report_recovery(result["recovery"], always=False)
     _report(result)
     return result
 
@@ -64,7 +113,9 @@ def cmd_resume(args: argparse.Namespace) -> dict[str, Any]:
     _check_workers(args)
     stored = load_plan(args.dir)
     plan = Plan.build(stored.config)
+    _check_space(plan, Path(args.dir), list(range(plan.config.dataset.count)), "DIR")
     result = generate(plan, args.dir, args.scheduler, args.workers, args.threads, None, not args.quiet)
+    _report_recovery(result["recovery"], always=True)
     _report(result)
     return result
 
@@ -79,6 +130,10 @@ def cmd_verify(args: argparse.Namespace) -> dict[str, Any]:
     )
     for c in result["corrupt"][:10]:
         print(f"  corrupt sample {c['index']}: {c['reason']}")
+    if result["in_use_by"]:
+        from sim.datasets.lock import describe_holder
+
+        print(f"  the folder is in use: {describe_holder(result['in_use_by'])} is still writing it")
     return json.loads(json.dumps(result))
 
 
@@ -87,7 +142,7 @@ def register(subparsers: Any) -> None:
     top = subparsers.add_parser(
         "dataset",
         help="synthetic datasets with exact truth (local or on a Dask cluster)",
-        description=__doc__.splitlines()[0],
+        description=DESCRIPTION,
     )
     sub = top.add_subparsers(dest="dataset_command", required=True)
 
@@ -97,12 +152,12 @@ def register(subparsers: Any) -> None:
     p.add_argument("--count", type=int, help="override the config's sample count")
     p.add_argument("--indices", metavar="A:B", help="only samples A..B-1")
     _common(p)
-    p.set_defaults(func=cmd_generate)
+    p.set_defaults(func=cmd_generate, outputs=[("out", "dir", "keep"), ("json", "file")])
 
     p = sub.add_parser("resume", help="finish an interrupted dataset without redoing finished samples")
     p.add_argument("dir", help="dataset folder")
     _common(p)
-    p.set_defaults(func=cmd_resume)
+    p.set_defaults(func=cmd_resume, outputs=[("dir", "dir", "keep", "positional"), ("json", "file")])
 
     p = sub.add_parser("verify", help="check every sample against the manifest and its hashes")
     p.add_argument("dir", help="dataset folder")

@@ -55,7 +55,7 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
         metavar="SETUP",
         help="setup (preset name or TOML path) giving the pattern, camera and reflecting region",
     )
-    p.add_argument("--json", metavar="PATH", help="write the indexed markers here (DESIGN.md `markers`)")
+    p.add_argument("--json", metavar="PATH", help="write the indexed markers here (the markers JSON of DESIGN.md)")
     p.add_argument("--overlay", metavar="PNG", help="write a picture of the image with the indices drawn")
-    p.set_defaults(func=cmd_markers)
+    p.set_defaults(func=cmd_markers, outputs=[("json", "file"), ("overlay", "file")])
     return p

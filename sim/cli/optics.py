@@ -9,7 +9,10 @@
   measured (Tables 5.1-5.4).
 * ``optics grin PRESET [--json PATH] [--spots PNG] [--image TARGET --out EXR] [--profile TOML]
   [--sensitivity] [--spp N] [--width W --height H]`` -- paraxial data, NA, Airy radius, RMS spots,
-  printed beside the seed's Zemax figures; spot diagrams; an image of a §8.5 target.
+  printed beside the seed's Zemax figures; spot diagrams; an image of a §8.5 target with a PNG preview beside
+  it. Before the analysis the render is estimated (:func:`scenes.limits.check_render`); before anything is
+  printed, a window that misses the image of every objective of an array is refused
+  (:func:`scenes.grin.setup.check_image_window`: it would render black).
 * ``optics scan [...]`` -- T_I, T_M, T_N, eq. 7.1/7.2, the s^1.5 scaling law, N (eq. 8.1), N_max (eq. 8.2), d_L,max
   (:mod:`sim.scan_time`).
 
@@ -28,53 +31,64 @@ from typing import Any
 import numpy as np
 
 from scenes.errors import ScopetwinError
-from scenes.io import write_image
+from scenes.io import read_image, write_image
 from sim import cmu_unit
+from sim.cli.options import SEED, SIDE_PX, SPP, finite_float, positive_float, positive_int
 from sim.figures import write_spots
+from sim.measurement import write_preview
+
+#: Upper bound of the lengths ``optics scan`` takes (mm): 10 m, far beyond any substrate of the seed.
+MAX_LENGTH_MM = 1.0e4
+#: Upper bound of the objective counts ``optics scan`` takes.
+MAX_OBJECTIVES = 100_000
 
 
 def register(subparsers: Any) -> argparse.ArgumentParser:
     """Add ``optics`` (with ``grin`` and ``scan``) to ``subparsers``; returns the ``optics`` parser."""
-    optics = subparsers.add_parser("optics", help="GRIN objectives, spot diagrams, target images, scan-time models")
+    h = "the four-channel unit, GRIN objectives (spots, target images) and scan-time models (seed Parts II, III)"
+    optics = subparsers.add_parser("optics", help=h, description=h)
     sub = optics.add_subparsers(dest="optics_command", required=True)
     register_cmu(sub)
-    g = sub.add_parser("grin", help="analyse/render a GRIN objective preset (seed §7.5.2, §8.3)")
+    h = "analyse a GRIN objective preset, draw its spot diagrams, render a target image (seed §7.5.2, §8.3)"
+    g = sub.add_parser("grin", help=h, description=h)
     g.add_argument("preset", help="preset name (thesis-8.3.2-grin-realized, ...) or TOML path")
     g.add_argument("--json", type=Path, help="write the results as JSON")
     g.add_argument("--spots", type=Path, help="write spot diagrams (axis, 0.7 field, edge) as PNG")
     g.add_argument("--image", metavar="TARGET", help="render a §8.5 target: dots-25, grid-25, grid-12.5, lines-8")
-    g.add_argument("--out", type=Path, help="EXR path for --image")
+    g.add_argument("--out", type=Path, help="EXR path for --image (a PNG preview is written beside it)")
     g.add_argument("--profile", type=Path, help="TOML with [rod1.profile] / [rod2.profile] overrides (sech allowed)")
     g.add_argument("--sensitivity", action="store_true", help="print the layout readings' effect")
-    g.add_argument("--spp", type=int, default=16, help="samples per pixel for --image (default 16)")
-    g.add_argument("--width", type=int, help="image width in pixels (default: the camera's)")
-    g.add_argument("--height", type=int, help="image height in pixels (default: the camera's)")
+    g.add_argument("--spp", type=SPP, default=16, help="samples per pixel for --image, >= 1 (default 16)")
+    g.add_argument("--width", type=SIDE_PX, help="image width in pixels, >= 1 (default: the camera's)")
+    g.add_argument("--height", type=SIDE_PX, help="image height in pixels, >= 1 (default: the camera's)")
     g.add_argument(
         "--target-offset",
-        type=float,
+        type=finite_float(),
         nargs=2,
         default=(0.0, 0.0),
         metavar=("X", "Y"),
         help="shift the target pattern from the axis (mm)",
     )
-    g.add_argument("--seed", type=int, default=0, help="sampler seed for --image")
-    g.set_defaults(func=cmd_grin)
-    s = sub.add_parser("scan", help="scan-time models (§7.2-7.4) and objective count (§8.2.2)")
-    s.add_argument("--width", type=float, default=75.0, help="substrate width W (mm)")
-    s.add_argument("--height", type=float, default=25.0, help="substrate height H (mm)")
-    s.add_argument("--d-w", type=float, default=0.4, help="spot distance d_w (mm)")
-    s.add_argument("--d-h", type=float, default=0.4, help="spot distance d_h (mm)")
-    s.add_argument("--exposure-s", type=float, default=0.1, help="exposure time τ_e (s)")
-    s.add_argument("--velocity", type=float, default=10.0, help="stage velocity v (mm/s)")
-    s.add_argument("--w-fov", type=float, default=0.4, help="field-of-view width w_FOV (mm)")
-    s.add_argument("--v-scan", type=float, default=1.0, help="scan velocity (mm/s)")
-    s.add_argument("--n", type=int, default=1, help="objectives N side by side (§7.3)")
-    s.add_argument("--n-y", type=int, default=1, help="rows of objectives N_y (eq. 7.2)")
-    s.add_argument("--lens-diameter", type=float, default=2.0, help="lens diameter D_L (mm)")
-    s.add_argument("--sensor-side", type=float, default=4.28, help="sensor minimum side S (mm, §8.2.2)")
-    s.add_argument("--magnification", type=float, default=4.29, help="magnification m (§8.2.2)")
-    s.add_argument("--fov", type=float, default=0.4, help="field of view (mm, §8.2.2)")
-    s.add_argument("--spacing", type=float, default=2.25, help="axis spacing d_L (mm, §8.2.2)")
+    g.add_argument("--seed", type=SEED, default=0, help="sampler seed for --image, >= 0")
+    g.set_defaults(func=cmd_grin, outputs=[("json", "file"), ("spots", "file"), ("out", "file")])
+    h = "scan-time models (seed §7.2-7.4) and the objective count (§8.2.2)"
+    s = sub.add_parser("scan", help=h, description=h)
+    pos, count = positive_float(MAX_LENGTH_MM), positive_int(MAX_OBJECTIVES)
+    s.add_argument("--width", type=pos, default=75.0, help="substrate width W (mm)")
+    s.add_argument("--height", type=pos, default=25.0, help="substrate height H (mm)")
+    s.add_argument("--d-w", type=pos, default=0.4, help="spot distance d_w (mm)")
+    s.add_argument("--d-h", type=pos, default=0.4, help="spot distance d_h (mm)")
+    s.add_argument("--exposure-s", type=positive_float(), default=0.1, help="exposure time τ_e (s)")
+    s.add_argument("--velocity", type=positive_float(), default=10.0, help="stage velocity v (mm/s)")
+    s.add_argument("--w-fov", type=pos, default=0.4, help="field-of-view width w_FOV (mm)")
+    s.add_argument("--v-scan", type=positive_float(), default=1.0, help="scan velocity (mm/s)")
+    s.add_argument("--n", type=count, default=1, help="objectives N side by side (§7.3)")
+    s.add_argument("--n-y", type=count, default=1, help="rows of objectives N_y (eq. 7.2)")
+    s.add_argument("--lens-diameter", type=pos, default=2.0, help="lens diameter D_L (mm)")
+    s.add_argument("--sensor-side", type=pos, default=4.28, help="sensor minimum side S (mm, §8.2.2)")
+    s.add_argument("--magnification", type=positive_float(), default=4.29, help="magnification m (§8.2.2)")
+    s.add_argument("--fov", type=pos, default=0.4, help="field of view (mm, §8.2.2)")
+    s.add_argument("--spacing", type=pos, default=2.25, help="axis spacing d_L (mm, §8.2.2)")
     s.add_argument("--json", type=Path, help="write the results as JSON")
     s.set_defaults(func=cmd_scan)
     return optics
@@ -140,7 +154,9 @@ def cmd_grin(args: argparse.Namespace) -> dict[str, Any]:
     """Handler of ``optics grin``: the analysis (plus spots, image, sensitivity); returns the JSON-ready result."""
     from scenes.grin import load_grin_setup, profile_override
     from scenes.grin.analysis import analyse, sensitivity
+    from scenes.grin.setup import check_image_window
     from scenes.grin.targets import target
+    from scenes.limits import check_render
 
     setup = load_grin_setup(args.preset)
     if args.profile is not None:
@@ -148,10 +164,17 @@ def cmd_grin(args: argparse.Namespace) -> dict[str, Any]:
     if args.image is not None and args.out is None:
         raise ScopetwinError("--image needs --out PATH.exr")
     tgt = None
+    width = setup.camera.width_px if args.width is None else args.width
+    height = setup.camera.height_px if args.height is None else args.height
+    centre = (0.0, 0.0) if setup.array.nx * setup.array.ny > 1 else setup.array.axes()[0]
     if args.image is not None:
         tgt = target(args.image, tuple(args.target_offset))
         tgt.check_field(setup.object.field_radius)
+        check_render(width, height, args.spp, f"GRIN image of {args.preset}", "grin")
     rep = analyse(setup)
+    if tgt is not None:  # before anything is printed or written: a window between the lenses renders black
+        reach = math.hypot(*tgt.offset) + 0.5 * tgt.diameter
+        check_image_window(setup, width, height, centre, rep.magnification, reach)
     print_report(rep, setup)
     result = rep.to_json()
     if args.sensitivity:
@@ -174,10 +197,7 @@ def cmd_grin(args: argparse.Namespace) -> dict[str, Any]:
         from scenes.mitsuba.grin import render_image
 
         t0 = time.perf_counter()
-        centre = (0.0, 0.0) if setup.array.nx * setup.array.ny > 1 else setup.array.axes()[0]
-        img = render_image(
-            setup, stack, tgt, spp=args.spp, width=args.width, height=args.height, center=centre, seed=args.seed
-        )
+        img = render_image(setup, stack, tgt, spp=args.spp, width=width, height=height, center=centre, seed=args.seed)
         seconds = time.perf_counter() - t0
         write_image(
             args.out,
@@ -187,8 +207,14 @@ def cmd_grin(args: argparse.Namespace) -> dict[str, Any]:
             image_distance_mm=float(rep.image_distance_mm),
             pixel_um=float(setup.camera.pixel_um),
         )
-        print(f"image of {tgt.name}: {img.shape[1]}x{img.shape[0]} px, {args.spp} spp, {seconds:.2f} s -> {args.out}")
+        preview = args.out.with_suffix(".png" if args.out.suffix.lower() != ".png" else ".preview.png")
+        write_preview(preview, img)
+        print(
+            f"image of {tgt.name}: {img.shape[1]}x{img.shape[0]} px, {args.spp} spp, {seconds:.2f} s -> {args.out} "
+            f"(preview {preview})"
+        )
         result["image"] = str(args.out)
+        result["preview"] = str(preview)
         result["seconds"] = seconds
     return json.loads(json.dumps(result, default=float))
 
@@ -224,9 +250,8 @@ def cmd_scan(args: argparse.Namespace) -> dict[str, Any]:
 # -- optics cmu ----------------------------------------------------------------------------------
 def register_cmu(optics_subparsers: Any) -> argparse.ArgumentParser:
     """Add ``cmu`` to the ``optics`` sub-parsers; returns its parser."""
-    p = optics_subparsers.add_parser(
-        "cmu", help="four-channel microscope unit (seed ch. 3-5): spots, PSF, magnification, Siemens star, crosstalk"
-    )
+    h = "the four-channel microscope unit (seed ch. 3-5): spots, PSF, magnification, Siemens star, crosstalk"
+    p = optics_subparsers.add_parser("cmu", help=h, description=h)
     p.add_argument("--setup", default="thesis-cmu", help="preset name or TOML (default thesis-cmu)")
     p.add_argument(
         "--splitter-maps",
@@ -237,10 +262,12 @@ def register_cmu(optics_subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("--stop", action="store_true", help="put the 4 mm aperture in front of every tube lens")
     p.add_argument("--json", type=Path, help="write the results as JSON")
-    p.add_argument("--out", type=Path, help="render star and cell images per channel into this folder")
-    p.add_argument("--spp", type=int, default=16, help="samples per pixel for --out (default 16)")
+    p.add_argument(
+        "--out", type=Path, help="render star and cell images per channel into this folder (EXR + PNG preview)"
+    )
+    p.add_argument("--spp", type=SPP, default=16, help="samples per pixel for --out, >= 1 (default 16)")
     p.add_argument("--no-cells", action="store_true", help="with --out: skip the dummy-cell images")
-    p.set_defaults(func=cmd_cmu)
+    p.set_defaults(func=cmd_cmu, outputs=[("json", "file"), ("out", "dir")])
     return p
 
 
@@ -274,8 +301,11 @@ def cmd_cmu(args: argparse.Namespace) -> dict[str, Any]:
             f"--splitter-maps: unknown element(s) {', '.join(sorted(unknown))} "
             f"(known: {', '.join([*setup.splitters, *setup.mirrors])})"
         )
-    if args.spp < 1:
-        raise ScopetwinError(f"--spp must be >= 1, got {args.spp}")
+    if args.out is not None:  # the renders' estimate before any work (and before the folder is made)
+        from scenes.limits import check_render
+
+        cam = setup.camera
+        check_render(cam.width_px, cam.height_px, args.spp, f"optics cmu --out at {args.spp} spp", "cmu")
     s512 = cmu_unit.section_5_1_2(setup, maps)
     print("§5.1.2 (perfect lenses f = 16.45 / 164.5 mm, 20 mm beam)        ours      seed")
     print(f"  perfect mirror, perpendicular: magnification          {s512['mirror_magnification']:8.3f}  10")
@@ -325,6 +355,13 @@ def cmd_cmu(args: argparse.Namespace) -> dict[str, Any]:
                 f"{r.get('tilt_deg', 0.0):8.3f}  {cmu_unit.SEED_TABLE_5_4_DEG.get(ch, '-')}"
             )
         result |= rm
+        previews = {}
+        for name, path in rm["files"].items():
+            exr = Path(path)
+            previews[name] = str(exr.with_suffix(".png"))
+            write_preview(exr.with_suffix(".png"), read_image(exr)[0])
+        result["previews"] = previews
+        print(f"EXR images and PNG previews of {len(previews)} renders -> {args.out}")
         for ch in table:
             table[ch]["delta_x_um"] = rm["measured"][ch]["delta_x_um"]
     return _jsonable(result)

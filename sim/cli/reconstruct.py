@@ -2,7 +2,8 @@
 
 Detects and indexes the markers of a deflectometry image (:mod:`recon.markers`), runs the
 nested start-height iteration (:mod:`recon.reconstruct`) and writes the substrate's height map
-in the contract's format (channel ``Z`` in mm over the whole substrate). Bad input raises a
+in the contract's format (channel ``Z`` in mm over the whole substrate, channel ``Z_std``: its per-node standard
+uncertainty), and reports the standard uncertainties of the absolute height and of the shape. Bad input raises a
 :class:`~scenes.errors.ScopetwinError` (exit code 2) and writes no height map; when the outer loop
 does not converge, its partial history is written to ``OUT.history.json`` for diagnosis.
 """
@@ -27,6 +28,8 @@ def _config(args: argparse.Namespace) -> ReconstructionConfig:
         changes["sigma_candidates"] = None
     if args.criterion is not None:
         changes["criterion"] = args.criterion
+    if args.posterior is not None:
+        changes["posterior"] = args.posterior
     return ReconstructionConfig(**changes)
 
 
@@ -50,6 +53,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         raise ScopetwinError(
             f"{args.image} is {image.shape[1]} x {image.shape[0]} px but the setup's camera has {cam.nx} x {cam.ny}"
         )
+    if args.method == "inverse":
+        return _cmd_inverse(args, setup, image, out, t0)
     found = find_markers_for(image, setup)
     obs = MarkerObservations(found.ij, found.centroids)
     bias = None if args.no_bias_correction else centroid_bias_step(setup)
@@ -60,15 +65,19 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
     write_heightmap(
         out,
         heights,
+        result.std_heightmap(),
         scopetwin_reconstruction=f"outer={result.outer_iterations} "
         f"inner={result.inner_iterations} delta_h_max_um={result.delta_h_max_um:.4g}",
     )
     seconds = time.perf_counter() - t0
+    u = result.uncertainty
+    u_text = f", u(absolute) = {u.absolute_um:.3f} µm, u(shape) = {u.shape_um:.3f} µm" if u is not None else ""
     print(
         f"reconstructed {len(obs.ij)} markers: {result.outer_iterations} start heights, "
-        f"{result.inner_iterations} inner iterations, Delta h_max = {result.delta_h_max_um:+.4f} µm, "
+        f"{result.inner_iterations} inner iterations, Delta h_max = {result.delta_h_max_um:+.4f} µm{u_text}, "
         f"{seconds:.2f} s -> {out}"
     )
+    extra: dict[str, Any] = {"uncertainty": u.summary()} if u is not None else {}
     return {
         "heights": str(out),
         "outer_iterations": result.outer_iterations,
@@ -77,7 +86,64 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         "seconds": seconds,
         "markers": len(obs.ij),
         "start_height_um": result.history[-1].start_height_um,
+        **extra,
         "history": result.history_dicts(),
+    }
+
+
+def _cmd_inverse(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0: float) -> dict[str, Any]:
+    """``--method inverse`` (:mod:`recon.inverse`): start from the centroid method's surface where it succeeds."""
+    from recon.inverse import InverseConfig, reconstruct_inverse
+    from recon.markers import find_markers_for
+    from recon.reconstruct import MarkerObservations, NotConvergedError, Reconstructor, centroid_bias_step
+    from scenes.io import write_heightmap
+
+    start: Any = None
+    start_note = "plane"
+    u_abs: float | None = None
+    rec = None
+    try:
+        found = find_markers_for(image, setup)
+        bias = None if args.no_bias_correction else centroid_bias_step(setup)
+        rec = Reconstructor.from_setup(setup, _config(args), bias)
+        centroid = rec.run(MarkerObservations(found.ij, found.centroids))
+        start, start_note = centroid.surface, "centroid"
+        u = getattr(centroid, "uncertainty", None)  # the absolute height is the centroid method's
+        u_abs = getattr(u, "absolute_um", None)
+    except NotConvergedError as exc:  # indexed, but no start height found: its last surface is still a start
+        last = getattr(rec, "_last", None)
+        start, start_note = last, f"centroid-unconverged ({exc})" if last is not None else f"plane ({exc})"
+    except ScopetwinError as exc:  # markers that cannot be indexed: start from a plane
+        start_note = f"plane ({type(exc).__name__}: {exc})"
+    cfg = InverseConfig(
+        refine_setup=bool(args.refine_setup),
+        criterion=args.criterion or "level",
+        absolute="start" if start_note == "centroid" else "frame",  # an unconverged start: search the height
+    )
+    result = reconstruct_inverse(setup, image, start, cfg)
+    write_heightmap(
+        out,
+        result.heightmap(),
+        scopetwin_reconstruction=f"method=inverse outer={result.outer_iterations} steps={len(result.history)} "
+        f"delta_h_max_um={result.delta_h_max_um:.4g}",
+    )
+    seconds = time.perf_counter() - t0
+    print(
+        f"inverse rendering from the {start_note.split(' ')[0]} start: {result.outer_iterations} start heights, "
+        f"{len(result.history)} Gauss-Newton steps, Delta h_max = {result.delta_h_max_um:+.4f} µm, "
+        f"{seconds:.1f} s -> {out}"
+    )
+    summary = result.summary()
+    return {
+        "heights": str(out),
+        "outer_iterations": summary.pop("outer_iterations"),
+        "inner_iterations": summary.pop("inner_iterations"),
+        "delta_h_max_um": summary.pop("delta_h_max_um"),
+        "seconds": seconds,
+        "start": start_note,
+        "uncertainty": {"absolute_um": u_abs, "shape_um": result.shape_std_um},
+        **({"camera": result.camera.as_dict(), "pattern": result.pattern.frame.as_dict()} if args.refine_setup else {}),
+        **summary,
     }
 
 
@@ -85,7 +151,7 @@ def register(subparsers: Any) -> None:
     """Add ``reconstruct`` to the ``scopetwin`` sub-command parsers."""
     h = "deflectometric height reconstruction from one image and a (calibrated) setup (seed §1.4)"
     p = subparsers.add_parser("reconstruct", help=h, description=h)
-    p.set_defaults(func=cmd_reconstruct)
+    p.set_defaults(func=cmd_reconstruct, outputs=[("out", "file"), ("json", "file")])
     p.add_argument("image", help="camera image of the reflected pattern (OpenEXR, channel Y)")
     p.add_argument("--setup", required=True, help="preset name or TOML (e.g. the one calibrate-setup wrote)")
     p.add_argument("--out", required=True, help="height-map EXR to write (channel Z, mm)")
@@ -94,3 +160,19 @@ def register(subparsers: Any) -> None:
     p.add_argument("--criterion", choices=("level", "delta"), help="frame-region criterion (default level)")
     p.add_argument("--thesis", action="store_true", help="the seed's 9x5 inverse-multiquadric basis and Delta h_max")
     p.add_argument("--no-bias-correction", action="store_true", help="use the raw centroids")
+    p.add_argument(
+        "--method",
+        choices=("centroid", "inverse"),
+        default="centroid",
+        help="marker centroids (seed §1.4-1.8, default) or inverse rendering: the surface fitted to the whole image "
+        "through a differentiable render, started from the centroid result",
+    )
+    p.add_argument(
+        "--refine-setup", action="store_true", help="inverse: also fit camera and pattern pose, held near the setup"
+    )
+    p.add_argument(
+        "--posterior",
+        choices=("correct", "report", "off"),
+        help="uncertainty from the Gaussian-process reading of the fit; 'correct' (default) also takes the start "
+        "height from the posterior frame maxima, 'report' only reports, 'off' skips both",
+    )

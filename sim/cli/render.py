@@ -1,4 +1,7 @@
-"""``scopetwin render SETUP --out DIR`` and ``scopetwin presets`` (DESIGN.md "Command line"; :mod:`sim.measurement`)."""
+"""``scopetwin render SETUP --out DIR`` and ``scopetwin presets`` (DESIGN.md "Command line"; :mod:`sim.measurement`).
+
+The render's memory and time are estimated before anything is written (:func:`scenes.limits.check_render`).
+"""
 
 from __future__ import annotations
 
@@ -6,12 +9,17 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from scenes.limits import check_render
+from sim.cli.options import SEED, SPP
 from sim.measurement import StagedOutput, load_measurement, render_measurement, write_measurement
 
 
 def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
     """Render one setup to EXR with its truth; returns ``{"image", "truth", "spp", "seconds"}``."""
     setup, heights = load_measurement(args.setup, args.surface, args.spp, args.seed, args.noise)
+    cam = setup.camera_model
+    renderer = "analytic" if args.renderer == "analytic" else "setup"
+    check_render(cam.nx, cam.ny, setup.render.spp, f"render {setup.name}", renderer)  # before anything is written
     stage = StagedOutput(Path(args.out))
     try:
         image, seconds = render_measurement(
@@ -47,13 +55,13 @@ def register(subparsers: Any) -> None:
     """Add ``render`` and ``presets`` to the ``scopetwin`` sub-command parsers."""
     help_ = "render one setup (preset name or TOML path) to EXR with its truth"
     p = subparsers.add_parser("render", help=help_, description=help_)
-    p.set_defaults(func=cmd_render)
+    p.set_defaults(func=cmd_render, outputs=[("out", "dir"), ("json", "file")], estimate="render")
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
-    p.add_argument("setup", help="preset name (see `scopetwin presets`) or TOML path")
+    p.add_argument("setup", help="preset name (see: scopetwin presets) or TOML path")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--surface", help="height-map EXR replacing the preset's generated surface")
-    p.add_argument("--spp", type=int, help="samples per pixel")
-    p.add_argument("--seed", type=int, help="random seed")
+    p.add_argument("--spp", type=SPP, help="samples per pixel, >= 1 (default: the setup's)")
+    p.add_argument("--seed", type=SEED, help="random seed, >= 0 (default: the setup's)")
     p.add_argument(
         "--noise", action=argparse.BooleanOptionalAction, default=None, help="apply the EMVA 1288 sensor model"
     )

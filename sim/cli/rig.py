@@ -1,27 +1,57 @@
-"""``scopetwin rig RIG.toml info|move|position|acquire`` (DESIGN.md, 'Rig files').
+"""``scopetwin rig RIG.toml info|move|position|acquire|mda|serve`` (DESIGN.md, 'Rig files').
 
 :func:`register` adds the ``rig`` command to an argparse subparsers object; each
 action's handler returns a JSON-ready dict (written by the main CLI when
 ``--json PATH`` is given) and prints a short human-readable line:
 
-* ``info`` — the rig's devices, their drivers and limits;
+* ``info`` — the rig's devices, their drivers, ports and limits (travel, velocity, focus range,
+  maximum current, exposure range, sensor, bit depths);
 * ``move NAME VALUE`` — move a stage (mm) or focus drive (µm); JSON ``{"device", "position_mm"}``
   or ``{"device", "position_um"}`` after the move;
 * ``position NAME`` — the same JSON without moving;
 * ``acquire OUT`` — frames from a camera with a light on (fixed or automatic exposure), written
-  to ``OUT`` as they come, plus ``manifest.json``.
+  to ``OUT`` as they come, plus ``manifest.json`` and ``preview.png`` (the last frame); one warning
+  line when no frame carries signal;
+* ``mda SEQUENCE --camera NAME --out PATH`` — a useq MDA sequence through pymmcore-plus
+  (:func:`instrument.micromanager.run_mda`) into OME-TIFF or OME-Zarr, with a progress bar;
+* ``serve`` — the rig's devices through python-microscope's device server on 127.0.0.1.
 
 The rig is opened with :func:`instrument.rig.open_rig`, so lights are off again on every exit.
+SIGINT, SIGTERM and SIGHUP during ``acquire`` or ``mda`` end the command cleanly: lights off,
+shutters closed, every frame on disk listed in the manifest (the OME file closed with the planes
+acquired so far); the main CLI prints the line naming the signal and exits 128 + n. ``serve`` ends
+on SIGINT or SIGTERM with one line and exit 0, as ``scopetwin emulate`` does.
+
+A device on an ``emu://`` port talks to an emulator that lives in this process only: every command
+starts fresh emulators, so ``move`` then ``position`` in two commands reads the emulator's start
+position. ``scopetwin emulate KIND`` runs one in its own process that keeps its state; put the port
+it prints in the rig file.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import sys
+import threading
+import tomllib
+from pathlib import Path
 from typing import Any
 
 from instrument.devices import FocusDrive, Stage
 from instrument.errors import RigError
 from instrument.rig import Rig, open_rig
+from sim.cli.options import finite_float, int_range, positive_float, positive_int
+
+EMU_NOTE = (
+    "note: devices on emu:// ports talk to emulators inside this one command; each command starts them "
+    "fresh (a move is not seen by the next command). For state that lasts, run 'scopetwin emulate KIND' "
+    "and put the port it prints in the rig file."
+)
+OME_SUFFIXES = (".ome.tif", ".ome.tiff", ".ome.zarr")
+LOCALHOSTS = ("127.0.0.1", "localhost")
+#: Most frames one ``acquire`` takes (a frame file each; far beyond a calibration series).
+MAX_FRAMES = 100_000
 
 
 def _position(rig: Rig, name: str) -> dict[str, Any]:
@@ -33,12 +63,50 @@ def _position(rig: Rig, name: str) -> dict[str, Any]:
     raise RigError(f"device {name!r} is a {device.kind}: only stages and focus drives have a position")
 
 
+def _span(values: list[float], unit: str) -> str:
+    return f"{values[0]:g}..{values[1]:g} {unit}"
+
+
+def limits_text(device: dict[str, Any]) -> str:
+    """The limits of one device's :meth:`~instrument.devices.Device.describe` entry, as one short phrase."""
+    parts = []
+    if "travel_mm" in device:
+        parts.append(f"travel {_span(device['travel_mm'], 'mm')}")
+    if "max_velocity_mm_s" in device:
+        parts.append(f"max {device['max_velocity_mm_s']:g} mm/s")
+    if "range_um" in device:
+        parts.append(f"range {_span(device['range_um'], 'um')}")
+    if "model" in device and device.get("kind") == "focus":
+        parts.append(f"model {device['model']}")
+    if "max_current_ma" in device:
+        parts.append(f"max {device['max_current_ma']:g} mA")
+    if "exposure_s" in device:
+        parts.append(f"exposure {_span(device['exposure_s'], 's')}")
+    if "sensor_shape" in device:
+        rows, cols = device["sensor_shape"]
+        parts.append(f"{cols}x{rows} px")
+    if "pixel_size_um" in device:
+        magnification = float(device.get("magnification", 1.0))
+        behind = f" behind {magnification:g}x" if magnification != 1.0 else ""
+        parts.append(f"{device['pixel_size_um']:g} um pixels{behind}")
+    if "bit_depths" in device:
+        parts.append("bits " + "/".join(str(b) for b in device["bit_depths"]))
+    if "n_camera_lines" in device:
+        parts.append(f"{device['n_camera_lines']} camera lines")
+    return ", ".join(parts)
+
+
 def cmd_info(args: argparse.Namespace) -> dict[str, Any]:
-    """List the rig's devices (opens and initialises them: a connection check)."""
+    """List the rig's devices, drivers, ports and limits (opens and initialises them: a connection check)."""
     with open_rig(args.rig) as rig:
         info = rig.describe()
+        emulated = rig.emulated_ports()
     for d in info["devices"]:
-        print(f"{d['name']:<12} {d['kind']:<8} {d['driver']}")
+        port = f"  [{d['port']}]" if "port" in d else ""
+        print(f"{d['name']:<12} {d['kind']:<8} {d['driver']:<11} {limits_text(d)}{port}")
+    if emulated:
+        print(EMU_NOTE)
+    info["emulated_ports"] = sorted(emulated)
     return info
 
 
@@ -65,45 +133,217 @@ def cmd_position(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
+def _camera_pixels(rig_path: str, camera: str | None) -> int:
+    """Pixels of a frame of ``camera`` (default: the rig's first camera), from the rig TOML alone; 0 if unknown."""
+    try:
+        tables = tomllib.loads(Path(rig_path).read_text()).get("devices", {})
+        cams = [(n, t) for n, t in tables.items() if isinstance(t, dict) and t.get("kind") == "camera"]
+        table = next(t for n, t in cams if camera is None or n == camera)
+        rows, cols = table.get("sensor_shape", [1024, 1360])
+        return int(rows) * int(cols)
+    except (OSError, ValueError, TypeError, StopIteration, AttributeError):
+        return 0
+
+
+def estimate_acquire(args: argparse.Namespace) -> dict[str, int]:
+    """Bytes ``acquire`` writes at most: each frame a float32 EXR (uncompressed bound) plus its share of the preview."""
+    return {"out": int(args.frames) * _camera_pixels(args.rig, args.camera) * 5}
+
+
+def estimate_mda(args: argparse.Namespace) -> dict[str, int]:
+    """Bytes ``mda`` writes: each plane 16 bits per pixel (12-bit cameras deliver uint16)."""
+    from instrument.micromanager import load_sequence
+
+    return {"out": sum(1 for _ in load_sequence(args.sequence)) * _camera_pixels(args.rig, args.camera) * 2}
+
+
 def cmd_acquire(args: argparse.Namespace) -> dict[str, Any]:
-    """Acquire frames with a light on; each frame is on disk as soon as it is grabbed."""
-    from instrument.acquisition import calibration_capture
+    """Acquire frames with a light on; each frame is on disk (and in the manifest) as soon as it is grabbed."""
+    from instrument.acquisition import PREVIEW_NAME, calibration_capture, dark_frames
 
     with open_rig(args.rig) as rig:
+        cam = rig.camera(args.camera)
+        if args.exposure_s is not None:
+            cam.limits.exposure_s.check(args.exposure_s, f"--exposure-s of camera {cam.name!r}")
         paths = calibration_capture(
             rig, args.out, n_frames=args.frames, camera=args.camera, light=args.light, exposure_s=args.exposure_s
         )
-        exposure = rig.camera(args.camera).exposure_s
-    print(f"wrote {len(paths)} frame(s) to {args.out}")
-    return {"frames": [str(p) for p in paths], "exposure_s": exposure, "manifest": f"{args.out}/manifest.json"}
+        exposure = cam.exposure_s
+        black, saturation = cam.black_level_dn, cam.saturation_dn
+        lamp = rig.light(args.light)
+        unseen = cam.driver_name() == "sim" and lamp.driver_name() != "sim" and lamp.name not in rig.emulated_ports()
+    manifest_path = Path(args.out) / "manifest.json"
+    signals = [float(f["signal_dn"]) for f in json.loads(manifest_path.read_text())["frames"]]
+    dark = dark_frames(signals, black, saturation)
+    print(f"wrote {len(paths)} frame(s) to {args.out} (preview: {Path(args.out) / PREVIEW_NAME})")
+    if dark:
+        why = (
+            f"a simulated camera cannot see light {lamp.name!r} on a real port (only simulated and emu:// lights)"
+            if unseen
+            else "is the light on, and can the camera see it?"
+        )
+        print(
+            f"scopetwin: warning: the frames carry no signal (brightest at {max(signals):.1f} DN above the black "
+            f"level, under 1 % of the {saturation - black:g} DN range): {why}",
+            file=sys.stderr,
+        )
+    return {
+        "frames": [str(p) for p in paths],
+        "exposure_s": exposure,
+        "manifest": str(manifest_path),
+        "preview": str(Path(args.out) / PREVIEW_NAME),
+        "signal_dn": signals,
+        "dark": dark,
+    }
+
+
+def _strip_ome_suffix(name: str) -> str:
+    for suffix in OME_SUFFIXES:
+        if name.lower().endswith(suffix):
+            return name[: -len(suffix)]
+    return name
+
+
+def _ome_outputs(out: Path) -> list[Path]:
+    """Where the OME writers put ``out``: the path itself, or for several positions of an OME-TIFF a folder
+    named like it without the suffix holding one ``<stem>_pNNN.ome.tif`` per position (ome-writers' layout)."""
+    return [out, out.parent / _strip_ome_suffix(out.name)] if out.name.lower().endswith((".tif", ".tiff")) else [out]
+
+
+def _ome_files(out: Path) -> list[str]:
+    if out.is_file() or (out.is_dir() and out.name.lower().endswith(".zarr")):
+        return [str(out)]
+    folder = _ome_outputs(out)[-1]
+    return sorted(str(p) for p in folder.glob("*.ome.tif*")) if folder.is_dir() else []
+
+
+def _quiet_pymmcore_plus() -> None:
+    """pymmcore-plus logs to stderr (its adapter search, 'MDA Canceled'); errors that matter raise anyway."""
+    import pymmcore_plus
+
+    pymmcore_plus.configure_logging(stderr_level="CRITICAL")
+
+
+def cmd_mda(args: argparse.Namespace) -> dict[str, Any]:
+    """Run a useq MDA sequence (YAML/JSON, µm and ms) on the rig through pymmcore-plus into an OME file."""
+    from tqdm import tqdm
+
+    from instrument.micromanager import load_sequence, run_mda
+
+    out = Path(args.out)
+    if not out.name.lower().endswith(OME_SUFFIXES):
+        raise RigError(f"--out {args.out!r} must end in one of {', '.join(OME_SUFFIXES)}")
+    for path in _ome_outputs(out):
+        if path.exists():
+            raise RigError(f"--out {args.out!r}: {str(path)!r} exists already; choose a new path")
+    sequence = load_sequence(args.sequence)
+    total = sum(1 for _ in sequence)
+    if total == 0:
+        raise RigError(f"MDA sequence {args.sequence!r} has no events")
+    _quiet_pymmcore_plus()
+    with open_rig(args.rig) as rig, tqdm(total=total, desc="mda", unit="plane", file=sys.stderr) as bar:
+        rig.camera(args.camera)  # a clear error for an unknown camera before the core loads
+        out.parent.mkdir(parents=True, exist_ok=True)
+        result = run_mda(rig, sequence, camera=args.camera, output=str(out), on_frame=lambda *_: bar.update(1))
+    files = _ome_files(out)
+    where = str(out) if files == [str(out)] else str(_ome_outputs(out)[-1])  # several positions: a folder of TIFFs
+    print(
+        f"wrote {result['planes']} plane(s) to {where} ({len(files)} file(s)); pixel size "
+        f"{result['pixel_size_um']:g} um, {result['bit_depth']} bit, channels {', '.join(result['channels']) or '-'}"
+    )
+    return {
+        "planes": result["planes"],
+        "path": where,
+        "files": files,
+        "pixel_size_um": result["pixel_size_um"],
+        "bit_depth": result["bit_depth"],
+        "channels": result["channels"],
+        "frames": result["frames"],
+    }
+
+
+def cmd_serve(args: argparse.Namespace) -> dict[str, Any]:
+    """Serve the rig's devices through python-microscope's device server on 127.0.0.1 until SIGINT/SIGTERM."""
+    import signal
+
+    from instrument.interrupts import stop_on_signals
+    from instrument.pymicroscope import LOCALHOST, microscope_devices, serve_devices
+
+    if args.host not in LOCALHOSTS:
+        raise RigError(f"--host {args.host!r} refused: the device server listens on {LOCALHOST} only")
+    stop = threading.Event()
+    with open_rig(args.rig) as rig, stop_on_signals(stop) as received:
+        devices = microscope_devices(rig)
+
+        def ready(uris: dict[str, str]) -> None:
+            served = ", ".join(f"{name}={uri}" for name, uri in uris.items())
+            print(f"serving {len(uris)} device(s) of rig {rig.name!r} on {LOCALHOST}: {served}", flush=True)
+
+        uris = serve_devices(devices, port=args.port, stop=stop, ready=ready)
+        for device in devices.values():
+            device.shutdown()
+    why = signal.Signals(received[0]).name if received else "stop"
+    print(f"serve: stopped on {why}", flush=True)
+    return {"rig": rig.name, "host": LOCALHOST, "uris": uris}
 
 
 def register(subparsers: Any) -> argparse.ArgumentParser:
-    """Add ``rig RIG.toml info|move|position|acquire`` to an argparse subparsers object."""
+    """Add ``rig RIG.toml info|move|position|acquire|mda|serve`` to an argparse subparsers object."""
     parser = subparsers.add_parser(
         "rig",
-        help="open a rig config (simulated or hardware), list devices, move, acquire",
-        description="open a rig config (simulated or hardware), list devices, move, acquire",
+        help="open a rig config (simulated or hardware): list devices, move, acquire, MDA, serve",
+        description="Open a rig config (simulated or hardware): list devices and limits, move, acquire, run a "
+        "Micro-Manager MDA into OME files, serve the devices to python-microscope clients. Devices on emu:// "
+        "ports talk to emulators that live for one command only (each command starts them fresh); run "
+        "'scopetwin emulate KIND' and put its port in the rig file to keep their state between commands.",
     )
     parser.add_argument("rig", help="rig TOML file (see rigs/)")
     actions = parser.add_subparsers(dest="rig_action", required=True)
 
     def add(name: str, func: Any, help_: str) -> argparse.ArgumentParser:
-        p = actions.add_parser(name, help=help_, description=help_)
+        p = actions.add_parser(name, help=help_, description=help_, prog=f"scopetwin rig RIG {name}")
         p.set_defaults(func=func)
         p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
         return p
 
-    add("info", cmd_info, "list the devices, their drivers and limits")
+    add(
+        "info",
+        cmd_info,
+        "list the devices, their drivers, ports and limits (travel, velocity, focus range, maximum current, "
+        "exposure range)",
+    )
     p = add("move", cmd_move, "move a stage (mm) or the focus drive (um) to an absolute position")
     p.add_argument("name", help="device name in the rig")
-    p.add_argument("value", type=float, help="target: mm for a stage, um for a focus drive")
+    p.add_argument("value", type=finite_float(), help="target: mm for a stage, um for a focus drive")
     p = add("position", cmd_position, "report a stage's (mm) or the focus drive's (um) position")
     p.add_argument("name", help="device name in the rig")
-    p = add("acquire", cmd_acquire, "grab frames with a light on, each written as it arrives")
+    p = add(
+        "acquire",
+        cmd_acquire,
+        "grab frames with a light on, each written as it arrives and listed in manifest.json; preview.png shows "
+        "the last; SIGINT/SIGTERM/SIGHUP switch the lights off and keep every frame written",
+    )
     p.add_argument("out", help="output folder")
+    p.set_defaults(outputs=[("out", "dir", "keep", "positional"), ("json", "file")], estimate=estimate_acquire)
     p.add_argument("--camera", help="camera name (default: the first)")
     p.add_argument("--light", help="light name (default: the first)")
-    p.add_argument("--exposure-s", type=float, help="exposure time (default: automatic, ~70%% of the range)")
-    p.add_argument("--frames", type=int, default=1, help="number of frames")
+    p.add_argument("--exposure-s", type=positive_float(), help="exposure time (default: automatic, ~70%% of the range)")
+    p.add_argument("--frames", type=positive_int(MAX_FRAMES), default=1, help="number of frames (>= 1)")
+    p = add(
+        "mda",
+        cmd_mda,
+        "run a useq MDA sequence (YAML or JSON; um and ms) through pymmcore-plus into OME-TIFF or OME-Zarr; every "
+        "light is a preset of config group Channel; Ctrl-C keeps the planes written",
+    )
+    p.add_argument("sequence", help="MDA sequence file (.yaml or .json, useq-schema)")
+    p.add_argument("--camera", help="camera name (default: the first)")
+    p.add_argument("--out", required=True, help="output .ome.tif or .ome.zarr (several positions: one TIFF each)")
+    p.set_defaults(outputs=[("out", "path", "keep"), ("json", "file")], estimate=estimate_mda)
+    p = add(
+        "serve",
+        cmd_serve,
+        "serve the devices through python-microscope's device server (Pyro) on 127.0.0.1 until SIGINT/SIGTERM",
+    )
+    p.add_argument("--port", type=int_range(0, 65535), default=8000, help="first port; one per device (0: free ports)")
+    p.add_argument("--host", default=LOCALHOSTS[0], help="only 127.0.0.1 (or localhost) is accepted")
     return parser

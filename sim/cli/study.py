@@ -2,7 +2,8 @@
 
 Runs an accuracy study (``thesis``, ``noise``, ``angle``, ``surface``) on an embedded Dask LocalCluster
 (one process per core, one thread each, 127.0.0.1 only), on an existing cluster, or in this process
-(``--workers 0``), and writes ``report.md``, ``results.json`` and PNG plots into ``--out``.
+(``--workers 0``), and writes ``report.md``, ``results.json`` and PNG plots into ``--out`` — only when the
+whole study succeeded (the report is staged and moved into place last; Ctrl-C, SIGTERM and SIGHUP leave nothing).
 """
 
 from __future__ import annotations
@@ -10,8 +11,18 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from sim.cli.options import nonnegative_int, positive_int
+from sim.cli.outputs import check_output_path
+from sim.datasets.runner import check_scheduler
 from sim.studies.context import StudyError
 from sim.studies.runner import STUDIES, run_study
+
+#: Plain text for ``--help`` (the module docstring is reST).
+DESCRIPTION = (
+    "An accuracy study against rendered truth (thesis reproduces the seed's tables side by side). It runs on a local "
+    "Dask cluster, an existing one (--scheduler) or in this process (--workers 0), and writes report.md, "
+    "results.json and PNG plots into --out only when the whole study succeeded."
+)
 
 
 def cmd_study(args: argparse.Namespace) -> dict[str, Any]:
@@ -22,9 +33,12 @@ def cmd_study(args: argparse.Namespace) -> dict[str, Any]:
         raise StudyError(f"--workers must be >= 0, got {args.workers}")
     if args.scheduler and args.workers is not None:
         raise StudyError("give --scheduler (an existing cluster) or --workers (a local one), not both")
-    result = run_study(
-        args.name, args.out or f"study-{args.name}", args.scheduler, args.workers, args.threads, not args.quiet
-    )
+    if args.scheduler:
+        check_scheduler(args.scheduler)
+    out = args.out or f"study-{args.name}"
+    if args.out is None:  # the default folder (a given --out is checked by the command line before this)
+        check_output_path(out, "dir", "--out")
+    result = run_study(args.name, out, args.scheduler, args.workers, args.threads, not args.quiet)
     print(f"study {args.name}: {result['seconds']:.0f} s -> {result['report']}")
     for n in result["notes"]:
         print(f"  note: {n}")
@@ -35,19 +49,24 @@ def register(subparsers: Any) -> None:
     """Add ``study NAME`` to the ``scopetwin`` parser."""
     p = subparsers.add_parser(
         "study",
-        help="an accuracy study against rendered truth; `thesis` reproduces the seed's tables side by side",
-        description=__doc__.splitlines()[0],
+        help="an accuracy study against rendered truth; thesis reproduces the seed's tables side by side",
+        description=DESCRIPTION,
     )
     p.add_argument("name", help=f"one of: {', '.join(STUDIES)}")
     p.add_argument("--out", help="report folder (default: study-NAME)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler, e.g. tcp://host:8786")
     p.add_argument(
         "--workers",
-        type=int,
+        type=nonnegative_int(1024),
         metavar="N",
         help="local worker processes (default: one per core; 0: no Dask, work in this process)",
     )
-    p.add_argument("--threads", type=int, metavar="N", help="Dr.Jit threads per worker (default 1 on a local cluster)")
+    p.add_argument(
+        "--threads",
+        type=positive_int(1024),
+        metavar="N",
+        help="Dr.Jit threads per worker (default 1 on a local cluster)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
-    p.set_defaults(func=cmd_study)
+    p.set_defaults(func=cmd_study, outputs=[("out", "dir"), ("json", "file")])

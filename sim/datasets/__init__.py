@@ -44,15 +44,20 @@ alone or with others (seed-independent of the count and of the other samples).
 Layout of a dataset folder::
 
     DIR/dataset.json          the normalised config (what ``resume`` reads)
-    DIR/manifest.jsonl        one JSON line per finished sample (hashes + host, worker, time)
+    DIR/manifest.jsonl        one JSON line per finished sample (hashes; worker address, host and pid of the
+                              worker process that made it; time)
+    DIR/.scopetwin.lock       the folder's lock (flock): host, pid, command and start of the run holding it
     DIR/samples/000000/       one folder per sample: image.exr, truth.json, surface.exr,
                               normals.exr (deflectometry), preview.png, sample.json (hashes);
                               'cmu': image_<channel>.exr per channel, height_<element>.exr
 
-A sample folder is written under a temporary name in ``DIR/samples`` and renamed into place
-when complete (atomic on POSIX file systems); sample files hold no timestamps or host names
-(those are in the manifest). ``resume`` removes temporary folders, re-lists finished samples
-the manifest lost (a killed client), and renders only what is missing; ``verify`` checks every
-sample against the manifest and its own hashes.
+A sample folder is written under a temporary name in ``DIR/samples`` (its writer holds an ``flock`` on it)
+and renamed into place when complete (atomic on POSIX file systems); sample files hold no timestamps or host
+names (those are in the manifest). One run at a time holds a dataset folder (:mod:`~sim.datasets.lock`): a
+second ``generate``/``resume`` on it is refused at once, naming the holder. ``resume`` removes the temporary
+folders of dead processes (never one a live writer holds), re-lists finished samples the manifest lost (a
+killed client; such lines say ``"status": "recovered"``, their maker unknown), renders only what is missing
+and reports the counts; ``verify`` checks every sample against the manifest and its own hashes. A run stopped
+by Ctrl-C, SIGTERM or SIGHUP (:mod:`sim.signals`) lists every finished sample before it exits.
 
 """

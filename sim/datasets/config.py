@@ -21,6 +21,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from scenes.errors import ScopetwinError
 
 KINDS = ("deflectometry", "calibration", "grin", "cmu")
+#: Most samples one dataset may have: the plan keeps every sample's setup in memory (a few kB each).
+MAX_COUNT = 1_000_000
 #: Packages whose versions every sample's truth and image headers record.
 SAMPLE_PACKAGES = ("scopetwin", "mitsuba", "drjit", "numpy", "OpenEXR")
 
@@ -31,7 +33,9 @@ class DatasetError(ScopetwinError, ValueError):
 
 # -- distributions --------------------------------------------------------------------------------
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """Base of the config tables: unknown keys and non-finite numbers (``inf``, ``nan``) are rejected."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 Scalar = float | int | str | bool
@@ -137,13 +141,16 @@ class Domain:
 
 _INF = math.inf
 _PART1 = ("deflectometry", "calibration")
-_SURFACE_KINDS = ("random", "plane", "sphere", "saddle", "cylinder")
+_SURFACE_KINDS = ("random", "psd", "plane", "sphere", "saddle", "cylinder")
 DOMAINS: dict[str, Domain] = {
     "surface_range_um": Domain(0, _INF, False, True, ("deflectometry",), 1, "µm", "peak-to-valley range (§1.9)"),
     "surface_correlation_length": Domain(
         0, _INF, True, True, ("deflectometry",), 1, "mm", "low-pass correlation length (§1.9)"
     ),
     "surface_kind": Domain(0, 0, False, False, ("deflectometry",), 1, "", "surface generator", strings=_SURFACE_KINDS),
+    "surface_broadband_rms_nm": Domain(
+        0, 1000, False, False, ("deflectometry",), 1, "nm", "broadband (short-wavelength) RMS of the surface"
+    ),
     "view_angle_deg": Domain(
         0, 90, True, False, ("calibration",), 1, "deg", "camera elevation over the target (§2.8.2 angle scan)"
     ),
@@ -211,6 +218,7 @@ class VarySpec(_Model):
     surface_range_um: Dist | None = None
     surface_correlation_length: Dist | None = None
     surface_kind: Dist | None = None
+    surface_broadband_rms_nm: Dist | None = None
     view_angle_deg: Dist | None = None
     view_distance: Dist | None = None
     camera_shift: Dist | None = None
@@ -240,9 +248,9 @@ class DatasetSection(_Model):
 
     kind: Literal["deflectometry", "calibration", "grin", "cmu"]
     setup: str = Field(description="preset name or setup TOML path")
-    count: int = Field(gt=0)
+    count: int = Field(gt=0, le=MAX_COUNT, description="samples (at most MAX_COUNT: the plan holds every one)")
     master_seed: int = Field(ge=0)
-    spp: int = Field(16, gt=0)
+    spp: int = Field(16, gt=0, le=2**31 - 1)
     noise: bool = False
     description: str = ""
     preview: bool = Field(True, description="write preview.png beside each image")
@@ -251,9 +259,19 @@ class DatasetSection(_Model):
 class GrinSection(_Model):
     """The ``[grin]`` table: image size of GRIN target images."""
 
-    width: int | None = Field(None, gt=0)
-    height: int | None = Field(None, gt=0)
-    step_mm: float = Field(0.3, gt=0)
+    width: int | None = Field(None, gt=0, le=1_000_000)
+    height: int | None = Field(None, gt=0, le=1_000_000)
+    step_mm: float = Field(
+        0.3, ge=1e-4, description="RKN step of the images, mm (>= 0.1 µm: the trace time grows as 1/step)"
+    )
+
+    @model_validator(mode="after")
+    def _fits(self) -> GrinSection:
+        from scenes.limits import check_image_size
+
+        if self.width is not None and self.height is not None:
+            check_image_size(self.width, self.height, "width x height")
+        return self
 
 
 class CmuSection(_Model):

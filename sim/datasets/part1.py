@@ -72,6 +72,7 @@ def part1_setup(cfg: DatasetConfig, base: dict[str, Any], index: int, params: di
             ("surface_range_um", "range_um"),
             ("surface_correlation_length", "correlation_length"),
             ("surface_kind", "kind"),
+            ("surface_broadband_rms_nm", "broadband_rms_nm"),
         ):
             if key in params:
                 surf[field] = params[key]
@@ -138,7 +139,7 @@ def write_normals(path: Path, heights: HeightMap) -> None:
     """Unit surface normals at the height-map nodes: channels NX, NY, NZ (plus Z), extents as in the contract."""
     import OpenEXR
 
-    from scenes.io import EXTENT_KEYS, atomic_path
+    from scenes.io import EXTENT_KEYS, atomic_path, exr_write_error
 
     xx, yy = np.meshgrid(heights.x_nodes, heights.y_nodes)
     n = heights.normals(xx, yy)
@@ -147,7 +148,10 @@ def write_normals(path: Path, heights: HeightMap) -> None:
     header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     header.update(zip(EXTENT_KEYS, (heights.x_min, heights.x_max, heights.y_min, heights.y_max), strict=True))
     with atomic_path(path) as tmp:
-        OpenEXR.File(header, chans).write(str(tmp))
+        try:
+            OpenEXR.File(header, chans).write(str(tmp))
+        except RuntimeError as exc:
+            raise exr_write_error(path, exc) from None
 
 
 def write_part1(cfg: DatasetConfig, index: int, setup: Setup, stage: StagedOutput) -> dict[str, Any]:

@@ -100,3 +100,28 @@ class Plan:
         }
         writer = writers.get(self.config.dataset.kind, part1.write_part1)
         return writer(self.config, index, self.setup_of(index), stage)
+
+    def sample_bytes(self, index: int = 0) -> int:
+        """An upper estimate of the bytes sample ``index`` takes on disk (checked against the free space first).
+
+        Images count as uncompressed float32 (4 bytes a pixel; the noise of a real image leaves little to
+        compress), a preview PNG as one byte a pixel, a height map as 4 bytes a node per channel (a deflectometry
+        sample also stores three normal components), plus 256 KiB for the truth JSON and the sample record.
+        """
+        kind = self.config.dataset.kind
+        preview = 1 if self.config.dataset.preview else 0
+        sample = self.setup_of(index)
+        extra = 256 << 10
+        if kind == "grin":
+            setup = sample[0]
+            w = self.config.grin.width or setup.camera.width_px
+            h = self.config.grin.height or setup.camera.height_px
+            return int(w * h * 4 + extra)
+        if kind == "cmu":
+            _, _, h, w = cmu.image_box(self.config, sample.setup)
+            px = h * w * len(sample.channels)
+            return int(px * 4 + px * preview + (4 << 20) + extra)  # + the splitters' height maps
+        cam = sample.camera_model
+        px = cam.nx * cam.ny
+        nodes = 0 if sample.substrate is None else sample.substrate.surface.grid[0] * sample.substrate.surface.grid[1]
+        return int(px * (4 + preview) + nodes * 4 * 5 + extra)

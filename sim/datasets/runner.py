@@ -10,7 +10,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from typing import Any
 
 from scenes.errors import ScopetwinError
@@ -37,13 +37,136 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def check_scheduler(address: str) -> str:
+    """Check the syntax of a Dask scheduler address (``tcp://host:8786``) before anything is started or created.
+
+    Raises
+    ------
+    DatasetError
+        ``address`` names no host and port (the message quotes it and shows the expected form).
+    """
+    expected = "expected e.g. tcp://host:8786"
+    try:
+        from distributed.comm.addressing import parse_address, parse_host_port
+
+        scheme, location = parse_address(address)
+        if scheme in ("tcp", "tls", "ws", "wss"):
+            host, port = parse_host_port(location)
+            if not host or not 0 < int(port) < 65536:
+                raise ValueError("a host and a port in 1..65535 are needed")
+    except ImportError:
+        return address  # dask_client names the missing package
+    except (ValueError, TypeError) as exc:
+        raise DatasetError(f"--scheduler {address!r} is not a Dask scheduler address ({exc}); {expected}") from None
+    return address
+
+
+@contextlib.contextmanager
+def _quiet_distributed() -> Iterator[None]:
+    """Distributed's loggers silenced (a cluster shutting down after an interruption logs connection errors)."""
+    loggers = [logging.getLogger(n) for n in ("distributed", "tornado", "asyncio")]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        for lg, level in zip(loggers, levels, strict=True):
+            lg.setLevel(level)
+
+
+def _silence_distributed() -> None:
+    """Distributed's loggers off for the rest of this process (the cluster is about to be closed)."""
+    for name in ("distributed", "tornado", "asyncio"):
+        logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+
+
+#: Run before the worker's Python: ignore SIGINT and SIGHUP (inherited through ``exec``), then start it.
+_TRAP = 'trap "" INT HUP; exec "$0" "$@"'
+
+
+@contextlib.contextmanager
+def _spawn_ignoring_interrupts() -> Iterator[None]:
+    """While the local cluster starts, processes spawned by ``multiprocessing`` ignore SIGINT and SIGHUP from exec on.
+
+    A terminal sends Ctrl-C to the whole process group, a dropped session SIGHUP; a worker that is still starting
+    (before its preload, :func:`sim.signals.dask_setup`, runs; even before its ``site`` import) would print a
+    KeyboardInterrupt traceback. So for the duration of the start, ``multiprocessing``'s spawn command goes
+    through ``/bin/sh -c 'trap "" INT HUP; exec python ...'``: an ignored signal stays ignored across ``exec``,
+    and Python keeps an ignored SIGINT ignored. Workers restarted later rely on the preload.
+    """
+    import shutil
+    from multiprocessing import resource_tracker, spawn
+
+    _start_resource_tracker(resource_tracker)
+    sh = shutil.which("sh") or "/bin/sh"
+    real_cmd = getattr(spawn, "get_command_line", None)
+    real_exe = getattr(spawn, "get_executable", None)
+    if real_cmd is None or real_exe is None or not os.access(sh, os.X_OK):  # pragma: no cover - unusual platform
+        yield
+        return
+
+    python = real_exe()
+    shell: Any = os.fsencode(sh) if isinstance(python, bytes) else sh  # the same type (3.11 keeps bytes)
+
+    def get_command_line(**kwds: Any) -> list[Any]:
+        cmd = list(real_cmd(**kwds))  # [executable, *flags, "-c", prog, ...], executable read from get_executable
+        return [shell, "-c", _TRAP, python, *cmd[1:]]
+
+    spawn.get_command_line = get_command_line
+    spawn.get_executable = lambda: shell
+    try:
+        yield
+    finally:
+        spawn.get_command_line = real_cmd
+        spawn.get_executable = real_exe
+
+
+def _start_resource_tracker(resource_tracker: Any) -> None:
+    """Start multiprocessing's resource tracker (if it is not running) with SIGHUP ignored.
+
+    The tracker ignores SIGINT and SIGTERM itself, not SIGHUP: a dropped session's SIGHUP to the process group
+    would kill it, and the one relaunched in its place prints a KeyError traceback for every name it never saw.
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        resource_tracker.ensure_running()
+        return
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)  # inherited by the tracker process
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+
+
+def _close_quietly(*closables: Any, interrupted: bool) -> None:
+    """Close a client and its cluster; after an interruption without distributed's logs or a second error."""
+    ctx = _quiet_distributed() if interrupted else contextlib.nullcontext()
+    with ctx:
+        for obj in closables:
+            try:
+                obj.close()
+            except Exception:  # noqa: BLE001 - already failing or interrupted: closing must not add an error
+                if not interrupted:
+                    raise
+
+
 @contextlib.contextmanager
 def dask_client(scheduler: str | None = None, workers: int | None = None) -> Iterator[Any]:
     """A Dask client: on ``scheduler`` (an existing cluster, unchanged) or on an embedded LocalCluster.
 
     The local cluster has ``workers`` worker processes (default: one per core) with one thread each,
     started with ``spawn`` (Mitsuba's plugin registry is per thread and does not survive ``fork``),
-    and listens on 127.0.0.1 only, without a dashboard.
+    and listens on 127.0.0.1 only, without a dashboard. Its workers ignore SIGINT and SIGHUP
+    (:func:`sim.signals.dask_setup`, a worker preload): the client handles an interruption, cancels its
+    work and closes the cluster without distributed's logs, so Ctrl-C prints no worker tracebacks.
+
+    Raises
+    ------
+    DatasetError
+        Dask is not installed, or the scheduler address is malformed or does not answer.
     """
     try:
         import dask
@@ -54,36 +177,69 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
             "--workers 0 to work in this process"
         ) from None
     if scheduler:
+        check_scheduler(scheduler)
         try:
-            client = Client(scheduler, timeout="30s")
-        except (OSError, TimeoutError) as exc:
+            client: Any = Client(scheduler, timeout="30s")
+        except (OSError, TimeoutError, ValueError) as exc:
             raise DatasetError(f"cannot connect to the Dask scheduler {scheduler}: {exc}") from None
+        interrupted = False
         try:
             yield client
+        except BaseException as exc:
+            interrupted = isinstance(exc, KeyboardInterrupt)
+            raise
         finally:
-            client.close()
+            _close_quietly(client, interrupted=interrupted)
         return
-    with dask.config.set(
-        {
-            "distributed.worker.multiprocessing-method": "spawn",
-            "distributed.scheduler.allowed-failures": 5,
-            "distributed.worker.memory.terminate": False,
-        }
+    from sim.signals import deferred_signals
+
+    # A signal while the cluster starts is held (an interrupted start leaves half-started nannies that log
+    # tracebacks at exit) and raised once the cluster can be closed; distributed's logs are off from then on.
+    shield = deferred_signals(on_signal=lambda signum: _silence_distributed())
+    with (
+        shield,
+        _spawn_ignoring_interrupts(),
+        dask.config.set(
+            {
+                "distributed.worker.multiprocessing-method": "spawn",
+                "distributed.scheduler.allowed-failures": 5,
+                "distributed.worker.memory.terminate": False,
+                "distributed.worker.preload": ["sim.signals"],  # a worker restarted later ignores them too
+            }
+        ),
     ):
-        cluster = LocalCluster(
-            n_workers=workers or default_workers(),
-            threads_per_worker=1,
-            processes=True,
-            host="127.0.0.1",
-            dashboard_address=None,
-            silence_logs=logging.ERROR,
-        )
-        client = Client(cluster)
+        cluster: Any = None
+        client = None
         try:
-            yield client
-        finally:
-            client.close()
-            cluster.close()
+            cluster = LocalCluster(
+                n_workers=workers or default_workers(),
+                threads_per_worker=1,
+                processes=True,
+                host="127.0.0.1",
+                dashboard_address=None,
+                scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},  # its HTTP endpoint: any free local port
+                silence_logs=logging.CRITICAL,  # a closing cluster logs errors (heartbeats) in every worker
+            )
+            client = Client(cluster)
+        except Exception:
+            if cluster is not None:
+                _close_quietly(cluster, interrupted=True)
+            stop = shield.interruption()
+            if stop is not None:  # e.g. SIGTERM to the process group killed the starting workers
+                raise stop from None
+            raise
+        stop = shield.interruption()
+        if stop is not None:
+            _close_quietly(client, cluster, interrupted=True)
+            raise stop
+    interrupted = False
+    try:
+        yield client
+    except BaseException as exc:
+        interrupted = isinstance(exc, KeyboardInterrupt)
+        raise
+    finally:
+        _close_quietly(client, cluster, interrupted=interrupted)
 
 
 class TaskFailure(ScopetwinError):
@@ -104,12 +260,19 @@ def failure_text(err: BaseException) -> str:
 
 
 def run_tasks(
-    func: Callable[..., Any], args: Sequence[tuple], client: Any | None, keys: Sequence[str] | None = None
-) -> Iterator[tuple[int, Any, BaseException | None]]:
+    func: Callable[..., Any],
+    args: Sequence[tuple],
+    client: Any | None,
+    keys: Sequence[str] | None = None,
+    on_abandon: Callable[[int, Any], None] | None = None,
+) -> Generator[tuple[int, Any, BaseException | None], None, None]:
     """Run ``func(*a)`` for every ``a`` in ``args``; yield (position, result, error) as each finishes.
 
     ``client`` None runs in this process, in order. Errors are yielded, not raised, so one bad
-    task does not lose the others' results.
+    task does not lose the others' results. When the caller stops early (an interruption, or
+    ``close()`` on the iterator), the tasks still queued are cancelled, and ``on_abandon(position,
+    result)`` is called for each task that had already finished but was not yet yielded (within a
+    few seconds; the others are left to the caller's own recovery).
     """
     if client is None:
         for k, a in enumerate(args):
@@ -124,9 +287,12 @@ def run_tasks(
         client.submit(_guarded, func, *a, key=None if keys is None else keys[k], pure=False) for k, a in enumerate(args)
     ]
     position = {f.key: k for k, f in enumerate(futures)}
+    seen: set[int] = set()
+    finished = False
     try:
         for fut in as_completed(futures):
             k = position[fut.key]
+            seen.add(k)
             try:
                 ok, value = fut.result()
             except Exception as exc:  # noqa: BLE001 - e.g. KilledWorker after repeated worker deaths
@@ -134,6 +300,35 @@ def run_tasks(
                 continue
             yield (k, value, None) if ok else (k, None, TaskFailure(value))
             fut.release()
+        finished = True
     finally:
-        for f in futures:
-            f.cancel()
+        if not finished:
+            _abandon(futures, seen, on_abandon)
+
+
+def _abandon(futures: Sequence[Any], seen: set[int], on_abandon: Callable[[int, Any], None] | None) -> None:
+    """Cancel the unfinished futures; hand the finished, unseen ones' results to ``on_abandon`` (3 s at most)."""
+    import time
+
+    from sim.signals import deferred_signals
+
+    with deferred_signals(), _quiet_distributed():
+        done = [(k, f) for k, f in enumerate(futures) if k not in seen and f.status == "finished"]
+        for k, f in enumerate(futures):
+            if k not in seen and f.status != "finished":
+                with contextlib.suppress(Exception):
+                    f.cancel()
+        deadline = time.monotonic() + 3.0
+        for k, f in done:
+            left = deadline - time.monotonic()
+            if on_abandon is None or left <= 0:
+                break
+            try:
+                ok, value = f.result(timeout=left)
+            except Exception:  # noqa: BLE001 - its worker is gone: the caller's recovery finds the sample
+                continue
+            if ok:
+                on_abandon(k, value)
+        for _, f in done:
+            with contextlib.suppress(Exception):
+                f.cancel()

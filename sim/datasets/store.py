@@ -21,9 +21,10 @@ from pathlib import Path
 from typing import IO, Any
 
 from sim.datasets.config import SAMPLE_PACKAGES, DatasetError
+from sim.datasets.lock import DatasetBusy, DatasetLock, holder
 from sim.datasets.plan import Plan
-from sim.datasets.runner import dask_client, failure_text, init_worker, run_tasks
-from sim.measurement import StagedOutput, versions
+from sim.datasets.runner import check_scheduler, dask_client, failure_text, init_worker, run_tasks
+from sim.measurement import StagedOutput, remove_stale_stage, versions
 
 CONFIG_FILE = "dataset.json"
 MANIFEST = "manifest.jsonl"
@@ -69,7 +70,7 @@ def generate_sample(plan_json: dict[str, Any], index: int, root: str, threads: i
     record = {"index": index, "name": sample_name(index)}
     if not (final / SAMPLE_FILE).is_file():
         plan = Plan.from_json(plan_json, CONFIG_FILE)
-        with StagedOutput(final, prefix=f"{TMP_PREFIX}{sample_name(index)}-") as stage:
+        with StagedOutput(final, prefix=f"{TMP_PREFIX}{sample_name(index)}-", lock=True) as stage:
             out = plan.write_sample(index, stage)
             truth = out["truth"]
             truth.update(
@@ -87,7 +88,19 @@ def generate_sample(plan_json: dict[str, Any], index: int, root: str, threads: i
     else:
         status = "exists"
     body = json.loads((final / SAMPLE_FILE).read_text())
-    return {**body, "status": status, "seconds": time.perf_counter() - t0}
+    return {**body, "status": status, "seconds": time.perf_counter() - t0, **worker_identity()}
+
+
+def worker_identity() -> dict[str, Any]:
+    """Who is running this: ``{"worker", "host", "pid"}`` of this process (a Dask worker's address, or "local")."""
+    worker = "local"
+    try:
+        from distributed import get_worker
+
+        worker = str(get_worker().address)
+    except (ImportError, ValueError):  # not inside a Dask worker
+        pass
+    return {"worker": worker, "host": socket.gethostname(), "pid": os.getpid()}
 
 
 # -- the dataset folder: manifest, recovery, generation, verification -------------------------------
@@ -128,17 +141,25 @@ def _check_sample(folder: Path, expected: dict[str, Any] | None = None) -> str |
     return None
 
 
-def _manifest_line(rec: dict[str, Any], worker: str) -> dict[str, Any]:
+def _manifest_line(rec: dict[str, Any]) -> dict[str, Any]:
+    """A manifest line from a sample's record: its files, and the worker (host, pid) that made it.
+
+    A sample re-listed from disk (``status: "recovered"``) has no known maker: ``worker`` is "recovered",
+    ``host``/``pid`` are null and ``recovered_by`` names the process that listed it.
+    """
     keep: dict[str, Any] = {k: rec[k] for k in ("index", "name", "kind", "files") if k in rec}
-    return {
+    line = {
         **keep,
         "status": rec.get("status", "written"),
         "seconds": round(float(rec.get("seconds", 0.0)), 3),
-        "worker": worker,
-        "host": socket.gethostname(),
-        "pid": os.getpid(),
+        "worker": rec.get("worker"),
+        "host": rec.get("host"),
+        "pid": rec.get("pid"),
         "finished_utc": datetime.now(UTC).isoformat(timespec="seconds"),
     }
+    if line["status"] == "recovered":
+        line.update(worker="recovered", host=None, pid=None, recovered_by=f"{socket.gethostname()}:{os.getpid()}")
+    return line
 
 
 def _append(fh: IO[str], row: dict[str, Any]) -> None:
@@ -147,22 +168,44 @@ def _append(fh: IO[str], row: dict[str, Any]) -> None:
     os.fsync(fh.fileno())
 
 
-def recover(root: Path) -> dict[str, Any]:
-    """Tidy a dataset folder after an interruption; return what was done.
+def remove_stale_temporaries(root: Path) -> tuple[list[str], list[str]]:
+    """Remove the temporary sample folders of dead processes; keep those a live writer holds locked.
 
-    Removes temporary sample folders, drops unreadable/duplicate manifest lines and lines of
-    samples that are gone or corrupt, deletes corrupt sample folders (they are redone), and lists
-    finished samples the manifest does not know (the client died between rename and manifest).
+    Returns (removed names, kept names). A sample folder is staged with an ``flock`` held by the process writing
+    it (:class:`~sim.measurement.StagedOutput` ``lock=True``), so a worker of an earlier run that is still
+    finishing a sample (an external cluster outlives its client) keeps its folder.
+    """
+    removed: list[str] = []
+    kept: list[str] = []
+    samples = root / SAMPLES
+    if not samples.is_dir():
+        return removed, kept
+    for p in sorted(samples.iterdir()):
+        if p.name.startswith("."):
+            (removed if remove_stale_stage(p) else kept).append(p.name)
+    return removed, kept
+
+
+def recover(root: Path) -> dict[str, Any]:
+    """Tidy a dataset folder after an interruption; return what was found and done.
+
+    Removes temporary sample folders of dead processes, drops unreadable/duplicate manifest lines and lines of
+    samples that are gone or corrupt, deletes corrupt sample folders (they are redone), and lists finished
+    samples the manifest does not know (the client died between rename and manifest). Call it holding the
+    folder's :class:`~sim.datasets.lock.DatasetLock`.
+
+    Returns
+    -------
+    dict
+        ``listed`` (samples the manifest listed correctly), ``relisted`` (finished samples re-listed from disk),
+        ``removed_temporary`` / ``kept_temporary`` (temporary folders removed / kept because a live process
+        writes them), ``corrupt_removed``, ``dropped_manifest_lines`` and ``done`` (every finished sample).
     """
     from scenes.io import write_text_atomic
 
     samples = root / SAMPLES
     samples.mkdir(parents=True, exist_ok=True)
-    removed_tmp = []
-    for p in samples.iterdir():
-        if p.name.startswith(".") and p.is_dir():
-            shutil.rmtree(p, ignore_errors=True)
-            removed_tmp.append(p.name)
+    removed_tmp, kept_tmp = remove_stale_temporaries(root)
     rows, bad_lines = _read_manifest(root)
     listed: dict[int, dict[str, Any]] = {}
     for line in rows:
@@ -180,17 +223,39 @@ def recover(root: Path) -> dict[str, Any]:
         row = listed.get(idx)
         body = json.loads((folder / SAMPLE_FILE).read_text())
         if row is None or row.get("files") != body["files"]:
-            row = _manifest_line({**body, "status": "recovered"}, "recovered")
+            row = _manifest_line({**body, "status": "recovered"})
             relisted.append(idx)
         kept.append(row)
-    write_text_atomic(root / MANIFEST, "".join(json.dumps(r, separators=(",", ":")) + "\n" for r in kept))
+    dropped = bad_lines + len(rows) - len(kept) + len(relisted)
+    if dropped or relisted or not (root / MANIFEST).exists():
+        write_text_atomic(root / MANIFEST, "".join(json.dumps(r, separators=(",", ":")) + "\n" for r in kept))
     return {
-        "removed_temporary": sorted(removed_tmp),
-        "dropped_manifest_lines": bad_lines + len(rows) - len(kept) + len(relisted),
-        "corrupt_removed": corrupt,
+        "listed": len(kept) - len(relisted),
         "relisted": relisted,
+        "removed_temporary": removed_tmp,
+        "kept_temporary": kept_tmp,
+        "corrupt_removed": corrupt,
+        "dropped_manifest_lines": dropped,
         "done": sorted(folders.keys() - set(corrupt)),
     }
+
+
+def _list_from_disk(root: Path, listed: set[int], fh: IO[str]) -> list[int]:
+    """Append manifest lines for finished sample folders this run has not listed (a result lost to an interruption).
+
+    Only folders not in ``listed`` are checked (their hashes against their ``sample.json``); returns their indices.
+    """
+    found = []
+    samples = root / SAMPLES
+    for p in sorted(samples.iterdir()) if samples.is_dir() else []:
+        if not (p.is_dir() and p.name.isdigit()) or int(p.name) in listed:
+            continue
+        if _check_sample(p) is None:
+            body = json.loads((p / SAMPLE_FILE).read_text())
+            _append(fh, _manifest_line({**body, "status": "recovered"}))
+            listed.add(int(p.name))
+            found.append(int(p.name))
+    return found
 
 
 def _write_plan(root: Path, plan: Plan) -> None:
@@ -222,6 +287,33 @@ def parse_indices(text: str | None, count: int) -> list[int]:
     return list(range(a, b))
 
 
+def _make_folder(root: Path) -> bool:
+    """Create the dataset folder; True when this call created it (so a refused start can remove it again)."""
+    root.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        root.mkdir()
+    except FileExistsError:
+        if not root.is_dir():
+            raise DatasetError(f"--out {root} is a file, not a folder") from None
+        return False
+    return True
+
+
+def _has_samples(root: Path) -> bool:
+    samples = root / SAMPLES
+    return samples.is_dir() and any(p.name.isdigit() for p in samples.iterdir())
+
+
+def _finish_folder(root: Path, listed: set[int], fh: IO[str], state: dict[str, Any]) -> None:
+    """After the workers are done or gone: list finished samples no result reported, remove dead temporaries."""
+    from sim.signals import deferred_signals
+
+    with deferred_signals():
+        state["relisted_at_end"] = _list_from_disk(root, listed, fh)
+        removed, kept = remove_stale_temporaries(root)
+        state["removed_temporary_at_end"], state["kept_temporary_at_end"] = removed, kept
+
+
 def generate(
     plan: Plan,
     out: str | Path,
@@ -233,6 +325,14 @@ def generate(
     client: Any | None = None,
 ) -> dict[str, Any]:
     """Generate (or finish) the samples ``indices`` of a dataset in ``out``.
+
+    The run holds the folder's :class:`~sim.datasets.lock.DatasetLock` throughout (a second run on the same
+    folder is refused at once), tidies it (:func:`recover`), then renders what is missing. However it ends
+    (success, failed samples, Ctrl-C, SIGTERM/SIGHUP as :class:`~sim.signals.Terminated`), every finished sample
+    on disk is listed in the manifest when it returns or raises, with the host and pid of the worker process
+    that made it, and the temporary folders of dead processes are gone. A folder this call created is removed
+    again when the run stops before any sample was written (a scheduler that does not answer, an interruption
+    while the cluster starts), so a refused start leaves nothing behind.
 
     Parameters
     ----------
@@ -249,54 +349,91 @@ def generate(
     indices : sequence of int, optional
         Which samples (default all ``count``).
     progress : bool
-        Show a progress bar (rate and ETA).
+        Show a progress bar (rate, ETA, and ``failed=N`` once a sample failed; failed samples do not advance it).
     client : distributed.Client, optional
         Use this client (and its cluster) instead of opening one.
+
+    Raises
+    ------
+    DatasetBusy
+        Another live run holds the folder (the message names its host and pid).
+    DatasetError
+        A different dataset is in the folder, the scheduler does not answer, or samples failed (the others are
+        written and listed).
     """
     from tqdm import tqdm
 
     root = Path(out)
-    root.mkdir(parents=True, exist_ok=True)
+    if scheduler and client is None:
+        check_scheduler(scheduler)
+    created = _make_folder(root)
+    try:
+        with DatasetLock(root):
+            return _generate_locked(plan, root, scheduler, workers, threads, indices, progress, client, tqdm)
+    except DatasetBusy:
+        raise  # the folder is the other run's
+    except BaseException:
+        if created and not _has_samples(root):
+            shutil.rmtree(root, ignore_errors=True)
+        raise
+
+
+def _generate_locked(
+    plan: Plan,
+    root: Path,
+    scheduler: str | None,
+    workers: int | None,
+    threads: int | None,
+    indices: Sequence[int] | None,
+    progress: bool,
+    client: Any | None,
+    tqdm: Any,
+) -> dict[str, Any]:
     _write_plan(root, plan)
     state = recover(root)
     wanted = list(range(plan.config.dataset.count)) if indices is None else list(indices)
-    done = set(state["done"])
-    todo = [i for i in wanted if i not in done]
+    listed = set(state["done"])
+    todo = [i for i in wanted if i not in listed]
+    state["requeued"] = len(todo)
     if threads is None and scheduler is None and workers != 0:
         threads = 1
     plan_json = plan.to_json()
     t0 = time.perf_counter()
     failures: dict[int, str] = {}
     written = 0
-    bar = tqdm(
-        total=len(wanted),
-        initial=len(wanted) - len(todo),
-        unit="sample",
-        desc="dataset",
-        disable=not progress,
-        smoothing=0.1,
-    )
-    if client is not None:
-        ctx: Any = contextlib.nullcontext(client)
-    elif workers == 0 and not scheduler:
-        ctx = contextlib.nullcontext(None)
-    else:
-        ctx = dask_client(scheduler, workers)
     tag = hashlib.sha256(json.dumps(plan_json, sort_keys=True).encode()).hexdigest()[:12]
-    with ctx as client, open(root / MANIFEST, "a") as fh:
-        where = "local" if client is None else str(client.scheduler.address)
+    with contextlib.ExitStack() as stack:  # unwinds in reverse: tasks, bar, client, then the folder's clean-up
+        fh = stack.enter_context(open(root / MANIFEST, "a"))
+
+        def record(rec: dict[str, Any]) -> None:
+            _append(fh, _manifest_line(rec))
+            listed.add(int(rec["index"]))
+
+        stack.callback(_finish_folder, root, listed, fh, state)  # after the workers are closed
+        if client is None and (workers != 0 or scheduler):
+            client = stack.enter_context(dask_client(scheduler, workers))
+        bar = stack.enter_context(
+            tqdm(
+                total=len(wanted),
+                initial=len(wanted) - len(todo),
+                unit="sample",
+                desc="dataset",
+                disable=not progress,
+                smoothing=0.1,
+            )
+        )
         args = [(plan_json, i, str(root.resolve()), threads) for i in todo]
         keys = [f"scopetwin-sample-{tag}-{i:06d}" for i in todo]
-        for k, rec, err in run_tasks(generate_sample, args, client, keys):
+        tasks = run_tasks(generate_sample, args, client, keys, on_abandon=lambda k, rec: record(rec))
+        stack.callback(tasks.close)  # first on the way out: cancel what is queued, list what has finished
+        for k, rec, err in tasks:
             if err is not None:
                 failures[todo[k]] = failure_text(err)
-            else:
-                _append(fh, _manifest_line(rec, where))
-                written += rec["status"] == "written"
+                bar.set_postfix(failed=len(failures))
+                continue
+            record(rec)
+            written += rec["status"] == "written"
             bar.update(1)
-    bar.close()
-    for p in (root / SAMPLES).glob(f"{TMP_PREFIX}*"):  # left by a worker that died mid-sample (its task was redone)
-        shutil.rmtree(p, ignore_errors=True)
     seconds = time.perf_counter() - t0
     result = {
         "out": str(root),
@@ -311,8 +448,8 @@ def generate(
     if failures:
         first = next(iter(failures.items()))
         raise DatasetError(
-            f"{len(failures)} sample(s) failed (first: sample {first[0]}: {first[1]}); the others are "
-            f"written; fix the cause and run `scopetwin dataset resume {root}`"
+            f"{len(failures)} of {len(todo)} sample(s) failed (first: sample {first[0]}: {first[1]}); the others "
+            f"are written and listed; fix the cause and run `scopetwin dataset resume {root}`"
         )
     return result
 
@@ -363,7 +500,7 @@ def verify(root: str | Path) -> dict[str, Any]:
         elif i not in duplicates:
             complete += 1
     extra = sorted(i for i in by_index if not 0 <= i < count)
-    result = {
+    result: dict[str, Any] = {
         "complete": complete,
         "missing": missing,
         "corrupt": corrupt,
@@ -375,6 +512,7 @@ def verify(root: str | Path) -> dict[str, Any]:
         "manifest_out_of_range": extra,
         "bad_manifest_lines": bad,
     }
+    result["in_use_by"] = holder(root)  # a live run is still writing (its lock file's contents)
     result["ok"] = complete == count and not (
         missing or corrupt or duplicates or unlisted or temporary or stray or extra or bad
     )

@@ -30,14 +30,26 @@ class StudyContext:
     threads: int | None = None
 
     def map(self, func: Callable[..., Any], args: Sequence[tuple], desc: str) -> list[Any]:
-        """Run ``func(*a)`` for each ``a`` (on the cluster); results in order, exceptions in their place."""
+        """Run ``func(*a)`` for each ``a`` (on the cluster); results in order, exceptions in their place.
+
+        The progress bar counts the tasks that succeeded and shows ``failed=N`` beside them.
+        """
         from tqdm import tqdm
 
         results: list[Any] = [None] * len(args)
+        failed = 0
         with tqdm(total=len(args), desc=desc, unit="task", disable=not self.progress) as bar:
-            for k, res, err in run_tasks(func, args, self.client):
-                results[k] = err if err is not None else res
-                bar.update(1)
+            tasks = run_tasks(func, args, self.client)
+            try:
+                for k, res, err in tasks:
+                    results[k] = err if err is not None else res
+                    if err is None:
+                        bar.update(1)
+                    else:
+                        failed += 1
+                        bar.set_postfix(failed=failed)
+            finally:
+                tasks.close()  # an interruption: cancel the queued tasks now
         return results
 
     def dataset(self, config: dict[str, Any], name: str) -> Path:

@@ -11,7 +11,7 @@ from typing import Any
 
 from sim.datasets.runner import dask_client, init_worker
 from sim.measurement import StagedOutput
-from sim.studies import angle, noise, surface, thesis
+from sim.studies import angle, coverage, inverse, noise, setup_placement, surface, thesis
 from sim.studies.context import StudyContext, StudyError, StudyResult
 from sim.studies.tables import jsonable, table_json, table_markdown
 
@@ -21,6 +21,9 @@ STUDIES: dict[str, Callable[[StudyContext], StudyResult]] = {
     "noise": noise.noise,
     "angle": angle.angle,
     "surface": surface.surface,
+    "inverse": inverse.inverse,
+    "coverage": coverage.coverage,
+    "setup": setup_placement.setup_placement,
 }
 
 

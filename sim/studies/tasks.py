@@ -153,6 +153,7 @@ def calibration_view_task(folder: str) -> dict[str, Any]:
             cal = fn()
             cam = cal.to_global(pat.frame)
             out[f"{label}_r_c_um"] = float(np.linalg.norm(cam.center - cam_t.center) * 1e3)
+            out[f"{label}_r_c_vec_um"] = ((cam.center - cam_t.center) * 1e3).tolist()
             out[f"{label}_angle_urad"] = axis_angle(cam.frame, cam_t.frame) * 1e6
             out[f"{label}_b_um"] = float((cam.b - cam_t.b) * 1e3)
             out[f"{label}_residual_rms_px"] = cal.residual_rms_px

@@ -24,6 +24,10 @@ FORBIDDEN = {
     "sim": set(),
 }
 RENDERERS = {"mitsuba", "drjit"}
+#: The one reconstruction module that renders (issue 16, ARCHITECTURE.md): it fits the surface to the image through
+#: a differentiable render, so it may import the renderer (Mitsuba, Dr.Jit, scenes.mitsuba) -- lazily, inside its
+#: functions only, so that importing it (and ``import recon``) loads no renderer.
+RENDERING_RECON = ROOT / "recon" / "inverse.py"
 
 
 def _imports(path: Path) -> set[str]:
@@ -45,9 +49,56 @@ def test_imports_point_down(package):
         for name in names & FORBIDDEN[package]:
             bad.append(f"{path.relative_to(ROOT)} imports {name}")
         in_mitsuba_pkg = path.is_relative_to(ROOT / "scenes" / "mitsuba")
+        if path == RENDERING_RECON:
+            continue  # the named exception: checked by test_inverse_rendering_imports_the_renderer_lazily
         if names & RENDERERS and not in_mitsuba_pkg:
             bad.append(f"{path.relative_to(ROOT)} imports {sorted(names & RENDERERS)} outside scenes/mitsuba/")
     assert not bad, "\n".join(bad)
+
+
+def _module_imports(path: Path, top_level_only: bool) -> set[str]:
+    """Full module names imported by ``path`` (``import a.b``, ``from a.b import c``), optionally outside functions."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    stack: list[ast.AST] = [tree]
+    out: set[str] = set()
+    while stack:
+        node = stack.pop()
+        if isinstance(node, ast.Import):
+            out.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.add(node.module)
+        for c in ast.iter_child_nodes(node):
+            if top_level_only and isinstance(c, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda):
+                continue
+            if isinstance(c, ast.If) and isinstance(c.test, ast.Name) and c.test.id == "TYPE_CHECKING":
+                continue  # typing-only imports run nothing
+            stack.append(c)
+    return out
+
+
+def test_inverse_rendering_imports_the_renderer_lazily():
+    """recon/inverse.py is the one recon module that renders: renderer imports only inside its functions."""
+    assert RENDERING_RECON.exists()
+    top = _module_imports(RENDERING_RECON, top_level_only=True)
+    renderer = {m for m in top if m.split(".")[0] in RENDERERS or m.startswith("scenes.mitsuba")}
+    assert not renderer, f"recon/inverse.py imports {sorted(renderer)} at module level (must be lazy)"
+    lazy = _module_imports(RENDERING_RECON, top_level_only=False)
+    assert any(m.startswith("scenes.mitsuba") for m in lazy), "recon/inverse.py no longer renders: drop the exception"
+    others = [
+        p.relative_to(ROOT)
+        for p in sorted((ROOT / "recon").rglob("*.py"))
+        if p != RENDERING_RECON
+        and any(m.split(".")[0] in RENDERERS or m.startswith("scenes.mitsuba") for m in _module_imports(p, False))
+    ]
+    assert not others, f"only recon/inverse.py may import the renderer, also: {others}"
+    out = subprocess.run(
+        [sys.executable, "-c", "import sys, recon.inverse; print('mitsuba' in sys.modules or 'drjit' in sys.modules)"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        check=True,
+    )
+    assert out.stdout.strip() == "False", out.stdout + out.stderr
 
 
 def test_importing_the_world_model_does_not_load_mitsuba():

@@ -1,11 +1,8 @@
-"""instrument.emulators.serve: an emulator in its own process, its port on the first stdout line, a JSON log."""
+"""instrument.emulators.serve: an emulator on a pty with a JSON log (in its own process: test_cli_emulate.py)."""
 
 from __future__ import annotations
 
 import json
-import signal
-import subprocess
-import sys
 import threading
 import time
 
@@ -55,39 +52,3 @@ def test_board_log_records_requests_and_lights_on(tmp_path):
     on = [r for r in records if r["request"] == "01 1a 01 01"]  # light 2 action register: 1 = on
     assert on and on[0]["state"]["lights_on"] == [2] and on[0]["reply"] == "81 1a 00"
     assert records[-1]["state"]["lights_on"] == []
-
-
-SERVE_IN_A_PROCESS = (
-    "import sys; from instrument.emulators.serve import serve; "
-    "serve('pi-gcs', {'travel_mm': (0.0, 150.0), 'max_velocity_mm_s': 50.0}, log_path=sys.argv[1], "
-    "announce=lambda p: print(p, flush=True))"
-)
-
-
-def test_pipython_against_emulator_in_its_own_process(tmp_path):
-    pytest.importorskip("pipython")
-    from pipython import GCSDevice, pitools
-    from pipython.pidevice.interfaces.piserial import PISerial
-
-    log = tmp_path / "pi.jsonl"
-    proc = subprocess.Popen([sys.executable, "-c", SERVE_IN_A_PROCESS, str(log)], stdout=subprocess.PIPE, text=True)
-    try:
-        assert proc.stdout is not None
-        port = proc.stdout.readline().strip()
-        assert port.startswith("/dev/")
-        gateway = PISerial(port, 115200)
-        gateway.settimeout(1000)
-        with GCSDevice(gateway=gateway) as device:
-            pitools.startup(device, refmodes="FRF")
-            device.MOV("1", 7.5)
-            pitools.waitontarget(device, axes="1")
-            assert device.qPOS("1")["1"] == pytest.approx(7.5)
-        gateway.close()
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(10) == 0
-    records = [json.loads(line) for line in log.read_text().splitlines()]
-    assert records[0]["request"] == "CSV?" and records[0]["reply"] == "2.0\n"
-    moved = [r for r in records if r["request"] == "MOV 1 7.5"]
-    assert moved and moved[0]["state"]["referenced"] and moved[0]["state"]["servo"]
-    assert records[-1]["state"]["position_mm"] == pytest.approx(7.5)

@@ -40,3 +40,25 @@ def test_focus_outside_the_drive_travel_is_an_error() -> None:
         focus_map(lambda x, y: 0.3 + 0 * x, (-5, 5), (-5, 5), reference_um=200.0)
     with pytest.raises(FocusMapError, match="holds no"):
         focus_map(lambda x, y: 0 * x, (0, 0.1), (0, 0.1))
+
+
+def test_focus_map_carries_each_fields_uncertainty_and_flags_wide_intervals():
+    from recon.focusmap import focus_map
+
+    def height(x, y):
+        return 1e-4 * x + 0.0 * y  # 0.1 µm/mm tilt
+
+    def std(x, y):  # uncertain on the y > 0 half only
+        return np.where(y > 0, 2e-3, 1e-5) + 0.0 * x
+
+    fm = focus_map(height, (-5.0, 5.0), (-5.0, 5.0), height_std=std)
+    assert fm.std_um is not None and fm.std_um.shape == fm.focus_um.shape
+    right = fm.y_mm - 0.0 > 0.5
+    assert np.allclose(fm.std_um[right], 2.0) and np.all(fm.std_um[fm.y_mm < -0.5] < 0.02)
+    # 95 % interval: spread/2 + 1.96 u must stay inside DOF/2
+    expect = 0.5 * fm.spread_um + 1.96 * fm.std_um <= 0.5 * fm.depth_of_field_um
+    assert np.array_equal(fm.interval_in_dof, expect)
+    assert (~fm.interval_in_dof[right]).all() and fm.interval_in_dof[fm.y_mm < -0.5].all()
+    head = fm.to_csv().splitlines()[0].split(",")
+    assert head[-2:] == ["std_um", "interval_in_dof"]
+    assert fm.summary()["fields_interval_leaves_dof"] == int((~fm.interval_in_dof).sum())

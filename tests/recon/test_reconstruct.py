@@ -186,6 +186,13 @@ def test_cli_reconstructs_a_rendered_image(tmp_path: Path) -> None:
         ]
     )
     assert {"heights", "outer_iterations", "inner_iterations", "delta_h_max_um", "seconds"} <= set(result)
+    u = result["uncertainty"]  # DESIGN.md: one standard uncertainty each, µm
+    assert 0 < u["absolute_um"] < 0.5 and 0 < u["shape_um"] < 0.5
+    from scenes.io import read_heightmap_std
+
+    std = read_heightmap_std(out)
+    assert std is not None and std.z.shape == read_heightmap(out).z.shape
+    assert np.all(np.isfinite(std.z)) and std.z.min() > 0 and std.z.max() * 1e3 < 5.0
     hm = read_heightmap(out)
     assert (hm.x_min, hm.x_max, hm.y_min, hm.y_max) == pytest.approx((-12.6, 12.6, -28.5, 28.5), abs=1e-6)
     xx, yy = np.meshgrid(np.linspace(-12.6, 12.6, 43), np.linspace(-23.9, 23.9, 81))
@@ -235,3 +242,50 @@ def test_one_secant_intersection_for_height_maps_fitted_surfaces_and_functions()
     on = (np.abs((origins + lam[:, None] * dirs)[:, :2]) < 0.5 * np.array(sub.size) - 0.5).all(axis=1)
     both = ok & ok_h & on  # a height map continues constantly beyond its extents, the fitted surface does not
     assert both.mean() > 0.5 and np.max(np.abs(lam_h[both] - lam[both])) < 1e-4
+
+
+# -- uncertainty (recon.posterior) on PSD surfaces with broadband content -------------------------------------------
+PSD_CASES = [  # (spectrum, B mm, C, range µm, broadband nm, seed): the seed's kind with nm-level broadband content
+    ("abc", 12.0, 4.0, 40.0, 2.0, 11),
+    ("abc", 16.0, 3.0, 30.0, 3.0, 12),
+    ("abc", 9.0, 4.0, 25.0, 1.0, 13),
+    ("power", 14.0, 3.0, 40.0, 2.0, 14),
+    ("power", 18.0, 4.0, 50.0, 4.0, 15),
+    ("power", 10.0, 3.0, 20.0, 1.5, 16),
+]
+
+
+@pytest.mark.slow
+def test_psd_surfaces_with_broadband_content_are_covered_by_their_uncertainty() -> None:
+    """Six PSD surfaces (exact marker images + 0.005 px centroid noise): accuracy, and |error| within 2-3 u."""
+    from scenes.errors import ScopetwinError
+
+    rows = []
+    for spectrum, b, c, rng_um, bb, seed in PSD_CASES:
+        spec = SETUP.substrate.surface.model_copy(
+            update={
+                "kind": "psd",
+                "spectrum": spectrum,
+                "correlation_length": b,
+                "psd_exponent": c,
+                "range_um": rng_um,
+                "broadband_rms_nm": bb,
+                "seed": seed,
+            }
+        )
+        h = make_surface(spec, SETUP.substrate)
+        t = marker_truth(SETUP, h)
+        px = t.center_px[t.visible] + 0.005 * np.random.default_rng(seed).standard_normal((int(t.visible.sum()), 2))
+        try:
+            res = reconstruct(SETUP, MarkerObservations(t.ij[t.visible], px))
+        except ScopetwinError as exc:  # pragma: no cover - reported with the case
+            pytest.fail(f"{spectrum} B={b} C={c}: {exc}")
+        err, _, _ = _roi_error(res, h)
+        u = res.uncertainty
+        assert u is not None
+        rows.append((abs(err.mean()) * 1e3, u.absolute_um, err.std() * 1e3, u.shape_um))
+    a, ua, sh, us = (np.array(v) for v in zip(*rows, strict=True))
+    assert np.all(a <= 3 * ua), rows  # no surprise beyond 3 u
+    assert np.sum(a <= 2 * ua) >= 5, rows  # ~95 % coverage: at most one of six outside 2 u
+    assert np.all(sh <= 4 * us), rows  # shape: u_shape is looser (coverage in `study coverage`)
+    assert np.all(ua < 1.0) and np.all(sh < 0.2), rows  # accuracy on these surfaces (µm)

@@ -130,3 +130,63 @@ def test_kill_resume_verify(tmp_path, victim):
     assert not [p for p in out.rglob("*.part*")]
     indices = [json.loads(line)["index"] for line in (out / MANIFEST).read_text().splitlines()]
     assert sorted(indices) == list(range(COUNT))
+
+
+@pytest.mark.parametrize(
+    ("sig", "group"),
+    [(signal.SIGINT, True), (signal.SIGTERM, True), (signal.SIGHUP, True), (signal.SIGTERM, False)],
+    ids=["ctrl-c-to-the-group", "sigterm-to-the-group", "sighup-to-the-group", "sigterm-to-the-client"],
+)
+def test_signal_stops_cleanly_with_every_sample_listed(tmp_path, sig, group):
+    """Ctrl-C (SIGINT to the whole process group, as a terminal sends it), SIGTERM (`timeout`, a batch system;
+    `kill PID`), SIGHUP (a dropped session): one line, exit 128 + n, no worker traceback, every sample listed."""
+    cfg = write_tiny(tmp_path, count=COUNT)
+    out = tmp_path / "set"
+    proc = _start(cfg, out)
+    family: list[psutil.Process] = []
+    try:
+        _wait(lambda: len(_workers(proc)) >= 2 or proc.poll() is not None, 120, "two workers")
+        family = list(psutil.Process(proc.pid).children(recursive=True))
+        _wait(lambda: _finished(out) >= 2 or proc.poll() is not None, 180, "2 finished samples")
+        time.sleep(random.Random(int(sig)).uniform(0.0, 0.5))
+        assert proc.poll() is None, "the generator finished before it could be signalled: make the set larger"
+        (os.killpg if group else os.kill)(proc.pid, sig)
+        output = proc.communicate(timeout=60)[0].decode()
+        _wait(
+            lambda: not any(p.is_running() and p.status() != psutil.STATUS_ZOMBIE for p in family),
+            60,
+            "the workers to exit",
+        )
+    finally:
+        _cleanup(proc, family)
+    assert proc.returncode == 128 + sig, output
+    assert output == f"scopetwin: interrupted by {signal.Signals(sig).name}\n"  # --quiet: nothing else
+    rep = verify(out)
+    assert rep["unlisted"] == [] and rep["temporary"] == [] and rep["corrupt"] == [] and rep["duplicates"] == []
+    assert rep["in_use_by"] is None and rep["complete"] >= 2  # (all of them when the last ones were in flight)
+    rows = [json.loads(line) for line in (out / MANIFEST).read_text().splitlines()]
+    made = [r for r in rows if r["status"] == "written"]
+    assert made and all(r["pid"] not in (proc.pid, None) and r["worker"].startswith("tcp://") for r in made)
+    generate_in_process(load_plan(out), out, workers=0, progress=False)  # `dataset resume`
+    assert verify(out)["ok"]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGHUP])
+def test_signal_while_the_cluster_starts_is_one_line_and_leaves_no_folder(tmp_path, sig):
+    """Ctrl-C / SIGHUP to the group while the worker processes start: no traceback from a half-started cluster."""
+    cfg = write_tiny(tmp_path, count=COUNT)
+    out = tmp_path / "set"
+    proc = _start(cfg, out)
+    family: list[psutil.Process] = []
+    try:
+        _wait(lambda: len(_workers(proc)) >= 1 or proc.poll() is not None, 120, "a starting worker")
+        family = list(psutil.Process(proc.pid).children(recursive=True))
+        os.killpg(proc.pid, sig)
+        output = proc.communicate(timeout=60)[0].decode()
+    finally:
+        _cleanup(proc, family)
+    assert proc.returncode == 128 + sig, output
+    assert output == f"scopetwin: interrupted by {signal.Signals(sig).name}\n"
+    if out.exists():  # the signal came after the first sample: then it is listed
+        rep = verify(out)
+        assert rep["unlisted"] == [] and rep["temporary"] == [] and rep["complete"] >= 1, rep

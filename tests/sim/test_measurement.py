@@ -43,3 +43,23 @@ def test_a_failing_block_leaves_nothing(tmp_path):
         stage.path("image.exr").write_bytes(b"partial")
         raise RuntimeError("render failed")
     assert not out.exists() and not list(tmp_path.iterdir())
+
+
+def test_deferred_commits_wait_for_the_caller_and_are_discarded_on_failure(tmp_path):
+    from sim.measurement import deferred_commits
+
+    out = tmp_path / "report"
+    with deferred_commits() as pending:
+        stage = StagedOutput(out)
+        stage.path("report.md").write_text("done")
+        assert stage.commit() == {"report.md": out / "report.md"}  # where it will be ...
+        assert not out.exists() and pending == [stage]  # ... once the caller has written --json
+        pending[0].commit_now()
+    assert (out / "report.md").read_text() == "done"
+
+    with pytest.raises(OSError), deferred_commits():
+        stage = StagedOutput(tmp_path / "other")
+        stage.path("image.exr").write_bytes(b"x")
+        stage.commit()
+        raise OSError(28, "No space left on device", "r.json")  # the --json write failed
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report"]

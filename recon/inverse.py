@@ -1,0 +1,788 @@
+"""Inverse rendering: the substrate's surface fitted to the whole image through a differentiable render (issue 16).
+
+The centroid method (:mod:`recon.reconstruct`, seed §1.4-§1.8) needs every marker's image to be a compact spot
+whose centroid follows the image of its centre. Here instead the image itself is the data: the surface (a
+uniform cubic B-spline over the base plane, fine enough for 3 mm correlation lengths) is fitted so that a render
+of the measurement — the seed's ray model of §1.6 written in Dr.Jit
+(:mod:`scenes.mitsuba.deflectometry_ad`) — matches the camera image pixel by pixel, partial markers included.
+
+Loss (Gauss-Newton / Levenberg-Marquardt on the coefficients c)::
+
+    sum_p (I_p - alpha*R_p(c) - beta)^2 / var_p  +  lambda * |D c|^2,   mean_ROI(h) = H
+
+* ``var_p``: the EMVA 1288 variance of pixel p (:mod:`scenes.emva1288`: K^2 sigma_d^2 + K (I - black) + 1/12 in DN)
+  for camera images; a constant for noise-free renders;
+* ``alpha, beta``: the photometric gain and offset (exposure, black level), solved in closed form each step;
+* ``D``: second differences of the coefficient grid (a discrete thin-plate energy): the smoothness prior, which
+  also carries the surface into the frame regions, where there are no data;
+* the Jacobian dR/dc is sparse (16 coefficients per ray) and exact: per ray, the render returns the derivative
+  with respect to a local height/slope perturbation (forward-mode AD), combined with the B-spline basis here;
+* coarse to fine from a plane start: first on binned images (b x b pixels each, rendered as one super-pixel: the
+  image blurred and decimated, which widens the basin), then on the full-resolution image; from the centroid
+  method's surface (already inside the basin) the full-resolution image directly.
+
+The absolute height is decided by the frame criterion (seed §1.4, eqs. 1.3-1.4, :mod:`recon.frame_criterion`): the
+fit is constrained to a mean ROI height H; from a centroid start H is the centroid method's (found by the frame
+criterion on its Gaussian-process surface, the better extrapolation into the frame regions), and with
+``absolute="frame"`` or from a plane H is searched (secant) until the fitted surface's maxima over the two frame
+regions lie on the holding frame. ``refine_setup`` adds 12 rigid-motion
+parameters of camera and pattern to the unknowns, held near the calibration by a Gaussian prior of the given
+standard deviations.
+
+This is the one reconstruction module that renders: it imports the renderer (:mod:`scenes.mitsuba`) lazily,
+inside its functions (``tests/architecture/test_layers.py`` names it), because a differentiable render of the
+measurement is the method. On a real rig the image comes from a camera as for every other recon module.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from numpy.typing import NDArray
+
+from recon.frame_criterion import FrameCriterion, frame_criterion, frame_distance
+from recon.reconstruct import ReconstructionError, Substrate2D
+from scenes.camera import Camera
+from scenes.geometry import Array, Frame
+from scenes.pattern import MarkerPattern
+from scenes.setup import Setup
+from scenes.surface import HeightMap
+
+if TYPE_CHECKING:  # the renderer is imported lazily at run time
+    from scenes.mitsuba.deflectometry_ad import RayModel, SplineGrid
+
+
+# -- the surface: a uniform cubic B-spline ------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SplineSurface:
+    """h(x, y) = sum c_mk B((x - x_k)/dx) B((y - y_m)/dy): a uniform cubic B-spline over the base plane.
+
+    Coefficient (row m, column k) sits at (x0 + k*dx, y0 + m*dy) (:class:`scenes.mitsuba.deflectometry_ad.SplineGrid`).
+    """
+
+    x0: float
+    y0: float
+    dx: float
+    dy: float
+    coef: Array
+
+    @classmethod
+    def covering(cls, sub: Substrate2D, spacing: float, value: float = 0.0) -> SplineSurface:
+        """A spline of knot spacing ``spacing`` (mm) whose domain covers the substrate with half a cell to spare."""
+        nx = int(np.ceil(sub.size_x / spacing)) + 4
+        ny = int(np.ceil(sub.size_y / spacing)) + 4
+        x0 = -0.5 * (nx - 1) * spacing
+        y0 = -0.5 * (ny - 1) * spacing
+        return cls(x0, y0, spacing, spacing, np.full((ny, nx), float(value)))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.coef.shape[0]), int(self.coef.shape[1]))
+
+    @property
+    def grid(self) -> SplineGrid:
+        from scenes.mitsuba.deflectometry_ad import SplineGrid
+
+        ny, nx = self.shape
+        return SplineGrid(self.x0, self.y0, self.dx, self.dy, nx, ny)
+
+    def with_coef(self, coef: Array) -> SplineSurface:
+        return replace(self, coef=np.asarray(coef, dtype=np.float64).reshape(self.shape))
+
+    def basis_rows(self, x: Array, y: Array) -> tuple[NDArray[np.int64], Array, Array, Array]:
+        """For each point: the 16 coefficient indices (flattened) and the basis values and x/y derivatives there."""
+        idx, w, wx, wy, _ = self._rows(x, y, False)
+        return idx, w, wx, wy
+
+    def basis_rows_second(
+        self, x: Array, y: Array
+    ) -> tuple[NDArray[np.int64], Array, Array, Array, tuple[Array, Array, Array]]:
+        """:meth:`basis_rows` and the second derivatives (xx, xy, yy) of the basis."""
+        idx, w, wx, wy, second = self._rows(x, y, True)
+        assert second is not None
+        return idx, w, wx, wy, second
+
+    def _rows(
+        self, x: Array, y: Array, second: bool
+    ) -> tuple[NDArray[np.int64], Array, Array, Array, tuple[Array, Array, Array] | None]:
+        from scenes.mitsuba.deflectometry_ad import cubic_bspline_weights
+
+        ny, nx = self.shape
+        u = (np.asarray(x, dtype=np.float64).ravel() - self.x0) / self.dx
+        v = (np.asarray(y, dtype=np.float64).ravel() - self.y0) / self.dy
+        i = np.clip(np.floor(u).astype(np.int64), 1, nx - 3)
+        j = np.clip(np.floor(v).astype(np.int64), 1, ny - 3)
+        tu, tv = u - i, v - j
+        wu = np.stack(cubic_bspline_weights(tu), axis=-1)  # (n, 8)
+        wv = np.stack(cubic_bspline_weights(tv), axis=-1)
+        m_grid, k_grid = np.meshgrid(np.arange(4), np.arange(4), indexing="ij")
+        mm, kk = m_grid.ravel(), k_grid.ravel()
+        idx = (j[:, None] - 1 + mm[None, :]) * nx + (i[:, None] - 1 + kk[None, :])
+        w = wv[:, mm] * wu[:, kk]
+        wx = wv[:, mm] * wu[:, 4 + kk] / self.dx
+        wy = wv[:, 4 + mm] * wu[:, kk] / self.dy
+        if not second:
+            return idx, w, wx, wy, None
+        su = np.stack([1.0 - tu, 3.0 * tu - 2.0, 1.0 - 3.0 * tu, tu], axis=-1)  # d^2 w / dt^2
+        sv = np.stack([1.0 - tv, 3.0 * tv - 2.0, 1.0 - 3.0 * tv, tv], axis=-1)
+        wxx = wv[:, mm] * su[:, kk] / self.dx**2
+        wyy = sv[:, mm] * wu[:, kk] / self.dy**2
+        wxy = wv[:, 4 + mm] * wu[:, 4 + kk] / (self.dx * self.dy)
+        return idx, w, wx, wy, (wxx, wxy, wyy)
+
+    def design(self, x: Array, y: Array) -> sp.csr_matrix:
+        """Sparse matrix of basis values: (design @ coef.ravel()) = h(x, y)."""
+        idx, w, _, _ = self.basis_rows(x, y)
+        n = idx.shape[0]
+        return sp.csr_matrix((w.ravel(), (np.repeat(np.arange(n), 16), idx.ravel())), shape=(n, self.coef.size))
+
+    def height(self, x: Any, y: Any) -> Array:
+        """h(x, y), mm (any array shape)."""
+        xa = np.asarray(x, dtype=np.float64)
+        idx, w, _, _ = self.basis_rows(xa, np.asarray(y, dtype=np.float64))
+        return np.sum(w * self.coef.ravel()[idx], axis=1).reshape(xa.shape)
+
+    def gradient(self, x: Any, y: Any) -> tuple[Array, Array]:
+        """(dh/dx, dh/dy)."""
+        xa = np.asarray(x, dtype=np.float64)
+        idx, _, wx, wy = self.basis_rows(xa, np.asarray(y, dtype=np.float64))
+        c = self.coef.ravel()[idx]
+        return np.sum(wx * c, axis=1).reshape(xa.shape), np.sum(wy * c, axis=1).reshape(xa.shape)
+
+    def heightmap(self, sub: Substrate2D, nx: int = 128, ny: int = 288) -> HeightMap:
+        """The surface on the contract's node grid over the substrate (DESIGN.md height-map files)."""
+        xs = np.linspace(*sub.x_range, nx)
+        ys = np.linspace(*sub.y_range, ny)
+        xx, yy = np.meshgrid(xs, ys)
+        return HeightMap(self.height(xx, yy), sub.x_range[0], sub.x_range[1], sub.y_range[0], sub.y_range[1])
+
+    def smoothness(self) -> sp.csr_matrix:
+        """D: second differences (xx, yy, sqrt(2) xy) of the coefficient grid per mm^2 (thin-plate energy |D c|^2)."""
+        ny, nx = self.shape
+
+        def second(n: int, h: float) -> sp.csr_matrix:
+            return sp.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(n - 2, n)) / (h * h)
+
+        def first(n: int, h: float) -> sp.csr_matrix:
+            return sp.diags([-1.0, 1.0], [0, 1], shape=(n - 1, n)) / h
+
+        ix, iy = sp.identity(nx), sp.identity(ny)
+        dxx = sp.kron(iy, second(nx, self.dx))
+        dyy = sp.kron(second(ny, self.dy), ix)
+        dxy = sp.kron(first(ny, self.dy), first(nx, self.dx)) * np.sqrt(2.0)
+        # scaled by the cell area so that |D c|^2 approximates the integral of the curvature energy
+        return sp.vstack([dxx, dyy, dxy]).tocsr() * np.sqrt(self.dx * self.dy)
+
+    @classmethod
+    def fit(cls, func: Any, sub: Substrate2D, spacing: float, step: float | None = None) -> SplineSurface:
+        """Least-squares B-spline approximation of ``func(x, y)`` over the substrate (a light thin-plate damping)."""
+        s = cls.covering(sub, spacing)
+        step = step or spacing / 3.0
+        # samples on the substrate only (beyond it the thin-plate damping continues the surface smoothly)
+        xs = np.linspace(*sub.x_range, int(np.ceil(sub.size_x / step)) + 1)
+        ys = np.linspace(*sub.y_range, int(np.ceil(sub.size_y / step)) + 1)
+        xx, yy = np.meshgrid(xs, ys)
+        a = s.design(xx, yy)
+        z = np.asarray(func(xx, yy), dtype=np.float64).ravel()
+        d = s.smoothness()
+        lhs = (a.T @ a + 1e-8 * (a.T @ a).diagonal().mean() * (d.T @ d)).tocsc()
+        coef = spla.spsolve(lhs, a.T @ z)
+        return s.with_coef(coef)
+
+
+# -- configuration and results ------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class InverseConfig:
+    """Parameters of the inverse reconstruction.
+
+    Attributes
+    ----------
+    spacing : float
+        B-spline knot spacing, mm (0.5 mm resolves the 3 mm correlation length).
+    levels : tuple of (int, int)
+        Coarse-to-fine schedule: (pixel binning b, rays per super-pixel and axis) per level, coarse first. The
+        finest level needs 4 x 4 rays per pixel: with 2 x 2 the midpoint rule's error on the marker cones (measured
+        against Mitsuba renders: chi^2 per pixel 1.7e-6 at 2 x 2, 5.8e-7 at 3 x 3, 4.2e-7 at 4 x 4, 3.2e-7 at 8 x 8)
+        biases the fit more than the surface's own signal. Default 6 x 6 jittered rays (``jitter``): shape error at
+        5 mm / 40 µm 0.0022 µm against 0.0030-0.0032 µm with 4 x 4 centred or jittered rays.
+    plane_levels : tuple of (int, int)
+        The schedule for a start from a plane (no centroid result): binned levels first, to widen the basin.
+    absolute : {"start", "frame"}
+        Where the absolute height comes from when the fit starts from the centroid method's surface: "start" keeps
+        its mean ROI height (the centroid method's frame criterion, whose Gaussian-process basis extrapolates into
+        the frame regions better than the thin-plate prior here: measured -0.025 vs -0.071 µm at 5 mm / 40 µm);
+        "frame" searches the start height on the fitted surface (always done for a plane start).
+    iterations : tuple of int
+        Largest number of Gauss-Newton steps per level (the last entry repeats).
+    outer_iterations : int
+        Gauss-Newton steps at the finest level for each further start height (warm-started: the surfaces depend
+        almost linearly on the start height).
+    smoothness : float
+        Weight lambda of the thin-plate prior relative to the mean diagonal of J^T W J.
+    jitter : bool
+        Rays at fixed pseudo-random positions inside the sub-pixels instead of their centres.
+    tol_um : float
+        A level stops when the RMS coefficient step falls below this, µm.
+    criterion : {"level", "delta"}
+        Frame criterion of the start-height search (seed §1.4).
+    outer_max : int
+        Largest number of start heights tried.
+    outer_tol_um : float
+        Start-height search stops when |criterion| falls below this, µm.
+    frame_step : float
+        Spacing of the evaluation grid over the frame regions, mm.
+    noise : {"auto", "emva", "none"}
+        Pixel variances: EMVA 1288 (camera images in DN), constant, or chosen from the image (peak > 2: DN).
+    refine_setup : bool
+        Add camera and pattern rigid motions to the unknowns.
+    pose_sigma : (float, float)
+        Prior standard deviations of those motions: shift (mm) and rotation (rad).
+    """
+
+    spacing: float = 0.5
+    levels: tuple[tuple[int, int], ...] = ((1, 6),)
+    plane_levels: tuple[tuple[int, int], ...] = ((4, 4), (2, 4), (1, 6))
+    iterations: tuple[int, ...] = (3,)
+    absolute: Literal["start", "frame"] = "start"
+    outer_iterations: int = 1
+    smoothness: float = 1e-3
+    jitter: bool = True
+    tol_um: float = 2e-3
+    criterion: FrameCriterion = "level"
+    outer_max: int = 3
+    outer_tol_um: float = 2e-3
+    frame_step: float = 0.2
+    noise: str = "auto"
+    refine_setup: bool = False
+    pose_sigma: tuple[float, float] = (0.05, 2e-4)
+
+
+@dataclass
+class InverseStep:
+    """One Gauss-Newton step: level, start height, loss (chi^2 per pixel), RMS step, seconds since the start."""
+
+    level: int
+    binning: int
+    start_height_um: float
+    chi2: float
+    step_rms_um: float
+    pixels: int
+    seconds: float
+
+
+@dataclass
+class InverseResult:
+    """The fitted surface, the start height found, the iteration history and the (refined) setup."""
+
+    surface: SplineSurface
+    substrate: Substrate2D
+    start_height_um: float
+    criterion_um: float
+    delta_h_max_um: float
+    history: list[InverseStep]
+    outer_iterations: int
+    converged: bool
+    seconds: float
+    camera: Camera
+    pattern: MarkerPattern
+    shape_std_um: float | None = None
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    def heightmap(self, nx: int = 128, ny: int = 288) -> HeightMap:
+        return self.surface.heightmap(self.substrate, nx, ny)
+
+    def summary(self) -> dict[str, Any]:
+        from dataclasses import asdict
+
+        return {
+            "method": "inverse",
+            "outer_iterations": self.outer_iterations,
+            "inner_iterations": len(self.history),
+            "delta_h_max_um": self.delta_h_max_um,
+            "start_height_um": self.start_height_um,
+            "criterion_um": self.criterion_um,
+            "converged": self.converged,
+            "seconds": self.seconds,
+            "knot_spacing_mm": self.surface.dx,
+            "coefficients": int(self.surface.coef.size),
+            "shape_std_um": self.shape_std_um,
+            "history": [asdict(h) for h in self.history],
+            **self.extras,
+        }
+
+
+# -- the fit -------------------------------------------------------------------------------------------------------
+def bin_image(image: Array, b: int, rows: tuple[int, int], cols: tuple[int, int]) -> Array:
+    """Mean of b x b pixel blocks of ``image[rows, cols]`` (the window is cut to a multiple of b)."""
+    r0, r1 = rows
+    c0, c1 = cols
+    nr, nc = (r1 - r0) // b, (c1 - c0) // b
+    crop = np.asarray(image, dtype=np.float64)[r0 : r0 + nr * b, c0 : c0 + nc * b]
+    return crop.reshape(nr, b, nc, b).mean(axis=(1, 3))
+
+
+def pixel_variance(image: Array, setup: Setup, mode: str = "auto") -> Array:
+    """EMVA 1288 variance of each pixel of a camera image in DN, or ones for a noise-free render (irradiance).
+
+    var = K^2 sigma_d^2 + K max(I - black, 0) + 1/12 (shot noise, dark noise, quantisation; the EMVA linear model of
+    :mod:`scenes.emva1288`). ``mode`` "auto": the EMVA variance when the image peak exceeds 2 (digital numbers).
+    """
+    img = np.asarray(image, dtype=np.float64)
+    use = mode == "emva" or (mode == "auto" and float(np.max(img)) > 2.0)
+    if not use:
+        return np.ones_like(img)
+    s = setup.sensor.sensor()
+    k = s.gain_dn_per_e
+    return k * k * s.dark_noise_e**2 + k * np.maximum(img - s.black_level_dn, 0.0) + 1.0 / 12.0
+
+
+class _Level:
+    """One resolution level: the ray model of the (binned) window's pixels and the binned image with weights."""
+
+    def __init__(
+        self,
+        camera: Camera,
+        pattern: MarkerPattern,
+        setup: Setup,
+        image: Array,
+        var: Array,
+        window: tuple[int, int, int, int],
+        b: int,
+        sub: int,
+        variant: str | None,
+        jitter: bool = False,
+    ) -> None:
+        from scenes.mitsuba.deflectometry_ad import RayModel
+
+        r0, r1, c0, c1 = window
+        self.b = b
+        self.data = bin_image(image, b, (r0, r1), (c0, c1)).ravel()
+        # variance of a block mean: mean variance / b^2
+        self.var = bin_image(var, b, (r0, r1), (c0, c1)).ravel() / (b * b)
+        nr, nc = (r1 - r0) // b, (c1 - c0) // b
+        rr, cc = np.meshgrid(np.arange(nr), np.arange(nc), indexing="ij")
+        # a super-pixel of b x b pixels: model its rays on a b-times coarser pixel grid
+        assert setup.substrate is not None
+        self.model: RayModel = RayModel(
+            _binned_camera(camera, b, r0, c0),
+            pattern,
+            setup.pattern.radiance,
+            setup.substrate.size,
+            setup.substrate.roi_length,
+            rr.ravel(),
+            cc.ravel(),
+            sub,
+            variant,
+            jitter,
+        )
+
+
+def _binned_camera(camera: Camera, b: int, r0: int, c0: int) -> Camera:
+    """A camera whose pixel (r, c) is the b x b block of ``camera``'s pixels starting at (r0 + b r, c0 + b c)."""
+    if b == 1 and r0 == 0 and c0 == 0:
+        return camera
+    nx_b = camera.nx // b + 2
+    ny_b = camera.ny // b + 2
+    # pixel grid: u = (x - nx/2) p + x_cs; block c covers x in [c0 + b c, c0 + b (c + 1))
+    pitch = camera.pitch * b
+    x_cs = camera.r_cs[0] + (c0 - 0.5 * camera.nx) * camera.pitch + 0.5 * nx_b * pitch
+    y_cs = camera.r_cs[1] + (0.5 * camera.ny - r0) * camera.pitch - 0.5 * ny_b * pitch
+    return camera.with_(nx=nx_b, ny=ny_b, pitch=pitch, r_cs=(x_cs, y_cs))
+
+
+def _pose_update(camera: Camera, pattern: MarkerPattern, p: Array) -> tuple[Camera, MarkerPattern]:
+    """Apply a rigid-motion step (camera shift, rotation vector; pattern shift, rotation vector) exactly."""
+    from scipy.spatial.transform import Rotation
+
+    def moved(frame: Frame, shift: Array, rot: Array) -> Frame:
+        r = Rotation.from_rotvec(rot).as_matrix()
+        return Frame(frame.origin + shift, r @ frame.tx, r @ frame.ty, r @ frame.nz)
+
+    cam = camera.with_(frame=moved(camera.frame, p[0:3], p[3:6]))
+    pf = moved(pattern.frame, p[6:9], p[9:12])
+    return cam, replace(pattern, frame=pf)
+
+
+class InverseReconstructor:
+    """Fits the substrate's surface to one deflectometry image through the differentiable render (module doc).
+
+    Parameters
+    ----------
+    setup : Setup
+        The (calibrated) deflectometry setup.
+    image : ndarray (ny, nx)
+        The camera image (irradiance or DN).
+    config : InverseConfig, optional
+    variant : str, optional
+        Renderer backend (default: ``cuda`` when a GPU is usable, else ``llvm``).
+    window : (row0, row1, col0, col1), optional
+        The pixels fitted (default: the image of the region of interest).
+    """
+
+    def __init__(
+        self,
+        setup: Setup,
+        image: NDArray[Any],
+        config: InverseConfig | None = None,
+        variant: str | None = None,
+        window: tuple[int, int, int, int] | None = None,
+    ) -> None:
+        if setup.scene != "deflectometry" or setup.substrate is None:
+            raise ReconstructionError(f"setup {setup.name} is a {setup.scene!r} scene, not a deflectometry setup")
+        cam = setup.camera_model
+        img = np.asarray(image, dtype=np.float64)
+        if img.shape != (cam.ny, cam.nx):
+            raise ReconstructionError(
+                f"image is {img.shape[1]} x {img.shape[0]} px, the camera has {cam.nx} x {cam.ny}"
+            )
+        self.setup = setup
+        self.image = img
+        self.config = config or InverseConfig()
+        self.variant = variant
+        self.sub = Substrate2D.from_setup(setup)
+        self.camera = cam
+        self.pattern = setup.marker_pattern
+        self.var = pixel_variance(img, setup, self.config.noise)
+        self.window: tuple[int, int, int, int] = (
+            self._window() if window is None else (int(window[0]), int(window[1]), int(window[2]), int(window[3]))
+        )
+        self.history: list[InverseStep] = []
+        self._t0 = time.perf_counter()
+        self.pose = np.zeros(12)
+        fx, fy = self.sub.frame_grid(1, self.config.frame_step)
+        gx, gy = self.sub.frame_grid(2, self.config.frame_step)
+        self._frame_pts = ((fx, fy), (gx, gy))
+
+    def _window(self) -> tuple[int, int, int, int]:
+        """Pixel window of the ROI's image (its corners and edges projected, at the frame height), padded."""
+        sub = self.sub
+        t = np.linspace(-1.0, 1.0, 64)
+        hx, hy = 0.5 * sub.size_x, 0.5 * sub.roi_length
+        edge = np.concatenate(
+            [np.stack([hx * t, np.full_like(t, s * hy)], -1) for s in (-1, 1)]
+            + [np.stack([np.full_like(t, s * hx), hy * t], -1) for s in (-1, 1)]
+        )
+        pts = np.concatenate([edge, np.zeros((len(edge), 1))], axis=1)
+        px = self.camera.project(pts)
+        if not np.all(np.isfinite(px)):
+            raise ReconstructionError("the substrate's region of interest is not in front of the camera")
+        c0, r0 = np.floor(px.min(axis=0)).astype(int) - 8
+        c1, r1 = np.ceil(px.max(axis=0)).astype(int) + 8
+        c0, r0 = max(int(c0), 0), max(int(r0), 0)
+        c1, r1 = min(int(c1), self.camera.nx), min(int(r1), self.camera.ny)
+        if c1 - c0 < 8 or r1 - r0 < 8:
+            raise ReconstructionError("the camera does not see the substrate's region of interest")
+        return (r0, r1, c0, c1)
+
+    # -- one level --------------------------------------------------------------------------------------------
+    def _level(self, b: int, sub: int) -> _Level:
+        return _Level(
+            self.camera,
+            self.pattern,
+            self.setup,
+            self.image,
+            self.var,
+            self.window,
+            b,
+            sub,
+            self.variant,
+            self.config.jitter,
+        )
+
+    def _linearise(
+        self, lev: _Level, surf: SplineSurface, need_jac: bool = True
+    ) -> tuple[Array, NDArray[np.bool_], sp.csr_matrix | None, Array | None]:
+        """Model pixel values, usable-pixel mask, sparse Jacobian (usable pixels x coefficients), pose Jacobian."""
+        model = lev.model
+        res = model.trace(surf.grid, surf.coef, sensitivities=need_jac, pose=need_jac and self.config.refine_setup)
+        vals, ok = model.pixel_values(res)
+        if not need_jac:
+            return vals, ok, None, None
+        assert res.sens is not None
+        spp = model.spp
+        ray_ok = np.repeat(ok, spp)
+        npix = int(ok.sum())
+        # per pixel: the mean hit point and the moments of the rays' sensitivities about it; the basis is expanded
+        # to second order about the mean hit (the rays of a pixel land within ~0.05 knot spacings of each other)
+        x = res.x[ray_ok].reshape(npix, spp)
+        y = res.y[ray_ok].reshape(npix, spp)
+        xm, ym = x.mean(axis=1), y.mean(axis=1)
+        ddx, ddy = x - xm[:, None], y - ym[:, None]
+        sa, sb, sc = (res.sens[k][ray_ok].reshape(npix, spp) for k in range(3))
+        ma, mb, mc = sa.mean(axis=1), sb.mean(axis=1), sc.mean(axis=1)
+        max_, may = (sa * ddx).mean(axis=1), (sa * ddy).mean(axis=1)
+        mbx, mby = (sb * ddx).mean(axis=1), (sb * ddy).mean(axis=1)
+        mcx, mcy = (sc * ddx).mean(axis=1), (sc * ddy).mean(axis=1)
+        idx, w, wx, wy, (wxx, wxy, wyy) = surf.basis_rows_second(xm, ym)
+        col = lambda v: v[:, None]  # noqa: E731
+        data = (
+            col(ma) * w
+            + col(max_ + mb) * wx
+            + col(may + mc) * wy
+            + col(mbx) * wxx
+            + col(mby + mcx) * wxy
+            + col(mcy) * wyy
+        )
+        rows = np.repeat(np.arange(npix), 16)
+        jac = sp.csr_matrix((data.ravel(), (rows, idx.ravel())), shape=(npix, surf.coef.size))
+        jpose = None
+        if res.pose is not None:
+            jpose = res.pose[:, ray_ok].reshape(12, -1, spp).mean(axis=2).T
+        return vals, ok, jac, jpose
+
+    def _photometric(self, vals: Array, data: Array, w: Array) -> tuple[float, float]:
+        """Gain and offset (alpha, beta) minimising sum w (data - alpha vals - beta)^2."""
+        a = np.stack([vals, np.ones_like(vals)], axis=1)
+        sw = np.sqrt(w)
+        sol, *_ = np.linalg.lstsq(a * sw[:, None], data * sw, rcond=None)
+        return float(sol[0]), float(sol[1])
+
+    def fit_level(self, lev: _Level, surf: SplineSurface, h: float, iterations: int, index: int) -> SplineSurface:
+        """Gauss-Newton steps at one level with mean ROI height fixed to ``h``; returns the new surface."""
+        cfg = self.config
+        d = surf.smoothness()
+        dtd = (d.T @ d).tocsr()
+        xs, ys = self.sub.roi_grid(max(surf.dx, 0.5))
+        mean_row = np.asarray(surf.design(xs, ys).mean(axis=0)).ravel()
+        n = surf.coef.size
+        lam = None
+        mu = 1e-3
+        c = surf.coef.ravel().copy()
+        c += mean_row * 0.0
+        # enforce the constraint exactly at the start: shift the surface to mean height h
+        c += h - float(mean_row @ c)
+        surf = surf.with_coef(c)
+        for _ in range(iterations):
+            vals, ok, jac, jpose = self._linearise(lev, surf)
+            assert jac is not None
+            data, wgt = lev.data[ok], 1.0 / lev.var[ok]
+            alpha, beta = self._photometric(vals[ok], data, wgt)
+            r = data - alpha * vals[ok] - beta
+            ja = jac * alpha
+            jtw = ja.T.multiply(wgt[None, :]).tocsr()
+            jtj = (jtw @ ja).tocsr()
+            if lam is None:
+                lam = cfg.smoothness * float(jtj.diagonal().mean()) / max(float(dtd.diagonal().mean()), 1e-300)
+            g = jtw @ r - lam * (dtd @ c)
+            a = (jtj + lam * dtd).tocsr()
+            npose = 0
+            if jpose is not None:
+                npose = 12
+                jp = jpose[ok] * alpha
+                sig = np.array([cfg.pose_sigma[0]] * 3 + [cfg.pose_sigma[1]] * 3) * np.ones(2)[:, None]
+                prior = 1.0 / sig.ravel() ** 2
+                jpw = jp.T * wgt[None, :]
+                a_pp = jpw @ jp + np.diag(prior)
+                a_pc = sp.csr_matrix(jpw @ ja)
+                g_p = jpw @ r - prior * self.pose
+            chi2_old = float(np.sum(wgt * r * r) + lam * c @ (dtd @ c))
+            accepted = False
+            for _trial in range(4):
+                damp = a + mu * sp.diags(a.diagonal() + 1e-300)
+                blocks = [[damp, mean_row[:, None]], [mean_row[None, :], None]]
+                rhs = [g, np.zeros(1)]
+                if npose:
+                    blocks = [
+                        [damp, a_pc.T, mean_row[:, None]],
+                        [a_pc, sp.csr_matrix(a_pp * (1 + mu)), None],
+                        [mean_row[None, :], None, None],
+                    ]
+                    rhs = [g, g_p, np.zeros(1)]
+                kkt = sp.bmat(blocks, format="csc")
+                step = spla.spsolve(kkt, np.concatenate(rhs))
+                dc = step[:n]
+                trial = surf.with_coef(c + dc)
+                dp = step[n : n + npose] if npose else None
+                if dp is not None:
+                    saved = (lev.model.camera, lev.model.pattern)
+                    self._apply_pose(lev, dp)
+                tv, tok, _, _ = self._linearise(lev, trial, need_jac=False)
+                both = ok & tok
+                ta, tb = self._photometric(tv[both], lev.data[both], 1.0 / lev.var[both])
+                tr = lev.data[both] - ta * tv[both] - tb
+                chi2_new = float(np.sum(tr * tr / lev.var[both]) + lam * (c + dc) @ (dtd @ (c + dc)))
+                # compare on the common pixels
+                r_common = (data - alpha * vals[ok] - beta)[both[ok]]
+                chi2_ref = float(np.sum(r_common**2 * wgt[both[ok]]) + lam * c @ (dtd @ c))
+                if chi2_new <= chi2_ref or not np.isfinite(chi2_ref):
+                    accepted = True
+                    mu = max(mu / 3.0, 1e-7)
+                    break
+                if dp is not None:
+                    lev.model.camera, lev.model.pattern = saved
+                    self._rebuild_rays(lev)
+                mu *= 10.0
+            if not accepted:
+                self._record(index, lev, h, chi2_old / max(len(r), 1), 0.0, len(r))
+                break
+            c = c + dc
+            if dp is not None:
+                self.pose = self.pose + dp
+            surf = trial
+            step_um = float(np.sqrt(np.mean(dc**2))) * 1e3
+            self._record(index, lev, h, chi2_new / max(int(both.sum()), 1), step_um, int(both.sum()))
+            if step_um < cfg.tol_um:
+                break
+        return surf
+
+    def _apply_pose(self, lev: _Level, dp: Array) -> None:
+        cam, pat = _pose_update(self.camera, self.pattern, self.pose + dp)
+        lev.model.camera = _binned_camera(cam, lev.b, self.window[0], self.window[2])
+        lev.model.pattern = pat
+        self._rebuild_rays(lev)
+
+    @staticmethod
+    def _rebuild_rays(lev: _Level) -> None:
+        from scenes.mitsuba.deflectometry_ad import RayModel
+
+        m = lev.model
+        fresh = RayModel(m.camera, m.pattern, m.radiance, m.size, m.roi_length, m.rows, m.cols, m.sub, None, m.jitter)
+        fresh.m = m.m
+        lev.model = fresh
+
+    def _record(self, index: int, lev: _Level, h: float, chi2: float, step_um: float, pixels: int) -> None:
+        self.history.append(InverseStep(index, lev.b, h * 1e3, chi2, step_um, pixels, time.perf_counter() - self._t0))
+
+    def shape_std_um(self, surf: SplineSurface, var: Any = None, sub: int = 3, probes: int = 32) -> float:
+        """Standard deviation of the ROI shape (RMS over the ROI, mean removed) from the Fisher information, µm.
+
+        The covariance of the coefficients is the inverse of J^T W J + lambda D^T D (the render's Jacobian at
+        ``surf`` with W = 1/var, the fit's thin-plate prior), with the mean ROI height held fixed as in the fit;
+        with the true pixel variances it is the Cramér-Rao bound of the pixel data (plus prior) on the shape.
+        sqrt(mean diag(A C A^T)) over the ROI heights A (mean removed) is traced by ``probes`` Hutchinson probes.
+        ``var``: pixel variances of the full image (default: those of the fit).
+        """
+        saved = self.var
+        if var is not None:
+            self.var = np.asarray(var, dtype=np.float64)
+        try:
+            lev = self._level(1, sub)
+        finally:
+            self.var = saved
+        _, ok, jac, _ = self._linearise(lev, surf)
+        assert jac is not None
+        w = 1.0 / lev.var[ok]
+        fisher = (jac.T.multiply(w[None, :]) @ jac).tocsc()
+        d = surf.smoothness()
+        dtd = d.T @ d
+        lam = self.config.smoothness * float(fisher.diagonal().mean()) / float(dtd.diagonal().mean())
+        xs, ys = self.sub.roi_grid(0.5)
+        design = surf.design(xs, ys)
+        m = np.asarray(design.mean(axis=0)).ravel()
+        kkt = sp.bmat([[fisher + lam * dtd, m[:, None]], [m[None, :], None]], format="csc")
+        lu = spla.splu(kkt)
+        rng = np.random.default_rng(0)
+        n = surf.coef.size
+        acc = 0.0
+        for _ in range(probes):
+            z = rng.choice([-1.0, 1.0], size=design.shape[0])
+            z -= z.mean()  # mean removed: the shape
+            v = np.asarray(design.T @ z).ravel()
+            x = lu.solve(np.concatenate([v, [0.0]]))[:n]
+            acc += float(v @ x)
+        return float(np.sqrt(max(acc, 0.0) / probes / design.shape[0])) * 1e3
+
+    def frame_maxima(self, surf: SplineSurface) -> tuple[float, float]:
+        """Maxima of the surface over frame region 1 and 2, mm (seed eq. 1.3)."""
+        (ax, ay), (bx, by) = self._frame_pts
+        return float(np.max(surf.height(ax, ay))), float(np.max(surf.height(bx, by)))
+
+    def run(self, initial: Any = None) -> InverseResult:
+        """Coarse-to-fine fit with the start-height search (module docstring).
+
+        ``initial``: a surface with ``height(x, y)`` to start from (the centroid method's), or None (a plane at the
+        frame height).
+        """
+        cfg = self.config
+        t0 = self._t0 = time.perf_counter()
+        if initial is None:
+            surf = SplineSurface.covering(self.sub, cfg.spacing, self.sub.frame_z)
+        else:
+            surf = SplineSurface.fit(initial.height, self.sub, cfg.spacing)
+        xs, ys = self.sub.roi_grid(0.5)
+        h = float(np.mean(surf.height(xs, ys)))
+        schedule = cfg.levels if initial is not None else cfg.plane_levels
+        levels = [self._level(b, s) for b, s in schedule]
+        its = list(cfg.iterations) + [cfg.iterations[-1]] * len(levels)
+        search = initial is None or cfg.absolute == "frame"
+        # coarse-to-fine at the first start height
+        for k, lev in enumerate(levels):
+            if cfg.refine_setup and self.pose.any():  # the pose found at the coarser level
+                self._apply_pose(lev, np.zeros(12))
+            surf = self.fit_level(lev, surf, h, its[k], k)
+        fine = levels[-1]
+        values: list[tuple[float, float]] = []
+        surfaces: list[SplineSurface] = []
+        converged = False
+        crit = float("nan")
+        m1 = m2 = float("nan")
+        for outer in range(cfg.outer_max):
+            if outer > 0:
+                surf = self.fit_level(fine, surf, h, cfg.outer_iterations, len(levels) - 1)
+            m1, m2 = self.frame_maxima(surf)
+            crit = frame_criterion(m1, m2, self.sub.frame_z, cfg.criterion)
+            values.append((h, crit))
+            surfaces.append(surf)
+            if abs(crit) * 1e3 <= cfg.outer_tol_um or not search:
+                converged = True
+                break
+            d_min = frame_distance(m1, m2, self.sub.frame_z)
+            h_new = h - (d_min if cfg.criterion == "delta" else crit)
+            if len(values) >= 2:
+                (ha, fa), (hb, fb) = values[-2], values[-1]
+                if fb != fa:
+                    h_new = hb - fb * (hb - ha) / (fb - fa)
+                    # warm start: the surfaces depend almost linearly on H
+                    wgt = (h_new - hb) / (hb - ha)
+                    surf = surfaces[-1].with_coef(surfaces[-1].coef + wgt * (surfaces[-1].coef - surfaces[-2].coef))
+            h = float(h_new)
+        cam, pat = (
+            _pose_update(self.camera, self.pattern, self.pose) if cfg.refine_setup else (self.camera, self.pattern)
+        )
+        # shape uncertainty: the Fisher information at the fit, scaled by the reduced chi^2 (the residuals' own
+        # variance where the pixel variances are only known up to a factor, as for a noise-free render)
+        chi2 = self.history[-1].chi2 if self.history else 1.0
+        shape_std = self.shape_std_um(surf, None, schedule[-1][1]) * float(np.sqrt(max(chi2, 0.0)))
+        return InverseResult(
+            surf,
+            self.sub,
+            h * 1e3,
+            crit * 1e3,
+            (m1 - m2) * 1e3,
+            self.history,
+            len(values),
+            converged,
+            time.perf_counter() - t0,
+            cam,
+            pat,
+            shape_std,
+        )
+
+
+def reconstruct_inverse(
+    setup: Setup,
+    image: NDArray[Any],
+    initial: Any = None,
+    config: InverseConfig | None = None,
+    variant: str | None = None,
+) -> InverseResult:
+    """Fit the substrate's surface to a deflectometry image through the differentiable render (module docstring).
+
+    Parameters
+    ----------
+    setup : Setup
+        The (calibrated) deflectometry setup.
+    image : ndarray, (ny, nx)
+        The camera image.
+    initial : object with ``height(x, y)``, optional
+        Start surface (the centroid method's); None: a plane at the frame height.
+    config : InverseConfig, optional
+    variant : str, optional
+        Backend of the render (``cuda`` when a GPU is usable, else ``llvm``).
+    """
+    return InverseReconstructor(setup, image, config, variant).run(initial)

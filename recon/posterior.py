@@ -1,0 +1,443 @@
+"""The Bayesian reading of the gradient fit: a Gaussian-process prior, its evidence, and the posterior of the heights.
+
+The shifted-basis fit of seed §1.8 with a Gaussian basis and ridge damping is the posterior mean of a Gaussian
+process (:mod:`recon.shifted_basis`). Read that way explicitly, the same gradient data give:
+
+* the **evidence** (marginal likelihood) of a prior, so its scales and amplitudes are chosen by the data instead of
+  held-out bands;
+* a prior that **admits broadband content**: height covariance k = k_smooth + k_broad + plane, two squared-
+  exponential (SE) components — the smooth bow (long correlation) and the nm-level short-wavelength part real
+  glass has (NOTES-rendering.md, "Absolute height") — plus unpenalised tilt terms;
+* the **posterior** of any linear functional of the heights, and by sampling of the frame criterion itself: the
+  start height of seed §1.4 rests on the surface's maxima over the frame regions, 1-6 mm beyond the last marker,
+  where the posterior variance (chiefly the broadband part's, which no data constrain there) dominates the error.
+
+Gradient observations g = (f_x, f_y)(r_i) + noise. For k(d) = a^2 exp(-|d|^2 / (2 l^2)), d = r - r':
+cov(f(r), f_x(r')) = a^2 e d_x / l^2, cov(f_x(r), f_x(r')) = a^2 e (1/l^2 - d_x^2/l^4),
+cov(f_x(r), f_y(r')) = -a^2 e d_x d_y / l^4 (and x <-> y). Heights are known from gradients up to a constant;
+every quantity here is a contrast (heights relative to the ROI mean), in which the constant cancels.
+
+Nothing here imports Mitsuba or sim.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+from numpy.typing import NDArray
+from scipy.optimize import minimize
+
+from scenes.errors import ScopetwinError
+from scenes.geometry import Array
+
+#: Tilt prior standard deviation (rad): wide enough to be unpenalised for any substrate of the seed's kind.
+TILT_STD = 1e-2
+#: Floor of the gradient noise standard deviation (rad), keeping the kernel matrix well conditioned.
+NOISE_FLOOR = 2e-8
+
+
+class PosteriorError(ScopetwinError, ValueError):
+    """A posterior that cannot be formed (too few data, singular kernel matrix)."""
+
+
+@dataclass(frozen=True)
+class Hyper:
+    """Prior hyperparameters: amplitudes (mm) and correlation lengths (mm) of both SE parts; gradient noise (rad).
+
+    ``noise`` is the standard deviation of the f_x observations, ``noise_y`` of the f_y ones (None: the same):
+    seen obliquely, the centroid noise maps into the two gradient components differently.
+    """
+
+    smooth_amp: float
+    smooth_len: float
+    broad_amp: float
+    broad_len: float
+    noise: float
+    noise_y: float | None = None
+
+    @property
+    def noise_pair(self) -> tuple[float, float]:
+        """(noise of f_x, noise of f_y), each at least :data:`NOISE_FLOOR`."""
+        ny = self.noise if self.noise_y is None else self.noise_y
+        return max(self.noise, NOISE_FLOOR), max(ny, NOISE_FLOOR)
+
+    def as_dict(self) -> dict[str, float]:
+        """JSON-ready, in µm / mm / µrad."""
+        return {
+            "smooth_amp_um": self.smooth_amp * 1e3,
+            "smooth_len_mm": self.smooth_len,
+            "broad_amp_nm": self.broad_amp * 1e6,
+            "broad_len_mm": self.broad_len,
+            "noise_urad": self.noise * 1e6,
+            "noise_y_urad": self.noise_pair[1] * 1e6,
+        }
+
+
+def _se_parts(p: Array, q: Array, amp: float, length: float) -> tuple[Array, Array, Array]:
+    """exp term, d_x, d_y between point sets p (m, 2) and q (n, 2), scaled by amp^2."""
+    dx = p[:, None, 0] - q[None, :, 0]
+    dy = p[:, None, 1] - q[None, :, 1]
+    e = amp**2 * np.exp(-(dx * dx + dy * dy) / (2.0 * length**2))
+    return e, dx, dy
+
+
+def gradient_kernel(r: Array, hyper: Hyper) -> Array:
+    """Prior covariance of the stacked gradient observations [f_x(r); f_y(r)], (2n, 2n), noise included."""
+    n = len(r)
+    k = np.zeros((2 * n, 2 * n))
+    for amp, length in ((hyper.smooth_amp, hyper.smooth_len), (hyper.broad_amp, hyper.broad_len)):
+        e, dx, dy = _se_parts(r, r, amp, length)
+        il2, il4 = 1.0 / length**2, 1.0 / length**4
+        k[:n, :n] += e * (il2 - dx * dx * il4)
+        k[n:, n:] += e * (il2 - dy * dy * il4)
+        xy = -e * dx * dy * il4
+        k[:n, n:] += xy
+        k[n:, :n] += xy
+    k[:n, :n] += TILT_STD**2
+    k[n:, n:] += TILT_STD**2
+    sx, sy = hyper.noise_pair
+    k[np.arange(n), np.arange(n)] += sx**2
+    k[np.arange(n, 2 * n), np.arange(n, 2 * n)] += sy**2
+    return k
+
+
+def height_gradient_kernel(p: Array, r: Array, hyper: Hyper) -> Array:
+    """cov(f(p), [f_x(r); f_y(r)]), (m, 2n)."""
+    n = len(r)
+    out = np.zeros((len(p), 2 * n))
+    for amp, length in ((hyper.smooth_amp, hyper.smooth_len), (hyper.broad_amp, hyper.broad_len)):
+        e, dx, dy = _se_parts(p, r, amp, length)
+        out[:, :n] += e * dx / length**2
+        out[:, n:] += e * dy / length**2
+    out[:, :n] += TILT_STD**2 * p[:, :1]
+    out[:, n:] += TILT_STD**2 * p[:, 1:2]
+    return out
+
+
+def height_kernel(p: Array, q: Array, hyper: Hyper) -> Array:
+    """cov(f(p), f(q)), (m, k) (without the unidentified constant, which cancels in contrasts)."""
+    out = TILT_STD**2 * (p[:, None, 0] * q[None, :, 0] + p[:, None, 1] * q[None, :, 1])
+    for amp, length in ((hyper.smooth_amp, hyper.smooth_len), (hyper.broad_amp, hyper.broad_len)):
+        out = out + _se_parts(p, q, amp, length)[0]
+    return np.asarray(out)
+
+
+class GradientGP:
+    """A Gaussian process conditioned on gradient observations (module docstring).
+
+    Parameters
+    ----------
+    xy : ndarray, (n, 2)
+        Observation positions on the base plane, mm.
+    gx, gy : ndarray, (n,)
+        Measured gradients.
+    hyper : Hyper
+        Prior and noise.
+    """
+
+    def __init__(self, xy: Array, gx: Array, gy: Array, hyper: Hyper) -> None:
+        self.xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        self.g = np.concatenate([np.ravel(gx), np.ravel(gy)]).astype(np.float64)
+        self.hyper = hyper
+        k = gradient_kernel(self.xy, hyper)
+        try:
+            self.chol = sla.cho_factor(k, lower=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            k[np.diag_indices(len(k))] += 1e-10 * float(np.mean(np.diag(k)))
+            try:
+                self.chol = sla.cho_factor(k, lower=True, check_finite=False)
+            except np.linalg.LinAlgError as exc:
+                raise PosteriorError(f"the gradient kernel matrix is singular ({exc})") from None
+        self.alpha = sla.cho_solve(self.chol, self.g, check_finite=False)
+
+    def log_evidence(self) -> float:
+        """log p(g | hyper) (the marginal likelihood)."""
+        logdet = 2.0 * float(np.sum(np.log(np.diag(self.chol[0]))))
+        return float(-0.5 * self.g @ self.alpha - 0.5 * logdet - 0.5 * len(self.g) * np.log(2 * np.pi))
+
+    def mean(self, p: Array) -> Array:
+        """Posterior mean heights at points p (m, 2), up to the common constant, mm."""
+        return np.asarray(height_gradient_kernel(p, self.xy, self.hyper) @ self.alpha)
+
+    def whitened(self, p: Array) -> Array:
+        """L^-1 cov(g, f(p)), (2n, m): the posterior covariance is K_pp - W^T W."""
+        kg = height_gradient_kernel(p, self.xy, self.hyper)
+        return np.asarray(sla.solve_triangular(self.chol[0], kg.T, lower=True, check_finite=False))
+
+
+def _evidence_and_gradient(theta: Array, xy: Array, g: Array) -> tuple[float, Array]:
+    """Negative log evidence and its gradient in theta = log(smooth_amp, smooth_len, broad_amp, broad_len, noise_x,
+    noise_y).
+
+    d log p / d theta_j = tr((alpha alpha^T - K^-1) dK/d theta_j) / 2 (Rasmussen & Williams 2006, eq. 5.9).
+    """
+    h = Hyper(*np.exp(theta))
+    n = len(xy)
+    parts: list[tuple[Array, Array]] = []  # (K component, dK/dlog l) per SE part
+    for amp, length in ((h.smooth_amp, h.smooth_len), (h.broad_amp, h.broad_len)):
+        e, dx, dy = _se_parts(xy, xy, amp, length)
+        il2, il4 = 1.0 / length**2, 1.0 / length**4
+        r2 = (dx * dx + dy * dy) * il2
+        kc = np.empty((2 * n, 2 * n))
+        dk = np.empty((2 * n, 2 * n))
+        xx = e * (il2 - dx * dx * il4)
+        yy = e * (il2 - dy * dy * il4)
+        xy_ = -e * dx * dy * il4
+        kc[:n, :n], kc[n:, n:], kc[:n, n:], kc[n:, :n] = xx, yy, xy_, xy_
+        dk[:n, :n] = r2 * xx + e * (-2.0 * il2 + 4.0 * dx * dx * il4)
+        dk[n:, n:] = r2 * yy + e * (-2.0 * il2 + 4.0 * dy * dy * il4)
+        dk[:n, n:] = dk[n:, :n] = xy_ * (r2 - 4.0)
+        parts.append((kc, dk))
+    k = parts[0][0] + parts[1][0]
+    k[:n, :n] += TILT_STD**2
+    k[n:, n:] += TILT_STD**2
+    sx2, sy2 = (v**2 for v in h.noise_pair)
+    k[np.arange(n), np.arange(n)] += sx2
+    k[np.arange(n, 2 * n), np.arange(n, 2 * n)] += sy2
+    try:
+        c = sla.cho_factor(k, lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        return 1e30, np.zeros(6)
+    alpha = sla.cho_solve(c, g, check_finite=False)
+    logdet = 2.0 * float(np.sum(np.log(np.diag(c[0]))))
+    nll = float(0.5 * g @ alpha + 0.5 * logdet + 0.5 * len(g) * np.log(2 * np.pi))
+    kinv = sla.cho_solve(c, np.eye(2 * n), check_finite=False)
+    a = np.outer(alpha, alpha) - kinv
+    grad = np.array(
+        [
+            0.5 * np.sum(a * 2.0 * parts[0][0]),
+            0.5 * np.sum(a * parts[0][1]),
+            0.5 * np.sum(a * 2.0 * parts[1][0]),
+            0.5 * np.sum(a * parts[1][1]),
+            float(np.trace(a[:n, :n])) * sx2 if h.noise > NOISE_FLOOR else 0.0,
+            float(np.trace(a[n:, n:])) * sy2 if (h.noise_y or 0.0) > NOISE_FLOOR else 0.0,
+        ]
+    )
+    return nll, -grad
+
+
+def fit_hyper(
+    xy: Array,
+    gx: Array,
+    gy: Array,
+    max_points: int = 250,
+    smooth_starts: tuple[float, ...] = (10.0, 25.0),
+) -> Hyper:
+    """Hyperparameters of maximum evidence (type-II maximum likelihood) for the gradient data.
+
+    All five (log) parameters are optimised with analytic gradients (L-BFGS-B) within bounds (smooth length
+    3-60 mm, broadband length 0.25-3 mm, broadband amplitude 0.01-300 nm, noise 0.02-100 µrad), from one start
+    per smooth length in ``smooth_starts``; the best evidence wins. At most ``max_points`` observations (an even
+    subsample) enter the evidence, for speed.
+    """
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    gx, gy = np.ravel(gx), np.ravel(gy)
+    if len(xy) < 10:
+        raise PosteriorError(f"{len(xy)} gradient observations are too few for the evidence")
+    if len(xy) > max_points:
+        keep = np.linspace(0, len(xy) - 1, max_points).round().astype(int)
+        xy, gx, gy = xy[keep], gx[keep], gy[keep]
+    g = np.concatenate([gx, gy])
+    g_rms = float(np.sqrt(np.mean(g**2))) + 1e-9
+    bounds = [
+        (np.log(g_rms * 0.3), np.log(g_rms * 300.0)),
+        (np.log(3.0), np.log(60.0)),
+        (np.log(1e-8), np.log(3e-4)),
+        (np.log(0.25), np.log(3.0)),
+        (np.log(NOISE_FLOOR), np.log(1e-4)),
+        (np.log(NOISE_FLOOR), np.log(1e-4)),
+    ]
+    best: tuple[float, Array] | None = None
+    for length in smooth_starts:
+        x0 = np.log([g_rms * length, length, 1e-6, 1.0, 3e-7, 3e-7])
+        x0 = np.clip(x0, [b[0] for b in bounds], [b[1] for b in bounds])
+        res = minimize(
+            _evidence_and_gradient,
+            x0,
+            args=(xy, g),
+            jac=True,
+            method="L-BFGS-B",
+            bounds=bounds,
+            options={"maxiter": 80},
+        )
+        if best is None or res.fun < best[0]:
+            best = (float(res.fun), res.x)
+    assert best is not None
+    return Hyper(*np.exp(best[1]))
+
+
+@dataclass(frozen=True)
+class FramePosterior:
+    """Posterior of the frame criterion's shape functional and of the heights (contrasts to the ROI mean).
+
+    Attributes
+    ----------
+    d_mean, d_std : float
+        D = (max_region1 + max_region2)/2 - mean_ROI(f): posterior mean and standard deviation, mm (by sampling,
+        so the maxima's location and the excess of a maximum over a mean are included).
+    delta_mean, delta_std : float
+        Delta h_max = max_region1 - max_region2 (eq. 1.3): posterior mean and standard deviation, mm.
+    node_x, node_y : ndarray
+        Axes of the coarse node grid of ``contrast_std`` (whole substrate), mm.
+    contrast_mean, contrast_std : ndarray, (ny, nx)
+        Posterior mean and standard deviation of f - mean_ROI(f) on that grid, mm.
+    roi : ndarray of bool, (ny, nx)
+        Nodes inside the ROI.
+    hyper : Hyper
+        The prior used.
+    frame1, frame2 : ndarray, (k, 2)
+        The frame-region points the maxima were taken over.
+    """
+
+    d_mean: float
+    d_std: float
+    delta_mean: float
+    delta_std: float
+    node_x: Array
+    node_y: Array
+    contrast_mean: Array
+    contrast_std: Array
+    roi: NDArray[np.bool_]
+    hyper: Hyper
+    frame1: Array
+    frame2: Array
+
+
+def _axis_sums(v: Array, grid: Array, length: float) -> tuple[Array, Array]:
+    """Means over ``grid`` of e = exp(-(g - v)^2 / (2 l^2)) and of e (g - v) / l^2, for each v (one axis of SE)."""
+    d = grid[None, :] - v[:, None]
+    e = np.exp(-(d * d) / (2.0 * length**2))
+    return e.mean(axis=1), (e * d).mean(axis=1) / length**2
+
+
+def _roi_functional(gp: GradientGP, pts: Array, axes: tuple[Array, Array]) -> tuple[Array, Array, float]:
+    """The ROI mean m = mean of f over the tensor grid ``axes`` = (xs, ys) as one linear functional.
+
+    Returns cov(g, m) (2n,), cov(f(pts), m) (P,) and var(m). The SE kernel factorises over x and y, so every sum
+    over the grid is a product of two one-dimensional sums.
+    """
+    xs, ys = (np.asarray(a, dtype=np.float64) for a in axes)
+    n = len(gp.xy)
+    k_gm = np.zeros(2 * n)
+    k_pm = np.zeros(len(pts))
+    k_mm = 0.0
+    for amp, length in ((gp.hyper.smooth_amp, gp.hyper.smooth_len), (gp.hyper.broad_amp, gp.hyper.broad_len)):
+        ex_g, dx_g = _axis_sums(gp.xy[:, 0], xs, length)
+        ey_g, dy_g = _axis_sums(gp.xy[:, 1], ys, length)
+        k_gm[:n] += amp**2 * dx_g * ey_g
+        k_gm[n:] += amp**2 * ex_g * dy_g
+        ex_p, _ = _axis_sums(pts[:, 0], xs, length)
+        ey_p, _ = _axis_sums(pts[:, 1], ys, length)
+        k_pm += amp**2 * ex_p * ey_p
+        k_mm += amp**2 * float(_axis_sums(xs, xs, length)[0].mean() * _axis_sums(ys, ys, length)[0].mean())
+    mx, my = float(xs.mean()), float(ys.mean())
+    k_gm[:n] += TILT_STD**2 * mx
+    k_gm[n:] += TILT_STD**2 * my
+    k_pm += TILT_STD**2 * (pts[:, 0] * mx + pts[:, 1] * my)
+    k_mm += TILT_STD**2 * (mx * mx + my * my)
+    return k_gm, k_pm, k_mm
+
+
+def frame_posterior(
+    gp: GradientGP,
+    x_range: tuple[float, float],
+    y_range: tuple[float, float],
+    roi_length: float,
+    roi_axes: tuple[Array, Array] | None = None,
+    frame_step: float = 0.5,
+    node_step: float = 1.0,
+    samples: int = 600,
+    seed: int = 0,
+) -> FramePosterior:
+    """The posterior of D (frame maxima relative to the ROI mean) and of the height contrasts (seed §1.4).
+
+    Parameters
+    ----------
+    gp : GradientGP
+        The conditioned process.
+    x_range, y_range, roi_length : tuple, tuple, float
+        The substrate's extent and ROI length, mm (frame regions: |y| >= roi_length/2, edges included).
+    roi_axes : (ndarray, ndarray), optional
+        Axes (xs, ys) of the tensor grid whose plain mean defines the ROI mean (the reconstruction's own grid, so
+        the contrast matches its start height exactly); default the ROI nodes of the ``node_step`` grid.
+    frame_step, node_step : float
+        Spacing of the frame-region grids (for the maxima) and of the node grid (for the contrast map), mm.
+    samples, seed : int
+        Posterior draws of the frame points for the maxima.
+    """
+    half = 0.5 * roi_length
+    nx = max(2, int(round((x_range[1] - x_range[0]) / node_step)) + 1)
+    ny = max(2, int(round((y_range[1] - y_range[0]) / node_step)) + 1)
+    node_x = np.linspace(*x_range, nx)
+    node_y = np.linspace(*y_range, ny)
+    nxx, nyy = np.meshgrid(node_x, node_y)
+    nodes = np.stack([nxx.ravel(), nyy.ravel()], axis=-1)
+    roi = np.abs(nodes[:, 1]) < half
+    if not roi.any():
+        raise PosteriorError("the node grid has no point in the ROI")
+    axes = roi_axes if roi_axes is not None else (node_x, node_y[np.abs(node_y) < half])
+    f1, f2 = frame_points(x_range, y_range, roi_length, frame_step)
+    pts = np.concatenate([f1, f2, nodes])
+    n1, n2 = len(f1), len(f2)
+    # the ROI mean m as one more functional; contrasts c = f(p) - m
+    k_gm, k_pm, k_mm = _roi_functional(gp, pts, axes)
+    mu_pts = gp.mean(pts)
+    m_mean = float(k_gm @ gp.alpha)
+    mu = mu_pts - m_mean
+    wmat = gp.whitened(pts)  # (2n, P)
+    w_m = sla.solve_triangular(gp.chol[0], k_gm, lower=True, check_finite=False)
+    wc = wmat - w_m[:, None]
+    kpp = height_kernel(pts, pts, gp.hyper)
+    kc = kpp - k_pm[:, None] - k_pm[None, :] + k_mm
+    cov = kc - wc.T @ wc
+    var = np.clip(np.diag(cov), 0.0, None)
+    # D by sampling the frame points' joint posterior (maxima: location and excess included)
+    fr = slice(0, n1 + n2)
+    cf = cov[fr, fr]
+    root = _sqrt_psd(cf)
+    draws = mu[fr][None, :] + np.random.default_rng(seed).standard_normal((samples, n1 + n2)) @ root.T
+    max1, max2 = draws[:, :n1].max(axis=1), draws[:, n1:].max(axis=1)
+    d = 0.5 * (max1 + max2)
+    node_mu = mu[n1 + n2 :].reshape(ny, nx)
+    node_sd = np.sqrt(var[n1 + n2 :]).reshape(ny, nx)
+    return FramePosterior(
+        float(d.mean()),
+        float(d.std()),
+        float((max1 - max2).mean()),
+        float((max1 - max2).std()),
+        node_x,
+        node_y,
+        node_mu,
+        node_sd,
+        roi.reshape(ny, nx),
+        gp.hyper,
+        f1,
+        f2,
+    )
+
+
+def _sqrt_psd(c: Array) -> Array:
+    """A matrix R with R R^T = c for a (numerically) positive semi-definite c: Cholesky with jitter, else eigh."""
+    scale = max(float(np.mean(np.diag(c))), 1e-300)
+    for jitter in (1e-12, 1e-10, 1e-8):
+        try:
+            return np.asarray(np.linalg.cholesky(c + jitter * scale * np.eye(len(c))))
+        except np.linalg.LinAlgError:
+            continue
+    evals, evecs = np.linalg.eigh(0.5 * (c + c.T))
+    return np.asarray(evecs * np.sqrt(np.clip(evals, 0.0, None))[None, :])
+
+
+def frame_points(
+    x_range: tuple[float, float], y_range: tuple[float, float], roi_length: float, step: float
+) -> tuple[Array, Array]:
+    """Grids over frame region 1 (y <= -roi/2) and region 2 (y >= roi/2), edges included, (k, 2) each."""
+    half = 0.5 * roi_length
+    fx = np.linspace(*x_range, max(2, int(round((x_range[1] - x_range[0]) / step)) + 1))
+    depth = y_range[1] - half
+    fy = half + np.linspace(0.0, depth, max(2, int(round(depth / step)) + 1))
+    f1 = np.stack([a.ravel() for a in np.meshgrid(fx, -fy)], axis=-1)
+    f2 = np.stack([a.ravel() for a in np.meshgrid(fx, fy)], axis=-1)
+    return f1, f2

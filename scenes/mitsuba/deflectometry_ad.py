@@ -1,0 +1,398 @@
+"""The seed's deflectometry ray model in Dr.Jit, differentiable: the forward model of the inverse reconstruction.
+
+Seed §1.6: camera ray (§1.6.2) -> substrate z = h(x, y) (§1.6.4; here Newton's iteration on
+f(lambda) = h(r(lambda)) - z(lambda) instead of the secant, a fixed number of steps, so that the chain is
+differentiable) -> mirror reflection (§1.6.5, eq. 1.7) -> pattern plane (§1.6.3) -> the marker grey value
+g = max(0, 1 - r/r_m) of the nearest marker, times the pattern radiance. It is :mod:`scenes.analytic` (the
+float64 numpy reference) restricted to the deflectometry scene, with the surface given as a uniform cubic
+B-spline over the base plane, written in Dr.Jit (``Float64``: the measurement's 20 nm are below float32's
+rounding of 200 mm coordinates) so that Dr.Jit's forward-mode AD gives exact derivatives of every ray's value.
+
+The image of a pixel is the mean of ``sub x sub`` rays at fixed stratified positions (a box filter, as the
+sensor and the Mitsuba renders integrate the pixel area). Fixed positions make the model a smooth function of
+the surface (no sampling noise), and the marker cone is continuous, so the derivatives are well defined
+without soft edges; only pixels whose rays all land in the region of interest are used (the ROI edge, where
+the image jumps, is left out).
+
+Derivatives with respect to the surface: a ray's value depends on the surface only through the height and
+the gradient at its hit point (implicit differentiation of the intersection). :meth:`RayModel.trace` returns,
+per ray, ``(a, b, c)``: the derivative of the value with respect to a local perturbation
+``d0 + dx*(x - x_hit) + dy*(y - y_hit)`` of the surface (by forward-mode AD through the Newton iteration, the
+reflection and the pattern lookup). The derivative with respect to any coefficient of any height model is
+then ``a*B + b*dB/dx + c*dB/dy`` of its basis function B at the hit: the sparse Jacobian of the image with
+respect to B-spline coefficients is assembled from it (:mod:`recon.inverse`). With ``pose=True`` the same is
+done for small rigid motions of the camera and of the pattern (12 columns), for ``--refine-setup``.
+
+The backend follows :func:`scenes.mitsuba.variant.choose`: ``cuda`` when a CUDA device is usable (the
+``cuda_ad_mono`` machine), else ``llvm``; nothing needs a GPU. Importing this module sets no variant.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as _drjit
+import numpy as np
+from numpy.typing import NDArray
+
+from scenes.camera import Camera
+from scenes.pattern import MarkerPattern
+from scenes.setup import Setup
+
+dr: Any = _drjit  # untyped (pyproject.toml [tool.mypy])
+
+Array = NDArray[np.float64]
+
+#: Newton steps of the ray-surface intersection (quadratic convergence from the mean plane: 1e-15 mm after 5
+#: for slopes of 1e-2; the derivatives converge with the iterate).
+NEWTON_STEPS = 6
+
+#: Added to r^2 before the square root of the marker distance (mm^2), so that the cone's apex has a finite
+#: derivative.
+_APEX = 1e-18
+
+
+def cubic_bspline_weights(t: Any) -> tuple[Any, Any, Any, Any, Any, Any, Any, Any]:
+    """Uniform cubic B-spline weights of the 4 coefficients around a point, and their derivatives in t.
+
+    For u = (x - x_0)/dx with i = floor(u), t = u - i in [0, 1), the coefficients k = i-1 .. i+2 carry
+    w_0 = (1-t)^3/6, w_1 = (3t^3 - 6t^2 + 4)/6, w_2 = (-3t^3 + 3t^2 + 3t + 1)/6, w_3 = t^3/6 (de Boor).
+    Arithmetic only: runs on numpy arrays and on Dr.Jit arrays alike (:mod:`recon.inverse` uses it too).
+
+    Returns
+    -------
+    w0, w1, w2, w3, d0, d1, d2, d3
+        The weights and their derivatives dw/dt.
+    """
+    t2 = t * t
+    t3 = t2 * t
+    s = 1.0 - t
+    w0 = s * s * s / 6.0
+    w1 = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0
+    w2 = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0
+    w3 = t3 / 6.0
+    d0 = -0.5 * s * s
+    d1 = 1.5 * t2 - 2.0 * t
+    d2 = -1.5 * t2 + t + 0.5
+    d3 = 0.5 * t2
+    return w0, w1, w2, w3, d0, d1, d2, d3
+
+
+@dataclass(frozen=True)
+class SplineGrid:
+    """A uniform cubic B-spline's coefficient grid: coefficient (row m, column k) sits at (x0 + k*dx, y0 + m*dy).
+
+    The spline is evaluated on [x0 + dx, x0 + (nx - 2)*dx) x [y0 + dy, y0 + (ny - 2)*dy); outside, the cell index
+    is clamped (the nearest edge cell's polynomial continues).
+    """
+
+    x0: float
+    y0: float
+    dx: float
+    dy: float
+    nx: int
+    ny: int
+
+
+def backend(variant: str | None = None) -> Any:
+    """The Dr.Jit AD array namespace (``dr.cuda.ad`` or ``dr.llvm.ad``) of ``variant`` (default: choose("mono"))."""
+    from scenes.mitsuba.variant import resolve
+
+    name = resolve(variant, "mono")
+    if name.startswith("cuda"):
+        try:
+            import drjit.cuda.ad as cuda_ad
+
+            cuda_ad.Float64(0.0).numpy()  # a usable device?
+            return cuda_ad
+        except Exception:  # no usable GPU: LLVM
+            pass
+    import drjit.llvm.ad as llvm_ad
+
+    return llvm_ad
+
+
+@dataclass
+class TraceResult:
+    """Per-ray results of :meth:`RayModel.trace` (numpy, float64, one entry per ray, pixel-major)."""
+
+    value: Array
+    x: Array
+    y: Array
+    valid: NDArray[np.bool_]
+    sens: Array | None  # (3, n): d value / d (d0, dx, dy) of the local surface perturbation
+    pose: Array | None  # (12, n): d value / d (camera shift 3, camera rotation 3, pattern shift 3, rotation 3)
+
+
+def _skew_apply(w: tuple[Any, Any, Any], v: tuple[Any, Any, Any]) -> tuple[Any, Any, Any]:
+    """w x v for 3-tuples."""
+    return (w[1] * v[2] - w[2] * v[1], w[2] * v[0] - w[0] * v[2], w[0] * v[1] - w[1] * v[0])
+
+
+class RayModel:
+    """The deflectometry measurement of one setup as a differentiable function of the substrate's surface.
+
+    Parameters
+    ----------
+    camera : Camera
+        The (calibrated) camera; rays through the pixels' stratified sample positions, distortion included.
+    pattern : MarkerPattern
+        The (calibrated) marker pattern.
+    radiance : float
+        Radiance of a marker centre.
+    substrate_size : (float, float)
+        Substrate extent (x, y), mm.
+    roi_length : float
+        Length of the region of interest along y, mm (the reflecting gap between the frame regions).
+    rows, cols : array_like of int
+        The pixels to model (any list).
+    sub : int
+        Rays per pixel and axis (``sub*sub`` per pixel, at the centres of a ``sub x sub`` grid of sub-pixels).
+    jitter : bool
+        Fixed pseudo-random positions inside the sub-pixels instead of their centres (the same every trace).
+    variant : str, optional
+        Selects the backend (:func:`backend`).
+    """
+
+    def __init__(
+        self,
+        camera: Camera,
+        pattern: MarkerPattern,
+        radiance: float,
+        substrate_size: tuple[float, float],
+        roi_length: float,
+        rows: Any,
+        cols: Any,
+        sub: int = 3,
+        variant: str | None = None,
+        jitter: bool = False,
+    ) -> None:
+        self.camera = camera
+        self.pattern = pattern
+        self.radiance = float(radiance)
+        self.size = (float(substrate_size[0]), float(substrate_size[1]))
+        self.roi_length = float(roi_length)
+        self.rows = np.asarray(rows, dtype=np.int64).ravel()
+        self.cols = np.asarray(cols, dtype=np.int64).ravel()
+        self.sub = int(sub)
+        self.spp = self.sub * self.sub
+        self.jitter = bool(jitter)
+        self.m = backend(variant)
+        k = np.arange(self.sub)
+        kx, ky = np.meshgrid(k, k)
+        ox = np.broadcast_to(kx.ravel(), (len(self.rows), self.spp)).astype(np.float64)
+        oy = np.broadcast_to(ky.ravel(), (len(self.rows), self.spp)).astype(np.float64)
+        if self.jitter:  # stratified, fixed pseudo-random positions: the midpoint rule's kink errors decorrelated
+            rng = np.random.default_rng(12345)
+            ox = ox + rng.random(ox.shape)
+            oy = oy + rng.random(oy.shape)
+        else:
+            ox, oy = ox + 0.5, oy + 0.5
+        px = np.stack(
+            [(self.cols[:, None] + ox / self.sub).ravel(), (self.rows[:, None] + oy / self.sub).ravel()], axis=-1
+        )
+        o, d = camera.rays(px)
+        self._o_np, self._d_np = o, d
+        F = self.m.Float64
+        self._d = tuple(F(np.ascontiguousarray(d[:, k])) for k in range(3))
+
+    @classmethod
+    def from_setup(cls, setup: Setup, rows: Any, cols: Any, sub: int = 3, variant: str | None = None) -> RayModel:
+        """The model of a deflectometry setup (camera, pattern, radiance, substrate) for the given pixels."""
+        sub_spec = setup.substrate
+        assert sub_spec is not None, "a deflectometry setup has a substrate"
+        return cls(
+            setup.camera_model,
+            setup.marker_pattern,
+            setup.pattern.radiance,
+            sub_spec.size,
+            sub_spec.roi_length,
+            rows,
+            cols,
+            sub,
+            variant,
+        )
+
+    @property
+    def n_rays(self) -> int:
+        return len(self.rows) * self.spp
+
+    # -- the surface ---------------------------------------------------------------------------------------------
+    def _surface(self, grid: SplineGrid, coef: Any, x: Any, y: Any) -> tuple[Any, Any, Any]:
+        """(h, dh/dx, dh/dy) of the B-spline at (x, y)."""
+        m = self.m
+        F, I32 = m.Float64, m.Int32
+        u = (x - grid.x0) / grid.dx
+        v = (y - grid.y0) / grid.dy
+        i = dr.clip(I32(dr.floor(u)), 1, grid.nx - 3)
+        j = dr.clip(I32(dr.floor(v)), 1, grid.ny - 3)
+        tu = u - F(i)
+        tv = v - F(j)
+        wu = cubic_bspline_weights(tu)
+        wv = cubic_bspline_weights(tv)
+        h = F(0.0)
+        hx = F(0.0)
+        hy = F(0.0)
+        base = (j - 1) * grid.nx + (i - 1)
+        for mm in range(4):
+            row_h = F(0.0)
+            row_d = F(0.0)
+            for kk in range(4):
+                c = dr.gather(F, coef, m.UInt32(base + (mm * grid.nx + kk)))
+                row_h = dr.fma(c, wu[kk], row_h)
+                row_d = dr.fma(c, wu[4 + kk], row_d)
+            h = dr.fma(row_h, wv[mm], h)
+            hx = dr.fma(row_d, wv[mm], hx)
+            hy = dr.fma(row_h, wv[4 + mm], hy)
+        return h, hx / grid.dx, hy / grid.dy
+
+    # -- the trace -----------------------------------------------------------------------------------------------
+    def _trace(
+        self,
+        grid: SplineGrid,
+        coef: Any,
+        z_start: float,
+        local: tuple[Any, Any, Any, Any, Any] | None = None,
+        pose: tuple[Any, ...] | None = None,
+    ) -> tuple[Any, Any, Any, Any]:
+        """Value, hit x, hit y and validity of every ray (Dr.Jit arrays).
+
+        ``local`` = (d0, dx, dy, x_ref, y_ref) adds the perturbation d0 + dx*(x - x_ref) + dy*(y - y_ref) to the
+        surface; ``pose`` = (cam shift (3), cam rotation (3), pattern shift (3), pattern rotation (3)) moves the
+        camera rays and the pattern plane rigidly by small amounts (rotation vectors about r_c / the pattern centre).
+        """
+        m = self.m
+        F = m.Float64
+        cam_c = self.camera.center
+        ox, oy, oz = F(cam_c[0]), F(cam_c[1]), F(cam_c[2])
+        dxr, dyr, dzr = self._d
+        pat = self.pattern.frame
+        p_o = tuple(F(float(v)) for v in pat.origin)
+        p_tx = tuple(F(float(v)) for v in pat.tx)
+        p_ty = tuple(F(float(v)) for v in pat.ty)
+        p_nz = tuple(F(float(v)) for v in pat.nz)
+        if pose is not None:
+            cs, cr, ps, pr = pose[0:3], pose[3:6], pose[6:9], pose[9:12]
+            ox, oy, oz = ox + cs[0], oy + cs[1], oz + cs[2]
+            rd = _skew_apply(cr, (dxr, dyr, dzr))
+            dxr, dyr, dzr = dxr + rd[0], dyr + rd[1], dzr + rd[2]
+            p_o = (p_o[0] + ps[0], p_o[1] + ps[1], p_o[2] + ps[2])
+            p_tx = tuple(a + b for a, b in zip(p_tx, _skew_apply(pr, p_tx), strict=True))
+            p_ty = tuple(a + b for a, b in zip(p_ty, _skew_apply(pr, p_ty), strict=True))
+            p_nz = tuple(a + b for a, b in zip(p_nz, _skew_apply(pr, p_nz), strict=True))
+
+        def surf(x: Any, y: Any) -> tuple[Any, Any, Any]:
+            h, hx, hy = self._surface(grid, coef, x, y)
+            if local is not None:
+                d0, ddx, ddy, xr, yr = local
+                h = h + d0 + ddx * (x - xr) + ddy * (y - yr)
+                hx = hx + ddx
+                hy = hy + ddy
+            return h, hx, hy
+
+        lam = (z_start - oz) / dzr
+        for _ in range(NEWTON_STEPS):
+            px, py, pz = dr.fma(lam, dxr, ox), dr.fma(lam, dyr, oy), dr.fma(lam, dzr, oz)
+            h, hx, hy = surf(px, py)
+            f = h - pz
+            fp = hx * dxr + hy * dyr - dzr
+            lam = lam - f / fp
+        px, py, pz = dr.fma(lam, dxr, ox), dr.fma(lam, dyr, oy), dr.fma(lam, dzr, oz)
+        _, hx, hy = surf(px, py)
+        inv = dr.rsqrt(hx * hx + hy * hy + 1.0)
+        nx, ny, nz = -hx * inv, -hy * inv, inv
+        dn = dxr * nx + dyr * ny + dzr * nz
+        rx, ry, rz = dxr - 2.0 * dn * nx, dyr - 2.0 * dn * ny, dzr - 2.0 * dn * nz
+        den = rx * p_nz[0] + ry * p_nz[1] + rz * p_nz[2]
+        num = (p_o[0] - px) * p_nz[0] + (p_o[1] - py) * p_nz[1] + (p_o[2] - pz) * p_nz[2]
+        mu = num / den
+        qx, qy, qz = dr.fma(mu, rx, px) - p_o[0], dr.fma(mu, ry, py) - p_o[1], dr.fma(mu, rz, pz) - p_o[2]
+        lx = qx * p_tx[0] + qy * p_tx[1] + qz * p_tx[2]
+        ly = qx * p_ty[0] + qy * p_ty[1] + qz * p_ty[2]
+        value = self._grey(lx, ly)
+        hw, hl = 0.5 * self.size[0], 0.5 * self.roi_length
+        valid = (dr.abs(px) <= hw) & (dr.abs(py) < hl) & (den < 0.0) & (mu > 0.0) & (lam > 0.0)
+        return dr.select(valid, value * self.radiance, 0.0), px, py, valid
+
+    def _grey(self, lx: Any, ly: Any) -> Any:
+        """g = max(0, 1 - r/r_m) of the nearest marker (the reference marker larger), 0 off the plate (§1.6.3)."""
+        m = self.m
+        F = m.Float64
+        pat = self.pattern
+        out = []
+        for coord, n, pitch in ((lx, pat.n_x, pat.pitch_x), (ly, pat.n_y, pat.pitch_y)):
+            k0 = pat._first_index(n)
+            off = pat._offset(n, pitch)
+            k = dr.clip(dr.round((coord - off) / pitch), float(k0), float(k0 + n - 1))
+            out.append((k, coord - (off + k * pitch)))
+        (ki, rx), (kj, ry) = out
+        r = dr.sqrt(rx * rx + ry * ry + _APEX)
+        is_ref = (dr.detach(ki) == 0.0) & (dr.detach(kj) == 0.0)
+        radius = dr.select(is_ref, F(pat.ref_radius), F(pat.radius))
+        g = dr.maximum(1.0 - r / radius, 0.0)
+        on = (dr.abs(lx) <= 0.5 * pat.size_x) & (dr.abs(ly) <= 0.5 * pat.size_y)
+        return dr.select(on, g, 0.0)
+
+    def trace(
+        self,
+        grid: SplineGrid,
+        coef: Array,
+        sensitivities: bool = True,
+        pose: bool = False,
+        z_start: float | None = None,
+    ) -> TraceResult:
+        """Trace every ray through the B-spline surface ``coef`` (ny, nx) on ``grid``.
+
+        Parameters
+        ----------
+        grid : SplineGrid
+            The coefficient grid.
+        coef : ndarray, (grid.ny, grid.nx)
+            B-spline coefficients, mm.
+        sensitivities : bool
+            Also return d value / d (d0, dx, dy) of a local perturbation at each hit (forward-mode AD, 3 passes).
+        pose : bool
+            Also return the derivatives with respect to the 12 rigid-motion parameters of camera and pattern.
+        z_start : float, optional
+            Plane the Newton iteration starts from (default: the mean coefficient).
+
+        Returns
+        -------
+        TraceResult
+        """
+        m = self.m
+        F = m.Float64
+        c_np = np.ascontiguousarray(np.asarray(coef, dtype=np.float64).reshape(grid.ny, grid.nx))
+        c = F(c_np.ravel())
+        z0 = float(np.mean(c_np)) if z_start is None else float(z_start)
+        value, px, py, valid = self._trace(grid, c, z0)
+        dr.eval(value, px, py, valid)
+        x_np, y_np = px.numpy(), py.numpy()
+        out = TraceResult(value.numpy(), x_np, y_np, valid.numpy().astype(bool), None, None)
+        if sensitivities:
+            sens = np.empty((3, len(x_np)))
+            xr, yr = dr.detach(px), dr.detach(py)
+            for k in range(3):
+                params = [F(0.0), F(0.0), F(0.0)]
+                dr.enable_grad(params[k])
+                v, *_ = self._trace(grid, c, z0, (params[0], params[1], params[2], xr, yr))
+                dr.forward_from(params[k])
+                sens[k] = dr.grad(v).numpy()
+            out.sens = sens
+        if pose:
+            jac = np.empty((12, len(x_np)))
+            for k in range(12):
+                params = [F(0.0) for _ in range(12)]
+                dr.enable_grad(params[k])
+                v, *_ = self._trace(grid, c, z0, None, tuple(params))
+                dr.forward_from(params[k])
+                jac[k] = dr.grad(v).numpy()
+            out.pose = jac
+        return out
+
+    def pixel_values(self, result: TraceResult) -> tuple[Array, NDArray[np.bool_]]:
+        """Per-pixel means of the rays' values and whether every ray of the pixel is valid."""
+        v = result.value.reshape(-1, self.spp).mean(axis=1)
+        ok = np.asarray(result.valid.reshape(-1, self.spp).all(axis=1), dtype=bool)
+        return v, ok

@@ -1,0 +1,152 @@
+"""sim.signals: SIGTERM and SIGHUP end a command like Ctrl-C — one line, exit 128 + n, nothing half-written (issue 15).
+
+The subprocess tests run a command that waits inside a study (registered by a small driver script) and signal it
+there; the dataset generator under signals is in ``test_dataset_kill.py``.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from sim import signals
+from sim.cli import main
+from sim.studies import runner
+from sim.studies.context import StudyContext, StudyResult
+from sim.studies.tables import Row, Table
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_terminated_is_a_keyboard_interrupt_with_its_signal():
+    exc = signals.Terminated(signal.SIGTERM)
+    assert isinstance(exc, KeyboardInterrupt) and exc.signum == 15
+    assert signals.exit_status(exc) == 143 and signals.exit_status(KeyboardInterrupt()) == 130
+    assert signals.describe(signals.Terminated(signal.SIGHUP)) == "interrupted by SIGHUP"
+    assert signals.describe(KeyboardInterrupt()) == "interrupted by SIGINT"
+    assert pickle.loads(pickle.dumps(exc)).signum == 15
+
+
+def test_handlers_are_installed_and_restored_and_ignored_signals_stay_ignored():
+    before = signal.getsignal(signal.SIGTERM)
+    old_hup = signal.signal(signal.SIGHUP, signal.SIG_IGN)  # as under nohup
+    try:
+        with pytest.raises(signals.Terminated) as info, signals.terminate_on_signals():
+            assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)  # interrupted at once
+        assert info.value.signum == signal.SIGTERM
+        assert signal.getsignal(signal.SIGTERM) is before
+    finally:
+        signal.signal(signal.SIGHUP, old_hup)
+
+
+def test_deferred_signals_hold_a_signal_until_the_block_ends():
+    done = []
+    with pytest.raises(signals.Terminated), signals.terminate_on_signals():
+        with signals.deferred_signals():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+            done.append("clean-up finished")
+    assert done == ["clean-up finished"]
+    # inside an interruption's clean-up a second signal is dropped: the first one is the one reported
+    with pytest.raises(KeyboardInterrupt) as info, signals.terminate_on_signals():
+        try:
+            raise KeyboardInterrupt
+        finally:
+            with signals.deferred_signals():
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)
+    assert not isinstance(info.value, signals.Terminated)
+
+
+def test_main_turns_sigterm_into_one_line_and_143_and_discards_the_study(tmp_path, monkeypatch, capsys):
+    def slow(ctx: StudyContext) -> StudyResult:
+        (ctx.out / "partial.txt").write_text("half")
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)
+        return StudyResult("never", "", [Table("T", [Row("a", 1.0, 1.0, "")])])
+
+    monkeypatch.setitem(runner.STUDIES, "slow", slow)
+    code = main(["study", "slow", "--out", str(tmp_path / "rep"), "--workers", "0", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 143
+    assert err == "scopetwin: interrupted by SIGTERM\n"
+    assert list(tmp_path.iterdir()) == []
+
+
+DRIVER = textwrap.dedent(
+    """
+    import sys, time
+    from pathlib import Path
+    from sim.cli import main
+    from sim.studies import runner
+    from sim.studies.context import StudyResult
+
+    def waits(ctx):
+        (ctx.out / "partial.txt").write_text("half")
+        Path(sys.argv[2]).write_text("ready")
+        time.sleep(60)
+        return StudyResult("never", "", [])
+
+    runner.STUDIES["waits"] = waits
+    out = sys.argv[1]
+    sys.exit(main(["study", "waits", "--out", out, "--workers", "0", "--quiet", "--json", out + ".json"]))
+    """
+)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
+def test_a_signalled_study_process_prints_one_line_and_leaves_nothing(tmp_path, sig):
+    out, ready = tmp_path / "report", tmp_path / "ready"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", DRIVER, str(out), str(ready)],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        t0 = time.monotonic()
+        while not ready.exists():
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() - t0 < 60, "the study did not start"
+            time.sleep(0.05)
+        os.killpg(proc.pid, sig)  # the whole group, as a terminal, `timeout` or a batch system does
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 128 + sig, err
+    assert err == f"scopetwin: interrupted by {signal.Signals(sig).name}\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ready"]  # no report, no staging folder, no JSON
+
+
+def test_sigterm_during_a_render_leaves_no_output(tmp_path, monkeypatch, capsys):
+    import sim.cli.render as render_cli
+
+    real = render_cli.write_measurement
+
+    def write_then_signal(stage, *a, **k):
+        names = real(stage, *a, **k)  # the files are staged ...
+        os.kill(os.getpid(), signal.SIGTERM)  # ... and the job is cancelled before they are moved into place
+        time.sleep(5)
+        return names
+
+    monkeypatch.setattr(render_cli, "write_measurement", write_then_signal)
+    setup = tmp_path / "small.toml"
+    setup.write_text('base = "thesis-2.8.1-angular"\n[camera]\npixels = [68, 51]\npixel_pitch = 0.093\n')
+    code = main(["render", str(setup), "--out", str(tmp_path / "o"), "--renderer", "analytic", "--spp", "1"])
+    assert code == 143 and capsys.readouterr().err == "scopetwin: interrupted by SIGTERM\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["small.toml"]
