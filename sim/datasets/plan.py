@@ -10,6 +10,8 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from scenes.limits import check_render
+from scenes.setup import Setup
 from sim.datasets import cmu, grin, part1
 from sim.datasets.config import DatasetConfig, DatasetError, config_from_dict
 from sim.datasets.seeding import draw_parameters
@@ -57,7 +59,10 @@ class Plan:
         plan = cls(cfg, base)
         if check:
             for i in range(cfg.dataset.count) if indices is None else indices:
-                plan.setup_of(i)
+                sample = plan.setup_of(i)
+                if isinstance(sample, Setup):  # Part I: the render's memory and time, before any folder exists
+                    nx, ny = sample.camera.pixels
+                    check_render(nx, ny, sample.render.spp, f"dataset sample {i} ({nx} x {ny} px)")
         return plan
 
     def to_json(self) -> dict[str, Any]:

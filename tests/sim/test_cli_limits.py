@@ -115,6 +115,17 @@ def test_dataset_config_numbers_refused_naming_the_key(old, new, key, tmp_path, 
     assert not (tmp_path / "ds").exists()
 
 
+def test_dataset_sample_render_time_is_checked_before_the_folder_exists(tmp_path, capsys):
+    """Each Part I sample's render (pixels x spp) is estimated while the plan is built, before any folder exists."""
+    from pathlib import Path
+
+    text = (Path(__file__).parents[2] / "examples/datasets/01-deflectometry-small.toml").read_text()
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text(text.replace("spp = 16", "spp = 2000000000"))
+    _refused(capsys, "dataset", "generate", cfg, "--out", tmp_path / "ds", "--workers", "0", names=("rays", "limit"))
+    assert not (tmp_path / "ds").exists()
+
+
 def test_grin_and_cmu_numbers_are_finite():
     with pytest.raises(SetupError, match="rod1.length"):
         load_grin_setup(GRIN, {"rod1": {"length": float("inf")}})
