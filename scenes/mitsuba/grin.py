@@ -39,7 +39,7 @@ from scenes.grin.rkn import rkn_step, rod_steps
 from scenes.grin.setup import GrinSetup, Stack
 from scenes.grin.targets import Target
 from scenes.limits import check_render
-from scenes.mitsuba.variant import mitsuba, register_plugin, resolve
+from scenes.mitsuba.variant import mitsuba, register_plugin, render_complete, resolve
 
 Precision = Literal["float32", "float64"]
 
@@ -704,7 +704,7 @@ def render_image(
     integ = gs.scene.integrator()
     integ.context = (gs, target)  # for this render only: the integrator must not keep the scene alive
     try:
-        img = mi.render(gs.scene, spp=spp)
+        img = render_complete(mi, gs.scene, spp=spp)
         out = np.array(img, dtype=np.float32)[..., 0]
     finally:
         integ.context = None

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from scenes.errors import SetupError
 from scenes.limits import check_render
 from scenes.mitsuba.scene import Window, scene_dict
-from scenes.mitsuba.variant import mitsuba, resolve
+from scenes.mitsuba.variant import mitsuba, render_complete, resolve
 from scenes.setup import Setup
 from scenes.surface import HeightMap
 
@@ -171,7 +171,7 @@ def render_window(
 def scene_render(scene: Any, spp: int, seed: int, variant: str | None = None) -> NDArray[np.float32]:
     """Render a loaded scene (built in ``variant``, default ``choose("mono")``); luminance as float32 (rows, cols)."""
     mi = mitsuba(resolve(variant, "mono"))
-    img = mi.render(scene, spp=int(spp), seed=int(seed))
+    img = render_complete(mi, scene, spp=int(spp), seed=int(seed))
     arr = np.asarray(img, dtype=np.float32)
     return np.ascontiguousarray(arr[..., 0] if arr.ndim == 3 else arr)
 

@@ -154,3 +154,23 @@ def register_plugin(kind: str, name: str, make_class: Callable[[Any], type], var
         cls = _plugin_classes[key] = make_class(mi)
     getattr(mi, f"register_{kind}")(name, lambda props: cls(props))
     done.add(key)
+
+
+def render_complete(mi: Any, scene: Any, **kwargs: Any) -> Any:
+    """``mi.render(scene, **kwargs)``, refusing a render that Mitsuba cut short.
+
+    During a render Mitsuba installs its own SIGINT handler, which cancels the integrator ("Received interrupt
+    signal, winding down..") and hands the signal on — also in a Dask worker that ignores SIGINT, where the signal
+    then goes nowhere and ``mi.render`` returns a partially rendered image. A cancelled render is therefore turned
+    into :class:`KeyboardInterrupt` here, so no sample or image is ever written from it.
+    """
+    image = mi.render(scene, **kwargs)
+    if scene.integrator().should_stop():
+        raise KeyboardInterrupt("the Mitsuba render was interrupted (SIGINT) before it finished")
+    return image
+
+
+def quiet_warnings(variant: str) -> None:
+    """Show only Mitsuba's errors in this process (worker processes: their warnings reach no user)."""
+    mi = mitsuba(variant)
+    mi.set_log_level(mi.LogLevel.Error)

@@ -41,7 +41,7 @@ from scipy import ndimage
 
 from scenes.camera import PixelGrid
 from scenes.errors import SetupError
-from scenes.mitsuba.variant import mitsuba, resolve
+from scenes.mitsuba.variant import mitsuba, render_complete, resolve
 from scenes.objective import Objective
 
 HeightFunction = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
@@ -320,6 +320,6 @@ def render_tile(
     optics = optics or WidefieldOptics()
     mi = mitsuba(variant)
     scene = mi.load_dict(tile_scene_dict(height_mm, stage_xy_mm, focus_um, optics, radiance_scale, seed, variant))
-    image = np.asarray(mi.render(scene, spp=int(optics.spp), seed=int(seed)), dtype=np.float32)
+    image = np.asarray(render_complete(mi, scene, spp=int(optics.spp), seed=int(seed)), dtype=np.float32)
     dr.sync_thread()
     return np.ascontiguousarray(image[..., 0] if image.ndim == 3 else image)

@@ -21,12 +21,29 @@ _WORKER_STATE: dict[str, Any] = {}
 
 
 def init_worker(threads: int | None) -> None:
-    """Once per worker process: Dr.Jit's thread count (one per worker on a local cluster); None/0 leaves it."""
+    """Once per worker process: Dr.Jit's thread count (one per worker on a local cluster; None/0 leaves it), and
+    Mitsuba's log at errors only (a worker's warnings — e.g. Mitsuba's own "winding down" on a Ctrl-C that reached
+    the worker — would only add lines to the client's one-line report)."""
+    if not _WORKER_STATE.get("quiet") and _in_dask_worker():
+        from scenes.mitsuba.variant import quiet_warnings, resolve
+
+        quiet_warnings(resolve(None, "mono"))
+        _WORKER_STATE["quiet"] = True
     if threads and _WORKER_STATE.get("threads") != threads:
         from scenes.mitsuba.variant import set_thread_count
 
         set_thread_count(int(threads))
         _WORKER_STATE["threads"] = threads
+
+
+def _in_dask_worker() -> bool:
+    try:
+        from distributed import get_worker
+
+        get_worker()
+    except (ImportError, ValueError):
+        return False
+    return True
 
 
 def default_workers() -> int:

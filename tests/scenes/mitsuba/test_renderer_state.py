@@ -149,3 +149,20 @@ def test_cmu_scene_builds_do_not_grow_memory(spectral_variant):
     assert len(set(values)) == 1  # the same image every time
     assert jit_growth < 5e6, f"Dr.Jit storage grew by {jit_growth / 1e6:.1f} MB over 20 builds"
     assert heap_growth < 5e6, f"the Python heap grew by {heap_growth / 1e6:.1f} MB over 20 builds"
+
+
+def test_a_render_mitsuba_cut_short_is_refused():
+    """Mitsuba's own SIGINT handler cancels the integrator and mi.render returns a partial image: refused."""
+    from types import SimpleNamespace
+
+    import pytest
+
+    from scenes.mitsuba.variant import render_complete
+
+    def scene_stopped(stopped: bool) -> SimpleNamespace:
+        return SimpleNamespace(integrator=lambda: SimpleNamespace(should_stop=lambda: stopped))
+
+    fake_mi = SimpleNamespace(render=lambda scene, **kw: "image")
+    assert render_complete(fake_mi, scene_stopped(False), spp=1) == "image"
+    with pytest.raises(KeyboardInterrupt, match="interrupted"):
+        render_complete(fake_mi, scene_stopped(True), spp=1)
