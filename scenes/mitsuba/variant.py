@@ -156,17 +156,23 @@ def register_plugin(kind: str, name: str, make_class: Callable[[Any], type], var
     done.add(key)
 
 
+class RenderInterruptedError(ScopetwinError, RuntimeError):
+    """Mitsuba cancelled a render (its SIGINT handler): the image is incomplete and must not be used."""
+
+
 def render_complete(mi: Any, scene: Any, **kwargs: Any) -> Any:
     """``mi.render(scene, **kwargs)``, refusing a render that Mitsuba cut short.
 
     During a render Mitsuba installs its own SIGINT handler, which cancels the integrator ("Received interrupt
     signal, winding down..") and hands the signal on — also in a Dask worker that ignores SIGINT, where the signal
     then goes nowhere and ``mi.render`` returns a partially rendered image. A cancelled render is therefore turned
-    into :class:`KeyboardInterrupt` here, so no sample or image is ever written from it.
+    into :class:`RenderInterruptedError` here, so no sample or image is ever written from it. (In the main process
+    Python's own handler, which Mitsuba hands the signal back to, raises KeyboardInterrupt right after the render;
+    a worker's task simply fails, quietly, without the traceback a KeyboardInterrupt would print there.)
     """
     image = mi.render(scene, **kwargs)
     if scene.integrator().should_stop():
-        raise KeyboardInterrupt("the Mitsuba render was interrupted (SIGINT) before it finished")
+        raise RenderInterruptedError("the Mitsuba render was interrupted (SIGINT) before it finished")
     return image
 
 

@@ -109,6 +109,9 @@ def test_sigterm_mid_mda_keeps_the_planes_and_switches_the_board_off(tmp_path):
     sequence = dict(SEQUENCE, channels=[{"config": "halogen", "exposure": 5.0}, {"config": "uv", "exposure": 5.0}])
     sequence["stage_positions"] = [{"x": 1000.0, "y": 1000.0, "z": 100.0}, {"x": 2000.0, "y": 1500.0, "z": 150.0}]
     sequence["time_plan"] = {"interval": 0.1, "loops": 50}  # 50 x 2 x 2 x 3 = 600 planes in >= 5 s: cut short
+    sequence["axis_order"] = (
+        "tpcz"  # SEQUENCE's "pcz" would leave the time plan out (12 planes, done before the signal)
+    )
     seq = tmp_path / "SEQ.json"
     seq.write_text(json.dumps(sequence))
     log = tmp_path / "board.jsonl"

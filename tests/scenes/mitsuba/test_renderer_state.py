@@ -157,12 +157,12 @@ def test_a_render_mitsuba_cut_short_is_refused():
 
     import pytest
 
-    from scenes.mitsuba.variant import render_complete
+    from scenes.mitsuba.variant import RenderInterruptedError, render_complete
 
     def scene_stopped(stopped: bool) -> SimpleNamespace:
         return SimpleNamespace(integrator=lambda: SimpleNamespace(should_stop=lambda: stopped))
 
     fake_mi = SimpleNamespace(render=lambda scene, **kw: "image")
     assert render_complete(fake_mi, scene_stopped(False), spp=1) == "image"
-    with pytest.raises(KeyboardInterrupt, match="interrupted"):
+    with pytest.raises(RenderInterruptedError, match="interrupted"):
         render_complete(fake_mi, scene_stopped(True), spp=1)
