@@ -17,7 +17,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from sim.cli.options import nonnegative_int, positive_int
+from sim.cli.options import add_cluster_options
 from sim.cli.outputs import check_space, human_bytes
 from sim.datasets.config import DatasetError, load_config
 from sim.datasets.plan import Plan
@@ -35,19 +35,7 @@ DESCRIPTION = (
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler, e.g. tcp://host:8786")
-    p.add_argument(
-        "--workers",
-        type=nonnegative_int(1024),
-        metavar="N",
-        help="local worker processes (default: one per core; 0: no Dask, work in this process)",
-    )
-    p.add_argument(
-        "--threads",
-        type=positive_int(1024),
-        metavar="N",
-        help="Dr.Jit threads per worker (default 1 on a local cluster)",
-    )
+    add_cluster_options(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
 

@@ -115,3 +115,20 @@ def finite_vector(n: int = 3, nonzero: bool = True) -> Callable[[str], tuple[flo
 SPP = positive_int(MAX_SPP)
 SIDE_PX = positive_int(MAX_SIDE_PX)
 SEED = nonnegative_int(MAX_SEED)
+
+
+def add_cluster_options(p: argparse.ArgumentParser) -> None:
+    """``--scheduler`` / ``--workers`` / ``--threads``: where a dataset or a study runs (DESIGN.md "Scale")."""
+    p.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler, e.g. tcp://host:8786")
+    p.add_argument(
+        "--workers",
+        type=nonnegative_int(1024),
+        metavar="N",
+        help="local worker processes (default: one per core; 0: no Dask, work in this process)",
+    )
+    p.add_argument(
+        "--threads",
+        type=positive_int(1024),
+        metavar="N",
+        help="Dr.Jit threads per worker (default 1 on a local cluster)",
+    )

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from sim.cli.options import nonnegative_int, positive_int
+from sim.cli.options import add_cluster_options
 from sim.cli.outputs import check_output_path
 from sim.datasets.runner import check_scheduler
 from sim.studies.context import StudyError
@@ -54,19 +54,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("name", help=f"one of: {', '.join(STUDIES)}")
     p.add_argument("--out", help="report folder (default: study-NAME)")
-    p.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler, e.g. tcp://host:8786")
-    p.add_argument(
-        "--workers",
-        type=nonnegative_int(1024),
-        metavar="N",
-        help="local worker processes (default: one per core; 0: no Dask, work in this process)",
-    )
-    p.add_argument(
-        "--threads",
-        type=positive_int(1024),
-        metavar="N",
-        help="Dr.Jit threads per worker (default 1 on a local cluster)",
-    )
+    add_cluster_options(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
     p.set_defaults(func=cmd_study, outputs=[("out", "dir"), ("json", "file")])
