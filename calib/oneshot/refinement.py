@@ -273,18 +273,22 @@ def refine(
     if distortion:
         # first the a-priori r_cs, c0 weighed at the a-priori centroid noise (a well-posed problem that converges
         # quickly); then at the noise the residuals show: where the data determine every parameter, once more from
-        # there (the a-priori values then hardly pull); where they do not, the first estimate is kept, and the
+        # there without them (they then pull nothing); where they do not, the first estimate is kept, and the
         # covariance carries the a-priori standard deviation (DISTORTION_PRIOR_SIGMA) in those directions
         model = model_for(max(float(np.sqrt(s2)), 1e-9))
         res, jmat = model.residual_and_jacobian(p)
         undetermined = _undetermined(jmat, model)
         if not undetermined:
+            # the data determine every parameter: solve once more without the a-priori pseudo-observations, so
+            # that they pull nothing (exact data are then recovered to round-off)
+            free_model = ReprojectionModel(xy_a, px_a, prior, lens, distortion, b_fixed)
             try:
-                p2, res2, jmat2, nfev2, status2 = _solve(model, p, max_nfev)
+                p2, res2, jmat2, nfev2, status2 = _solve(free_model, p, max_nfev)
             except GeometryError:
                 status2 = 0
             if status2 > 0:
-                p, res, jmat, nfev = p2, res2, jmat2, nfev + nfev2
+                model, p, res, jmat, nfev = free_model, p2, res2, jmat2, nfev + nfev2
+                dof = max(n_data - len(p), 1)
                 s2 = float(res[:n_data] @ res[:n_data]) / dof
         else:
             notes.append(
