@@ -31,7 +31,8 @@ previous surfaces extrapolated linearly in H (the response to H is nearly linear
 Default basis (beyond the seed): Gaussians on a grid overhanging the substrate, ridge
 damping and plane terms — the Gaussian-process prior of the §1.9 surfaces, which is what
 controls the extrapolation into the frame regions. Its scale is chosen from the data
-(:func:`select_sigma`, after a first converged pass with ``sigma``). After convergence the
+(:func:`select_sigma`, after a first pass with ``sigma``: converged, or not converged because that scale cannot
+fit the surface, as a 12 mm basis on a 3 mm correlated glass). After convergence the
 frame condition that was not searched on is checked (``consistency_um``), so a mis-indexed
 image or a wrong setup raises instead of giving a smooth, tilted, wrong map.
 
@@ -149,7 +150,12 @@ class ReconstructionConfig:
     sigma_candidates : tuple of float or None
         Covering grids only: choose sigma among these from the data (:func:`select_sigma`: the scale
         whose fit best extrapolates the gradients of a held-out band of ``holdout_band`` mm at each
-        end of the data, the situation of the frame regions); None: use ``sigma``.
+        end of the data, the situation of the frame regions) among those that fit the data; None: use ``sigma``.
+    fit_ratio : float
+        A candidate scale fits the data when its gradient residual on all markers is at most this many times the
+        smallest candidate residual (:func:`select_sigma`; the finest candidate fits the noise too, so a basis
+        that follows the surface lies within ~2-3 times of it: 2.7-5.2 against 1.4 µrad on the seed's surfaces,
+        while a 12 mm basis on a 3 mm correlated glass leaves 240 times).
     tilt : bool
         Add the unpenalised plane terms x, y.
     regularization : float
@@ -194,8 +200,9 @@ class ReconstructionConfig:
     basis: BasisKind = "gauss"
     counts: tuple[int, int] | None = None
     sigma: tuple[float, float] = (12.0, 12.0)
-    sigma_candidates: tuple[float, ...] | None = (4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 15.0, 18.0, 24.0)
+    sigma_candidates: tuple[float, ...] | None = (2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 15.0, 18.0, 24.0)
     holdout_band: float = 4.0
+    fit_ratio: float = 5.0
     spacing: float = 0.7
     margin: float = 1.0
     tilt: bool = True
@@ -328,8 +335,10 @@ class Uncertainty:
         plus the offset of the fitted surface's value from the posterior mean when no correction was applied,
         divided by the criterion's slope in the start height.
     shape_um : float
-        Of the shape (RMS over the ROI after removing the mean), µm: sqrt of the mean posterior variance of the
-        height contrasts plus the mean squared difference between the fitted and the posterior-mean contrasts.
+        Of the shape (RMS over the ROI after removing the mean), µm: sqrt of the mean, over the ROI, of the
+        posterior variance of the height contrasts, the squared difference between the fitted and the
+        posterior-mean contrasts, and the start height's uncertainty carried into the contrasts (a wrong start
+        height tilts the traced gradients: :meth:`Reconstructor._start_height_sensitivity`).
     node_std : HeightMap
         Standard uncertainty of the height at the nodes of a coarse grid over the whole substrate, mm
         (absolute and shape parts together).
@@ -481,18 +490,25 @@ def check_substrate_visible(camera: Camera, sub: Substrate2D) -> None:
 
 def select_sigma(
     sub: Substrate2D, x: Array, y: Array, hx: Array, hy: Array, config: ReconstructionConfig
-) -> tuple[float, dict[float, float]]:
-    """Basis scale from the data: the candidate whose fit best extrapolates held-out gradients.
+) -> tuple[float, dict[float, float], dict[float, float]]:
+    """Basis scale from the data: among the scales that fit the data, the one that best extrapolates.
 
-    For each end of the data along y, the markers within ``config.holdout_band`` mm of the data's
-    edge are held out, the basis is fitted to the rest, and the RMS gradient error on the held-out
-    band is measured: the same extrapolation the frame criterion relies on (seed §1.4). The scale
-    with the smallest RMS over both ends wins. Returns (sigma, {sigma: score in µrad}).
+    A scale fits when its residual on all the gradients is at most ``config.fit_ratio`` times the smallest
+    residual of the candidates (a basis too coarse for the surface — a 12 mm Gaussian on a 3 mm correlated
+    glass — leaves hundreds of µrad and would otherwise win by extrapolating smoothly). Among those, for each end
+    of the data along y the markers within ``config.holdout_band`` mm of the data's edge are held out, the basis
+    is fitted to the rest, and the RMS gradient error on the held-out band is measured: the same extrapolation the
+    frame criterion relies on (seed §1.4). The scale with the smallest RMS over both ends wins. Returns
+    (sigma, {sigma: held-out score in µrad}, {sigma: residual of the fit to all gradients in µrad}).
     """
     scores: dict[float, float] = {}
+    fits: dict[float, float] = {}
     ends = [y >= y.max() - config.holdout_band, y <= y.min() + config.holdout_band]
     for sigma in config.sigma_candidates or ():
         basis = config.make_basis(sub, sigma)
+        coef, _ = fit_gradients(basis, x, y, hx, hy, config.regularization, method=config.method)
+        gx, gy = SBFSurface(basis, coef).gradient(x, y)
+        fits[float(sigma)] = float(np.sqrt(np.mean((gx - hx) ** 2 + (gy - hy) ** 2)) * 1e6)
         errs = []
         for test in ends:
             if test.all() or (~test).sum() * 2 < basis.n_terms // 4:
@@ -505,8 +521,10 @@ def select_sigma(
         if errs:
             scores[float(sigma)] = float(np.sqrt(np.mean(errs)) * 1e6)
     if not scores:
-        return float(config.sigma[0]), scores
-    return min(scores, key=scores.__getitem__), scores
+        return float(config.sigma[0]), scores, fits
+    floor = min(fits.values())
+    fitting = [s for s in scores if fits[s] <= config.fit_ratio * floor] or list(scores)
+    return min(fitting, key=scores.__getitem__), scores, fits
 
 
 # -- the nested iteration ---------------------------------------------------------------
@@ -660,14 +678,22 @@ class Reconstructor:
         return surface, rms_changes, resid, used
 
     def _outer(
-        self, markers: MarkerObservations, h_start: float, history: list[OuterStep], surfaces: list[SBFSurface]
+        self,
+        markers: MarkerObservations,
+        h_start: float,
+        history: list[OuterStep],
+        surfaces: list[SBFSurface],
+        runs: int | None = None,
     ) -> bool:
-        """The start-height loop from ``h_start``; appends to ``history`` and ``surfaces``; True when converged."""
+        """The start-height loop from ``h_start``; appends to ``history`` and ``surfaces``; True when converged.
+
+        At most ``runs`` inner loops (default: what ``outer_max`` leaves after ``history``).
+        """
         cfg = self.config
         values: list[tuple[float, float]] = []  # (H, F)
         tol = cfg.outer_tol_um * 1e-3
         h = h_start
-        for _ in range(cfg.outer_max - len(history)):
+        for _ in range(runs if runs is not None else cfg.outer_max - len(history)):
             init = _predict_surface(surfaces, values, h) if cfg.warm_start else None
             surf, changes, resid, used = self.inner_loop(h, markers, init)
             m1, m2 = self.frame_maxima(surf)
@@ -720,17 +746,22 @@ class Reconstructor:
         history: list[OuterStep] = []
         surfaces: list[SBFSurface] = []
         converged = self._outer(markers, self.sub.frame_z, history, surfaces)
-        if converged and cfg.sigma_candidates and cfg.counts is None:
+        if surfaces and cfg.sigma_candidates and cfg.counts is None:
             # phase 2: choose the basis scale on data traced through the converged surface, then
-            # search the start height again with it (from the height just found)
+            # search the start height again with it (from the height just found); also when the default
+            # scale did not converge (too coarse for the surface: the bias step on a surface hundreds of
+            # µrad off keeps the start-height loop from settling)
             ij, px, targets = self._prepare(markers)
             px = self.bias(surfaces[-1], ij, px) if self.bias is not None else px
             xy, hx, hy, _ = self._trace(surfaces[-1], px, targets)
-            best, self.sigma_scores = select_sigma(self.sub, xy[:, 0], xy[:, 1], hx, hy, cfg)
-            if best != self.basis.sigma[0]:
+            best, self.sigma_scores, fits = select_sigma(self.sub, xy[:, 0], xy[:, 1], hx, hy, cfg)
+            current = float(self.basis.sigma[0])
+            too_coarse = current in fits and fits[current] > cfg.fit_ratio * min(fits.values())
+            if best != current and (converged or too_coarse):
                 self._use_basis(cfg.make_basis(self.sub, best))
                 h_found = history[-1].start_height_um * 1e-3
-                converged = self._outer(markers, h_found, history, [])
+                runs = None if converged else cfg.outer_max  # the scale that could not fit leaves no budget
+                converged = self._outer(markers, h_found, history, [], runs)
         seconds = time.perf_counter() - t0
         if self._last is None:
             raise ReconstructionError(f"the start-height loop ran no inner loop (outer_max = {cfg.outer_max})")
@@ -773,6 +804,23 @@ class Reconstructor:
             f"the reconstructed surface cannot lie on the holding frame: {what} is {other:.3g} µm "
             f"(> {cfg.consistency_um} µm) — are the markers indexed correctly and is the setup right?{where}"
         )
+
+    def _start_height_sensitivity(
+        self, surf: SBFSurface, markers: MarkerObservations, xx: Array, yy: Array, dh_mm: float = 2e-4
+    ) -> Array:
+        """d(height contrast)/d(start height) at (xx, yy): how a start-height error bends the shape (dimensionless).
+
+        The gradients are traced through a surface at the start height, so a wrong start height tilts and bends
+        them (seed §1.4: the start height is found by the frame criterion, not by the data); one more inner loop
+        at H + ``dh_mm`` from the converged surface gives the derivative by a finite difference.
+        """
+        h = self._roi_mean(surf.coef) + surf.offset
+        try:
+            other = self.inner_loop(h + dh_mm, markers, surf)[0]
+        except ScopetwinError:
+            return np.zeros_like(np.asarray(xx, dtype=np.float64))
+        h2 = self._roi_mean(other.coef) + other.offset
+        return (_contrast(other, h2, xx, yy) - _contrast(surf, h, xx, yy)) / (h2 - h)
 
     def _posterior(self, markers: MarkerObservations, result: ReconstructionResult) -> None:
         """Uncertainty of the converged surface and (``posterior = "correct"``) the posterior start height.
@@ -846,13 +894,21 @@ class Reconstructor:
         nxx, nyy = np.meshgrid(post.node_x, post.node_y)
         fit_c = surf.height(nxx, nyy) - h_final
         dev2 = (fit_c - post.contrast_mean) ** 2
-        u_shape = float(np.sqrt(np.mean(post.contrast_std[post.roi] ** 2 + dev2[post.roi])))
-        node = np.sqrt(u_abs**2 + post.contrast_std**2 + dev2)
+        # the traced gradients depend on the start height: an error dH of it bends the shape by sens * dH
+        sens = self._start_height_sensitivity(surf, markers, nxx, nyy)
+        shape_var = post.contrast_std**2 + dev2 + (sens * u_abs) ** 2
+        u_shape = float(np.sqrt(np.mean(shape_var[post.roi])))
+        node = np.sqrt((u_abs * (1.0 + sens)) ** 2 + post.contrast_std**2 + dev2)
         std_map = HeightMap(node, post.node_x[0], post.node_x[-1], post.node_y[0], post.node_y[-1])
         result.surface = surf
         result.uncertainty = Uncertainty(
             u_abs * 1e3, u_shape * 1e3, std_map, (h_final - h0) * 1e3, slope, hyper.as_dict() if hyper else {}
         )
+
+
+def _contrast(surf: SBFSurface, h: float, xx: Array, yy: Array) -> Array:
+    """Heights relative to the ROI mean ``h``, mm."""
+    return np.asarray(surf.height(xx, yy)) - h
 
 
 def _posterior_subset(xy: Array, hx: Array, hy: Array, budget: int) -> tuple[Array, Array, Array]:
