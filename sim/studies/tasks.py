@@ -112,18 +112,32 @@ def read_sample(folder: str) -> tuple[Any, np.ndarray, dict[str, Any]]:
     return setup_from_dict(truth["setup_json"], str(p)), image, truth
 
 
-def calibration_view_task(folder: str) -> dict[str, Any]:
-    """Centroid and one-shot calibration errors of one calibration-view sample against its truth."""
+def calibration_view_task(folder: str, fill: float | None = None, noise_seed: int | None = None) -> dict[str, Any]:
+    """Centroid and one-shot calibration errors of one calibration-view sample against its truth.
+
+    With ``fill``, the sample is a clean render and this task captures it with the setup's EMVA 1288 sensor
+    (:func:`sim.measurement.apply_sensor`) at an exposure that fills ``fill`` of the full well at the peak, noise
+    seeded by ``noise_seed``: many noise draws of one render (``study noise``) cost no render each. The row's
+    ``parameters`` then carry ``exposure_fill`` and ``noise_seed``.
+    """
     from calib.oneshot import Prior, calibrate, calibrate_bias_corrected
     from recon.bias import correct_centroids, model_for_setup, spot_bias_model
     from recon.markers import find_markers_for
+    from scenes.setup import setup_from_dict
+    from sim.measurement import apply_sensor
 
     quiet()
     setup, image, truth = read_sample(folder)
+    params = dict(truth["parameters"])
     try:
+        if fill is not None:
+            over = {"sensor": {"fill_fraction": float(fill)}}
+            setup = setup_from_dict(merge(truth["setup_json"], over), folder)
+            image = apply_sensor(setup, image, 0 if noise_seed is None else int(noise_seed))
+            params.update(exposure_fill=float(fill), noise_seed=noise_seed)
         found = find_markers_for(image, setup)
     except ScopetwinError as exc:  # e.g. too little light to find the markers: a result, not a crash
-        return {"folder": folder, "parameters": truth["parameters"], "error": f"{type(exc).__name__}: {exc}"}
+        return {"folder": folder, "parameters": params, "error": f"{type(exc).__name__}: {exc}"}
     key = {(m["i"], m["j"]): (m["center_col"], m["center_row"]) for m in truth["markers"]}
     true_px = np.array([key[(int(i), int(j))] for i, j in found.ij], dtype=np.float64)
     corrected, _ = correct_centroids(found.centroids, found.ij, model_for_setup(setup))
@@ -135,7 +149,7 @@ def calibration_view_task(folder: str) -> dict[str, Any]:
     cam_t = setup.camera_model
     out = {
         "folder": folder,
-        "parameters": truth["parameters"],
+        "parameters": params,
         "markers": int(len(found.ij)),
         "raw_rms_px": float(np.sqrt(np.mean(raw_err**2))),
         "raw_max_px": float(raw_err.max()),
