@@ -33,7 +33,10 @@ def main() -> None:
     ap.add_argument("--json", help="write the rows here")
     args = ap.parse_args()
     rows = []
-    print("corr mm  range µm  centroid shape / abs µm  inverse shape / abs µm  CRB shape µm  spline µm  inverse s")
+    print(
+        "corr mm  range µm  centroid shape / abs µm  inverse shape / abs µm  CRB shape µm  spline µm  inverse s"
+        "  tilt removed: centroid / inverse µm"
+    )
     for case in args.cases.split(","):
         corr, rng = (float(v) for v in case.split(":"))
         r = inverse_task(args.kind, corr, rng, args.seed, args.noise, args.spp, json.loads(args.config))
@@ -43,7 +46,8 @@ def main() -> None:
             f"{corr:7.1f}  {rng:7.1f}  {r.get('centroid_shape_um', nan):10.4f} / {r.get('centroid_abs_um', nan):+.4f}"
             f"  {r.get('inverse_shape_um', nan):10.4f} / {r.get('inverse_abs_um', nan):+.4f}"
             f"  {r.get('crb_shape_um', nan):12.5f}  {r.get('spline_shape_um', nan):9.5f}"
-            f"  {r.get('inverse_s', nan):9.1f}",
+            f"  {r.get('inverse_s', nan):9.1f}"
+            f"  {r.get('centroid_untilted_um', nan):.4f} / {r.get('inverse_untilted_um', nan):.4f}",
             flush=True,
         )
         for k in ("centroid_error", "inverse_error"):
