@@ -91,3 +91,51 @@ def test_calibration_view_task_recovers_the_camera(tmp_path):
     assert row["corrected_rms_px"] <= row["raw_rms_px"] + 1e-3
     assert row["corrected_r_c_um"] < 100.0  # 233 mm away, 9.3 µm pixels
     assert np.isfinite(row["corrected_angle_urad"])
+
+
+def test_coverage_table_counts_errors_within_2u():
+    """The coverage columns are the share of surfaces whose |error| lies within 2 u (absolute and shape)."""
+    from sim.studies.coverage import coverage_table
+
+    def row(fam: str, a: float, ua: float, s: float, us: float) -> dict:
+        return {
+            "family": fam,
+            "roi_absolute_um": a,
+            "uncorrected_absolute_um": 2 * a,
+            "u_abs_um": ua,
+            "roi_shape_um": s,
+            "u_shape_um": us,
+        }
+
+    rows = [row("gauss", 0.01, 0.01, 0.002, 0.002), row("gauss", -0.03, 0.01, 0.005, 0.002)]
+    rows += [row("abc+broadband", 0.1, 0.2, 0.03, 0.02), row("abc+broadband", -0.25, 0.1, 0.02, 0.02)]
+    t = coverage_table(rows, "T")
+    by_family = {c[0]: c for c in t.cells}
+    assert set(by_family) == {"gauss", "abc+broadband", "all"}
+    cols = {name: k for k, name in enumerate(t.columns)}
+    assert by_family["gauss"][cols["|abs| <= 2 u_abs (%)"]] == pytest.approx(50.0)  # 0.03 > 2 x 0.01
+    assert by_family["gauss"][cols["shape <= 2 u_shape (%)"]] == pytest.approx(50.0)  # 0.005 > 2 x 0.002
+    assert by_family["abc+broadband"][cols["|abs| <= 2 u_abs (%)"]] == pytest.approx(50.0)
+    assert by_family["all"][cols["surfaces"]] == 4
+    assert by_family["all"][cols["|abs| max (µm)"]] == pytest.approx(0.25)
+    assert by_family["all"][cols["|abs| max, fit (µm)"]] == pytest.approx(0.5)
+
+
+@pytest.mark.slow
+def test_coverage_study_end_to_end(tmp_path, monkeypatch):
+    """One surface per family through the runner: the report's coverage agrees with the rows' errors and u."""
+    from functools import partial
+
+    from sim.studies.coverage import FAMILIES, coverage
+
+    monkeypatch.setitem(runner.STUDIES, "coverage", partial(coverage, per_family=1))
+    run_study("coverage", tmp_path / "cov", workers=0, progress=False)
+    data = json.loads((tmp_path / "cov" / "results.json").read_text())
+    rows = data["data"]["rows"]
+    assert sorted(r["family"] for r in rows) == sorted(FAMILIES) and not any("error" in r for r in rows)
+    within = np.mean([abs(r["roi_absolute_um"]) <= 2 * r["u_abs_um"] for r in rows]) * 100
+    report = (tmp_path / "cov" / "report.md").read_text()
+    assert "Coverage of the reported uncertainty (4 surfaces)" in report
+    all_row = next(line for line in report.splitlines() if line.startswith("| all |"))
+    assert f"| {within:g} |" in all_row or f"| {within:.3g} |" in all_row, all_row
+    assert (tmp_path / "cov" / "coverage.png").stat().st_size > 0
