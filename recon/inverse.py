@@ -57,6 +57,35 @@ if TYPE_CHECKING:  # the renderer is imported lazily at run time
     from scenes.mitsuba.deflectometry_ad import RayModel, SplineGrid
 
 
+def _pixel_moments(res: Any, ok: NDArray[np.bool_], spp: int, block: int = 32768) -> tuple[Array, ...]:
+    """Per usable pixel: the mean hit point and the moments of the rays' sensitivities about it.
+
+    Returns (xm, ym, ma, mb, mc, m_ax, m_ay, m_bx, m_by, m_cx, m_cy): the means of the hit x, y and of the
+    sensitivities a, b, c (to a local height, x-slope and y-slope perturbation), and the means of a, b, c times the
+    hit's offset from the pixel's mean hit in x and y. The basis is expanded to second order about the mean hit
+    (the rays of a pixel land within ~0.05 knot spacings of each other). Worked in blocks of ``block`` pixels, so
+    that the temporaries stay a few tens of MB whatever the image size.
+    """
+    good = np.flatnonzero(ok)
+    out = np.empty((11, len(good)))
+    x_all = res.x.reshape(-1, spp)
+    y_all = res.y.reshape(-1, spp)
+    s_all = [res.sens[k].reshape(-1, spp) for k in range(3)]
+    for start in range(0, len(good), block):
+        rows = good[start : start + block]
+        x, y = x_all[rows], y_all[rows]
+        xm, ym = x.mean(axis=1), y.mean(axis=1)
+        ddx, ddy = x - xm[:, None], y - ym[:, None]
+        sa, sb, sc = (s[rows] for s in s_all)
+        part = out[:, start : start + len(rows)]
+        part[0], part[1] = xm, ym
+        part[2], part[3], part[4] = sa.mean(axis=1), sb.mean(axis=1), sc.mean(axis=1)
+        part[5], part[6] = (sa * ddx).mean(axis=1), (sa * ddy).mean(axis=1)
+        part[7], part[8] = (sb * ddx).mean(axis=1), (sb * ddy).mean(axis=1)
+        part[9], part[10] = (sc * ddx).mean(axis=1), (sc * ddy).mean(axis=1)
+    return tuple(out)
+
+
 # -- the surface: a uniform cubic B-spline ------------------------------------------------------------------------
 @dataclass(frozen=True)
 class SplineSurface:
@@ -504,20 +533,8 @@ class InverseReconstructor:
         if not need_jac:
             return vals, ok, None, None
         assert res.sens is not None
-        spp = model.spp
-        ray_ok = np.repeat(ok, spp)
         npix = int(ok.sum())
-        # per pixel: the mean hit point and the moments of the rays' sensitivities about it; the basis is expanded
-        # to second order about the mean hit (the rays of a pixel land within ~0.05 knot spacings of each other)
-        x = res.x[ray_ok].reshape(npix, spp)
-        y = res.y[ray_ok].reshape(npix, spp)
-        xm, ym = x.mean(axis=1), y.mean(axis=1)
-        ddx, ddy = x - xm[:, None], y - ym[:, None]
-        sa, sb, sc = (res.sens[k][ray_ok].reshape(npix, spp) for k in range(3))
-        ma, mb, mc = sa.mean(axis=1), sb.mean(axis=1), sc.mean(axis=1)
-        max_, may = (sa * ddx).mean(axis=1), (sa * ddy).mean(axis=1)
-        mbx, mby = (sb * ddx).mean(axis=1), (sb * ddy).mean(axis=1)
-        mcx, mcy = (sc * ddx).mean(axis=1), (sc * ddy).mean(axis=1)
+        xm, ym, ma, mb, mc, max_, may, mbx, mby, mcx, mcy = _pixel_moments(res, ok, model.spp)
         idx, w, wx, wy, (wxx, wxy, wyy) = surf.basis_rows_second(xm, ym)
         col = lambda v: v[:, None]  # noqa: E731
         data = (
@@ -532,7 +549,7 @@ class InverseReconstructor:
         jac = sp.csr_matrix((data.ravel(), (rows, idx.ravel())), shape=(npix, surf.coef.size))
         jpose = None
         if res.pose is not None:
-            jpose = res.pose[:, ray_ok].reshape(12, -1, spp).mean(axis=2).T
+            jpose = res.pose.reshape(12, -1, model.spp).mean(axis=2)[:, ok].T
         return vals, ok, jac, jpose
 
     def _photometric(self, vals: Array, data: Array, w: Array) -> tuple[float, float]:
@@ -648,22 +665,28 @@ class InverseReconstructor:
     def _record(self, index: int, lev: _Level, h: float, chi2: float, step_um: float, pixels: int) -> None:
         self.history.append(InverseStep(index, lev.b, h * 1e3, chi2, step_um, pixels, time.perf_counter() - self._t0))
 
-    def shape_std_um(self, surf: SplineSurface, var: Any = None, sub: int = 3, probes: int = 32) -> float:
+    def shape_std_um(
+        self, surf: SplineSurface, var: Any = None, sub: int = 3, probes: int = 32, level: _Level | None = None
+    ) -> float:
         """Standard deviation of the ROI shape (RMS over the ROI, mean removed) from the Fisher information, µm.
 
         The covariance of the coefficients is the inverse of J^T W J + lambda D^T D (the render's Jacobian at
         ``surf`` with W = 1/var, the fit's thin-plate prior), with the mean ROI height held fixed as in the fit;
         with the true pixel variances it is the Cramér-Rao bound of the pixel data (plus prior) on the shape.
         sqrt(mean diag(A C A^T)) over the ROI heights A (mean removed) is traced by ``probes`` Hutchinson probes.
-        ``var``: pixel variances of the full image (default: those of the fit).
+        ``var``: pixel variances of the full image (default: those of the fit). ``level``: the fit's own
+        full-resolution level to reuse (with the fit's variances), instead of building a second ray model.
         """
-        saved = self.var
-        if var is not None:
-            self.var = np.asarray(var, dtype=np.float64)
-        try:
-            lev = self._level(1, sub)
-        finally:
-            self.var = saved
+        if level is not None and var is None and level.b == 1 and level.model.sub == sub:
+            lev = level
+        else:
+            saved = self.var
+            if var is not None:
+                self.var = np.asarray(var, dtype=np.float64)
+            try:
+                lev = self._level(1, sub)
+            finally:
+                self.var = saved
         _, ok, jac, _ = self._linearise(lev, surf)
         assert jac is not None
         w = 1.0 / lev.var[ok]
@@ -747,7 +770,7 @@ class InverseReconstructor:
         # shape uncertainty: the Fisher information at the fit, scaled by the reduced chi^2 (the residuals' own
         # variance where the pixel variances are only known up to a factor, as for a noise-free render)
         chi2 = self.history[-1].chi2 if self.history else 1.0
-        shape_std = self.shape_std_um(surf, None, schedule[-1][1]) * float(np.sqrt(max(chi2, 0.0)))
+        shape_std = self.shape_std_um(surf, None, schedule[-1][1], level=fine) * float(np.sqrt(max(chi2, 0.0)))
         return InverseResult(
             surf,
             self.sub,

@@ -192,8 +192,8 @@ class RayModel:
         px = np.stack(
             [(self.cols[:, None] + ox / self.sub).ravel(), (self.rows[:, None] + oy / self.sub).ravel()], axis=-1
         )
-        o, d = camera.rays(px)
-        self._o_np, self._d_np = o, d
+        _, d = camera.rays(px)
+        del px
         F = self.m.Float64
         self._d = tuple(F(np.ascontiguousarray(d[:, k])) for k in range(3))
 
