@@ -190,6 +190,11 @@ class ReconstructionConfig:
     posterior_points : int
         Most gradient observations entering the posterior (:func:`_posterior_subset`: all of the outermost
         along y, an even subsample of the rest).
+    outlier_factor : float
+        After convergence, markers whose gradient residual exceeds this many times the median residual are
+        rejected one at a time (worst first, refitting in between, at most 5 % of them) and the surface is found
+        again without them (:meth:`Reconstructor._index_outliers`): a wrongly indexed marker is ~3 mrad off, a
+        good one within ~5 times the median (2-20 µrad); 0 turns the check off.
     consistency_um : float
         After convergence the criterion not searched on must hold too: |Delta h_max| (criterion
         ``level``) or |mean frame maximum - frame position| (criterion ``delta``) above this is an
@@ -225,6 +230,7 @@ class ReconstructionConfig:
     evidence_points: int = 250
     posterior_points: int = 800
     posterior_iterations: int = 4
+    outlier_factor: float = 10.0
 
     @classmethod
     def thesis(cls, literal_axes: bool = True, **changes: Any) -> ReconstructionConfig:
@@ -379,6 +385,7 @@ class ReconstructionResult:
     seconds: float
     config: ReconstructionConfig
     uncertainty: Uncertainty | None = None
+    rejected: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
 
     @property
     def outer_iterations(self) -> int:
@@ -421,6 +428,7 @@ class ReconstructionResult:
             "start_height_um": self.history[-1].start_height_um,
             "sigma_mm": list(self.surface.basis.sigma),
             "basis_functions": self.surface.basis.n_basis,
+            **({"rejected_markers": self.rejected.tolist()} if len(self.rejected) else {}),
             **({"uncertainty": self.uncertainty.summary()} if self.uncertainty is not None else {}),
             "history": self.history_dicts(),
         }
@@ -740,6 +748,35 @@ class Reconstructor:
         with single_thread_blas():
             return self._run(markers, history_path)
 
+    def _index_outliers(self, markers: MarkerObservations, surface: SBFSurface) -> NDArray[np.bool_]:
+        """Markers whose gradients no smooth surface explains: wrongly indexed ones (True = reject).
+
+        A marker given its neighbour's index points at a pattern position a pitch away: its traced gradient is
+        ~3 mrad off, while good markers scatter about the fit by a few µrad (at most ~5 times the median residual
+        on the seed's surfaces, PSD glass with broadband content and 3 mm / 60 µm surfaces). The gradients are
+        traced through the converged ``surface``; the worst marker above ``outlier_factor`` times the median
+        residual is removed and the basis refitted, until none is left above it or 5 % are gone.
+        """
+        cfg = self.config
+        ij, px, targets = self._prepare(markers)
+        px = self.bias(surface, ij, px) if self.bias is not None else px
+        xy, hx, hy, ok = self._trace(surface, px, targets)
+        keep = np.ones(len(xy), dtype=bool)
+        basis = surface.basis
+        for _ in range(int(0.05 * len(xy))):
+            coef, _ = fit_gradients(
+                basis, xy[keep, 0], xy[keep, 1], hx[keep], hy[keep], cfg.regularization, method=cfg.method
+            )
+            gx, gy = SBFSurface(basis, coef).gradient(xy[:, 0], xy[:, 1])
+            r = np.hypot(gx - hx, gy - hy)
+            worst = np.flatnonzero(keep)[int(np.argmax(r[keep]))]
+            if r[worst] <= cfg.outlier_factor * float(np.median(r[keep])):
+                break
+            keep[worst] = False
+        drop = np.zeros(len(ij), dtype=bool)
+        drop[np.flatnonzero(ok)[~keep]] = True
+        return drop
+
     def _run(self, markers: MarkerObservations, history_path: str | Path | None) -> ReconstructionResult:
         cfg = self.config
         t0 = time.perf_counter()
@@ -762,10 +799,18 @@ class Reconstructor:
                 h_found = history[-1].start_height_um * 1e-3
                 runs = None if converged else cfg.outer_max  # the scale that could not fit leaves no budget
                 converged = self._outer(markers, h_found, history, [], runs)
+        rejected = np.zeros((0, 2), dtype=np.int64)
+        if converged and cfg.outlier_factor > 0 and self._last is not None:
+            drop = self._index_outliers(markers, self._last)
+            if drop.any():
+                rejected = markers.ij[drop]
+                markers = MarkerObservations(markers.ij[~drop], markers.px[~drop])
+                h_found = history[-1].start_height_um * 1e-3
+                converged = self._outer(markers, h_found, history, [], cfg.outer_max)
         seconds = time.perf_counter() - t0
         if self._last is None:
             raise ReconstructionError(f"the start-height loop ran no inner loop (outer_max = {cfg.outer_max})")
-        result = ReconstructionResult(self._last, self.sub, history, converged, seconds, cfg)
+        result = ReconstructionResult(self._last, self.sub, history, converged, seconds, cfg, rejected=rejected)
         last = history[-1]
         other = (
             abs(last.delta_h_max_um)
