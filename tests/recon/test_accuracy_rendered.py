@@ -10,23 +10,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from psd_cases import PSD_CASES, psd_surface
 
 from recon.markers import find_markers_for
 from recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
 from scenes.setup import load_setup
 from sim.measurement import apply_sensor
 from sim.pipeline import roi_errors
-from sim.surfaces import make_surface
 
 SETUP = load_setup("thesis-1.10-deflectometry")
-CASES = [  # (spectrum, B mm, C, range µm, broadband nm RMS, seed)
-    ("abc", 12.0, 4.0, 40.0, 2.0, 11),
-    ("abc", 16.0, 3.0, 30.0, 3.0, 12),
-    ("abc", 9.0, 4.0, 25.0, 1.0, 13),
-    ("power", 14.0, 3.0, 40.0, 2.0, 14),
-    ("power", 18.0, 4.0, 50.0, 4.0, 15),
-    ("power", 10.0, 3.0, 20.0, 1.5, 16),
-]
 
 
 @pytest.mark.mitsuba
@@ -36,19 +28,9 @@ def test_rendered_psd_surfaces_accuracy_and_coverage(mono_variant: str) -> None:
 
     sub = Substrate2D.from_setup(SETUP)
     rows = []
-    for spectrum, b, c, range_um, bb, seed in CASES:
-        spec = SETUP.substrate.surface.model_copy(
-            update={
-                "kind": "psd",
-                "spectrum": spectrum,
-                "correlation_length": b,
-                "psd_exponent": c,
-                "range_um": range_um,
-                "broadband_rms_nm": bb,
-                "seed": seed,
-            }
-        )
-        truth = make_surface(spec, SETUP.substrate)
+    for case in PSD_CASES:
+        spectrum, seed = case[0], case[5]
+        truth = psd_surface(SETUP, case)
         clean = render_setup(SETUP, truth, spp=4, seed=seed, variant=mono_variant)
         for noisy in (False, True):
             image = apply_sensor(SETUP, clean, seed) if noisy else clean

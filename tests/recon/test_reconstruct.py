@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from psd_cases import PSD_CASES, psd_surface
 
 from recon.reconstruct import (
     MarkerObservations,
@@ -245,35 +246,15 @@ def test_one_secant_intersection_for_height_maps_fitted_surfaces_and_functions()
 
 
 # -- uncertainty (recon.posterior) on PSD surfaces with broadband content -------------------------------------------
-PSD_CASES = [  # (spectrum, B mm, C, range µm, broadband nm, seed): the seed's kind with nm-level broadband content
-    ("abc", 12.0, 4.0, 40.0, 2.0, 11),
-    ("abc", 16.0, 3.0, 30.0, 3.0, 12),
-    ("abc", 9.0, 4.0, 25.0, 1.0, 13),
-    ("power", 14.0, 3.0, 40.0, 2.0, 14),
-    ("power", 18.0, 4.0, 50.0, 4.0, 15),
-    ("power", 10.0, 3.0, 20.0, 1.5, 16),
-]
-
-
 @pytest.mark.slow
 def test_psd_surfaces_with_broadband_content_are_covered_by_their_uncertainty() -> None:
     """Six PSD surfaces (exact marker images + 0.005 px centroid noise): accuracy, and |error| within 2-3 u."""
     from scenes.errors import ScopetwinError
 
     rows = []
-    for spectrum, b, c, rng_um, bb, seed in PSD_CASES:
-        spec = SETUP.substrate.surface.model_copy(
-            update={
-                "kind": "psd",
-                "spectrum": spectrum,
-                "correlation_length": b,
-                "psd_exponent": c,
-                "range_um": rng_um,
-                "broadband_rms_nm": bb,
-                "seed": seed,
-            }
-        )
-        h = make_surface(spec, SETUP.substrate)
+    for case in PSD_CASES:
+        spectrum, b, c, seed = case[0], case[1], case[2], case[5]
+        h = psd_surface(SETUP, case)
         t = marker_truth(SETUP, h)
         px = t.center_px[t.visible] + 0.005 * np.random.default_rng(seed).standard_normal((int(t.visible.sum()), 2))
         try:
