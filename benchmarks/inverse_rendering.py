@@ -4,7 +4,8 @@ For each case (a §1.9 surface) the §1.10 measurement is rendered with Mitsuba,
 method and by inverse rendering started from it (``sim.studies.inverse.inverse_task``, the task of
 ``scopetwin study inverse``); every Gauss-Newton step's surface is compared with the truth. Beside them: the
 Cramér-Rao bound of the pixel data on the shape (Fisher information J^T W J of the render with EMVA 1288 pixel
-variances), and the B-spline's own representation error of the true surface.
+variances), the Bayesian (Van Trees) bound under the surface family's prior, and the B-spline's own
+representation error of the true surface.
 
 Run: ``.venv/bin/python benchmarks/inverse_rendering.py [--cases 12:40,5:40,3:60] [--kind random|psd] [--noise]
 [--spp 16] [--config '{"levels": [[1, 4]]}'] [--json PATH]`` (one surface per case; minutes each on 2 cores).
@@ -34,8 +35,8 @@ def main() -> None:
     args = ap.parse_args()
     rows = []
     print(
-        "corr mm  range µm  centroid shape / abs µm  inverse shape / abs µm  CRB shape µm  spline µm  inverse s"
-        "  tilt removed: centroid / inverse µm"
+        "corr mm  range µm  centroid shape / abs µm  inverse shape / abs µm  CRB shape µm  Bayes bound µm"
+        "  spline µm  inverse s  tilt removed: centroid / inverse µm"
     )
     for case in args.cases.split(","):
         corr, rng = (float(v) for v in case.split(":"))
@@ -45,7 +46,8 @@ def main() -> None:
         print(
             f"{corr:7.1f}  {rng:7.1f}  {r.get('centroid_shape_um', nan):10.4f} / {r.get('centroid_abs_um', nan):+.4f}"
             f"  {r.get('inverse_shape_um', nan):10.4f} / {r.get('inverse_abs_um', nan):+.4f}"
-            f"  {r.get('crb_shape_um', nan):12.5f}  {r.get('spline_shape_um', nan):9.5f}"
+            f"  {r.get('crb_shape_um', nan):12.5f}  {r.get('bayes_bound_um', nan):14.5f}"
+            f"  {r.get('spline_shape_um', nan):9.5f}"
             f"  {r.get('inverse_s', nan):9.1f}"
             f"  {r.get('centroid_untilted_um', nan):.4f} / {r.get('inverse_untilted_um', nan):.4f}",
             flush=True,

@@ -196,3 +196,105 @@ def test_cramer_rao_bound_scales_with_the_noise(case):
     four = shape_crb_um(rec, truth, 4 * var, sub=2, probes=4)
     assert np.isfinite(one) and one > 0
     assert four == pytest.approx(2 * one, rel=1e-6)
+
+
+def test_fit_in_a_basis_span_recovers_a_surface_of_that_basis(case):
+    """surface="start-basis": the fit keeps to the span of the start's shifted basis and returns to a known member."""
+    from recon.shifted_basis import ShiftedBasis
+
+    _, sub, _, rec, lev = case
+    basis = ShiftedBasis.covering(sub.x_range, sub.y_range, 6.0, spacing=0.7, margin=1.0)
+    rng = np.random.default_rng(4)
+    coef = rng.normal(0.0, 2e-3, basis.n_terms)
+    span = SplineSurface.span(basis, sub, 1.0)
+    assert span.shape == (lev.model.sub * 0 + SplineSurface.covering(sub, 1.0).coef.size, basis.n_terms + 1)
+    truth = SplineSurface.covering(sub, 1.0).with_coef(span @ np.append(coef, -0.01))
+    xs, ys = sub.roi_grid(0.3)
+    direct = basis.evaluate(coef, xs, ys)[0] - 0.01
+    assert np.max(np.abs(truth.height(xs, ys) - direct)) < 2e-6  # the span's columns are the basis as B-splines
+    vals, _, _, _ = rec._linearise(lev, truth, need_jac=False)
+    lev.data, lev.var = vals.copy(), np.ones_like(vals)
+    start = truth.with_coef(span @ np.append(coef + rng.normal(0.0, 2e-4, basis.n_terms), -0.01))
+    h = float(np.mean(truth.height(*sub.roi_grid(0.5))))
+    rec._span = span
+    try:
+        fitted = rec.fit_level(lev, start, h, 8, 0)
+    finally:
+        rec._span = None
+    res = lev.model.trace(truth.grid, truth.coef, sensitivities=False)
+    hx, hy = res.x[res.valid], res.y[res.valid]
+    err = fitted.height(hx, hy) - truth.height(hx, hy)
+    err0 = start.height(hx, hy) - truth.height(hx, hy)
+    # the fitted surface is a member of the span, and under the window it is the truth's shape again
+    coords, *_ = np.linalg.lstsq(span, fitted.coef.ravel(), rcond=None)
+    assert np.max(np.abs(span @ coords - fitted.coef.ravel())) < 1e-9
+    a = np.stack([np.ones_like(hx), hx, hy], axis=1)
+    rest = lambda e: np.std(e - a @ np.linalg.lstsq(a, e, rcond=None)[0])  # noqa: E731
+    assert rest(err) < 0.02 * rest(err0)
+
+
+def test_uncertainty_is_the_same_in_camera_units(case):
+    """The shape uncertainty of an image in DN (gain g, variances g^2) equals that of the same image in irradiance."""
+    from recon.shifted_basis import ShiftedBasis
+
+    _, sub, truth, rec, lev = case
+    vals, _, _, _ = rec._linearise(lev, truth, need_jac=False)
+    saved = lev.data, lev.var
+    # a span the small window determines (2 x 2 broad terms and a plane)
+    basis = ShiftedBasis.grid((2, 2), sub.x_range, sub.y_range, (20.0, 20.0), "gauss", tilt=True)
+    for span in (None, SplineSurface.span(basis, sub, 1.0)):  # the free spline and a basis's span
+        rec._span = span
+        try:
+            lev.data, lev.var = vals.copy(), np.full_like(vals, 1e-6)
+            one = rec.shape_std_um(truth, None, lev.model.sub, probes=4, level=lev)
+            lev.data, lev.var = 3000.0 * vals + 50.0, np.full_like(vals, 1e-6 * 3000.0**2)
+            dn = rec.shape_std_um(truth, None, lev.model.sub, probes=4, level=lev)
+        finally:
+            lev.data, lev.var = saved
+            rec._span = None
+        assert np.isfinite(one) and one > 0
+        assert dn == pytest.approx(one, rel=1e-5)  # the gain is fitted (lstsq): equal to its round-off
+
+
+def test_bayes_bound_lies_between_the_data_and_the_prior(case):
+    """Van Trees bound: the prior's own shape RMS without data, smaller with data, and the posterior RMS of a
+    linear-Gaussian model checked by Monte Carlo (posterior-mean estimates of prior draws from noisy data)."""
+    from scipy.linalg import null_space
+
+    _, sub, truth, rec, _ = case
+    rng = np.random.default_rng(7)
+    a, b, p = rng.uniform(2, 8, 40), rng.uniform(2, 8, 40), rng.uniform(0, 6, 40)
+
+    def draws(x, y):  # a smooth prior: 40 random smooth surfaces as B-splines
+        return 1e-3 * np.sin(x.ravel()[:, None] / a + p) * np.cos(y.ravel()[:, None] / b)
+
+    x_prior = SplineSurface.fit_columns(draws, sub, 1.0) / np.sqrt(40.0)
+    assert x_prior.shape == (truth.coef.size, 40)
+    xs, ys = sub.roi_grid(0.5)
+    heights = np.asarray(truth.design(xs, ys) @ x_prior)
+    q = null_space(heights.mean(axis=0)[None, :])  # the prior given the mean ROI height
+    s_mat = heights @ q
+    s_mat -= s_mat.mean(axis=0)
+    prior_rms = np.sqrt(np.sum(s_mat**2) / s_mat.shape[0]) * 1e3
+    none = rec.shape_bayes_bound_um(truth, x_prior, np.full(rec.image.shape, 1e12), sub=2)
+    assert none == pytest.approx(prior_rms, rel=1e-6)
+    var = np.full(rec.image.shape, 1e-4)
+    some = rec.shape_bayes_bound_um(truth, x_prior, var, sub=2)
+    less = rec.shape_bayes_bound_um(truth, x_prior, var / 100.0, sub=2)
+    flat = rec.shape_bayes_bound_um(truth, x_prior, var, sub=2, untilted=True)
+    assert less < some < none
+    assert flat <= some
+    # Monte Carlo: data y = J X Q u + noise for prior draws u, the posterior-mean estimate's shape error -> the bound
+    lv = rec._level(1, 2)
+    lv.var = np.full_like(lv.var, 1e-4)
+    _, _, jac, _ = rec._linearise(lv, truth)
+    assert jac is not None
+    jx = np.asarray(jac @ (x_prior @ q))
+    info = np.eye(q.shape[1]) + jx.T @ jx / 1e-4
+    errs = []
+    for _ in range(400):
+        u = rng.normal(size=q.shape[1])
+        y = jx @ u + rng.normal(0.0, 1e-2, jx.shape[0])
+        u_hat = np.linalg.solve(info, jx.T @ y / 1e-4)
+        errs.append(np.sum((s_mat @ (u_hat - u)) ** 2) / s_mat.shape[0])
+    assert np.sqrt(np.mean(errs)) * 1e3 == pytest.approx(some, rel=0.1)
