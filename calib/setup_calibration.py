@@ -276,7 +276,37 @@ def calibrated_setup_dict(nominal: Setup, result: SetupCalibration) -> dict[str,
     data["pattern"].update(
         {"origin": p.origin.tolist(), "t_x": p.tx.tolist(), "t_y": p.ty.tolist(), "n_z": p.nz.tolist()}
     )
+    data.pop("calibration", None)
+    unc = pose_uncertainties(result)
+    if unc is not None:
+        data["calibration"] = unc
     return data
+
+
+def _pose_std(sigma: dict[str, Any]) -> tuple[float, float]:
+    """Largest standard deviation of a calibration's camera position (mm) and of its axes' components (rad)."""
+    shift = float(np.max(np.asarray(sigma["r_c"], dtype=np.float64)))
+    rot = float(max(np.max(np.asarray(sigma[k], dtype=np.float64)) for k in ("t_x", "t_y", "n_z")))
+    return shift, rot
+
+
+def pose_uncertainties(result: SetupCalibration) -> dict[str, Any] | None:
+    """The ``[calibration]`` table of a calibrated setup: standard deviations of the camera and pattern poses.
+
+    The camera's are the substrate view's (seed §2.7.1: camera against the target on the holding frame); the
+    pattern is placed through both views (its mirror image against the camera, seed §2.7.2), so its standard
+    deviations are those of the two calibrations in quadrature (first order). Components of the unit axes stand for
+    the rotation angles (small angles). None where a calibration left one undetermined (infinite).
+    """
+    cs, cr = _pose_std(result.substrate.sigma)
+    ms, mr = _pose_std(result.mirror.sigma)
+    values = (cs, cr, float(np.hypot(cs, ms)), float(np.hypot(cr, mr)))
+    if not all(np.isfinite(v) for v in values):
+        return None
+    return {
+        "camera": {"shift_mm": values[0], "rotation_rad": values[1]},
+        "pattern": {"shift_mm": values[2], "rotation_rad": values[3]},
+    }
 
 
 def write_setup_toml(path: str | Path, nominal: Setup, result: SetupCalibration) -> str:

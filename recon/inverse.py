@@ -308,8 +308,10 @@ class InverseConfig:
         Pixel variances: EMVA 1288 (camera images in DN), constant, or chosen from the image (peak > 2: DN).
     refine_setup : bool
         Add camera and pattern rigid motions to the unknowns.
-    pose_sigma : (float, float)
-        Prior standard deviations of those motions: shift (mm) and rotation (rad).
+    pose_sigma : (float, float, float, float)
+        Prior standard deviations of those motions: camera shift (mm), camera rotation (rad), pattern shift (mm),
+        pattern rotation (rad) — the calibration's uncertainties where the setup carries them
+        (:func:`pose_sigma_for`, ``[calibration]`` of a setup that ``calibrate-setup`` wrote).
     """
 
     spacing: float = 0.5
@@ -328,7 +330,7 @@ class InverseConfig:
     frame_step: float = 0.2
     noise: str = "auto"
     refine_setup: bool = False
-    pose_sigma: tuple[float, float] = (0.05, 2e-4)
+    pose_sigma: tuple[float, float, float, float] = (0.05, 2e-4, 0.05, 2e-4)
 
 
 @dataclass
@@ -635,8 +637,8 @@ class InverseReconstructor:
             if jpose is not None:
                 npose = 12
                 jp = jpose[ok] * alpha
-                sig = np.array([cfg.pose_sigma[0]] * 3 + [cfg.pose_sigma[1]] * 3) * np.ones(2)[:, None]
-                prior = 1.0 / sig.ravel() ** 2
+                sig = np.repeat(np.asarray(cfg.pose_sigma, dtype=np.float64), 3)  # (shift, rotation) x 3 per device
+                prior = 1.0 / np.maximum(sig, 1e-12) ** 2
                 jpw = jp.T * wgt[None, :]
                 a_pp = jpw @ jp + np.diag(prior)
                 a_pc = sp.csr_matrix(jpw @ ja if span is None else (jpw @ ja) @ span)
@@ -888,6 +890,20 @@ class InverseReconstructor:
             shape_std,
             {"surface": "spline" if self._span is None else "start-basis", "span_terms": span_terms},
         )
+
+
+def pose_sigma_for(
+    setup: Setup, default: tuple[float, float, float, float] | None = None
+) -> tuple[float, float, float, float]:
+    """The prior standard deviations of ``--refine-setup`` (:class:`InverseConfig` ``pose_sigma``) for a setup.
+
+    A setup written by ``calibrate-setup`` carries its calibration's uncertainties (``[calibration]``: camera and
+    pattern, shift mm and rotation rad, seed §2.7); other setups get ``default`` (that of :class:`InverseConfig`).
+    """
+    cal = setup.calibration
+    if cal is None:
+        return default or InverseConfig().pose_sigma
+    return (cal.camera.shift_mm, cal.camera.rotation_rad, cal.pattern.shift_mm, cal.pattern.rotation_rad)
 
 
 def reconstruct_inverse(

@@ -308,6 +308,20 @@ class NoiseModelSpec(_Model):
         )
 
 
+class PoseUncertaintySpec(_Model):
+    """Standard deviations of a calibrated pose (seed §2.7): position (mm) and orientation (rad)."""
+
+    shift_mm: float = Field(ge=0.0, description="standard deviation of the position, mm")
+    rotation_rad: float = Field(ge=0.0, description="standard deviation of the orientation, rad")
+
+
+class CalibrationSpec(_Model):
+    """The uncertainties of a calibrated setup's camera and pattern poses (``calibrate-setup`` writes them)."""
+
+    camera: PoseUncertaintySpec
+    pattern: PoseUncertaintySpec
+
+
 class Setup(_Model):
     """One physical scene of Part I (module docstring)."""
 
@@ -321,6 +335,7 @@ class Setup(_Model):
     mirror: MirrorSpec | None = None
     render: RenderSpec = RenderSpec()
     sensor: NoiseModelSpec = NoiseModelSpec()
+    calibration: CalibrationSpec | None = None
 
     @model_validator(mode="after")
     def _check(self) -> Setup:

@@ -93,7 +93,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
 
 def _cmd_inverse(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0: float) -> dict[str, Any]:
     """``--method inverse`` (:mod:`recon.inverse`): start from the centroid method's surface where it succeeds."""
-    from recon.inverse import InverseConfig, reconstruct_inverse
+    from recon.inverse import InverseConfig, pose_sigma_for, reconstruct_inverse
     from recon.markers import find_markers_for
     from recon.reconstruct import MarkerObservations, NotConvergedError, Reconstructor, centroid_bias_step
     from scenes.io import write_heightmap
@@ -117,6 +117,7 @@ def _cmd_inverse(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0
         start_note = f"plane ({type(exc).__name__}: {exc})"
     cfg = InverseConfig(
         refine_setup=bool(args.refine_setup),
+        pose_sigma=pose_sigma_for(setup),  # the calibration's uncertainties where the setup carries them
         criterion=args.criterion or "level",
         absolute="start" if start_note == "centroid" else "frame",  # an unconverged start: search the height
     )
@@ -142,9 +143,21 @@ def _cmd_inverse(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0
         "seconds": seconds,
         "start": start_note,
         "uncertainty": {"absolute_um": u_abs, "shape_um": result.shape_std_um},
-        **({"camera": result.camera.as_dict(), "pattern": result.pattern.frame.as_dict()} if args.refine_setup else {}),
+        **(
+            {
+                "camera": result.camera.as_dict(),
+                "pattern": result.pattern.frame.as_dict(),
+                "pose_prior_std": dict(zip(_POSE_PRIOR_KEYS, cfg.pose_sigma, strict=True)),
+            }
+            if args.refine_setup
+            else {}
+        ),
         **summary,
     }
+
+
+#: Names of InverseConfig.pose_sigma's entries in the JSON of ``--refine-setup``.
+_POSE_PRIOR_KEYS = ("camera_shift_mm", "camera_rotation_rad", "pattern_shift_mm", "pattern_rotation_rad")
 
 
 def register(subparsers: Any) -> None:

@@ -121,3 +121,27 @@ def test_rendered_images_meet_the_issue_targets(setups, rendered):
     for k in ("tx", "ty", "nz"):
         assert _angle(getattr(res.camera.frame, k), getattr(cam, k)) < 10e-6
         assert _angle(getattr(res.pattern, k), getattr(pat, k)) < 10e-6
+
+
+def test_calibrated_setup_carries_its_pose_uncertainties(setups, tmp_path):
+    """calibrate-setup writes [calibration] (camera and pattern pose standard deviations); --refine-setup reads it."""
+    from recon.inverse import InverseConfig, pose_sigma_for
+
+    ss, sm = setups
+    xs, ps_, xm, pm_ = exact_inputs(ss, sm)
+    rng = np.random.default_rng(3)
+    noisy_s = ps_ + rng.normal(0.0, 0.05, ps_.shape)  # 0.05 px centroid noise
+    noisy_m = pm_ + rng.normal(0.0, 0.05, pm_.shape)
+    res = calibrate_setup(xs, noisy_s, Prior.from_camera(ss.camera_model, 25.0), xm, noisy_m, mirror_prior(sm))
+    path = tmp_path / "calibrated.toml"
+    write_setup_toml(path, sm, res)
+    back = load_setup(path)
+    assert back.calibration is not None
+    cam, pat = back.calibration.camera, back.calibration.pattern
+    assert cam.shift_mm == pytest.approx(float(np.max(res.substrate.sigma["r_c"])))
+    assert 0 < cam.shift_mm <= pat.shift_mm  # the pattern is placed through both views
+    assert 0 < cam.rotation_rad <= pat.rotation_rad
+    # the camera centre's error lies within a few of its standard deviations
+    assert np.max(np.abs(res.camera.center - ss.camera_model.frame.origin)) < 4 * cam.shift_mm
+    assert pose_sigma_for(back) == (cam.shift_mm, cam.rotation_rad, pat.shift_mm, pat.rotation_rad)
+    assert pose_sigma_for(sm) == InverseConfig().pose_sigma  # a nominal setup: the defaults
