@@ -636,7 +636,7 @@ class InverseReconstructor:
             npose = 0
             if jpose is not None:
                 npose = 12
-                jp = jpose[ok] * alpha
+                jp = jpose * alpha  # rows of the usable pixels already
                 sig = np.repeat(np.asarray(cfg.pose_sigma, dtype=np.float64), 3)  # (shift, rotation) x 3 per device
                 prior = 1.0 / np.maximum(sig, 1e-12) ** 2
                 jpw = jp.T * wgt[None, :]
