@@ -312,6 +312,13 @@ class InverseConfig:
         Prior standard deviations of those motions: camera shift (mm), camera rotation (rad), pattern shift (mm),
         pattern rotation (rad) — the calibration's uncertainties where the setup carries them
         (:func:`pose_sigma_for`, ``[calibration]`` of a setup that ``calibrate-setup`` wrote).
+    pose_box : float
+        The pose stays within this many of those standard deviations of the setup (each step shortened to keep
+        it so): the pixels of an unknown specular surface hardly tell a camera motion from a change of the surface's
+        slopes, and on a full Mitsuba image the free fit (the Gaussian prior alone) moved the camera by 2 mm against
+        a 27 µm sigma, the shape 1.5 -> 17.7 µm (``benchmarks/refine_setup.py``); within the box the shape is
+        1.39 against 1.45 µm unrefined, but the poses run to its walls (camera 69 µm / 274 µrad off, from 27 µm / 71
+        µrad): the pose is not identifiable from such an image.
     """
 
     spacing: float = 0.5
@@ -331,6 +338,7 @@ class InverseConfig:
     noise: str = "auto"
     refine_setup: bool = False
     pose_sigma: tuple[float, float, float, float] = (0.05, 2e-4, 0.05, 2e-4)
+    pose_box: float = 3.0
 
 
 @dataclass
@@ -464,6 +472,15 @@ def _binned_camera(camera: Camera, b: int, r0: int, c0: int) -> Camera:
     x_cs = camera.r_cs[0] + (c0 - 0.5 * camera.nx) * camera.pitch + 0.5 * nx_b * pitch
     y_cs = camera.r_cs[1] + (0.5 * camera.ny - r0) * camera.pitch - 0.5 * ny_b * pitch
     return camera.with_(nx=nx_b, ny=ny_b, pitch=pitch, r_cs=(x_cs, y_cs))
+
+
+def _box_fraction(pose: Array, step: Array, bound: Array) -> float:
+    """Largest f in [0, 1] with |pose + f step| <= bound componentwise (pose itself inside the box)."""
+    out = np.abs(step) > 0
+    room = np.where(step > 0, bound - pose, bound + pose)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        limits = np.where(out, np.maximum(room, 0.0) / np.abs(step), np.inf)
+    return float(min(1.0, np.min(limits)))
 
 
 def _pose_update(camera: Camera, pattern: MarkerPattern, p: Array) -> tuple[Camera, MarkerPattern]:
@@ -659,9 +676,13 @@ class InverseReconstructor:
                 kkt = sp.bmat(blocks, format="csc")
                 step = spla.spsolve(kkt, np.concatenate(rhs))
                 k = len(m_row)
-                dc = step[:k] if span is None else span @ step[:k]
-                trial = surf.with_coef(c + dc)
+                frac = 1.0
                 dp = step[k : k + npose] if npose else None
+                if dp is not None:  # the joint step shortened so that the pose stays within pose_box sigma
+                    frac = _box_fraction(self.pose, dp, cfg.pose_box * sig)
+                    dp = dp * frac
+                dc = frac * (step[:k] if span is None else span @ step[:k])
+                trial = surf.with_coef(c + dc)
                 if dp is not None:
                     saved = (lev.model.camera, lev.model.pattern)
                     self._apply_pose(lev, dp)

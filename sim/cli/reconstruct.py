@@ -181,7 +181,10 @@ def register(subparsers: Any) -> None:
         "through a differentiable render, started from the centroid result",
     )
     p.add_argument(
-        "--refine-setup", action="store_true", help="inverse: also fit camera and pattern pose, held near the setup"
+        "--refine-setup",
+        action="store_true",
+        help="inverse: also fit camera and pattern pose, within 3 sigma of the setup's calibration (one image of an "
+        "unknown surface hardly determines them: measured, the poses run to those bounds; benchmarks/refine_setup.py)",
     )
     p.add_argument(
         "--posterior",

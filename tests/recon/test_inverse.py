@@ -330,3 +330,13 @@ def test_refine_setup_fits_the_pose_where_some_pixels_miss_the_substrate():
     rec.fit_level(lev, truth, float(np.mean(truth.height(xs, ys))), 4, 0)
     assert rec.history[-1].chi2 < 0.1 * rec.history[0].chi2
     assert rec.pose[0] > 0.0  # moved toward the camera's true position
+
+
+def test_pose_steps_stay_in_their_box():
+    from recon.inverse import _box_fraction
+
+    bound = np.array([1.0, 2.0])
+    assert _box_fraction(np.zeros(2), np.array([0.5, -1.0]), bound) == 1.0
+    assert _box_fraction(np.array([0.5, 0.0]), np.array([1.0, 0.0]), bound) == pytest.approx(0.5)
+    assert _box_fraction(np.array([0.0, -1.5]), np.array([0.0, -1.0]), bound) == pytest.approx(0.5)
+    assert _box_fraction(np.array([1.0, 0.0]), np.array([1.0, 1.0]), bound) == 0.0  # at the wall, pushing out
