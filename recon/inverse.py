@@ -21,6 +21,12 @@ Loss (Gauss-Newton / Levenberg-Marquardt on the coefficients c)::
   image blurred and decimated, which widens the basin), then on the full-resolution image; from the centroid
   method's surface (already inside the basin) the full-resolution image directly.
 
+From a converged centroid start the coefficients are held to the span of the centroid method's shifted basis
+(``surface="start-basis"``: c = P a, P the basis functions as B-splines, :meth:`SplineSurface.span`; its scale was
+chosen from the data by :func:`recon.reconstruct.select_sigma`): the prior the centroid method found for this surface,
+fitted now to every pixel instead of to the markers' centroids. The free spline (every coefficient, thin-plate prior)
+is used from a plane start and where the height is searched.
+
 The absolute height is decided by the frame criterion (seed §1.4, eqs. 1.3-1.4, :mod:`recon.frame_criterion`): the
 fit is constrained to a mean ROI height H; from a centroid start H is the centroid method's (found by the frame
 criterion on its Gaussian-process surface, the better extrapolation into the frame regions), and with
@@ -265,7 +271,7 @@ class InverseConfig:
         The surfaces the fit searches. "start-basis" (from a centroid start): the span of the centroid method's
         shifted basis (its scale chosen from the data by :func:`recon.reconstruct.select_sigma`) as B-splines,
         :meth:`SplineSurface.span` — the prior the centroid method found for this surface, now fitted to every
-        pixel; measured (Mitsuba 16 spp, seed 2): with EMVA 1288 noise 0.0012-0.0020 µm shape against the centroid
+        pixel; measured (Mitsuba 16 spp, seed 2): with EMVA 1288 noise 0.0012-0.0022 µm shape against the centroid
         method's 0.0016-0.0032 at 5-20 mm / 40 µm, and 3 mm / 60 µm tilt-removed 0.014 µm against 0.060; the free
         spline with its thin-plate prior passes more noise (0.0041 with noise at 12 mm). "spline": every
         coefficient free (always so from a plane start, which has no basis, and with ``absolute="frame"``: the
@@ -844,6 +850,7 @@ class InverseReconstructor:
         """
         cfg = self.config
         t0 = self._t0 = time.perf_counter()
+        self._span = None
         if initial is None:
             surf = SplineSurface.covering(self.sub, cfg.spacing, self.sub.frame_z)
         else:
