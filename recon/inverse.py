@@ -784,6 +784,25 @@ class InverseReconstructor:
             acc += float(v @ x)
         return float(np.sqrt(max(acc, 0.0) / probes / design.shape[0])) * 1e3
 
+    def start_height_term_um(self, lev: _Level, surf: SplineSurface, h: float, absolute_std_um: float) -> float:
+        """The start height's uncertainty carried into the shape, µm (RMS over the ROI).
+
+        The rays are traced through a surface at the start height H, so an error of H tilts and bends the fitted
+        shape (seed §1.4; the centroid method's :meth:`recon.reconstruct.Reconstructor._start_height_sensitivity`):
+        one more Gauss-Newton pass at H + 0.2 µm from the fitted surface gives d(contrast)/dH per ROI point by a
+        finite difference; the term is sqrt(mean((d contrast/dH * u_abs)^2)).
+        """
+        dh = 2e-4  # mm
+        n = len(self.history)
+        try:
+            other = self.fit_level(lev, surf, h + dh, max(self.config.outer_iterations, 1), -1)
+        finally:
+            del self.history[n:]  # not a step of the fit
+        xs, ys = self.sub.roi_grid(0.5)
+        c1, c2 = surf.height(xs, ys), other.height(xs, ys)
+        sens = ((c2 - c2.mean()) - (c1 - c1.mean())) / dh
+        return float(np.sqrt(np.mean((sens * absolute_std_um) ** 2)))
+
     def _fisher(self, surf: SplineSurface, var: Any, sub: int, level: _Level | None) -> sp.csc_matrix:
         """J^T W J of the full-resolution render at ``surf`` (:meth:`shape_std_um` on ``var`` and ``level``)."""
         if level is not None and var is None and level.b == 1 and level.model.sub == sub:
@@ -842,11 +861,12 @@ class InverseReconstructor:
         (ax, ay), (bx, by) = self._frame_pts
         return float(np.max(surf.height(ax, ay))), float(np.max(surf.height(bx, by)))
 
-    def run(self, initial: Any = None) -> InverseResult:
+    def run(self, initial: Any = None, absolute_std_um: float | None = None) -> InverseResult:
         """Coarse-to-fine fit with the start-height search (module docstring).
 
         ``initial``: a surface with ``height(x, y)`` to start from (the centroid method's), or None (a plane at the
-        frame height).
+        frame height). ``absolute_std_um``: the standard uncertainty of the start height held (the centroid
+        method's); its part of the shape uncertainty is added (:meth:`start_height_term_um`).
         """
         cfg = self.config
         t0 = self._t0 = time.perf_counter()
@@ -903,6 +923,10 @@ class InverseReconstructor:
         chi2 = self.history[-1].chi2 if self.history else 1.0
         shape_std = self.shape_std_um(surf, None, schedule[-1][1], level=fine) * float(np.sqrt(max(chi2, 0.0)))
         span_terms = None if self._span is None else int(self._span.shape[1])
+        height_term = None
+        if absolute_std_um is not None and not search:
+            height_term = self.start_height_term_um(fine, surf, h, float(absolute_std_um))
+            shape_std = float(np.hypot(shape_std, height_term))
         return InverseResult(
             surf,
             self.sub,
@@ -916,7 +940,11 @@ class InverseReconstructor:
             cam,
             pat,
             shape_std,
-            {"surface": "spline" if self._span is None else "start-basis", "span_terms": span_terms},
+            {
+                "surface": "spline" if self._span is None else "start-basis",
+                "span_terms": span_terms,
+                "start_height_term_um": height_term,
+            },
         )
 
 
@@ -940,6 +968,7 @@ def reconstruct_inverse(
     initial: Any = None,
     config: InverseConfig | None = None,
     variant: str | None = None,
+    absolute_std_um: float | None = None,
 ) -> InverseResult:
     """Fit the substrate's surface to a deflectometry image through the differentiable render (module docstring).
 
@@ -954,5 +983,8 @@ def reconstruct_inverse(
     config : InverseConfig, optional
     variant : str, optional
         Backend of the render (``cuda`` when a GPU is usable, else ``llvm``).
+    absolute_std_um : float, optional
+        Standard uncertainty of the start height held (the centroid method's), µm: its part of the shape
+        uncertainty is added.
     """
-    return InverseReconstructor(setup, image, config, variant).run(initial)
+    return InverseReconstructor(setup, image, config, variant).run(initial, absolute_std_um)

@@ -121,7 +121,7 @@ def _cmd_inverse(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0
         criterion=args.criterion or "level",
         absolute="start" if start_note == "centroid" else "frame",  # an unconverged start: search the height
     )
-    result = reconstruct_inverse(setup, image, start, cfg)
+    result = reconstruct_inverse(setup, image, start, cfg, absolute_std_um=u_abs)
     write_heightmap(
         out,
         result.heightmap(),
