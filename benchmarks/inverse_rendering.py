@@ -48,7 +48,7 @@ def main() -> None:
             f"  {r.get('inverse_shape_um', nan):10.4f} / {r.get('inverse_abs_um', nan):+.4f}"
             f"  {r.get('crb_shape_um', nan):12.5f}  {r.get('bayes_bound_um', nan):14.5f}"
             f"  {r.get('spline_shape_um', nan):9.5f}"
-            f"  {r.get('inverse_s', nan):9.1f}"
+            f"  {r.get('inverse_s', nan):9.1f}  u_shape {r.get('inverse_std_um', nan):.4f}"
             f"  {r.get('centroid_untilted_um', nan):.4f} / {r.get('inverse_untilted_um', nan):.4f}",
             flush=True,
         )

@@ -121,6 +121,7 @@ def inverse_task(
     row: dict[str, Any] = {"kind": kind, "correlation_mm": corr, "range_um": range_um, "noise": noise, "seed": seed}
     t0 = time.perf_counter()
     start = None
+    u_abs = None
     try:
         found = find_markers_for(image, setup)
         res = Reconstructor.from_setup(setup, None, centroid_bias_step(setup)).run(
@@ -133,6 +134,7 @@ def inverse_task(
             "centroid_untilted_um": untilted_shape_um(res.surface.height, truth, sub),
         }
         start = res.surface
+        u_abs = res.uncertainty.absolute_um if res.uncertainty is not None else None
     except ScopetwinError as exc:
         row["centroid_error"] = f"{type(exc).__name__}: {exc}"
     row["centroid_s"] = time.perf_counter() - t0
@@ -157,7 +159,7 @@ def inverse_task(
 
     rec.fit_level = traced  # type: ignore[method-assign]
     try:
-        out = rec.run(start)
+        out = rec.run(start, u_abs)
     except ScopetwinError as exc:
         row["inverse_error"] = f"{type(exc).__name__}: {exc}"
         return row
@@ -169,6 +171,7 @@ def inverse_task(
         "inverse_abs_um": e["roi_absolute_um"],
         "inverse_untilted_um": untilted_shape_um(out.surface.height, truth, sub),
         "inverse_s": out.seconds,
+        "inverse_std_um": out.shape_std_um,
         "steps": steps,
         "spline_shape_um": roi_errors(exact.height, truth, sub)["roi_shape_um"],
         "crb_shape_um": shape_crb_um(rec, exact, emva_variance_irradiance(clean, setup)),
@@ -212,6 +215,7 @@ def inverse(ctx: StudyContext, spp: int = 16, seed: int = 2) -> StudyResult:
                 r.get("centroid_untilted_um"),
                 r.get("centroid_abs_um"),
                 shape,
+                r.get("inverse_std_um"),
                 r.get("inverse_untilted_um"),
                 r.get("inverse_abs_um"),
                 crb,
@@ -233,6 +237,7 @@ def inverse(ctx: StudyContext, spp: int = 16, seed: int = 2) -> StudyResult:
             "centroid shape, tilt removed (µm)",
             "centroid absolute (µm)",
             "inverse shape (µm)",
+            "inverse shape uncertainty (µm)",
             "inverse shape, tilt removed (µm)",
             "inverse absolute (µm)",
             "Cramér-Rao shape, spline (µm)",
