@@ -33,20 +33,13 @@ ERRORS = (
 
 def wrong_setup(setup, errors):
     """The setup with its camera and pattern moved by ``errors``, with their sizes as [calibration]."""
+    from calib.setup_calibration import set_poses
     from recon.inverse import _pose_update
     from scenes.setup import setup_from_dict
 
     cam, pat = _pose_update(setup.camera_model, setup.marker_pattern, np.concatenate(errors))
     data = setup.model_dump(exclude_none=True)
-    for key in ("r_0", "phi"):
-        data["camera"].pop(key, None)
-    f, p = cam.frame, pat.frame
-    data["camera"].update(
-        {"origin": f.origin.tolist(), "t_x": f.tx.tolist(), "t_y": f.ty.tolist(), "n_z": f.nz.tolist()}
-    )
-    data["pattern"].update(
-        {"origin": p.origin.tolist(), "t_x": p.tx.tolist(), "t_y": p.ty.tolist(), "n_z": p.nz.tolist()}
-    )
+    set_poses(data, cam, pat.frame)
     norms = [float(np.linalg.norm(e)) for e in errors]
     data["calibration"] = {
         "camera": {"shift_mm": norms[0], "rotation_rad": norms[1]},

@@ -255,32 +255,40 @@ def calibrated_setup_dict(nominal: Setup, result: SetupCalibration) -> dict[str,
     data["description"] = "Deflectometry setup from the calibration of §2.7 (camera, pattern; substrate plane z = 0)"
     if "substrate" not in data:
         data["substrate"] = {}
-    cam = result.camera
+    set_poses(data, result.camera, result.pattern)
+    data.pop("calibration", None)
+    unc = pose_uncertainties(result)
+    if unc is not None:
+        data["calibration"] = unc
+    return data
+
+
+def set_poses(data: dict[str, Any], camera: Camera, pattern: Frame) -> None:
+    """Write a camera's frame and image distance and a pattern's frame into a setup dictionary, in place."""
     cspec = data["camera"]
     for key in ("r_0", "phi"):
         cspec.pop(key, None)
-    f = cam.frame
+    f = camera.frame
     cspec.update(
         {
             "origin": f.origin.tolist(),
             "t_x": f.tx.tolist(),
             "t_y": f.ty.tolist(),
             "n_z": f.nz.tolist(),
-            "image_distance": float(cam.b),
-            "r_cs": list(cam.r_cs),
-            "c0": float(cam.c0),
-            "c2": float(cam.c2),
+            "image_distance": float(camera.b),
+            "r_cs": list(camera.r_cs),
+            "c0": float(camera.c0),
+            "c2": float(camera.c2),
         }
     )
-    p = result.pattern
     data["pattern"].update(
-        {"origin": p.origin.tolist(), "t_x": p.tx.tolist(), "t_y": p.ty.tolist(), "n_z": p.nz.tolist()}
+        {
+            "origin": pattern.origin.tolist(),
+            "t_x": pattern.tx.tolist(),
+            "t_y": pattern.ty.tolist(),
+            "n_z": pattern.nz.tolist(),
+        }
     )
-    data.pop("calibration", None)
-    unc = pose_uncertainties(result)
-    if unc is not None:
-        data["calibration"] = unc
-    return data
 
 
 def _pose_std(sigma: dict[str, Any]) -> tuple[float, float]:

@@ -480,6 +480,17 @@ def _binned_camera(camera: Camera, b: int, r0: int, c0: int) -> Camera:
     return camera.with_(nx=nx_b, ny=ny_b, pitch=pitch, r_cs=(x_cs, y_cs))
 
 
+def without_plane(x: Array, y: Array, values: Array) -> Array:
+    """``values`` (points, ...) less their least-squares plane a + b x + c y over the points (x, y)."""
+    plane = np.column_stack([np.ones(len(x)), x, y])
+    return values - plane @ np.linalg.lstsq(plane, values, rcond=None)[0]
+
+
+def _shape_rms_um(s_mat: Array, cov: Array) -> float:
+    """sqrt(tr(S C S^T) / m) in µm: the RMS over m points of the variance of S w (mm) for w of covariance C."""
+    return float(np.sqrt(max(float(np.sum(s_mat * (s_mat @ cov))), 0.0) / s_mat.shape[0])) * 1e3
+
+
 def _box_fraction(pose: Array, step: Array, bound: Array) -> float:
     """Largest f in [0, 1] with |pose + f step| <= bound componentwise (pose itself inside the box)."""
     out = np.abs(step) > 0
@@ -769,8 +780,7 @@ class InverseReconstructor:
             scale = 1.0 / np.sqrt(np.abs(np.diag(a_q)) + 1e-300)  # equilibrated: DN images have a huge J^T W J
             cov = q @ (scale[:, None] * np.linalg.inv(scale[:, None] * a_q * scale[None, :]) * scale[None, :]) @ q.T
             dc = np.asarray(design @ p)
-            dc -= dc.mean(axis=0)  # mean removed: the shape
-            return float(np.sqrt(max(float(np.sum(dc * (dc @ cov))), 0.0) / dc.shape[0])) * 1e3
+            return _shape_rms_um(dc - dc.mean(axis=0), cov)  # mean removed: the shape
         kkt = sp.bmat([[fisher + lam * dtd, m[:, None]], [m[None, :], None]], format="csc")
         lu = spla.splu(kkt)
         rng = np.random.default_rng(0)
@@ -848,13 +858,8 @@ class InverseReconstructor:
         xq = x @ q
         info = np.eye(q.shape[1]) + xq.T @ np.asarray(fisher @ xq)
         s_mat = heights @ q
-        if untilted:
-            plane = np.stack([np.ones_like(xs), xs, ys], axis=1)
-            s_mat -= plane @ np.linalg.lstsq(plane, s_mat, rcond=None)[0]
-        else:
-            s_mat -= s_mat.mean(axis=0)  # mean removed: the shape
-        cov = np.linalg.inv(info)
-        return float(np.sqrt(max(float(np.sum(s_mat * (s_mat @ cov))), 0.0) / s_mat.shape[0])) * 1e3
+        s_mat = without_plane(xs, ys, s_mat) if untilted else s_mat - s_mat.mean(axis=0)  # the shape
+        return _shape_rms_um(s_mat, np.linalg.inv(info))
 
     def frame_maxima(self, surf: SplineSurface) -> tuple[float, float]:
         """Maxima of the surface over frame region 1 and 2, mm (seed eq. 1.3)."""

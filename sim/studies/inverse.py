@@ -80,13 +80,13 @@ def untilted_shape_um(surface_height: Any, truth: Any, sub: Any, step: float = 0
     reconstruction (the traced rays meet the surface at the wrong height; on a 3 mm / 60 µm surface ~9 µrad per
     µm of absolute error); this part is what the method itself gets wrong.
     """
+    from recon.inverse import without_plane
+
     xs = np.linspace(-0.5 * sub.size_x, 0.5 * sub.size_x, int(round(sub.size_x / step)) + 1)
     ys = np.linspace(-0.5 * sub.roi_length, 0.5 * sub.roi_length, int(round(sub.roi_length / step)) + 1)
     xx, yy = np.meshgrid(xs, ys[1:-1])
     err = (np.asarray(surface_height(xx, yy)) - np.asarray(truth.height(xx, yy))).ravel() * 1e3
-    plane = np.column_stack([np.ones(err.size), xx.ravel(), yy.ravel()])
-    coef = np.linalg.lstsq(plane, err, rcond=None)[0]
-    return float(np.std(err - plane @ coef))
+    return float(np.std(without_plane(xx.ravel(), yy.ravel(), err)))
 
 
 def inverse_task(
