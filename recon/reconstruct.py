@@ -777,12 +777,39 @@ class Reconstructor:
         drop[np.flatnonzero(ok)[~keep]] = True
         return drop
 
+    def _restart_with_fitting_scale(self, markers: MarkerObservations) -> bool:
+        """Choose the basis scale on the gradients traced through the flat start; True if it changed.
+
+        A default scale far too coarse for the surface (the 12 mm basis on a 3 mm / 60 µm one, whose markers the
+        topological indexing of :func:`recon.markers.index_lattice` numbers) cannot fit the gradients, and its fits
+        swing so far that the next iteration's rays miss the substrate before a first surface exists for
+        :func:`select_sigma` to be run on. The flat start at the frame height traces every marker; the scale is
+        chosen on those gradients instead and the start-height loop begins again.
+        """
+        cfg = self.config
+        if not cfg.sigma_candidates or cfg.counts is not None:
+            return False
+        plane = SBFSurface.plane(self.basis, self.sub.frame_z)
+        ij, px, targets = self._prepare(markers)
+        px = self.bias(plane, ij, px) if self.bias is not None else px
+        xy, hx, hy, _ = self._trace(plane, px, targets)
+        best, self.sigma_scores, _ = select_sigma(self.sub, xy[:, 0], xy[:, 1], hx, hy, cfg)
+        if best == float(self.basis.sigma[0]):
+            return False
+        self._use_basis(cfg.make_basis(self.sub, best))
+        return True
+
     def _run(self, markers: MarkerObservations, history_path: str | Path | None) -> ReconstructionResult:
         cfg = self.config
         t0 = time.perf_counter()
         history: list[OuterStep] = []
         surfaces: list[SBFSurface] = []
-        converged = self._outer(markers, self.sub.frame_z, history, surfaces)
+        try:
+            converged = self._outer(markers, self.sub.frame_z, history, surfaces)
+        except SubstrateNotVisibleError:
+            if surfaces or not self._restart_with_fitting_scale(markers):
+                raise
+            converged = self._outer(markers, self.sub.frame_z, history, surfaces)
         if surfaces and cfg.sigma_candidates and cfg.counts is None:
             # phase 2: choose the basis scale on data traced through the converged surface, then
             # search the start height again with it (from the height just found); also when the default
@@ -795,10 +822,20 @@ class Reconstructor:
             current = float(self.basis.sigma[0])
             too_coarse = current in fits and fits[current] > cfg.fit_ratio * min(fits.values())
             if best != current and (converged or too_coarse):
+                first = (self.basis, len(history), converged, self._last)
                 self._use_basis(cfg.make_basis(self.sub, best))
                 h_found = history[-1].start_height_um * 1e-3
                 runs = None if converged else cfg.outer_max  # the scale that could not fit leaves no budget
-                converged = self._outer(markers, h_found, history, [], runs)
+                try:
+                    converged = self._outer(markers, h_found, history, [], runs)
+                except SubstrateNotVisibleError:
+                    # the finer scale's extrapolation into the frame regions threw the start height so far that
+                    # the rays missed the substrate: keep the first scale's result
+                    if not first[2]:
+                        raise
+                    self._use_basis(first[0])
+                    del history[first[1] :]
+                    converged, self._last = first[2], first[3]
         rejected = np.zeros((0, 2), dtype=np.int64)
         if converged and cfg.outlier_factor > 0 and self._last is not None:
             drop = self._index_outliers(markers, self._last)

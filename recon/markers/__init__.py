@@ -10,7 +10,9 @@ Four steps, as in the seed, each a module named after its section:
 3. :mod:`recon.markers.grid_identification` — grid identification: :func:`fourier_axes` (deflectometry, §1.5.3)
    and :func:`reference_axes` (calibration, §2.6.1), the image vectors of one pitch step along T_x and T_y.
 4. :mod:`recon.markers.indexing` — marker indexing (§1.5.4): :func:`index_grid`, a flood from the reference
-   marker [0, 0] through the eight neighbours of each marker, the steps re-estimated locally as it proceeds.
+   marker [0, 0] through the eight neighbours of each marker, the steps re-estimated locally as it proceeds; and
+   :func:`index_lattice`, a flood over mutual axial neighbours (the grid's topology), where a strongly bent substrate
+   stretches and squeezes the reflected grid too much for the flood's predictions.
 
 :mod:`recon.markers.identification` runs all four (:func:`find_markers`) and takes their options from a setup
 (:func:`find_markers_for`, :func:`region_for_setup`). This package's namespace is that public API.
@@ -31,7 +33,7 @@ from recon.markers.identification import (
     index_range,
     region_for_setup,
 )
-from recon.markers.indexing import index_grid
+from recon.markers.indexing import index_grid, index_lattice
 
 __all__ = [
     "Filtered",
@@ -50,6 +52,7 @@ __all__ = [
     "find_reference",
     "fourier_axes",
     "index_grid",
+    "index_lattice",
     "index_range",
     "local_area_ratio",
     "nearest_spacing",

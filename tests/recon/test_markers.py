@@ -12,6 +12,7 @@ from recon.markers import (
     find_markers,
     fourier_axes,
     index_grid,
+    index_lattice,
     orient_axes,
     reference_axes,
 )
@@ -101,6 +102,53 @@ def test_flood_indexes_a_warped_grid_with_missing_and_spurious_spots(rng, warp):
     assert reached.mean() > 0.97
     np.testing.assert_array_equal(got[reached], ij[reached])
     assert np.all(found[len(ij) :, 0] == NONE)
+
+
+def squeezed_grid(n: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """A grid whose row steps swing between 14 and 46 px from one row to the next (a 3 mm / 60 µm substrate).
+
+    Rows at y_j = 30 j + 12 sin(1.3 j) (step 30 + 15.6 cos: stretched on one side of a marker, squeezed on the
+    other), columns sheared by 4 px per row and stretched by 20 % across the image.
+    """
+    i, j = np.meshgrid(np.arange(-n, n + 1), np.arange(-n, n + 1), indexing="ij")
+    ij = np.stack([i.ravel(), j.ravel()], axis=-1)
+    x = 600.0 + 25.0 * ij[:, 0] * (1.0 + 0.02 * ij[:, 0]) + 4.0 * ij[:, 1]
+    y = 500.0 + 30.0 * ij[:, 1] + 12.0 * np.sin(1.3 * ij[:, 1]) + 3.0 * np.sin(0.5 * ij[:, 0])
+    return ij, np.stack([x, y], axis=-1)
+
+
+def test_lattice_indexes_a_grid_stretched_and_squeezed_within_a_pitch(rng):
+    """The flood's predicted steps miss where the step changes 3x within a pitch; the topology does not."""
+    ij, pts = squeezed_grid()
+    pts = pts + rng.normal(0.0, 0.3, pts.shape)
+    ref = int(np.flatnonzero(np.all(ij == 0, axis=1))[0])
+    axes = np.array([[25.0, 0.0], [4.0, 30.0]])  # the mean steps, as the Fourier transform gives them
+    flood = index_grid(pts, ref, axes)
+    lattice = index_lattice(pts, ref, axes)
+    reached = lattice[:, 0] != NONE
+    assert reached.mean() > 0.97
+    np.testing.assert_array_equal(lattice[reached], ij[reached])
+    assert (flood[:, 0] != NONE).mean() < 0.5  # the case it is for
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_lattice_leaves_gaps_at_missing_markers_instead_of_numbering_past_them(seed):
+    """2 % of the markers missing at random: nearly all others reached, at most 1 % numbered wrongly.
+
+    Without the closed-quadrilateral rule the nearest spot beyond a gap (two pitches on) was taken as the neighbour
+    and whole regions were numbered one pitch off (26-103 of ~300 reached markers with 6 % missing).
+    """
+    ij, pts = squeezed_grid()
+    keep = np.ones(len(ij), dtype=bool)
+    keep[np.random.default_rng(seed).choice(len(ij), 8, replace=False)] = False
+    keep[np.all(ij == 0, axis=1)] = True
+    ij, pts = ij[keep], pts[keep]
+    ref = int(np.flatnonzero(np.all(ij == 0, axis=1))[0])
+    got = index_lattice(pts, ref, np.array([[25.0, 0.0], [4.0, 30.0]]))
+    reached = got[:, 0] != NONE
+    assert reached.mean() > 0.97
+    wrong = np.any(got[reached] != ij[reached], axis=1)
+    assert wrong.sum() <= 0.01 * reached.sum()
 
 
 def test_fourier_axes_find_periods_and_tilt():
