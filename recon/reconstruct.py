@@ -782,7 +782,7 @@ class Reconstructor:
 
         A default scale far too coarse for the surface (the 12 mm basis on a 3 mm / 60 µm one, whose markers the
         topological indexing of :func:`recon.markers.index_lattice` numbers) cannot fit the gradients, and its fits
-        swing so far that the next iteration's rays miss the substrate before a first surface exists for
+        swing so far that the next iteration's rays miss the substrate (or its ends) before a first surface exists for
         :func:`select_sigma` to be run on. The flat start at the frame height traces every marker; the scale is
         chosen on those gradients instead and the start-height loop begins again.
         """
@@ -793,6 +793,7 @@ class Reconstructor:
         ij, px, targets = self._prepare(markers)
         px = self.bias(plane, ij, px) if self.bias is not None else px
         xy, hx, hy, _ = self._trace(plane, px, targets)
+        self._check_coverage(xy, len(ij))  # a flat start that misses the substrate too: that error, not this one
         best, self.sigma_scores, _ = select_sigma(self.sub, xy[:, 0], xy[:, 1], hx, hy, cfg)
         if best == float(self.basis.sigma[0]):
             return False
@@ -806,7 +807,7 @@ class Reconstructor:
         surfaces: list[SBFSurface] = []
         try:
             converged = self._outer(markers, self.sub.frame_z, history, surfaces)
-        except SubstrateNotVisibleError:
+        except (SubstrateNotVisibleError, TooFewMarkersError):
             if surfaces or not self._restart_with_fitting_scale(markers):
                 raise
             converged = self._outer(markers, self.sub.frame_z, history, surfaces)
@@ -828,7 +829,7 @@ class Reconstructor:
                 runs = None if converged else cfg.outer_max  # the scale that could not fit leaves no budget
                 try:
                     converged = self._outer(markers, h_found, history, [], runs)
-                except SubstrateNotVisibleError:
+                except (SubstrateNotVisibleError, TooFewMarkersError):
                     # the finer scale's extrapolation into the frame regions threw the start height so far that
                     # the rays missed the substrate: keep the first scale's result
                     if not first[2]:
