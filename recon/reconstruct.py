@@ -84,12 +84,15 @@ class InconsistentError(ReconstructionError):
 
 
 class NotConvergedError(ReconstructionError):
-    """The outer start-height loop did not converge; ``history`` holds what was done."""
+    """The outer start-height loop did not converge; ``history`` holds what was done, ``surface`` its last surface."""
 
-    def __init__(self, message: str, history: list[dict[str, Any]], history_path: Path | None) -> None:
+    def __init__(
+        self, message: str, history: list[dict[str, Any]], history_path: Path | None, surface: Any = None
+    ) -> None:
         super().__init__(message)
         self.history = history
         self.history_path = history_path
+        self.surface = surface
 
 
 @dataclass(frozen=True)
@@ -881,6 +884,7 @@ class Reconstructor:
                 f"{last.criterion_um:+.4g} µm, tolerance {cfg.outer_tol_um} µm){where}",
                 result.history_dicts(),
                 path,
+                self._last,
             )
         what = "Delta h_max" if cfg.criterion == "level" else "the mean frame maximum's distance from the frame"
         raise InconsistentError(
@@ -1114,3 +1118,45 @@ def centroid_bias_step(setup: Setup, recompute_um: float = 0.2, grid: tuple[int,
         return px + cache["correction"]
 
     return step
+
+
+def reconstruct_image(
+    image: NDArray[Any],
+    setup: Setup,
+    config: ReconstructionConfig | None = None,
+    bias: BiasStep | None = None,
+    history_path: str | Path | None = None,
+) -> tuple[Any, ReconstructionResult, Reconstructor]:
+    """Markers of a deflectometry image (:func:`recon.markers.find_markers_for`) and the surface they give (§1.4).
+
+    Where the spots are distorted so much that two or more are about as large as the reference marker should be
+    (:class:`recon.markers.ReferenceTieError`; 3 mm / 60 µm surfaces), each candidate is taken as the reference in
+    turn: with a wrong one every index is a few pitches off, the traced slopes are milliradians off and the
+    start-height loop cannot lay such a surface on the holding frame (its rays miss the substrate or one of its
+    ends, or it does not converge). The one candidate whose markers reconstruct is kept; if none or several do,
+    the tie is reported. Measured on 3 mm / 60 µm surface seed 7 (four candidates): the true one reconstructs
+    (0.14 µm shape), the three others fail in 4-6 s each.
+
+    Returns (markers, result, reconstructor).
+    """
+    from recon.markers import ReferenceTieError, find_markers_for
+
+    def attempt(reference: int | None) -> tuple[Any, ReconstructionResult, Reconstructor]:
+        found = find_markers_for(image, setup, reference=reference)
+        rec = Reconstructor.from_setup(setup, config, bias)
+        return found, rec.run(MarkerObservations(found.ij, found.centroids), history_path=history_path), rec
+
+    try:
+        return attempt(None)
+    except ReferenceTieError as tie:
+        good = []
+        for cand in tie.candidates:
+            with contextlib.suppress(ScopetwinError):
+                good.append(attempt(int(cand)))
+        if len(good) == 1:
+            return good[0]
+        raise ReferenceTieError(
+            tie.candidates,
+            f"{tie}; taken as the reference in turn, {len(good)} of the {len(tie.candidates)} candidates "
+            "reconstruct a surface on the holding frame",
+        ) from None

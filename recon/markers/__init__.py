@@ -22,7 +22,15 @@ Coordinates are continuous pixel coordinates (col, row): pixel (r, c) covers [c,
 """
 
 from recon.markers.centroid_search import MarkerError, Spots, background_level, centroids, check_image
-from recon.markers.filtering import Filtered, Region, filter_spots, find_reference, local_area_ratio, rim_clearance
+from recon.markers.filtering import (
+    Filtered,
+    ReferenceTieError,
+    Region,
+    filter_spots,
+    find_reference,
+    local_area_ratio,
+    rim_clearance,
+)
 from recon.markers.grid_identification import fourier_axes, nearest_spacing, orient_axes, reference_axes
 from recon.markers.identification import (
     Markers,
@@ -39,6 +47,7 @@ __all__ = [
     "Filtered",
     "MarkerError",
     "Markers",
+    "ReferenceTieError",
     "Region",
     "Spots",
     "background_level",

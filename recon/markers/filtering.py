@@ -41,6 +41,14 @@ def local_area_ratio(points: Array, areas: NDArray, reference: NDArray[np.bool_]
     return areas / np.maximum(np.median(areas[ref][nbs], axis=1), 1e-300)
 
 
+class ReferenceTieError(MarkerError):
+    """Two or more spots about equally likely to be the reference marker; ``candidates``: their spot indices."""
+
+    def __init__(self, candidates: NDArray[np.intp], message: str) -> None:
+        super().__init__(message)
+        self.candidates = np.asarray(candidates, dtype=np.intp)
+
+
 @dataclass(frozen=True)
 class Filtered:
     """Outcome of :func:`filter_spots`: which candidates are kept, and why the others are not."""
@@ -89,12 +97,13 @@ def find_reference(
     order = cand[np.argsort(-ratio[cand])]
     if order.size > 1 and ratio[order[1]] >= tie * ratio[order[0]]:
         a, b = points[order[0]], points[order[1]]
-        raise MarkerError(
+        raise ReferenceTieError(
+            order[ratio[order] >= tie * ratio[order[0]]],
             f"two equally large reference marker candidates {where} at "
             f"(col, row) = ({a[0]:.1f}, {a[1]:.1f}) and ({b[0]:.1f}, {b[1]:.1f}) "
             f"(area ratios {ratio[order[0]]:.2f} and {ratio[order[1]]:.2f}); the substrate distorts the spots "
             "too much to tell the reference marker: place the reference marker where the substrate is flatter, "
-            "or give the setup the camera and pattern placement that puts its nominal image on it"
+            "or give the setup the camera and pattern placement that puts its nominal image on it",
         )
     return int(order[0])
 
@@ -176,6 +185,7 @@ def filter_spots(
     edge_noise_sigmas: float = 8.0,
     reference_hint: Array | None = None,
     hint_spacings: float = 3.0,
+    reference: int | None = None,
 ) -> Filtered:
     """Marker filtering of seed §1.5.2 and the reference marker.
 
@@ -195,7 +205,9 @@ def filter_spots(
       threshold level, photon noise included, reaches ~6 times the dark noise there).
 
     ``reference_hint`` (px), the nominal image of the reference marker, narrows the reference search to the
-    candidates within ``hint_spacings`` marker spacings of it (:func:`find_reference`).
+    candidates within ``hint_spacings`` marker spacings of it (:func:`find_reference`). ``reference``: the spot
+    (index into ``spots``) to take as the reference marker instead of searching (one of the candidates of a
+    :class:`ReferenceTieError`).
 
     Returns
     -------
@@ -224,9 +236,14 @@ def filter_spots(
         pts = spots.centroids[big]
         d, _ = cKDTree(pts).query(pts, k=2)
         radius = hint_spacings * float(np.median(np.asarray(d)[:, 1]))
-    ref = find_reference(
-        ratio, big & whole & ~sharp, spots.centroids, ref_ratio, expected=reference_hint, radius=radius
-    )
+    if reference is not None:
+        if not 0 <= int(reference) < n:
+            raise MarkerError(f"reference spot {reference} is not one of the {n} spots")
+        ref = int(reference)
+    else:
+        ref = find_reference(
+            ratio, big & whole & ~sharp, spots.centroids, ref_ratio, expected=reference_hint, radius=radius
+        )
     in_range = (ratio >= area_range[0]) & (ratio <= area_range[1])
     keep = big & whole & in_range & ~sharp
     keep[ref] = True

@@ -102,6 +102,7 @@ def find_markers(
     area_range: tuple[float, float] = (0.7, 1.4),
     region_margin: float = 0.5,
     reference_hint: Array | None = None,
+    reference: int | None = None,
 ) -> Markers:
     """Find, filter and index the markers of an image (seed §1.5 and §2.6).
 
@@ -131,6 +132,10 @@ def find_markers(
     reference_hint : ndarray, (2,), optional
         Nominal image of the reference marker (px, e.g. from :func:`expected_reference`): the reference is
         looked for near it first (:func:`recon.markers.filtering.find_reference`).
+    reference : int, optional
+        Take this spot of the centroid search as the reference marker (one of the ``candidates`` of a
+        :class:`recon.markers.filtering.ReferenceTieError`, which the search raises where two spots are about
+        equally large).
 
     Raises
     ------
@@ -148,6 +153,7 @@ def find_markers(
         area_range=area_range,
         region_margin=region_margin,
         reference_hint=reference_hint,
+        reference=reference,
     )
     keep = np.flatnonzero(filt.keep)
     if len(keep) < 3:

@@ -35,8 +35,7 @@ def _config(args: argparse.Namespace) -> ReconstructionConfig:
 
 def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
     """Handler of ``scopetwin reconstruct``."""
-    from recon.markers import find_markers_for
-    from recon.reconstruct import MarkerObservations, Reconstructor, centroid_bias_step
+    from recon.reconstruct import MarkerObservations, centroid_bias_step, reconstruct_image
     from scenes.io import read_image, write_heightmap
     from scenes.setup import load_setup
 
@@ -55,12 +54,11 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         )
     if args.method == "inverse":
         return _cmd_inverse(args, setup, image, out, t0)
-    found = find_markers_for(image, setup)
-    obs = MarkerObservations(found.ij, found.centroids)
     bias = None if args.no_bias_correction else centroid_bias_step(setup)
-    rec = Reconstructor.from_setup(setup, _config(args), bias)
     history_path = out.with_name(out.name + ".history.json")
-    result = rec.run(obs, history_path=history_path)  # NotConvergedError: history saved, no map written
+    # NotConvergedError: history saved, no map written; a tied reference marker: each candidate tried
+    found, result, _ = reconstruct_image(image, setup, _config(args), bias, history_path)
+    obs = MarkerObservations(found.ij, found.centroids)
     heights = result.heightmap()
     write_heightmap(
         out,
@@ -94,24 +92,20 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
 def _cmd_inverse(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0: float) -> dict[str, Any]:
     """``--method inverse`` (:mod:`recon.inverse`): start from the centroid method's surface where it succeeds."""
     from recon.inverse import InverseConfig, pose_sigma_for, reconstruct_inverse
-    from recon.markers import find_markers_for
-    from recon.reconstruct import MarkerObservations, NotConvergedError, Reconstructor, centroid_bias_step
+    from recon.reconstruct import NotConvergedError, centroid_bias_step, reconstruct_image
     from scenes.io import write_heightmap
 
     start: Any = None
     start_note = "plane"
     u_abs: float | None = None
-    rec = None
     try:
-        found = find_markers_for(image, setup)
         bias = None if args.no_bias_correction else centroid_bias_step(setup)
-        rec = Reconstructor.from_setup(setup, _config(args), bias)
-        centroid = rec.run(MarkerObservations(found.ij, found.centroids))
+        _, centroid, _ = reconstruct_image(image, setup, _config(args), bias)
         start, start_note = centroid.surface, "centroid"
         u = getattr(centroid, "uncertainty", None)  # the absolute height is the centroid method's
         u_abs = getattr(u, "absolute_um", None)
     except NotConvergedError as exc:  # indexed, but no start height found: its last surface is still a start
-        last = getattr(rec, "_last", None)
+        last = exc.surface
         start, start_note = last, f"centroid-unconverged ({exc})" if last is not None else f"plane ({exc})"
     except ScopetwinError as exc:  # markers that cannot be indexed: start from a plane
         start_note = f"plane ({type(exc).__name__}: {exc})"

@@ -77,3 +77,28 @@ def test_tied_reference_candidates_say_what_to_change():
     assert (
         find_reference(ratio[1:], np.ones(2, dtype=bool), pts[1:], expected=np.array([105.0, 100.0]), radius=30.0) == 0
     )
+
+
+@pytest.mark.mitsuba
+@pytest.mark.slow
+def test_tied_reference_marker_decided_by_which_candidate_reconstructs() -> None:
+    """3 mm / 60 µm surface seed 7: four spots about as large as the reference marker should be near its nominal
+    image. Taken as the reference in turn, only the true one gives markers whose surface lies on the frame."""
+    from recon.markers import ReferenceTieError
+    from recon.reconstruct import Substrate2D, centroid_bias_step, reconstruct_image
+    from scenes.mitsuba.render import render_setup
+    from sim.pipeline import roi_errors
+
+    over = {"substrate": {"surface": {"correlation_length": 3.0, "range_um": 60.0, "seed": 7}}}
+    setup = load_setup("thesis-1.10-deflectometry", over)
+    heights = surface_for(setup)
+    truth = marker_truth(setup, heights)
+    image = render_setup(setup, heights, spp=4, seed=1)
+    with pytest.raises(ReferenceTieError) as tie:
+        find_markers_for(image, setup)
+    assert len(tie.value.candidates) >= 2
+    markers, result, _ = reconstruct_image(image, setup, None, centroid_bias_step(setup))
+    true_ref = truth.center_px[np.flatnonzero(np.all(truth.ij == 0, axis=1))[0]]
+    assert np.hypot(*(markers.centroids[np.all(markers.ij == 0, axis=1)][0] - true_ref)) < 3.0
+    assert _wrong_indices(markers, truth) <= 0.01 * len(markers)
+    assert roi_errors(result.surface.height, heights, Substrate2D.from_setup(setup))["roi_shape_um"] < 0.3
