@@ -785,9 +785,10 @@ class Reconstructor:
 
         A default scale far too coarse for the surface (the 12 mm basis on a 3 mm / 60 µm one, whose markers the
         topological indexing of :func:`recon.markers.index_lattice` numbers) cannot fit the gradients, and its fits
-        swing so far that the next iteration's rays miss the substrate (or its ends) before a first surface exists for
-        :func:`select_sigma` to be run on. The flat start at the frame height traces every marker; the scale is
-        chosen on those gradients instead and the start-height loop begins again.
+        swing so far that the rays miss the substrate (or its ends) — in the first inner loop, before a surface
+        exists for :func:`select_sigma` to be run on, or after many start heights that did not settle (3 mm / 60 µm
+        seeds 2 and 1). The flat start at the frame height traces every marker; the scale is chosen on those
+        gradients instead and the start-height loop begins again (with a fresh budget of start heights).
         """
         cfg = self.config
         if not cfg.sigma_candidates or cfg.counts is not None:
@@ -811,9 +812,10 @@ class Reconstructor:
         try:
             converged = self._outer(markers, self.sub.frame_z, history, surfaces)
         except (SubstrateNotVisibleError, TooFewMarkersError):
-            if surfaces or not self._restart_with_fitting_scale(markers):
+            if not self._restart_with_fitting_scale(markers):
                 raise
-            converged = self._outer(markers, self.sub.frame_z, history, surfaces)
+            surfaces = []  # the first scale's surfaces: no warm start for another basis
+            converged = self._outer(markers, self.sub.frame_z, history, surfaces, cfg.outer_max)
         if surfaces and cfg.sigma_candidates and cfg.counts is None:
             # phase 2: choose the basis scale on data traced through the converged surface, then
             # search the start height again with it (from the height just found); also when the default

@@ -79,6 +79,7 @@ class Markers:
             "rejected": int(self.rejected),
             "saturated": int(self.saturated.sum()),
             "reasons": dict(self.reasons),
+            "indexing": self.indexing,
         }
 
 

@@ -39,7 +39,9 @@ def cmd_markers(args: argparse.Namespace) -> dict[str, Any]:
         write_overlay(args.overlay, image, markers)
     print(
         f"{len(markers)} markers indexed, {markers.rejected} candidates rejected, "
-        f"{int(markers.saturated.sum())} saturated ({args.image})"
+        f"{int(markers.saturated.sum())} saturated"
+        + (" — numbered by the grid's topology (the flood stopped early)" if markers.indexing == "lattice" else "")
+        + f" ({args.image})"
     )
     return result
 
