@@ -44,7 +44,7 @@ def main() -> None:
         f"{args.kind} surfaces, {args.corr:g} mm / {args.range:g} µm, Mitsuba {args.spp} spp; shape = std of the ROI "
         "error, flat = with its best-fit plane removed, µm"
     )
-    print("seed  noise  indexing  markers  centroid shape (flat) / abs  inverse shape (flat) / abs  u_shape  inverse s")
+    print("seed  noise  indexing  markers  centroid shape (flat) / abs  start  inverse shape (flat) / abs  u_shape  s")
     rows = []
     for seed in range(a, b):
         for noise in noises:
@@ -53,7 +53,7 @@ def main() -> None:
             print(
                 f"{seed:4d}  {'EMVA' if noise else 'none':5s}  {r.get('indexing', '-'):8s}  {r.get('markers', 0):7d}"
                 f"  {r.get('centroid_shape_um', nan):.4f} ({r.get('centroid_untilted_um', nan):.4f})"
-                f" / {r.get('centroid_abs_um', nan):+.3f}"
+                f" / {r.get('centroid_abs_um', nan):+.3f}  {r.get('start', '-')}"
                 f"  {r.get('inverse_shape_um', nan):.4f} ({r.get('inverse_untilted_um', nan):.4f})"
                 f" / {r.get('inverse_abs_um', nan):+.3f}"
                 f"  {r.get('inverse_std_um', nan):.4f}  {r.get('inverse_s', nan):7.1f}",

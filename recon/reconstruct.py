@@ -780,6 +780,35 @@ class Reconstructor:
         drop[np.flatnonzero(ok)[~keep]] = True
         return drop
 
+    def coarse_surface(self, markers: MarkerObservations, iterations: int = 3) -> SBFSurface:
+        """A coarse fit of the markers: the inner loop at the frame height, without the bias step or the height search.
+
+        Where the nested iteration fails on a strongly bent substrate (3 mm / 60 µm: the bias model singular at a
+        marker near a caustic, or start heights that throw the rays off the substrate), the markers still tell the
+        surface's shape: their gradients, traced through the flat start at the frame height and through the fits
+        that follow, fitted with a basis scale chosen on them (:func:`select_sigma`). The traced slopes are off by
+        ~10 µrad per µm of height error, far inside the inverse fit's basin (a pitch on the pattern is ~8 mrad); the
+        start for :mod:`recon.inverse`, which then searches the start height itself. An iteration whose rays miss
+        the substrate for more than 5 % of the markers is not taken.
+        """
+        cfg = self.config
+        h = self.sub.frame_z
+        ij, px, targets = self._prepare(markers)
+        surface = SBFSurface.plane(self.basis, h)
+        xy, hx, hy, _ = self._trace(surface, px, targets)
+        self._check_coverage(xy, len(ij))
+        if cfg.sigma_candidates and cfg.counts is None:
+            best, self.sigma_scores, _ = select_sigma(self.sub, xy[:, 0], xy[:, 1], hx, hy, cfg)
+            self._use_basis(cfg.make_basis(self.sub, best))
+            surface = SBFSurface.plane(self.basis, h)
+        for _ in range(iterations):
+            xy, hx, hy, _ = self._trace(surface, px, targets)
+            if len(xy) < 0.95 * len(ij):
+                break
+            coef, _ = fit_gradients(self.basis, xy[:, 0], xy[:, 1], hx, hy, cfg.regularization, method=cfg.method)
+            surface = SBFSurface(self.basis, coef, h - self._roi_mean(coef))
+        return surface
+
     def _restart_with_fitting_scale(self, markers: MarkerObservations) -> bool:
         """Choose the basis scale on the gradients traced through the flat start; True if it changed.
 

@@ -91,31 +91,21 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
 
 def _cmd_inverse(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0: float) -> dict[str, Any]:
     """``--method inverse`` (:mod:`recon.inverse`): start from the centroid method's surface where it succeeds."""
-    from recon.inverse import InverseConfig, pose_sigma_for, reconstruct_inverse
-    from recon.reconstruct import NotConvergedError, centroid_bias_step, reconstruct_image
+    from recon.inverse import InverseConfig, inverse_start, pose_sigma_for, reconstruct_inverse
     from scenes.io import write_heightmap
 
-    start: Any = None
-    start_note = "plane"
-    u_abs: float | None = None
-    try:
-        bias = None if args.no_bias_correction else centroid_bias_step(setup)
-        _, centroid, _ = reconstruct_image(image, setup, _config(args), bias)
-        start, start_note = centroid.surface, "centroid"
-        u = getattr(centroid, "uncertainty", None)  # the absolute height is the centroid method's
-        u_abs = getattr(u, "absolute_um", None)
-    except NotConvergedError as exc:  # indexed, but no start height found: its last surface is still a start
-        last = exc.surface
-        start, start_note = last, f"centroid-unconverged ({exc})" if last is not None else f"plane ({exc})"
-    except ScopetwinError as exc:  # markers that cannot be indexed: start from a plane
-        start_note = f"plane ({type(exc).__name__}: {exc})"
+    # the centroid method's surface where it reconstructs, else (in order) without its bias step, an unconverged
+    # start-height loop's last surface, a coarse fit of the markers, a plane
+    begin = inverse_start(setup, image, _config(args), bias=not args.no_bias_correction)
+    start, u_abs = begin.surface, begin.absolute_std_um
+    start_note = begin.kind + (f" ({begin.note})" if begin.note else "")
     cfg = InverseConfig(
         refine_setup=bool(args.refine_setup),
         pose_sigma=pose_sigma_for(setup),  # the calibration's uncertainties where the setup carries them
         criterion=args.criterion or "level",
-        absolute="start" if start_note == "centroid" else "frame",  # an unconverged start: search the height
+        absolute="start" if begin.holds_height else "frame",  # a start without a converged height: search it
     )
-    result = reconstruct_inverse(setup, image, start, cfg, absolute_std_um=u_abs)
+    result = reconstruct_inverse(setup, image, start, cfg, absolute_std_um=u_abs, initial_std=begin.node_std)
     write_heightmap(
         out,
         result.heightmap(),

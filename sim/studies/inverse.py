@@ -103,8 +103,8 @@ def inverse_task(
 
     ``bounds=False`` leaves out the Cramér-Rao and Bayesian bounds (the family prior's hundreds of draws).
     """
-    from recon.inverse import InverseConfig, InverseReconstructor, SplineSurface
-    from recon.reconstruct import Substrate2D, centroid_bias_step, reconstruct_image
+    from recon.inverse import InverseConfig, InverseReconstructor, SplineSurface, inverse_start
+    from recon.reconstruct import Substrate2D
     from scenes.errors import ScopetwinError
     from scenes.setup import load_setup
     from sim.measurement import render_measurement
@@ -129,23 +129,25 @@ def inverse_task(
     sub = Substrate2D.from_setup(setup)
     row: dict[str, Any] = {"kind": kind, "correlation_mm": corr, "range_um": range_um, "noise": noise, "seed": seed}
     t0 = time.perf_counter()
-    start = None
-    u_abs = None
-    try:
-        found, res, _ = reconstruct_image(image, setup, None, centroid_bias_step(setup))
-        row |= {"markers": len(found), "indexing": found.indexing}
-        e = roi_errors(res.surface.height, truth, sub)
+    begin = inverse_start(setup, image)  # the centroid method, or what is left where it fails
+    row["start"] = begin.kind
+    if begin.markers is not None:
+        row |= {"markers": len(begin.markers), "indexing": begin.markers.indexing}
+    if begin.note:
+        row["centroid_error"] = begin.note
+    if begin.kind == "centroid":
+        e = roi_errors(begin.surface.height, truth, sub)
         row |= {
             "centroid_shape_um": e["roi_shape_um"],
             "centroid_abs_um": e["roi_absolute_um"],
-            "centroid_untilted_um": untilted_shape_um(res.surface.height, truth, sub),
+            "centroid_untilted_um": untilted_shape_um(begin.surface.height, truth, sub),
         }
-        start = res.surface
-        u_abs = res.uncertainty.absolute_um if res.uncertainty is not None else None
-    except ScopetwinError as exc:
-        row["centroid_error"] = f"{type(exc).__name__}: {exc}"
+    elif begin.surface is not None:
+        e = roi_errors(begin.surface.height, truth, sub)
+        row |= {"start_shape_um": e["roi_shape_um"], "start_abs_um": e["roi_absolute_um"]}
     row["centroid_s"] = time.perf_counter() - t0
-    rec = InverseReconstructor(setup, image, InverseConfig(**(config or {})))
+    cfg = {"absolute": "start" if begin.holds_height else "frame"} | (config or {})
+    rec = InverseReconstructor(setup, image, InverseConfig(**cfg))
     steps: list[dict[str, float]] = []
     fit_level = rec.fit_level
 
@@ -166,7 +168,7 @@ def inverse_task(
 
     rec.fit_level = traced  # type: ignore[method-assign]
     try:
-        out = rec.run(start, u_abs)
+        out = rec.run(begin.surface, begin.absolute_std_um, begin.node_std)
     except ScopetwinError as exc:
         row["inverse_error"] = f"{type(exc).__name__}: {exc}"
         return row
@@ -219,6 +221,7 @@ def inverse(ctx: StudyContext, spp: int = 16, seed: int = 2) -> StudyResult:
             [
                 r["kind"],
                 r["seed"],
+                r.get("start", "-"),
                 r["correlation_mm"],
                 r["range_um"],
                 "EMVA" if r["noise"] else "none",
@@ -241,6 +244,7 @@ def inverse(ctx: StudyContext, spp: int = 16, seed: int = 2) -> StudyResult:
         columns=[
             "surface",
             "seed",
+            "inverse start",
             "correlation (mm)",
             "range (µm)",
             "sensor noise",
