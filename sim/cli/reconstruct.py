@@ -103,7 +103,7 @@ def _cmd_inverse(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0
         refine_setup=bool(args.refine_setup),
         pose_sigma=pose_sigma_for(setup),  # the calibration's uncertainties where the setup carries them
         criterion=args.criterion or "level",
-        absolute="start" if begin.holds_height else "frame",  # a start without a converged height: search it
+        absolute="start" if begin.holds_height else "frame",  # from a plane: search the height
     )
     result = reconstruct_inverse(setup, image, start, cfg, absolute_std_um=u_abs, initial_std=begin.node_std)
     write_heightmap(

@@ -381,7 +381,7 @@ def test_inverse_start_falls_back_in_order(monkeypatch):
     monkeypatch.setattr(markers_mod, "find_markers_for", lambda image, setup: Found())
     monkeypatch.setattr(rr.Reconstructor, "coarse_surface", lambda self, obs: "coarse surface")
     start = inverse_start(setup, image)
-    assert (start.kind, start.surface, start.holds_height) == ("coarse", "coarse surface", False)
+    assert (start.kind, start.surface, start.holds_height) == ("coarse", "coarse surface", True)
     assert start.note.count("TooFewMarkersError") == 2
 
     def no_markers(image, setup):
@@ -390,3 +390,4 @@ def test_inverse_start_falls_back_in_order(monkeypatch):
     monkeypatch.setattr(markers_mod, "find_markers_for", no_markers)
     start = inverse_start(setup, image)
     assert start.kind == "plane" and start.surface is None and "too few markers" in start.note
+    assert not start.holds_height  # from a plane the height is searched
