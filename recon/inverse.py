@@ -882,21 +882,24 @@ class InverseReconstructor:
         (ax, ay), (bx, by) = self._frame_pts
         return float(np.max(surf.height(ax, ay))), float(np.max(surf.height(bx, by)))
 
-    def start_surface(self, initial: Any, initial_std: Any = None, factor: float = 3.0) -> SplineSurface:
+    def start_surface(
+        self, initial: Any, initial_std: Any = None, factor: float = 3.0, floor: float = 1e-3
+    ) -> SplineSurface:
         """The start's B-spline: ``initial`` fitted over the substrate, except where its own uncertainty is large.
 
         ``initial_std`` (``height(x, y)``, mm: the centroid method's per-node standard uncertainty,
         :class:`recon.reconstruct.Uncertainty` ``node_std``) marks where the start is an extrapolation of its basis
-        and not a measurement: where it exceeds ``factor`` times its median over the ROI (a corner of the ROI without
-        markers; measured on a 3 mm / 60 µm surface: 29 µm there against a 3.4 µm median, the 5 mm basis 19-35 µm off
-        the truth) the start is the thin-plate continuation of the rest instead. Pixels traced through a start tens of
-        µm off see the wrong markers and no Gauss-Newton step brings them back.
+        and not a measurement: where it exceeds ``factor`` times its median over the ROI and ``floor`` (mm; below a
+        µm the start is well inside the fit's basin; the seed's surfaces have nm-level uncertainties and are never
+        touched) — a corner of the ROI without markers; measured on a 3 mm / 60 µm surface: 29 µm there against a
+        3.4 µm median, the 5 mm basis 19-35 µm off the truth — the start is the thin-plate continuation of the rest.
+        Pixels traced through a start tens of µm off see the wrong markers and no Gauss-Newton step brings them back.
         """
         fit = lambda: SplineSurface.fit(initial.height, self.sub, self.config.spacing)  # noqa: E731
         if initial_std is None:
             return fit()
         xs, ys = self.sub.roi_grid(0.5)
-        limit = factor * float(np.median(np.asarray(initial_std.height(xs, ys))))
+        limit = max(factor * float(np.median(np.asarray(initial_std.height(xs, ys)))), floor)
         if not np.all(np.asarray(initial_std.height(xs, ys)) <= limit):
 
             def trusted(x: Array, y: Array) -> NDArray[np.bool_]:
