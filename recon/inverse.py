@@ -237,28 +237,14 @@ class SplineSurface:
         return np.asarray(project(func), dtype=np.float64).reshape(s.coef.size, -1)
 
     @classmethod
-    def fit_where(cls, func: Any, where: Any, sub: Substrate2D, spacing: float) -> SplineSurface:
-        """:meth:`fit` to ``func`` only where ``where(x, y)`` is true; elsewhere the thin-plate continuation of it."""
-        s, project = cls._projector(sub, spacing, None, where)
-        return s.with_coef(project(func))
-
-    @classmethod
-    def _projector(
-        cls, sub: Substrate2D, spacing: float, step: float | None, where: Any = None
-    ) -> tuple[SplineSurface, Any]:
-        """The spline covering ``sub`` and a function taking func(x, y) (one or more columns) to its coefficients.
-
-        ``where(x, y)``: the samples to fit (default: all); the others are left to the thin-plate damping.
-        """
+    def _projector(cls, sub: Substrate2D, spacing: float, step: float | None) -> tuple[SplineSurface, Any]:
+        """The spline covering ``sub`` and a function taking func(x, y) (one or more columns) to its coefficients."""
         s = cls.covering(sub, spacing)
         step = step or spacing / 3.0
         # samples on the substrate only (beyond it the thin-plate damping continues the surface smoothly)
         xs = np.linspace(*sub.x_range, int(np.ceil(sub.size_x / step)) + 1)
         ys = np.linspace(*sub.y_range, int(np.ceil(sub.size_y / step)) + 1)
         xx, yy = np.meshgrid(xs, ys)
-        if where is not None:
-            keep = np.asarray(where(xx, yy), dtype=bool)
-            xx, yy = xx[keep], yy[keep]
         a = s.design(xx, yy)
         d = s.smoothness()
         ata = a.T @ a
@@ -578,8 +564,6 @@ class InverseReconstructor:
         self._frame_pts = ((fx, fy), (gx, gy))
         #: spline coefficients of the start's basis (columns) when the fit keeps to its span, else None
         self._span: Array | None = None
-        #: the start was fitted only where its own uncertainty is small (:meth:`start_surface`)
-        self._start_masked = False
 
     def _window(self) -> tuple[int, int, int, int]:
         """Pixel window of the ROI's image (its corners and edges projected, at the frame height), padded."""
@@ -882,49 +866,20 @@ class InverseReconstructor:
         (ax, ay), (bx, by) = self._frame_pts
         return float(np.max(surf.height(ax, ay))), float(np.max(surf.height(bx, by)))
 
-    def start_surface(
-        self, initial: Any, initial_std: Any = None, factor: float = 3.0, floor: float = 1e-3
-    ) -> SplineSurface:
-        """The start's B-spline: ``initial`` fitted over the substrate, except where its own uncertainty is large.
-
-        ``initial_std`` (``height(x, y)``, mm: the centroid method's per-node standard uncertainty,
-        :class:`recon.reconstruct.Uncertainty` ``node_std``) marks where the start is an extrapolation of its basis
-        and not a measurement: where it exceeds ``factor`` times its median over the ROI and ``floor`` (mm; below a
-        µm the start is well inside the fit's basin; the seed's surfaces have nm-level uncertainties and are never
-        touched) — a corner of the ROI without markers; measured on a 3 mm / 60 µm surface: 29 µm there against a
-        3.4 µm median, the 5 mm basis 19-35 µm off the truth — the start is the thin-plate continuation of the rest.
-        Pixels traced through a start tens of µm off see the wrong markers and no Gauss-Newton step brings them back.
-        """
-        fit = lambda: SplineSurface.fit(initial.height, self.sub, self.config.spacing)  # noqa: E731
-        if initial_std is None:
-            return fit()
-        xs, ys = self.sub.roi_grid(0.5)
-        limit = max(factor * float(np.median(np.asarray(initial_std.height(xs, ys)))), floor)
-        if not np.all(np.asarray(initial_std.height(xs, ys)) <= limit):
-
-            def trusted(x: Array, y: Array) -> NDArray[np.bool_]:
-                return np.asarray(initial_std.height(x, y) <= limit, dtype=bool)
-
-            self._start_masked = True
-            return SplineSurface.fit_where(initial.height, trusted, self.sub, self.config.spacing)
-        return fit()
-
-    def run(self, initial: Any = None, absolute_std_um: float | None = None, initial_std: Any = None) -> InverseResult:
+    def run(self, initial: Any = None, absolute_std_um: float | None = None) -> InverseResult:
         """Coarse-to-fine fit with the start-height search (module docstring).
 
         ``initial``: a surface with ``height(x, y)`` to start from (the centroid method's), or None (a plane at the
         frame height). ``absolute_std_um``: the standard uncertainty of the start height held (the centroid
-        method's); its part of the shape uncertainty is added (:meth:`start_height_term_um`). ``initial_std``: the
-        start's per-node standard uncertainty (``height(x, y)``, mm), :meth:`start_surface`.
+        method's); its part of the shape uncertainty is added (:meth:`start_height_term_um`).
         """
         cfg = self.config
         t0 = self._t0 = time.perf_counter()
         self._span = None
-        self._start_masked = False
         if initial is None:
             surf = SplineSurface.covering(self.sub, cfg.spacing, self.sub.frame_z)
         else:
-            surf = self.start_surface(initial, initial_std)
+            surf = SplineSurface.fit(initial.height, self.sub, cfg.spacing)
             basis = getattr(initial, "basis", None)
             if cfg.surface == "start-basis" and cfg.absolute == "start" and isinstance(basis, ShiftedBasis):
                 self._span = SplineSurface.span(basis, self.sub, cfg.spacing)
@@ -994,7 +949,6 @@ class InverseReconstructor:
                 "surface": "spline" if self._span is None else "start-basis",
                 "span_terms": span_terms,
                 "start_height_term_um": height_term,
-                "start_masked": self._start_masked,
             },
         )
 
@@ -1013,8 +967,8 @@ class InverseStart:
         coarse_surface`: the markers' gradients at the frame height) or "plane".
     note : str
         What failed on the way, one entry per attempt.
-    absolute_std_um, node_std
-        The centroid method's uncertainty of the absolute height (µm) and per node (``height(x, y)``, mm), or None.
+    absolute_std_um : float or None
+        The centroid method's standard uncertainty of the absolute height, µm.
     markers : object or None
         The indexed markers used.
     """
@@ -1023,7 +977,6 @@ class InverseStart:
     kind: str
     note: str = ""
     absolute_std_um: float | None = None
-    node_std: Any = None
     markers: Any = None
 
     @property
@@ -1080,7 +1033,6 @@ def inverse_start(setup: Setup, image: NDArray[Any], config: Any = None, bias: b
             kind,
             "; ".join(notes),
             None if u is None else u.absolute_um,
-            None if u is None else u.node_std,
             found,
         )
     if unconverged is not None:
@@ -1115,7 +1067,6 @@ def reconstruct_inverse(
     config: InverseConfig | None = None,
     variant: str | None = None,
     absolute_std_um: float | None = None,
-    initial_std: Any = None,
 ) -> InverseResult:
     """Fit the substrate's surface to a deflectometry image through the differentiable render (module docstring).
 
@@ -1133,8 +1084,5 @@ def reconstruct_inverse(
     absolute_std_um : float, optional
         Standard uncertainty of the start height held (the centroid method's), µm: its part of the shape
         uncertainty is added.
-    initial_std : object with ``height(x, y)``, optional
-        The start's per-node standard uncertainty, mm (the centroid method's): where it is large the start is
-        replaced by the thin-plate continuation of the rest (:meth:`InverseReconstructor.start_surface`).
     """
-    return InverseReconstructor(setup, image, config, variant).run(initial, absolute_std_um, initial_std)
+    return InverseReconstructor(setup, image, config, variant).run(initial, absolute_std_um)

@@ -105,7 +105,7 @@ def _cmd_inverse(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0
         criterion=args.criterion or "level",
         absolute="start" if begin.holds_height else "frame",  # from a plane: search the height
     )
-    result = reconstruct_inverse(setup, image, start, cfg, absolute_std_um=u_abs, initial_std=begin.node_std)
+    result = reconstruct_inverse(setup, image, start, cfg, absolute_std_um=u_abs)
     write_heightmap(
         out,
         result.heightmap(),

@@ -168,7 +168,7 @@ def inverse_task(
 
     rec.fit_level = traced  # type: ignore[method-assign]
     try:
-        out = rec.run(begin.surface, begin.absolute_std_um, begin.node_std)
+        out = rec.run(begin.surface, begin.absolute_std_um)
     except ScopetwinError as exc:
         row["inverse_error"] = f"{type(exc).__name__}: {exc}"
         return row
