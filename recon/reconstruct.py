@@ -786,21 +786,17 @@ class Reconstructor:
         Where the nested iteration fails on a strongly bent substrate (3 mm / 60 µm: the bias model singular at a
         marker near a caustic, or start heights that throw the rays off the substrate), the markers still tell the
         surface's shape: their gradients, traced through the flat start at the frame height and through the fits
-        that follow, fitted with a basis scale chosen on them (:func:`select_sigma`). The traced slopes are off by
-        ~10 µrad per µm of height error, far inside the inverse fit's basin (a pitch on the pattern is ~8 mrad); the
-        start for :mod:`recon.inverse`, which then searches the start height itself. An iteration whose rays miss
-        the substrate for more than 5 % of the markers is not taken.
+        that follow, fitted with a basis scale chosen on them (:meth:`_scale_from_flat_start`). The traced slopes are
+        off by ~10 µrad per µm of height error, far inside the inverse fit's basin (a pitch on the pattern is ~8
+        mrad); the start for :mod:`recon.inverse` (:func:`recon.inverse.inverse_start`), whose mean height — the
+        frame height, nobody measured it — the inverse fit keeps. An iteration whose rays miss the substrate for more
+        than 5 % of the markers is not taken.
         """
         cfg = self.config
         h = self.sub.frame_z
         ij, px, targets = self._prepare(markers)
+        self._scale_from_flat_start(markers, bias=False)
         surface = SBFSurface.plane(self.basis, h)
-        xy, hx, hy, _ = self._trace(surface, px, targets)
-        self._check_coverage(xy, len(ij))
-        if cfg.sigma_candidates and cfg.counts is None:
-            best, self.sigma_scores, _ = select_sigma(self.sub, xy[:, 0], xy[:, 1], hx, hy, cfg)
-            self._use_basis(cfg.make_basis(self.sub, best))
-            surface = SBFSurface.plane(self.basis, h)
         for _ in range(iterations):
             xy, hx, hy, _ = self._trace(surface, px, targets)
             if len(xy) < 0.95 * len(ij):
@@ -809,24 +805,27 @@ class Reconstructor:
             surface = SBFSurface(self.basis, coef, h - self._roi_mean(coef))
         return surface
 
-    def _restart_with_fitting_scale(self, markers: MarkerObservations) -> bool:
-        """Choose the basis scale on the gradients traced through the flat start; True if it changed.
+    def _scale_from_flat_start(self, markers: MarkerObservations, bias: bool = True) -> bool:
+        """Choose the basis scale on the gradients traced through the flat start; True if the scale changed.
 
+        :func:`select_sigma` on the markers' gradients traced through the plane at the frame height (with the bias
+        step where ``bias`` and the reconstructor has one).
         A default scale far too coarse for the surface (the 12 mm basis on a 3 mm / 60 µm one, whose markers the
         topological indexing of :func:`recon.markers.index_lattice` numbers) cannot fit the gradients, and its fits
         swing so far that the rays miss the substrate (or its ends) — in the first inner loop, before a surface
         exists for :func:`select_sigma` to be run on, or after many start heights that did not settle (3 mm / 60 µm
         seeds 2 and 1). The flat start at the frame height traces every marker; the scale is chosen on those
-        gradients instead and the start-height loop begins again (with a fresh budget of start heights).
+        gradients instead, and :meth:`_run` begins the start-height loop again (with a fresh budget of start
+        heights); :meth:`coarse_surface` fits with it.
         """
         cfg = self.config
-        if not cfg.sigma_candidates or cfg.counts is not None:
-            return False
         plane = SBFSurface.plane(self.basis, self.sub.frame_z)
         ij, px, targets = self._prepare(markers)
-        px = self.bias(plane, ij, px) if self.bias is not None else px
+        px = self.bias(plane, ij, px) if bias and self.bias is not None else px
         xy, hx, hy, _ = self._trace(plane, px, targets)
         self._check_coverage(xy, len(ij))  # a flat start that misses the substrate too: that error, not this one
+        if not cfg.sigma_candidates or cfg.counts is not None:
+            return False
         best, self.sigma_scores, _ = select_sigma(self.sub, xy[:, 0], xy[:, 1], hx, hy, cfg)
         if best == float(self.basis.sigma[0]):
             return False
@@ -841,7 +840,7 @@ class Reconstructor:
         try:
             converged = self._outer(markers, self.sub.frame_z, history, surfaces)
         except (SubstrateNotVisibleError, TooFewMarkersError):
-            if not self._restart_with_fitting_scale(markers):
+            if not self._scale_from_flat_start(markers):
                 raise
             surfaces = []  # the first scale's surfaces: no warm start for another basis
             converged = self._outer(markers, self.sub.frame_z, history, surfaces, cfg.outer_max)
@@ -1172,18 +1171,18 @@ def reconstruct_image(
     """
     from recon.markers import ReferenceTieError, find_markers_for
 
-    def attempt(reference: int | None) -> tuple[Any, ReconstructionResult, Reconstructor]:
+    def attempt(reference: int | None, path: str | Path | None) -> tuple[Any, ReconstructionResult, Reconstructor]:
         found = find_markers_for(image, setup, reference=reference)
         rec = Reconstructor.from_setup(setup, config, bias)
-        return found, rec.run(MarkerObservations(found.ij, found.centroids), history_path=history_path), rec
+        return found, rec.run(MarkerObservations(found.ij, found.centroids), history_path=path), rec
 
     try:
-        return attempt(None)
+        return attempt(None, history_path)
     except ReferenceTieError as tie:
         good = []
-        for cand in tie.candidates:
+        for cand in tie.candidates:  # a candidate that fails leaves no partial history behind
             with contextlib.suppress(ScopetwinError):
-                good.append(attempt(int(cand)))
+                good.append(attempt(int(cand), None))
         if len(good) == 1:
             return good[0]
         raise ReferenceTieError(

@@ -85,8 +85,9 @@ class Markers:
 
 #: The topological indexing (:func:`index_lattice`) is tried when the flood numbers fewer than this fraction of the
 #: kept spots. Measured on 3 mm / 60 µm surfaces (seeds 1-8, Mitsuba 16 spp): the flood reached 12 and 308 of ~470
-#: on seeds 2 and 1, the lattice 446 and 456 (0 and 3 wrong); where the flood reaches >= 90 % (the seed's surfaces,
-#: 5-20 mm correlation) it is kept, so their results are unchanged.
+#: on seeds 2 and 1, the lattice 454 and 458 (none nearer another marker's true image than its own); on the other
+#: six, and on the seed's surfaces (5-20 mm correlation), the flood reaches more than this and is kept, so their
+#: results are unchanged.
 LATTICE_FALLBACK = 0.8
 
 

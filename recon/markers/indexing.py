@@ -22,6 +22,14 @@ _AXIAL = np.array([[1, 0], [-1, 0], [0, 1], [0, -1]], dtype=np.int64)
 _AXIAL_SIGN = np.array([1.0, -1.0, 1.0, -1.0])
 
 
+def _in_basis(basis: Array, dv: Array) -> tuple[Array, Array]:
+    """Coefficients (u, v) of the steps ``dv`` (..., 2) in the basis ``basis`` (..., 2, 2; rows a_x, a_y)."""
+    det = basis[..., 0, 0] * basis[..., 1, 1] - basis[..., 0, 1] * basis[..., 1, 0]
+    u = (dv[..., 0] * basis[..., 1, 1] - dv[..., 1] * basis[..., 1, 0]) / det
+    v = (basis[..., 0, 0] * dv[..., 1] - basis[..., 0, 1] * dv[..., 0]) / det
+    return u, v
+
+
 def _local_basis(pts: Array, table: NDArray, off: int, ij: NDArray, fallback: Array) -> Array:
     """Local steps of the markers at indices ``ij`` from their indexed axial neighbours.
 
@@ -140,11 +148,7 @@ def index_grid(
         if axis_tol is not None and ok.any():
             # the step in the local basis: each coefficient must match the neighbour offset on its own axis
             pp, kk = np.nonzero(ok)
-            bb = b[pp]  # (q, 2, 2) rows a_x, a_y
-            det = bb[:, 0, 0] * bb[:, 1, 1] - bb[:, 0, 1] * bb[:, 1, 0]
-            dv = pts[sid[pp, kk]] - pts[frontier[pp]]
-            u = (dv[:, 0] * bb[:, 1, 1] - dv[:, 1] * bb[:, 1, 0]) / det
-            v = (bb[:, 0, 0] * dv[:, 1] - bb[:, 0, 1] * dv[:, 0]) / det
+            u, v = _in_basis(b[pp], pts[sid[pp, kk]] - pts[frontier[pp]])
             off_axis = np.maximum(np.abs(u - NEIGHBOURS[kk, 0]), np.abs(v - NEIGHBOURS[kk, 1])) > axis_tol
             ok[pp[off_axis], kk[off_axis]] = False
         if btree is not None and ok.any():
@@ -221,11 +225,9 @@ def _axial_neighbour(
     if cand.size == 0:
         return -1
     dv = pts[cand] - pts[a]
-    det = basis[0, 0] * basis[1, 1] - basis[0, 1] * basis[1, 0]
-    if abs(det) < 1e-12:
+    if abs(basis[0, 0] * basis[1, 1] - basis[0, 1] * basis[1, 0]) < 1e-12:
         return -1
-    u = (dv[:, 0] * basis[1, 1] - dv[:, 1] * basis[1, 0]) / det
-    v = (basis[0, 0] * dv[:, 1] - basis[0, 1] * dv[:, 0]) / det
+    u, v = _in_basis(basis, dv)
     along, across = (u, v) if axis == 0 else (v, u)
     along = along * _AXIAL_SIGN[k]
     ok = (along > on[0]) & (along < on[1]) & (np.abs(across) < off_tol * np.maximum(along, 1.0))

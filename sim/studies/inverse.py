@@ -3,7 +3,8 @@
 For §1.9 surfaces at 3-20 mm correlation (the Gaussian family, and the PSD family of :mod:`sim.surfaces` when it
 is there), with and without the EMVA 1288 sensor model, the §1.10 measurement is rendered with Mitsuba and
 reconstructed by the centroid method (:mod:`recon.reconstruct`) and by inverse rendering (:mod:`recon.inverse`,
-started from the centroid result, or from a plane where the markers cannot be indexed); each Gauss-Newton step's
+started from the centroid result, or where that fails from :func:`recon.inverse.inverse_start`'s next choice — the
+centroid method without its bias step, a coarse fit of the markers, a plane); each Gauss-Newton step's
 surface is compared with the truth (shape and absolute error against the step's time). Beside them: the
 Cramér-Rao bound on the shape RMS, from the Fisher information J^T W J of the render with respect to the B-spline
 coefficients at the truth (the mean height fixed as in the fit, the fit's thin-plate prior included), with W the
