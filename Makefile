@@ -28,6 +28,7 @@ llvm:
 lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	@sh .ci/typecheck-tree.sh
 	$(VENV)/bin/mypy
 
 bench: setup

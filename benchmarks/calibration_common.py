@@ -5,8 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from scenes.camera import Camera
-from scenes.geometry import Frame
+from scopetwin.scenes.camera import Camera
+from scopetwin.scenes.geometry import Frame
 
 
 def fmt(v, scale: float = 1.0, digits: int = 3) -> str:

@@ -18,8 +18,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from calibration_common import fmt, frame_dev, pose_error, solvepnp  # noqa: E402
 
-from calib.oneshot import CalibrationWarning, Prior, calibrate  # noqa: E402
-from scenes.setup import load_setup  # noqa: E402
+from scopetwin.calib.oneshot import CalibrationWarning, Prior, calibrate  # noqa: E402
+from scopetwin.scenes.setup import load_setup  # noqa: E402
 
 warnings.simplefilter("ignore", CalibrationWarning)
 

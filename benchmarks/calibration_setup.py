@@ -20,13 +20,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from calibration_common import fmt, frame_dev, pose_error, solvepnp  # noqa: E402
 
-from calib.oneshot import CalibrationWarning, Prior  # noqa: E402
-from calib.setup_calibration import calibrate_setup, mirror_prior, virtual_coordinates  # noqa: E402
-from recon.bias import spot_bias_model  # noqa: E402
-from recon.markers import find_markers_for  # noqa: E402
-from scenes.mitsuba.render import render_setup  # noqa: E402
-from scenes.setup import load_setup  # noqa: E402
-from sim.truth import marker_truth  # noqa: E402
+from scopetwin.calib.oneshot import CalibrationWarning, Prior  # noqa: E402
+from scopetwin.calib.setup_calibration import calibrate_setup, mirror_prior, virtual_coordinates  # noqa: E402
+from scopetwin.recon.bias import spot_bias_model  # noqa: E402
+from scopetwin.recon.markers import find_markers_for  # noqa: E402
+from scopetwin.scenes.mitsuba.render import render_setup  # noqa: E402
+from scopetwin.scenes.setup import load_setup  # noqa: E402
+from scopetwin.sim.truth import marker_truth  # noqa: E402
 
 warnings.simplefilter("ignore", CalibrationWarning)
 

@@ -3,8 +3,8 @@
 The camera stays d = 233.24 mm from the centre of the calibration target of the §2.8.1 presets
 (11 x 9 markers, 4 mm pitch, r = 1 mm) and looks at it from alpha = 90° (perpendicular) down to
 10° in 10° steps. Each view is rendered with Mitsuba; the markers are found and indexed with
-:func:`recon.markers.find_markers_for` and compared with the true image of every marker centre
-(:func:`sim.truth.marker_truth`):
+:func:`scopetwin.recon.markers.find_markers_for` and compared with the true image of every marker centre
+(:func:`scopetwin.sim.truth.marker_truth`):
 
 * raw — the grey-weighted centroid of the whole spot (recon.markers.centroids);
 * corrected — raw + the bias predicted by recon.bias from the (here: true) camera and target;
@@ -32,9 +32,9 @@ import time
 import cv2
 import numpy as np
 
-from recon.bias import correct_centroids, model_for_setup
-from recon.markers import Markers, find_markers_for
-from scenes.setup import Setup, load_setup
+from scopetwin.recon.bias import correct_centroids, model_for_setup
+from scopetwin.recon.markers import Markers, find_markers_for
+from scopetwin.scenes.setup import Setup, load_setup
 
 DISTANCE_MM = 233.24
 
@@ -53,7 +53,7 @@ def setup_at(alpha_deg: float) -> Setup:
 
 
 def render(setup: Setup, spp: int, seed: int) -> np.ndarray:
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     return render_setup(setup, None, spp=spp, seed=seed)
 
@@ -131,7 +131,7 @@ def main() -> None:
     parser.add_argument("--angles", type=float, nargs="*", default=[90, 80, 70, 60, 50, 40, 30, 20, 10])
     parser.add_argument("--json", help="write the figures here")
     args = parser.parse_args()
-    from sim.truth import marker_truth
+    from scopetwin.sim.truth import marker_truth
 
     rows = []
     print(

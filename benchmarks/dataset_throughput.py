@@ -17,10 +17,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from sim.datasets.config import load_config
-from sim.datasets.plan import Plan
-from sim.datasets.runner import dask_client
-from sim.datasets.store import generate, generate_sample
+from scopetwin.sim.datasets.config import load_config
+from scopetwin.sim.datasets.plan import Plan
+from scopetwin.sim.datasets.runner import dask_client
+from scopetwin.sim.datasets.store import generate, generate_sample
 
 ROOT = Path(__file__).resolve().parents[1]
 

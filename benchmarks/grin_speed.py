@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-#: Arithmetic operations in one RKN step (:func:`scenes.grin.rkn.rkn_step`, the one numpy and Dr.Jit run) with the
-#: polynomial profile
+#: Arithmetic operations in one RKN step (:func:`scopetwin.scenes.grin.rkn.rkn_step`, the one numpy and Dr.Jit run)
+#: with the polynomial profile
 #: (counted from the formulas: 2 profile evaluations of 9, 3 r² of 3, the updates and the OPL).
 OPS_PER_STEP = 96
 
@@ -52,12 +52,12 @@ def main() -> None:
 
     import drjit as dr
 
-    from scenes.grin import load_grin_setup
-    from scenes.grin.analysis import analyse
-    from scenes.grin.profiles import PolynomialProfile
-    from scenes.grin.rkn import rkn_rod
-    from scenes.grin.targets import target
-    from scenes.mitsuba import grin
+    from scopetwin.scenes.grin import load_grin_setup
+    from scopetwin.scenes.grin.analysis import analyse
+    from scopetwin.scenes.grin.profiles import PolynomialProfile
+    from scopetwin.scenes.grin.rkn import rkn_rod
+    from scopetwin.scenes.grin.targets import target
+    from scopetwin.scenes.mitsuba import grin
 
     prof = PolynomialProfile()
     length, steps = 3.58, 36
@@ -131,7 +131,7 @@ def main() -> None:
     if args.no_image:
         return
 
-    from scenes.mitsuba.variant import choose
+    from scopetwin.scenes.mitsuba.variant import choose
 
     variant = choose("mono")
     setup = load_grin_setup("thesis-8.3.2-grin-realized")

@@ -26,7 +26,7 @@ TARGET_UM = 0.05
 
 
 def main() -> None:
-    from sim.studies.inverse import inverse_task
+    from scopetwin.sim.studies.inverse import inverse_task
 
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--seeds", default="1:9", help="surface seeds A:B (B excluded)")

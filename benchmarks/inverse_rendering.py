@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def main() -> None:
-    from sim.studies.inverse import inverse_task
+    from scopetwin.sim.studies.inverse import inverse_task
 
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--cases", default="12:40,5:40,3:60", help="correlation_mm:range_um,...")

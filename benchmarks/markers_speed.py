@@ -1,7 +1,7 @@
 """Speed of marker detection + indexing on full 1360x1024 frames (issue 3 target: <= 20 ms per frame).
 
 Renders the §1.10 deflectometry setup (Mitsuba, 16 spp) and the §2.8.1 angular calibration view, adds
-EMVA sensor noise, and times :func:`recon.markers.find_markers` (centroid search, filtering, grid
+EMVA sensor noise, and times :func:`scopetwin.recon.markers.find_markers` (centroid search, filtering, grid
 identification, indexing) per frame, with the setup-derived hint and region prepared once per setup
 (as a measurement loop would). Prints the minimum and median over repeated runs and the stage split.
 
@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from recon.markers import (
+from scopetwin.recon.markers import (
     centroids,
     expected_axes,
     filter_spots,
@@ -32,15 +32,15 @@ from recon.markers import (
     reference_axes,
     region_for_setup,
 )
-from scenes.setup import Setup, load_setup
+from scopetwin.scenes.setup import Setup, load_setup
 
 
 def render(setup: Setup, heights, analytic: bool) -> np.ndarray:
     if analytic:
-        from scenes.analytic import render as render_analytic
+        from scopetwin.scenes.analytic import render as render_analytic
 
         return render_analytic(setup, heights, spp=4, seed=0)
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     return render_setup(setup, heights, spp=16, seed=0)
 
@@ -91,7 +91,7 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=50)
     parser.add_argument("--analytic", action="store_true", help="render with the numpy reference renderer")
     args = parser.parse_args()
-    from sim.surfaces import surface_for
+    from scopetwin.sim.surfaces import surface_for
 
     print(f"{'frame':<34} {'markers':>7} {'min ms':>8} {'median ms':>10}   stages (min ms)")
     for name in ("thesis-1.10-deflectometry", "thesis-2.8.1-angular"):

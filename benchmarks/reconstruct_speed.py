@@ -22,9 +22,9 @@ from collections import defaultdict  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-import recon.reconstruct as rr  # noqa: E402
-from recon.markers import centroids, find_markers_for  # noqa: E402
-from scenes.setup import load_setup  # noqa: E402
+import scopetwin.recon.reconstruct as rr  # noqa: E402
+from scopetwin.recon.markers import centroids, find_markers_for  # noqa: E402
+from scopetwin.scenes.setup import load_setup  # noqa: E402
 
 TIMES: dict[str, list[float]] = defaultdict(list)
 
@@ -52,12 +52,12 @@ def main() -> None:
     args = ap.parse_args()
     setup = load_setup("thesis-1.10-deflectometry")
     if args.image:
-        from scenes.io import read_image
+        from scopetwin.scenes.io import read_image
 
         image = read_image(args.image)[0]
     else:
-        from sim.pipeline import render_with_noise
-        from sim.surfaces import surface_for
+        from scopetwin.sim.pipeline import render_with_noise
+        from scopetwin.sim.surfaces import surface_for
 
         image = render_with_noise(setup, surface_for(setup), 16, 0)
     print(

@@ -33,9 +33,9 @@ ERRORS = (
 
 def wrong_setup(setup, errors):
     """The setup with its camera and pattern moved by ``errors``, with their sizes as [calibration]."""
-    from calib.setup_calibration import set_poses
-    from recon.inverse import _pose_update
-    from scenes.setup import setup_from_dict
+    from scopetwin.calib.setup_calibration import set_poses
+    from scopetwin.recon.inverse import _pose_update
+    from scopetwin.scenes.setup import setup_from_dict
 
     cam, pat = _pose_update(setup.camera_model, setup.marker_pattern, np.concatenate(errors))
     data = setup.model_dump(exclude_none=True)
@@ -73,14 +73,14 @@ def pose_text(e):
 
 
 def main() -> None:
-    from recon.inverse import InverseConfig, InverseReconstructor, pose_sigma_for
-    from recon.markers import find_markers_for
-    from recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
-    from scenes.setup import load_setup
-    from sim.measurement import apply_sensor, render_measurement
-    from sim.pipeline import roi_errors
-    from sim.studies.tasks import THESIS_DEFLECTOMETRY, quiet
-    from sim.surfaces import surface_for
+    from scopetwin.recon.inverse import InverseConfig, InverseReconstructor, pose_sigma_for
+    from scopetwin.recon.markers import find_markers_for
+    from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
+    from scopetwin.scenes.setup import load_setup
+    from scopetwin.sim.measurement import apply_sensor, render_measurement
+    from scopetwin.sim.pipeline import roi_errors
+    from scopetwin.sim.studies.tasks import THESIS_DEFLECTOMETRY, quiet
+    from scopetwin.sim.surfaces import surface_for
 
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--corr", type=float, default=12.0)

@@ -2,7 +2,7 @@
 
 Renders the seed's §1.10 setup (1360 x 1024 px, 33 x 33 markers, 25.2 x 57 mm substrate)
 with a smooth 40 µm bow, warm (kernels compiled, scene loaded), and prints seconds per
-frame and camera rays per second at several spp; then times :func:`scenes.analytic.render`
+frame and camera rays per second at several spp; then times :func:`scopetwin.scenes.analytic.render`
 on a window of the image, extrapolates to a full frame per ray, and prints the ratio.
 Targets (issue 2): <= 0.5 s per frame at 16 spp on 2 cores, >= 50x the numpy reference.
 Prints figures only; nothing here passes or fails.
@@ -19,8 +19,8 @@ import time
 
 import numpy as np
 
-from scenes.setup import load_setup
-from scenes.surface import HeightMap
+from scopetwin.scenes.setup import load_setup
+from scopetwin.scenes.surface import HeightMap
 
 PRESET = "thesis-1.10-deflectometry"
 
@@ -41,7 +41,7 @@ def bowed_heights(range_um: float = 40.0) -> HeightMap:
 def time_mitsuba(setup, heights, spp_list: list[int], repeats: int, variant: str) -> dict[int, dict[str, float]]:
     import drjit as dr
 
-    from scenes.mitsuba.render import live_window, load_scene, render_setup, render_window
+    from scopetwin.scenes.mitsuba.render import live_window, load_scene, render_setup, render_window
 
     window = live_window(setup, heights)
     nx, ny = setup.camera.pixels
@@ -95,7 +95,7 @@ def time_mitsuba(setup, heights, spp_list: list[int], repeats: int, variant: str
 
 
 def time_analytic(setup, heights, spp: int, window: int) -> dict[str, float]:
-    from scenes.analytic import render
+    from scopetwin.scenes.analytic import render
 
     nx, ny = setup.camera.pixels
     r0, c0 = ny // 2 - window // 2, nx // 2 - window // 2
@@ -122,7 +122,7 @@ def main() -> None:
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args()
 
-    from scenes.mitsuba.variant import choose
+    from scopetwin.scenes.mitsuba.variant import choose
 
     variant = choose("mono")
     setup = load_setup(PRESET)

@@ -8,7 +8,7 @@ so both frame-region maxima are 0, scaled to a 40 µm range). The seed does not 
 Fig. 1.10), "rougher" is 6 mm, "smoother" 18 mm. Height distributions 1 and 2 of §1.10 are taken as
 seeds 1 and 2 of the 12 mm family (the seed's own surfaces are not available).
 
-Marker images are exact (:mod:`sim.truth`: every marker centre traced through the true surface), so
+Marker images are exact (:mod:`scopetwin.sim.truth`: every marker centre traced through the true surface), so
 the figures measure the reconstruction alone; the last part renders with Mitsuba and detects the
 markers to show what the centroid-bias correction buys.
 
@@ -28,7 +28,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from recon.reconstruct import (  # noqa: E402
+from scopetwin.recon.reconstruct import (  # noqa: E402
     MarkerObservations,
     NotConvergedError,
     ReconstructionConfig,
@@ -36,10 +36,10 @@ from recon.reconstruct import (  # noqa: E402
     Reconstructor,
     Substrate2D,
 )
-from scenes.setup import load_setup  # noqa: E402
-from sim.pipeline import roi_errors  # noqa: E402
-from sim.surfaces import make_surface  # noqa: E402
-from sim.truth import marker_truth  # noqa: E402
+from scopetwin.scenes.setup import load_setup  # noqa: E402
+from scopetwin.sim.pipeline import roi_errors  # noqa: E402
+from scopetwin.sim.surfaces import make_surface  # noqa: E402
+from scopetwin.sim.truth import marker_truth  # noqa: E402
 
 SETUP = load_setup("thesis-1.10-deflectometry")
 SUB = Substrate2D.from_setup(SETUP)
@@ -204,12 +204,12 @@ def part_d(items) -> None:
 
 def part_e(spp: int) -> None:
     print(f"\n== E. Rendered measurement (Mitsuba, {spp} spp): detection, centroid-bias correction ==")
-    from recon.markers import find_markers_for
-    from recon.reconstruct import centroid_bias_step
-    from sim.pipeline import render_with_noise
+    from scopetwin.recon.markers import find_markers_for
+    from scopetwin.recon.reconstruct import centroid_bias_step
+    from scopetwin.sim.pipeline import render_with_noise
 
     h = make_surface(SETUP.substrate.surface, SETUP.substrate)
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     for noise in (False, True):
         image = render_with_noise(SETUP, h, spp, 0) if noise else render_setup(SETUP, h, spp=spp, seed=0)

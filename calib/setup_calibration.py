@@ -7,7 +7,7 @@ Three steps, as in the seed:
 2. §2.7.2 — the camera against the deflectometry pattern seen in a flat mirror on the
    holding frame: a calibration against the *virtual* (mirrored) pattern. The mirror z = 0
    maps the pattern point of local coordinates (x, y) to the virtual point (x, -y) of the
-   mirrored frame (:meth:`scenes.geometry.Frame.mirrored_z`), which is right-handed.
+   mirrored frame (:meth:`scopetwin.scenes.geometry.Frame.mirrored_z`), which is right-handed.
 3. The virtual pattern is transferred from the camera's frame into the global frame with the
    global camera of step 1, then mirrored into the real pattern (negate the z components,
    then T_y as a whole, Fig. 2.8).
@@ -18,7 +18,7 @@ deriving b anew from the thin-lens equation. This matters because the pattern is
 nearly face-on in the mirror, where b cannot be told from the distance.
 
 The result is written as a setup TOML (:func:`write_setup_toml`) that
-:func:`scenes.setup.load_setup` reads back.
+:func:`scopetwin.scenes.setup.load_setup` reads back.
 """
 
 from __future__ import annotations
@@ -33,11 +33,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from calib.oneshot import Calibration, CalibrationError, LensMode, Prior, calibrate, calibrate_bias_corrected
-from scenes.camera import Camera
-from scenes.geometry import Array, Frame
-from scenes.pattern import MarkerPattern
-from scenes.setup import Setup
+from scopetwin.calib.oneshot import Calibration, CalibrationError, LensMode, Prior, calibrate, calibrate_bias_corrected
+from scopetwin.scenes.camera import Camera
+from scopetwin.scenes.geometry import Array, Frame
+from scopetwin.scenes.pattern import MarkerPattern
+from scopetwin.scenes.setup import Setup
 
 BiasModel = Callable[[Camera], Array]
 
@@ -170,14 +170,14 @@ def calibrate_setup(
     target_frame : Frame, optional
         The target's frame in the global frame (default: it IS the global frame, §2.7.1).
     lens, distortion
-        As in :func:`calib.oneshot.calibrate` for the substrate view.
+        As in :func:`scopetwin.calib.oneshot.calibrate` for the substrate view.
     share_intrinsics : bool
         Keep b (and r_cs, c0, c2) of the substrate view for the mirror view (default). False:
         the seed's way, each view with its own thin-lens b.
     substrate_bias, mirror_bias : callable, optional
         Centroid-bias models (``camera -> (n, 2) px``, camera in the view's target coordinates);
         given, each view alternates calibration and bias correction
-        (:func:`calib.oneshot.calibrate_bias_corrected`).
+        (:func:`scopetwin.calib.oneshot.calibrate_bias_corrected`).
     """
 
     def one(xy: ArrayLike, px: ArrayLike, prior: Prior, bias: BiasModel | None, **kw: Any) -> Calibration:
@@ -318,9 +318,10 @@ def pose_uncertainties(result: SetupCalibration) -> dict[str, Any] | None:
 
 
 def write_setup_toml(path: str | Path, nominal: Setup, result: SetupCalibration) -> str:
-    """Write the calibrated setup as TOML (atomically) and return the text; :func:`scenes.setup.load_setup` reads it."""
-    from scenes.io import write_text_atomic
-    from scenes.setup import setup_from_dict
+    """Write the calibrated setup as TOML (atomically) and return the text; :func:`scopetwin.scenes.setup.load_setup`
+    reads it."""
+    from scopetwin.scenes.io import write_text_atomic
+    from scopetwin.scenes.setup import setup_from_dict
 
     data = calibrated_setup_dict(nominal, result)
     setup_from_dict(data, "calibrated setup")  # validate before anything is written

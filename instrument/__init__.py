@@ -2,13 +2,13 @@
 
 ``open_rig(path)`` opens a rig TOML (simulated devices, hardware drivers, or drivers
 on emulators) as a context manager; acquisition routines live in
-:mod:`instrument.acquisition`, Micro-Manager interop (pymmcore-plus, MDA) in
-:mod:`instrument.micromanager`, python-microscope adapters in
-:mod:`instrument.pymicroscope`, the emulator server behind ``scopetwin emulate`` in
-:mod:`instrument.emulators.serve`; the ``rig`` command in :mod:`sim.cli.rig`.
+:mod:`scopetwin.instrument.acquisition`, Micro-Manager interop (pymmcore-plus, MDA) in
+:mod:`scopetwin.instrument.micromanager`, python-microscope adapters in
+:mod:`scopetwin.instrument.pymicroscope`, the emulator server behind ``scopetwin emulate`` in
+:mod:`scopetwin.instrument.emulators.serve`; the ``rig`` command in :mod:`scopetwin.sim.cli.rig`.
 """
 
-from instrument.errors import (
+from scopetwin.instrument.errors import (
     DisconnectedError,
     InstrumentError,
     InstrumentTimeout,
@@ -16,7 +16,7 @@ from instrument.errors import (
     ProtocolError,
     RigError,
 )
-from instrument.rig import Rig, load_rig, open_rig
+from scopetwin.instrument.rig import Rig, load_rig, open_rig
 
 __all__ = [
     "DisconnectedError",

@@ -8,13 +8,13 @@
 * :func:`tile_scan` — a stage grid, the focus set from a focus map at every tile
   (no focus search, seed §1.1 / §6), each frame written as it arrives.
 
-Every frame is written atomically (OpenEXR via :func:`scenes.io.write_image`)
+Every frame is written atomically (OpenEXR via :func:`scopetwin.scenes.io.write_image`)
 the moment it is grabbed, with a ``manifest.json`` rewritten atomically after
 each frame; SIGINT, SIGTERM and SIGHUP are held while a frame and its manifest
-entry are written (:func:`instrument.interrupts.deferred_signals`), so a failure
+entry are written (:func:`scopetwin.instrument.interrupts.deferred_signals`), so a failure
 or a signal leaves every finished frame readable on disk and listed in the
 manifest, never one without the other. Lights are switched off on every exit
-path (and :func:`instrument.open_rig` does it again). :class:`FrameWriter` also
+path (and :func:`scopetwin.instrument.open_rig` does it again). :class:`FrameWriter` also
 keeps a PNG preview of the latest frame beside the frames, and records each
 frame's signal above the black level (``signal_dn``), so a caller can tell an
 acquisition that saw nothing (:func:`dark_frames`).
@@ -34,11 +34,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from instrument.devices import CameraDevice, LightSource, TriggerMode, TriggerType
-from instrument.errors import InstrumentError, OutOfRangeError
-from instrument.interrupts import deferred_signals
-from instrument.rig import Rig
-from scenes.io import atomic_path, write_image, write_json_atomic
+from scopetwin.instrument.devices import CameraDevice, LightSource, TriggerMode, TriggerType
+from scopetwin.instrument.errors import InstrumentError, OutOfRangeError
+from scopetwin.instrument.interrupts import deferred_signals
+from scopetwin.instrument.rig import Rig
+from scopetwin.scenes.io import atomic_path, write_image, write_json_atomic
 
 FocusMap = Callable[[float, float], float]
 

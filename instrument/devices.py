@@ -4,7 +4,7 @@ One abstract class per kind of device: :class:`CameraDevice`, :class:`Stage`,
 :class:`FocusDrive`, :class:`LightSource`, :class:`Shutter` and
 :class:`TriggerController`. Their public methods validate every request
 against limits held as data (:class:`Range`), raising
-:class:`~instrument.errors.OutOfRangeError` *before* anything is sent, and then
+:class:`~scopetwin.instrument.errors.OutOfRangeError` *before* anything is sent, and then
 call small private hooks (``_do_move_absolute``, ``_do_configure``, ...) that a
 simulated device or a hardware driver implements. Code above this layer
 (acquisition, rigs, the CLI) only ever sees these classes.
@@ -32,7 +32,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from instrument.errors import DisconnectedError, InstrumentTimeout, OutOfRangeError
+from scopetwin.instrument.errors import DisconnectedError, InstrumentTimeout, OutOfRangeError
 
 FloatImage = NDArray[np.float32]
 
@@ -600,7 +600,7 @@ class Roi:
 class CameraDevice(Device):
     """A monochrome camera device (seed §4.1.4, control surface of §4.3.2 'Cameras').
 
-    The device that delivers frames; not to be confused with :class:`scenes.camera.Camera`, the
+    The device that delivers frames; not to be confused with :class:`scopetwin.scenes.camera.Camera`, the
     thesis's pinhole camera *model* (§1.6.2) that calibration estimates.
 
     Frames come back as float32 digital numbers, shape ``(rows, cols)`` of the

@@ -1,14 +1,14 @@
 """The one exception family of the instrument layer.
 
 Every failure a device can report is an :class:`InstrumentError`, itself a
-:class:`scenes.errors.ScopetwinError`, so the command line maps all of them to
+:class:`scopetwin.scenes.errors.ScopetwinError`, so the command line maps all of them to
 exit code 2 with a one-line message. The four subclasses say *what* went
 wrong, independent of the world (simulated or hardware) behind the device.
 """
 
 from __future__ import annotations
 
-from scenes.errors import ScopetwinError
+from scopetwin.scenes.errors import ScopetwinError
 
 
 class InstrumentError(ScopetwinError):

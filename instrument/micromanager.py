@@ -34,10 +34,10 @@ from typing import Any
 
 import numpy as np
 
-from instrument.devices import CameraDevice, FocusDrive, LightSource, Stage
-from instrument.errors import RigError
-from instrument.interrupts import deferred_signals
-from instrument.rig import Rig
+from scopetwin.instrument.devices import CameraDevice, FocusDrive, LightSource, Stage
+from scopetwin.instrument.errors import RigError
+from scopetwin.instrument.interrupts import deferred_signals
+from scopetwin.instrument.rig import Rig
 
 CHANNEL_GROUP = "Channel"
 LIGHT_LABEL = "Light"

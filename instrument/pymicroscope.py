@@ -7,7 +7,7 @@ light sources take a power in [0, 1] (the fraction of the light's maximum
 current); stages and the focus drive (a one-axis stage named ``z``) move in
 micrometres, as Cockpit expects. The wrappers never own the rig's devices:
 ``shutdown`` switches a light off or stops a camera's acquisition but leaves
-the rig device to :func:`instrument.rig.open_rig`. :func:`serve_devices` is the
+the rig device to :func:`scopetwin.instrument.rig.open_rig`. :func:`serve_devices` is the
 library function behind ``scopetwin rig RIG serve``: python-microscope's device
 server (Pyro) on 127.0.0.1 only.
 """
@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from instrument.devices import CameraDevice, FocusDrive, LightSource, Stage
-from instrument.errors import InstrumentError, RigError
-from instrument.rig import Rig
+from scopetwin.instrument.devices import CameraDevice, FocusDrive, LightSource, Stage
+from scopetwin.instrument.errors import InstrumentError, RigError
+from scopetwin.instrument.rig import Rig
 
 LOCALHOST = "127.0.0.1"
 

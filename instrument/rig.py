@@ -7,7 +7,7 @@ Format (DESIGN.md, 'Rig files')::
 
     [devices.x]
     kind = "stage"            # camera | stage | focus | light | shutter | trigger
-    driver = "sim"            # sim | pi-gcs | jena-piezo | fpga-board | basler
+    driver = "scopetwin.sim"            # sim | pi-gcs | jena-piezo | fpga-board | basler
     travel_mm = [0.0, 150.0]  # limits given here are enforced before anything is sent
     max_velocity_mm_s = 50.0
 
@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from instrument.devices import (
+from scopetwin.instrument.devices import (
     CameraDevice,
     CameraLimits,
     Device,
@@ -51,11 +51,11 @@ from instrument.devices import (
     Stage,
     TriggerController,
 )
-from instrument.errors import InstrumentError, RigError
-from instrument.interrupts import deferred_signals
+from scopetwin.instrument.errors import InstrumentError, RigError
+from scopetwin.instrument.interrupts import deferred_signals
 
 KINDS = ("camera", "stage", "focus", "light", "shutter", "trigger")
-DRIVERS = ("sim", "pi-gcs", "jena-piezo", "fpga-board", "basler")
+DRIVERS = ("scopetwin.sim", "pi-gcs", "jena-piezo", "fpga-board", "basler")
 
 
 @dataclass
@@ -66,13 +66,13 @@ class _Context:
 
     def sim_world(self) -> Any:
         if self.world is None:
-            from instrument.simulated.world import VirtualWorld
+            from scopetwin.instrument.simulated.world import VirtualWorld
 
             self.world = VirtualWorld()
         return self.world
 
     def transport(self, name: str, table: dict[str, Any], default_baud: int, default_xonxoff: bool = False) -> Any:
-        from instrument.transport import open_transport
+        from scopetwin.instrument.transport import open_transport
 
         port = _take(table, "port", str, name)
         baud = int(table.pop("baudrate", default_baud))
@@ -124,8 +124,8 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
     timeout_s = _take(t, "timeout_s", float, name, 1.0)
     device: Device
     key = (kind, driver)
-    if driver == "sim":
-        from instrument.simulated import devices as simd
+    if driver == "scopetwin.sim":
+        from scopetwin.instrument.simulated import devices as simd
 
         world = ctx.sim_world()
         if kind == "stage":
@@ -160,8 +160,8 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
                 name, world, n_camera_lines=_take(t, "n_camera_lines", int, name, 4), timeout_s=timeout_s
             )
         else:
-            from instrument.simulated.renderers import make_renderer
-            from scenes.emva1288 import EmvaSensor
+            from scopetwin.instrument.simulated.renderers import make_renderer
+            from scopetwin.scenes.emva1288 import EmvaSensor
 
             limits = _camera_limits(name, t)
             try:  # the rig's ``sensor`` table: the fields of the EMVA 1288 model
@@ -182,7 +182,7 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
                 timeout_s=timeout_s,
             )
     elif key == ("stage", "pi-gcs"):
-        from instrument.drivers.pi_gcs import PiGcsStage
+        from scopetwin.instrument.drivers.pi_gcs import PiGcsStage
 
         transport = ctx.transport(name, t, 115200)
         device = PiGcsStage(
@@ -196,7 +196,7 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
             timeout_s=timeout_s,
         )
     elif key == ("focus", "jena-piezo"):
-        from instrument.drivers.jena_piezo import JenaPiezoFocus, dialect_of
+        from scopetwin.instrument.drivers.jena_piezo import JenaPiezoFocus, dialect_of
 
         dialect = dialect_of(_take(t, "model", str, name, "nv40-1"))  # the model sets baud rate and XON/XOFF
         transport = ctx.transport(name, t, dialect.baudrate, dialect.xonxoff)
@@ -211,7 +211,7 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
             timeout_s=timeout_s,
         )
     elif driver == "fpga-board" and kind in ("light", "shutter", "trigger"):
-        from instrument.drivers.fpga_board import FpgaBoard, FpgaLight, FpgaShutter, FpgaTrigger
+        from scopetwin.instrument.drivers.fpga_board import FpgaBoard, FpgaLight, FpgaShutter, FpgaTrigger
 
         port = str(t.get("port"))
         transport = ctx.transport(name, t, 115200)
@@ -236,7 +236,7 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
         else:
             device = FpgaTrigger(name, board)
     elif key == ("camera", "basler"):
-        from instrument.drivers.basler import BaslerCamera
+        from scopetwin.instrument.drivers.basler import BaslerCamera
 
         device = BaslerCamera(
             name,
@@ -448,10 +448,10 @@ def connect_emulators(world: Any, devices: dict[str, Device]) -> list[str]:
     included), a jena focus drive on its emulator a focus probe. Devices on real ports are
     left alone: the world cannot see real hardware.
     """
-    from instrument.drivers.fpga_board import FpgaLight
-    from instrument.drivers.jena_piezo import JenaPiezoFocus
-    from instrument.drivers.pi_gcs import PiGcsStage
-    from instrument.emulators import FpgaBoardEmulator, JenaPiezoEmulator, PiGcsEmulator
+    from scopetwin.instrument.drivers.fpga_board import FpgaLight
+    from scopetwin.instrument.drivers.jena_piezo import JenaPiezoFocus
+    from scopetwin.instrument.drivers.pi_gcs import PiGcsStage
+    from scopetwin.instrument.emulators import FpgaBoardEmulator, JenaPiezoEmulator, PiGcsEmulator
 
     connected = []
     for name, device in devices.items():

@@ -3,11 +3,11 @@
 Drivers never open a global port: they receive a transport object, a pyserial
 ``Serial`` or anything :func:`serial.serial_for_url` returns (``/dev/ttyUSB0``,
 ``loop://``, ``socket://127.0.0.1:port``, or ``emu://pi-gcs`` for an in-process
-emulator, see :mod:`instrument.emulators.protocol_emu`). :class:`Link` wraps it
+emulator, see :mod:`scopetwin.instrument.emulators.protocol_emu`). :class:`Link` wraps it
 with the two operations every protocol here needs, each bounded by one timeout:
 write bytes, and read until a terminator or a byte count. Pyserial and OS
-errors become :class:`~instrument.errors.DisconnectedError`; a deadline that
-passes becomes :class:`~instrument.errors.InstrumentTimeout`.
+errors become :class:`~scopetwin.instrument.errors.DisconnectedError`; a deadline that
+passes becomes :class:`~scopetwin.instrument.errors.InstrumentTimeout`.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from typing import Any
 
 import serial
 
-from instrument.errors import DisconnectedError, InstrumentTimeout, ProtocolError
+from scopetwin.instrument.errors import DisconnectedError, InstrumentTimeout, ProtocolError
 
-EMULATOR_PACKAGE = "instrument.emulators"
+EMULATOR_PACKAGE = "scopetwin.instrument.emulators"
 
 
 def open_transport(port: str, *, baudrate: int = 115200, timeout_s: float = 1.0, **kwargs: Any) -> serial.Serial:

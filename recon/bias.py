@@ -11,7 +11,7 @@ estimate again.
 
 How the prediction works
 ------------------------
-:func:`recon.markers.centroids` measures the first moment of the whole spot (its window includes the
+:func:`scopetwin.recon.markers.centroids` measures the first moment of the whole spot (its window includes the
 faint rim), i.e. up to pixel sampling
 
     c = ∫ x I(x) dx / ∫ I(x) dx,    I(x) = g(M(x)),
@@ -25,7 +25,7 @@ y = M(x) as the integration variable, with x = P(y) the inverse map and |det DP|
 while the image of the marker's centre is P(y_c). For every marker P is fitted, as a cubic
 polynomial in the pattern coordinates, to the model's forward trace of 7 x 7 image points that cover
 the marker's spot (the model's ``pattern_hits``: camera ray -> target plane, or -> surface ->
-reflection -> pattern plane, all in the float64 numpy model of :mod:`scenes`). The integrals are
+reflection -> pattern plane, all in the float64 numpy model of :mod:`scopetwin.scenes`). The integrals are
 then evaluated exactly for the polynomial integrand by a polar Gauss-Legendre x trapezoid
 quadrature over the marker's disk. No image is rendered, and the prediction has no noise; ~60 rays
 per marker are traced. The model is the pinhole camera; a thin lens's symmetric defocus blur does
@@ -37,12 +37,12 @@ Two evaluations of the one model
 --------------------------------
 * :func:`predict_spots` (above): the continuous first moment, for any model (a plane target,
   :class:`PlaneTarget`, or the deflectometry setup, :func:`model_for_setup`); it serves the
-  reconstruction (:func:`recon.reconstruct.centroid_bias_step`) and :func:`correct_centroids`.
+  reconstruction (:func:`scopetwin.recon.reconstruct.centroid_bias_step`) and :func:`correct_centroids`.
 * :func:`spot_centroids` / :func:`spot_bias_model`: the same marker (g = 1 - r/r_m) through the same
-  pinhole camera onto a plane target, evaluated on the pixels as :func:`recon.markers.centroids` sees
+  pinhole camera onto a plane target, evaluated on the pixels as :func:`scopetwin.recon.markers.centroids` sees
   them: each pixel integrates ``supersample``^2 stratified ray samples (box filter), and the centroid is
   taken over the pixels above a threshold, at pixel centres. It serves the bias-corrected one-shot
-  calibration (:func:`calib.oneshot.calibrate_bias_corrected`).
+  calibration (:func:`scopetwin.calib.oneshot.calibrate_bias_corrected`).
 
 With threshold 0 both predict the whole-spot first moment; they differ by the pixel sampling of the
 second (its midpoint rule over the cone's kinks): on the seed's calibration presets (§2.8.1-§2.9.1,
@@ -60,13 +60,13 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scenes.analytic import AnalyticScene
-from scenes.camera import Camera
-from scenes.errors import ScopetwinError
-from scenes.geometry import Array, Frame, intersect_plane
-from scenes.pattern import MarkerPattern
-from scenes.setup import Setup
-from scenes.surface import HeightMap
+from scopetwin.scenes.analytic import AnalyticScene
+from scopetwin.scenes.camera import Camera
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.geometry import Array, Frame, intersect_plane
+from scopetwin.scenes.pattern import MarkerPattern
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap
 
 
 class BiasError(ScopetwinError, ValueError):
@@ -120,7 +120,8 @@ def plane_hits(frame: Frame, origins: Array, dirs: Array) -> tuple[Array, NDArra
 
 
 def model_for_setup(setup: Setup, heights: HeightMap | None = None, camera: Camera | None = None) -> Model:
-    """The numpy ray model of a setup (:class:`scenes.analytic.AnalyticScene`), optionally with another camera.
+    """The numpy ray model of a setup (:class:`scopetwin.scenes.analytic.AnalyticScene`), optionally with another
+    camera.
 
     Parameters
     ----------
@@ -297,7 +298,7 @@ def correct_centroids(centroids: ArrayLike, ij: ArrayLike, model: Model, **kwarg
     Parameters
     ----------
     centroids : array_like, (n, 2)
-        Measured centroids (:func:`recon.markers.centroids`, whole-spot first moments).
+        Measured centroids (:func:`scopetwin.recon.markers.centroids`, whole-spot first moments).
     ij : array_like, (n, 2)
         Their marker indices.
     model : Model
@@ -326,7 +327,7 @@ def spot_centroids(
     Each marker (grey value g = 1 - r/r_m, seed §1.6.3) is imaged through ``camera`` (pinhole,
     distortion; rays meet the target as in :class:`PlaneTarget`, :func:`plane_hits`) into a pixel
     window; pixels integrate their area (``supersample``^2 stratified points, box filter); the
-    centroid is then taken as :func:`recon.markers.centroids` takes it: pixels above ``threshold``
+    centroid is then taken as :func:`scopetwin.recon.markers.centroids` takes it: pixels above ``threshold``
     weighted by their value minus ``background``, at pixel centres.
 
     Parameters
@@ -407,7 +408,7 @@ def spot_bias_model(
 ) -> Callable[[Camera], Array]:
     """The centroid bias of a plane target as a function of the camera: centroid minus image of the centre, px.
 
-    The ``predict_bias`` of :func:`calib.oneshot.calibrate_bias_corrected`: for a camera (in target
+    The ``predict_bias`` of :func:`scopetwin.calib.oneshot.calibrate_bias_corrected`: for a camera (in target
     coordinates) it returns :func:`spot_centroids` minus the image of each marker's centre, the
     pixel-sampled evaluation of this module's model (module docstring).
 
@@ -419,7 +420,7 @@ def spot_bias_model(
         Marker radii, mm.
     threshold, background, radiance : float
         As in :func:`spot_centroids`; the defaults (threshold 0) model the whole-spot first moment of
-        :func:`recon.markers.centroids`.
+        :func:`scopetwin.recon.markers.centroids`.
     supersample : int, optional
         Points per pixel side; None: enough for about 40 samples across a spot radius (2 to 8).
 

@@ -6,7 +6,7 @@ With the height map h(x, y) of the substrate (seed §1.4), every field of view o
 microscope gets its focus position in advance: focus = reference + sign * (h(x, y) - h_ref).
 
 Depth of field and field of view come from the one model of the objective,
-:class:`scenes.objective.Objective` (10x, NA 0.45, air; DOF = lambda n / NA^2 + n e / (M NA)).
+:class:`scopetwin.scenes.objective.Objective` (10x, NA 0.45, air; DOF = lambda n / NA^2 + n e / (M NA)).
 Defaults: that objective, green emission (520 nm), the MIPOS500 piezo drive's 0-400 µm range.
 """
 
@@ -20,9 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.errors import ScopetwinError
-from scenes.geometry import Array
-from scenes.objective import Objective
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.geometry import Array
+from scopetwin.scenes.objective import Objective
 
 __all__ = ["FocusMap", "FocusMapError", "Objective", "focus_map"]
 
@@ -48,7 +48,7 @@ class FocusMap:
         The objective's depth of field, µm.
     std_um : ndarray or None
         Standard uncertainty of the height in each field (the largest over its samples), µm, when the height map
-        came with one (:class:`recon.reconstruct.Uncertainty`).
+        came with one (:class:`scopetwin.recon.reconstruct.Uncertainty`).
     """
 
     x_mm: Array

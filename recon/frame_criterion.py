@@ -2,7 +2,8 @@
 
 The substrate's ends lie on a holding frame (seed Fig. 1.3). A surface reconstructed with a wrong start height
 shows a characteristic tilt, visible in the maxima of the surface over the two frame regions, where there are no
-data and the surface is extrapolated. The outer loop of the nested iteration (:mod:`recon.reconstruct`) searches
+data and the surface is extrapolated. The outer loop of the nested iteration (:mod:`scopetwin.recon.reconstruct`)
+searches
 the start height at which this criterion vanishes:
 
 * ``"delta"`` — the seed's Delta h_max = max_region1 - max_region2 (eq. 1.3);

@@ -16,8 +16,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from scenes.errors import ScopetwinError
-from scenes.geometry import Array, Frame, normalize
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.geometry import Array, Frame, normalize
 
 
 class GradientError(ScopetwinError, ValueError):

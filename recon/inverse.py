@@ -1,16 +1,17 @@
 """Inverse rendering: the substrate's surface fitted to the whole image through a differentiable render (issue 16).
 
-The centroid method (:mod:`recon.reconstruct`, seed §1.4-§1.8) needs every marker's image to be a compact spot
+The centroid method (:mod:`scopetwin.recon.reconstruct`, seed §1.4-§1.8) needs every marker's image to be a compact spot
 whose centroid follows the image of its centre. Here instead the image itself is the data: the surface (a
 uniform cubic B-spline over the base plane, fine enough for 3 mm correlation lengths) is fitted so that a render
 of the measurement — the seed's ray model of §1.6 written in Dr.Jit
-(:mod:`scenes.mitsuba.deflectometry_ad`) — matches the camera image pixel by pixel, partial markers included.
+(:mod:`scopetwin.scenes.mitsuba.deflectometry_ad`) — matches the camera image pixel by pixel, partial markers included.
 
 Loss (Gauss-Newton / Levenberg-Marquardt on the coefficients c)::
 
     sum_p (I_p - alpha*R_p(c) - beta)^2 / var_p  +  lambda * |D c|^2,   mean_ROI(h) = H
 
-* ``var_p``: the EMVA 1288 variance of pixel p (:mod:`scenes.emva1288`: K^2 sigma_d^2 + K (I - black) + 1/12 in DN)
+* ``var_p``: the EMVA 1288 variance of pixel p (:mod:`scopetwin.scenes.emva1288`: K^2 sigma_d^2 + K (I - black) + 1/12
+  in DN)
   for camera images; a constant for noise-free renders;
 * ``alpha, beta``: the photometric gain and offset (exposure, black level), solved in closed form each step;
 * ``D``: second differences of the coefficient grid (a discrete thin-plate energy): the smoothness prior, which
@@ -23,11 +24,13 @@ Loss (Gauss-Newton / Levenberg-Marquardt on the coefficients c)::
 
 From a converged centroid start the coefficients are held to the span of the centroid method's shifted basis
 (``surface="start-basis"``: c = P a, P the basis functions as B-splines, :meth:`SplineSurface.span`; its scale was
-chosen from the data by :func:`recon.reconstruct.select_sigma`): the prior the centroid method found for this surface,
+chosen from the data by :func:`scopetwin.recon.reconstruct.select_sigma`): the prior the centroid method found for this
+surface,
 fitted now to every pixel instead of to the markers' centroids. The free spline (every coefficient, thin-plate prior)
 is used from a plane start and where the height is searched.
 
-The absolute height is decided by the frame criterion (seed §1.4, eqs. 1.3-1.4, :mod:`recon.frame_criterion`): the
+The absolute height is decided by the frame criterion (seed §1.4, eqs. 1.3-1.4,
+:mod:`scopetwin.recon.frame_criterion`): the
 fit is constrained to a mean ROI height H; from a centroid start H is the centroid method's (found by the frame
 criterion on its Gaussian-process surface, the better extrapolation into the frame regions), and with
 ``absolute="frame"`` or from a plane H is searched (secant) until the fitted surface's maxima over the two frame
@@ -35,7 +38,7 @@ regions lie on the holding frame. ``refine_setup`` adds 12 rigid-motion
 parameters of camera and pattern to the unknowns, held near the calibration by a Gaussian prior of the given
 standard deviations.
 
-This is the one reconstruction module that renders: it imports the renderer (:mod:`scenes.mitsuba`) lazily,
+This is the one reconstruction module that renders: it imports the renderer (:mod:`scopetwin.scenes.mitsuba`) lazily,
 inside its functions (``tests/architecture/test_layers.py`` names it), because a differentiable render of the
 measurement is the method. On a real rig the image comes from a camera as for every other recon module.
 """
@@ -52,17 +55,17 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 from scipy.linalg import null_space
 
-from recon.frame_criterion import FrameCriterion, frame_criterion, frame_distance
-from recon.reconstruct import ReconstructionError, Substrate2D
-from recon.shifted_basis import ShiftedBasis
-from scenes.camera import Camera
-from scenes.geometry import Array, Frame
-from scenes.pattern import MarkerPattern
-from scenes.setup import Setup
-from scenes.surface import HeightMap
+from scopetwin.recon.frame_criterion import FrameCriterion, frame_criterion, frame_distance
+from scopetwin.recon.reconstruct import ReconstructionError, Substrate2D
+from scopetwin.recon.shifted_basis import ShiftedBasis
+from scopetwin.scenes.camera import Camera
+from scopetwin.scenes.geometry import Array, Frame
+from scopetwin.scenes.pattern import MarkerPattern
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap
 
 if TYPE_CHECKING:  # the renderer is imported lazily at run time
-    from scenes.mitsuba.deflectometry_ad import RayModel, SplineGrid
+    from scopetwin.scenes.mitsuba.deflectometry_ad import RayModel, SplineGrid
 
 
 def _pixel_moments(res: Any, ok: NDArray[np.bool_], spp: int, block: int = 32768) -> tuple[Array, ...]:
@@ -99,7 +102,8 @@ def _pixel_moments(res: Any, ok: NDArray[np.bool_], spp: int, block: int = 32768
 class SplineSurface:
     """h(x, y) = sum c_mk B((x - x_k)/dx) B((y - y_m)/dy): a uniform cubic B-spline over the base plane.
 
-    Coefficient (row m, column k) sits at (x0 + k*dx, y0 + m*dy) (:class:`scenes.mitsuba.deflectometry_ad.SplineGrid`).
+    Coefficient (row m, column k) sits at (x0 + k*dx, y0 + m*dy)
+    (:class:`scopetwin.scenes.mitsuba.deflectometry_ad.SplineGrid`).
     """
 
     x0: float
@@ -123,7 +127,7 @@ class SplineSurface:
 
     @property
     def grid(self) -> SplineGrid:
-        from scenes.mitsuba.deflectometry_ad import SplineGrid
+        from scopetwin.scenes.mitsuba.deflectometry_ad import SplineGrid
 
         ny, nx = self.shape
         return SplineGrid(self.x0, self.y0, self.dx, self.dy, nx, ny)
@@ -147,7 +151,7 @@ class SplineSurface:
     def _rows(
         self, x: Array, y: Array, second: bool
     ) -> tuple[NDArray[np.int64], Array, Array, Array, tuple[Array, Array, Array] | None]:
-        from scenes.mitsuba.deflectometry_ad import cubic_bspline_weights
+        from scopetwin.scenes.mitsuba.deflectometry_ad import cubic_bspline_weights
 
         ny, nx = self.shape
         u = (np.asarray(x, dtype=np.float64).ravel() - self.x0) / self.dx
@@ -269,7 +273,7 @@ class InverseConfig:
         B-spline knot spacing, mm (0.5 mm resolves the 3 mm correlation length).
     surface : {"start-basis", "spline"}
         The surfaces the fit searches. "start-basis" (from a centroid start): the span of the centroid method's
-        shifted basis (its scale chosen from the data by :func:`recon.reconstruct.select_sigma`) as B-splines,
+        shifted basis (its scale chosen from the data by :func:`scopetwin.recon.reconstruct.select_sigma`) as B-splines,
         :meth:`SplineSurface.span` — the prior the centroid method found for this surface, now fitted to every
         pixel; measured (Mitsuba 16 spp, seed 2): with EMVA 1288 noise 0.0012-0.0022 µm shape against the centroid
         method's 0.0016-0.0032 at 5-20 mm / 40 µm, and 3 mm / 60 µm tilt-removed 0.014 µm against 0.060; the free
@@ -415,7 +419,8 @@ def pixel_variance(image: Array, setup: Setup, mode: str = "auto") -> Array:
     """EMVA 1288 variance of each pixel of a camera image in DN, or ones for a noise-free render (irradiance).
 
     var = K^2 sigma_d^2 + K max(I - black, 0) + 1/12 (shot noise, dark noise, quantisation; the EMVA linear model of
-    :mod:`scenes.emva1288`). ``mode`` "auto": the EMVA variance when the image peak exceeds 2 (digital numbers).
+    :mod:`scopetwin.scenes.emva1288`). ``mode`` "auto": the EMVA variance when the image peak exceeds 2 (digital
+    numbers).
     """
     img = np.asarray(image, dtype=np.float64)
     use = mode == "emva" or (mode == "auto" and float(np.max(img)) > 2.0)
@@ -442,7 +447,7 @@ class _Level:
         variant: str | None,
         jitter: bool = False,
     ) -> None:
-        from scenes.mitsuba.deflectometry_ad import RayModel
+        from scopetwin.scenes.mitsuba.deflectometry_ad import RayModel
 
         r0, r1, c0, c1 = window
         self.b = b
@@ -740,7 +745,7 @@ class InverseReconstructor:
 
     @staticmethod
     def _rebuild_rays(lev: _Level) -> None:
-        from scenes.mitsuba.deflectometry_ad import RayModel
+        from scopetwin.scenes.mitsuba.deflectometry_ad import RayModel
 
         m = lev.model
         fresh = RayModel(m.camera, m.pattern, m.radiance, m.size, m.roi_length, m.rows, m.cols, m.sub, None, m.jitter)
@@ -798,7 +803,8 @@ class InverseReconstructor:
         """The start height's uncertainty carried into the shape, µm (RMS over the ROI).
 
         The rays are traced through a surface at the start height H, so an error of H tilts and bends the fitted
-        shape (seed §1.4; the centroid method's :meth:`recon.reconstruct.Reconstructor._start_height_sensitivity`):
+        shape (seed §1.4; the centroid method's
+        :meth:`scopetwin.recon.reconstruct.Reconstructor._start_height_sensitivity`):
         one more Gauss-Newton pass at H + 0.2 µm from the fitted surface gives d(contrast)/dH per ROI point by a
         finite difference; the term is sqrt(mean((d contrast/dH * u_abs)^2)).
         """
@@ -999,19 +1005,20 @@ def inverse_start(setup: Setup, image: NDArray[Any], config: Any = None, bias: b
     near a caustic — "singular at a marker" — and the start-height loop swings with it on some 3 mm / 60 µm surfaces
     that converge without it; the inverse fit needs no centroid model, it only needs a start inside its basin); the
     last surface of a start-height loop that did not converge; a coarse fit of the indexed markers
-    (:meth:`recon.reconstruct.Reconstructor.coarse_surface`); a plane at the frame height. A tied reference marker
-    is decided on the way (:func:`recon.reconstruct.reconstruct_image`). ``config``: the centroid method's
-    :class:`recon.reconstruct.ReconstructionConfig`; ``bias=False``: never the bias step.
+    (:meth:`scopetwin.recon.reconstruct.Reconstructor.coarse_surface`); a plane at the frame height. A tied reference
+    marker
+    is decided on the way (:func:`scopetwin.recon.reconstruct.reconstruct_image`). ``config``: the centroid method's
+    :class:`scopetwin.recon.reconstruct.ReconstructionConfig`; ``bias=False``: never the bias step.
     """
-    from recon.markers import find_markers_for
-    from recon.reconstruct import (
+    from scopetwin.recon.markers import find_markers_for
+    from scopetwin.recon.reconstruct import (
         MarkerObservations,
         NotConvergedError,
         Reconstructor,
         centroid_bias_step,
         reconstruct_image,
     )
-    from scenes.errors import ScopetwinError
+    from scopetwin.scenes.errors import ScopetwinError
 
     notes: list[str] = []
     unconverged: Any = None

@@ -1,7 +1,7 @@
 """The Bayesian reading of the gradient fit: a Gaussian-process prior, its evidence, and the posterior of the heights.
 
 The shifted-basis fit of seed §1.8 with a Gaussian basis and ridge damping is the posterior mean of a Gaussian
-process (:mod:`recon.shifted_basis`). Read that way explicitly, the same gradient data give:
+process (:mod:`scopetwin.recon.shifted_basis`). Read that way explicitly, the same gradient data give:
 
 * the **evidence** (marginal likelihood) of a prior, so its scales and amplitudes are chosen by the data instead of
   held-out bands;
@@ -29,8 +29,8 @@ import scipy.linalg as sla
 from numpy.typing import NDArray
 from scipy.optimize import minimize
 
-from scenes.errors import ScopetwinError
-from scenes.geometry import Array
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.geometry import Array
 
 #: Tilt prior standard deviation (rad): wide enough to be unpenalised for any substrate of the seed's kind.
 TILT_STD = 1e-2

@@ -3,7 +3,7 @@
 Inner loop (self-consistent surface for a start height H, §1.4 and Fig. 1.4): start
 with the plane z = H (or the previous outer run's surface moved to H); trace every
 marker's camera ray to the current surface (secant iteration, §1.6.4,
-:func:`scenes.surface.secant_intersection`), form the
+:func:`scopetwin.scenes.surface.secant_intersection`), form the
 normal from the camera ray and the ray to the marker centre (§1.7.1), turn it into a
 gradient (§1.7.3), fit the shifted basis functions (§1.8) and set the bias so that the
 surface's mean height over the region of interest is H (eq. 1.5). Stop when the RMS
@@ -13,7 +13,7 @@ inner iteration.
 
 Outer loop (start height, eq. 1.3-1.4): evaluate the maxima of the reconstructed
 surface over the two holding-frame regions, where there are no data and the surface
-is extrapolated. Criteria (:func:`recon.frame_criterion.frame_criterion`):
+is extrapolated. Criteria (:func:`scopetwin.recon.frame_criterion.frame_criterion`):
 
 * ``"delta"`` — the seed's Delta h_max = max_region1 - max_region2 = 0 (eq. 1.3);
 * ``"level"`` — both maxima at the frame position: (max_1 + max_2)/2 = z_frame. The
@@ -52,15 +52,15 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from recon.frame_criterion import FrameCriterion, frame_criterion, frame_distance
-from recon.gradients import marker_gradients
-from recon.shifted_basis import BasisKind, SBFSurface, ShiftedBasis, fit_gradients
-from scenes.camera import Camera
-from scenes.errors import ScopetwinError
-from scenes.geometry import Array, Frame
-from scenes.pattern import MarkerPattern
-from scenes.setup import Setup
-from scenes.surface import HeightMap, secant_intersection
+from scopetwin.recon.frame_criterion import FrameCriterion, frame_criterion, frame_distance
+from scopetwin.recon.gradients import marker_gradients
+from scopetwin.recon.shifted_basis import BasisKind, SBFSurface, ShiftedBasis, fit_gradients
+from scopetwin.scenes.camera import Camera
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.geometry import Array, Frame
+from scopetwin.scenes.pattern import MarkerPattern
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap, secant_intersection
 
 #: A centroid-bias step: (current surface, marker indices (n, 2), measured image positions (n, 2) px)
 #: -> corrected image positions of the marker centres (n, 2) px.
@@ -162,7 +162,7 @@ class ReconstructionConfig:
     tilt : bool
         Add the unpenalised plane terms x, y.
     regularization : float
-        Relative ridge weight (see :func:`recon.shifted_basis.fit_gradients`).
+        Relative ridge weight (see :func:`scopetwin.recon.shifted_basis.fit_gradients`).
     inner_tol_um, inner_max : float, int
         Inner loop stops when the RMS height change over the ROI is below ``inner_tol_um``.
     outer_tol_um, outer_max : float, int
@@ -182,7 +182,8 @@ class ReconstructionConfig:
     method : {"lstsq", "normal"}
         Linear solver of the fit.
     posterior : {"correct", "report", "off"}
-        After convergence, read the fit as a Gaussian process (:mod:`recon.posterior`: smooth + broadband prior,
+        After convergence, read the fit as a Gaussian process (:mod:`scopetwin.recon.posterior`: smooth + broadband
+        prior,
         scales and amplitudes by evidence) and give every reconstruction its uncertainty (absolute height, shape,
         per node); ``"correct"`` also replaces the extrapolated frame maxima of the fitted surface by their
         posterior mean (a Newton step on the start height, criterion ``level`` only); ``"off"``: neither.
@@ -335,7 +336,7 @@ class OuterStep:
 
 @dataclass(frozen=True)
 class Uncertainty:
-    """Standard uncertainties of a reconstruction (from :func:`recon.posterior.frame_posterior`).
+    """Standard uncertainties of a reconstruction (from :func:`scopetwin.recon.posterior.frame_posterior`).
 
     Attributes
     ----------
@@ -356,7 +357,7 @@ class Uncertainty:
     slope : float
         d criterion / d start height of the outer loop (from its last two runs; 1 when unknown).
     hyper : dict
-        The prior chosen by evidence (:meth:`recon.posterior.Hyper.as_dict`).
+        The prior chosen by evidence (:meth:`scopetwin.recon.posterior.Hyper.as_dict`).
     """
 
     absolute_um: float
@@ -457,7 +458,7 @@ def intersect_surface(
 ) -> tuple[Array, NDArray[np.bool_]]:
     """Ray parameters where rays meet a fitted surface z = f(x, y) (secant iteration of seed §1.6.4, eq. 1.6).
 
-    :func:`scenes.surface.secant_intersection`, started at the rays' intersections with the plane
+    :func:`scopetwin.scenes.surface.secant_intersection`, started at the rays' intersections with the plane
     z = offset and with the plane z = f there, which is close to the root for a nearly flat substrate.
 
     Parameters
@@ -788,7 +789,8 @@ class Reconstructor:
         surface's shape: their gradients, traced through the flat start at the frame height and through the fits
         that follow, fitted with a basis scale chosen on them (:meth:`_scale_from_flat_start`). The traced slopes are
         off by ~10 µrad per µm of height error, far inside the inverse fit's basin (a pitch on the pattern is ~8
-        mrad); the start for :mod:`recon.inverse` (:func:`recon.inverse.inverse_start`), whose mean height — the
+        mrad); the start for :mod:`scopetwin.recon.inverse` (:func:`scopetwin.recon.inverse.inverse_start`), whose mean
+        height — the
         frame height, nobody measured it — the inverse fit keeps. An iteration whose rays miss the substrate for more
         than 5 % of the markers is not taken.
         """
@@ -811,7 +813,8 @@ class Reconstructor:
         :func:`select_sigma` on the markers' gradients traced through the plane at the frame height (with the bias
         step where ``bias`` and the reconstructor has one).
         A default scale far too coarse for the surface (the 12 mm basis on a 3 mm / 60 µm one, whose markers the
-        topological indexing of :func:`recon.markers.index_lattice` numbers) cannot fit the gradients, and its fits
+        topological indexing of :func:`scopetwin.recon.markers.index_lattice` numbers) cannot fit the gradients, and
+        its fits
         swing so far that the rays miss the substrate (or its ends) — in the first inner loop, before a surface
         exists for :func:`select_sigma` to be run on, or after many start heights that did not settle (3 mm / 60 µm
         seeds 2 and 1). The flat start at the frame height traces every marker; the scale is chosen on those
@@ -904,7 +907,7 @@ class Reconstructor:
                     return result
         path = Path(history_path) if history_path is not None else None
         if path is not None:
-            from scenes.io import write_json_atomic
+            from scopetwin.scenes.io import write_json_atomic
 
             write_json_atomic(path, {"converged": converged, "config": asdict(cfg), **result.summary()})
         where = f"; partial history saved to {path}" if path is not None else ""
@@ -943,13 +946,14 @@ class Reconstructor:
         """Uncertainty of the converged surface and (``posterior = "correct"``) the posterior start height.
 
         The gradient data are traced through the converged surface; the prior is chosen by evidence
-        (:func:`recon.posterior.fit_hyper`) and the posterior of the frame criterion's shape functional D (frame
+        (:func:`scopetwin.recon.posterior.fit_hyper`) and the posterior of the frame criterion's shape functional D
+        (frame
         maxima relative to the ROI mean) compared with the fitted surface's D. The start height solves
         H + D(H) = z_frame; with the posterior D in place of the extrapolated one this is solved by Newton steps
         H <- H + (D_fit - D_post) / slope (slope = dF/dH of the outer loop), each followed by the inner loop at the
         new H, so the traced gradients — which depend on H (a wrong H tilts them) — follow the start height.
         """
-        from recon.posterior import GradientGP, PosteriorError, fit_hyper, frame_posterior
+        from scopetwin.recon.posterior import GradientGP, PosteriorError, fit_hyper, frame_posterior
 
         cfg = self.config
         sub = self.sub
@@ -1120,7 +1124,7 @@ def reconstruct(
 
 
 def centroid_bias_step(setup: Setup, recompute_um: float = 0.2, grid: tuple[int, int] = (48, 112)) -> BiasStep:
-    """A bias step for the inner loop built on :mod:`recon.bias` (markers issue), or an error if absent.
+    """A bias step for the inner loop built on :mod:`scopetwin.recon.bias` (markers issue), or an error if absent.
 
     The bias of each marker's centroid (the spot is distorted by the curved mirror) is predicted
     from the current surface estimate and added to the measured centroid. The prediction is
@@ -1129,7 +1133,7 @@ def centroid_bias_step(setup: Setup, recompute_um: float = 0.2, grid: tuple[int,
     iterations, and hardly depends on the start height, which moves the surface as an offset.
     """
     try:
-        from recon.bias import correct_centroids, model_for_setup
+        from scopetwin.recon.bias import correct_centroids, model_for_setup
     except ImportError as exc:  # pragma: no cover - recon.bias is part of the package
         raise ReconstructionError(f"centroid-bias correction is unavailable: {exc}") from None
     sub = Substrate2D.from_setup(setup)
@@ -1157,10 +1161,12 @@ def reconstruct_image(
     bias: BiasStep | None = None,
     history_path: str | Path | None = None,
 ) -> tuple[Any, ReconstructionResult, Reconstructor]:
-    """Markers of a deflectometry image (:func:`recon.markers.find_markers_for`) and the surface they give (§1.4).
+    """Markers of a deflectometry image (:func:`scopetwin.recon.markers.find_markers_for`) and the surface they give
+    (§1.4).
 
     Where the spots are distorted so much that two or more are about as large as the reference marker should be
-    (:class:`recon.markers.ReferenceTieError`; 3 mm / 60 µm surfaces), each candidate is taken as the reference in
+    (:class:`scopetwin.recon.markers.ReferenceTieError`; 3 mm / 60 µm surfaces), each candidate is taken as the
+    reference in
     turn: with a wrong one every index is a few pitches off, the traced slopes are milliradians off and the
     start-height loop cannot lay such a surface on the holding frame (its rays miss the substrate or one of its
     ends, or it does not converge). The one candidate whose markers reconstruct is kept; if none or several do,
@@ -1169,7 +1175,7 @@ def reconstruct_image(
 
     Returns (markers, result, reconstructor).
     """
-    from recon.markers import ReferenceTieError, find_markers_for
+    from scopetwin.recon.markers import ReferenceTieError, find_markers_for
 
     def attempt(reference: int | None, path: str | Path | None) -> tuple[Any, ReconstructionResult, Reconstructor]:
         found = find_markers_for(image, setup, reference=reference)

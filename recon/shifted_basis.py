@@ -34,9 +34,9 @@ import numpy as np
 import scipy.linalg as sla
 from numpy.typing import ArrayLike
 
-from scenes.errors import ScopetwinError
-from scenes.geometry import Array
-from scenes.surface import HeightMap
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.geometry import Array
+from scopetwin.scenes.surface import HeightMap
 
 BasisKind = Literal["imq", "gauss"]
 _CHUNK = 8192

@@ -13,12 +13,12 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.camera import Camera, concentric_disk
-from scenes.errors import SetupError
-from scenes.geometry import Array, Frame, intersect_plane, reflect
-from scenes.pattern import MarkerPattern
-from scenes.setup import Setup
-from scenes.surface import HeightMap, Substrate
+from scopetwin.scenes.camera import Camera, concentric_disk
+from scopetwin.scenes.errors import SetupError
+from scopetwin.scenes.geometry import Array, Frame, intersect_plane, reflect
+from scopetwin.scenes.pattern import MarkerPattern
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap, Substrate
 
 Window = tuple[int, int, int, int]  # row0, row1, col0, col1 (half-open)
 

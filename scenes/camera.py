@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scenes.errors import GeometryError
-from scenes.geometry import Array, Frame, normalize
+from scopetwin.scenes.errors import GeometryError
+from scopetwin.scenes.geometry import Array, Frame, normalize
 
 
 @dataclass(frozen=True)
@@ -450,7 +450,7 @@ def pose_parameters(camera: Camera, plane: Frame | None = None) -> tuple[Array, 
     r_0 is where the optical axis meets the plane (default: z = 0), phi the sensor tilt
     measured from T_0x = e_y x N_z toward T_0y.
     """
-    from scenes.geometry import intersect_plane
+    from scopetwin.scenes.geometry import intersect_plane
 
     plane = plane or Frame.identity()
     f = camera.frame

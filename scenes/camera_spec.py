@@ -1,15 +1,17 @@
 """The camera's sensor as a setup describes it: one pydantic model of the pixel grid for Part I, II and III.
 
 :class:`CameraGridSpec` is the base of every setup's camera table. It turns the grid fields into the one pixel
-convention, :class:`scenes.camera.PixelGrid` (:meth:`CameraGridSpec.grid`), and writes it to a dict
-(:meth:`CameraGridSpec.grid_dict`, the keys of :meth:`scenes.camera.PixelGrid.as_dict`). Each setup keeps the TOML
+convention, :class:`scopetwin.scenes.camera.PixelGrid` (:meth:`CameraGridSpec.grid`), and writes it to a dict
+(:meth:`CameraGridSpec.grid_dict`, the keys of :meth:`scopetwin.scenes.camera.PixelGrid.as_dict`). Each setup keeps the
+TOML
 keys its presets and files already use and adds what is its own:
 
-* Part I (:class:`scenes.setup.CameraSpec`): ``pixels = [nx, ny]``, ``pixel_pitch`` (mm) and ``r_cs`` (the keys
+* Part I (:class:`scopetwin.scenes.setup.CameraSpec`): ``pixels = [nx, ny]``, ``pixel_pitch`` (mm) and ``r_cs`` (the
+  keys
   the calibration writes back), plus the pose of §1.6.2 / §2.5.2, distortion and thin lens;
 * Part II and III (:class:`PixelGridSpec`: ``width_px``, ``height_px``, ``pixel_um``): the CMU's Basler
-  scA1400-30gm with its bit depth (§4.1.4, :class:`scenes.cmu.layout.CmuCameraSpec`) and the AVT Guppy behind
-  the GRIN objectives (§8.4.3, :class:`scenes.grin.setup.GrinCameraSpec`).
+  scA1400-30gm with its bit depth (§4.1.4, :class:`scopetwin.scenes.cmu.layout.CmuCameraSpec`) and the AVT Guppy behind
+  the GRIN objectives (§8.4.3, :class:`scopetwin.scenes.grin.setup.GrinCameraSpec`).
 
 The pitch is kept in the unit the file gives and converted once, in :meth:`CameraGridSpec.grid_fields` (a mm <-> µm
 round trip is not exact in floating point: 6.5 µm -> 0.0065 mm -> 6.500000000000001 µm).
@@ -21,7 +23,7 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from scenes.camera import PixelGrid
+from scopetwin.scenes.camera import PixelGrid
 
 PositiveInt = Annotated[int, Field(gt=0)]
 Positive = Annotated[float, Field(gt=0)]
@@ -37,7 +39,7 @@ class CameraGridSpec(BaseModel):
         raise NotImplementedError
 
     def grid(self) -> PixelGrid:
-        """The camera's pixel grid: the pixel <-> sensor convention of :class:`scenes.camera.PixelGrid`."""
+        """The camera's pixel grid: the pixel <-> sensor convention of :class:`scopetwin.scenes.camera.PixelGrid`."""
         nx, ny, pitch, r_cs = self.grid_fields()
         return PixelGrid(int(nx), int(ny), float(pitch), r_cs)
 
@@ -47,7 +49,8 @@ class CameraGridSpec(BaseModel):
         return self.grid_fields()[2]
 
     def grid_dict(self) -> dict[str, Any]:
-        """JSON-ready grid (``nx``, ``ny``, ``pitch`` in mm, ``r_cs``): :meth:`scenes.camera.PixelGrid.as_dict`."""
+        """JSON-ready grid (``nx``, ``ny``, ``pitch`` in mm, ``r_cs``):
+        :meth:`scopetwin.scenes.camera.PixelGrid.as_dict`."""
         return self.grid().as_dict()
 
 

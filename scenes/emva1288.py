@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scenes.errors import GeometryError
+from scopetwin.scenes.errors import GeometryError
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scenes.errors import GeometryError
+from scopetwin.scenes.errors import GeometryError
 
 Array = NDArray[np.float64]
 
@@ -37,7 +37,7 @@ class Frame:
 
     The axes must be unit length, orthogonal and right-handed
     (T_x x T_y = N_z) to within :data:`FRAME_TOLERANCE`; otherwise a
-    :class:`~scenes.errors.GeometryError` names the violated condition. Within
+    :class:`~scopetwin.scenes.errors.GeometryError` names the violated condition. Within
     the tolerance the axes are made exactly orthonormal, keeping N_z's direction
     and T_x's projection onto the plane (so the seed's four-digit vectors give
     one unambiguous frame).

@@ -20,8 +20,8 @@ import numpy as np
 import OpenEXR
 from numpy.typing import NDArray
 
-from scenes.errors import FileFormatError
-from scenes.surface import HeightMap
+from scopetwin.scenes.errors import FileFormatError
+from scopetwin.scenes.surface import HeightMap
 
 EXTENT_KEYS = ("x_min_mm", "x_max_mm", "y_min_mm", "y_max_mm")
 _UMASK = os.umask(0o022)
@@ -186,7 +186,7 @@ def read_heightmap(path: str | Path) -> HeightMap:
         ext = [float(attrs[k]) for k in EXTENT_KEYS]
     except (TypeError, ValueError):
         raise FileFormatError(f"{path}: height-map extents must be numbers") from None
-    from scenes.errors import GeometryError
+    from scopetwin.scenes.errors import GeometryError
 
     try:
         return HeightMap(data.astype(np.float64), *ext)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import os
 
-from scenes.errors import ScopetwinError
+from scopetwin.scenes.errors import ScopetwinError
 
 #: 4-byte numbers held per image pixel while one image is made and written: the film (value, weight), the developed
 #: image, its numpy copy, the full-size image a window is pasted into, the sensor model's float64 temporaries and the

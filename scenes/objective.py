@@ -1,7 +1,7 @@
 """The microscope unit's objective: 10x / NA 0.45 in air, with its camera (seed §4.1.2, §4.1.4).
 
-The one model of that objective, used by the focus map (:mod:`recon.focusmap`: depth of field, field of view)
-and by the widefield renderer (:mod:`scenes.mitsuba.widefield`: the thin-lens aperture that gives the NA, the
+The one model of that objective, used by the focus map (:mod:`scopetwin.recon.focusmap`: depth of field, field of view)
+and by the widefield renderer (:mod:`scopetwin.scenes.mitsuba.widefield`: the thin-lens aperture that gives the NA, the
 geometric blur disc of a defocus). Pure Python (no Mitsuba), so recon may use it.
 
 Depth of field (the usual wave-optical plus detector term):
@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from scenes.errors import SetupError
+from scopetwin.scenes.errors import SetupError
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """Marker patterns (seed §1.6.3 for the deflectometry pattern, §2.2 for the calibration target).
 
-A pattern is a plane (a :class:`~scenes.geometry.Frame`) carrying a Cartesian
+A pattern is a plane (a :class:`~scopetwin.scenes.geometry.Frame`) carrying a Cartesian
 grid of round markers whose grey value fades linearly from 1 at the centre to
 0 at the rim, g = 1 - r/r_m (seed §1.6.3, "Marker Shape"). One marker, the
 reference, is larger.
@@ -26,8 +26,8 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scenes.errors import GeometryError
-from scenes.geometry import Array, Frame
+from scopetwin.scenes.errors import GeometryError
+from scopetwin.scenes.geometry import Array, Frame
 
 Layout = Literal["deflectometry", "calibration"]
 

@@ -25,13 +25,13 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from scenes.camera import Camera, ThinLens
-from scenes.camera_spec import CameraGridSpec
-from scenes.emva1288 import EmvaSensor
-from scenes.errors import GeometryError, SetupError
-from scenes.geometry import Frame
-from scenes.limits import check_image_size
-from scenes.pattern import MarkerPattern
+from scopetwin.scenes.camera import Camera, ThinLens
+from scopetwin.scenes.camera_spec import CameraGridSpec
+from scopetwin.scenes.emva1288 import EmvaSensor
+from scopetwin.scenes.errors import GeometryError, SetupError
+from scopetwin.scenes.geometry import Frame
+from scopetwin.scenes.limits import check_image_size
+from scopetwin.scenes.pattern import MarkerPattern
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
 
@@ -78,12 +78,13 @@ class FrameSpec(_Model):
 
 
 class CameraSpec(CameraGridSpec):
-    """Camera of seed §1.6.2 / §2.5.2: the pixel grid (:class:`scenes.camera_spec.CameraGridSpec`) and the pose.
+    """Camera of seed §1.6.2 / §2.5.2: the pixel grid (:class:`scopetwin.scenes.camera_spec.CameraGridSpec`) and the
+    pose.
 
     Give the pose either as axes (``t_x``, ``t_y``, ``n_z`` and ``image_distance``)
     or as the optimisation parameters of §2.5.2 (``r_0``, ``phi``; b then follows from
     the thin-lens equation b = g f/(g - f) with g = |r_c - r_0|). Every number must be finite, and one image of
-    ``pixels`` must fit in this machine's memory (:func:`scenes.limits.check_image_size`).
+    ``pixels`` must fit in this machine's memory (:func:`scopetwin.scenes.limits.check_image_size`).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -200,7 +201,7 @@ class PatternSpec(FrameSpec):
 
 
 class SurfaceSpec(_Model):
-    """How the substrate's height map is made (by :mod:`sim.surfaces`) or where it is read from.
+    """How the substrate's height map is made (by :mod:`scopetwin.sim.surfaces`) or where it is read from.
 
     ``random`` is the seed's §1.9 generator (Gaussian low-pass of scale ``correlation_length``); ``psd`` draws a
     Gaussian random surface from a power spectral density as glass flatness and waviness are specified: the
@@ -245,7 +246,7 @@ class SurfaceSpec(_Model):
 
 
 #: 4-byte numbers per height-map node while a surface is generated and written (float64 noise, its FFT, the
-#: filtered and levelled copies): an estimate for :func:`scenes.limits.check_image_size`.
+#: filtered and levelled copies): an estimate for :func:`scopetwin.scenes.limits.check_image_size`.
 SURFACE_FLOATS_PER_NODE = 24
 
 
@@ -282,7 +283,7 @@ class RenderSpec(_Model):
 
 
 class NoiseModelSpec(_Model):
-    """The camera's EMVA 1288 noise model and exposure (:class:`scenes.emva1288.EmvaSensor`).
+    """The camera's EMVA 1288 noise model and exposure (:class:`scopetwin.scenes.emva1288.EmvaSensor`).
 
     The setup field that holds it keeps its TOML key ``[sensor]``.
     """

@@ -7,7 +7,8 @@ the unit disk, and read the bundle on an image plane:
 * :func:`rms_radius` -- the RMS spot radius about the centroid of the surviving rays (seed §8.3, §5.1.2);
 * :func:`airy_radius` -- the first dark ring of the diffraction-limited spot, 0.61 lambda / NA (= 1.22 lambda N).
 
-Each analysis keeps its own ray model (GRIN: :mod:`scenes.grin.rkn`; CMU: :mod:`scenes.cmu.trace`) and its
+Each analysis keeps its own ray model (GRIN: :mod:`scopetwin.scenes.grin.rkn`; CMU: :mod:`scopetwin.scenes.cmu.trace`)
+and its
 closed-form refocus (``best_focus``: the mean-square radius of straight rays is quadratic in the image distance);
 the two sum the moments in different orders (per axis / per ray), and one shared form would move the recorded
 figures in their last digits.

@@ -20,8 +20,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import RectBivariateSpline
 
-from scenes.errors import GeometryError
-from scenes.geometry import Array, Frame, intersect_plane, normalize
+from scopetwin.scenes.errors import GeometryError
+from scopetwin.scenes.geometry import Array, Frame, intersect_plane, normalize
 
 #: A surface given by a function: heights h(x, y), mm, of local base-plane points (vectorised).
 HeightFunction = Callable[[Array, Array], Array]

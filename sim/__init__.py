@@ -2,13 +2,18 @@
 
 By job, each layer using only the public API of the ones before it:
 
-* :mod:`sim.surfaces` (§1.9 height maps), :mod:`sim.truth` (exact marker images), :mod:`sim.scan_time`
+* :mod:`scopetwin.sim.surfaces` (§1.9 height maps), :mod:`scopetwin.sim.truth` (exact marker images),
+  :mod:`scopetwin.sim.scan_time`
   (the scan-time models of §7.2-7.4, §8.2.2);
-* :mod:`sim.measurement` — render and write one measurement (image, truth, preview, provenance) and
-  :class:`~sim.measurement.StagedOutput`, the one stage-then-rename helper for output folders;
-* :mod:`sim.datasets` — synthetic datasets (config, seeding, one module per sample kind, the store, the runner);
-* :mod:`sim.studies` — accuracy studies against rendered truth (tables, tasks, one module per study, the runner);
-* :mod:`sim.pipeline` (the end-to-end ``scopetwin run``), :mod:`sim.cmu_unit` (the four-channel unit's analyses),
-  :mod:`sim.figures` (marker overlays, spot diagrams);
-* :mod:`sim.cli` — the ``scopetwin`` command line, one module per command group; it parses and calls the above.
+* :mod:`scopetwin.sim.measurement` — render and write one measurement (image, truth, preview, provenance) and
+  :class:`~scopetwin.sim.measurement.StagedOutput`, the one stage-then-rename helper for output folders;
+* :mod:`scopetwin.sim.datasets` — synthetic datasets (config, seeding, one module per sample kind, the store, the
+  runner);
+* :mod:`scopetwin.sim.studies` — accuracy studies against rendered truth (tables, tasks, one module per study, the
+  runner);
+* :mod:`scopetwin.sim.pipeline` (the end-to-end ``scopetwin run``), :mod:`scopetwin.sim.cmu_unit` (the four-channel
+  unit's analyses),
+  :mod:`scopetwin.sim.figures` (marker overlays, spot diagrams);
+* :mod:`scopetwin.sim.cli` — the ``scopetwin`` command line, one module per command group; it parses and calls the
+  above.
 """

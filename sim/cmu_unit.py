@@ -4,7 +4,7 @@ The analyses behind ``scopetwin optics cmu``, each returning JSON-ready dicts (t
 seed): the §5.1.2 Zemax checks (:func:`section_5_1_2`), per channel the refocused image distance, magnification
 (Table 5.1), RMS spots, astigmatism and wavefront PSF (:func:`channel_table`), the excitation/emission crosstalk
 (:func:`crosstalk`), and the Siemens star and dummy cells rendered through each channel (Mitsuba, spectral) and
-measured with :mod:`calib.channels` (:func:`render_and_measure`, Tables 5.1-5.4).
+measured with :mod:`scopetwin.calib.channels` (:func:`render_and_measure`, Tables 5.1-5.4).
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ SEED_5_1_2 = {
 def section_5_1_2(setup: Any, maps: dict[str, Any]) -> dict[str, float]:
     """The §5.1.2 Zemax checks: perfect mirror and beam splitter 3 perpendicular; beam splitter 3 at 45° (the red
     channel: 770DCXR in reflection, flat mirror) without and with the 4 mm stop."""
-    from scenes.cmu.analysis import analyse, channel_optics, perpendicular_optics
-    from scenes.cmu.plates import plate_heightmap
+    from scopetwin.scenes.cmu.analysis import analyse, channel_optics, perpendicular_optics
+    from scopetwin.scenes.cmu.plates import plate_heightmap
 
     bs3 = maps.get("770DCXR") or plate_heightmap(setup.splitters["770DCXR"], setup.plate)
     mirror = analyse(setup, perpendicular_optics(setup, None))
@@ -50,7 +50,7 @@ def section_5_1_2(setup: Any, maps: dict[str, Any]) -> dict[str, float]:
 
 def channel_table(setup: Any, maps: dict[str, Any], stop: bool) -> dict[str, dict[str, Any]]:
     """Per channel: refocus, magnification, spots, astigmatism, wavefront PSF (axis and corner)."""
-    from scenes.cmu.analysis import airy_radius_um, analyse, channel_optics, field_points, wavefront_psf
+    from scopetwin.scenes.cmu.analysis import airy_radius_um, analyse, channel_optics, field_points, wavefront_psf
 
     out = {}
     for ch in setup.channels:
@@ -122,9 +122,9 @@ def render_and_measure(
         ``{"measured": {channel: {magnification, delta_x_um, r_min_um, ...}}, "files": {name: path}}``; offset and
         tilt relative to the NIR channel (Tables 5.3, 5.4).
     """
-    from calib.channels import measure_channel, relative_pose
-    from scenes.io import write_image
-    from scenes.mitsuba.cmu import CameraPose, render_channel, unit_scene
+    from scopetwin.calib.channels import measure_channel, relative_pose
+    from scopetwin.scenes.io import write_image
+    from scopetwin.scenes.mitsuba.cmu import CameraPose, render_channel, unit_scene
 
     scene = unit_scene(setup, maps)
     meas, files = {}, {}
@@ -178,7 +178,7 @@ def render_and_measure(
 
 def crosstalk() -> dict[str, Any]:
     """The excitation and emission crosstalk of the four channels and the channel signal matrix (seed Part II)."""
-    from scenes.cmu import spectra
+    from scopetwin.scenes.cmu import spectra
 
     return {
         "excitation_crosstalk": spectra.excitation_crosstalk().tolist(),

@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from recon.markers import MarkerError, Markers
-from scenes.io import atomic_path
+from scopetwin.recon.markers import MarkerError, Markers
+from scopetwin.scenes.io import atomic_path
 
 
 def label_step(centroids: NDArray[Any], label_width_px: float) -> int:
@@ -95,8 +95,8 @@ def write_spots(path: Path, setup: Any, stack: Any, image_distance: float, na: f
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from scenes.grin.analysis import FIELDS, bundle
-    from scenes.spots import rms_radius
+    from scopetwin.scenes.grin.analysis import FIELDS, bundle
+    from scopetwin.scenes.spots import rms_radius
 
     fig, axes = plt.subplots(1, len(FIELDS), figsize=(4 * len(FIELDS), 4))
     for ax, f in zip(axes, FIELDS, strict=True):

@@ -30,10 +30,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.errors import ScopetwinError
-from scenes.io import write_json_atomic
-from scenes.setup import Setup
-from scenes.surface import HeightMap
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.io import write_json_atomic
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap
 
 #: Packages whose versions a rendered image's provenance records.
 PROVENANCE_PACKAGES = ("scopetwin", "mitsuba", "drjit", "numpy")
@@ -49,7 +49,7 @@ class StagedOutput:
 
     Inside :func:`deferred_commits` (the command line runs every command in one), :meth:`commit` only records the
     stage and returns where its entries will be; the command line moves them into place after it has written the
-    ``--json`` file, so a failing ``--json`` leaves no result behind (:mod:`sim.cli.outputs`).
+    ``--json`` file, so a failing ``--json`` leaves no result behind (:mod:`scopetwin.sim.cli.outputs`).
 
     Parameters
     ----------
@@ -250,9 +250,9 @@ def load_measurement(
     ScopetwinError
         The setup cannot be loaded, or ``surface`` is given for a scene without a substrate.
     """
-    from scenes.io import read_heightmap
-    from scenes.setup import load_setup
-    from sim.surfaces import surface_for
+    from scopetwin.scenes.io import read_heightmap
+    from scopetwin.scenes.setup import load_setup
+    from scopetwin.sim.surfaces import surface_for
 
     overrides: dict[str, Any] = {}
     render_over = {k: v for k, v in (("spp", spp), ("seed", seed), ("noise", noise)) if v is not None}
@@ -282,11 +282,11 @@ def render_measurement(
     """
     t0 = time.perf_counter()
     if renderer == "analytic":
-        from scenes.analytic import render
+        from scopetwin.scenes.analytic import render
 
         image = render(setup, heights, spp=spp, seed=seed)
     else:
-        from scenes.mitsuba.render import render_setup
+        from scopetwin.scenes.mitsuba.render import render_setup
 
         image = render_setup(setup, heights, spp=spp, seed=seed)
     if noise:
@@ -327,10 +327,10 @@ def write_measurement(
 ) -> dict[str, str]:
     """Write image EXR, truth JSON (and height map), preview PNG into the staging folder; returns the file names.
 
-    The truth holds the image of every marker centre (:func:`sim.truth.marker_truth`, seed §1.5 / §2.6).
+    The truth holds the image of every marker centre (:func:`scopetwin.sim.truth.marker_truth`, seed §1.5 / §2.6).
     """
-    from scenes.io import write_heightmap, write_image
-    from sim.truth import marker_truth
+    from scopetwin.scenes.io import write_heightmap, write_image
+    from scopetwin.sim.truth import marker_truth
 
     names = {"image": f"{prefix}image.exr", "truth": f"{prefix}truth.json", "preview": f"{prefix}preview.png"}
     write_image(stage.path(names["image"]), image, setup.to_json(), provenance(seed, spp, renderer))

@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.errors import ScopetwinError
-from scenes.setup import Setup
-from scenes.surface import HeightMap
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap
 
 MEASUREMENT = "thesis-1.10-deflectometry"
 TARGET = "thesis-2.8.3-substrate"
@@ -38,9 +38,9 @@ SEED = {"ideal": {"roi_rms_um": 0.091, "roi_max_um": 0.357}, "calibrated": {"roi
 
 
 def render_with_noise(setup: Setup, heights: HeightMap | None, spp: int, seed: int) -> NDArray[np.float32]:
-    """Mitsuba render plus the EMVA sensor model (:func:`sim.measurement.apply_sensor`), as float32."""
-    from scenes.mitsuba.render import render_setup
-    from sim.measurement import apply_sensor
+    """Mitsuba render plus the EMVA sensor model (:func:`scopetwin.sim.measurement.apply_sensor`), as float32."""
+    from scopetwin.scenes.mitsuba.render import render_setup
+    from scopetwin.sim.measurement import apply_sensor
 
     image = render_setup(setup, heights, spp=spp, seed=seed)
     return np.asarray(apply_sensor(setup, image, seed), dtype=np.float32)
@@ -50,17 +50,17 @@ def calibrate_from_images(
     target_setup: Setup, mirror_setup: Setup, img_target: NDArray[Any], img_mirror: NDArray[Any]
 ) -> tuple[Setup, str]:
     """Setup calibration of §2.7 with calib/ (bias-corrected): the calibrated deflectometry setup and its TOML."""
-    from calib.oneshot import Prior
-    from calib.setup_calibration import (
+    from scopetwin.calib.oneshot import Prior
+    from scopetwin.calib.setup_calibration import (
         calibrate_setup,
         calibrated_setup_dict,
         mirror_prior,
         toml_dumps,
         virtual_coordinates,
     )
-    from recon.bias import spot_bias_model
-    from recon.markers import find_markers_for
-    from scenes.setup import setup_from_dict
+    from scopetwin.recon.bias import spot_bias_model
+    from scopetwin.recon.markers import find_markers_for
+    from scopetwin.scenes.setup import setup_from_dict
 
     tframe = target_setup.marker_pattern.frame
     prior_s = Prior.from_camera(target_setup.camera_model, target_setup.camera.focal_length, plane=tframe)
@@ -184,8 +184,8 @@ def run_setups(
     and substrate), so the calibration describes the user's rig. ``surface_path`` (a height-map EXR of the
     contract) replaces the substrate's surface; it must cover the substrate.
     """
-    from scenes.io import read_heightmap
-    from scenes.setup import load_setup
+    from scopetwin.scenes.io import read_heightmap
+    from scopetwin.scenes.setup import load_setup
 
     over = json.loads(json.dumps(over))
     if surface_path is not None:
@@ -277,7 +277,7 @@ def run_pipeline(
     dict
         The summary (also written to ``summary.json``).
     """
-    from recon.reconstruct import single_thread_blas
+    from scopetwin.recon.reconstruct import single_thread_blas
 
     with single_thread_blas():  # small dense problems: threaded BLAS only costs (recon.reconstruct)
         return _run(Path(out_dir), spp, seed, progress, setup, surface)
@@ -293,12 +293,12 @@ def _run(
 ) -> dict[str, Any]:
     from tqdm import tqdm
 
-    from recon.focusmap import focus_map
-    from recon.markers import find_markers_for
-    from recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
-    from scenes.io import write_heightmap, write_image
-    from sim.surfaces import surface_for
-    from sim.truth import marker_truth
+    from scopetwin.recon.focusmap import focus_map
+    from scopetwin.recon.markers import find_markers_for
+    from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
+    from scopetwin.scenes.io import write_heightmap, write_image
+    from scopetwin.sim.surfaces import surface_for
+    from scopetwin.sim.truth import marker_truth
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -148,5 +148,6 @@ def ignore_interrupts_in_worker() -> None:
 
 
 def dask_setup(worker: Any = None) -> None:
-    """Dask preload hook (``distributed.worker.preload = ["sim.signals"]``): :func:`ignore_interrupts_in_worker`."""
+    """Dask preload hook (``distributed.worker.preload = ["scopetwin.sim.signals"]``):
+    :func:`ignore_interrupts_in_worker`."""
     ignore_interrupts_in_worker()

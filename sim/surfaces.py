@@ -21,9 +21,9 @@ from numpy.typing import NDArray
 from scipy.interpolate import RectBivariateSpline
 from scipy.optimize import brentq
 
-from scenes.errors import GeometryError, SetupError
-from scenes.setup import Setup, SubstrateSpec, SurfaceSpec
-from scenes.surface import HeightMap
+from scopetwin.scenes.errors import GeometryError, SetupError
+from scopetwin.scenes.setup import Setup, SubstrateSpec, SurfaceSpec
+from scopetwin.scenes.surface import HeightMap
 
 Array = NDArray[np.float64]
 
@@ -249,7 +249,7 @@ def analytic_surface(spec: SurfaceSpec, substrate: SubstrateSpec) -> HeightMap:
 def make_surface(spec: SurfaceSpec, substrate: SubstrateSpec) -> HeightMap:
     """Height map for a surface spec (generated, analytic, or read from an EXR file)."""
     if spec.kind == "file":
-        from scenes.io import read_heightmap
+        from scopetwin.scenes.io import read_heightmap
 
         return read_heightmap(spec.path)  # type: ignore[arg-type]
     if spec.kind == "random":

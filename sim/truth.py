@@ -19,10 +19,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.analytic import AnalyticScene
-from scenes.geometry import Array
-from scenes.setup import Setup
-from scenes.surface import HeightMap
+from scopetwin.scenes.analytic import AnalyticScene
+from scopetwin.scenes.geometry import Array
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap
 
 
 @dataclass(frozen=True)

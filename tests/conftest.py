@@ -1,7 +1,8 @@
 """Shared fixtures: a seeded RNG, the Mitsuba variants the tests render in, and Dr.Jit cleanup after Mitsuba tests.
 
 Tests never rely on a variant set by an import: a test that renders asks for ``mono_variant`` or
-``spectral_variant`` (the variant names :func:`scenes.mitsuba.variant.choose` gives on this machine) and passes it to
+``spectral_variant`` (the variant names :func:`scopetwin.scenes.mitsuba.variant.choose` gives on this machine) and
+passes it to
 the builders and renderers, or asks for ``mi_mono`` / ``mi_spectral`` (the ``mitsuba`` module with that variant set).
 """
 
@@ -22,9 +23,9 @@ def rng() -> np.random.Generator:
 
 
 def _variant_or_skip(kind: Literal["mono", "spectral"]) -> str:
-    """The variant :func:`scenes.mitsuba.variant.choose` names for ``kind``; skips when it cannot run here."""
+    """The variant :func:`scopetwin.scenes.mitsuba.variant.choose` names for ``kind``; skips when it cannot run here."""
     pytest.importorskip("mitsuba")
-    from scenes.mitsuba.variant import choose, unavailable
+    from scopetwin.scenes.mitsuba.variant import choose, unavailable
 
     name = choose(kind)
     reason = unavailable(name)
@@ -55,7 +56,7 @@ def spectral_variant() -> str:
 @pytest.fixture
 def mi_mono(mono_variant: str) -> Any:
     """The ``mitsuba`` module with :func:`mono_variant` set in this thread."""
-    from scenes.mitsuba.variant import mitsuba
+    from scopetwin.scenes.mitsuba.variant import mitsuba
 
     return mitsuba(mono_variant)
 
@@ -63,7 +64,7 @@ def mi_mono(mono_variant: str) -> Any:
 @pytest.fixture
 def mi_spectral(spectral_variant: str) -> Any:
     """The ``mitsuba`` module with :func:`spectral_variant` set in this thread."""
-    from scenes.mitsuba.variant import mitsuba
+    from scopetwin.scenes.mitsuba.variant import mitsuba
 
     return mitsuba(spectral_variant)
 

@@ -2,20 +2,21 @@
 
 Two steps, as in the seed, each in a module named after its section:
 
-1. :mod:`calib.oneshot.linear` — :func:`linear_approximation` (§2.4): the affine model u = A x + B y + C,
+1. :mod:`scopetwin.calib.oneshot.linear` — :func:`linear_approximation` (§2.4): the affine model u = A x + B y + C,
    v = D x + E y + F fitted by least squares, then principal point, magnification (complex square root,
    eqs. 2.23-2.29, both equations), T_x, T_y, N_z (sign s chosen by the coarse N_z estimate), b from the thin-lens
    equation, g, r_c and the tilt angle phi.
-2. :mod:`calib.oneshot.refinement` — :func:`refine` (§2.5): the reprojection error of the pinhole model of
-   :mod:`scenes.camera` (:mod:`calib.oneshot.reprojection`, §2.5.1-2.5.3) minimised over
+2. :mod:`scopetwin.calib.oneshot.refinement` — :func:`refine` (§2.5): the reprojection error of the pinhole model of
+   :mod:`scopetwin.scenes.camera` (:mod:`scopetwin.calib.oneshot.reprojection`, §2.5.1-2.5.3) minimised over
    p = (r_c, r_0, phi) [, b] [, r_cs, c0, c2] with :func:`scipy.optimize.least_squares` (Levenberg-Marquardt,
    analytic Jacobian: the per-marker chain rule is written out, the 7-parameter frame map of §2.5.2 is
    differentiated by complex step, which is exact to round-off), and the parameter covariance.
 
-:mod:`calib.oneshot.calibration` runs both (:func:`calibrate`); :mod:`calib.oneshot.bias_correction` alternates
-calibration and the centroid-bias correction of :mod:`recon.bias` (:func:`calibrate_bias_corrected` with
-:func:`recon.bias.spot_bias_model`);
-:mod:`calib.oneshot.camera_parameters` holds the a-priori values (:class:`Prior`, §2.1) and the derived camera
+:mod:`scopetwin.calib.oneshot.calibration` runs both (:func:`calibrate`);
+:mod:`scopetwin.calib.oneshot.bias_correction` alternates
+calibration and the centroid-bias correction of :mod:`scopetwin.recon.bias` (:func:`calibrate_bias_corrected` with
+:func:`scopetwin.recon.bias.spot_bias_model`);
+:mod:`scopetwin.calib.oneshot.camera_parameters` holds the a-priori values (:class:`Prior`, §2.1) and the derived camera
 parameters (§2.3). This package's namespace is that public API.
 
 Image distance b: ``lens="thin-lens"`` derives b = g f/(g - f) from the focal length as the seed does (§2.5.2);
@@ -28,13 +29,14 @@ thin-lens b assumes the target in focus, which costs ~10 µm of r_c along the ax
 off the focus plane; a free b scatters by 6-23 µm at realistic sensor noise).
 
 All coordinates of the calibration are those of the TARGET (its local frame: markers at (x, y, 0), seed §2.2).
-Pixel coordinates are continuous (x_px, y_px) = (column, row) as in :mod:`scenes.camera`. Lengths in mm, angles in
+Pixel coordinates are continuous (x_px, y_px) = (column, row) as in :mod:`scopetwin.scenes.camera`. Lengths in mm,
+angles in
 rad.
 """
 
-from calib.oneshot.bias_correction import calibrate_bias_corrected
-from calib.oneshot.calibration import calibrate
-from calib.oneshot.camera_parameters import (
+from scopetwin.calib.oneshot.bias_correction import calibrate_bias_corrected
+from scopetwin.calib.oneshot.calibration import calibrate
+from scopetwin.calib.oneshot.camera_parameters import (
     AUTO_FREE_TILT,
     LENS_MODES,
     MAX_SIGMA_B,
@@ -48,8 +50,8 @@ from calib.oneshot.camera_parameters import (
     camera_dict,
     tilt_phi,
 )
-from calib.oneshot.linear import LinearResult, linear_approximation
-from calib.oneshot.refinement import Calibration, refine
+from scopetwin.calib.oneshot.linear import LinearResult, linear_approximation
+from scopetwin.calib.oneshot.refinement import Calibration, refine
 
 __all__ = [
     "AUTO_FREE_TILT",

@@ -1,8 +1,8 @@
 """Bias-corrected one-shot calibration: calibrate, predict the centroid bias, correct, calibrate again (§2.8.2).
 
-:func:`calibrate_bias_corrected` alternates :func:`~calib.oneshot.calibration.calibrate` and a centroid-bias
-prediction until the parameters stop changing. The prediction is the centroid-bias model of :mod:`recon.bias`:
-:func:`recon.bias.spot_bias_model` for a planar target (the spot centroid as the pixels see it, seed §1.5.1).
+:func:`calibrate_bias_corrected` alternates :func:`~scopetwin.calib.oneshot.calibration.calibrate` and a centroid-bias
+prediction until the parameters stop changing. The prediction is the centroid-bias model of :mod:`scopetwin.recon.bias`:
+:func:`scopetwin.recon.bias.spot_bias_model` for a planar target (the spot centroid as the pixels see it, seed §1.5.1).
 """
 
 from __future__ import annotations
@@ -13,16 +13,16 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import ArrayLike
 
-from calib.oneshot.calibration import calibrate, with_notes
-from calib.oneshot.camera_parameters import (
+from scopetwin.calib.oneshot.calibration import calibrate, with_notes
+from scopetwin.calib.oneshot.camera_parameters import (
     CalibrationError,
     CalibrationWarning,
     LensMode,
     Prior,
 )
-from calib.oneshot.refinement import Calibration
-from scenes.camera import Camera
-from scenes.geometry import Array
+from scopetwin.calib.oneshot.refinement import Calibration
+from scopetwin.scenes.camera import Camera
+from scopetwin.scenes.geometry import Array
 
 
 def calibrate_bias_corrected(

@@ -1,8 +1,9 @@
 """One-shot calibration: linear approximation (seed §2.4) then non-linear refinement (§2.5).
 
-:func:`calibrate` runs :func:`~calib.oneshot.linear.linear_approximation` and
-:func:`~calib.oneshot.refinement.refine`, checks the mirror-ambiguous pose (the other sign s of §2.4.2) and chooses
-how the image distance b is obtained (``lens``, see :mod:`calib.oneshot`).
+:func:`calibrate` runs :func:`~scopetwin.calib.oneshot.linear.linear_approximation` and
+:func:`~scopetwin.calib.oneshot.refinement.refine`, checks the mirror-ambiguous pose (the other sign s of §2.4.2) and
+chooses
+how the image distance b is obtained (``lens``, see :mod:`scopetwin.calib.oneshot`).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike
 
-from calib.oneshot.camera_parameters import (
+from scopetwin.calib.oneshot.camera_parameters import (
     AUTO_FREE_TILT,
     LENS_MODES,
     MAX_SIGMA_B,
@@ -27,9 +28,9 @@ from calib.oneshot.camera_parameters import (
     format_vector,
     tilt_phi,
 )
-from calib.oneshot.linear import LinearResult, linear_approximation
-from calib.oneshot.refinement import Calibration, refine
-from scenes.camera import Camera
+from scopetwin.calib.oneshot.linear import LinearResult, linear_approximation
+from scopetwin.calib.oneshot.refinement import Calibration, refine
+from scopetwin.scenes.camera import Camera
 
 
 def _start_of(camera: Camera, linear: LinearResult) -> LinearResult:

@@ -3,7 +3,7 @@
 :class:`Prior` is the a-priori knowledge of §2.1 (pixel size, focal length, coarse N_z, sensor format); the camera
 parameters of §2.3 are derived with :func:`tilt_phi` (the tilt angle phi) and :func:`axis_point` (r_0 and g) and
 reported under the contract's keys by :func:`camera_dict`. :func:`check_points` validates marker coordinates and
-their images for every step. Errors and warnings of :mod:`calib.oneshot` are defined here.
+their images for every step. Errors and warnings of :mod:`scopetwin.calib.oneshot` are defined here.
 """
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike
 
-from scenes.camera import Camera
-from scenes.errors import ScopetwinError
-from scenes.geometry import Array, Frame
+from scopetwin.scenes.camera import Camera
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.geometry import Array, Frame
 
 LensMode = Literal["auto", "thin-lens", "free", "fixed"]
 LENS_MODES: tuple[str, ...] = ("auto", "thin-lens", "free", "fixed")
@@ -101,7 +101,7 @@ class Prior:
         return cls(**kw)
 
     def sensor_camera(self, b: float = 1.0, frame: Frame | None = None, **changes) -> Camera:
-        """A :class:`~scenes.camera.Camera` with this prior's format (pose and b as given)."""
+        """A :class:`~scopetwin.scenes.camera.Camera` with this prior's format (pose and b as given)."""
         kw: dict[str, Any] = dict(r_cs=self.r_cs, c0=self.c0, c2=self.c2)
         kw.update(changes)
         return Camera(frame or Frame.identity(), b, self.nx, self.ny, self.pitch, **kw)

@@ -3,7 +3,8 @@
 :func:`linear_approximation`: the affine model u = A x + B y + C, v = D x + E y + F fitted by least squares
 (§2.4.1), then principal point, magnification (complex square root, eqs. 2.23-2.29, both equations), T_x, T_y, N_z
 (sign s chosen by the coarse N_z estimate), b from the thin-lens equation, g, r_c and the tilt angle phi (§2.4.2).
-The result (:class:`LinearResult`) is the start of the non-linear refinement (:mod:`calib.oneshot.refinement`).
+The result (:class:`LinearResult`) is the start of the non-linear refinement
+(:mod:`scopetwin.calib.oneshot.refinement`).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from calib.oneshot.camera_parameters import (
+from scopetwin.calib.oneshot.camera_parameters import (
     CalibrationError,
     Prior,
     axis_point,
@@ -22,8 +23,8 @@ from calib.oneshot.camera_parameters import (
     tilt_phi,
     unit_vector,
 )
-from scenes.camera import Camera
-from scenes.geometry import Array, Frame
+from scopetwin.scenes.camera import Camera
+from scopetwin.scenes.geometry import Array, Frame
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """Non-linear refinement of the one-shot calibration and its covariance (seed §2.5.4).
 
-:func:`refine` minimises the reprojection error of :class:`~calib.oneshot.reprojection.ReprojectionModel` with
+:func:`refine` minimises the reprojection error of :class:`~scopetwin.calib.oneshot.reprojection.ReprojectionModel` with
 :func:`scipy.optimize.least_squares` (Levenberg-Marquardt, analytic Jacobian), starting from the linear
 approximation (§2.4) or an earlier :class:`Calibration`; the parameter covariance (J^T J)^-1, scaled by the residual
 variance, gives the standard deviations of the parameters and of b, g, T_x, T_y, N_z.
@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 
-from calib.oneshot.camera_parameters import (
+from scopetwin.calib.oneshot.camera_parameters import (
     PRIOR_NOISE_PX,
     CalibrationError,
     Prior,
@@ -22,11 +22,11 @@ from calib.oneshot.camera_parameters import (
     check_points,
     wrap_angle,
 )
-from calib.oneshot.linear import LinearResult
-from calib.oneshot.reprojection import ReprojectionModel
-from scenes.camera import Camera
-from scenes.errors import GeometryError
-from scenes.geometry import Array, Frame
+from scopetwin.calib.oneshot.linear import LinearResult
+from scopetwin.calib.oneshot.reprojection import ReprojectionModel
+from scopetwin.scenes.camera import Camera
+from scopetwin.scenes.errors import GeometryError
+from scopetwin.scenes.geometry import Array, Frame
 
 
 @dataclass(frozen=True)

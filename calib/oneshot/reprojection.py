@@ -13,11 +13,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.oneshot.camera_parameters import (
+from scopetwin.calib.oneshot.camera_parameters import (
     Prior,
 )
-from scenes.camera import Camera
-from scenes.geometry import Array, Frame
+from scopetwin.scenes.camera import Camera
+from scopetwin.scenes.geometry import Array, Frame
 
 _CSTEP = 1e-30
 

@@ -32,8 +32,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from instrument.devices import CameraDevice, CameraLimits, Range, Roi, TriggerMode, TriggerType
-from instrument.errors import DisconnectedError, InstrumentTimeout, OutOfRangeError, ProtocolError, RigError
+from scopetwin.instrument.devices import CameraDevice, CameraLimits, Range, Roi, TriggerMode, TriggerType
+from scopetwin.instrument.errors import DisconnectedError, InstrumentTimeout, OutOfRangeError, ProtocolError, RigError
 
 #: Pixel format for each bit depth, in order of preference.
 PIXEL_FORMATS: dict[int, tuple[str, ...]] = {8: ("Mono8",), 12: ("Mono12", "Mono12Packed"), 16: ("Mono16",)}

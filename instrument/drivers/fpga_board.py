@@ -26,7 +26,7 @@ same address (an empty payload for a write, the register for a read) or
 microseconds; the current index counts steps of ``current_step_ma``.
 
 :func:`decode_packet` and :func:`split_packets` raise only
-:class:`~instrument.errors.ProtocolError`.
+:class:`~scopetwin.instrument.errors.ProtocolError`.
 """
 
 from __future__ import annotations
@@ -37,9 +37,9 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from instrument.devices import LightConfig, LightSource, Shutter, TriggerController
-from instrument.errors import ControllerError, OutOfRangeError, ProtocolError
-from instrument.transport import Link
+from scopetwin.instrument.devices import LightConfig, LightSource, Shutter, TriggerController
+from scopetwin.instrument.errors import ControllerError, OutOfRangeError, ProtocolError
+from scopetwin.instrument.transport import Link
 
 WRITE, READ, ERROR = 0x01, 0x02, 0xFF
 ACK_WRITE, ACK_READ = WRITE | 0x80, READ | 0x80

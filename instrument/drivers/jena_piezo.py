@@ -25,8 +25,8 @@ The driver follows each set command with the read command and inspects every
 line up to the read's answer, so a failing command is reported and no stale
 reply is left on the line.
 
-:func:`decode_reply` raises only :class:`~instrument.errors.ProtocolError`
-(or its subclass :class:`~instrument.errors.ControllerError` for ``err,N``).
+:func:`decode_reply` raises only :class:`~scopetwin.instrument.errors.ProtocolError`
+(or its subclass :class:`~scopetwin.instrument.errors.ControllerError` for ``err,N``).
 """
 
 from __future__ import annotations
@@ -34,9 +34,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from instrument.devices import FocusDrive, Range
-from instrument.errors import ControllerError, InstrumentError, OutOfRangeError, ProtocolError, RigError
-from instrument.transport import Link
+from scopetwin.instrument.devices import FocusDrive, Range
+from scopetwin.instrument.errors import ControllerError, InstrumentError, OutOfRangeError, ProtocolError, RigError
+from scopetwin.instrument.transport import Link
 
 #: Error numbers of jena's serial controllers.
 JENA_ERRORS: dict[int, str] = {

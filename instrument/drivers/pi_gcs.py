@@ -11,11 +11,11 @@ Commands used: ``*IDN?``, ``SVO``, ``FRF``/``FRF?``, ``MOV``, ``MVR``, ``POS?``,
 ``VEL``/``VEL?``, ``ONT?``, ``TMN?``/``TMX?``, ``SPA?`` (parameter 0xA, the maximum
 closed-loop velocity, read when the rig states no ``max_velocity_mm_s``), ``HLT``,
 ``ERR?`` and ``#5``. Error codes are named from PI's published list
-(:mod:`instrument.drivers.gcs_errors`).
+(:mod:`scopetwin.instrument.drivers.gcs_errors`).
 
 The decoders (:func:`decode_lines`, :func:`parse_axis_values`,
 :func:`parse_error_code`, :func:`parse_motion_status`) raise only
-:class:`~instrument.errors.ProtocolError` on malformed input.
+:class:`~scopetwin.instrument.errors.ProtocolError` on malformed input.
 """
 
 from __future__ import annotations
@@ -24,10 +24,10 @@ import re
 import time
 from typing import Any
 
-from instrument.devices import Range, Stage
-from instrument.drivers.gcs_errors import describe_error
-from instrument.errors import ControllerError, InstrumentTimeout, OutOfRangeError, ProtocolError, RigError
-from instrument.transport import Link
+from scopetwin.instrument.devices import Range, Stage
+from scopetwin.instrument.drivers.gcs_errors import describe_error
+from scopetwin.instrument.errors import ControllerError, InstrumentTimeout, OutOfRangeError, ProtocolError, RigError
+from scopetwin.instrument.transport import Link
 
 #: GCS errors that mean "a value beyond a limit": position, velocity, parameter out of range.
 RANGE_ERRORS = {7, 8, 17}

@@ -15,7 +15,7 @@ reply and hangs the line up.
 :meth:`PtyEmulator.state` describes the emulated device (for logs and for the
 simulated devices of the same rig); :attr:`PtyEmulator.on_request`, when set,
 is called after every request with ``(request, reply, state)`` — the hook behind
-``scopetwin emulate --log`` (:func:`instrument.emulators.serve.serve`).
+``scopetwin emulate --log`` (:func:`scopetwin.instrument.emulators.serve.serve`).
 """
 
 from __future__ import annotations

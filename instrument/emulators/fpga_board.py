@@ -1,6 +1,6 @@
 """Emulator of the FPGA light/trigger board (seed §4.3.1, Table 4.2 packets) on a pseudo-terminal.
 
-Implements the register map of :mod:`instrument.drivers.fpga_board`. Lights
+Implements the register map of :mod:`scopetwin.instrument.drivers.fpga_board`. Lights
 switch on by their action register or by the global trigger (when listening,
 after their delay), and off by the action register or when their duration
 ends (``use_duration``). Every switching and trigger pulse is recorded in
@@ -18,7 +18,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from instrument.drivers.fpga_board import (
+from scopetwin.instrument.drivers.fpga_board import (
     ACK_READ,
     ACK_WRITE,
     CAMERA_CONFIG,
@@ -35,7 +35,7 @@ from instrument.drivers.fpga_board import (
     TTL_OUTPUT,
     WRITE,
 )
-from instrument.emulators.base import PtyEmulator
+from scopetwin.instrument.emulators.base import PtyEmulator
 
 #: Table 4.2, byte 2: "12 (number of following bytes)".
 LIGHT_CONFIG_LENGTH = 12

@@ -1,7 +1,7 @@
 """Emulator of a piezosystem jena controller with a MIPOS500 (0-400 µm) on a pseudo-terminal.
 
 The ``model`` selects the dialect of the vendor's documentation (the same table
-as :mod:`instrument.drivers.jena_piezo`, written out here independently so that
+as :mod:`scopetwin.instrument.drivers.jena_piezo`, written out here independently so that
 a test of the driver against the emulator is a test of two readings of the
 documents):
 
@@ -26,7 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from instrument.emulators.base import PtyEmulator
+from scopetwin.instrument.emulators.base import PtyEmulator
 
 #: Reply terminator by model (the NV40/3 ends its answers in CR only).
 REPLY_END = {"nv40-1": b"\r\n", "nv40-3": b"\r", "30dv50": b"\r\n"}

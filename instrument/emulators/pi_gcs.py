@@ -1,6 +1,6 @@
 """Emulator of a PI GCS 2.0 stage controller (C-863 Mercury class) on a pseudo-terminal.
 
-Speaks what the project's driver (:mod:`instrument.drivers.pi_gcs`) and PI's own
+Speaks what the project's driver (:mod:`scopetwin.instrument.drivers.pi_gcs`) and PI's own
 Python client (pipython's ``GCSDevice`` and ``pitools``) send: LF-terminated
 commands; set commands are silent and keep an error code for ``ERR?``; queries
 answer one line per item, every line but the last ending in a space before the
@@ -29,7 +29,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from instrument.emulators.base import PtyEmulator
+from scopetwin.instrument.emulators.base import PtyEmulator
 
 CONTROL_BYTES = {0x05: "#5", 0x07: "#7", 0x18: "#24"}
 

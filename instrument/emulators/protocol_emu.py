@@ -1,12 +1,12 @@
 """pyserial URL handler ``emu://NAME?key=value&...``: a wire-protocol emulator as a serial port.
 
 ``serial.serial_for_url("emu://pi-gcs?travel_mm=0,150&max_velocity_mm_s=50")``
-starts a :class:`~instrument.emulators.pi_gcs.PiGcsEmulator` on a
+starts a :class:`~scopetwin.instrument.emulators.pi_gcs.PiGcsEmulator` on a
 pseudo-terminal and opens its slave as a real ``serial.Serial``; closing the
 port stops the emulator. The emulator object is reachable as ``port.emulator``
 (for logs and fault injection). Query values are numbers, or comma-separated
 number lists for tuple options; ``axes`` is a comma-separated list of names.
-:func:`instrument.transport.open_transport` registers this handler.
+:func:`scopetwin.instrument.transport.open_transport` registers this handler.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from typing import Any
 
 from serial.serialposix import Serial as PosixSerial
 
-from instrument.emulators.base import PtyEmulator
-from instrument.errors import RigError
+from scopetwin.instrument.emulators.base import PtyEmulator
+from scopetwin.instrument.errors import RigError
 
 
 def option_value(key: str, text: str) -> Any:
@@ -53,7 +53,7 @@ class Serial(PosixSerial):
 
     def open(self) -> None:
         """Start the emulator named by the URL and open its pseudo-terminal."""
-        from instrument.emulators import EMULATORS
+        from scopetwin.instrument.emulators import EMULATORS
 
         url = self.portstr
         name, options = parse_url(url)

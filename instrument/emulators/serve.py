@@ -4,7 +4,7 @@
 ``fpga-board``), announces the slave tty's path (the first line a caller prints),
 optionally appends one JSON object per request to a log file —
 ``{"request": ..., "reply": ..., "state": {...}}`` with the emulator's state after
-the request (:meth:`~instrument.emulators.base.PtyEmulator.state`; the board's
+the request (:meth:`~scopetwin.instrument.emulators.base.PtyEmulator.state`; the board's
 has ``"lights_on"``, the channels that are on) — and returns when ``stop`` is
 set or, in the main thread, on SIGINT/SIGTERM. Text protocols log requests and
 replies as text; the FPGA board's binary packets as hex bytes (``"01 11 0c ..."``).
@@ -19,10 +19,10 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import IO, Any
 
-from instrument.emulators import EMULATORS
-from instrument.emulators.base import PtyEmulator
-from instrument.emulators.protocol_emu import option_value
-from instrument.errors import RigError
+from scopetwin.instrument.emulators import EMULATORS
+from scopetwin.instrument.emulators.base import PtyEmulator
+from scopetwin.instrument.emulators.protocol_emu import option_value
+from scopetwin.instrument.errors import RigError
 
 BINARY_PROTOCOLS = {"fpga-board"}
 

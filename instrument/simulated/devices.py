@@ -1,8 +1,8 @@
-"""Simulated devices: the device protocols of :mod:`instrument.devices` acting on a :class:`VirtualWorld`.
+"""Simulated devices: the device protocols of :mod:`scopetwin.instrument.devices` acting on a :class:`VirtualWorld`.
 
 Stages and the focus drive move instantly; lights, shutters and triggers change
 the world; the camera renders the world's state through a renderer and the
-EMVA 1288 sensor model (:class:`scenes.emva1288.EmvaSensor`): exposure scales
+EMVA 1288 sensor model (:class:`scopetwin.scenes.emva1288.EmvaSensor`): exposure scales
 signal and shot noise, the full well and the ADC saturate (12 bit by default),
 gain (dB) scales the system gain, and hardware-triggered exposures happen when
 the world's global trigger fires on the camera's line.
@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from instrument.devices import (
+from scopetwin.instrument.devices import (
     CameraDevice,
     CameraLimits,
     FocusDrive,
@@ -35,9 +35,9 @@ from instrument.devices import (
     TriggerMode,
     TriggerType,
 )
-from instrument.errors import DisconnectedError, InstrumentTimeout, OutOfRangeError
-from instrument.simulated.world import Renderer, SimLightState, VirtualWorld, WorldState
-from scenes.emva1288 import EmvaSensor
+from scopetwin.instrument.errors import DisconnectedError, InstrumentTimeout, OutOfRangeError
+from scopetwin.instrument.simulated.world import Renderer, SimLightState, VirtualWorld, WorldState
+from scopetwin.scenes.emva1288 import EmvaSensor
 
 FAULTS = ("timeout", "disconnect", "drop")
 
@@ -45,7 +45,7 @@ FAULTS = ("timeout", "disconnect", "drop")
 class SimDevice:
     """Mixin: world access, operation log and fault injection for simulated devices."""
 
-    driver = "sim"
+    driver = "scopetwin.sim"
     world: VirtualWorld
     name: str
 
@@ -247,7 +247,7 @@ class SimCamera(SimDevice, CameraDevice):
     renderer : callable
         ``WorldState -> irradiance`` (float32, ``sensor_shape``, radiance units).
     emva : EmvaSensor
-        EMVA 1288 sensor physics (:mod:`scenes.emva1288`) at 0 dB gain and 12 bit (its ``bit_depth`` is
+        EMVA 1288 sensor physics (:mod:`scopetwin.scenes.emva1288`) at 0 dB gain and 12 bit (its ``bit_depth`` is
         the ADC's); the rig file's ``sensor`` table holds its fields.
     photons_per_unit_s : float
         Photons per pixel and second at irradiance 1.

@@ -2,10 +2,10 @@
 
 * :class:`FlatTextureRenderer` — pure numpy, no Mitsuba: a fixed texture moved by
   the stage and scaled by the light levels (fast; for device tests).
-* :class:`WidefieldRenderer` — the microscope tile of :mod:`scenes.mitsuba.widefield`
+* :class:`WidefieldRenderer` — the microscope tile of :mod:`scopetwin.scenes.mitsuba.widefield`
   (bent fluorescent sample, 10x / 0.45 thin lens, focus from the focus drive).
 * :class:`DeflectometryRenderer` — a Part I setup rendered by
-  :func:`scenes.mitsuba.render.render_setup` (cached: the world only scales it by the pattern light).
+  :func:`scopetwin.scenes.mitsuba.render.render_setup` (cached: the world only scales it by the pattern light).
 
 :func:`make_renderer` builds one from a rig file's ``renderer`` table.
 """
@@ -19,8 +19,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from instrument.errors import RigError
-from instrument.simulated.world import WorldState
+from scopetwin.instrument.errors import RigError
+from scopetwin.instrument.simulated.world import WorldState
 
 
 def light_sum(state: WorldState, lights: Sequence[str] | None) -> float:
@@ -75,7 +75,7 @@ class FlatTextureRenderer:
 
 
 class WidefieldRenderer:
-    """The widefield microscope tile (:func:`scenes.mitsuba.widefield.render_tile`) of the world's state.
+    """The widefield microscope tile (:func:`scopetwin.scenes.mitsuba.widefield.render_tile`) of the world's state.
 
     Parameters
     ----------
@@ -107,7 +107,7 @@ class WidefieldRenderer:
         self._seed = int(seed)
 
     def __call__(self, state: WorldState) -> NDArray[np.float32]:
-        from scenes.mitsuba.widefield import render_tile
+        from scopetwin.scenes.mitsuba.widefield import render_tile
 
         level = light_sum(state, self.lights)
         cols, rows = self.optics.pixels
@@ -123,7 +123,7 @@ class WidefieldRenderer:
 
 
 class DeflectometryRenderer:
-    """A Part I setup (:func:`scenes.setup.load_setup`) rendered once, scaled by the pattern light.
+    """A Part I setup (:func:`scopetwin.scenes.setup.load_setup`) rendered once, scaled by the pattern light.
 
     Parameters
     ----------
@@ -149,7 +149,7 @@ class DeflectometryRenderer:
         seed: int = 0,
         lights: Sequence[str] | None = None,
     ) -> None:
-        from scenes.setup import load_setup
+        from scopetwin.scenes.setup import load_setup
 
         self.setup = load_setup(setup)
         self.heights = heights if heights is not None else self._bow(bow_um)
@@ -158,7 +158,7 @@ class DeflectometryRenderer:
         self._image: NDArray[np.float32] | None = None
 
     def _bow(self, bow_um: float) -> Any:
-        from scenes.surface import HeightMap
+        from scopetwin.scenes.surface import HeightMap
 
         if self.setup.substrate is None:
             return None
@@ -176,7 +176,7 @@ class DeflectometryRenderer:
 
     def __call__(self, state: WorldState) -> NDArray[np.float32]:
         if self._image is None:
-            from scenes.mitsuba.render import render_setup
+            from scopetwin.scenes.mitsuba.render import render_setup
 
             self._image = render_setup(self.setup, heights=self.heights, spp=self.spp, seed=self.seed)
         if self._image.shape != tuple(state.sensor_shape):
@@ -201,7 +201,7 @@ def make_renderer(spec: dict[str, Any], *, camera: str) -> Any:
         if kind == "texture":
             return FlatTextureRenderer(**options)
         if kind == "widefield":
-            from scenes.mitsuba.widefield import BentSubstrate, WidefieldOptics
+            from scopetwin.scenes.mitsuba.widefield import BentSubstrate, WidefieldOptics
 
             substrate_opts: dict[str, Any] = {
                 k: (tuple(v) if isinstance(v, list) else v) for k, v in options.pop("substrate", {}).items()

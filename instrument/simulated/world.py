@@ -6,7 +6,7 @@ shutters, camera trigger lines, and the global trigger. A simulated camera
 asks the world for a :class:`WorldState` snapshot (what its exposure sees)
 and passes it to a **renderer**: any callable ``WorldState -> irradiance``
 (float32 image, radiance units, the full sensor). The camera then applies the
-EMVA 1288 sensor model (:class:`scenes.emva1288.EmvaSensor`).
+EMVA 1288 sensor model (:class:`scopetwin.scenes.emva1288.EmvaSensor`).
 
 Light levels in the snapshot are relative radiant outputs (``current /
 max_current``), weighted by the fraction of the exposure the light was on: for
@@ -17,7 +17,7 @@ overlaps an exposure ``[d_c, d_c + t_exp]`` by ``|[d_l, d_l+T_l] ∩ [d_c, d_c+t
 Devices outside the world (hardware drivers on in-process emulators, as in
 ``rigs/emulated-hardware.toml``) are seen through **probes**: callables that
 return a light's relative level, a stage position (mm) or a focus position (µm)
-from the emulator's state; :func:`instrument.rig.load_rig` registers them, so a
+from the emulator's state; :func:`scopetwin.instrument.rig.load_rig` registers them, so a
 simulated camera sees the board's lights and the stages' positions.
 """
 
@@ -31,7 +31,7 @@ from types import MappingProxyType
 import numpy as np
 from numpy.typing import NDArray
 
-from instrument.devices import LightConfig
+from scopetwin.instrument.devices import LightConfig
 
 
 @dataclass(frozen=True)

@@ -2,27 +2,29 @@
 
 Four steps, as in the seed, each a module named after its section:
 
-1. :mod:`recon.markers.centroid_search` — centroid search (§1.5.1): background level and noise from the image,
+1. :mod:`scopetwin.recon.markers.centroid_search` — centroid search (§1.5.1): background level and noise from the image,
    threshold, connected components (OpenCV), grey-value-weighted centre of mass (:func:`centroids`, :class:`Spots`).
-2. :mod:`recon.markers.filtering` — marker filtering (§1.5.2): area against the median area of the neighbouring
+2. :mod:`scopetwin.recon.markers.filtering` — marker filtering (§1.5.2): area against the median area of the
+   neighbouring
    spots, spots touching the image border or leaving the reflecting :class:`Region` (partially reflected markers),
    spots with a clipped edge; the reference marker (:func:`find_reference`, :func:`filter_spots`).
-3. :mod:`recon.markers.grid_identification` — grid identification: :func:`fourier_axes` (deflectometry, §1.5.3)
+3. :mod:`scopetwin.recon.markers.grid_identification` — grid identification: :func:`fourier_axes` (deflectometry,
+   §1.5.3)
    and :func:`reference_axes` (calibration, §2.6.1), the image vectors of one pitch step along T_x and T_y.
-4. :mod:`recon.markers.indexing` — marker indexing (§1.5.4): :func:`index_grid`, a flood from the reference
+4. :mod:`scopetwin.recon.markers.indexing` — marker indexing (§1.5.4): :func:`index_grid`, a flood from the reference
    marker [0, 0] through the eight neighbours of each marker, the steps re-estimated locally as it proceeds; and
    :func:`index_lattice`, a flood over mutual axial neighbours (the grid's topology), where a strongly bent substrate
    stretches and squeezes the reflected grid too much for the flood's predictions.
 
-:mod:`recon.markers.identification` runs all four (:func:`find_markers`) and takes their options from a setup
+:mod:`scopetwin.recon.markers.identification` runs all four (:func:`find_markers`) and takes their options from a setup
 (:func:`find_markers_for`, :func:`region_for_setup`). This package's namespace is that public API.
 
 Coordinates are continuous pixel coordinates (col, row): pixel (r, c) covers [c, c+1) x [r, r+1)
 (DESIGN.md). Indices (i, j) count pitches along the pattern's own T_x, T_y (DESIGN.md, "Marker indices").
 """
 
-from recon.markers.centroid_search import MarkerError, Spots, background_level, centroids, check_image
-from recon.markers.filtering import (
+from scopetwin.recon.markers.centroid_search import MarkerError, Spots, background_level, centroids, check_image
+from scopetwin.recon.markers.filtering import (
     Filtered,
     ReferenceTieError,
     Region,
@@ -31,8 +33,8 @@ from recon.markers.filtering import (
     local_area_ratio,
     rim_clearance,
 )
-from recon.markers.grid_identification import fourier_axes, nearest_spacing, orient_axes, reference_axes
-from recon.markers.identification import (
+from scopetwin.recon.markers.grid_identification import fourier_axes, nearest_spacing, orient_axes, reference_axes
+from scopetwin.recon.markers.identification import (
     Markers,
     expected_axes,
     expected_reference,
@@ -41,7 +43,7 @@ from recon.markers.identification import (
     index_range,
     region_for_setup,
 )
-from recon.markers.indexing import index_grid, index_lattice
+from scopetwin.recon.markers.indexing import index_grid, index_lattice
 
 __all__ = [
     "Filtered",

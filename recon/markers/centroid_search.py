@@ -5,10 +5,10 @@ it, labels connected components (OpenCV) and takes the grey-value-weighted centr
 (:class:`Spots`). The centroid is the first moment of the *whole* spot: pixels above the threshold define the spot,
 and its window is grown by a few pixels so the faint rim below the threshold is weighted too (weights: grey value
 minus background). That makes the centroid independent of the threshold and equal, up to pixel sampling, to the
-continuous first moment of the spot's irradiance — the quantity that :mod:`recon.bias` predicts from a model.
+continuous first moment of the spot's irradiance — the quantity that :mod:`scopetwin.recon.bias` predicts from a model.
 
 Coordinates are continuous pixel coordinates (col, row): pixel (r, c) covers [c, c+1) x [r, r+1) (DESIGN.md).
-:class:`MarkerError`, raised by every step of :mod:`recon.markers`, is defined here, with the first step.
+:class:`MarkerError`, raised by every step of :mod:`scopetwin.recon.markers`, is defined here, with the first step.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from numpy.typing import DTypeLike, NDArray
 
-from scenes.errors import ScopetwinError
+from scopetwin.scenes.errors import ScopetwinError
 
 Array = NDArray[np.float64]
 

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from recon.markers.centroid_search import Array, MarkerError, Spots
+from scopetwin.recon.markers.centroid_search import Array, MarkerError, Spots
 
 
 def local_area_ratio(points: Array, areas: NDArray, reference: NDArray[np.bool_] | None = None, k: int = 8) -> Array:

@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from recon.markers.centroid_search import Array, MarkerError
+from scopetwin.recon.markers.centroid_search import Array, MarkerError
 
 
 def nearest_spacing(points: Array) -> float:

@@ -1,8 +1,9 @@
 """Marker identification, all four steps (seed §1.5 for the deflectometry grid, §2.6 for the calibration grid).
 
-:func:`find_markers` runs centroid search (:mod:`recon.markers.centroid_search`, §1.5.1), filtering
-(:mod:`recon.markers.filtering`, §1.5.2), grid identification (:mod:`recon.markers.grid_identification`,
-§1.5.3 / §2.6.1) and indexing (:mod:`recon.markers.indexing`, §1.5.4) and returns the :class:`Markers`.
+:func:`find_markers` runs centroid search (:mod:`scopetwin.recon.markers.centroid_search`, §1.5.1), filtering
+(:mod:`scopetwin.recon.markers.filtering`, §1.5.2), grid identification
+(:mod:`scopetwin.recon.markers.grid_identification`,
+§1.5.3 / §2.6.1) and indexing (:mod:`scopetwin.recon.markers.indexing`, §1.5.4) and returns the :class:`Markers`.
 :func:`find_markers_for` takes layout, axis hint, view, region, index range and the reference marker's nominal image
 from a setup: the nominal geometry
 (a flat substrate or mirror in z = 0) tells where the axes and the reflecting region lie in the image
@@ -17,12 +18,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from recon.markers.centroid_search import Array, MarkerError, Spots, centroids
-from recon.markers.filtering import Region, filter_spots
-from recon.markers.grid_identification import fourier_axes, nearest_spacing, orient_axes, reference_axes
-from recon.markers.indexing import index_grid, index_lattice
-from scenes.setup import Setup
-from scenes.surface import HeightMap
+from scopetwin.recon.markers.centroid_search import Array, MarkerError, Spots, centroids
+from scopetwin.recon.markers.filtering import Region, filter_spots
+from scopetwin.recon.markers.grid_identification import fourier_axes, nearest_spacing, orient_axes, reference_axes
+from scopetwin.recon.markers.indexing import index_grid, index_lattice
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap
 
 
 @dataclass(frozen=True)
@@ -133,10 +134,10 @@ def find_markers(
         Accepted area relative to the neighbours' median (§1.5.2).
     reference_hint : ndarray, (2,), optional
         Nominal image of the reference marker (px, e.g. from :func:`expected_reference`): the reference is
-        looked for near it first (:func:`recon.markers.filtering.find_reference`).
+        looked for near it first (:func:`scopetwin.recon.markers.filtering.find_reference`).
     reference : int, optional
         Take this spot of the centroid search as the reference marker (one of the ``candidates`` of a
-        :class:`recon.markers.filtering.ReferenceTieError`, which the search raises where two spots are about
+        :class:`scopetwin.recon.markers.filtering.ReferenceTieError`, which the search raises where two spots are about
         equally large).
 
     Raises

@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from recon.markers.centroid_search import Array
+from scopetwin.recon.markers.centroid_search import Array
 
 #: Neighbour offsets of the flood (§1.5.4): the four axial neighbours first, then the diagonals.
 NEIGHBOURS = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [-1, 1], [1, -1], [-1, -1]], dtype=np.int64)

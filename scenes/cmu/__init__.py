@@ -3,13 +3,17 @@
 ``cmu`` is the seed's own name for it: "one compact microscope unit (CMU)" (§3.4.1, Fig. 3.6-3.7; the
 implementation §4.1, Fig. 4.1(b)).
 
-Spectra of fluorophores, light sources, filters and dichroics (:mod:`~scenes.cmu.spectra`), the unit's layout as
-a setup (:mod:`~scenes.cmu.layout`, preset ``thesis-cmu``), bowed beam-splitter plates
-(:mod:`~scenes.cmu.plates`), the sequential tracer with perfect lenses (:mod:`~scenes.cmu.trace`), analyses
-(refocus, magnification, spots, astigmatism, wavefront PSF/MTF, the 4 mm stop; :mod:`~scenes.cmu.analysis`) and
-the test objects (:mod:`~scenes.cmu.targets`). The Mitsuba (spectral) realisation is :mod:`scenes.mitsuba.cmu`.
+Spectra of fluorophores, light sources, filters and dichroics (:mod:`~scopetwin.scenes.cmu.spectra`), the unit's layout
+as
+a setup (:mod:`~scopetwin.scenes.cmu.layout`, preset ``thesis-cmu``), bowed beam-splitter plates
+(:mod:`~scopetwin.scenes.cmu.plates`), the sequential tracer with perfect lenses (:mod:`~scopetwin.scenes.cmu.trace`),
+analyses
+(refocus, magnification, spots, astigmatism, wavefront PSF/MTF, the 4 mm stop; :mod:`~scopetwin.scenes.cmu.analysis`)
+and
+the test objects (:mod:`~scopetwin.scenes.cmu.targets`). The Mitsuba (spectral) realisation is
+:mod:`scopetwin.scenes.mitsuba.cmu`.
 """
 
-from scenes.cmu.layout import CmuSetup, load_cmu_setup
+from scopetwin.scenes.cmu.layout import CmuSetup, load_cmu_setup
 
 __all__ = ["CmuSetup", "load_cmu_setup"]

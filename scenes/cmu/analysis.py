@@ -7,8 +7,9 @@ wavefront PSF/MTF and the 4 mm aperture stop.
   b and the minimum is closed form.
 * **Magnification**: spot centroids of a 3x3 grid of object points (+-0.25 mm, the Siemens-star frame) on the
   refocused plane, fitted by an affine map; m = sqrt|det A| (m_x, m_y: the singular values).
-* **Spots**: RMS radius about the centroid (:func:`scenes.spots.rms_radius`, pupil sampled by
-  :func:`scenes.spots.pupil_disk`, as for the GRIN objectives); "outer bound" = the corner of the 0.8978 x 0.6708 mm
+* **Spots**: RMS radius about the centroid (:func:`scopetwin.scenes.spots.rms_radius`, pupil sampled by
+  :func:`scopetwin.scenes.spots.pupil_disk`, as for the GRIN objectives); "outer bound" = the corner of the 0.8978 x
+  0.6708 mm
   field.
 * **Astigmatism**: best focus of the pupil x-fan and y-fan separately; their difference.
 * **Wavefront PSF/MTF**: the object point's plane wave after the perfect objective is traced through the plates
@@ -23,13 +24,13 @@ from typing import Any
 
 import numpy as np
 
-from scenes.cmu.layout import CmuSetup
-from scenes.cmu.plates import fused_silica_index, plate_heightmap
-from scenes.cmu.trace import PerfectLens, Rays, Stop, Surface, System, axis_frame
-from scenes.errors import ScopetwinError
-from scenes.geometry import Array, Frame, normalize
-from scenes.spots import pupil_disk, rms_radius
-from scenes.surface import HeightMap
+from scopetwin.scenes.cmu.layout import CmuSetup
+from scopetwin.scenes.cmu.plates import fused_silica_index, plate_heightmap
+from scopetwin.scenes.cmu.trace import PerfectLens, Rays, Stop, Surface, System, axis_frame
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.geometry import Array, Frame, normalize
+from scopetwin.scenes.spots import pupil_disk, rms_radius
+from scopetwin.scenes.surface import HeightMap
 
 #: Emission-band centres of Table 3.1, nm (the wavelength of each channel's analysis).
 CHANNEL_WAVELENGTH_NM = {"blue": 455.0, "green": 525.0, "red": 620.0, "nir": 785.0}

@@ -15,10 +15,10 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from scenes.camera_spec import PixelGridSpec
-from scenes.errors import SetupError
-from scenes.geometry import Frame
-from scenes.limits import check_image_size
+from scopetwin.scenes.camera_spec import PixelGridSpec
+from scopetwin.scenes.errors import SetupError
+from scopetwin.scenes.geometry import Frame
+from scopetwin.scenes.limits import check_image_size
 
 Vec3 = tuple[float, float, float]
 Positive = Annotated[float, Field(gt=0)]
@@ -58,7 +58,8 @@ class TubeSpec(_Model):
 class CmuCameraSpec(PixelGridSpec):
     """A channel camera: Basler scA1400-30gm, 1392 x 1040 px of 6.45 µm, 12 bit (§4.1.4); TOML table ``[camera]``.
 
-    Numbers must be finite and one image must fit in this machine's memory (:func:`scenes.limits.check_image_size`).
+    Numbers must be finite and one image must fit in this machine's memory
+    (:func:`scopetwin.scenes.limits.check_image_size`).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -203,7 +204,7 @@ class CmuSetup(_Model):
 
 def cmu_setup_from_dict(data: dict[str, Any], label: str = "<dict>") -> CmuSetup:
     """Validate a CMU setup dictionary (errors name the field)."""
-    from scenes.setup import _format_validation
+    from scopetwin.scenes.setup import _format_validation
 
     data = dict(data)
     data.pop("base", None)
@@ -223,7 +224,7 @@ def load_cmu_setup(name_or_path: str | Path = "thesis-cmu", overrides: dict[str,
     SetupError
         Unknown preset, unreadable/invalid TOML, not ``kind = "cmu"``, or a field that fails validation.
     """
-    from scenes.setup import _merge, resolve_toml
+    from scopetwin.scenes.setup import _merge, resolve_toml
 
     data, label = resolve_toml(name_or_path)
     if overrides:

@@ -13,8 +13,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.ndimage import gaussian_filter
 
-from scenes.cmu.layout import ElementSpec, PlateSpec
-from scenes.surface import HeightMap
+from scopetwin.scenes.cmu.layout import ElementSpec, PlateSpec
+from scopetwin.scenes.surface import HeightMap
 
 #: Node spacing of the modelled maps, mm.
 NODE_MM = 0.5
@@ -37,7 +37,7 @@ def plate_heightmap(spec: ElementSpec, plate: PlateSpec) -> HeightMap:
     weak converging mirror, which makes the refocused images smaller (seed Table 5.1).
     """
     if spec.height_map is not None:
-        from scenes.io import read_heightmap
+        from scopetwin.scenes.io import read_heightmap
 
         return read_heightmap(spec.height_map)
     hw, hh = 0.5 * plate.width, 0.5 * plate.height

@@ -32,7 +32,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scenes.errors import ScopetwinError
+from scopetwin.scenes.errors import ScopetwinError
 
 Array = NDArray[np.float64]
 

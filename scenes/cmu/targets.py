@@ -1,6 +1,6 @@
 """Test objects of the unit (seed §5.1.2, §5.2.2): the Siemens star with its square frame, and dummy cells.
 
-Both are written once against an array namespace (numpy, or Dr.Jit via :mod:`scenes.mitsuba.cmu`), so the
+Both are written once against an array namespace (numpy, or Dr.Jit via :mod:`scopetwin.scenes.mitsuba.cmu`), so the
 renderer and the numpy reference evaluate the same function.
 """
 
@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.cmu.layout import CellsSpec, TargetSpec
+from scopetwin.scenes.cmu.layout import CellsSpec, TargetSpec
 
 NP = SimpleNamespace(sqrt=np.sqrt, atan2=np.arctan2, sin=np.sin, where=np.where, abs=np.abs, maximum=np.maximum)
 

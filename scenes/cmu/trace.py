@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from scenes.geometry import Array, Frame, intersect_plane, normalize, reflect, refract
-from scenes.surface import HeightMap
+from scopetwin.scenes.geometry import Array, Frame, intersect_plane, normalize, reflect, refract
+from scopetwin.scenes.surface import HeightMap
 
 
 def axis_frame(origin: Array, axis: Array) -> Frame:

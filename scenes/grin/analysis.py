@@ -18,8 +18,8 @@ seed does not say how its figures were set up):
   optimisation for the RMS spot as in §8.3.2 -- with our layout, never with the seed's numbers.
 * Airy radius: 0.61 λ / NA_image, NA_image the image-space sine of the on-axis marginal ray.
 
-The pupil sampling, the RMS spot radius and the Airy radius are those of :mod:`scenes.spots`, shared with the
-microscope unit's analysis (:mod:`scenes.cmu.analysis`).
+The pupil sampling, the RMS spot radius and the Airy radius are those of :mod:`scopetwin.scenes.spots`, shared with the
+microscope unit's analysis (:mod:`scopetwin.scenes.cmu.analysis`).
 """
 
 from __future__ import annotations
@@ -30,10 +30,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.grin.paraxial import RodParaxial, rod_paraxial, system_paraxial
-from scenes.grin.rkn import RayState, trace_stack
-from scenes.grin.setup import GrinSetup, Stack
-from scenes.spots import airy_radius, pupil_disk, rms_radius
+from scopetwin.scenes.grin.paraxial import RodParaxial, rod_paraxial, system_paraxial
+from scopetwin.scenes.grin.rkn import RayState, trace_stack
+from scopetwin.scenes.grin.setup import GrinSetup, Stack
+from scopetwin.scenes.spots import airy_radius, pupil_disk, rms_radius
 
 Array = NDArray[np.float64]
 FIELDS = (0.0, 0.7, 1.0)
@@ -292,8 +292,8 @@ def sensitivity(setup: GrinSetup, samples: int = 24) -> list[dict[str, Any]]:
     """Paraxial magnification and image distance, real best focus, NA and RMS spots under each reading."""
     import json
 
-    from scenes.grin.setup import grin_setup_from_dict
-    from scenes.setup import _merge
+    from scopetwin.scenes.grin.setup import grin_setup_from_dict
+    from scopetwin.scenes.setup import _merge
 
     base = json.loads(setup.model_dump_json())
     rows = []

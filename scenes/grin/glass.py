@@ -24,8 +24,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from scenes.errors import SetupError
-from scenes.grin.profiles import LAMBDA_D_NM, cauchy_slope
+from scopetwin.scenes.errors import SetupError
+from scopetwin.scenes.grin.profiles import LAMBDA_D_NM, cauchy_slope
 
 
 @dataclass(frozen=True)

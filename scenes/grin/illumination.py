@@ -12,13 +12,13 @@ assumption (stated in the report).
 Losses: Fresnel reflection at every interface up to the object plane at normal incidence,
 (n1-n2)²/(n1+n2)² (unpolarised, a lower bound on the oblique loss), times the splitter reflectance.
 What §7.5.3 calls the "energy efficiency" (about 33 %) is not defined further; the readings and their
-numbers are in :func:`scenes.mitsuba.grin.illuminate`.
+numbers are in :func:`scopetwin.scenes.mitsuba.grin.illuminate`.
 """
 
 from __future__ import annotations
 
-from scenes.grin.glass import AIR, Glass
-from scenes.grin.setup import GrinSetup, IlluminationSpec, Layer, RodSpec, Stack
+from scopetwin.scenes.grin.glass import AIR, Glass
+from scopetwin.scenes.grin.setup import GrinSetup, IlluminationSpec, Layer, RodSpec, Stack
 
 
 def illumination_stack(setup: GrinSetup, spec: IlluminationSpec | None = None) -> Stack:

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.grin.profiles import RadialProfile
-from scenes.grin.setup import Stack
+from scopetwin.scenes.grin.profiles import RadialProfile
+from scopetwin.scenes.grin.setup import Stack
 
 Matrix = NDArray[np.float64]
 

@@ -7,8 +7,8 @@ Sharma-Kumar-Ghatak right-hand side directly: ½∇(n²) = 2 n (dn/dr²) (x, y).
 
 Every profile is written once against a tiny array namespace ``xp`` (``sqrt``,
 ``tanh``, ``cosh``, ``where``, ``maximum``), so the same formula runs on numpy float64
-arrays (the reference integrator, :mod:`scenes.grin.rkn`) and on Dr.Jit arrays (the
-Mitsuba tracer, :mod:`scenes.mitsuba.grin`).
+arrays (the reference integrator, :mod:`scopetwin.scenes.grin.rkn`) and on Dr.Jit arrays (the
+Mitsuba tracer, :mod:`scopetwin.scenes.mitsuba.grin`).
 
 Profiles
 --------
@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from scenes.errors import SetupError
+from scopetwin.scenes.errors import SetupError
 
 #: numpy namespace for profile formulas (float64 arrays).
 NP = SimpleNamespace(

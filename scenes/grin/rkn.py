@@ -12,12 +12,13 @@ stage points). Because n does not depend on z, D_z = 0 and T_z is conserved; wit
 
 Outside the rods every interface is a plane z = const, where Snell's law in vector form
 reduces to conservation of the transverse optical direction cosines (T_x, T_y) = n (d_x, d_y)
-(:func:`scenes.geometry.refract` gives the same for a plane normal to z; this form keeps the
+(:func:`scopetwin.scenes.geometry.refract` gives the same for a plane normal to z; this form keeps the
 state exact in float64 and needs no normal vectors).
 
 The RKN step itself (:func:`rkn_step`) is written once, over an array namespace (as the profiles are):
 :func:`rkn_rod` runs it on numpy float64 arrays, and the ``dr.while_loop`` body of the Dr.Jit/Mitsuba tracer
-(:func:`scenes.mitsuba.grin.rkn_rod_dr`) calls the same function on Dr.Jit arrays. This module is the independent
+(:func:`scopetwin.scenes.mitsuba.grin.rkn_rod_dr`) calls the same function on Dr.Jit arrays. This module is the
+independent
 cross-check of that tracer: same step, plain numpy, float64, everything else (the layer stack) traced separately.
 """
 
@@ -29,8 +30,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.grin.profiles import NP, RadialProfile
-from scenes.grin.setup import Stack
+from scopetwin.scenes.grin.profiles import NP, RadialProfile
+from scopetwin.scenes.grin.setup import Stack
 
 Array = NDArray[np.float64]
 
@@ -44,7 +45,7 @@ def rkn_step(
     984 (1982)); D = 2 n dn/d(r²) (x, y) = k (x, y) comes from :meth:`RadialProfile.sharma`. The optical path
     dOPL/dt = n² is integrated by Simpson's rule on the stage points. Written once over the array namespace
     ``xp`` (only arithmetic and ``profile.sharma(r2, xp)``): numpy (:func:`rkn_rod`) and Dr.Jit (the
-    ``dr.while_loop`` body of :func:`scenes.mitsuba.grin.rkn_rod_dr`) run this same function.
+    ``dr.while_loop`` body of :func:`scopetwin.scenes.mitsuba.grin.rkn_rod_dr`) run this same function.
 
     Parameters
     ----------
@@ -188,7 +189,7 @@ def trace_stack(
     Parameters
     ----------
     stack : Stack
-        The objective (:func:`scenes.grin.setup.build_stack`).
+        The objective (:func:`scopetwin.scenes.grin.setup.build_stack`).
     x0, y0 : ndarray
         Object points (mm), in the object plane.
     tx0, ty0 : ndarray

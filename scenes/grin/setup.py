@@ -30,17 +30,17 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from scenes.camera_spec import PixelGridSpec
-from scenes.errors import SetupError
-from scenes.grin.glass import AIR, Glass, glass
-from scenes.grin.profiles import (
+from scopetwin.scenes.camera_spec import PixelGridSpec
+from scopetwin.scenes.errors import SetupError
+from scopetwin.scenes.grin.glass import AIR, Glass, glass
+from scopetwin.scenes.grin.profiles import (
     GradientDispersion,
     ParabolicN2Profile,
     PolynomialProfile,
     RadialProfile,
     SechProfile,
 )
-from scenes.limits import check_image_size
+from scopetwin.scenes.limits import check_image_size
 
 Positive = Annotated[float, Field(gt=0)]
 #: Most RKN steps through one rod: 0.01 mm steps (float64 position error ~0.005 nm, NOTES-rendering.md) through a
@@ -70,7 +70,7 @@ class PolynomialSpec(_Model):
 
     ``wavelength_ref_nm = None`` means the coefficients are taken as they are at the design
     wavelength (the seed gives no wavelength for them). Otherwise they hold at
-    ``wavelength_ref_nm`` and :class:`~scenes.grin.profiles.GradientDispersion` with ``abbe_n0``
+    ``wavelength_ref_nm`` and :class:`~scopetwin.scenes.grin.profiles.GradientDispersion` with ``abbe_n0``
     and ``abbe_gradient`` moves them to the design wavelength. The two Abbe numbers are
     assumptions (no GrinTech dispersion data was available to this project): 35 for the
     high-index silver-containing base glass, 25 for the gradient (ion-exchange profiles
@@ -196,7 +196,8 @@ class ArraySpec(_Model):
 class GrinCameraSpec(PixelGridSpec):
     """The camera behind the objective (seed §8.4.3: AVT Guppy, 2.2 µm pixels; S_min = 4.28 mm, §8.2.2).
 
-    Numbers must be finite and one image must fit in this machine's memory (:func:`scenes.limits.check_image_size`).
+    Numbers must be finite and one image must fit in this machine's memory
+    (:func:`scopetwin.scenes.limits.check_image_size`).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -438,7 +439,7 @@ def load_grin_setup(name_or_path: str | Path, overrides: dict[str, Any] | None =
         Unknown preset, unreadable/invalid TOML, not a ``kind = "grin"`` file, or a field that fails
         validation (a profile with n < 1 inside the rod, a rod longer than the scene, ...).
     """
-    from scenes.setup import _merge, resolve_toml
+    from scopetwin.scenes.setup import _merge, resolve_toml
 
     data, label = resolve_toml(name_or_path)
     if overrides:
@@ -456,7 +457,7 @@ def profile_override(setup: GrinSetup, toml_path: str | Path) -> GrinSetup:
         n0 = 1.62893
         g = 0.3075
     """
-    from scenes.setup import _merge, _read_toml
+    from scopetwin.scenes.setup import _merge, _read_toml
 
     extra = _read_toml(Path(toml_path))
     unknown = set(extra) - {"rod1", "rod2"}

@@ -20,8 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from scenes.errors import ScopetwinError
-from scenes.grin.profiles import NP
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.grin.profiles import NP
 
 Pattern = Literal["dots", "grid", "lines"]
 

@@ -3,12 +3,12 @@
 Plugins (registered idempotently, per thread and variant, by :func:`register`; importing this module sets no
 variant: every builder and renderer takes ``variant``, default ``choose("spectral")``):
 
-* BSDF ``scopetwin_ideal_lens`` on a ``disk``: the perfect lens of :mod:`scenes.cmu.trace` (slopes
+* BSDF ``scopetwin_ideal_lens`` on a ``disk``: the perfect lens of :mod:`scopetwin.scenes.cmu.trace` (slopes
   s' = s - (x, y)/f in the lens frame), delta transmission, weight 1 - the objective (f = 16.45 mm) and the
   tube lenses (f = 164.5 mm) of §5.1.2.
 * BSDF ``scopetwin_bowed_plate`` on a ``rectangle``: one face of a 25.5 x 36 x 1 mm splitter (or mirror). Its
   normal is perturbed by the plate's height map (bilinear in a table of the bicubic map's exact gradients; the
-  back face carries the same map, as in :mod:`scenes.cmu.trace`). The coated front face (z_local = 0) picks
+  back face carries the same map, as in :mod:`scopetwin.scenes.cmu.trace`). The coated front face (z_local = 0) picks
   reflection or transmission with probability proportional to the lane-mean R(lambda), T(lambda) of the dichroic
   (``NNNDCXR``, ``61002BS``) or mirror, and weights each of the four wavelengths by R/p or T/(1-p) - the dichroic
   works physically, per wavelength; a transmitted ray is refracted (Snell, air <-> fused silica at the hero
@@ -17,7 +17,8 @@ variant: every builder and renderer takes ``variant``, default ``choose("spectra
   laterally inside the glass (0.33 mm at 45°), as in the exact tracer: with bowed plates the two slopes differ by
   ~1e-5 rad, which deviates the ray, and the shift moves the beam on later plates and on the objective's aperture
   (a direction-keeping plate put the thesis unit's images 0.3-0.9 px away from the exact tracer's). Residual
-  against :mod:`scenes.cmu.trace` (reversed exact rays, tests/scenes/test_cmu_mitsuba.py): <= 0.008 px in image
+  against :mod:`scopetwin.scenes.cmu.trace` (reversed exact rays, tests/scenes/test_cmu_mitsuba.py): <= 0.008 px in
+  image
   position, <= 0.03 px per ray. What remains: each face is its plane (z_local = 0 or -thickness) with the
   bowed normal, not the surface at z = h (a <= 5 µm hit-point error, <= 2e-7 rad of normal); one index per ray
   (the hero wavelength: across a channel's band the image moves < 0.002 px); float32.
@@ -40,17 +41,17 @@ import drjit as _drjit
 import mitsuba as _mitsuba
 import numpy as np
 
-from scenes.cmu import spectra
-from scenes.cmu.analysis import channel_optics, image_rays
-from scenes.cmu.layout import CmuSetup
-from scenes.cmu.plates import fused_silica_index, plate_heightmap
-from scenes.cmu.targets import dummy_cells, siemens_star
-from scenes.cmu.trace import axis_frame
-from scenes.errors import ScopetwinError
-from scenes.limits import check_render
-from scenes.mitsuba.variant import mitsuba, register_plugin, resolve
-from scenes.spots import pupil_disk
-from scenes.surface import HeightMap
+from scopetwin.scenes.cmu import spectra
+from scopetwin.scenes.cmu.analysis import channel_optics, image_rays
+from scopetwin.scenes.cmu.layout import CmuSetup
+from scopetwin.scenes.cmu.plates import fused_silica_index, plate_heightmap
+from scopetwin.scenes.cmu.targets import dummy_cells, siemens_star
+from scopetwin.scenes.cmu.trace import axis_frame
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.limits import check_render
+from scopetwin.scenes.mitsuba.variant import mitsuba, register_plugin, resolve
+from scopetwin.scenes.spots import pupil_disk
+from scopetwin.scenes.surface import HeightMap
 
 # The mitsuba module, no variant set: its variant-dependent names (mi.Float, mi.BSDF, ...) are looked up
 # when a function runs, after that function has set its variant (no variant is set at import).
@@ -92,7 +93,7 @@ def _perfect_lens_class(mi: Any) -> type:
     """The BSDF class of ``scopetwin_ideal_lens`` for the variant of ``mi`` (Mitsuba classes are per variant)."""
 
     class PerfectLensBSDF(mi.BSDF):
-        """BSDF ``scopetwin_ideal_lens``: the perfect lens (:class:`scenes.cmu.trace.PerfectLens`).
+        """BSDF ``scopetwin_ideal_lens``: the perfect lens (:class:`scopetwin.scenes.cmu.trace.PerfectLens`).
 
         Properties ``f`` (mm) and the lens frame ``c_*``, ``tx_*``, ``ty_*``, ``nz_*``.
         """
@@ -360,7 +361,7 @@ class CameraPose:
     The sensor's axes are the images of the object's +x (columns) and +y (rows up) through the perfect channel,
     so an untilted camera shows the object upright. ``tilt_deg``: the sensor is turned so that the image content
     appears rotated by +tilt (counter-clockwise as displayed, row 0 at the top); ``offset_px`` (col, row): the
-    content appears shifted by +offset. These are what :mod:`calib.channels` measures.
+    content appears shifted by +offset. These are what :mod:`scopetwin.calib.channels` measures.
     """
 
     image_distance: float
@@ -471,7 +472,8 @@ def land_rays(
     """Trace rays from the image side (e.g. a camera plane) through the Mitsuba unit to the object plane.
 
     The renderer's own ray loop (:func:`render_channel` uses it), exposed for per-ray comparison with the float64
-    tracer :mod:`scenes.cmu.trace`: reverse a traced ray at the image plane and it must land on its object point.
+    tracer :mod:`scopetwin.scenes.cmu.trace`: reverse a traced ray at the image plane and it must land on its object
+    point.
 
     Parameters
     ----------

@@ -3,7 +3,7 @@
 Seed §1.6: camera ray (§1.6.2) -> substrate z = h(x, y) (§1.6.4; here Newton's iteration on
 f(lambda) = h(r(lambda)) - z(lambda) instead of the secant, a fixed number of steps, so that the chain is
 differentiable) -> mirror reflection (§1.6.5, eq. 1.7) -> pattern plane (§1.6.3) -> the marker grey value
-g = max(0, 1 - r/r_m) of the nearest marker, times the pattern radiance. It is :mod:`scenes.analytic` (the
+g = max(0, 1 - r/r_m) of the nearest marker, times the pattern radiance. It is :mod:`scopetwin.scenes.analytic` (the
 float64 numpy reference) restricted to the deflectometry scene, with the surface given as a uniform cubic
 B-spline over the base plane, written in Dr.Jit (``Float64``: the measurement's 20 nm are below float32's
 rounding of 200 mm coordinates) so that Dr.Jit's forward-mode AD gives exact derivatives of every ray's value.
@@ -20,10 +20,10 @@ per ray, ``(a, b, c)``: the derivative of the value with respect to a local pert
 ``d0 + dx*(x - x_hit) + dy*(y - y_hit)`` of the surface (by forward-mode AD through the Newton iteration, the
 reflection and the pattern lookup). The derivative with respect to any coefficient of any height model is
 then ``a*B + b*dB/dx + c*dB/dy`` of its basis function B at the hit: the sparse Jacobian of the image with
-respect to B-spline coefficients is assembled from it (:mod:`recon.inverse`). With ``pose=True`` the same is
+respect to B-spline coefficients is assembled from it (:mod:`scopetwin.recon.inverse`). With ``pose=True`` the same is
 done for small rigid motions of the camera and of the pattern (12 columns), for ``--refine-setup``.
 
-The backend follows :func:`scenes.mitsuba.variant.choose`: ``cuda`` when a CUDA device is usable (the
+The backend follows :func:`scopetwin.scenes.mitsuba.variant.choose`: ``cuda`` when a CUDA device is usable (the
 ``cuda_ad_mono`` machine), else ``llvm``; nothing needs a GPU. Importing this module sets no variant.
 """
 
@@ -36,9 +36,9 @@ import drjit as _drjit
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.camera import Camera
-from scenes.pattern import MarkerPattern
-from scenes.setup import Setup
+from scopetwin.scenes.camera import Camera
+from scopetwin.scenes.pattern import MarkerPattern
+from scopetwin.scenes.setup import Setup
 
 dr: Any = _drjit  # untyped (pyproject.toml [tool.mypy])
 
@@ -58,7 +58,7 @@ def cubic_bspline_weights(t: Any) -> tuple[Any, Any, Any, Any, Any, Any, Any, An
 
     For u = (x - x_0)/dx with i = floor(u), t = u - i in [0, 1), the coefficients k = i-1 .. i+2 carry
     w_0 = (1-t)^3/6, w_1 = (3t^3 - 6t^2 + 4)/6, w_2 = (-3t^3 + 3t^2 + 3t + 1)/6, w_3 = t^3/6 (de Boor).
-    Arithmetic only: runs on numpy arrays and on Dr.Jit arrays alike (:mod:`recon.inverse` uses it too).
+    Arithmetic only: runs on numpy arrays and on Dr.Jit arrays alike (:mod:`scopetwin.recon.inverse` uses it too).
 
     Returns
     -------
@@ -97,7 +97,7 @@ class SplineGrid:
 
 def backend(variant: str | None = None) -> Any:
     """The Dr.Jit AD array namespace (``dr.cuda.ad`` or ``dr.llvm.ad``) of ``variant`` (default: choose("mono"))."""
-    from scenes.mitsuba.variant import resolve
+    from scopetwin.scenes.mitsuba.variant import resolve
 
     name = resolve(variant, "mono")
     if name.startswith("cuda"):

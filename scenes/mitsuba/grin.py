@@ -32,14 +32,14 @@ import drjit as _drjit
 import mitsuba as _mitsuba
 import numpy as np
 
-from scenes.camera import PixelGrid
-from scenes.errors import ScopetwinError
-from scenes.grin.profiles import RadialProfile
-from scenes.grin.rkn import rkn_step, rod_steps
-from scenes.grin.setup import GrinSetup, Stack
-from scenes.grin.targets import Target
-from scenes.limits import check_render
-from scenes.mitsuba.variant import mitsuba, register_plugin, render_complete, resolve
+from scopetwin.scenes.camera import PixelGrid
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.grin.profiles import RadialProfile
+from scopetwin.scenes.grin.rkn import rkn_step, rod_steps
+from scopetwin.scenes.grin.setup import GrinSetup, Stack
+from scopetwin.scenes.grin.targets import Target
+from scopetwin.scenes.limits import check_render
+from scopetwin.scenes.mitsuba.variant import mitsuba, register_plugin, render_complete, resolve
 
 Precision = Literal["float32", "float64"]
 
@@ -74,7 +74,8 @@ def float_type(precision: Precision, variant: str | None = None) -> type:
 
 # -- the integrator core -------------------------------------------------------------------------
 def _rkn_state_step(state: tuple[Any, ...], dt: Any, profile: RadialProfile, rr: float) -> tuple[Any, ...]:
-    """The loop state (x, y, tx, ty, opl, n2, k, alive) after one :func:`scenes.grin.rkn.rkn_step` on Dr.Jit arrays."""
+    """The loop state (x, y, tx, ty, opl, n2, k, alive) after one :func:`scopetwin.scenes.grin.rkn.rkn_step` on Dr.Jit
+    arrays."""
     x, y, tx, ty, opl, n2, k, alive = state
     x, y, tx, ty, opl, n2, k, r2 = rkn_step(x, y, tx, ty, opl, n2, k, dt, profile, DR)
     return x, y, tx, ty, opl, n2, k, alive & (r2 <= rr)
@@ -95,8 +96,8 @@ def rkn_rod_dr(
 ) -> tuple[Any, Any, Any, Any, Any, Any]:
     """Sharma-Kumar-Ghatak RKN through one rod in a ``dr.while_loop`` (seed §7.5.1 profile).
 
-    Same equations and arguments as :func:`scenes.grin.rkn.rkn_rod`, and the same step: the loop body calls
-    :func:`scenes.grin.rkn.rkn_step` with the Dr.Jit namespace. The arrays are Dr.Jit arrays of any float type
+    Same equations and arguments as :func:`scopetwin.scenes.grin.rkn.rkn_rod`, and the same step: the loop body calls
+    :func:`scopetwin.scenes.grin.rkn.rkn_step` with the Dr.Jit namespace. The arrays are Dr.Jit arrays of any float type
     (float32 or float64 state). Returns (x, y, tx, ty, opl, alive) on the exit face.
 
     ``interleave`` > 1 splits the rays into that many groups advanced side by side in one loop body.
@@ -544,7 +545,7 @@ def _pupil_sensor_class(mi: Any) -> type:
         (pitch, mm), ``nx``, ``ny``, ``pitch`` (objective grid), ``x0``, ``y0`` (the grid's first axis), ``cx``, ``cy``
         (image-plane point at the sensor's centre).
         Pixel (row, col) covers u in [(col - W/2) p, (col + 1 - W/2) p] + cx, v from the top row down (DESIGN.md;
-        the convention of :class:`scenes.camera.PixelGrid`, whose ``uv_film`` maps the film samples).
+        the convention of :class:`scopetwin.scenes.camera.PixelGrid`, whose ``uv_film`` maps the film samples).
         """
 
         def __init__(self, props: mi.Properties) -> None:
@@ -667,7 +668,8 @@ def render_image(
     ``center``: the point of the image plane (mm) at the middle of the sensor; default the array's centre
     (the whole demonstrator image, Fig. 8.16); pass an objective's axis for a one-objective window.
     ``variant``: the Mitsuba variant (default ``choose("mono")``, resolved now). A size or ``spp`` below 1, or a
-    render beyond the memory or time limit, is a :class:`scenes.limits.LimitError` before anything is allocated.
+    render beyond the memory or time limit, is a :class:`scopetwin.scenes.limits.LimitError` before anything is
+    allocated.
     """
     width = setup.camera.width_px if width is None else int(width)
     height = setup.camera.height_px if height is None else int(height)
@@ -723,7 +725,7 @@ def illuminate(
 
     LED points are uniform on the square, directions cosine-weighted (``mi.warp``: a Lambertian
     emitter); rays run through the unfolded illumination stack in the Mitsuba scene
-    (:func:`scenes.grin.illumination.illumination_stack`). Every ray carries the transmission ``loss_factor``
+    (:func:`scopetwin.scenes.grin.illumination.illumination_stack`). Every ray carries the transmission ``loss_factor``
     (Fresnel at normal incidence times the splitter reflectance).
 
     §7.5.3 gives "an energy efficiency of about 33 %" "considering the reflection and transmission loss" and
@@ -739,8 +741,8 @@ def illuminate(
     ``irradiance_mw_per_mm2`` (grid x grid over ±field radius, row 0 at +y), ``extent_mm`` and
     ``uniformity_min_over_max`` (inside the field circle).
     """
-    from scenes.grin.illumination import fresnel_transmission, illumination_stack
-    from scenes.grin.setup import ArraySpec
+    from scopetwin.scenes.grin.illumination import fresnel_transmission, illumination_stack
+    from scopetwin.scenes.grin.setup import ArraySpec
 
     ill = setup.illumination
     if ill is None:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from scenes.mitsuba.variant import register_plugin, resolve
+from scopetwin.scenes.mitsuba.variant import register_plugin, resolve
 
 PLUGIN = "scopetwin_mirror"
 

@@ -23,12 +23,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.errors import SetupError
-from scenes.limits import check_render
-from scenes.mitsuba.scene import Window, scene_dict
-from scenes.mitsuba.variant import mitsuba, render_complete, resolve
-from scenes.setup import Setup
-from scenes.surface import HeightMap
+from scopetwin.scenes.errors import SetupError
+from scopetwin.scenes.limits import check_render
+from scopetwin.scenes.mitsuba.scene import Window, scene_dict
+from scopetwin.scenes.mitsuba.variant import mitsuba, render_complete, resolve
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap
 
 __all__ = ["build_scene", "live_window", "load_scene", "render_setup", "render_window"]
 
@@ -105,7 +105,7 @@ def live_window(setup: Setup, heights: HeightMap | None = None) -> Window | None
 
 
 def build_scene(setup: Setup, heights: HeightMap | None = None, variant: str | None = None) -> dict:
-    """The Mitsuba scene dictionary of a setup (see :func:`scenes.mitsuba.scene.scene_dict`).
+    """The Mitsuba scene dictionary of a setup (see :func:`scopetwin.scenes.mitsuba.scene.scene_dict`).
 
     Raises
     ------
@@ -132,7 +132,7 @@ def load_scene(
     if setup.scene == "deflectometry" and heights is None:
         raise SetupError("a deflectometry render needs the substrate's height map (heights=HeightMap(...))")
     key = _scene_key(setup, window, variant)
-    cache: list[tuple[str, Any, Any]] = getattr(_local, "scenes", None) or []
+    cache: list[tuple[str, Any, Any]] = getattr(_local, "scopetwin.scenes", None) or []
     _local.scenes = cache
     for k, h, scene in cache:
         if k == key and (setup.scene != "deflectometry" or h is heights):
@@ -202,7 +202,7 @@ def render_setup(
         ``heights`` missing for a deflectometry setup.
     LimitError
         The image or the render work exceeds the memory available or the render time limit
-        (:func:`scenes.limits.check_render`), checked before anything is allocated.
+        (:func:`scopetwin.scenes.limits.check_render`), checked before anything is allocated.
     """
     cam = setup.camera_model
     check_render(cam.nx, cam.ny, int(spp or setup.render.spp), f"render {setup.name}")

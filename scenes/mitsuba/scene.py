@@ -21,14 +21,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.errors import SetupError
-from scenes.mitsuba.integrators import DEFAULT_EPS, integrator_dict
-from scenes.mitsuba.sensors import sensor_dict
-from scenes.mitsuba.shapes import DEFAULT_VERTICES, MIRROR_BSDF, substrate_shapes
-from scenes.mitsuba.variant import mitsuba, resolve
-from scenes.pattern import MarkerPattern
-from scenes.setup import Setup
-from scenes.surface import HeightMap
+from scopetwin.scenes.errors import SetupError
+from scopetwin.scenes.mitsuba.integrators import DEFAULT_EPS, integrator_dict
+from scopetwin.scenes.mitsuba.sensors import sensor_dict
+from scopetwin.scenes.mitsuba.shapes import DEFAULT_VERTICES, MIRROR_BSDF, substrate_shapes
+from scopetwin.scenes.mitsuba.variant import mitsuba, resolve
+from scopetwin.scenes.pattern import MarkerPattern
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap
 
 #: Texel size of the pattern texture, mm (12.5 µm: indistinguishable from finer, NOTES-rendering.md).
 TEXEL = 0.0125

@@ -1,7 +1,7 @@
 """The thesis camera as a Mitsuba sensor plugin (seed §1.6.2, §2.5.1-2.5.2).
 
 The plugin ``scopetwin_camera`` generates exactly the rays of
-:class:`scenes.camera.Camera`: a pixel position is mapped to distorted sensor
+:class:`scopetwin.scenes.camera.Camera`: a pixel position is mapped to distorted sensor
 coordinates (principal-point offset r_cs), undistorted in closed form
 (the inverse of r_dist = (c0 + c2*|r|)*r used by :meth:`Camera.undistort`) and
 turned into the pinhole ray through ``r_c``; with a thin lens the ray starts on
@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.camera import Camera, PixelGrid
-from scenes.mitsuba.variant import mitsuba, register_plugin, resolve
+from scopetwin.scenes.camera import Camera, PixelGrid
+from scopetwin.scenes.mitsuba.variant import mitsuba, register_plugin, resolve
 
 PLUGIN = "scopetwin_camera"
 

@@ -1,6 +1,6 @@
 """Mitsuba shapes of the substrate: heightfield meshes with analytic vertex normals (seed §1.6.4, §1.4).
 
-The substrate's height map (:class:`scenes.surface.HeightMap`, a bicubic spline) is
+The substrate's height map (:class:`scopetwin.scenes.surface.HeightMap`, a bicubic spline) is
 tessellated on a regular grid; vertex positions are (x, y, h(x, y)) and vertex normals
 are the spline's exact normals (-h_x, -h_y, 1)/|...| (eq. 1.2), so Mitsuba interpolates
 exact normals across each triangle. 256 x 512 vertices over the 25.2 x 57 mm substrate
@@ -9,7 +9,7 @@ give 0.11 µm position and 0.7 µrad normal error for the §1.10 surfaces (NOTES
 Only the region of interest reflects (seed §1.4, Fig. 1.3). The holding-frame regions
 roi_length/2 <= |y| <= size_y/2 are separate, black meshes on the same surface: they occlude
 exactly the camera rays whose surface hit lies outside the ROI (the mask of
-:meth:`scenes.surface.Substrate.points_and_normals`), and, lying on the surface rather than
+:meth:`scopetwin.scenes.surface.Substrate.points_and_normals`), and, lying on the surface rather than
 above it, never block a ray reflected near the ROI boundary.
 """
 
@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.errors import SetupError
-from scenes.mitsuba.variant import mitsuba, resolve
-from scenes.surface import HeightMap
+from scopetwin.scenes.errors import SetupError
+from scopetwin.scenes.mitsuba.variant import mitsuba, resolve
+from scopetwin.scenes.surface import HeightMap
 
 #: Vertex counts (x, y) of the mesh over the whole substrate (NOTES-rendering.md: enough for §1.10).
 DEFAULT_VERTICES = (256, 512)

@@ -1,6 +1,6 @@
 """The one place where scopetwin chooses and sets the Mitsuba variant.
 
-Nothing sets a variant at import time: every builder and renderer of :mod:`scenes.mitsuba` takes a
+Nothing sets a variant at import time: every builder and renderer of :mod:`scopetwin.scenes.mitsuba` takes a
 ``variant`` argument (default :func:`choose` of its kind, resolved at call time by :func:`resolve`) and
 sets it for the call with :func:`mitsuba`; plugins are registered per variant by :func:`register_plugin`.
 
@@ -22,7 +22,7 @@ import threading
 from collections.abc import Callable
 from typing import Any, Literal
 
-from scenes.errors import ScopetwinError
+from scopetwin.scenes.errors import ScopetwinError
 
 Kind = Literal["mono", "spectral", "rgb"]
 ENV_VARIANT = "SCOPETWIN_MI_VARIANT"
@@ -93,7 +93,8 @@ def unavailable(variant: str) -> str | None:
 def mitsuba(variant: str) -> Any:
     """Set ``variant`` in this thread (if it is not set already) and return the ``mitsuba`` module.
 
-    The one helper every builder and renderer of :mod:`scenes.mitsuba` calls with its explicit variant; nothing
+    The one helper every builder and renderer of :mod:`scopetwin.scenes.mitsuba` calls with its explicit variant;
+    nothing
     relies on whatever variant happens to be current. A ``cuda_*`` variant that cannot start (no usable GPU)
     falls back to the matching ``llvm_*`` one.
 

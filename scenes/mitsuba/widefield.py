@@ -22,8 +22,8 @@ is sharp only where the focus follows it, which is what the seed's focus map
 Geometric optics only (no diffraction): a 10x/0.45 objective's Airy radius
 (~0.7 µm at 520 nm) is about one object-side pixel, so the blur of any
 defocus beyond ~1.5 µm is dominated by the geometric disc modelled here.
-The objective's numbers and formulas are those of :class:`scenes.objective.Objective`
-(the model the focus map uses too); the frame's pixel grid is a :class:`scenes.camera.PixelGrid`
+The objective's numbers and formulas are those of :class:`scopetwin.scenes.objective.Objective`
+(the model the focus map uses too); the frame's pixel grid is a :class:`scopetwin.scenes.camera.PixelGrid`
 in the object plane.
 """
 
@@ -39,10 +39,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from scenes.camera import PixelGrid
-from scenes.errors import SetupError
-from scenes.mitsuba.variant import mitsuba, render_complete, resolve
-from scenes.objective import Objective
+from scopetwin.scenes.camera import PixelGrid
+from scopetwin.scenes.errors import SetupError
+from scopetwin.scenes.mitsuba.variant import mitsuba, render_complete, resolve
+from scopetwin.scenes.objective import Objective
 
 HeightFunction = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
 
@@ -129,7 +129,7 @@ class WidefieldOptics:
 
     @property
     def objective(self) -> Objective:
-        """The objective model (:class:`scenes.objective.Objective`) of these optics."""
+        """The objective model (:class:`scopetwin.scenes.objective.Objective`) of these optics."""
         return Objective(
             magnification=self.magnification,
             na=self.na,

@@ -3,19 +3,19 @@
 One module per command group, each with a ``register(subparsers)`` that adds its commands:
 
 =======================  =====================================================================================
-:mod:`sim.cli.render`    ``render SETUP``, ``presets``
-:mod:`sim.cli.run`       ``run`` (the main job, :mod:`sim.pipeline`)
-:mod:`sim.cli.markers`   ``markers IMAGE --pattern SETUP``
-:mod:`sim.cli.reconstruct` ``reconstruct IMAGE --setup SETUP --out Z.exr``
-:mod:`sim.cli.calibrate` ``calibrate IMAGE``, ``calibrate-setup``
-:mod:`sim.cli.optics`    ``optics grin | cmu | scan``
-:mod:`sim.cli.rig`       ``rig RIG.toml info | move | position | acquire | mda | serve``
-:mod:`sim.cli.emulate`   ``emulate pi-gcs | jena-piezo | fpga-board``
-:mod:`sim.cli.dataset`   ``dataset generate | resume | verify``
-:mod:`sim.cli.study`     ``study NAME``
+:mod:`scopetwin.sim.cli.render`    ``render SETUP``, ``presets``
+:mod:`scopetwin.sim.cli.run`       ``run`` (the main job, :mod:`scopetwin.sim.pipeline`)
+:mod:`scopetwin.sim.cli.markers`   ``markers IMAGE --pattern SETUP``
+:mod:`scopetwin.sim.cli.reconstruct` ``reconstruct IMAGE --setup SETUP --out Z.exr``
+:mod:`scopetwin.sim.cli.calibrate` ``calibrate IMAGE``, ``calibrate-setup``
+:mod:`scopetwin.sim.cli.optics`    ``optics grin | cmu | scan``
+:mod:`scopetwin.sim.cli.rig`       ``rig RIG.toml info | move | position | acquire | mda | serve``
+:mod:`scopetwin.sim.cli.emulate`   ``emulate pi-gcs | jena-piezo | fpga-board``
+:mod:`scopetwin.sim.cli.dataset`   ``dataset generate | resume | verify``
+:mod:`scopetwin.sim.cli.study`     ``study NAME``
 =======================  =====================================================================================
 
-:mod:`sim.cli.outputs` checks and writes the outputs every command declares (below).
+:mod:`scopetwin.sim.cli.outputs` checks and writes the outputs every command declares (below).
 
 Every command function takes the parsed arguments and returns its result as a JSON-ready dict; :func:`main`
 writes it to ``--json PATH`` when given. A command whose result decides the exit status (``dataset verify``:
@@ -25,11 +25,11 @@ output behind.
 
 Around every command :func:`main` applies the two policies of issue 15:
 
-* **outputs** (:mod:`sim.cli.outputs`): the paths a command declares (``set_defaults(outputs=[("out", "dir"),
+* **outputs** (:mod:`scopetwin.sim.cli.outputs`): the paths a command declares (``set_defaults(outputs=[("out", "dir"),
   ("json", "file")])``, sized by an optional ``estimate``) are checked before it runs — writable, a folder where a
   folder is needed, enough free space — and ``--json`` is written before the staged results are moved into place;
   a failed write (a full disk) is one line, exit 2, and what the command created is removed;
-* **signals** (:mod:`sim.signals`): SIGTERM and SIGHUP raise :class:`~sim.signals.Terminated`, a
+* **signals** (:mod:`scopetwin.sim.signals`): SIGTERM and SIGHUP raise :class:`~scopetwin.sim.signals.Terminated`, a
   ``KeyboardInterrupt``, so every command cleans up as after Ctrl-C; the command ends with one line
   ``scopetwin: interrupted by SIGTERM`` and exit status 128 + n (130 for Ctrl-C, 143 for SIGTERM, 129 for SIGHUP).
 """
@@ -40,10 +40,10 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from scenes.errors import ScopetwinError
-from sim import signals
-from sim.cli import calibrate, dataset, emulate, markers, optics, reconstruct, render, rig, run, study
-from sim.cli.outputs import OutputTransaction, describe_os_error
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.sim import signals
+from scopetwin.sim.cli import calibrate, dataset, emulate, markers, optics, reconstruct, render, rig, run, study
+from scopetwin.sim.cli.outputs import OutputTransaction, describe_os_error
 
 EXIT_BAD_INPUT = 2
 

@@ -1,7 +1,7 @@
-"""``python -m sim.cli ...``: the ``scopetwin`` command line (:func:`sim.cli.main`)."""
+"""``python -m sim.cli ...``: the ``scopetwin`` command line (:func:`scopetwin.sim.cli.main`)."""
 
 import sys
 
-from sim.cli import main
+from scopetwin.sim.cli import main
 
 sys.exit(main())

@@ -2,12 +2,12 @@
 
 :func:`register` adds both sub-commands to the ``scopetwin`` parser; each sets ``func`` to a
 function that takes the parsed arguments and returns the JSON-ready result (the caller writes
-``--json``). Bad input raises :class:`~scenes.errors.ScopetwinError` before anything is written.
+``--json``). Bad input raises :class:`~scopetwin.scenes.errors.ScopetwinError` before anything is written.
 
-Markers are found and indexed with :func:`recon.markers.find_markers_for` (seed §1.5, §2.6;
+Markers are found and indexed with :func:`scopetwin.recon.markers.find_markers_for` (seed §1.5, §2.6;
 whole-spot first-moment centroids). Their centroid bias (perspective makes a round marker's
 image asymmetric) is corrected by alternating calibration and the spot model
-:func:`recon.bias.spot_bias_model` until the parameters settle (``--no-bias-correction``
+:func:`scopetwin.recon.bias.spot_bias_model` until the parameters settle (``--no-bias-correction``
 switches it off).
 """
 
@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.oneshot import (
+from scopetwin.calib.oneshot import (
     LENS_MODES,
     Calibration,
     CalibrationError,
@@ -28,16 +28,16 @@ from calib.oneshot import (
     calibrate,
     calibrate_bias_corrected,
 )
-from recon.bias import spot_bias_model
-from scenes.errors import ScopetwinError
-from scenes.geometry import Frame
-from scenes.setup import Setup
-from sim.cli.options import finite_vector, positive_float
+from scopetwin.recon.bias import spot_bias_model
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.geometry import Frame
+from scopetwin.scenes.setup import Setup
+from scopetwin.sim.cli.options import finite_vector, positive_float
 
 
 def _markers(image: NDArray, setup: Setup, path: str) -> Any:
     """Found and indexed markers of an image (recon.markers, seed §1.5 / §2.6)."""
-    from recon.markers import find_markers_for
+    from scopetwin.recon.markers import find_markers_for
 
     found = find_markers_for(image, setup)
     if len(found) < 6:
@@ -79,8 +79,8 @@ def _calibrate(xy: NDArray[Any], px: NDArray[Any], prior: Prior, bias: Any, **kw
 
 
 def _load_image(path: str) -> tuple[NDArray, Setup | None]:
-    from scenes.io import read_image
-    from scenes.setup import setup_from_json
+    from scopetwin.scenes.io import read_image
+    from scopetwin.scenes.setup import setup_from_json
 
     image, attrs = read_image(path)
     header = attrs.get("scopetwin_setup")
@@ -93,7 +93,7 @@ def _load_image(path: str) -> tuple[NDArray, Setup | None]:
 
 
 def _setup(arg: str | None, header: Setup | None, image: str, what: str) -> Setup:
-    from scenes.setup import load_setup
+    from scopetwin.scenes.setup import load_setup
 
     if arg is not None:
         return load_setup(arg)
@@ -163,7 +163,7 @@ def cmd_calibrate(args: argparse.Namespace) -> dict[str, Any]:
 
 def cmd_calibrate_setup(args: argparse.Namespace) -> dict[str, Any]:
     """Calibration of the deflectometry setup from the substrate and mirror images (seed §2.7)."""
-    from calib.setup_calibration import calibrate_setup, mirror_prior, virtual_coordinates, write_setup_toml
+    from scopetwin.calib.setup_calibration import calibrate_setup, mirror_prior, virtual_coordinates, write_setup_toml
 
     t0 = time.perf_counter()
     img_s, head_s = _load_image(args.substrate_image)
@@ -258,7 +258,7 @@ def _quiet(func: Any) -> Any:
     import functools
     import warnings
 
-    from calib.oneshot import CalibrationWarning
+    from scopetwin.calib.oneshot import CalibrationWarning
 
     @functools.wraps(func)
     def run(args: argparse.Namespace) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""``scopetwin dataset generate | resume | verify`` (DESIGN.md "Scale"; :mod:`sim.datasets`).
+"""``scopetwin dataset generate | resume | verify`` (DESIGN.md "Scale"; :mod:`scopetwin.sim.datasets`).
 
 ``generate CONFIG.toml --out DIR`` checks the whole config (every sample's setup), the output folder
 and the free space for the samples' estimated size before any work, then renders the samples on an
@@ -17,12 +17,12 @@ import json
 from pathlib import Path
 from typing import Any
 
-from sim.cli.options import add_cluster_options
-from sim.cli.outputs import check_space, human_bytes
-from sim.datasets.config import DatasetError, load_config
-from sim.datasets.plan import Plan
-from sim.datasets.runner import check_scheduler
-from sim.datasets.store import SAMPLE_FILE, SAMPLES, generate, load_plan, parse_indices, sample_name, verify
+from scopetwin.sim.cli.options import add_cluster_options
+from scopetwin.sim.cli.outputs import check_space, human_bytes
+from scopetwin.sim.datasets.config import DatasetError, load_config
+from scopetwin.sim.datasets.plan import Plan
+from scopetwin.sim.datasets.runner import check_scheduler
+from scopetwin.sim.datasets.store import SAMPLE_FILE, SAMPLES, generate, load_plan, parse_indices, sample_name, verify
 
 #: Plain text for ``--help`` (the module docstring is reST).
 DESCRIPTION = (
@@ -119,7 +119,7 @@ def cmd_verify(args: argparse.Namespace) -> dict[str, Any]:
     for c in result["corrupt"][:10]:
         print(f"  corrupt sample {c['index']}: {c['reason']}")
     if result["in_use_by"]:
-        from sim.datasets.lock import describe_holder
+        from scopetwin.sim.datasets.lock import describe_holder
 
         print(f"  the folder is in use: {describe_holder(result['in_use_by'])} is still writing it")
     return json.loads(json.dumps(result))

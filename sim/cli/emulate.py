@@ -1,7 +1,7 @@
 """``scopetwin emulate pi-gcs|jena-piezo|fpga-board [--model M] [--log FILE] [KEY=VALUE ...]`` (DESIGN.md, 'Emulators').
 
-One wire-protocol emulator (:mod:`instrument.emulators`) on a pseudo-terminal in this process, served by
-:func:`instrument.emulators.serve.serve`. The first line on stdout is the port path (flushed at once), so a
+One wire-protocol emulator (:mod:`scopetwin.instrument.emulators`) on a pseudo-terminal in this process, served by
+:func:`scopetwin.instrument.emulators.serve.serve`. The first line on stdout is the port path (flushed at once), so a
 script can read it and open the port as a serial device — pipython, Micro-Manager, the user's own code, or a rig
 TOML with ``port = "/dev/pts/N"``. Unlike an ``emu://`` port, whose emulator lives and dies with one command,
 this emulator keeps its state between commands until SIGINT or SIGTERM; it then prints one line (the port, the
@@ -19,9 +19,9 @@ import argparse
 import json
 from typing import Any
 
-from instrument.emulators import EMULATORS
-from instrument.emulators.serve import parse_options, serve
-from instrument.errors import RigError
+from scopetwin.instrument.emulators import EMULATORS
+from scopetwin.instrument.emulators.serve import parse_options, serve
+from scopetwin.instrument.errors import RigError
 
 OPTIONS_HELP = {
     "pi-gcs": "axes=1,2 travel_mm=0,150 max_velocity_mm_s=50 reference_mm=0 stage=M-404.6PD (--model C-863.11)",

@@ -1,14 +1,14 @@
 """``scopetwin markers IMAGE.exr --pattern SETUP [--json PATH] [--overlay PNG]`` (issue 3, DESIGN.md contract).
 
-Finds, filters and indexes the markers of a camera image (:func:`recon.markers.find_markers_for`) with
+Finds, filters and indexes the markers of a camera image (:func:`scopetwin.recon.markers.find_markers_for`) with
 the pattern, camera and reflecting region of a setup (preset name or TOML path). The result is the
 ``markers`` JSON of DESIGN.md, ``{"markers": [{i, j, col, row, area}], "rejected": n}`` (continuous
 pixel coordinates; (i, j) are positions on the pattern), with a ``saturated`` flag per marker and the
 rejection reasons added. ``--overlay`` writes a PNG of the image with every marker's index drawn
-(:func:`sim.figures.write_overlay`).
+(:func:`scopetwin.sim.figures.write_overlay`).
 
 Bad input (missing or unreadable image, NaNs, unknown setup, an image whose size is not the
-setup's camera, no reference marker, ...) raises a :class:`~scenes.errors.ScopetwinError`; the
+setup's camera, no reference marker, ...) raises a :class:`~scopetwin.scenes.errors.ScopetwinError`; the
 command line turns it into exit code 2 and writes nothing.
 """
 
@@ -17,10 +17,10 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from recon.markers import MarkerError, find_markers_for
-from scenes.io import read_image
-from scenes.setup import load_setup
-from sim.figures import write_overlay
+from scopetwin.recon.markers import MarkerError, find_markers_for
+from scopetwin.scenes.io import read_image
+from scopetwin.scenes.setup import load_setup
+from scopetwin.sim.figures import write_overlay
 
 
 def cmd_markers(args: argparse.Namespace) -> dict[str, Any]:

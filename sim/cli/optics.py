@@ -3,20 +3,20 @@
 ``register(subparsers)`` adds the ``optics`` command to an argparse sub-parser set:
 
 * ``optics cmu [--setup PRESET] [--splitter-maps NAME=EXR ...] [--stop] [--json PATH] [--out DIR] [--spp N]``
-  -- the compact microscope unit (:mod:`sim.cmu_unit`): the §5.1.2 checks, per channel the refocused image
+  -- the compact microscope unit (:mod:`scopetwin.sim.cmu_unit`): the §5.1.2 checks, per channel the refocused image
   distance, magnification (Table 5.1), RMS spots, astigmatism and wavefront PSF, the 4x4 excitation crosstalk,
   printed beside the seed; with ``--out`` the Siemens star and the dummy cells rendered through each channel and
   measured (Tables 5.1-5.4).
 * ``optics grin PRESET [--json PATH] [--spots PNG] [--image TARGET --out EXR] [--profile TOML]
   [--sensitivity] [--spp N] [--width W --height H]`` -- paraxial data, NA, Airy radius, RMS spots,
   printed beside the seed's Zemax figures; spot diagrams; an image of a §8.5 target with a PNG preview beside
-  it. Before the analysis the render is estimated (:func:`scenes.limits.check_render`); before anything is
+  it. Before the analysis the render is estimated (:func:`scopetwin.scenes.limits.check_render`); before anything is
   printed, a window that misses the image of every objective of an array is refused
-  (:func:`scenes.grin.setup.check_image_window`: it would render black).
+  (:func:`scopetwin.scenes.grin.setup.check_image_window`: it would render black).
 * ``optics scan [...]`` -- T_I, T_M, T_N, eq. 7.1/7.2, the s^1.5 scaling law, N (eq. 8.1), N_max (eq. 8.2), d_L,max
-  (:mod:`sim.scan_time`).
+  (:mod:`scopetwin.sim.scan_time`).
 
-Errors the user can cause are :class:`scenes.errors.ScopetwinError` (exit code 2 in ``sim.cli``).
+Errors the user can cause are :class:`scopetwin.scenes.errors.ScopetwinError` (exit code 2 in ``sim.cli``).
 """
 
 from __future__ import annotations
@@ -30,12 +30,12 @@ from typing import Any
 
 import numpy as np
 
-from scenes.errors import ScopetwinError
-from scenes.io import read_image, write_image
-from sim import cmu_unit
-from sim.cli.options import SEED, SIDE_PX, SPP, finite_float, positive_float, positive_int
-from sim.figures import write_spots
-from sim.measurement import write_preview
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.io import read_image, write_image
+from scopetwin.sim import cmu_unit
+from scopetwin.sim.cli.options import SEED, SIDE_PX, SPP, finite_float, positive_float, positive_int
+from scopetwin.sim.figures import write_spots
+from scopetwin.sim.measurement import write_preview
 
 #: Upper bound of the lengths ``optics scan`` takes (mm): 10 m, far beyond any substrate of the seed.
 MAX_LENGTH_MM = 1.0e4
@@ -152,11 +152,11 @@ def print_report(rep: Any, setup: Any) -> None:
 
 def cmd_grin(args: argparse.Namespace) -> dict[str, Any]:
     """Handler of ``optics grin``: the analysis (plus spots, image, sensitivity); returns the JSON-ready result."""
-    from scenes.grin import load_grin_setup, profile_override
-    from scenes.grin.analysis import analyse, sensitivity
-    from scenes.grin.setup import check_image_window
-    from scenes.grin.targets import target
-    from scenes.limits import check_render
+    from scopetwin.scenes.grin import load_grin_setup, profile_override
+    from scopetwin.scenes.grin.analysis import analyse, sensitivity
+    from scopetwin.scenes.grin.setup import check_image_window
+    from scopetwin.scenes.grin.targets import target
+    from scopetwin.scenes.limits import check_render
 
     setup = load_grin_setup(args.preset)
     if args.profile is not None:
@@ -194,7 +194,7 @@ def cmd_grin(args: argparse.Namespace) -> dict[str, Any]:
         write_spots(args.spots, setup, stack, rep.image_distance_mm, rep.na_object)
         result["spots"] = str(args.spots)
     if tgt is not None:
-        from scenes.mitsuba.grin import render_image
+        from scopetwin.scenes.mitsuba.grin import render_image
 
         t0 = time.perf_counter()
         img = render_image(setup, stack, tgt, spp=args.spp, width=width, height=height, center=centre, seed=args.seed)
@@ -222,7 +222,7 @@ def cmd_grin(args: argparse.Namespace) -> dict[str, Any]:
 # -- optics scan ----------------------------------------------------------------------------------
 def cmd_scan(args: argparse.Namespace) -> dict[str, Any]:
     """Handler of ``optics scan``: the §7.2-7.4 scan times and the §8.2.2 objective count."""
-    from sim import scan_time as tp
+    from scopetwin.sim import scan_time as tp
 
     classic = tp.classic_time(args.width, args.height, args.d_w, args.d_h, args.exposure_s, args.velocity)
     t_n = tp.scan_time(args.width, args.height, args.w_fov, args.v_scan, args.n)
@@ -272,7 +272,7 @@ def register_cmu(optics_subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _maps(items: list[str]) -> dict[str, Any]:
-    from scenes.io import read_heightmap
+    from scopetwin.scenes.io import read_heightmap
 
     out = {}
     for item in items:
@@ -290,8 +290,8 @@ def _fmt_seed(v: Any, nd: int = 2) -> str:
 
 def cmd_cmu(args: argparse.Namespace) -> dict[str, Any]:
     """Handler of ``optics cmu``: the unit's analyses (and renders with ``--out``); returns the JSON-ready result."""
-    from scenes.cmu import spectra
-    from scenes.cmu.layout import load_cmu_setup
+    from scopetwin.scenes.cmu import spectra
+    from scopetwin.scenes.cmu.layout import load_cmu_setup
 
     setup = load_cmu_setup(args.setup)
     maps = _maps(args.splitter_maps)
@@ -302,7 +302,7 @@ def cmd_cmu(args: argparse.Namespace) -> dict[str, Any]:
             f"(known: {', '.join([*setup.splitters, *setup.mirrors])})"
         )
     if args.out is not None:  # the renders' estimate before any work (and before the folder is made)
-        from scenes.limits import check_render
+        from scopetwin.scenes.limits import check_render
 
         cam = setup.camera
         check_render(cam.width_px, cam.height_px, args.spp, f"optics cmu --out at {args.spp} spp", "cmu")

@@ -20,7 +20,7 @@ import math
 from collections.abc import Callable
 
 #: Largest pixel count accepted for an image side (``--width``, ``--height``): beyond it the render estimate of
-#: :func:`scenes.limits.check_render` refuses the request anyway, this only stops absurd numbers early.
+#: :func:`scopetwin.scenes.limits.check_render` refuses the request anyway, this only stops absurd numbers early.
 MAX_SIDE_PX = 1_000_000
 #: Largest samples-per-pixel accepted (2^31 - 1: Mitsuba's samplers count samples in 32-bit integers).
 MAX_SPP = 2**31 - 1

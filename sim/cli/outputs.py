@@ -12,7 +12,7 @@ created nothing:
 * a path under a file, or where nothing can be created (read-only file system, no permission, ``/proc``);
 * less free space than the estimate (at least :data:`MIN_FREE_BYTES` for every output).
 
-:class:`OutputTransaction` then runs the command with its staged commits deferred (:func:`sim.measurement.
+:class:`OutputTransaction` then runs the command with its staged commits deferred (:func:`scopetwin.sim.measurement.
 deferred_commits`): the ``--json`` result is written to a temporary file beside its destination first, then the
 staged folders are moved into place, then the JSON is renamed onto its name. A failure anywhere (``--json`` on a
 full disk, a write error) removes what the command created — its staged folders, and the declared outputs that did
@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from scenes.errors import ScopetwinError
+from scopetwin.scenes.errors import ScopetwinError
 
 #: Free space every output needs at the least (a JSON file, a report).
 MIN_FREE_BYTES = 1 << 20
@@ -216,15 +216,15 @@ class OutputTransaction:
         self._done = False
 
     def __enter__(self) -> OutputTransaction:
-        from sim.measurement import deferred_commits
+        from scopetwin.sim.measurement import deferred_commits
 
         self._pending = self._stack.enter_context(deferred_commits())
         return self
 
     def finish(self, result: Any) -> None:
         """Write ``--json`` to a temporary file, move the deferred staged folders into place, rename the JSON."""
-        from scenes.io import atomic_path
-        from sim.signals import deferred_signals
+        from scopetwin.scenes.io import atomic_path
+        from scopetwin.sim.signals import deferred_signals
 
         json_path = getattr(self.args, "json", None)
         with deferred_signals():  # a signal now waits until the result is in place
@@ -260,7 +260,7 @@ def _image_bytes(nx: int, ny: int, images: int = 1) -> int:
 
 def estimate_render(args: argparse.Namespace) -> dict[str, int]:
     """``render``: the image (float32) and its preview, the surface height map, the truth JSON."""
-    from scenes.setup import load_setup
+    from scopetwin.scenes.setup import load_setup
 
     setup = load_setup(args.setup)
     cam = setup.camera_model
@@ -270,8 +270,8 @@ def estimate_render(args: argparse.Namespace) -> dict[str, int]:
 
 def estimate_run(args: argparse.Namespace) -> dict[str, int]:
     """``run``: three images of the §1.10 setup, height and error maps, plots (16 MB for those)."""
-    from scenes.setup import load_setup
-    from sim.pipeline import MEASUREMENT
+    from scopetwin.scenes.setup import load_setup
+    from scopetwin.sim.pipeline import MEASUREMENT
 
     setup = load_setup(getattr(args, "setup", None) or MEASUREMENT)
     cam = setup.camera_model

@@ -1,10 +1,10 @@
 """``scopetwin reconstruct IMAGE.exr --setup SETUP --out heights.exr [--json PATH]`` (DESIGN.md, seed §1.4).
 
-Detects and indexes the markers of a deflectometry image (:mod:`recon.markers`), runs the
-nested start-height iteration (:mod:`recon.reconstruct`) and writes the substrate's height map
+Detects and indexes the markers of a deflectometry image (:mod:`scopetwin.recon.markers`), runs the
+nested start-height iteration (:mod:`scopetwin.recon.reconstruct`) and writes the substrate's height map
 in the contract's format (channel ``Z`` in mm over the whole substrate, channel ``Z_std``: its per-node standard
 uncertainty), and reports the standard uncertainties of the absolute height and of the shape. Bad input raises a
-:class:`~scenes.errors.ScopetwinError` (exit code 2) and writes no height map; when the outer loop
+:class:`~scopetwin.scenes.errors.ScopetwinError` (exit code 2) and writes no height map; when the outer loop
 does not converge, its partial history is written to ``OUT.history.json`` for diagnosis.
 """
 
@@ -15,8 +15,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from recon.reconstruct import ReconstructionConfig
-from scenes.errors import ScopetwinError
+from scopetwin.recon.reconstruct import ReconstructionConfig
+from scopetwin.scenes.errors import ScopetwinError
 
 
 def _config(args: argparse.Namespace) -> ReconstructionConfig:
@@ -35,9 +35,9 @@ def _config(args: argparse.Namespace) -> ReconstructionConfig:
 
 def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
     """Handler of ``scopetwin reconstruct``."""
-    from recon.reconstruct import MarkerObservations, centroid_bias_step, reconstruct_image
-    from scenes.io import read_image, write_heightmap
-    from scenes.setup import load_setup
+    from scopetwin.recon.reconstruct import MarkerObservations, centroid_bias_step, reconstruct_image
+    from scopetwin.scenes.io import read_image, write_heightmap
+    from scopetwin.scenes.setup import load_setup
 
     t0 = time.perf_counter()
     out = Path(args.out)
@@ -90,9 +90,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _cmd_inverse(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0: float) -> dict[str, Any]:
-    """``--method inverse`` (:mod:`recon.inverse`): start from the centroid method's surface where it succeeds."""
-    from recon.inverse import InverseConfig, inverse_start, pose_sigma_for, reconstruct_inverse
-    from scenes.io import write_heightmap
+    """``--method inverse`` (:mod:`scopetwin.recon.inverse`): start from the centroid method's surface where it
+    succeeds."""
+    from scopetwin.recon.inverse import InverseConfig, inverse_start, pose_sigma_for, reconstruct_inverse
+    from scopetwin.scenes.io import write_heightmap
 
     # the centroid method's surface where it reconstructs, else (in order) without its bias step, an unconverged
     # start-height loop's last surface, a coarse fit of the markers, a plane

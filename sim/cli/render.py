@@ -1,6 +1,7 @@
-"""``scopetwin render SETUP --out DIR`` and ``scopetwin presets`` (DESIGN.md "Command line"; :mod:`sim.measurement`).
+"""``scopetwin render SETUP --out DIR`` and ``scopetwin presets`` (DESIGN.md "Command line";
+:mod:`scopetwin.sim.measurement`).
 
-The render's memory and time are estimated before anything is written (:func:`scenes.limits.check_render`).
+The render's memory and time are estimated before anything is written (:func:`scopetwin.scenes.limits.check_render`).
 """
 
 from __future__ import annotations
@@ -9,9 +10,9 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from scenes.limits import check_render
-from sim.cli.options import SEED, SPP
-from sim.measurement import StagedOutput, load_measurement, render_measurement, write_measurement
+from scopetwin.scenes.limits import check_render
+from scopetwin.sim.cli.options import SEED, SPP
+from scopetwin.sim.measurement import StagedOutput, load_measurement, render_measurement, write_measurement
 
 
 def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
@@ -42,7 +43,7 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
 
 def cmd_presets(args: argparse.Namespace) -> dict[str, Any]:
     """List the setup presets (name, section, description); returns ``{"presets": [...]}``."""
-    from scenes.setup import preset_info
+    from scopetwin.scenes.setup import preset_info
 
     info = preset_info()
     width = max(len(p["name"]) for p in info)

@@ -13,10 +13,10 @@ action's handler returns a JSON-ready dict (written by the main CLI when
   to ``OUT`` as they come, plus ``manifest.json`` and ``preview.png`` (the last frame); one warning
   line when no frame carries signal;
 * ``mda SEQUENCE --camera NAME --out PATH`` — a useq MDA sequence through pymmcore-plus
-  (:func:`instrument.micromanager.run_mda`) into OME-TIFF or OME-Zarr, with a progress bar;
+  (:func:`scopetwin.instrument.micromanager.run_mda`) into OME-TIFF or OME-Zarr, with a progress bar;
 * ``serve`` — the rig's devices through python-microscope's device server on 127.0.0.1.
 
-The rig is opened with :func:`instrument.rig.open_rig`, so lights are off again on every exit.
+The rig is opened with :func:`scopetwin.instrument.rig.open_rig`, so lights are off again on every exit.
 SIGINT, SIGTERM and SIGHUP during ``acquire`` or ``mda`` end the command cleanly: lights off,
 shutters closed, every frame on disk listed in the manifest (the OME file closed with the planes
 acquired so far); the main CLI prints the line naming the signal and exits 128 + n. ``serve`` ends
@@ -38,10 +38,10 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from instrument.devices import FocusDrive, Stage
-from instrument.errors import RigError
-from instrument.rig import Rig, open_rig
-from sim.cli.options import finite_float, int_range, positive_float, positive_int
+from scopetwin.instrument.devices import FocusDrive, Stage
+from scopetwin.instrument.errors import RigError
+from scopetwin.instrument.rig import Rig, open_rig
+from scopetwin.sim.cli.options import finite_float, int_range, positive_float, positive_int
 
 EMU_NOTE = (
     "note: devices on emu:// ports talk to emulators inside this one command; each command starts them "
@@ -68,7 +68,7 @@ def _span(values: list[float], unit: str) -> str:
 
 
 def limits_text(device: dict[str, Any]) -> str:
-    """The limits of one device's :meth:`~instrument.devices.Device.describe` entry, as one short phrase."""
+    """The limits of one device's :meth:`~scopetwin.instrument.devices.Device.describe` entry, as one short phrase."""
     parts = []
     if "travel_mm" in device:
         parts.append(f"travel {_span(device['travel_mm'], 'mm')}")
@@ -152,14 +152,14 @@ def estimate_acquire(args: argparse.Namespace) -> dict[str, int]:
 
 def estimate_mda(args: argparse.Namespace) -> dict[str, int]:
     """Bytes ``mda`` writes: each plane 16 bits per pixel (12-bit cameras deliver uint16)."""
-    from instrument.micromanager import load_sequence
+    from scopetwin.instrument.micromanager import load_sequence
 
     return {"out": sum(1 for _ in load_sequence(args.sequence)) * _camera_pixels(args.rig, args.camera) * 2}
 
 
 def cmd_acquire(args: argparse.Namespace) -> dict[str, Any]:
     """Acquire frames with a light on; each frame is on disk (and in the manifest) as soon as it is grabbed."""
-    from instrument.acquisition import PREVIEW_NAME, calibration_capture, dark_frames
+    from scopetwin.instrument.acquisition import PREVIEW_NAME, calibration_capture, dark_frames
 
     with open_rig(args.rig) as rig:
         cam = rig.camera(args.camera)
@@ -171,7 +171,11 @@ def cmd_acquire(args: argparse.Namespace) -> dict[str, Any]:
         exposure = cam.exposure_s
         black, saturation = cam.black_level_dn, cam.saturation_dn
         lamp = rig.light(args.light)
-        unseen = cam.driver_name() == "sim" and lamp.driver_name() != "sim" and lamp.name not in rig.emulated_ports()
+        unseen = (
+            cam.driver_name() == "scopetwin.sim"
+            and lamp.driver_name() != "scopetwin.sim"
+            and lamp.name not in rig.emulated_ports()
+        )
     manifest_path = Path(args.out) / "manifest.json"
     signals = [float(f["signal_dn"]) for f in json.loads(manifest_path.read_text())["frames"]]
     dark = dark_frames(signals, black, saturation)
@@ -228,7 +232,7 @@ def cmd_mda(args: argparse.Namespace) -> dict[str, Any]:
     """Run a useq MDA sequence (YAML/JSON, µm and ms) on the rig through pymmcore-plus into an OME file."""
     from tqdm import tqdm
 
-    from instrument.micromanager import load_sequence, run_mda
+    from scopetwin.instrument.micromanager import load_sequence, run_mda
 
     out = Path(args.out)
     if not out.name.lower().endswith(OME_SUFFIXES):
@@ -266,8 +270,8 @@ def cmd_serve(args: argparse.Namespace) -> dict[str, Any]:
     """Serve the rig's devices through python-microscope's device server on 127.0.0.1 until SIGINT/SIGTERM."""
     import signal
 
-    from instrument.interrupts import stop_on_signals
-    from instrument.pymicroscope import LOCALHOST, microscope_devices, serve_devices
+    from scopetwin.instrument.interrupts import stop_on_signals
+    from scopetwin.instrument.pymicroscope import LOCALHOST, microscope_devices, serve_devices
 
     if args.host not in LOCALHOSTS:
         raise RigError(f"--host {args.host!r} refused: the device server listens on {LOCALHOST} only")

@@ -1,4 +1,4 @@
-"""``scopetwin run``: the main job on the embedded default (issue 5; the library is :mod:`sim.pipeline`)."""
+"""``scopetwin run``: the main job on the embedded default (issue 5; the library is :mod:`scopetwin.sim.pipeline`)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from sim.measurement import StagedOutput
+from scopetwin.sim.measurement import StagedOutput
 
 
 def cmd_run(args: argparse.Namespace) -> dict[str, Any]:
@@ -16,9 +16,9 @@ def cmd_run(args: argparse.Namespace) -> dict[str, Any]:
     with Mitsuba, calibrates the setup, reconstructs with the calibrated and with the ideal setup,
     compares with the truth and writes a report folder (report.md, EXR maps, PNG plots). The folder
     appears only when everything succeeded. ``--setup`` (preset or TOML) and ``--surface`` (height-map EXR) run the
-    same job on a user's rig and substrate (:func:`sim.pipeline.run_setups`).
+    same job on a user's rig and substrate (:func:`scopetwin.sim.pipeline.run_setups`).
     """
-    from sim.pipeline import run_pipeline
+    from scopetwin.sim.pipeline import run_pipeline
 
     out = Path(args.out)
     stage = StagedOutput(out)

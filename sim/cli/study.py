@@ -1,4 +1,4 @@
-"""``scopetwin study NAME [--out DIR] [--scheduler ADDRESS | --workers N]`` (:mod:`sim.studies`).
+"""``scopetwin study NAME [--out DIR] [--scheduler ADDRESS | --workers N]`` (:mod:`scopetwin.sim.studies`).
 
 Runs an accuracy study (``thesis``, ``noise``, ``angle``, ``surface``) on an embedded Dask LocalCluster
 (one process per core, one thread each, 127.0.0.1 only), on an existing cluster, or in this process
@@ -11,11 +11,11 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from sim.cli.options import add_cluster_options
-from sim.cli.outputs import check_output_path
-from sim.datasets.runner import check_scheduler
-from sim.studies.context import StudyError
-from sim.studies.runner import STUDIES, run_study
+from scopetwin.sim.cli.options import add_cluster_options
+from scopetwin.sim.cli.outputs import check_output_path
+from scopetwin.sim.datasets.runner import check_scheduler
+from scopetwin.sim.studies.context import StudyError
+from scopetwin.sim.studies.runner import STUDIES, run_study
 
 #: Plain text for ``--help`` (the module docstring is reST).
 DESCRIPTION = (

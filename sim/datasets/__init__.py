@@ -1,10 +1,11 @@
 """Synthetic datasets at scale: many rendered measurements with exact truth, on Dask or in-process.
 
-The package: :mod:`~sim.datasets.config` (the schema below), :mod:`~sim.datasets.seeding` (per-sample
-randomness), one module per sample kind (:mod:`~sim.datasets.part1`, :mod:`~sim.datasets.grin`,
-:mod:`~sim.datasets.cmu`), :mod:`~sim.datasets.plan` (the validated config every worker gets),
-:mod:`~sim.datasets.store` (the dataset folder: atomic sample writes, manifest, recovery, generation,
-verification) and :mod:`~sim.datasets.runner` (in-process or Dask).
+The package: :mod:`~scopetwin.sim.datasets.config` (the schema below), :mod:`~scopetwin.sim.datasets.seeding`
+(per-sample
+randomness), one module per sample kind (:mod:`~scopetwin.sim.datasets.part1`, :mod:`~scopetwin.sim.datasets.grin`,
+:mod:`~scopetwin.sim.datasets.cmu`), :mod:`~scopetwin.sim.datasets.plan` (the validated config every worker gets),
+:mod:`~scopetwin.sim.datasets.store` (the dataset folder: atomic sample writes, manifest, recovery, generation,
+verification) and :mod:`~scopetwin.sim.datasets.runner` (in-process or Dask).
 
 A dataset is described by a TOML config (``examples/datasets/*.toml``)::
 
@@ -53,11 +54,11 @@ Layout of a dataset folder::
 
 A sample folder is written under a temporary name in ``DIR/samples`` (its writer holds an ``flock`` on it)
 and renamed into place when complete (atomic on POSIX file systems); sample files hold no timestamps or host
-names (those are in the manifest). One run at a time holds a dataset folder (:mod:`~sim.datasets.lock`): a
+names (those are in the manifest). One run at a time holds a dataset folder (:mod:`~scopetwin.sim.datasets.lock`): a
 second ``generate``/``resume`` on it is refused at once, naming the holder. ``resume`` removes the temporary
 folders of dead processes (never one a live writer holds), re-lists finished samples the manifest lost (a
 killed client; such lines say ``"status": "recovered"``, their maker unknown), renders only what is missing
 and reports the counts; ``verify`` checks every sample against the manifest and its own hashes. A run stopped
-by Ctrl-C, SIGTERM or SIGHUP (:mod:`sim.signals`) lists every finished sample before it exits.
+by Ctrl-C, SIGTERM or SIGHUP (:mod:`scopetwin.sim.signals`) lists every finished sample before it exits.
 
 """

@@ -1,6 +1,7 @@
 """CMU samples (kind ``cmu``, seed Part II §5.1-§5.2): the four-channel unit of each sample and its writer.
 
-A sample is one image per channel of the compact microscope unit (:mod:`scenes.mitsuba.cmu`), each camera at its
+A sample is one image per channel of the compact microscope unit (:mod:`scopetwin.scenes.mitsuba.cmu`), each camera at
+its
 own refocused image distance (plus ``channel_defocus``), offset and tilt; the splitters' modelled bows and residual
 seeds vary per sample. The truth of each channel is the numpy tracer's object -> pixel map of its camera.
 """
@@ -15,10 +16,10 @@ from typing import Any, Literal
 
 import numpy as np
 
-from scenes.errors import ScopetwinError, SetupError
-from sim.datasets.config import SAMPLE_PACKAGES, DatasetConfig, DatasetError
-from sim.datasets.seeding import sample_seed
-from sim.measurement import StagedOutput, versions, write_preview
+from scopetwin.scenes.errors import ScopetwinError, SetupError
+from scopetwin.sim.datasets.config import SAMPLE_PACKAGES, DatasetConfig, DatasetError
+from scopetwin.sim.datasets.seeding import sample_seed
+from scopetwin.sim.measurement import StagedOutput, versions, write_preview
 
 
 def cmu_channels(cfg: DatasetConfig, base: dict[str, Any]) -> list[str]:
@@ -29,7 +30,7 @@ def cmu_channels(cfg: DatasetConfig, base: dict[str, Any]) -> list[str]:
 
 def cmu_base(cfg: DatasetConfig) -> dict[str, Any]:
     """The unit every cmu sample starts from (preset/TOML plus ``[setup]``), with ``[cmu]`` checked against it."""
-    from scenes.cmu.layout import load_cmu_setup
+    from scopetwin.scenes.cmu.layout import load_cmu_setup
 
     try:
         setup = load_cmu_setup(cfg.dataset.setup, cfg.setup or None)
@@ -71,7 +72,7 @@ def cmu_sample(cfg: DatasetConfig, base: dict[str, Any], index: int, params: dic
     With the Siemens star, every channel's frame must lie inside the image at the nominal magnification
     f_tube / f_objective (the bows change it by < 2 %): checked here, before any work.
     """
-    from scenes.cmu.layout import cmu_setup_from_dict
+    from scopetwin.scenes.cmu.layout import cmu_setup_from_dict
 
     master = cfg.dataset.master_seed
     d = json.loads(json.dumps(base))
@@ -150,7 +151,7 @@ CMU_FILL_DEFAULT = 0.7
 
 def cmu_sensor(bit_depth: int) -> Any:
     """The EMVA 1288 model of the CMU cameras (see :data:`CMU_FILL_DEFAULT`) at ``bit_depth``."""
-    from scenes.emva1288 import EmvaSensor
+    from scopetwin.scenes.emva1288 import EmvaSensor
 
     full_well = 18000.0
     return EmvaSensor(
@@ -168,15 +169,15 @@ def object_to_pixel(
 
     Fitted to the traced spot centroids (numpy tracer, the channel's real plates) of a 3 x 3 object grid of
     +-``half`` mm on the camera plane at ``pose.image_distance``, expressed in the camera's axes and tilt as
-    :func:`scenes.mitsuba.cmu.render_channel` does, and mapped to pixels by the sensor's
-    :class:`scenes.camera.PixelGrid`; the camera offset (col, row) shifts the grid centre. Pixel (r, c) covers
+    :func:`scopetwin.scenes.mitsuba.cmu.render_channel` does, and mapped to pixels by the sensor's
+    :class:`scopetwin.scenes.camera.PixelGrid`; the camera offset (col, row) shifts the grid centre. Pixel (r, c) covers
     [c, c+1) x [r, r+1) (DESIGN.md), so the star's centre is at ``A[:, 2]``; ``box`` = (row0, col0, height,
     width) is the written part of the sensor.
     """
-    from scenes.camera import PixelGrid
-    from scenes.cmu.analysis import image_rays
-    from scenes.mitsuba.cmu import sensor_axes
-    from scenes.spots import pupil_disk
+    from scopetwin.scenes.camera import PixelGrid
+    from scopetwin.scenes.cmu.analysis import image_rays
+    from scopetwin.scenes.mitsuba.cmu import sensor_axes
+    from scopetwin.scenes.spots import pupil_disk
 
     ex, ey = sensor_axes(setup, channel)
     to_ab = np.linalg.inv(np.column_stack([ex, ey]))
@@ -207,7 +208,7 @@ def affine_truth(a: np.ndarray, pixel_um: float) -> dict[str, Any]:
     """Magnification (sqrt |det|, and the singular values), centre and displayed tilt of an object->pixel map.
 
     The tilt is the rotation of the displayed image (rows up), counter-clockwise positive, as
-    :mod:`calib.channels` measures it.
+    :mod:`scopetwin.calib.channels` measures it.
     """
     lin = a[:, :2]
     p_mm = pixel_um * 1e-3
@@ -227,10 +228,10 @@ def write_cmu(cfg: DatasetConfig, index: int, sample: CmuSample, stage: StagedOu
     Each camera sits at its channel's refocused image distance (the numpy tracer's RMS-spot focus, §5.1.2) plus
     the drawn defocus, with the drawn tilt and offset; the truth is the tracer's object->pixel map of that camera.
     """
-    from scenes.cmu.analysis import analyse, channel_optics
-    from scenes.cmu.plates import plate_heightmap
-    from scenes.io import write_heightmap, write_image
-    from scenes.mitsuba.cmu import CameraPose, render_channel, unit_scene
+    from scopetwin.scenes.cmu.analysis import analyse, channel_optics
+    from scopetwin.scenes.cmu.plates import plate_heightmap
+    from scopetwin.scenes.io import write_heightmap, write_image
+    from scopetwin.scenes.mitsuba.cmu import CameraPose, render_channel, unit_scene
 
     setup = sample.setup
     master, spp = cfg.dataset.master_seed, cfg.dataset.spp

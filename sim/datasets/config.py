@@ -18,7 +18,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from scenes.errors import ScopetwinError
+from scopetwin.scenes.errors import ScopetwinError
 
 KINDS = ("deflectometry", "calibration", "grin", "cmu")
 #: Most samples one dataset may have: the plan keeps every sample's setup in memory (a few kB each).
@@ -267,7 +267,7 @@ class GrinSection(_Model):
 
     @model_validator(mode="after")
     def _fits(self) -> GrinSection:
-        from scenes.limits import check_image_size
+        from scopetwin.scenes.limits import check_image_size
 
         if self.width is not None and self.height is not None:
             check_image_size(self.width, self.height, "width x height")
@@ -284,7 +284,7 @@ class CmuSection(_Model):
 
 
 class DatasetConfig(_Model):
-    """A whole dataset config (the format is described in :mod:`sim.datasets`)."""
+    """A whole dataset config (the format is described in :mod:`scopetwin.sim.datasets`)."""
 
     dataset: DatasetSection
     setup: dict[str, Any] = Field(default_factory=dict)

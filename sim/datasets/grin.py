@@ -5,15 +5,15 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from scenes.errors import ScopetwinError
-from sim.datasets.config import SAMPLE_PACKAGES, DatasetConfig, DatasetError
-from sim.datasets.seeding import sample_seed
-from sim.measurement import StagedOutput, versions
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.sim.datasets.config import SAMPLE_PACKAGES, DatasetConfig, DatasetError
+from scopetwin.sim.datasets.seeding import sample_seed
+from scopetwin.sim.measurement import StagedOutput, versions
 
 
 def grin_base(cfg: DatasetConfig) -> dict[str, Any]:
     """The GRIN setup every sample starts from (preset/TOML plus ``[setup]``), as a JSON dictionary."""
-    from scenes.grin.setup import load_grin_setup
+    from scopetwin.scenes.grin.setup import load_grin_setup
 
     try:
         setup = load_grin_setup(cfg.dataset.setup, cfg.setup or None)
@@ -24,8 +24,8 @@ def grin_base(cfg: DatasetConfig) -> dict[str, Any]:
 
 def grin_sample(base: dict[str, Any], index: int, params: dict[str, Any]) -> tuple[Any, Any]:
     """The GRIN setup and §8.5 target (name and offset varied) of sample ``index``; the target must fit the field."""
-    from scenes.grin.setup import grin_setup_from_dict
-    from scenes.grin.targets import target
+    from scopetwin.scenes.grin.setup import grin_setup_from_dict
+    from scopetwin.scenes.grin.targets import target
 
     setup = grin_setup_from_dict(base, f"sample {index}")
     tgt = target(str(params.get("target", "grid-25")), tuple(params.get("target_offset", (0.0, 0.0))))
@@ -38,9 +38,9 @@ def grin_sample(base: dict[str, Any], index: int, params: dict[str, Any]) -> tup
 
 def write_grin(cfg: DatasetConfig, index: int, sample: tuple[Any, Any], stage: StagedOutput) -> dict[str, Any]:
     """Render sample ``index`` (setup and target) at best focus (seed §8.3) into ``stage``; returns files and truth."""
-    from scenes.grin.analysis import analyse
-    from scenes.io import write_image
-    from scenes.mitsuba.grin import render_image
+    from scopetwin.scenes.grin.analysis import analyse
+    from scopetwin.scenes.io import write_image
+    from scopetwin.scenes.mitsuba.grin import render_image
 
     setup, tgt = sample
     rep = analyse(setup, samples=16)

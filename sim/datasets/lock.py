@@ -1,4 +1,5 @@
-"""One run at a time on a dataset folder: an exclusive ``flock`` on ``DIR/.scopetwin.lock`` (:mod:`sim.datasets`).
+"""One run at a time on a dataset folder: an exclusive ``flock`` on ``DIR/.scopetwin.lock``
+(:mod:`scopetwin.sim.datasets`).
 
 ``dataset generate`` and ``resume`` rewrite the manifest and tidy temporary sample folders when they start, so two
 runs on one folder would undo each other's bookkeeping. The run that holds the lock writes its host, pid, command
@@ -21,7 +22,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from sim.datasets.config import DatasetError
+from scopetwin.sim.datasets.config import DatasetError
 
 LOCK_FILE = ".scopetwin.lock"
 

@@ -1,6 +1,7 @@
 """Part I samples (kinds ``deflectometry`` and ``calibration``): each sample's setup and its writer.
 
-A sample is one measurement (:mod:`sim.measurement`): image, truth (marker images, camera, seeds), the surface's
+A sample is one measurement (:mod:`scopetwin.sim.measurement`): image, truth (marker images, camera, seeds), the
+surface's
 height map and normals (deflectometry), preview.
 """
 
@@ -14,17 +15,17 @@ from typing import Any
 
 import numpy as np
 
-from scenes.errors import SetupError
-from scenes.setup import Setup
-from scenes.surface import HeightMap
-from sim.datasets.config import DatasetConfig, DatasetError, merge
-from sim.datasets.seeding import sample_seed
-from sim.measurement import StagedOutput, render_measurement, write_measurement
+from scopetwin.scenes.errors import SetupError
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap
+from scopetwin.sim.datasets.config import DatasetConfig, DatasetError, merge
+from scopetwin.sim.datasets.seeding import sample_seed
+from scopetwin.sim.measurement import StagedOutput, render_measurement, write_measurement
 
 
 def base_setup_dict(cfg: DatasetConfig) -> dict[str, Any]:
     """The setup (Part I) dictionary every sample starts from: the preset/TOML chain plus ``[setup]``."""
-    from scenes.setup import resolve_toml
+    from scopetwin.scenes.setup import resolve_toml
 
     try:
         data, _ = resolve_toml(cfg.dataset.setup)
@@ -47,7 +48,7 @@ def _rotation(rotvec: Sequence[float]) -> np.ndarray:
 
 
 def part1_setup(cfg: DatasetConfig, base: dict[str, Any], index: int, params: dict[str, Any]) -> Setup:
-    """The validated :class:`scenes.setup.Setup` of sample ``index`` (varied quantities applied).
+    """The validated :class:`scopetwin.scenes.setup.Setup` of sample ``index`` (varied quantities applied).
 
     Parameters
     ----------
@@ -58,9 +59,9 @@ def part1_setup(cfg: DatasetConfig, base: dict[str, Any], index: int, params: di
     index : int
         The sample.
     params : dict
-        Its varied quantities (:func:`sim.datasets.seeding.draw_parameters`).
+        Its varied quantities (:func:`scopetwin.sim.datasets.seeding.draw_parameters`).
     """
-    from scenes.setup import setup_from_dict
+    from scopetwin.scenes.setup import setup_from_dict
 
     d = json.loads(json.dumps(base))
     cam = d.setdefault("camera", {})
@@ -139,7 +140,7 @@ def write_normals(path: Path, heights: HeightMap) -> None:
     """Unit surface normals at the height-map nodes: channels NX, NY, NZ (plus Z), extents as in the contract."""
     import OpenEXR
 
-    from scenes.io import EXTENT_KEYS, atomic_path, exr_write_error
+    from scopetwin.scenes.io import EXTENT_KEYS, atomic_path, exr_write_error
 
     xx, yy = np.meshgrid(heights.x_nodes, heights.y_nodes)
     n = heights.normals(xx, yy)
@@ -156,7 +157,7 @@ def write_normals(path: Path, heights: HeightMap) -> None:
 
 def write_part1(cfg: DatasetConfig, index: int, setup: Setup, stage: StagedOutput) -> dict[str, Any]:
     """Render and write Part I sample ``index`` (its ``setup``) into ``stage``; returns its files and truth."""
-    from sim.surfaces import surface_for
+    from scopetwin.sim.surfaces import surface_for
 
     heights = surface_for(setup)
     spp, seed = setup.render.spp, setup.render.seed

@@ -10,12 +10,12 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from scenes.limits import check_render
-from scenes.setup import Setup
-from sim.datasets import cmu, grin, part1
-from sim.datasets.config import DatasetConfig, DatasetError, config_from_dict
-from sim.datasets.seeding import draw_parameters
-from sim.measurement import StagedOutput
+from scopetwin.scenes.limits import check_render
+from scopetwin.scenes.setup import Setup
+from scopetwin.sim.datasets import cmu, grin, part1
+from scopetwin.sim.datasets.config import DatasetConfig, DatasetError, config_from_dict
+from scopetwin.sim.datasets.seeding import draw_parameters
+from scopetwin.sim.measurement import StagedOutput
 
 FORMAT_VERSION = 1
 
@@ -25,7 +25,7 @@ def _capability(kind: str) -> None:
     if kind == "cmu":
         import importlib.util
 
-        if importlib.util.find_spec("scenes.mitsuba.cmu") is None:
+        if importlib.util.find_spec("scopetwin.scenes.mitsuba.cmu") is None:
             raise DatasetError(
                 "sample kind 'cmu' needs the four-channel microscope renderer "
                 "(scenes.mitsuba.cmu, issue 8), which this installation does not have"
@@ -81,15 +81,16 @@ class Plan:
         return cls(config_from_dict(data["config"], label), data["base_setup"])
 
     def parameters(self, index: int) -> dict[str, Any]:
-        """The varied quantities of sample ``index`` (:func:`~sim.datasets.seeding.draw_parameters`)."""
+        """The varied quantities of sample ``index`` (:func:`~scopetwin.sim.datasets.seeding.draw_parameters`)."""
         groups: dict[str, Sequence[str]] | None = None
         if self.config.dataset.kind == "cmu":
             groups = {"splitter": list(self.base["splitters"]), "channel": cmu.cmu_channels(self.config, self.base)}
         return draw_parameters(self.config, index, groups)
 
     def setup_of(self, index: int) -> Any:
-        """What sample ``index`` renders: a Part I :class:`~scenes.setup.Setup`, a GRIN (setup, target) pair or a
-        :class:`~sim.datasets.cmu.CmuSample`, validated."""
+        """What sample ``index`` renders: a Part I :class:`~scopetwin.scenes.setup.Setup`, a GRIN (setup, target) pair
+        or a
+        :class:`~scopetwin.sim.datasets.cmu.CmuSample`, validated."""
         params = self.parameters(index)
         if self.config.dataset.kind == "grin":
             return grin.grin_sample(self.base, index, params)

@@ -13,8 +13,8 @@ import os
 from collections.abc import Callable, Generator, Iterator, Sequence
 from typing import Any
 
-from scenes.errors import ScopetwinError
-from sim.datasets.config import DatasetError
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.sim.datasets.config import DatasetError
 
 #: What :func:`init_worker` set in this process (so a second call with the same count does nothing).
 _WORKER_STATE: dict[str, Any] = {}
@@ -25,12 +25,12 @@ def init_worker(threads: int | None) -> None:
     Mitsuba's log at errors only (a worker's warnings — e.g. Mitsuba's own "winding down" on a Ctrl-C that reached
     the worker — would only add lines to the client's one-line report)."""
     if not _WORKER_STATE.get("quiet") and _in_dask_worker():
-        from scenes.mitsuba.variant import quiet_warnings, resolve
+        from scopetwin.scenes.mitsuba.variant import quiet_warnings, resolve
 
         quiet_warnings(resolve(None, "mono"))
         _WORKER_STATE["quiet"] = True
     if threads and _WORKER_STATE.get("threads") != threads:
-        from scenes.mitsuba.variant import set_thread_count
+        from scopetwin.scenes.mitsuba.variant import set_thread_count
 
         set_thread_count(int(threads))
         _WORKER_STATE["threads"] = threads
@@ -107,7 +107,7 @@ def _spawn_ignoring_interrupts() -> Iterator[None]:
     """While the local cluster starts, processes spawned by ``multiprocessing`` ignore SIGINT and SIGHUP from exec on.
 
     A terminal sends Ctrl-C to the whole process group, a dropped session SIGHUP; a worker that is still starting
-    (before its preload, :func:`sim.signals.dask_setup`, runs; even before its ``site`` import) would print a
+    (before its preload, :func:`scopetwin.sim.signals.dask_setup`, runs; even before its ``site`` import) would print a
     KeyboardInterrupt traceback. So for the duration of the start, ``multiprocessing``'s spawn command goes
     through ``/bin/sh -c 'trap "" INT HUP; exec python ...'``: an ignored signal stays ignored across ``exec``,
     and Python keeps an ignored SIGINT ignored. Workers restarted later rely on the preload.
@@ -177,7 +177,7 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
     The local cluster has ``workers`` worker processes (default: one per core) with one thread each,
     started with ``spawn`` (Mitsuba's plugin registry is per thread and does not survive ``fork``),
     and listens on 127.0.0.1 only, without a dashboard. Its workers ignore SIGINT and SIGHUP
-    (:func:`sim.signals.dask_setup`, a worker preload): the client handles an interruption, cancels its
+    (:func:`scopetwin.sim.signals.dask_setup`, a worker preload): the client handles an interruption, cancels its
     work and closes the cluster without distributed's logs, so Ctrl-C prints no worker tracebacks.
 
     Raises
@@ -208,7 +208,7 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
         finally:
             _close_quietly(client, interrupted=interrupted)
         return
-    from sim.signals import deferred_signals
+    from scopetwin.sim.signals import deferred_signals
 
     # A signal while the cluster starts is held (an interrupted start leaves half-started nannies that log
     # tracebacks at exit) and raised once the cluster can be closed; distributed's logs are off from then on.
@@ -221,7 +221,7 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
                 "distributed.worker.multiprocessing-method": "spawn",
                 "distributed.scheduler.allowed-failures": 5,
                 "distributed.worker.memory.terminate": False,
-                "distributed.worker.preload": ["sim.signals"],  # a worker restarted later ignores them too
+                "distributed.worker.preload": ["scopetwin.sim.signals"],  # a worker restarted later ignores them too
             }
         ),
     ):
@@ -327,7 +327,7 @@ def _abandon(futures: Sequence[Any], seen: set[int], on_abandon: Callable[[int, 
     """Cancel the unfinished futures; hand the finished, unseen ones' results to ``on_abandon`` (3 s at most)."""
     import time
 
-    from sim.signals import deferred_signals
+    from scopetwin.sim.signals import deferred_signals
 
     with deferred_signals(), _quiet_distributed():
         done = [(k, f) for k, f in enumerate(futures) if k not in seen and f.status == "finished"]

@@ -1,4 +1,4 @@
-"""Per-sample randomness and the varied quantities of each sample (:mod:`sim.datasets`, "Determinism").
+"""Per-sample randomness and the varied quantities of each sample (:mod:`scopetwin.sim.datasets`, "Determinism").
 
 Every random quantity of sample i comes from ``SeedSequence([master_seed, i, crc32(name)])``, so sample i is the
 same bytes whatever worker renders it, in whatever order, alone or with others; ``sweep`` keys form a cartesian
@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from sim.datasets.config import DOMAINS, DatasetConfig, DatasetError, Domain, Value
+from scopetwin.sim.datasets.config import DOMAINS, DatasetConfig, DatasetError, Domain, Value
 
 
 def _sequence(master_seed: int, index: int, name: str) -> np.random.SeedSequence:
@@ -73,7 +73,7 @@ def _members(dom: Domain, groups: dict[str, Sequence[str]] | None, name: str) ->
         return None
     given = (groups or {}).get(dom.per)
     if given is None and dom.per == "channel":
-        from scenes.cmu.layout import CHANNEL_NAMES
+        from scopetwin.scenes.cmu.layout import CHANNEL_NAMES
 
         given = CHANNEL_NAMES
     if given is None:

@@ -1,7 +1,9 @@
 """The dataset folder: atomic sample writes, the manifest, recovery after a kill, generation and verification.
 
-See :mod:`sim.datasets` for the layout. A sample folder is staged under a temporary name in ``DIR/samples`` and
-renamed into place when complete (:class:`sim.measurement.StagedOutput`); ``resume`` removes temporary folders,
+See :mod:`scopetwin.sim.datasets` for the layout. A sample folder is staged under a temporary name in ``DIR/samples``
+and
+renamed into place when complete (:class:`scopetwin.sim.measurement.StagedOutput`); ``resume`` removes temporary
+folders,
 re-lists finished samples the manifest lost (a killed client) and renders only what is missing; ``verify`` checks
 every sample against the manifest and its own hashes.
 """
@@ -20,11 +22,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import IO, Any
 
-from sim.datasets.config import SAMPLE_PACKAGES, DatasetError
-from sim.datasets.lock import DatasetBusy, DatasetLock, holder
-from sim.datasets.plan import Plan
-from sim.datasets.runner import check_scheduler, dask_client, failure_text, init_worker, run_tasks
-from sim.measurement import StagedOutput, remove_stale_stage, versions
+from scopetwin.sim.datasets.config import SAMPLE_PACKAGES, DatasetError
+from scopetwin.sim.datasets.lock import DatasetBusy, DatasetLock, holder
+from scopetwin.sim.datasets.plan import Plan
+from scopetwin.sim.datasets.runner import check_scheduler, dask_client, failure_text, init_worker, run_tasks
+from scopetwin.sim.measurement import StagedOutput, remove_stale_stage, versions
 
 CONFIG_FILE = "dataset.json"
 MANIFEST = "manifest.jsonl"
@@ -61,7 +63,7 @@ def generate_sample(plan_json: dict[str, Any], index: int, root: str, threads: i
     Runs on a worker (any worker: the result depends only on the plan and ``index``). A sample
     folder that already exists is not redone (``status: "exists"``).
     """
-    from scenes.io import write_json_atomic
+    from scopetwin.scenes.io import write_json_atomic
 
     init_worker(threads)
     t0 = time.perf_counter()
@@ -172,7 +174,7 @@ def remove_stale_temporaries(root: Path) -> tuple[list[str], list[str]]:
     """Remove the temporary sample folders of dead processes; keep those a live writer holds locked.
 
     Returns (removed names, kept names). A sample folder is staged with an ``flock`` held by the process writing
-    it (:class:`~sim.measurement.StagedOutput` ``lock=True``), so a worker of an earlier run that is still
+    it (:class:`~scopetwin.sim.measurement.StagedOutput` ``lock=True``), so a worker of an earlier run that is still
     finishing a sample (an external cluster outlives its client) keeps its folder.
     """
     removed: list[str] = []
@@ -192,7 +194,7 @@ def recover(root: Path) -> dict[str, Any]:
     Removes temporary sample folders of dead processes, drops unreadable/duplicate manifest lines and lines of
     samples that are gone or corrupt, deletes corrupt sample folders (they are redone), and lists finished
     samples the manifest does not know (the client died between rename and manifest). Call it holding the
-    folder's :class:`~sim.datasets.lock.DatasetLock`.
+    folder's :class:`~scopetwin.sim.datasets.lock.DatasetLock`.
 
     Returns
     -------
@@ -201,7 +203,7 @@ def recover(root: Path) -> dict[str, Any]:
         ``removed_temporary`` / ``kept_temporary`` (temporary folders removed / kept because a live process
         writes them), ``corrupt_removed``, ``dropped_manifest_lines`` and ``done`` (every finished sample).
     """
-    from scenes.io import write_text_atomic
+    from scopetwin.scenes.io import write_text_atomic
 
     samples = root / SAMPLES
     samples.mkdir(parents=True, exist_ok=True)
@@ -259,7 +261,7 @@ def _list_from_disk(root: Path, listed: set[int], fh: IO[str]) -> list[int]:
 
 
 def _write_plan(root: Path, plan: Plan) -> None:
-    from scenes.io import write_json_atomic
+    from scopetwin.scenes.io import write_json_atomic
 
     path = root / CONFIG_FILE
     new = plan.to_json()
@@ -306,7 +308,7 @@ def _has_samples(root: Path) -> bool:
 
 def _finish_folder(root: Path, listed: set[int], fh: IO[str], state: dict[str, Any]) -> None:
     """After the workers are done or gone: list finished samples no result reported, remove dead temporaries."""
-    from sim.signals import deferred_signals
+    from scopetwin.sim.signals import deferred_signals
 
     with deferred_signals():
         state["relisted_at_end"] = _list_from_disk(root, listed, fh)
@@ -326,9 +328,10 @@ def generate(
 ) -> dict[str, Any]:
     """Generate (or finish) the samples ``indices`` of a dataset in ``out``.
 
-    The run holds the folder's :class:`~sim.datasets.lock.DatasetLock` throughout (a second run on the same
+    The run holds the folder's :class:`~scopetwin.sim.datasets.lock.DatasetLock` throughout (a second run on the same
     folder is refused at once), tidies it (:func:`recover`), then renders what is missing. However it ends
-    (success, failed samples, Ctrl-C, SIGTERM/SIGHUP as :class:`~sim.signals.Terminated`), every finished sample
+    (success, failed samples, Ctrl-C, SIGTERM/SIGHUP as :class:`~scopetwin.sim.signals.Terminated`), every finished
+    sample
     on disk is listed in the manifest when it returns or raises, with the host and pid of the worker process
     that made it, and the temporary folders of dead processes are gone. A folder this call created is removed
     again when the run stops before any sample was written (a scheduler that does not answer, an interruption

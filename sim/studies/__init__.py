@@ -1,9 +1,9 @@
 """Accuracy studies against rendered truth, run on Dask like the datasets (issue 9, DESIGN.md "Scale").
 
-A study is a function of a :class:`~sim.studies.context.StudyContext` that fans its work out as
+A study is a function of a :class:`~scopetwin.sim.studies.context.StudyContext` that fans its work out as
 independent tasks (on the same Dask client the datasets use, or in this process), tabulates the errors
-against the truth, and returns :class:`~sim.studies.tables.Table` objects, plots and a JSON summary;
-:func:`~sim.studies.runner.run_study` writes ``report.md``, ``results.json`` and the PNG plots into the
+against the truth, and returns :class:`~scopetwin.sim.studies.tables.Table` objects, plots and a JSON summary;
+:func:`~scopetwin.sim.studies.runner.run_study` writes ``report.md``, ``results.json`` and the PNG plots into the
 output folder (staged, moved into place on success).
 
 * ``thesis`` — every table of Part I of the seed side by side: §1.10 (both height distributions),
@@ -18,10 +18,13 @@ output folder (staged, moved into place on success).
   against the density of the shifted basis (seed §1.8), on a generated deflectometry dataset.
 
 Each study names the modules it needs; when one is not in this installation the study stops with a
-:class:`~sim.studies.context.StudyError` naming the missing capability, before any work.
+:class:`~scopetwin.sim.studies.context.StudyError` naming the missing capability, before any work.
 
-The package: :mod:`~sim.studies.tables` (seed | ours | ratio tables, plots), :mod:`~sim.studies.context` (where
-tasks run, what a study returns), :mod:`~sim.studies.tasks` (worker tasks shared by the studies), one module per
-study (:mod:`~sim.studies.thesis`, :mod:`~sim.studies.noise`, :mod:`~sim.studies.angle`,
-:mod:`~sim.studies.surface`) and :mod:`~sim.studies.runner` (:func:`~sim.studies.runner.run_study`, the report).
+The package: :mod:`~scopetwin.sim.studies.tables` (seed | ours | ratio tables, plots),
+:mod:`~scopetwin.sim.studies.context` (where
+tasks run, what a study returns), :mod:`~scopetwin.sim.studies.tasks` (worker tasks shared by the studies), one module
+per
+study (:mod:`~scopetwin.sim.studies.thesis`, :mod:`~scopetwin.sim.studies.noise`, :mod:`~scopetwin.sim.studies.angle`,
+:mod:`~scopetwin.sim.studies.surface`) and :mod:`~scopetwin.sim.studies.runner`
+(:func:`~scopetwin.sim.studies.runner.run_study`, the report).
 """

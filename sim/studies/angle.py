@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from sim.studies.context import StudyContext, StudyResult, error_text, failed, require
-from sim.studies.tables import group, jsonable, line_plot, mean, view_table
-from sim.studies.tasks import CALIB_MODULES, calibration_dataset, calibration_view_task, sample_folders
+from scopetwin.sim.studies.context import StudyContext, StudyResult, error_text, failed, require
+from scopetwin.sim.studies.tables import group, jsonable, line_plot, mean, view_table
+from scopetwin.sim.studies.tasks import CALIB_MODULES, calibration_dataset, calibration_view_task, sample_folders
 
 
 def angle(ctx: StudyContext, spp: int = 16) -> StudyResult:

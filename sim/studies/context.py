@@ -8,12 +8,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from scenes.errors import ScopetwinError
-from sim.datasets.config import config_from_dict
-from sim.datasets.plan import Plan
-from sim.datasets.runner import failure_text, run_tasks
-from sim.datasets.store import generate
-from sim.studies.tables import Table
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.sim.datasets.config import config_from_dict
+from scopetwin.sim.datasets.plan import Plan
+from scopetwin.sim.datasets.runner import failure_text, run_tasks
+from scopetwin.sim.datasets.store import generate
+from scopetwin.sim.studies.tables import Table
 
 
 class StudyError(ScopetwinError, ValueError):

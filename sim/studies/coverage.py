@@ -3,7 +3,8 @@
 Surfaces of mixed families — the seed's §1.9 generator (exactly band-limited), the same with nm-level broadband
 content, and PSD surfaces (K-correlation / ABC and power law with roll-off) with broadband content; 8-20 mm
 correlation, 20-60 µm range — are reconstructed from the **exact images of the marker centres**
-(:func:`sim.truth.marker_truth`, no render) plus Gaussian centroid noise of ``noise_px`` per coordinate, with the
+(:func:`scopetwin.sim.truth.marker_truth`, no render) plus Gaussian centroid noise of ``noise_px`` per coordinate, with
+the
 ideal setup. For each the absolute error (ROI mean) and shape error (ROI RMS after removing the mean) are compared
 with the reported standard uncertainties: the coverage is the share of |error| <= 2 u (90-98 % is calibrated).
 The renders' own centroid bias is left out (the bias step corrects it to a few thousandths of a pixel on these
@@ -16,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from sim.studies.context import StudyContext, StudyResult, error_text, failed
-from sim.studies.tables import Table, jsonable
+from scopetwin.sim.studies.context import StudyContext, StudyResult, error_text, failed
+from scopetwin.sim.studies.tables import Table, jsonable
 
 #: The families: surface-spec fields per family; ranges are drawn per surface.
 FAMILIES = ("gauss", "gauss+broadband", "abc+broadband", "power+broadband")
@@ -54,13 +55,13 @@ def coverage_task(
     """Reconstruct one surface from exact marker images plus centroid noise; errors and uncertainties, µm."""
     import time
 
-    from recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, single_thread_blas
-    from scenes.errors import ScopetwinError
-    from scenes.setup import load_setup
-    from sim.datasets.config import merge
-    from sim.pipeline import roi_errors
-    from sim.surfaces import surface_for
-    from sim.truth import marker_truth
+    from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, single_thread_blas
+    from scopetwin.scenes.errors import ScopetwinError
+    from scopetwin.scenes.setup import load_setup
+    from scopetwin.sim.datasets.config import merge
+    from scopetwin.sim.pipeline import roi_errors
+    from scopetwin.sim.surfaces import surface_for
+    from scopetwin.sim.truth import marker_truth
 
     spec = family_spec(family, seed)
     over: dict[str, Any] = {"substrate": {"surface": spec}}

@@ -1,9 +1,12 @@
 """The ``inverse`` study: inverse rendering beside the centroid method and the pixels' Cramér-Rao bound (issue 16).
 
-For §1.9 surfaces at 3-20 mm correlation (the Gaussian family, and the PSD family of :mod:`sim.surfaces` when it
+For §1.9 surfaces at 3-20 mm correlation (the Gaussian family, and the PSD family of :mod:`scopetwin.sim.surfaces` when
+it
 is there), with and without the EMVA 1288 sensor model, the §1.10 measurement is rendered with Mitsuba and
-reconstructed by the centroid method (:mod:`recon.reconstruct`) and by inverse rendering (:mod:`recon.inverse`,
-started from the centroid result, or where that fails from :func:`recon.inverse.inverse_start`'s next choice — the
+reconstructed by the centroid method (:mod:`scopetwin.recon.reconstruct`) and by inverse rendering
+(:mod:`scopetwin.recon.inverse`,
+started from the centroid result, or where that fails from :func:`scopetwin.recon.inverse.inverse_start`'s next choice
+— the
 centroid method without its bias step, a coarse fit of the markers, a plane); each Gauss-Newton step's
 surface is compared with the truth (shape and absolute error against the step's time). Beside them: the
 Cramér-Rao bound on the shape RMS, from the Fisher information J^T W J of the render with respect to the B-spline
@@ -19,13 +22,13 @@ from typing import Any
 
 import numpy as np
 
-from sim.studies.context import StudyContext, StudyResult, error_text, failed, require
-from sim.studies.tables import Table, jsonable
+from scopetwin.sim.studies.context import StudyContext, StudyResult, error_text, failed, require
+from scopetwin.sim.studies.tables import Table, jsonable
 
 INVERSE_MODULES = {
-    "recon.markers": "marker detection and indexing",
-    "recon.reconstruct": "the centroid method",
-    "recon.inverse": "inverse rendering",
+    "scopetwin.recon.markers": "marker detection and indexing",
+    "scopetwin.recon.reconstruct": "the centroid method",
+    "scopetwin.recon.inverse": "inverse rendering",
 }
 
 #: (correlation length mm, range µm) of the study's surfaces: the seed's kind and the two of the issue.
@@ -46,7 +49,7 @@ def emva_variance_irradiance(irradiance: Any, setup: Any) -> Any:
 
 
 def shape_crb_um(rec: Any, surf: Any, var: Any, sub: int = 3, probes: int = 32) -> float:
-    """Cramér-Rao bound on the ROI shape RMS, µm (:meth:`recon.inverse.InverseReconstructor.shape_std_um`)."""
+    """Cramér-Rao bound on the ROI shape RMS, µm (:meth:`scopetwin.recon.inverse.InverseReconstructor.shape_std_um`)."""
     return float(rec.shape_std_um(surf, var, sub, probes))
 
 
@@ -56,11 +59,11 @@ def family_prior(setup: Any, spacing: float, draws: int = 400, seed0: int = 10_0
     ``draws`` surfaces of the setup's kind, correlation length and range (seeds ``seed0`` on, none of them a study
     surface) are fitted by the inverse fit's B-spline (knot spacing ``spacing``, mm); X is their centred
     coefficients over sqrt(draws - 1), (n, draws). The family's prior as the generator makes it (levelled on the
-    frame and scaled to the range), for :meth:`recon.inverse.InverseReconstructor.shape_bayes_bound_um`.
+    frame and scaled to the range), for :meth:`scopetwin.recon.inverse.InverseReconstructor.shape_bayes_bound_um`.
     """
-    from recon.inverse import SplineSurface
-    from recon.reconstruct import Substrate2D
-    from sim.surfaces import make_surface
+    from scopetwin.recon.inverse import SplineSurface
+    from scopetwin.recon.reconstruct import Substrate2D
+    from scopetwin.sim.surfaces import make_surface
 
     sub = Substrate2D.from_setup(setup)
     spec = setup.substrate.surface
@@ -81,7 +84,7 @@ def untilted_shape_um(surface_height: Any, truth: Any, sub: Any, step: float = 0
     reconstruction (the traced rays meet the surface at the wrong height; on a 3 mm / 60 µm surface ~9 µrad per
     µm of absolute error); this part is what the method itself gets wrong.
     """
-    from recon.inverse import without_plane
+    from scopetwin.recon.inverse import without_plane
 
     xs = np.linspace(-0.5 * sub.size_x, 0.5 * sub.size_x, int(round(sub.size_x / step)) + 1)
     ys = np.linspace(-0.5 * sub.roi_length, 0.5 * sub.roi_length, int(round(sub.roi_length / step)) + 1)
@@ -104,14 +107,14 @@ def inverse_task(
 
     ``bounds=False`` leaves out the Cramér-Rao and Bayesian bounds (the family prior's hundreds of draws).
     """
-    from recon.inverse import InverseConfig, InverseReconstructor, SplineSurface, inverse_start
-    from recon.reconstruct import Substrate2D
-    from scenes.errors import ScopetwinError
-    from scenes.setup import load_setup
-    from sim.measurement import render_measurement
-    from sim.pipeline import roi_errors
-    from sim.studies.tasks import THESIS_DEFLECTOMETRY, quiet
-    from sim.surfaces import surface_for
+    from scopetwin.recon.inverse import InverseConfig, InverseReconstructor, SplineSurface, inverse_start
+    from scopetwin.recon.reconstruct import Substrate2D
+    from scopetwin.scenes.errors import ScopetwinError
+    from scopetwin.scenes.setup import load_setup
+    from scopetwin.sim.measurement import render_measurement
+    from scopetwin.sim.pipeline import roi_errors
+    from scopetwin.sim.studies.tasks import THESIS_DEFLECTOMETRY, quiet
+    from scopetwin.sim.surfaces import surface_for
 
     quiet()
     over = {
@@ -124,7 +127,7 @@ def inverse_task(
     clean, _ = render_measurement(setup, truth, spp, 1, False)
     image = clean
     if noise:
-        from sim.measurement import apply_sensor
+        from scopetwin.sim.measurement import apply_sensor
 
         image = apply_sensor(setup, clean, 1)
     sub = Substrate2D.from_setup(setup)
@@ -204,7 +207,7 @@ def inverse(ctx: StudyContext, spp: int = 16, seed: int = 2) -> StudyResult:
     require("inverse", INVERSE_MODULES)
     from typing import get_args
 
-    from scenes.setup import SurfaceSpec
+    from scopetwin.scenes.setup import SurfaceSpec
 
     known = get_args(SurfaceSpec.model_fields["kind"].annotation)
     kinds = ["random"] + (["psd"] if "psd" in known else [])  # the PSD family where sim.surfaces has it

@@ -1,7 +1,8 @@
 """The ``noise`` study: centroid and calibration error against the exposure (EMVA 1288 sensor model).
 
 A few clean renders of the angular calibration view are captured many times by the sensor model at each exposure
-(:func:`~sim.studies.tasks.calibration_view_task` with a fill). The noise draws separate the calibration's bias
+(:func:`~scopetwin.sim.studies.tasks.calibration_view_task` with a fill). The noise draws separate the calibration's
+bias
 (the length of the mean error vector of the camera centre) from its scatter (the RMS of the error vectors about
 their mean), issue 14 item 4. The bias is known only to its standard error, scatter / sqrt(draws), and the
 length of a mean vector reads about one standard error even where the true bias is 0; the scatter grows
@@ -16,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from sim.datasets.seeding import sample_seed
-from sim.studies.context import StudyContext, StudyResult, error_text, failed, require
-from sim.studies.tables import Table, group, jsonable, line_plot, mean, view_table
-from sim.studies.tasks import CALIB_MODULES, calibration_dataset, calibration_view_task, sample_folders
+from scopetwin.sim.datasets.seeding import sample_seed
+from scopetwin.sim.studies.context import StudyContext, StudyResult, error_text, failed, require
+from scopetwin.sim.studies.tables import Table, group, jsonable, line_plot, mean, view_table
+from scopetwin.sim.studies.tasks import CALIB_MODULES, calibration_dataset, calibration_view_task, sample_folders
 
 FILLS = [0.02, 0.05, 0.1, 0.2, 0.4, 0.7, 0.95]
 #: Noise draws per exposure, in units of ``replicates``: about the square of the scatter, relative to 20 %.

@@ -9,11 +9,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from sim.datasets.runner import dask_client, init_worker
-from sim.measurement import StagedOutput
-from sim.studies import angle, coverage, inverse, noise, setup_placement, surface, thesis
-from sim.studies.context import StudyContext, StudyError, StudyResult
-from sim.studies.tables import jsonable, table_json, table_markdown
+from scopetwin.sim.datasets.runner import dask_client, init_worker
+from scopetwin.sim.measurement import StagedOutput
+from scopetwin.sim.studies import angle, coverage, inverse, noise, setup_placement, surface, thesis
+from scopetwin.sim.studies.context import StudyContext, StudyError, StudyResult
+from scopetwin.sim.studies.tables import jsonable, table_json, table_markdown
 
 #: The studies by name (``scopetwin study NAME``).
 STUDIES: dict[str, Callable[[StudyContext], StudyResult]] = {

@@ -6,7 +6,7 @@ the maxima lie up to 4.5 mm further out, at the substrate's ends. This study var
 the marker pitch (finer markers are imaged whole closer to the ROI edge) and the depth of the holding frame's
 support (how far the substrate overhangs the ROI, so how far the fit must extrapolate) — and reports, over
 surfaces of the seed's kind with nm-level broadband content, the worst absolute error and its uncertainty.
-Inputs are exact marker-centre images (:func:`sim.truth.marker_truth`) plus centroid noise, as in the
+Inputs are exact marker-centre images (:func:`scopetwin.sim.truth.marker_truth`) plus centroid noise, as in the
 ``coverage`` study.
 """
 
@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from sim.studies.context import StudyContext, StudyResult, error_text, failed
-from sim.studies.coverage import coverage_task
-from sim.studies.tables import Table, jsonable
+from scopetwin.sim.studies.context import StudyContext, StudyResult, error_text, failed
+from scopetwin.sim.studies.coverage import coverage_task
+from scopetwin.sim.studies.tables import Table, jsonable
 
 #: Setup variants: (label, overrides of the §1.10 preset).
 VARIANTS: list[tuple[str, dict[str, Any]]] = [

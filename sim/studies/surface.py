@@ -8,20 +8,20 @@ from typing import Any
 
 import numpy as np
 
-from sim.studies.context import StudyContext, StudyResult, error_text, failed, require
-from sim.studies.tables import Table, jsonable
-from sim.studies.tasks import THESIS_DEFLECTOMETRY, quiet, read_sample, reconstruct, sample_folders
+from scopetwin.sim.studies.context import StudyContext, StudyResult, error_text, failed, require
+from scopetwin.sim.studies.tables import Table, jsonable
+from scopetwin.sim.studies.tasks import THESIS_DEFLECTOMETRY, quiet, read_sample, reconstruct, sample_folders
 
 SURFACE_MODULES = {
-    "recon.markers": "marker detection and indexing",
-    "recon.reconstruct": "height reconstruction",
-    "recon.bias": "centroid-bias prediction",
+    "scopetwin.recon.markers": "marker detection and indexing",
+    "scopetwin.recon.reconstruct": "height reconstruction",
+    "scopetwin.recon.bias": "centroid-bias prediction",
 }
 
 
 def surface_task(folder: str, config: str = "default") -> dict[str, Any]:
     """Reconstruction error of one deflectometry sample (ideal setup) against its true surface."""
-    from scenes.io import read_heightmap
+    from scopetwin.scenes.io import read_heightmap
 
     quiet()
     setup, image, truth = read_sample(folder)
@@ -36,10 +36,10 @@ def surface_task(folder: str, config: str = "default") -> dict[str, Any]:
 
 def broadband_task(folder: str) -> dict[str, Any]:
     """Errors and reported uncertainties of one PSD-surface sample (ideal setup, bias step on), µm."""
-    from recon.markers import find_markers_for
-    from recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
-    from scenes.io import read_heightmap
-    from sim.pipeline import roi_errors
+    from scopetwin.recon.markers import find_markers_for
+    from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
+    from scopetwin.scenes.io import read_heightmap
+    from scopetwin.sim.pipeline import roi_errors
 
     quiet()
     setup, image, truth = read_sample(folder)

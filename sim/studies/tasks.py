@@ -14,11 +14,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.errors import ScopetwinError
-from scenes.geometry import Frame
-from scenes.setup import Setup
-from scenes.surface import HeightMap
-from sim.datasets.config import merge
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.geometry import Frame
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap
+from scopetwin.sim.datasets.config import merge
 
 THESIS_DEFLECTOMETRY = "thesis-1.10-deflectometry"
 
@@ -46,7 +46,7 @@ def axis_angle(frame: Frame, truth: Frame) -> float:
 
 def measurement_setup(surface_seed: int, spp: int, overrides: dict[str, Any] | None = None) -> Setup:
     """The §1.10 measurement setup with surface seed ``surface_seed`` (render seed 0, ``spp``), plus ``overrides``."""
-    from scenes.setup import load_setup
+    from scopetwin.scenes.setup import load_setup
 
     over = {"substrate": {"surface": {"seed": int(surface_seed)}}, "render": {"spp": spp, "seed": 0}}
     if overrides:
@@ -62,15 +62,15 @@ def reconstruct(
     config: str = "default",
 ) -> dict[str, Any]:
     """Find markers with the nominal setup, reconstruct with ``recon_setup`` (default: the same), compare."""
-    from recon.markers import find_markers_for
-    from recon.reconstruct import (
+    from scopetwin.recon.markers import find_markers_for
+    from scopetwin.recon.reconstruct import (
         MarkerObservations,
         ReconstructionConfig,
         Reconstructor,
         Substrate2D,
         centroid_bias_step,
     )
-    from sim.pipeline import roi_errors
+    from scopetwin.sim.pipeline import roi_errors
 
     rs = recon_setup or setup
     found = find_markers_for(image, setup)
@@ -95,16 +95,16 @@ def reconstruct(
 
 
 CALIB_MODULES = {
-    "recon.markers": "marker detection and indexing",
-    "recon.bias": "centroid-bias prediction",
-    "calib.oneshot": "one-shot camera calibration",
+    "scopetwin.recon.markers": "marker detection and indexing",
+    "scopetwin.recon.bias": "centroid-bias prediction",
+    "scopetwin.calib.oneshot": "one-shot camera calibration",
 }
 
 
 def read_sample(folder: str) -> tuple[Any, np.ndarray, dict[str, Any]]:
     """A dataset sample's setup, image and truth."""
-    from scenes.io import read_image
-    from scenes.setup import setup_from_dict
+    from scopetwin.scenes.io import read_image
+    from scopetwin.scenes.setup import setup_from_dict
 
     p = Path(folder)
     truth = json.loads((p / "truth.json").read_text())
@@ -116,15 +116,16 @@ def calibration_view_task(folder: str, fill: float | None = None, noise_seed: in
     """Centroid and one-shot calibration errors of one calibration-view sample against its truth.
 
     With ``fill``, the sample is a clean render and this task captures it with the setup's EMVA 1288 sensor
-    (:func:`sim.measurement.apply_sensor`) at an exposure that fills ``fill`` of the full well at the peak, noise
+    (:func:`scopetwin.sim.measurement.apply_sensor`) at an exposure that fills ``fill`` of the full well at the peak,
+    noise
     seeded by ``noise_seed``: many noise draws of one render (``study noise``) cost no render each. The row's
     ``parameters`` then carry ``exposure_fill`` and ``noise_seed``.
     """
-    from calib.oneshot import Prior, calibrate, calibrate_bias_corrected
-    from recon.bias import correct_centroids, model_for_setup, spot_bias_model
-    from recon.markers import find_markers_for
-    from scenes.setup import setup_from_dict
-    from sim.measurement import apply_sensor
+    from scopetwin.calib.oneshot import Prior, calibrate, calibrate_bias_corrected
+    from scopetwin.recon.bias import correct_centroids, model_for_setup, spot_bias_model
+    from scopetwin.recon.markers import find_markers_for
+    from scopetwin.scenes.setup import setup_from_dict
+    from scopetwin.sim.measurement import apply_sensor
 
     quiet()
     setup, image, truth = read_sample(folder)

@@ -11,12 +11,12 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from scenes.camera import Camera
-from scenes.errors import ScopetwinError
-from scenes.setup import Setup
-from sim.studies.context import StudyContext, StudyResult, error_text, failed, require
-from sim.studies.tables import Row, Table, jsonable, norm, ratio
-from sim.studies.tasks import (
+from scopetwin.scenes.camera import Camera
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.setup import Setup
+from scopetwin.sim.studies.context import StudyContext, StudyResult, error_text, failed, require
+from scopetwin.sim.studies.tables import Row, Table, jsonable, norm, ratio
+from scopetwin.sim.studies.tasks import (
     THESIS_DEFLECTOMETRY,
     frame_deviation,
     measurement_setup,
@@ -26,8 +26,8 @@ from sim.studies.tasks import (
 
 
 def _exact_case(name: str, camera: dict[str, Any] | None = None) -> tuple[Setup, NDArray[Any], NDArray[Any], Any]:
-    from calib.oneshot import Prior
-    from scenes.setup import load_setup
+    from scopetwin.calib.oneshot import Prior
+    from scopetwin.scenes.setup import load_setup
 
     s = load_setup(name, {"camera": camera} if camera else None)
     pat = s.marker_pattern
@@ -45,7 +45,7 @@ def _residual_mm(camera: Camera, xy: NDArray[Any], px: NDArray[Any], pitch: floa
 
 def oneshot_exact() -> dict[str, Any]:
     """Tables 2.2, 2.3, 2.4, 2.8: one-shot calibration on exact marker images (seed §2.8.1, §2.8.2, §2.8.5)."""
-    from calib.oneshot import calibrate
+    from scopetwin.calib.oneshot import calibrate
 
     quiet()
     out: dict[str, Any] = {}
@@ -110,9 +110,9 @@ def measurement_task(
     surface_seed: int, spp: int, config: str = "default", calibrated_json: str | None = None
 ) -> dict[str, Any]:
     """§1.10 / §2.8.4: render the measurement of a random surface, reconstruct (ideal or calibrated setup)."""
-    from scenes.mitsuba.render import render_setup
-    from scenes.setup import setup_from_json
-    from sim.surfaces import surface_for
+    from scopetwin.scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.setup import setup_from_json
+    from scopetwin.sim.surfaces import surface_for
 
     quiet()
     setup = measurement_setup(surface_seed, spp)
@@ -126,12 +126,17 @@ def measurement_task(
 
 def setup_calibration_task(spp: int) -> dict[str, Any]:
     """Tables 2.5, 2.6 (seed §2.8.3): calibrate camera and pattern from rendered target and mirror images."""
-    from calib.oneshot import Prior
-    from calib.setup_calibration import calibrate_setup, calibrated_setup_dict, mirror_prior, virtual_coordinates
-    from recon.bias import spot_bias_model
-    from recon.markers import find_markers_for
-    from scenes.mitsuba.render import render_setup
-    from scenes.setup import load_setup, setup_from_dict
+    from scopetwin.calib.oneshot import Prior
+    from scopetwin.calib.setup_calibration import (
+        calibrate_setup,
+        calibrated_setup_dict,
+        mirror_prior,
+        virtual_coordinates,
+    )
+    from scopetwin.recon.bias import spot_bias_model
+    from scopetwin.recon.markers import find_markers_for
+    from scopetwin.scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.setup import load_setup, setup_from_dict
 
     quiet()
     ss, sm = load_setup("thesis-2.8.3-substrate"), load_setup("thesis-2.8.3-mirror")
@@ -170,8 +175,8 @@ def setup_calibration_task(spp: int) -> dict[str, Any]:
 
 def grin_task(preset: str) -> dict[str, Any]:
     """§8.3: the GRIN objective's paraxial and traced figures beside the seed's Zemax numbers."""
-    from scenes.grin.analysis import analyse
-    from scenes.grin.setup import load_grin_setup
+    from scopetwin.scenes.grin.analysis import analyse
+    from scopetwin.scenes.grin.setup import load_grin_setup
 
     setup = load_grin_setup(preset)
     rep = analyse(setup)
@@ -300,12 +305,12 @@ SEED_28 = {
 AXES = (("r", "Δr_c", "mm"), ("t_x", "ΔT_x", ""), ("t_y", "ΔT_y", ""), ("n_z", "ΔN_z", ""))
 
 THESIS_MODULES = {
-    "calib.oneshot": "one-shot camera calibration",
-    "calib.setup_calibration": "setup calibration",
-    "recon.markers": "marker detection and indexing",
-    "recon.reconstruct": "height reconstruction",
-    "recon.bias": "centroid-bias prediction",
-    "scenes.grin.analysis": "GRIN objective analysis",
+    "scopetwin.calib.oneshot": "one-shot camera calibration",
+    "scopetwin.calib.setup_calibration": "setup calibration",
+    "scopetwin.recon.markers": "marker detection and indexing",
+    "scopetwin.recon.reconstruct": "height reconstruction",
+    "scopetwin.recon.bias": "centroid-bias prediction",
+    "scopetwin.scenes.grin.analysis": "GRIN objective analysis",
 }
 
 

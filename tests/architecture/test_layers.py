@@ -1,8 +1,9 @@
-"""DESIGN.md's dependency rules, checked on the source: imports only point down.
+"""The layers' dependency rules (ARCHITECTURE.md), checked on the source: imports only point down.
 
 sim -> everything; calib | instrument -> recon, scenes (not each other); recon -> scenes;
 scenes -> nothing of ours. Mitsuba/Dr.Jit are imported only under scenes/mitsuba/, and
-``import scenes`` (and recon, calib) never loads them.
+``import scopetwin.scenes`` (and recon, calib) never loads them. The layer folders at the repository root install
+as ``scopetwin.<layer>`` (setup.py): every module is named, and imported, under ``scopetwin``.
 """
 
 from __future__ import annotations
@@ -15,13 +16,13 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-PACKAGES = ("scenes", "sim", "recon", "calib", "instrument")
+PACKAGES = ("scopetwin.scenes", "scopetwin.sim", "scopetwin.recon", "scopetwin.calib", "scopetwin.instrument")
 FORBIDDEN = {
-    "scenes": {"sim", "recon", "calib", "instrument"},
-    "recon": {"sim", "calib", "instrument"},
-    "calib": {"sim", "instrument"},
-    "instrument": {"sim", "calib"},
-    "sim": set(),
+    "scopetwin.scenes": {"scopetwin.sim", "scopetwin.recon", "scopetwin.calib", "scopetwin.instrument"},
+    "scopetwin.recon": {"scopetwin.sim", "scopetwin.calib", "scopetwin.instrument"},
+    "scopetwin.calib": {"scopetwin.sim", "scopetwin.instrument"},
+    "scopetwin.instrument": {"scopetwin.sim", "scopetwin.calib"},
+    "scopetwin.sim": set(),
 }
 RENDERERS = {"mitsuba", "drjit"}
 #: The one reconstruction module that renders (issue 16, ARCHITECTURE.md): it fits the surface to the image through
@@ -30,21 +31,32 @@ RENDERERS = {"mitsuba", "drjit"}
 RENDERING_RECON = ROOT / "recon" / "inverse.py"
 
 
+def _folder(package: str) -> Path:
+    """The repository folder of a layer package (``scopetwin.recon`` -> ``recon/``; setup.py maps them)."""
+    return ROOT / package.removeprefix("scopetwin.")
+
+
+def _top(name: str) -> str:
+    """The layer (``scopetwin.recon``) or the outside package (``mitsuba``) an imported module belongs to."""
+    parts = name.split(".")
+    return ".".join(parts[:2]) if parts[0] == "scopetwin" and len(parts) > 1 else parts[0]
+
+
 def _imports(path: Path) -> set[str]:
     tree = ast.parse(path.read_text(), filename=str(path))
     names: set[str] = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
-            names.update(alias.name.split(".")[0] for alias in node.names)
+            names.update(_top(alias.name) for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.add(node.module.split(".")[0])
+            names.add(_top(node.module))
     return names
 
 
 @pytest.mark.parametrize("package", PACKAGES)
 def test_imports_point_down(package):
     bad = []
-    for path in sorted((ROOT / package).rglob("*.py")):
+    for path in sorted(_folder(package).rglob("*.py")):
         names = _imports(path)
         for name in names & FORBIDDEN[package]:
             bad.append(f"{path.relative_to(ROOT)} imports {name}")
@@ -80,19 +92,23 @@ def test_inverse_rendering_imports_the_renderer_lazily():
     """recon/inverse.py is the one recon module that renders: renderer imports only inside its functions."""
     assert RENDERING_RECON.exists()
     top = _module_imports(RENDERING_RECON, top_level_only=True)
-    renderer = {m for m in top if m.split(".")[0] in RENDERERS or m.startswith("scenes.mitsuba")}
+    renderer = {m for m in top if m.split(".")[0] in RENDERERS or m.startswith("scopetwin.scenes.mitsuba")}
     assert not renderer, f"recon/inverse.py imports {sorted(renderer)} at module level (must be lazy)"
     lazy = _module_imports(RENDERING_RECON, top_level_only=False)
-    assert any(m.startswith("scenes.mitsuba") for m in lazy), "recon/inverse.py no longer renders: drop the exception"
+    assert any(m.startswith("scopetwin.scenes.mitsuba") for m in lazy), (
+        "recon/inverse.py no longer renders: drop the exception"
+    )
     others = [
         p.relative_to(ROOT)
         for p in sorted((ROOT / "recon").rglob("*.py"))
         if p != RENDERING_RECON
-        and any(m.split(".")[0] in RENDERERS or m.startswith("scenes.mitsuba") for m in _module_imports(p, False))
+        and any(
+            m.split(".")[0] in RENDERERS or m.startswith("scopetwin.scenes.mitsuba") for m in _module_imports(p, False)
+        )
     ]
     assert not others, f"only recon/inverse.py may import the renderer, also: {others}"
     out = subprocess.run(
-        [sys.executable, "-c", "import sys, recon.inverse; print('mitsuba' in sys.modules or 'drjit' in sys.modules)"],
+        [sys.executable, "-c", "import sys, scopetwin.recon.inverse; print('mitsuba' in sys.modules or 'drjit' in sys.modules)"],
         capture_output=True,
         text=True,
         cwd=ROOT,
@@ -103,8 +119,9 @@ def test_inverse_rendering_imports_the_renderer_lazily():
 
 def test_importing_the_world_model_does_not_load_mitsuba():
     code = (
-        "import sys, scenes, scenes.setup, scenes.analytic, scenes.io, scenes.grin, recon, recon.markers, calib;"
-        "import sim.cli;"
+        "import sys, scopetwin, scopetwin.scenes, scopetwin.scenes.setup, scopetwin.scenes.analytic;"
+        "import scopetwin.scenes.io, scopetwin.scenes.grin, scopetwin.recon, scopetwin.recon.markers, scopetwin.calib;"
+        "import scopetwin.sim.cli;"
         "print(sorted(m for m in ('mitsuba', 'drjit') if m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
@@ -115,13 +132,16 @@ def test_importing_the_world_model_does_not_load_mitsuba():
 
 
 def _module_name(path: Path) -> str:
+    """The installed name of a source file: ``recon/markers/indexing.py`` -> ``scopetwin.recon.markers.indexing``."""
     rel = path.relative_to(ROOT).with_suffix("")
     parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
-    return ".".join(parts)
+    return ".".join(parts if parts[0] == "scopetwin" else ("scopetwin", *parts))
 
 
 def _project_modules() -> dict[str, Path]:
-    return {_module_name(p): p for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py"))}
+    files = [p for pkg in PACKAGES for p in sorted(_folder(pkg).rglob("*.py"))]
+    files += sorted((ROOT / "scopetwin").glob("*.py"))
+    return {_module_name(p): p for p in files}
 
 
 def _edges(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
@@ -216,3 +236,35 @@ def test_no_variant_switch_at_import():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.strip() == "None", f"a module set the Mitsuba variant {out.stdout.strip()!r} at import"
+
+
+# -- one package (issue 22): the layers install and import only as scopetwin.<layer> ---------------------------------
+
+BARE = {pkg.removeprefix("scopetwin.") for pkg in PACKAGES}
+
+
+def test_nothing_imports_a_layer_by_its_bare_name():
+    """Library, tests, benchmarks and examples import ``scopetwin.recon``, never ``recon`` (a second copy)."""
+    bad = []
+    for path in sorted(ROOT.rglob("*.py")):
+        rel = path.relative_to(ROOT)
+        if rel.parts[0] in {".venv", "build", ".git"}:
+            continue
+        for name in _module_imports(path, top_level_only=False):
+            if name.split(".")[0] in BARE:
+                bad.append(f"{rel} imports {name}")
+    assert not bad, "\n".join(bad)
+
+
+def test_importing_everything_loads_no_bare_layer():
+    """Importing every module leaves no module named after a bare layer (``recon``) in ``sys.modules``."""
+    names = sorted(n for n in _project_modules() if not n.endswith("__main__"))
+    code = (
+        "import importlib, sys\n"
+        f"for name in {names!r}:\n"
+        "    importlib.import_module(name)\n"
+        f"print(sorted(m for m in sys.modules if m.split('.')[0] in {sorted(BARE)!r}))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT / "tests")
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.strip() == "[]", out.stdout

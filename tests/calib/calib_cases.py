@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.oneshot import Prior
-from scenes.setup import Setup, load_setup
+from scopetwin.calib.oneshot import Prior
+from scopetwin.scenes.setup import Setup, load_setup
 
 
 def exact_case(name: str) -> tuple[Setup, np.ndarray, np.ndarray, Prior]:

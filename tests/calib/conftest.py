@@ -19,8 +19,8 @@ def perpendicular():
 @pytest.fixture(scope="session")
 def rendered():
     """Mitsuba images of the §2.8.3 substrate and mirror scenes (16 spp)."""
-    from scenes.mitsuba.render import render_setup
-    from scenes.setup import load_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.setup import load_setup
 
     return (
         render_setup(load_setup("thesis-2.8.3-substrate"), None, spp=16, seed=1),

@@ -8,10 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from scenes.errors import ScopetwinError
-from scenes.io import write_image, write_json_atomic
-from scenes.setup import load_setup
-from sim.cli.calibrate import register
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.io import write_image, write_json_atomic
+from scopetwin.scenes.setup import load_setup
+from scopetwin.sim.cli.calibrate import register
 
 pytestmark = pytest.mark.mitsuba
 

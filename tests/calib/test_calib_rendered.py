@@ -13,12 +13,12 @@ import warnings
 import numpy as np
 import pytest
 
-from calib.oneshot import CalibrationWarning, Prior, calibrate_bias_corrected
-from calib.oneshot.refinement import Calibration
-from recon.bias import spot_bias_model
-from recon.markers import find_markers_for
-from scenes.setup import Setup, load_setup
-from sim.measurement import apply_sensor
+from scopetwin.calib.oneshot import CalibrationWarning, Prior, calibrate_bias_corrected
+from scopetwin.calib.oneshot.refinement import Calibration
+from scopetwin.recon.bias import spot_bias_model
+from scopetwin.recon.markers import find_markers_for
+from scopetwin.scenes.setup import Setup, load_setup
+from scopetwin.sim.measurement import apply_sensor
 
 
 def _calibrate(setup: Setup, image: np.ndarray, distortion: bool = False) -> Calibration:
@@ -69,7 +69,7 @@ def test_distortion_on_a_distortion_free_view_converges_to_c0_1_c2_0(rendered):
 @pytest.mark.mitsuba
 def test_distortion_preset_recovered_within_uncertainty():
     """Issue 14 item 6: the §2.8.5 view (r_cs = 46.5 µm, c2 = 0.00123/mm) rendered; c0, c2, r_cs within 3 sigma."""
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     setup = load_setup("thesis-2.8.5-distortion")
     cal = _calibrate(setup, render_setup(setup, None, spp=16, seed=5), distortion=True)
@@ -90,7 +90,7 @@ def test_noisy_angular_view_at_2_percent_fill_has_no_camera_centre_bias():
     plus twice its standard error. The scatter there is ~8 µm (64 draws: bias 0.7 +- 1.0 µm), so 16 draws
     bound the bias to ~6 µm: enough to catch the 10 µm bias of the noisy path that issue 14 found.
     """
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     setup = load_setup("thesis-2.8.1-angular", {"sensor": {"fill_fraction": 0.02}})
     clean = render_setup(setup, None, spp=8, seed=4)

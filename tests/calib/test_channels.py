@@ -8,9 +8,9 @@ import pytest
 from scipy.ndimage import gaussian_filter
 from scipy.optimize import brentq
 
-from calib.channels import ChannelError, measure_channel, relative_pose, spoke_modulation
-from scenes.cmu.layout import TargetSpec
-from scenes.cmu.targets import siemens_star
+from scopetwin.calib.channels import ChannelError, measure_channel, relative_pose, spoke_modulation
+from scopetwin.scenes.cmu.layout import TargetSpec
+from scopetwin.scenes.cmu.targets import siemens_star
 
 PIXEL_UM = 6.45
 SPEC = TargetSpec()

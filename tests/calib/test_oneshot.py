@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from calib_cases import exact_case
 
-from calib.oneshot import (
+from scopetwin.calib.oneshot import (
     CalibrationError,
     CalibrationWarning,
     Prior,
@@ -17,8 +17,8 @@ from calib.oneshot import (
     calibrate_bias_corrected,
     linear_approximation,
 )
-from recon.bias import spot_bias_model, spot_centroids
-from scenes.camera import Camera, pose_parameters
+from scopetwin.recon.bias import spot_bias_model, spot_centroids
+from scopetwin.scenes.camera import Camera, pose_parameters
 
 ROUND_OFF_MM = 1e-9  # float64 round-off on ~200 mm (the seed's Tables 2.2/2.3 reach 1e-13 mm)
 ROUND_OFF_AXIS = 1e-12

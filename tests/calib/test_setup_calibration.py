@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.oneshot import Prior
-from calib.setup_calibration import (
+from scopetwin.calib.oneshot import Prior
+from scopetwin.calib.setup_calibration import (
     calibrate_setup,
     compose,
     mirror_prior,
@@ -14,10 +14,10 @@ from calib.setup_calibration import (
     virtual_coordinates,
     write_setup_toml,
 )
-from recon.bias import spot_bias_model
-from scenes.geometry import Frame
-from scenes.setup import load_setup
-from sim.truth import marker_truth
+from scopetwin.recon.bias import spot_bias_model
+from scopetwin.scenes.geometry import Frame
+from scopetwin.scenes.setup import load_setup
+from scopetwin.sim.truth import marker_truth
 
 
 def _angle(a: np.ndarray, b: np.ndarray) -> float:
@@ -98,7 +98,7 @@ def test_setup_toml_round_trip(setups, tmp_path):
 @pytest.mark.mitsuba
 def test_rendered_images_meet_the_issue_targets(setups, rendered):
     """§2.8.3 from Mitsuba images: camera centre <= 2 µm, pattern centre <= 5 µm, angles <= 10 µrad."""
-    from recon.markers import find_markers_for
+    from scopetwin.recon.markers import find_markers_for
 
     ss, sm = setups
     img_s, img_m = rendered
@@ -125,7 +125,7 @@ def test_rendered_images_meet_the_issue_targets(setups, rendered):
 
 def test_calibrated_setup_carries_its_pose_uncertainties(setups, tmp_path):
     """calibrate-setup writes [calibration] (camera and pattern pose standard deviations); --refine-setup reads it."""
-    from recon.inverse import InverseConfig, pose_sigma_for
+    from scopetwin.recon.inverse import InverseConfig, pose_sigma_for
 
     ss, sm = setups
     xs, ps_, xm, pm_ = exact_inputs(ss, sm)

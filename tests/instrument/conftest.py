@@ -9,8 +9,8 @@ import serial
 
 os.environ.setdefault("PYLON_CAMEMU", "1")  # pylon's camera emulator, read when pypylon starts
 
-from instrument.emulators import FpgaBoardEmulator, JenaPiezoEmulator, PiGcsEmulator  # noqa: E402
-from instrument.simulated.world import VirtualWorld  # noqa: E402
+from scopetwin.instrument.emulators import FpgaBoardEmulator, JenaPiezoEmulator, PiGcsEmulator  # noqa: E402
+from scopetwin.instrument.simulated.world import VirtualWorld  # noqa: E402
 
 
 def _serve(emulator, baudrate: int = 115200):

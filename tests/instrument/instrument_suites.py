@@ -18,8 +18,8 @@ import math
 import numpy as np
 import pytest
 
-from instrument.devices import TriggerMode, TriggerType
-from instrument.errors import InstrumentTimeout, OutOfRangeError
+from scopetwin.instrument.devices import TriggerMode, TriggerType
+from scopetwin.instrument.errors import InstrumentTimeout, OutOfRangeError
 
 
 class StageSuite:

@@ -10,20 +10,20 @@ import numpy as np
 import pytest
 from scipy.interpolate import RegularGridInterpolator
 
-from instrument import open_rig
-from instrument.acquisition import (
+from scopetwin.instrument import open_rig
+from scopetwin.instrument.acquisition import (
     calibration_capture,
     deflectometry_capture,
     grid,
     simultaneous_capture,
     tile_scan,
 )
-from instrument.devices import TriggerType
-from instrument.emulators import Fault
-from instrument.errors import DisconnectedError, InstrumentTimeout
-from scenes.emva1288 import EmvaSensor
-from scenes.io import read_image
-from scenes.mitsuba.widefield import BentSubstrate
+from scopetwin.instrument.devices import TriggerType
+from scopetwin.instrument.emulators import Fault
+from scopetwin.instrument.errors import DisconnectedError, InstrumentTimeout
+from scopetwin.scenes.emva1288 import EmvaSensor
+from scopetwin.scenes.io import read_image
+from scopetwin.scenes.mitsuba.widefield import BentSubstrate
 
 RIGS = Path(__file__).resolve().parents[2] / "rigs"
 
@@ -66,16 +66,16 @@ def test_tile_scan_focus_map_vs_fixed_focus(tmp_path):
 SIMULTANEOUS_RIG = """
 [devices.trigger]
 kind = "trigger"
-driver = "sim"
+driver = "scopetwin.sim"
 """ + "".join(
     f"""
 [devices.led{i}]
 kind = "light"
-driver = "sim"
+driver = "scopetwin.sim"
 max_current_ma = 1000.0
 [devices.cam{i}]
 kind = "camera"
-driver = "sim"
+driver = "scopetwin.sim"
 sensor_shape = [48, 64]
 trigger_line = {i}
 seed = {i}

@@ -9,10 +9,10 @@ pytest.importorskip("pypylon", reason="pypylon (optional extra 'hardware') is no
 
 from instrument_suites import CameraSuite  # noqa: E402
 
-from instrument.drivers.basler import BaslerCamera  # noqa: E402
-from instrument.simulated.renderers import FlatTextureRenderer  # noqa: E402
-from instrument.simulated.world import WorldState  # noqa: E402
-from scenes.emva1288 import EmvaSensor  # noqa: E402
+from scopetwin.instrument.drivers.basler import BaslerCamera  # noqa: E402
+from scopetwin.instrument.simulated.renderers import FlatTextureRenderer  # noqa: E402
+from scopetwin.instrument.simulated.world import WorldState  # noqa: E402
+from scopetwin.scenes.emva1288 import EmvaSensor  # noqa: E402
 
 
 class _CountingProxy:

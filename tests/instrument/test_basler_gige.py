@@ -13,9 +13,9 @@ import textwrap
 import numpy as np
 import pytest
 
-from instrument.drivers.basler import BaslerCamera, unpack_mono12packed
-from instrument.errors import OutOfRangeError, ProtocolError
-from instrument.rig import load_rig
+from scopetwin.instrument.drivers.basler import BaslerCamera, unpack_mono12packed
+from scopetwin.instrument.errors import OutOfRangeError, ProtocolError
+from scopetwin.instrument.rig import load_rig
 
 # two 12-bit pixels in three bytes (GigE Vision Mono12Packed), worked out by hand:
 # p0 = 0xAB1, p1 = 0x23C -> AB (p0 11..4), C1 (p1 3..0 | p0 3..0), 23 (p1 11..4)

@@ -9,8 +9,8 @@ import json
 import cv2
 import pytest
 
-from sim.cli import main
-from sim.cli.rig import EMU_NOTE
+from scopetwin.sim.cli import main
+from scopetwin.sim.cli.rig import EMU_NOTE
 from tests.instrument.cli_processes import ROOT, emulator, stop
 
 RIG = """
@@ -18,24 +18,24 @@ RIG = """
 name = "two-lights"
 [devices.x]
 kind = "stage"
-driver = "sim"
+driver = "scopetwin.sim"
 travel_mm = [0.0, 150.0]
 max_velocity_mm_s = 50.0
 [devices.focus]
 kind = "focus"
-driver = "sim"
+driver = "scopetwin.sim"
 range_um = [0.0, 400.0]
 [devices.uv]
 kind = "light"
-driver = "sim"
+driver = "scopetwin.sim"
 max_current_ma = 500.0
 [devices.deep_red]
 kind = "light"
-driver = "sim"
+driver = "scopetwin.sim"
 max_current_ma = 1000.0
 [devices.cam]
 kind = "camera"
-driver = "sim"
+driver = "scopetwin.sim"
 sensor_shape = [32, 40]
 exposure_range_s = [1.0e-4, 2.0]
 renderer = { kind = "texture", lights = ["uv"] }

@@ -10,29 +10,29 @@ import pytest
 
 pytest.importorskip("microscope", reason="python-microscope is not installed")
 
-from sim.cli import main  # noqa: E402
+from scopetwin.sim.cli import main  # noqa: E402
 from tests.instrument.cli_processes import scopetwin, stop  # noqa: E402
 
 RIG = """
 [devices.x]
 kind = "stage"
-driver = "sim"
+driver = "scopetwin.sim"
 travel_mm = [0.0, 150.0]
 max_velocity_mm_s = 50.0
 position_mm = 10.0
 [devices.y]
 kind = "stage"
-driver = "sim"
+driver = "scopetwin.sim"
 travel_mm = [0.0, 300.0]
 max_velocity_mm_s = 100.0
 position_mm = 10.0
 [devices.uv]
 kind = "light"
-driver = "sim"
+driver = "scopetwin.sim"
 max_current_ma = 500.0
 [devices.cam]
 kind = "camera"
-driver = "sim"
+driver = "scopetwin.sim"
 sensor_shape = [32, 40]
 renderer = { kind = "texture", lights = ["uv"] }
 """

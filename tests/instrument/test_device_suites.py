@@ -5,12 +5,12 @@ from __future__ import annotations
 import pytest
 from instrument_suites import CameraSuite, FocusSuite, LightSuite, ShutterSuite, StageSuite, TriggerSuite
 
-from instrument.devices import CameraLimits
-from instrument.drivers.fpga_board import FpgaBoard, FpgaLight, FpgaShutter, FpgaTrigger
-from instrument.drivers.jena_piezo import JenaPiezoFocus
-from instrument.drivers.pi_gcs import PiGcsStage
-from instrument.simulated.devices import SimCamera, SimFocus, SimLight, SimShutter, SimStage, SimTrigger
-from instrument.simulated.renderers import FlatTextureRenderer
+from scopetwin.instrument.devices import CameraLimits
+from scopetwin.instrument.drivers.fpga_board import FpgaBoard, FpgaLight, FpgaShutter, FpgaTrigger
+from scopetwin.instrument.drivers.jena_piezo import JenaPiezoFocus
+from scopetwin.instrument.drivers.pi_gcs import PiGcsStage
+from scopetwin.instrument.simulated.devices import SimCamera, SimFocus, SimLight, SimShutter, SimStage, SimTrigger
+from scopetwin.instrument.simulated.renderers import FlatTextureRenderer
 
 
 def _initialized(device):

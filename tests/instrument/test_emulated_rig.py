@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from instrument import open_rig
+from scopetwin.instrument import open_rig
 
 RIG = Path(__file__).resolve().parents[2] / "rigs" / "emulated-hardware.toml"
 

@@ -1,4 +1,5 @@
-"""instrument.emulators.serve: an emulator on a pty with a JSON log (in its own process: test_cli_emulate.py)."""
+"""scopetwin.instrument.emulators.serve: an emulator on a pty with a JSON log (in its own process:
+test_cli_emulate.py)."""
 
 from __future__ import annotations
 
@@ -9,9 +10,9 @@ import time
 import pytest
 import serial
 
-from instrument.drivers.fpga_board import FpgaBoard, FpgaLight
-from instrument.emulators.serve import parse_options, serve
-from instrument.errors import RigError
+from scopetwin.instrument.drivers.fpga_board import FpgaBoard, FpgaLight
+from scopetwin.instrument.emulators.serve import parse_options, serve
+from scopetwin.instrument.errors import RigError
 
 
 def test_parse_options():

@@ -8,14 +8,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from instrument.devices import LightConfig
-from instrument.drivers import fpga_board as fpga
-from instrument.drivers import jena_piezo, pi_gcs
-from instrument.drivers.fpga_board import FpgaBoard, FpgaLight
-from instrument.drivers.jena_piezo import JenaPiezoFocus
-from instrument.drivers.pi_gcs import PiGcsStage
-from instrument.emulators import Fault
-from instrument.errors import (
+from scopetwin.instrument.devices import LightConfig
+from scopetwin.instrument.drivers import fpga_board as fpga
+from scopetwin.instrument.drivers import jena_piezo, pi_gcs
+from scopetwin.instrument.drivers.fpga_board import FpgaBoard, FpgaLight
+from scopetwin.instrument.drivers.jena_piezo import JenaPiezoFocus
+from scopetwin.instrument.drivers.pi_gcs import PiGcsStage
+from scopetwin.instrument.emulators import Fault
+from scopetwin.instrument.errors import (
     ControllerError,
     DisconnectedError,
     InstrumentError,

@@ -20,9 +20,15 @@ import time
 
 import pytest
 
-from instrument.devices import LightConfig
-from instrument.drivers.fpga_board import WRITE, Packet, decode_light_config, decode_packet, encode_light_config
-from instrument.emulators.fpga_board import FpgaBoardEmulator, read_light_config
+from scopetwin.instrument.devices import LightConfig
+from scopetwin.instrument.drivers.fpga_board import (
+    WRITE,
+    Packet,
+    decode_light_config,
+    decode_packet,
+    encode_light_config,
+)
+from scopetwin.instrument.emulators.fpga_board import FpgaBoardEmulator, read_light_config
 
 CASES = [
     (

@@ -1,4 +1,4 @@
-"""instrument.interrupts: a signal inside a held block waits for its end; a frame and its manifest entry are
+"""scopetwin.instrument.interrupts: a signal inside a held block waits for its end; a frame and its manifest entry are
 written together even when SIGTERM arrives between them."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import threading
 import numpy as np
 import pytest
 
-import instrument.acquisition as acquisition
-from instrument.acquisition import FrameWriter
-from instrument.interrupts import deferred_signals, stop_on_signals
+import scopetwin.instrument.acquisition as acquisition
+from scopetwin.instrument.acquisition import FrameWriter
+from scopetwin.instrument.interrupts import deferred_signals, stop_on_signals
 
 
 class Stopped(KeyboardInterrupt):

@@ -18,10 +18,10 @@ import time
 import pytest
 import serial
 
-from instrument import open_rig
-from instrument.drivers.jena_piezo import DIALECTS, JenaPiezoFocus, decode_reply
-from instrument.emulators import JenaPiezoEmulator
-from instrument.errors import ControllerError, ProtocolError
+from scopetwin.instrument import open_rig
+from scopetwin.instrument.drivers.jena_piezo import DIALECTS, JenaPiezoFocus, decode_reply
+from scopetwin.instrument.emulators import JenaPiezoEmulator
+from scopetwin.instrument.errors import ControllerError, ProtocolError
 
 
 def _exchange(port: serial.Serial, request: bytes, expect: int, timeout_s: float = 1.0) -> bytes:

@@ -10,37 +10,37 @@ import pytest
 useq = pytest.importorskip("useq", reason="useq-schema (optional extra 'mm') is not installed")
 pytest.importorskip("pymmcore_plus", reason="pymmcore-plus (optional extra 'mm') is not installed")
 
-from instrument import open_rig  # noqa: E402
-from instrument.micromanager import load_into_core, run_mda  # noqa: E402
+from scopetwin.instrument import open_rig  # noqa: E402
+from scopetwin.instrument.micromanager import load_into_core, run_mda  # noqa: E402
 
 RIG = """
 [devices.x]
 kind = "stage"
-driver = "sim"
+driver = "scopetwin.sim"
 travel_mm = [0.0, 150.0]
 max_velocity_mm_s = 50.0
 position_mm = 10.0
 [devices.y]
 kind = "stage"
-driver = "sim"
+driver = "scopetwin.sim"
 travel_mm = [0.0, 300.0]
 max_velocity_mm_s = 100.0
 position_mm = 10.0
 [devices.focus]
 kind = "focus"
-driver = "sim"
+driver = "scopetwin.sim"
 position_um = 100.0
 [devices.uv]
 kind = "light"
-driver = "sim"
+driver = "scopetwin.sim"
 max_current_ma = 500.0
 [devices.deep_red]
 kind = "light"
-driver = "sim"
+driver = "scopetwin.sim"
 max_current_ma = 1000.0
 [devices.cam]
 kind = "camera"
-driver = "sim"
+driver = "scopetwin.sim"
 sensor_shape = [32, 40]
 pixel_size_um = 6.45
 magnification = 10.0

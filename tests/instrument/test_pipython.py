@@ -16,8 +16,8 @@ pytest.importorskip("pipython", reason="pipython (dev extra) is not installed")
 from pipython import GCSDevice, GCSError, pitools  # noqa: E402
 from pipython.pidevice.interfaces.piserial import PISerial  # noqa: E402
 
-from instrument.drivers.pi_gcs import PiGcsStage  # noqa: E402
-from instrument.emulators import PiGcsEmulator  # noqa: E402
+from scopetwin.instrument.drivers.pi_gcs import PiGcsStage  # noqa: E402
+from scopetwin.instrument.emulators import PiGcsEmulator  # noqa: E402
 
 
 @pytest.fixture

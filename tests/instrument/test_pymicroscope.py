@@ -12,14 +12,14 @@ pytest.importorskip("microscope", reason="python-microscope is not installed")
 
 from microscope.testsuite.test_devices import CameraTests, DeviceTests, LightSourceTests  # noqa: E402
 
-from instrument.devices import CameraLimits  # noqa: E402
-from instrument.drivers.fpga_board import FpgaBoard, FpgaLight  # noqa: E402
-from instrument.emulators import FpgaBoardEmulator  # noqa: E402
-from instrument.pymicroscope import make_device_classes, microscope_devices, serve_devices  # noqa: E402
-from instrument.rig import open_rig  # noqa: E402
-from instrument.simulated.devices import SimCamera, SimFocus, SimLight, SimStage  # noqa: E402
-from instrument.simulated.renderers import FlatTextureRenderer  # noqa: E402
-from instrument.simulated.world import VirtualWorld  # noqa: E402
+from scopetwin.instrument.devices import CameraLimits  # noqa: E402
+from scopetwin.instrument.drivers.fpga_board import FpgaBoard, FpgaLight  # noqa: E402
+from scopetwin.instrument.emulators import FpgaBoardEmulator  # noqa: E402
+from scopetwin.instrument.pymicroscope import make_device_classes, microscope_devices, serve_devices  # noqa: E402
+from scopetwin.instrument.rig import open_rig  # noqa: E402
+from scopetwin.instrument.simulated.devices import SimCamera, SimFocus, SimLight, SimStage  # noqa: E402
+from scopetwin.instrument.simulated.renderers import FlatTextureRenderer  # noqa: E402
+from scopetwin.instrument.simulated.world import VirtualWorld  # noqa: E402
 
 CLASSES = make_device_classes()
 RIGS = Path(__file__).resolve().parents[2] / "rigs"

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from instrument import open_rig
-from instrument.errors import RigError
-from instrument.rig import load_rig
-from scenes.io import read_image
-from sim.cli.rig import register
+from scopetwin.instrument import open_rig
+from scopetwin.instrument.errors import RigError
+from scopetwin.instrument.rig import load_rig
+from scopetwin.scenes.io import read_image
+from scopetwin.sim.cli.rig import register
 
 RIGS = Path(__file__).resolve().parents[2] / "rigs"
 
@@ -22,27 +22,27 @@ TEXTURE_RIG = """
 name = "texture"
 [devices.x]
 kind = "stage"
-driver = "sim"
+driver = "scopetwin.sim"
 travel_mm = [0.0, 150.0]
 max_velocity_mm_s = 50.0
 position_mm = 10.0
 [devices.y]
 kind = "stage"
-driver = "sim"
+driver = "scopetwin.sim"
 travel_mm = [0.0, 300.0]
 max_velocity_mm_s = 100.0
 position_mm = 10.0
 [devices.focus]
 kind = "focus"
-driver = "sim"
+driver = "scopetwin.sim"
 position_um = 100.0
 [devices.led]
 kind = "light"
-driver = "sim"
+driver = "scopetwin.sim"
 max_current_ma = 700.0
 [devices.camera]
 kind = "camera"
-driver = "sim"
+driver = "scopetwin.sim"
 sensor_shape = [64, 80]
 renderer = { kind = "texture" }
 """
@@ -74,7 +74,10 @@ def test_presets_load(name):
 @pytest.mark.parametrize(
     "edit, match",
     [
-        (('driver = "sim"\ntravel_mm = [0.0, 150.0]', 'driver = "warp"\ntravel_mm = [0.0, 150.0]'), "unknown driver"),
+        (
+            ('driver = "scopetwin.sim"\ntravel_mm = [0.0, 150.0]', 'driver = "warp"\ntravel_mm = [0.0, 150.0]'),
+            "unknown driver",
+        ),
         (("position_um = 100.0", "position_um = 100.0\ncolour = 3"), "unknown field"),
         (("max_current_ma = 700.0", "max_current_ma = 700.0\nshutter = 3"), "shutter must be str"),
         (("travel_mm = [0.0, 150.0]", "travel_mm = [0.0]"), "two numbers"),
@@ -134,7 +137,7 @@ def test_cli_move_position_info_acquire(texture_rig, tmp_path, capsys):
 def test_micro_manager_mda_runs_on_simulated_rig(texture_rig):
     useq = pytest.importorskip("useq", reason="useq-schema (optional extra 'mm') is not installed")
     pytest.importorskip("pymmcore_plus", reason="pymmcore-plus (optional extra 'mm') is not installed")
-    from instrument.micromanager import load_into_core
+    from scopetwin.instrument.micromanager import load_into_core
 
     with open_rig(texture_rig) as rig:
         rig.light().configure(current_ma=350.0)

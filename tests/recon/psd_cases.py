@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from scenes.setup import Setup
-from scenes.surface import HeightMap
-from sim.surfaces import make_surface
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap
+from scopetwin.sim.surfaces import make_surface
 
 #: (spectrum, B mm, C, range µm, broadband nm RMS, seed): K-correlation and power-law spectra with roll-off, not
 #: the §1.9 generator the reconstruction's defaults were chosen on.

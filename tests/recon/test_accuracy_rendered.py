@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from psd_cases import PSD_CASES, psd_surface
 
-from recon.markers import find_markers_for
-from recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
-from scenes.setup import load_setup
-from sim.measurement import apply_sensor
-from sim.pipeline import roi_errors
+from scopetwin.recon.markers import find_markers_for
+from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
+from scopetwin.scenes.setup import load_setup
+from scopetwin.sim.measurement import apply_sensor
+from scopetwin.sim.pipeline import roi_errors
 
 SETUP = load_setup("thesis-1.10-deflectometry")
 
@@ -24,7 +24,7 @@ SETUP = load_setup("thesis-1.10-deflectometry")
 @pytest.mark.mitsuba
 @pytest.mark.slow
 def test_rendered_psd_surfaces_accuracy_and_coverage(mono_variant: str) -> None:
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     sub = Substrate2D.from_setup(SETUP)
     rows = []

@@ -5,13 +5,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.bias import BiasError, PlaneTarget, correct_centroids, model_for_setup, predict_spots, spot_bias_model
-from recon.markers import centroids
-from scenes.analytic import render
-from scenes.setup import Setup, load_setup
-from scenes.surface import HeightMap
-from sim.surfaces import surface_for
-from sim.truth import marker_truth
+from scopetwin.recon.bias import (
+    BiasError,
+    PlaneTarget,
+    correct_centroids,
+    model_for_setup,
+    predict_spots,
+    spot_bias_model,
+)
+from scopetwin.recon.markers import centroids
+from scopetwin.scenes.analytic import render
+from scopetwin.scenes.setup import Setup, load_setup
+from scopetwin.scenes.surface import HeightMap
+from scopetwin.sim.surfaces import surface_for
+from scopetwin.sim.truth import marker_truth
 
 
 def target_at(alpha_deg: float) -> Setup:
@@ -97,7 +104,7 @@ def test_pixel_sampled_and_continuous_evaluations_of_the_bias_agree():
     Face-on the bias vanishes; on an oblique view both predict the same perspective bias up to the pixel
     sampling of the pixel-sampled evaluation (well below a thousandth of a pixel).
     """
-    from scenes.geometry import Frame
+    from scopetwin.scenes.geometry import Frame
 
     for alpha, expect_bias in ((90.0, False), (35.0, True)):
         setup = target_at(alpha)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.focusmap import FocusMapError, Objective, focus_map
+from scopetwin.recon.focusmap import FocusMapError, Objective, focus_map
 
 
 def test_depth_of_field_of_the_seed_objective() -> None:
@@ -43,7 +43,7 @@ def test_focus_outside_the_drive_travel_is_an_error() -> None:
 
 
 def test_focus_map_carries_each_fields_uncertainty_and_flags_wide_intervals():
-    from recon.focusmap import focus_map
+    from scopetwin.recon.focusmap import focus_map
 
     def height(x, y):
         return 1e-4 * x + 0.0 * y  # 0.1 µm/mm tilt

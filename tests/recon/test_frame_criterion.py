@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from recon.frame_criterion import frame_criterion, frame_distance
+from scopetwin.recon.frame_criterion import frame_criterion, frame_distance
 
 
 def test_delta_is_the_difference_of_the_frame_maxima() -> None:
@@ -42,10 +42,10 @@ def test_unknown_criterion_is_rejected() -> None:
 
 
 def test_the_reconstructor_records_the_frame_criterion() -> None:
-    from recon.reconstruct import MarkerObservations, ReconstructionConfig, reconstruct
-    from scenes.setup import load_setup
-    from sim.surfaces import make_surface
-    from sim.truth import marker_truth
+    from scopetwin.recon.reconstruct import MarkerObservations, ReconstructionConfig, reconstruct
+    from scopetwin.scenes.setup import load_setup
+    from scopetwin.sim.surfaces import make_surface
+    from scopetwin.sim.truth import marker_truth
 
     setup = load_setup("thesis-1.10-deflectometry")
     spec = setup.substrate.surface.model_copy(update={"kind": "cylinder", "range_um": 40.0})

@@ -5,14 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.gradients import (
+from scopetwin.recon.gradients import (
     GradientError,
     gradients_from_normals,
     marker_gradients,
     normals_from_gradients,
     normals_from_rays,
 )
-from scenes.geometry import Frame, normalize, reflect
+from scopetwin.scenes.geometry import Frame, normalize, reflect
 
 
 def _scene(rng: np.random.Generator, n: int = 200):

@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.inverse import InverseConfig, InverseReconstructor, SplineSurface
-from recon.reconstruct import Substrate2D
-from scenes.setup import load_setup
-from scenes.surface import HeightMap
+from scopetwin.recon.inverse import InverseConfig, InverseReconstructor, SplineSurface
+from scopetwin.recon.reconstruct import Substrate2D
+from scopetwin.scenes.setup import load_setup
+from scopetwin.scenes.surface import HeightMap
 
 pytest.importorskip("drjit")
 
@@ -52,7 +52,7 @@ def test_spline_fit_reproduces_a_smooth_surface(case):
 
 def test_forward_model_matches_the_analytic_reference(case):
     """The Dr.Jit model and scenes.analytic (float64, 64 jittered spp) agree to a small fraction of the signal."""
-    from scenes.analytic import render
+    from scopetwin.scenes.analytic import render
 
     setup, sub, truth, rec, lev = case
     vals, ok, _, _ = rec._linearise(lev, truth, need_jac=False)
@@ -127,8 +127,8 @@ def test_pose_jacobian_matches_finite_differences(case):
     """--refine-setup: the derivatives with respect to camera and pattern motions (AD) against finite differences."""
     from dataclasses import replace
 
-    from recon.inverse import _binned_camera, _pose_update
-    from scenes.mitsuba.deflectometry_ad import RayModel
+    from scopetwin.recon.inverse import _binned_camera, _pose_update
+    from scopetwin.scenes.mitsuba.deflectometry_ad import RayModel
 
     setup, _, truth, rec, lev = case
     rec.config = replace(rec.config, refine_setup=True)
@@ -164,10 +164,10 @@ def test_pose_jacobian_matches_finite_differences(case):
 
 
 def test_cli_inverse_rejects_a_setup_without_substrate(tmp_path):
-    from sim.cli import main
+    from scopetwin.sim.cli import main
 
     image = tmp_path / "img.exr"
-    from scenes.io import write_image
+    from scopetwin.scenes.io import write_image
 
     write_image(image, np.zeros((1024, 1360), dtype=np.float32), "{}", {})
     code = main(
@@ -188,7 +188,7 @@ def test_cli_inverse_rejects_a_setup_without_substrate(tmp_path):
 
 def test_cramer_rao_bound_scales_with_the_noise(case):
     """The bound of the pixel data on the shape: finite, and twice as large for four times the pixel variance."""
-    from sim.studies.inverse import shape_crb_um
+    from scopetwin.sim.studies.inverse import shape_crb_um
 
     _, _, truth, rec, _ = case
     var = np.full(rec.image.shape, 1e-6)
@@ -200,7 +200,7 @@ def test_cramer_rao_bound_scales_with_the_noise(case):
 
 def test_fit_in_a_basis_span_recovers_a_surface_of_that_basis(case):
     """surface="start-basis": the fit keeps to the span of the start's shifted basis and returns to a known member."""
-    from recon.shifted_basis import ShiftedBasis
+    from scopetwin.recon.shifted_basis import ShiftedBasis
 
     _, sub, _, rec, lev = case
     basis = ShiftedBasis.covering(sub.x_range, sub.y_range, 6.0, spacing=0.7, margin=1.0)
@@ -235,7 +235,7 @@ def test_fit_in_a_basis_span_recovers_a_surface_of_that_basis(case):
 
 def test_uncertainty_is_the_same_in_camera_units(case):
     """The shape uncertainty of an image in DN (gain g, variances g^2) equals that of the same image in irradiance."""
-    from recon.shifted_basis import ShiftedBasis
+    from scopetwin.recon.shifted_basis import ShiftedBasis
 
     _, sub, truth, rec, lev = case
     vals, _, _, _ = rec._linearise(lev, truth, need_jac=False)
@@ -305,7 +305,7 @@ def test_refine_setup_fits_the_pose_where_some_pixels_miss_the_substrate():
     camera moved by 5 µm; the fit with the pose free moves it back and brings chi^2 down."""
     from dataclasses import replace
 
-    from recon.inverse import _pose_update
+    from scopetwin.recon.inverse import _pose_update
 
     setup = load_setup("thesis-1.10-deflectometry")
     sub = Substrate2D.from_setup(setup)
@@ -333,7 +333,7 @@ def test_refine_setup_fits_the_pose_where_some_pixels_miss_the_substrate():
 
 
 def test_pose_steps_stay_in_their_box():
-    from recon.inverse import _box_fraction
+    from scopetwin.recon.inverse import _box_fraction
 
     bound = np.array([1.0, 2.0])
     assert _box_fraction(np.zeros(2), np.array([0.5, -1.0]), bound) == 1.0
@@ -345,10 +345,10 @@ def test_pose_steps_stay_in_their_box():
 def test_inverse_start_falls_back_in_order(monkeypatch):
     """The centroid method with its bias step; without it; a coarse fit of the markers; a plane — each taken only
     where the ones before failed, and what failed is said."""
-    import recon.markers as markers_mod
-    import recon.reconstruct as rr
-    from recon.bias import BiasError
-    from recon.inverse import inverse_start
+    import scopetwin.recon.markers as markers_mod
+    import scopetwin.recon.reconstruct as rr
+    from scopetwin.recon.bias import BiasError
+    from scopetwin.recon.inverse import inverse_start
 
     setup = load_setup("thesis-1.10-deflectometry")
     image = np.zeros((setup.camera_model.ny, setup.camera_model.nx))

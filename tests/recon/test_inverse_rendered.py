@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import pytest
 
-from recon.inverse import reconstruct_inverse
-from recon.markers import find_markers_for
-from recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
-from scenes.setup import load_setup
-from sim.measurement import apply_sensor
-from sim.pipeline import roi_errors
-from sim.surfaces import surface_for
+from scopetwin.recon.inverse import reconstruct_inverse
+from scopetwin.recon.markers import find_markers_for
+from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
+from scopetwin.scenes.setup import load_setup
+from scopetwin.sim.measurement import apply_sensor
+from scopetwin.sim.pipeline import roi_errors
+from scopetwin.sim.surfaces import surface_for
 
 SETUP = load_setup("thesis-1.10-deflectometry")
 
@@ -21,7 +21,7 @@ SETUP = load_setup("thesis-1.10-deflectometry")
 @pytest.mark.mitsuba
 @pytest.mark.slow
 def test_inverse_fit_of_a_noisy_render_beats_the_centroid_method_and_covers_its_error(mono_variant: str) -> None:
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     truth = surface_for(SETUP)
     assert truth is not None
@@ -52,7 +52,7 @@ def test_inverse_fit_of_a_surface_the_flood_could_not_index(mono_variant: str) -
     """3 mm correlation / 60 µm, surface seed 2, EMVA noise: the seed's flood indexed 1 marker and the inverse fit
     started from a plane (10-11 µm shape). The topological indexing numbers ~450 markers, the centroid method
     restarts with a basis scale that fits, and the inverse fit from it meets the issue's 0.05 µm."""
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     over = {"substrate": {"surface": {"correlation_length": 3.0, "range_um": 60.0, "seed": 2}}}
     setup = load_setup("thesis-1.10-deflectometry", over)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.markers import (
+from scopetwin.recon.markers import (
     MarkerError,
     background_level,
     centroids,

@@ -10,12 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-from scenes.analytic import render
-from scenes.io import write_image
-from scenes.setup import load_setup
-from sim.cli import main as scopetwin_main
-from sim.cli.markers import register
-from sim.truth import marker_truth
+from scopetwin.scenes.analytic import render
+from scopetwin.scenes.io import write_image
+from scopetwin.scenes.setup import load_setup
+from scopetwin.sim.cli import main as scopetwin_main
+from scopetwin.sim.cli.markers import register
+from scopetwin.sim.truth import marker_truth
 
 SETUP_TOML = """base = "thesis-2.8.1-angular"
 [camera]

@@ -1,6 +1,6 @@
 """Marker identification where it used to fail (issue 14 item 5): low exposures, strongly bent substrates.
 
-Indices are checked against :mod:`sim.truth`: a marker is wrongly indexed when the true image nearest to its
+Indices are checked against :mod:`scopetwin.sim.truth`: a marker is wrongly indexed when the true image nearest to its
 centroid belongs to another marker (centroid bias on a strongly bent substrate reaches ~2 px, a pitch is ~20 px).
 """
 
@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from recon.markers import MarkerError, find_markers_for
-from scenes.setup import load_setup
-from sim.measurement import apply_sensor
-from sim.surfaces import surface_for
-from sim.truth import marker_truth
+from scopetwin.recon.markers import MarkerError, find_markers_for
+from scopetwin.scenes.setup import load_setup
+from scopetwin.sim.measurement import apply_sensor
+from scopetwin.sim.surfaces import surface_for
+from scopetwin.sim.truth import marker_truth
 
 
 def _wrong_indices(markers, truth) -> int:
@@ -26,7 +26,7 @@ def _wrong_indices(markers, truth) -> int:
 @pytest.mark.mitsuba
 def test_low_exposure_calibration_view_finds_every_marker():
     """2 % and 5 % of the full well at the peak (``study noise`` lost both: 'no reference marker')."""
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     setup = load_setup("thesis-2.8.3-substrate")
     truth = marker_truth(setup)
@@ -53,7 +53,7 @@ def test_strongly_bent_substrate_indexed_without_wrong_indices(seed, indexing):
     the grid's image step changes from 20 to 47 px across the reference marker: the flood reached 12 markers (1
     with sensor noise), the topological indexing (``index_lattice``) that takes over reaches ~450.
     """
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     over = {"substrate": {"surface": {"correlation_length": 3.0, "range_um": 60.0, "seed": seed}}}
     setup = load_setup("thesis-1.10-deflectometry", over)
@@ -67,7 +67,7 @@ def test_strongly_bent_substrate_indexed_without_wrong_indices(seed, indexing):
 
 def test_tied_reference_candidates_say_what_to_change():
     """Two equally large candidates near the nominal reference image: one error line that says what to do."""
-    from recon.markers.filtering import find_reference
+    from scopetwin.recon.markers.filtering import find_reference
 
     pts = np.array([[100.0, 100.0], [110.0, 100.0], [300.0, 300.0]])
     ratio = np.array([2.0, 1.9, 5.0])
@@ -84,10 +84,10 @@ def test_tied_reference_candidates_say_what_to_change():
 def test_tied_reference_marker_decided_by_which_candidate_reconstructs() -> None:
     """3 mm / 60 µm surface seed 7: four spots about as large as the reference marker should be near its nominal
     image. Taken as the reference in turn, only the true one gives markers whose surface lies on the frame."""
-    from recon.markers import ReferenceTieError
-    from recon.reconstruct import Substrate2D, centroid_bias_step, reconstruct_image
-    from scenes.mitsuba.render import render_setup
-    from sim.pipeline import roi_errors
+    from scopetwin.recon.markers import ReferenceTieError
+    from scopetwin.recon.reconstruct import Substrate2D, centroid_bias_step, reconstruct_image
+    from scopetwin.scenes.mitsuba.render import render_setup
+    from scopetwin.sim.pipeline import roi_errors
 
     over = {"substrate": {"surface": {"correlation_length": 3.0, "range_um": 60.0, "seed": 7}}}
     setup = load_setup("thesis-1.10-deflectometry", over)

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.markers import find_markers_for
-from scenes.setup import Setup, load_setup
-from sim.surfaces import surface_for
-from sim.truth import marker_truth
+from scopetwin.recon.markers import find_markers_for
+from scopetwin.scenes.setup import Setup, load_setup
+from scopetwin.sim.surfaces import surface_for
+from scopetwin.sim.truth import marker_truth
 
 
 def _noisy(setup: Setup, image: np.ndarray, seed: int) -> np.ndarray:
@@ -30,7 +30,7 @@ def _compare(markers, truth) -> tuple[int, int, int, np.ndarray]:
 
 @pytest.mark.mitsuba
 def test_deflectometry_1_10_every_whole_marker_found_and_indexed():
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     setup = load_setup("thesis-1.10-deflectometry")
     heights = surface_for(setup)
@@ -48,7 +48,7 @@ def test_deflectometry_1_10_every_whole_marker_found_and_indexed():
 def test_calibration_target_angular_view_analytic_render():
     # §2.8.1 angular view on a 4x coarser camera (same field of view), rendered with the numpy reference
     setup = load_setup("thesis-2.8.1-angular", {"camera": {"pixels": [340, 256], "pixel_pitch": 0.0186}})
-    from scenes.analytic import render
+    from scopetwin.scenes.analytic import render
 
     truth = marker_truth(setup)
     clean = render(setup, spp=4, seed=0)
@@ -64,7 +64,7 @@ def test_deflectometry_on_a_coarser_camera_analytic_render():
     # the §1.10 setup on a 2x coarser camera (same field of view) with the numpy reference renderer,
     # so the mirror-view indexing is checked without Mitsuba
     setup = load_setup("thesis-1.10-deflectometry", {"camera": {"pixels": [680, 512], "pixel_pitch": 0.0093}})
-    from scenes.analytic import render
+    from scopetwin.scenes.analytic import render
 
     heights = surface_for(setup)
     truth = marker_truth(setup, heights)

@@ -5,13 +5,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.posterior import GradientGP, Hyper, fit_hyper, frame_posterior, gradient_kernel, height_gradient_kernel
+from scopetwin.recon.posterior import (
+    GradientGP,
+    Hyper,
+    fit_hyper,
+    frame_posterior,
+    gradient_kernel,
+    height_gradient_kernel,
+)
 
 HYPER = Hyper(smooth_amp=0.01, smooth_len=10.0, broad_amp=2e-6, broad_len=1.0, noise=1e-6)
 
 
 def test_gradient_kernels_are_derivatives_of_the_height_kernel() -> None:
-    from recon.posterior import height_kernel
+    from scopetwin.recon.posterior import height_kernel
 
     rng = np.random.default_rng(0)
     p = rng.uniform(-10, 10, (5, 2))
@@ -36,7 +43,7 @@ def test_gradient_kernels_are_derivatives_of_the_height_kernel() -> None:
 
 def _draw(hyper: Hyper, xy: np.ndarray, extra: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """A joint prior draw of gradients at xy and heights at extra (exact, by Cholesky)."""
-    from recon.posterior import height_kernel
+    from scopetwin.recon.posterior import height_kernel
 
     kgg = gradient_kernel(xy, Hyper(hyper.smooth_amp, hyper.smooth_len, hyper.broad_amp, hyper.broad_len, 0.0))
     kfg = height_gradient_kernel(extra, xy, hyper)

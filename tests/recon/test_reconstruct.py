@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from psd_cases import PSD_CASES, psd_surface
 
-from recon.reconstruct import (
+from scopetwin.recon.reconstruct import (
     MarkerObservations,
     NotConvergedError,
     ReconstructionConfig,
@@ -18,10 +18,10 @@ from recon.reconstruct import (
     TooFewMarkersError,
     reconstruct,
 )
-from scenes.setup import load_setup
-from scenes.surface import HeightMap
-from sim.surfaces import make_surface
-from sim.truth import marker_truth
+from scopetwin.scenes.setup import load_setup
+from scopetwin.scenes.surface import HeightMap
+from scopetwin.sim.surfaces import make_surface
+from scopetwin.sim.truth import marker_truth
 
 SETUP = load_setup("thesis-1.10-deflectometry")
 FAST = ReconstructionConfig.realtime(outer_tol_um=1e-3)
@@ -144,7 +144,7 @@ def test_basis_scale_is_chosen_from_the_data_on_a_rough_surface() -> None:
 def _cli(argv: list[str]) -> dict:
     import argparse
 
-    from sim.cli.reconstruct import register
+    from scopetwin.sim.cli.reconstruct import register
 
     parser = argparse.ArgumentParser(prog="scopetwin")
     register(parser.add_subparsers(dest="command", required=True))
@@ -153,7 +153,7 @@ def _cli(argv: list[str]) -> dict:
 
 
 def test_cli_bad_input_writes_nothing(tmp_path: Path) -> None:
-    from scenes.errors import ScopetwinError
+    from scopetwin.scenes.errors import ScopetwinError
 
     out = tmp_path / "h.exr"
     with pytest.raises(ScopetwinError, match="does not exist"):
@@ -165,9 +165,9 @@ def test_cli_bad_input_writes_nothing(tmp_path: Path) -> None:
 
 @pytest.mark.mitsuba
 def test_cli_reconstructs_a_rendered_image(tmp_path: Path) -> None:
-    from scenes.io import read_heightmap, write_image
-    from scenes.mitsuba.render import render_setup
-    from sim.surfaces import surface_for
+    from scopetwin.scenes.io import read_heightmap, write_image
+    from scopetwin.scenes.mitsuba.render import render_setup
+    from scopetwin.sim.surfaces import surface_for
 
     truth = surface_for(SETUP)
     image = tmp_path / "meas.exr"
@@ -189,7 +189,7 @@ def test_cli_reconstructs_a_rendered_image(tmp_path: Path) -> None:
     assert {"heights", "outer_iterations", "inner_iterations", "delta_h_max_um", "seconds"} <= set(result)
     u = result["uncertainty"]  # DESIGN.md: one standard uncertainty each, µm
     assert 0 < u["absolute_um"] < 0.5 and 0 < u["shape_um"] < 0.5
-    from scenes.io import read_heightmap_std
+    from scopetwin.scenes.io import read_heightmap_std
 
     std = read_heightmap_std(out)
     assert std is not None and std.z.shape == read_heightmap(out).z.shape
@@ -202,7 +202,7 @@ def test_cli_reconstructs_a_rendered_image(tmp_path: Path) -> None:
 
 
 def test_misindexed_markers_are_an_error_not_a_tilted_map(tilt, tmp_path: Path) -> None:
-    from recon.reconstruct import InconsistentError
+    from scopetwin.recon.reconstruct import InconsistentError
 
     h, obs = tilt
     shifted = MarkerObservations(obs.ij + np.array([0, 1]), obs.px)  # every marker one row off
@@ -215,10 +215,11 @@ def test_misindexed_markers_are_an_error_not_a_tilted_map(tilt, tmp_path: Path) 
 
 
 def test_one_secant_intersection_for_height_maps_fitted_surfaces_and_functions() -> None:
-    """scenes.surface.secant_intersection (seed §1.6.4) serves the truth tracer and the reconstruction alike."""
-    from recon.reconstruct import Substrate2D, intersect_surface
-    from recon.shifted_basis import SBFSurface
-    from scenes.surface import Substrate, secant_intersection
+    """scopetwin.scenes.surface.secant_intersection (seed §1.6.4) serves the truth tracer and the reconstruction
+    alike."""
+    from scopetwin.recon.reconstruct import Substrate2D, intersect_surface
+    from scopetwin.recon.shifted_basis import SBFSurface
+    from scopetwin.scenes.surface import Substrate, secant_intersection
 
     sub = SETUP.substrate
     basis = ReconstructionConfig.realtime().make_basis(Substrate2D.from_setup(SETUP))
@@ -249,7 +250,7 @@ def test_one_secant_intersection_for_height_maps_fitted_surfaces_and_functions()
 @pytest.mark.slow
 def test_psd_surfaces_with_broadband_content_are_covered_by_their_uncertainty() -> None:
     """Six PSD surfaces (exact marker images + 0.005 px centroid noise): accuracy, and |error| within 2-3 u."""
-    from scenes.errors import ScopetwinError
+    from scopetwin.scenes.errors import ScopetwinError
 
     rows = []
     for case in PSD_CASES:
@@ -318,8 +319,8 @@ def test_coarse_fit_of_a_strongly_bent_substrate_has_its_shape() -> None:
     """3 mm / 60 µm (a surface on which the nested iteration fails, with and without the bias step, on renders):
     the markers' gradients at the frame height, fitted with a scale chosen on them, give the shape to a fraction of
     a µm (the tilt that the start height's ~30 µm error forces aside) — the inverse fit's start there."""
-    from sim.pipeline import roi_errors
-    from sim.studies.inverse import untilted_shape_um
+    from scopetwin.sim.pipeline import roi_errors
+    from scopetwin.sim.studies.inverse import untilted_shape_um
 
     bent = {"substrate": {"surface": {"correlation_length": 3.0, "range_um": 60.0, "seed": 5}}}
     setup = load_setup("thesis-1.10-deflectometry", bent)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.shifted_basis import BasisError, SBFSurface, ShiftedBasis, fit_gradients
+from scopetwin.recon.shifted_basis import BasisError, SBFSurface, ShiftedBasis, fit_gradients
 
 
 def _samples(rng: np.random.Generator, n: int = 600):

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from scenes.camera import Camera, ThinLens, concentric_disk, pose_parameters
-from scenes.errors import GeometryError
-from scenes.setup import load_setup, preset_names
+from scopetwin.scenes.camera import Camera, ThinLens, concentric_disk, pose_parameters
+from scopetwin.scenes.errors import GeometryError
+from scopetwin.scenes.setup import load_setup, preset_names
 
 
 def _cameras():

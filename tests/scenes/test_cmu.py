@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenes.cmu import spectra
-from scenes.cmu.analysis import (
+from scopetwin.scenes.cmu import spectra
+from scopetwin.scenes.cmu.analysis import (
     analyse,
     best_focus,
     channel_optics,
@@ -14,11 +14,11 @@ from scenes.cmu.analysis import (
     perpendicular_optics,
     wavefront_psf,
 )
-from scenes.cmu.layout import load_cmu_setup
-from scenes.cmu.plates import bow_radius, fused_silica_index, plate_heightmap
-from scenes.errors import SetupError
-from scenes.spots import pupil_disk
-from scenes.surface import HeightMap
+from scopetwin.scenes.cmu.layout import load_cmu_setup
+from scopetwin.scenes.cmu.plates import bow_radius, fused_silica_index, plate_heightmap
+from scopetwin.scenes.errors import SetupError
+from scopetwin.scenes.spots import pupil_disk
+from scopetwin.scenes.surface import HeightMap
 
 
 @pytest.fixture(scope="module")

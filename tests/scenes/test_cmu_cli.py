@@ -7,9 +7,9 @@ import json
 
 import pytest
 
-from scenes.errors import ScopetwinError
-from sim.cli import main
-from sim.cli.optics import cmd_cmu, register_cmu
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.sim.cli import main
+from scopetwin.sim.cli.optics import cmd_cmu, register_cmu
 
 
 def _parse(argv: list[str]) -> argparse.Namespace:

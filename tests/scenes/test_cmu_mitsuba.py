@@ -8,12 +8,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from calib.channels import measure_channel, relative_pose
-from scenes.cmu.analysis import CHANNEL_WAVELENGTH_NM, Optics, analyse, channel_optics, image_rays
-from scenes.cmu.layout import load_cmu_setup
-from scenes.cmu.plates import plate_heightmap
-from scenes.cmu.trace import Rays, System
-from scenes.spots import pupil_disk
+from scopetwin.calib.channels import measure_channel, relative_pose
+from scopetwin.scenes.cmu.analysis import CHANNEL_WAVELENGTH_NM, Optics, analyse, channel_optics, image_rays
+from scopetwin.scenes.cmu.layout import load_cmu_setup
+from scopetwin.scenes.cmu.plates import plate_heightmap
+from scopetwin.scenes.cmu.trace import Rays, System
+from scopetwin.scenes.spots import pupil_disk
 
 pytestmark = pytest.mark.mitsuba
 WINDOW = (90, 266, 860, 860)  # rows 90..949, cols 266..1125: the whole 775 px frame at m = 10
@@ -26,7 +26,7 @@ def setup():
 
 @pytest.fixture(scope="module")
 def mc():
-    from scenes.mitsuba import cmu
+    from scopetwin.scenes.mitsuba import cmu
 
     return cmu
 

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from scenes.analytic import render_pixels
-from scenes.setup import load_setup
-from scenes.surface import HeightMap
-from sim.surfaces import surface_for
-from sim.truth import marker_truth
+from scopetwin.scenes.analytic import render_pixels
+from scopetwin.scenes.setup import load_setup
+from scopetwin.scenes.surface import HeightMap
+from scopetwin.sim.surfaces import surface_for
+from scopetwin.sim.truth import marker_truth
 
 pytestmark = pytest.mark.mitsuba
 SPP = 16
@@ -44,7 +44,7 @@ def _centroid(image: np.ndarray, box: tuple[slice, slice]) -> np.ndarray:
 
 
 def _compare(setup, heights, max_markers: int = 160, seed: int = 1):
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     truth = marker_truth(setup, heights)
     vis = np.flatnonzero(truth.visible)
@@ -75,7 +75,7 @@ def test_mitsuba_centroids_match_the_analytic_renderer(name):
 
 def test_flat_substrate_centroids_are_the_projected_marker_centres():
     """A flat substrate is a plane mirror parallel-imaging the pattern: no spot bias, centroid = centre image."""
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     setup = load_setup("thesis-1.10-deflectometry")
     flat = HeightMap(np.zeros((8, 8)), -12.6, 12.6, -28.5, 28.5)

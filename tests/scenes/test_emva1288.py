@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from scenes.emva1288 import EmvaSensor
-from scenes.errors import GeometryError
+from scopetwin.scenes.emva1288 import EmvaSensor
+from scopetwin.scenes.errors import GeometryError
 
 
 def test_photon_transfer_mean_and_variance():

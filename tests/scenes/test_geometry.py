@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from scenes.errors import GeometryError
-from scenes.geometry import Frame, intersect_plane, normalize, reflect, refract
+from scopetwin.scenes.errors import GeometryError
+from scopetwin.scenes.geometry import Frame, intersect_plane, normalize, reflect, refract
 
 
 def test_thesis_four_digit_axes_become_exactly_orthonormal():

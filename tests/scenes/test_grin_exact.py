@@ -5,16 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenes.grin.paraxial import rod_paraxial, stack_matrix, system_paraxial
-from scenes.grin.profiles import ParabolicN2Profile, PolynomialProfile, SechProfile
-from scenes.grin.rkn import rkn_rod, trace_stack
+from scopetwin.scenes.grin.paraxial import rod_paraxial, stack_matrix, system_paraxial
+from scopetwin.scenes.grin.profiles import ParabolicN2Profile, PolynomialProfile, SechProfile
+from scopetwin.scenes.grin.rkn import rkn_rod, trace_stack
 
 N0, G = 1.62893, 0.3074745
 
 
 def _dr_rkn(x, y, tx, ty, tz, profile, length, steps, radius=10.0):
-    grin = pytest.importorskip("scenes.mitsuba.grin")
-    from scenes.mitsuba.variant import choose, mitsuba
+    grin = pytest.importorskip("scopetwin.scenes.mitsuba.grin")
+    from scopetwin.scenes.mitsuba.variant import choose, mitsuba
 
     F = mitsuba(choose("mono")).Float64  # the variant is chosen here, not by importing the renderer
     out = grin.rkn_rod_dr(F(x), F(y), F(tx), F(ty), F(tz), profile, length, steps, radius)
@@ -86,7 +86,7 @@ def test_single_rod_paraxial_matches_abcd(length):
 
 
 def test_objective_paraxial_matches_abcd():
-    from scenes.grin import load_grin_setup
+    from scopetwin.scenes.grin import load_grin_setup
 
     setup = load_grin_setup("thesis-8.3.2-grin-realized")
     st = setup.stack()

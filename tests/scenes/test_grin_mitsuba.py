@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenes.grin import load_grin_setup
-from scenes.grin.analysis import analyse, chief_ray
-from scenes.grin.rkn import trace_stack
-from scenes.grin.targets import target
-from scenes.spots import pupil_disk
+from scopetwin.scenes.grin import load_grin_setup
+from scopetwin.scenes.grin.analysis import analyse, chief_ray
+from scopetwin.scenes.grin.rkn import trace_stack
+from scopetwin.scenes.grin.targets import target
+from scopetwin.scenes.spots import pupil_disk
 
-grin = pytest.importorskip("scenes.mitsuba.grin")
+grin = pytest.importorskip("scopetwin.scenes.mitsuba.grin")
 pytestmark = pytest.mark.mitsuba
 
 
@@ -87,8 +87,8 @@ def test_rod_acceptance_has_the_closed_form_of_the_parabolic_profile(mono_varian
     A = R allows for the wall being tested at the step points); the surviving share of a Lambertian source is
     then T_max² (the T with A = R), which the sampled share reproduces.
     """
-    from scenes.grin.glass import AIR
-    from scenes.grin.setup import Layer, ParabolicN2Spec, RodSpec, Stack
+    from scopetwin.scenes.grin.glass import AIR
+    from scopetwin.scenes.grin.setup import Layer, ParabolicN2Spec, RodSpec, Stack
 
     n0, g, radius, gap = 1.6, 1.0, 0.5, 0.05
     spec = ParabolicN2Spec(kind="parabolic_n2", n0=n0, g=g)
@@ -130,7 +130,7 @@ def test_rod_acceptance_has_the_closed_form_of_the_parabolic_profile(mono_varian
 
 def test_illumination_matches_numpy_reference():
     """The Mitsuba light trace loses no ray the float64 numpy stack trace keeps (the zero-thickness layer bug)."""
-    from scenes.grin.illumination import illumination_stack
+    from scopetwin.scenes.grin.illumination import illumination_stack
 
     s = load_grin_setup("thesis-7.5.2-grin-egfp")
     st = illumination_stack(s)
@@ -151,8 +151,8 @@ def test_illumination_matches_numpy_reference():
 
 
 def test_coincident_planes_are_rejected(realized):
-    from scenes.errors import ScopetwinError
-    from scenes.grin.setup import Layer, Stack
+    from scopetwin.scenes.errors import ScopetwinError
+    from scopetwin.scenes.grin.setup import Layer, Stack
 
     s, st = realized
     last = st.layers[-1]
@@ -169,7 +169,7 @@ def test_coincident_planes_are_rejected(realized):
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_interleaved_rkn_equals_plain(dtype, mono_variant):
-    from scenes.grin.profiles import PolynomialProfile
+    from scopetwin.scenes.grin.profiles import PolynomialProfile
 
     F = grin.float_type(dtype, mono_variant)
     prof = PolynomialProfile()

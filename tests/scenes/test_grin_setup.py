@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenes.errors import ScopetwinError, SetupError
-from scenes.grin import load_grin_setup, profile_override
-from scenes.grin.analysis import analyse
-from scenes.grin.glass import glass
-from scenes.grin.targets import TargetError, target
+from scopetwin.scenes.errors import ScopetwinError, SetupError
+from scopetwin.scenes.grin import load_grin_setup, profile_override
+from scopetwin.scenes.grin.analysis import analyse
+from scopetwin.scenes.grin.glass import glass
+from scopetwin.scenes.grin.targets import TargetError, target
 
 PRESETS = ["thesis-7.5.2-grin-egfp", "thesis-8.3.1-grin-optimized", "thesis-8.3.2-grin-realized"]
 

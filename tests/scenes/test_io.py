@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from scenes.errors import FileFormatError
-from scenes.io import read_heightmap, read_image, write_heightmap, write_image
-from scenes.surface import HeightMap
+from scopetwin.scenes.errors import FileFormatError
+from scopetwin.scenes.io import read_heightmap, read_image, write_heightmap, write_image
+from scopetwin.scenes.surface import HeightMap
 
 
 def test_heightmap_round_trip(tmp_path, rng):

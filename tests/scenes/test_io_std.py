@@ -4,8 +4,8 @@
 def test_height_map_carries_an_optional_z_std_channel(tmp_path):
     import numpy as np
 
-    from scenes.io import read_heightmap, read_heightmap_std, write_heightmap
-    from scenes.surface import HeightMap
+    from scopetwin.scenes.io import read_heightmap, read_heightmap_std, write_heightmap
+    from scopetwin.scenes.surface import HeightMap
 
     z = HeightMap(np.arange(30.0).reshape(5, 6) * 1e-3, -1.0, 1.0, -2.0, 2.0)
     s = HeightMap(np.full((5, 6), 2e-5), -1.0, 1.0, -2.0, 2.0)

@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenes.camera import PixelGrid
-from scenes.camera_spec import CameraGridSpec
-from scenes.cmu.layout import load_cmu_setup
-from scenes.grin.profiles import NP, PolynomialProfile
-from scenes.grin.rkn import rkn_rod, rkn_step
-from scenes.grin.setup import load_grin_setup
-from scenes.objective import Objective
-from scenes.setup import NoiseModelSpec, load_setup
-from scenes.spots import airy_radius, pupil_disk, rms_radius
+from scopetwin.scenes.camera import PixelGrid
+from scopetwin.scenes.camera_spec import CameraGridSpec
+from scopetwin.scenes.cmu.layout import load_cmu_setup
+from scopetwin.scenes.grin.profiles import NP, PolynomialProfile
+from scopetwin.scenes.grin.rkn import rkn_rod, rkn_step
+from scopetwin.scenes.grin.setup import load_grin_setup
+from scopetwin.scenes.objective import Objective
+from scopetwin.scenes.setup import NoiseModelSpec, load_setup
+from scopetwin.scenes.spots import airy_radius, pupil_disk, rms_radius
 
 
 # -- the pixel grid ------------------------------------------------------------------------------------------
@@ -111,7 +111,7 @@ def test_rod_is_the_step_repeated(rng):
 
 
 def test_drjit_loop_runs_the_same_step(monkeypatch, mono_variant):
-    grin = pytest.importorskip("scenes.mitsuba.grin")
+    grin = pytest.importorskip("scopetwin.scenes.mitsuba.grin")
     calls = []
 
     def counting(*args, **kwargs):
@@ -140,8 +140,8 @@ def test_spot_metrics():
 
 # -- one objective model -----------------------------------------------------------------------------------------
 def test_one_objective_for_the_focus_map_and_the_widefield_renderer():
-    from recon.focusmap import Objective as FocusObjective
-    from scenes.mitsuba.widefield import WidefieldOptics
+    from scopetwin.recon.focusmap import Objective as FocusObjective
+    from scopetwin.scenes.mitsuba.widefield import WidefieldOptics
 
     assert FocusObjective is Objective
     obj = Objective()

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from scenes.errors import GeometryError
-from scenes.geometry import Frame
-from scenes.pattern import MarkerPattern
+from scopetwin.scenes.errors import GeometryError
+from scopetwin.scenes.geometry import Frame
+from scopetwin.scenes.pattern import MarkerPattern
 
 
 def _p(n_x, n_y, layout, **kw):

@@ -2,8 +2,8 @@
 
 import pytest
 
-from scenes.errors import SetupError
-from scenes.setup import load_setup, preset_info, preset_names
+from scopetwin.scenes.errors import SetupError
+from scopetwin.scenes.setup import load_setup, preset_info, preset_names
 
 PART_ONE = [
     "thesis-1.10-deflectometry",

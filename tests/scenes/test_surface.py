@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from scenes.errors import GeometryError
-from scenes.geometry import normalize
-from scenes.surface import HeightMap, Substrate
+from scopetwin.scenes.errors import GeometryError
+from scopetwin.scenes.geometry import normalize
+from scopetwin.scenes.surface import HeightMap, Substrate
 
 
 def _cubic(x, y):

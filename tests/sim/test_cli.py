@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from scenes.io import read_heightmap, read_image, write_image
-from sim.cli import main
+from scopetwin.scenes.io import read_heightmap, read_image, write_image
+from scopetwin.sim.cli import main
 
 SMALL = """
 base = "thesis-2.8.1-angular"
@@ -43,8 +43,8 @@ def test_render_writes_contract_files(tmp_path, capsys):
 
 
 def test_render_deflectometry_with_user_surface(tmp_path, capsys):
-    from scenes.io import write_heightmap
-    from scenes.surface import HeightMap
+    from scopetwin.scenes.io import write_heightmap
+    from scopetwin.scenes.surface import HeightMap
 
     hm = HeightMap.from_function(lambda x, y: -1e-5 * y**2 + 0.0081225, -12.6, 12.6, -28.5, 28.5, 32, 64)
     write_heightmap(tmp_path / "z.exr", hm)

@@ -8,13 +8,13 @@ import types
 import numpy as np
 import pytest
 
-from scenes import limits
-from scenes.errors import SetupError
-from scenes.grin import load_grin_setup
-from scenes.grin.setup import check_image_window
-from scenes.io import read_image, write_image
-from scenes.limits import LimitError, check_image_size, check_render
-from sim.cli import main
+from scopetwin.scenes import limits
+from scopetwin.scenes.errors import SetupError
+from scopetwin.scenes.grin import load_grin_setup
+from scopetwin.scenes.grin.setup import check_image_window
+from scopetwin.scenes.io import read_image, write_image
+from scopetwin.scenes.limits import LimitError, check_image_size, check_render
+from scopetwin.sim.cli import main
 
 GRIN = "thesis-8.3.2-grin-realized"
 
@@ -131,7 +131,7 @@ def test_grin_and_cmu_numbers_are_finite():
         load_grin_setup(GRIN, {"rod1": {"length": float("inf")}})
     with pytest.raises(SetupError, match="width_px x height_px"):
         load_grin_setup(GRIN, {"camera": {"width_px": 200000, "height_px": 200000}})
-    from scenes.cmu.layout import load_cmu_setup
+    from scopetwin.scenes.cmu.layout import load_cmu_setup
 
     with pytest.raises(SetupError, match="nan|finite"):
         load_cmu_setup("thesis-cmu", {"camera": {"pixel_um": float("nan")}})
@@ -228,7 +228,7 @@ def test_grin_image_just_past_the_bound_sees_light_and_has_a_preview(tmp_path, c
 
 # -- previews of optics cmu --out -------------------------------------------------------------------------------------
 def test_cmu_out_writes_a_png_preview_per_image(tmp_path, capsys, monkeypatch):
-    import sim.cli.optics as optics
+    import scopetwin.sim.cli.optics as optics
 
     def fake_render(setup, maps, table, out, spp, stop, cells):  # the analyses stay real, the renders do not
         files = {}
@@ -249,7 +249,7 @@ def test_cmu_out_writes_a_png_preview_per_image(tmp_path, capsys, monkeypatch):
 
 # -- legible overlays and the N_z note ------------------------------------------------------------------------------
 def test_label_step_keeps_labels_apart():
-    from sim.figures import label_step
+    from scopetwin.sim.figures import label_step
 
     cols, rows = np.meshgrid(np.arange(20) * 27.0, np.arange(20) * 27.0)
     pts = np.stack([cols.ravel(), rows.ravel()], axis=1)
@@ -259,7 +259,7 @@ def test_label_step_keeps_labels_apart():
 
 
 def test_overlay_draws_the_reference_label_with_a_halo():
-    from sim.figures import overlay_image
+    from scopetwin.sim.figures import overlay_image
 
     ij = np.array([(i, j) for j in range(-6, 7) for i in range(-6, 7)])
 
@@ -280,7 +280,7 @@ def test_overlay_draws_the_reference_label_with_a_halo():
 
 
 def test_nz_note_is_said_plainly():
-    from sim.cli.calibrate import _warnings
+    from scopetwin.sim.cli.calibrate import _warnings
 
     cal = types.SimpleNamespace(
         warnings=(
@@ -322,7 +322,7 @@ def test_the_reworded_note_still_matches_the_calibration():
     """The CLI recognises the calibration's mirror-ambiguity note by its wording: the two must not drift apart."""
     import inspect
 
-    import calib.oneshot.calibration as calibration
-    from sim.cli.calibrate import _AMBIGUOUS
+    import scopetwin.calib.oneshot.calibration as calibration
+    from scopetwin.sim.cli.calibrate import _AMBIGUOUS
 
     assert _AMBIGUOUS in inspect.getsource(calibration)

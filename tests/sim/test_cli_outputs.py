@@ -13,8 +13,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_dataset_common import write_tiny  # noqa: E402
 
-from sim.cli import main  # noqa: E402
-from sim.cli import outputs as outputs_mod  # noqa: E402
+from scopetwin.sim.cli import main  # noqa: E402
+from scopetwin.sim.cli import outputs as outputs_mod  # noqa: E402
 
 SMALL = """
 base = "thesis-2.8.1-angular"
@@ -93,9 +93,9 @@ def _failing_json(monkeypatch, name: str) -> None:
     """Make the atomic write of the file ``name`` fail as on a full disk (other files are written normally)."""
     import contextlib
 
-    import scenes.io
+    from scopetwin.scenes import io as scenes_io
 
-    real = scenes.io.atomic_path
+    real = scenes_io.atomic_path
 
     @contextlib.contextmanager
     def atomic_path(path):
@@ -104,7 +104,7 @@ def _failing_json(monkeypatch, name: str) -> None:
         with real(path) as tmp:
             yield tmp
 
-    monkeypatch.setattr(scenes.io, "atomic_path", atomic_path)
+    monkeypatch.setattr(scenes_io, "atomic_path", atomic_path)
 
 
 def test_a_failing_json_after_the_render_leaves_no_result(tmp_path, capsys, setup_file, monkeypatch):
@@ -119,7 +119,7 @@ def test_a_failing_json_after_the_render_leaves_no_result(tmp_path, capsys, setu
 
 
 def test_a_write_failing_inside_a_command_is_one_line(tmp_path, capsys, setup_file, monkeypatch):
-    import sim.cli.render as render_cli
+    import scopetwin.sim.cli.render as render_cli
 
     def full(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device", "image.exr")
@@ -132,7 +132,7 @@ def test_a_write_failing_inside_a_command_is_one_line(tmp_path, capsys, setup_fi
 
 
 def test_openexr_write_errors_become_oserrors():
-    from scenes.io import exr_write_error
+    from scopetwin.scenes.io import exr_write_error
 
     e = exr_write_error(
         "a.exr", RuntimeError('Failed to write pixel data to image file "a.exr". No space left on device.')
@@ -220,7 +220,7 @@ def test_a_scheduler_that_does_not_answer_leaves_no_folder(tmp_path, capsys, tin
 
 
 def test_the_check_names_the_path_and_creates_nothing(tmp_path):
-    from sim.cli.outputs import OutputError, check_output_path
+    from scopetwin.sim.cli.outputs import OutputError, check_output_path
 
     (tmp_path / "f").write_text("x")
     assert check_output_path(tmp_path / "new" / "deeper", "dir", "--out") == tmp_path / "new" / "deeper"

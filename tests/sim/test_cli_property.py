@@ -3,7 +3,8 @@
 Whatever the arguments — numbers that are zero, negative, huge, ``inf``, ``nan`` or not numbers at all; paths that do
 not exist, are folders, hold garbage or hold a tiny valid image; TOML files with keys replaced by such values — a
 command ends with exit code 0 or 2 and at most one ``error:`` line, never a traceback, and a loader returns or raises
-a :class:`~scenes.errors.ScopetwinError`. Renders are replaced by stubs (the checks before them stay real), so the
+a :class:`~scopetwin.scenes.errors.ScopetwinError`. Renders are replaced by stubs (the checks before them stay real),
+so the
 test is fast: few examples per command, tiny images.
 """
 
@@ -24,9 +25,9 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from scenes.errors import ScopetwinError
-from scenes.io import write_image
-from sim.cli import main
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.io import write_image
+from scopetwin.sim.cli import main
 
 #: Examples per test; SCOPETWIN_PROPERTY_EXAMPLES=500 (with SCOPETWIN_PROPERTY_RANDOM=1: fresh draws) digs deeper.
 EXAMPLES = int(os.environ.get("SCOPETWIN_PROPERTY_EXAMPLES", "20"))
@@ -133,8 +134,8 @@ def _check(argv: list[str]) -> None:
 @pytest.fixture
 def no_renders(monkeypatch: pytest.MonkeyPatch) -> None:
     """Renders replaced by black images of the requested size (every check before them stays real)."""
-    import scenes.mitsuba.grin as grin
-    import sim.cli.render as render
+    import scopetwin.scenes.mitsuba.grin as grin
+    import scopetwin.sim.cli.render as render
 
     def fake_measurement(setup: Any, heights: Any, spp: int, seed: int, noise: bool, renderer: str = "") -> Any:
         cam = setup.camera_model
@@ -148,7 +149,7 @@ def no_renders(monkeypatch: pytest.MonkeyPatch) -> None:
 
     monkeypatch.setattr(render, "render_measurement", fake_measurement)
     monkeypatch.setattr(grin, "render_image", fake_grin)
-    import sim.cli.dataset as dataset
+    import scopetwin.sim.cli.dataset as dataset
 
     monkeypatch.setattr(dataset, "generate", fake_generate)
 
@@ -278,7 +279,7 @@ def _load(loader: Any, path: Path) -> None:
     changes=st.lists(st.tuples(st.sampled_from(SETUP_KEYS), TOML_VALUES), min_size=1, max_size=3),
 )
 def test_setup_loader(base: str, changes: list[tuple[tuple[str, str], str]]) -> None:
-    from scenes.setup import load_setup
+    from scopetwin.scenes.setup import load_setup
 
     with _folder() as d:
         path = d / "s.toml"
@@ -308,7 +309,7 @@ GRIN_KEYS = [
     changes=st.lists(st.tuples(st.sampled_from(GRIN_KEYS), TOML_VALUES), min_size=1, max_size=3),
 )
 def test_grin_setup_loader(base: str, changes: list[tuple[tuple[str, str], str]]) -> None:
-    from scenes.grin import load_grin_setup
+    from scopetwin.scenes.grin import load_grin_setup
 
     top = [f"{k} = {v}" for (t, k), v in changes if t == "top"]
     text = _toml(base, [c for c in changes if c[0][0] != "top"]).replace(
@@ -335,12 +336,17 @@ RIG_KEYS = [
 @SETTINGS
 @given(changes=st.lists(st.tuples(st.sampled_from(RIG_KEYS), TOML_VALUES), min_size=1, max_size=3))
 def test_rig_loader(changes: list[tuple[tuple[str, str], str]]) -> None:
-    from instrument.rig import load_rig
+    from scopetwin.instrument.rig import load_rig
 
     base = {
-        "devices.x": {"kind": '"stage"', "driver": '"sim"', "travel_mm": "[0.0, 150.0]", "max_velocity_mm_s": "50.0"},
-        "devices.focus": {"kind": '"focus"', "driver": '"sim"', "range_um": "[0.0, 400.0]"},
-        "devices.uv": {"kind": '"light"', "driver": '"sim"', "max_current_ma": "500.0"},
+        "devices.x": {
+            "kind": '"stage"',
+            "driver": '"scopetwin.sim"',
+            "travel_mm": "[0.0, 150.0]",
+            "max_velocity_mm_s": "50.0",
+        },
+        "devices.focus": {"kind": '"focus"', "driver": '"scopetwin.sim"', "range_um": "[0.0, 400.0]"},
+        "devices.uv": {"kind": '"light"', "driver": '"scopetwin.sim"', "max_current_ma": "500.0"},
     }
     for (table, key), value in changes:
         base[table][key] = value
@@ -389,7 +395,7 @@ def _dataset_toml(changes: list[tuple[tuple[str, str], str]]) -> str:
 @SETTINGS
 @given(changes=st.lists(st.tuples(st.sampled_from(DATASET_KEYS), TOML_VALUES), min_size=1, max_size=3))
 def test_dataset_config_loader(changes: list[tuple[tuple[str, str], str]]) -> None:
-    from sim.datasets.config import load_config
+    from scopetwin.sim.datasets.config import load_config
 
     with _folder() as d:
         path = d / "cfg.toml"

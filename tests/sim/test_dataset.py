@@ -1,4 +1,4 @@
-"""sim.datasets: config validation before work, per-sample determinism, truth, verify and resume (issue 9)."""
+"""scopetwin.sim.datasets: config validation before work, per-sample determinism, truth, verify and resume (issue 9)."""
 
 from __future__ import annotations
 
@@ -13,11 +13,11 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_dataset_common import write_tiny  # noqa: E402
 
-from sim.cli import main as scopetwin_main
-from sim.datasets.config import DatasetError, config_from_dict, load_config  # noqa: E402
-from sim.datasets.plan import Plan  # noqa: E402
-from sim.datasets.seeding import draw_parameters  # noqa: E402
-from sim.datasets.store import MANIFEST, SAMPLES, generate, load_plan, recover, verify  # noqa: E402
+from scopetwin.sim.cli import main as scopetwin_main
+from scopetwin.sim.datasets.config import DatasetError, config_from_dict, load_config  # noqa: E402
+from scopetwin.sim.datasets.plan import Plan  # noqa: E402
+from scopetwin.sim.datasets.seeding import draw_parameters  # noqa: E402
+from scopetwin.sim.datasets.store import MANIFEST, SAMPLES, generate, load_plan, recover, verify  # noqa: E402
 
 pytestmark = pytest.mark.mitsuba
 
@@ -71,7 +71,7 @@ def test_cmu_kind_names_the_missing_capability(monkeypatch):
 
     real = importlib.util.find_spec
     monkeypatch.setattr(
-        importlib.util, "find_spec", lambda name, *a: None if name == "scenes.mitsuba.cmu" else real(name, *a)
+        importlib.util, "find_spec", lambda name, *a: None if name == "scopetwin.scenes.mitsuba.cmu" else real(name, *a)
     )
     cfg = config_from_dict({"dataset": {"kind": "cmu", "setup": "thesis-cmu", "count": 1, "master_seed": 0}})
     with pytest.raises(DatasetError, match=r"scenes\.mitsuba\.cmu"):
@@ -94,7 +94,7 @@ def _files(root: Path, index: int) -> dict[str, bytes]:
 
 
 def test_determinism_truth_verify_and_resume(tmp_path):
-    from scenes.io import read_heightmap, read_image
+    from scopetwin.scenes.io import read_heightmap, read_image
 
     cfg = load_config(write_tiny(tmp_path, count=10))
     plan = Plan.build(cfg)

@@ -1,4 +1,4 @@
-"""sim.datasets, sample kind 'cmu' (issue 9, seed Part II): config checks before work, per-sample determinism,
+"""scopetwin.sim.datasets, sample kind 'cmu' (issue 9, seed Part II): config checks before work, per-sample determinism,
 and truth: calib.channels recovers each camera's known magnification, frame centre and tilt from the images.
 
 The unit is the thesis-cmu preset with a 160 x 144 px sensor and a Siemens star scaled to a 0.075 mm frame
@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim.cli import main as scopetwin_main
-from sim.datasets.config import DatasetError, config_from_dict, load_config
-from sim.datasets.plan import Plan
-from sim.datasets.seeding import draw_parameters
-from sim.datasets.store import SAMPLES, generate, verify
+from scopetwin.sim.cli import main as scopetwin_main
+from scopetwin.sim.datasets.config import DatasetError, config_from_dict, load_config
+from scopetwin.sim.datasets.plan import Plan
+from scopetwin.sim.datasets.seeding import draw_parameters
+from scopetwin.sim.datasets.store import SAMPLES, generate, verify
 
 pytestmark = pytest.mark.mitsuba
 
@@ -122,8 +122,8 @@ def _files(root: Path, index: int) -> dict[str, bytes]:
 
 
 def test_determinism_and_truth(tmp_path):
-    from calib.channels import measure_channel
-    from scenes.io import read_heightmap, read_image
+    from scopetwin.calib.channels import measure_channel
+    from scopetwin.scenes.io import read_heightmap, read_image
 
     cfg = load_config(_write(tmp_path, count=2))
     plan = Plan.build(cfg)

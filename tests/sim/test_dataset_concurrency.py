@@ -20,13 +20,13 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_dataset_common import write_tiny  # noqa: E402
 
-from sim.cli import main  # noqa: E402
-from sim.datasets import store  # noqa: E402
-from sim.datasets.config import DatasetError, load_config  # noqa: E402
-from sim.datasets.lock import LOCK_FILE, DatasetBusy, DatasetLock, holder  # noqa: E402
-from sim.datasets.plan import Plan  # noqa: E402
-from sim.datasets.store import MANIFEST, SAMPLES, generate, recover, remove_stale_temporaries, verify  # noqa: E402
-from sim.measurement import StagedOutput, remove_stale_stage  # noqa: E402
+from scopetwin.sim.cli import main  # noqa: E402
+from scopetwin.sim.datasets import store  # noqa: E402
+from scopetwin.sim.datasets.config import DatasetError, load_config  # noqa: E402
+from scopetwin.sim.datasets.lock import LOCK_FILE, DatasetBusy, DatasetLock, holder  # noqa: E402
+from scopetwin.sim.datasets.plan import Plan  # noqa: E402
+from scopetwin.sim.datasets.store import MANIFEST, SAMPLES, generate, recover, remove_stale_temporaries, verify  # noqa: E402
+from scopetwin.sim.measurement import StagedOutput, remove_stale_stage  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -109,7 +109,18 @@ def test_manifest_names_the_worker_the_bar_shows_failures_and_resume_reports(tmp
 
 def _start(cfg: Path, out: Path, indices: str) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "sim.cli", "dataset", "generate", str(cfg), "--out", str(out), "--indices", indices]
+        [
+            sys.executable,
+            "-m",
+            "scopetwin.sim.cli",
+            "dataset",
+            "generate",
+            str(cfg),
+            "--out",
+            str(out),
+            "--indices",
+            indices,
+        ]
         + ["--workers", "0", "--quiet"],
         cwd=ROOT,
         env={**os.environ, "PYTHONPATH": str(ROOT)},

@@ -21,8 +21,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_dataset_common import write_tiny  # noqa: E402
 
-from sim.datasets.store import MANIFEST, SAMPLES, load_plan, verify  # noqa: E402
-from sim.datasets.store import generate as generate_in_process  # noqa: E402
+from scopetwin.sim.datasets.store import MANIFEST, SAMPLES, load_plan, verify  # noqa: E402
+from scopetwin.sim.datasets.store import generate as generate_in_process  # noqa: E402
 
 pytestmark = [pytest.mark.mitsuba, pytest.mark.slow]
 ROOT = Path(__file__).resolve().parents[2]
@@ -35,7 +35,7 @@ def _start(cfg: Path, out: Path) -> subprocess.Popen:
         [
             sys.executable,
             "-m",
-            "sim.cli",
+            "scopetwin.sim.cli",
             "dataset",
             "generate",
             str(cfg),

@@ -1,10 +1,10 @@
-"""sim.measurement.StagedOutput: the one stage-then-rename helper (nothing partial is ever left behind)."""
+"""scopetwin.sim.measurement.StagedOutput: the one stage-then-rename helper (nothing partial is ever left behind)."""
 
 from __future__ import annotations
 
 import pytest
 
-from sim.measurement import StagedOutput
+from scopetwin.sim.measurement import StagedOutput
 
 
 def test_commit_moves_files_into_place_and_replaces_old_entries(tmp_path):
@@ -46,7 +46,7 @@ def test_a_failing_block_leaves_nothing(tmp_path):
 
 
 def test_deferred_commits_wait_for_the_caller_and_are_discarded_on_failure(tmp_path):
-    from sim.measurement import deferred_commits
+    from scopetwin.sim.measurement import deferred_commits
 
     out = tmp_path / "report"
     with deferred_commits() as pending:

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from sim.cli import main
+from scopetwin.sim.cli import main
 
 
 def test_run_reconstructs_the_default_substrate(tmp_path, capsys):
@@ -38,8 +38,8 @@ def test_run_reconstructs_the_default_substrate(tmp_path, capsys):
 
 
 def test_run_rejects_a_surface_that_does_not_cover_the_substrate(tmp_path, capsys):
-    from scenes.io import write_heightmap
-    from scenes.surface import HeightMap
+    from scopetwin.scenes.io import write_heightmap
+    from scopetwin.scenes.surface import HeightMap
 
     small = tmp_path / "small.exr"
     write_heightmap(small, HeightMap(np.zeros((8, 8)), -5.0, 5.0, -5.0, 5.0))
@@ -50,7 +50,7 @@ def test_run_rejects_a_surface_that_does_not_cover_the_substrate(tmp_path, capsy
 
 
 def test_run_setups_give_the_calibration_scenes_the_users_camera(tmp_path):
-    from sim.pipeline import run_setups
+    from scopetwin.sim.pipeline import run_setups
 
     toml = tmp_path / "mine.toml"
     toml.write_text('base = "thesis-1.10-deflectometry"\n[camera]\norigin = [0.0, -201.0, 120.0]\n')
@@ -64,9 +64,9 @@ def test_run_setups_give_the_calibration_scenes_the_users_camera(tmp_path):
 
 @pytest.mark.slow
 def test_run_measures_a_users_surface_with_a_users_setup(tmp_path, capsys):
-    from scenes.io import write_heightmap
-    from scenes.setup import SubstrateSpec, SurfaceSpec
-    from sim.surfaces import make_surface
+    from scopetwin.scenes.io import write_heightmap
+    from scopetwin.scenes.setup import SubstrateSpec, SurfaceSpec
+    from scopetwin.sim.surfaces import make_surface
 
     spec = SurfaceSpec(kind="psd", correlation_length=14.0, psd_exponent=4.0, broadband_rms_nm=2.0, seed=21)
     surf = tmp_path / "glass.exr"

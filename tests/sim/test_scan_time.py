@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from sim import scan_time as tp
+from scopetwin.sim import scan_time as tp
 
 
 def test_demonstrator_geometry_matches_seed():

@@ -1,4 +1,5 @@
-"""sim.signals: SIGTERM and SIGHUP end a command like Ctrl-C — one line, exit 128 + n, nothing half-written (issue 15).
+"""scopetwin.sim.signals: SIGTERM and SIGHUP end a command like Ctrl-C — one line, exit 128 + n, nothing half-written
+(issue 15).
 
 The subprocess tests run a command that waits inside a study (registered by a small driver script) and signal it
 there; the dataset generator under signals is in ``test_dataset_kill.py``.
@@ -17,11 +18,11 @@ from pathlib import Path
 
 import pytest
 
-from sim import signals
-from sim.cli import main
-from sim.studies import runner
-from sim.studies.context import StudyContext, StudyResult
-from sim.studies.tables import Row, Table
+from scopetwin.sim import signals
+from scopetwin.sim.cli import main
+from scopetwin.sim.studies import runner
+from scopetwin.sim.studies.context import StudyContext, StudyResult
+from scopetwin.sim.studies.tables import Row, Table
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -87,9 +88,9 @@ DRIVER = textwrap.dedent(
     """
     import sys, time
     from pathlib import Path
-    from sim.cli import main
-    from sim.studies import runner
-    from sim.studies.context import StudyResult
+    from scopetwin.sim.cli import main
+    from scopetwin.sim.studies import runner
+    from scopetwin.sim.studies.context import StudyResult
 
     def waits(ctx):
         (ctx.out / "partial.txt").write_text("half")
@@ -134,7 +135,7 @@ def test_a_signalled_study_process_prints_one_line_and_leaves_nothing(tmp_path, 
 
 
 def test_sigterm_during_a_render_leaves_no_output(tmp_path, monkeypatch, capsys):
-    import sim.cli.render as render_cli
+    import scopetwin.sim.cli.render as render_cli
 
     real = render_cli.write_measurement
 

@@ -1,4 +1,5 @@
-"""sim.studies: tables (seed | ours | ratio), missing capabilities, the study runner, one study task on truth."""
+"""scopetwin.sim.studies: tables (seed | ours | ratio), missing capabilities, the study runner, one study task on
+truth."""
 
 from __future__ import annotations
 
@@ -7,12 +8,12 @@ import json
 import numpy as np
 import pytest
 
-from sim.cli import main as scopetwin_main
-from sim.studies import runner
-from sim.studies.context import StudyContext, StudyError, StudyResult, require
-from sim.studies.runner import run_study
-from sim.studies.tables import Row, Table, ratio, table_markdown
-from sim.studies.tasks import calibration_view_task
+from scopetwin.sim.cli import main as scopetwin_main
+from scopetwin.sim.studies import runner
+from scopetwin.sim.studies.context import StudyContext, StudyError, StudyResult, require
+from scopetwin.sim.studies.runner import run_study
+from scopetwin.sim.studies.tables import Row, Table, ratio, table_markdown
+from scopetwin.sim.studies.tasks import calibration_view_task
 
 
 def test_ratio_and_table_rows():
@@ -28,10 +29,10 @@ def test_ratio_and_table_rows():
 
 def test_missing_capability_is_named_and_nothing_is_written(tmp_path, monkeypatch):
     with pytest.raises(StudyError, match=r"height reconstruction \(recon\.nonexistent\)"):
-        require("demo", {"recon.nonexistent": "height reconstruction"})
+        require("demo", {"scopetwin.recon.nonexistent": "height reconstruction"})
 
     def needs_missing(ctx):
-        require("demo", {"calib.not_there_yet": "channel registration"})
+        require("demo", {"scopetwin.calib.not_there_yet": "channel registration"})
 
     monkeypatch.setitem(runner.STUDIES, "demo", needs_missing)
     out = tmp_path / "demo"
@@ -95,7 +96,7 @@ def test_calibration_view_task_recovers_the_camera(tmp_path):
 
 def test_coverage_table_counts_errors_within_2u():
     """The coverage columns are the share of surfaces whose |error| lies within 2 u (absolute and shape)."""
-    from sim.studies.coverage import coverage_table
+    from scopetwin.sim.studies.coverage import coverage_table
 
     def row(fam: str, a: float, ua: float, s: float, us: float) -> dict:
         return {
@@ -126,7 +127,7 @@ def test_coverage_study_end_to_end(tmp_path, monkeypatch):
     """One surface per family through the runner: the report's coverage agrees with the rows' errors and u."""
     from functools import partial
 
-    from sim.studies.coverage import FAMILIES, coverage
+    from scopetwin.sim.studies.coverage import FAMILIES, coverage
 
     monkeypatch.setitem(runner.STUDIES, "coverage", partial(coverage, per_family=1))
     run_study("coverage", tmp_path / "cov", workers=0, progress=False)

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from scenes.setup import SubstrateSpec, SurfaceSpec
-from sim.surfaces import lowpass_noise, make_surface
+from scopetwin.scenes.setup import SubstrateSpec, SurfaceSpec
+from scopetwin.sim.surfaces import lowpass_noise, make_surface
 
 
 def _frame_maxima(hm):
@@ -79,7 +79,7 @@ def _radial_periodogram(z, d):
 def test_psd_noise_matches_the_requested_abc_spectrum(b, c):
     from scipy.optimize import curve_fit
 
-    from sim.surfaces import abc_psd, psd_noise
+    from scopetwin.sim.surfaces import abc_psd, psd_noise
 
     d = 0.1
     z = psd_noise((512, 512), (d, d), lambda f: abc_psd(f, b, c), seed=2)
@@ -93,7 +93,7 @@ def test_psd_noise_matches_the_requested_abc_spectrum(b, c):
 
 
 def test_broadband_noise_has_its_band_and_rms():
-    from sim.surfaces import broadband_noise
+    from scopetwin.sim.surfaces import broadband_noise
 
     d = 0.1
     z = broadband_noise((512, 512), (d, d), 3e-6, (0.5, 4.0), seed=4)

@@ -2,10 +2,10 @@
 
 import numpy as np
 
-from scenes.setup import load_setup
-from scenes.surface import HeightMap
-from sim.surfaces import surface_for
-from sim.truth import marker_truth
+from scopetwin.scenes.setup import load_setup
+from scopetwin.scenes.surface import HeightMap
+from scopetwin.sim.surfaces import surface_for
+from scopetwin.sim.truth import marker_truth
 
 
 def test_target_truth_is_the_projection():
@@ -28,7 +28,7 @@ def test_flat_substrate_truth_is_the_mirror_image():
 
 
 def test_bowed_substrate_truth_reflects_exactly(rng):
-    from scenes.analytic import AnalyticScene
+    from scopetwin.scenes.analytic import AnalyticScene
 
     s = load_setup("thesis-1.10-deflectometry")
     hm = surface_for(s)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenes.setup import load_setup
+from scopetwin.scenes.setup import load_setup
 
 pytestmark = pytest.mark.mitsuba
 
@@ -13,9 +13,9 @@ WINDOW = (380, 650, 520, 840)
 
 
 def _render(variant: str, setup, eps: float, window=WINDOW, spp: int = 4) -> np.ndarray:
-    from scenes.mitsuba.render import scene_render
-    from scenes.mitsuba.scene import scene_dict
-    from scenes.mitsuba.variant import mitsuba
+    from scopetwin.scenes.mitsuba.render import scene_render
+    from scopetwin.scenes.mitsuba.scene import scene_dict
+    from scopetwin.scenes.mitsuba.variant import mitsuba
 
     mi = mitsuba(variant)
     return scene_render(mi.load_dict(scene_dict(setup, window=window, eps=eps, variant=variant)), spp, 1, variant)
@@ -34,7 +34,7 @@ def test_reflected_ray_offset_along_the_ray_moves_nothing(mono_variant):
 
 
 def test_back_of_the_target_and_empty_space_are_black():
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     small = {"camera": {"pixels": [136, 102], "pixel_pitch": 0.0465}}
     front = load_setup("thesis-2.8.1-perpendicular", overrides=small)

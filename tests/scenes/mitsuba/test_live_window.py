@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from scenes.setup import load_setup
-from sim.surfaces import surface_for
+from scopetwin.scenes.setup import load_setup
+from scopetwin.sim.surfaces import surface_for
 
 pytestmark = pytest.mark.mitsuba
 
@@ -19,7 +19,7 @@ pytestmark = pytest.mark.mitsuba
     ],
 )
 def test_full_render_is_black_outside_the_live_window(name, overrides):
-    from scenes.mitsuba.render import live_window, render_setup, render_window
+    from scopetwin.scenes.mitsuba.render import live_window, render_setup, render_window
 
     setup = load_setup(name, overrides)
     heights = surface_for(setup)
@@ -41,7 +41,7 @@ def test_full_render_is_black_outside_the_live_window(name, overrides):
 
 
 def test_no_culling_where_light_can_spread():
-    from scenes.mitsuba.render import live_window
+    from scopetwin.scenes.mitsuba.render import live_window
 
     thin = load_setup("thesis-2.8.1-angular", {"camera": {"f_number": 4.0}})
     assert live_window(thin) is None

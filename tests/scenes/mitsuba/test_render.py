@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from scenes.camera import ThinLens
-from scenes.setup import load_setup
+from scopetwin.scenes.camera import ThinLens
+from scopetwin.scenes.setup import load_setup
 
 pytestmark = pytest.mark.mitsuba
 
@@ -33,7 +33,7 @@ def match(found: np.ndarray, expected: np.ndarray) -> np.ndarray:
 
 def test_perpendicular_target_centroids_are_the_projected_centres():
     """A perpendicular target images round markers as symmetric spots: centroid = projected centre."""
-    from scenes.mitsuba.render import render_window
+    from scopetwin.scenes.mitsuba.render import render_window
 
     setup = load_setup("thesis-2.8.1-perpendicular")
     window = (250, 620, 370, 900)  # 3 x 5 markers around the image centre, 103 px apart
@@ -48,7 +48,7 @@ def test_perpendicular_target_centroids_are_the_projected_centres():
 
 def test_flat_mirror_reflects_the_pattern_where_the_mirror_image_projects():
     """Pattern seen in the flat mirror z = 0: spots at the projections of the mirrored marker centres."""
-    from scenes.mitsuba.render import render_window
+    from scopetwin.scenes.mitsuba.render import render_window
 
     setup = load_setup("thesis-2.8.3-mirror")
     window = (380, 650, 520, 840)
@@ -65,8 +65,8 @@ def test_flat_mirror_reflects_the_pattern_where_the_mirror_image_projects():
 @pytest.mark.parametrize("name", ["thesis-2.8.1-perpendicular", "thesis-2.8.3-mirror"])
 def test_pixel_values_equal_the_analytic_renderer(name):
     """Linear radiometry: a white texel, seen directly or in the mirror, is the pattern radiance."""
-    from scenes.analytic import render as analytic_render
-    from scenes.mitsuba.render import render_window
+    from scopetwin.scenes.analytic import render as analytic_render
+    from scopetwin.scenes.mitsuba.render import render_window
 
     setup = load_setup(name, overrides={"pattern": {"radiance": 2.0}})
     window = (480, 540, 640, 720)
@@ -82,9 +82,9 @@ def test_pixel_values_equal_the_analytic_renderer(name):
 
 def test_holding_frame_regions_are_black_as_in_the_analytic_model():
     """Near the ROI edge y = -24 mm only hits inside the ROI reflect; the frame region renders black."""
-    from scenes.analytic import render as analytic_render
-    from scenes.mitsuba.render import render_window
-    from scenes.surface import HeightMap, Substrate
+    from scopetwin.scenes.analytic import render as analytic_render
+    from scopetwin.scenes.mitsuba.render import render_window
+    from scopetwin.scenes.surface import HeightMap, Substrate
 
     setup = load_setup("thesis-1.10-deflectometry")
     heights = HeightMap.from_function(
@@ -115,7 +115,7 @@ def test_holding_frame_regions_are_black_as_in_the_analytic_model():
 
 
 def test_thin_lens_in_focus_keeps_the_spots_in_place(mono_variant):
-    from scenes.mitsuba.render import render_window
+    from scopetwin.scenes.mitsuba.render import render_window
 
     setup = load_setup("thesis-2.8.1-perpendicular", overrides={"camera": {"f_number": 4.0, "focus_distance": 233.24}})
     assert setup.camera_model.lens == ThinLens(25.0, 4.0, 233.24)
@@ -129,7 +129,7 @@ def test_thin_lens_in_focus_keeps_the_spots_in_place(mono_variant):
 
 def test_render_setup_full_frame_contract():
     """(ny, nx) float32, row 0 on top, defaults from setup.render, same seed -> same bytes."""
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     setup = load_setup(
         "thesis-2.8.1-perpendicular",
@@ -151,7 +151,7 @@ def test_rendering_in_another_thread_gives_the_same_image():
     """Plugins are registered per thread on demand: a worker thread renders the same bytes."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     setup = load_setup("thesis-2.8.3-mirror", overrides={"camera": {"pixels": [136, 102], "pixel_pitch": 0.0465}})
     here = render_setup(setup, spp=4, seed=3)

@@ -18,7 +18,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from scenes.setup import load_setup
+from scopetwin.scenes.setup import load_setup
 
 pytestmark = pytest.mark.mitsuba
 
@@ -45,16 +45,16 @@ def test_part1_render_is_the_same_after_the_other_renderers_ran(mono_variant, sp
     """Part I, then every other renderer imported and run once, then Part I again: the same bytes, in mono."""
     import mitsuba as mi
 
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     part1 = _small_part1()
     before = render_setup(part1, spp=4, seed=3, variant=mono_variant)
     assert mi.variant() == mono_variant
 
-    from scenes.cmu.layout import load_cmu_setup
-    from scenes.grin.setup import load_grin_setup
-    from scenes.grin.targets import target
-    from scenes.mitsuba import cmu, grin, widefield
+    from scopetwin.scenes.cmu.layout import load_cmu_setup
+    from scopetwin.scenes.grin.setup import load_grin_setup
+    from scopetwin.scenes.grin.targets import target
+    from scopetwin.scenes.mitsuba import cmu, grin, widefield
 
     assert widefield.render_tile is not None  # imported: it must not change anything either
     unit = load_cmu_setup("thesis-cmu")
@@ -72,11 +72,11 @@ def test_part1_render_is_the_same_after_the_other_renderers_ran(mono_variant, sp
 
 
 def test_renderers_reselect_their_variant_when_interleaved(mono_variant, spectral_variant):
-    from scenes.cmu.layout import load_cmu_setup
-    from scenes.grin.setup import load_grin_setup
-    from scenes.grin.targets import target
-    from scenes.mitsuba import cmu, grin
-    from scenes.mitsuba.render import render_setup
+    from scopetwin.scenes.cmu.layout import load_cmu_setup
+    from scopetwin.scenes.grin.setup import load_grin_setup
+    from scopetwin.scenes.grin.targets import target
+    from scopetwin.scenes.mitsuba import cmu, grin
+    from scopetwin.scenes.mitsuba.render import render_setup
 
     part1 = _small_part1()
     unit = load_cmu_setup("thesis-cmu")
@@ -116,9 +116,9 @@ def test_cmu_scene_builds_do_not_grow_memory(spectral_variant):
     """
     import drjit as dr
 
-    from scenes.cmu.layout import load_cmu_setup
-    from scenes.cmu.plates import plate_heightmap
-    from scenes.mitsuba import cmu
+    from scopetwin.scenes.cmu.layout import load_cmu_setup
+    from scopetwin.scenes.cmu.plates import plate_heightmap
+    from scopetwin.scenes.mitsuba import cmu
 
     setup = load_cmu_setup("thesis-cmu")
     maps = {name: plate_heightmap(spec, setup.plate) for name, spec in (setup.splitters | setup.mirrors).items()}
@@ -157,7 +157,7 @@ def test_a_render_mitsuba_cut_short_is_refused():
 
     import pytest
 
-    from scenes.mitsuba.variant import RenderInterruptedError, render_complete
+    from scopetwin.scenes.mitsuba.variant import RenderInterruptedError, render_complete
 
     def scene_stopped(stopped: bool) -> SimpleNamespace:
         return SimpleNamespace(integrator=lambda: SimpleNamespace(should_stop=lambda: stopped))

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenes.errors import SetupError
-from scenes.setup import load_setup, preset_info
-from scenes.surface import HeightMap
+from scopetwin.scenes.errors import SetupError
+from scopetwin.scenes.setup import load_setup, preset_info
+from scopetwin.scenes.surface import HeightMap
 
 pytestmark = pytest.mark.mitsuba
 
@@ -29,7 +29,7 @@ def test_there_are_setup_presets():
 
 @pytest.mark.parametrize("name", SETUP_PRESETS)
 def test_scene_builds_for_every_setup_preset(name, mi_mono, mono_variant):
-    from scenes.mitsuba.render import build_scene
+    from scopetwin.scenes.mitsuba.render import build_scene
 
     mi = mi_mono
     setup = load_setup(name)
@@ -47,7 +47,7 @@ def test_scene_builds_for_every_setup_preset(name, mi_mono, mono_variant):
 
 
 def test_deflectometry_without_heights_is_a_setup_error():
-    from scenes.mitsuba.render import build_scene, render_setup
+    from scopetwin.scenes.mitsuba.render import build_scene, render_setup
 
     setup = load_setup("thesis-1.10-deflectometry")
     with pytest.raises(SetupError, match="height map"):
@@ -57,7 +57,7 @@ def test_deflectometry_without_heights_is_a_setup_error():
 
 
 def test_window_outside_the_image_is_a_setup_error():
-    from scenes.mitsuba.scene import scene_dict
+    from scopetwin.scenes.mitsuba.scene import scene_dict
 
     with pytest.raises(SetupError, match="window"):
         scene_dict(load_setup("thesis-2.8.1-perpendicular"), window=(0, 2000, 0, 10))
@@ -65,14 +65,14 @@ def test_window_outside_the_image_is_a_setup_error():
 
 @pytest.mark.parametrize("name", ["thesis-1.10-deflectometry", "thesis-2.8.1-perpendicular", "thesis-2.9.1-target-4x4"])
 def test_fast_marker_texture_equals_pattern_texture(name):
-    from scenes.mitsuba.scene import marker_texture
+    from scopetwin.scenes.mitsuba.scene import marker_texture
 
     pattern = load_setup(name).marker_pattern
     np.testing.assert_allclose(marker_texture(pattern, 0.05), pattern.texture(0.05), atol=2e-7, rtol=0)
 
 
 def test_pattern_radiance_scales_the_raster():
-    from scenes.mitsuba.scene import pattern_texture
+    from scopetwin.scenes.mitsuba.scene import pattern_texture
 
     base = load_setup("thesis-2.9.1-target-4x4")
     bright = load_setup("thesis-2.9.1-target-4x4", overrides={"pattern": {"radiance": 2.5}})
@@ -83,7 +83,7 @@ def test_reference_marker_appears_where_the_camera_projects_it():
     """Calibration layout: the large reference marker (0, 0) sits at the -x/-y corner (seed §2.2)."""
     from scipy import ndimage
 
-    from scenes.mitsuba.render import render_window
+    from scopetwin.scenes.mitsuba.render import render_window
 
     setup = load_setup("thesis-2.8.1-angular")
     cam, pattern = setup.camera_model, setup.marker_pattern

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenes.camera import ThinLens, concentric_disk
-from scenes.setup import load_setup
+from scopetwin.scenes.camera import ThinLens, concentric_disk
+from scopetwin.scenes.setup import load_setup
 
 pytestmark = pytest.mark.mitsuba
 
@@ -16,8 +16,8 @@ DIR_TOL = 3e-7
 
 
 def _sensor(variant, camera, spp=4, window=None):
-    from scenes.mitsuba.sensors import sensor_dict
-    from scenes.mitsuba.variant import mitsuba
+    from scopetwin.scenes.mitsuba.sensors import sensor_dict
+    from scopetwin.scenes.mitsuba.variant import mitsuba
 
     mi = mitsuba(variant)
     return mi, mi.load_dict(sensor_dict(camera, spp, 0, window, variant))
@@ -83,7 +83,7 @@ def test_thin_lens_rays_equal_camera_lens_rays(rng, mono_variant):
 
 def test_to_world_convention_matches_mitsuba_perspective(rng, mono_variant):
     """Without offset and distortion the plugin and Mitsuba's own perspective sensor agree."""
-    from scenes.mitsuba.sensors import camera_to_world, film_dict
+    from scopetwin.scenes.mitsuba.sensors import camera_to_world, film_dict
 
     cam = _cameras()["angular"]
     mi, sensor = _sensor(mono_variant, cam)

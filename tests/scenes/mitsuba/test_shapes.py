@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenes.surface import HeightMap
+from scopetwin.scenes.surface import HeightMap
 
 pytestmark = pytest.mark.mitsuba
 
@@ -27,7 +27,7 @@ def _bow() -> HeightMap:
 
 
 def test_grid_arrays_are_the_surface_with_analytic_normals():
-    from scenes.mitsuba.shapes import grid_arrays
+    from scopetwin.scenes.mitsuba.shapes import grid_arrays
 
     h = _bow()
     pos, nrm, faces = grid_arrays(h, (-12.6, 12.6), (-24.0, 24.0), 33, 61)
@@ -44,7 +44,7 @@ def test_grid_arrays_are_the_surface_with_analytic_normals():
 
 
 def test_mesh_hits_and_shading_normals_follow_the_spline(rng, mi_mono, mono_variant):
-    from scenes.mitsuba.shapes import substrate_shapes
+    from scopetwin.scenes.mitsuba.shapes import substrate_shapes
 
     mi = mi_mono
     h = _bow()
@@ -72,15 +72,15 @@ def test_mesh_hits_and_shading_normals_follow_the_spline(rng, mi_mono, mono_vari
 
 
 def test_no_frame_strips_when_the_roi_is_the_whole_substrate():
-    from scenes.mitsuba.shapes import substrate_shapes
+    from scopetwin.scenes.mitsuba.shapes import substrate_shapes
 
     shapes = substrate_shapes(_bow(), SIZE, SIZE[1], vertices=(16, 32))
     assert list(shapes) == ["substrate_roi"]
 
 
 def test_bad_heights_raise_setup_error():
-    from scenes.errors import SetupError
-    from scenes.mitsuba.shapes import substrate_shapes
+    from scopetwin.scenes.errors import SetupError
+    from scopetwin.scenes.mitsuba.shapes import substrate_shapes
 
     with pytest.raises(SetupError, match="HeightMap"):
         substrate_shapes(np.zeros((4, 4)), SIZE, ROI)  # type: ignore[arg-type]
