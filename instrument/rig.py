@@ -7,7 +7,7 @@ Format (DESIGN.md, 'Rig files')::
 
     [devices.x]
     kind = "stage"            # camera | stage | focus | light | shutter | trigger
-    driver = "scopetwin.sim"            # sim | pi-gcs | jena-piezo | fpga-board | basler
+    driver = "sim"            # sim | pi-gcs | jena-piezo | fpga-board | basler
     travel_mm = [0.0, 150.0]  # limits given here are enforced before anything is sent
     max_velocity_mm_s = 50.0
 
@@ -55,7 +55,7 @@ from scopetwin.instrument.errors import InstrumentError, RigError
 from scopetwin.instrument.interrupts import deferred_signals
 
 KINDS = ("camera", "stage", "focus", "light", "shutter", "trigger")
-DRIVERS = ("scopetwin.sim", "pi-gcs", "jena-piezo", "fpga-board", "basler")
+DRIVERS = ("sim", "pi-gcs", "jena-piezo", "fpga-board", "basler")
 
 
 @dataclass
@@ -124,7 +124,7 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
     timeout_s = _take(t, "timeout_s", float, name, 1.0)
     device: Device
     key = (kind, driver)
-    if driver == "scopetwin.sim":
+    if driver == "sim":
         from scopetwin.instrument.simulated import devices as simd
 
         world = ctx.sim_world()

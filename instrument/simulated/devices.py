@@ -45,7 +45,7 @@ FAULTS = ("timeout", "disconnect", "drop")
 class SimDevice:
     """Mixin: world access, operation log and fault injection for simulated devices."""
 
-    driver = "scopetwin.sim"
+    driver = "sim"
     world: VirtualWorld
     name: str
 

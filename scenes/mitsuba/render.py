@@ -132,7 +132,7 @@ def load_scene(
     if setup.scene == "deflectometry" and heights is None:
         raise SetupError("a deflectometry render needs the substrate's height map (heights=HeightMap(...))")
     key = _scene_key(setup, window, variant)
-    cache: list[tuple[str, Any, Any]] = getattr(_local, "scopetwin.scenes", None) or []
+    cache: list[tuple[str, Any, Any]] = getattr(_local, "scenes", None) or []
     _local.scenes = cache
     for k, h, scene in cache:
         if k == key and (setup.scene != "deflectometry" or h is heights):

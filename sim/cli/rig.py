@@ -172,8 +172,8 @@ def cmd_acquire(args: argparse.Namespace) -> dict[str, Any]:
         black, saturation = cam.black_level_dn, cam.saturation_dn
         lamp = rig.light(args.light)
         unseen = (
-            cam.driver_name() == "scopetwin.sim"
-            and lamp.driver_name() != "scopetwin.sim"
+            cam.driver_name() == "sim"
+            and lamp.driver_name() != "sim"
             and lamp.name not in rig.emulated_ports()
         )
     manifest_path = Path(args.out) / "manifest.json"

@@ -66,16 +66,16 @@ def test_tile_scan_focus_map_vs_fixed_focus(tmp_path):
 SIMULTANEOUS_RIG = """
 [devices.trigger]
 kind = "trigger"
-driver = "scopetwin.sim"
+driver = "sim"
 """ + "".join(
     f"""
 [devices.led{i}]
 kind = "light"
-driver = "scopetwin.sim"
+driver = "sim"
 max_current_ma = 1000.0
 [devices.cam{i}]
 kind = "camera"
-driver = "scopetwin.sim"
+driver = "sim"
 sensor_shape = [48, 64]
 trigger_line = {i}
 seed = {i}

@@ -18,24 +18,24 @@ RIG = """
 name = "two-lights"
 [devices.x]
 kind = "stage"
-driver = "scopetwin.sim"
+driver = "sim"
 travel_mm = [0.0, 150.0]
 max_velocity_mm_s = 50.0
 [devices.focus]
 kind = "focus"
-driver = "scopetwin.sim"
+driver = "sim"
 range_um = [0.0, 400.0]
 [devices.uv]
 kind = "light"
-driver = "scopetwin.sim"
+driver = "sim"
 max_current_ma = 500.0
 [devices.deep_red]
 kind = "light"
-driver = "scopetwin.sim"
+driver = "sim"
 max_current_ma = 1000.0
 [devices.cam]
 kind = "camera"
-driver = "scopetwin.sim"
+driver = "sim"
 sensor_shape = [32, 40]
 exposure_range_s = [1.0e-4, 2.0]
 renderer = { kind = "texture", lights = ["uv"] }

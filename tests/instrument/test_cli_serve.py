@@ -16,23 +16,23 @@ from tests.instrument.cli_processes import scopetwin, stop  # noqa: E402
 RIG = """
 [devices.x]
 kind = "stage"
-driver = "scopetwin.sim"
+driver = "sim"
 travel_mm = [0.0, 150.0]
 max_velocity_mm_s = 50.0
 position_mm = 10.0
 [devices.y]
 kind = "stage"
-driver = "scopetwin.sim"
+driver = "sim"
 travel_mm = [0.0, 300.0]
 max_velocity_mm_s = 100.0
 position_mm = 10.0
 [devices.uv]
 kind = "light"
-driver = "scopetwin.sim"
+driver = "sim"
 max_current_ma = 500.0
 [devices.cam]
 kind = "camera"
-driver = "scopetwin.sim"
+driver = "sim"
 sensor_shape = [32, 40]
 renderer = { kind = "texture", lights = ["uv"] }
 """

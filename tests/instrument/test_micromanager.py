@@ -16,31 +16,31 @@ from scopetwin.instrument.micromanager import load_into_core, run_mda  # noqa: E
 RIG = """
 [devices.x]
 kind = "stage"
-driver = "scopetwin.sim"
+driver = "sim"
 travel_mm = [0.0, 150.0]
 max_velocity_mm_s = 50.0
 position_mm = 10.0
 [devices.y]
 kind = "stage"
-driver = "scopetwin.sim"
+driver = "sim"
 travel_mm = [0.0, 300.0]
 max_velocity_mm_s = 100.0
 position_mm = 10.0
 [devices.focus]
 kind = "focus"
-driver = "scopetwin.sim"
+driver = "sim"
 position_um = 100.0
 [devices.uv]
 kind = "light"
-driver = "scopetwin.sim"
+driver = "sim"
 max_current_ma = 500.0
 [devices.deep_red]
 kind = "light"
-driver = "scopetwin.sim"
+driver = "sim"
 max_current_ma = 1000.0
 [devices.cam]
 kind = "camera"
-driver = "scopetwin.sim"
+driver = "sim"
 sensor_shape = [32, 40]
 pixel_size_um = 6.45
 magnification = 10.0

@@ -22,27 +22,27 @@ TEXTURE_RIG = """
 name = "texture"
 [devices.x]
 kind = "stage"
-driver = "scopetwin.sim"
+driver = "sim"
 travel_mm = [0.0, 150.0]
 max_velocity_mm_s = 50.0
 position_mm = 10.0
 [devices.y]
 kind = "stage"
-driver = "scopetwin.sim"
+driver = "sim"
 travel_mm = [0.0, 300.0]
 max_velocity_mm_s = 100.0
 position_mm = 10.0
 [devices.focus]
 kind = "focus"
-driver = "scopetwin.sim"
+driver = "sim"
 position_um = 100.0
 [devices.led]
 kind = "light"
-driver = "scopetwin.sim"
+driver = "sim"
 max_current_ma = 700.0
 [devices.camera]
 kind = "camera"
-driver = "scopetwin.sim"
+driver = "sim"
 sensor_shape = [64, 80]
 renderer = { kind = "texture" }
 """
@@ -75,7 +75,7 @@ def test_presets_load(name):
     "edit, match",
     [
         (
-            ('driver = "scopetwin.sim"\ntravel_mm = [0.0, 150.0]', 'driver = "warp"\ntravel_mm = [0.0, 150.0]'),
+            ('driver = "sim"\ntravel_mm = [0.0, 150.0]', 'driver = "warp"\ntravel_mm = [0.0, 150.0]'),
             "unknown driver",
         ),
         (("position_um = 100.0", "position_um = 100.0\ncolour = 3"), "unknown field"),

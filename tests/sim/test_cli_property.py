@@ -341,12 +341,12 @@ def test_rig_loader(changes: list[tuple[tuple[str, str], str]]) -> None:
     base = {
         "devices.x": {
             "kind": '"stage"',
-            "driver": '"scopetwin.sim"',
+            "driver": '"sim"',
             "travel_mm": "[0.0, 150.0]",
             "max_velocity_mm_s": "50.0",
         },
-        "devices.focus": {"kind": '"focus"', "driver": '"scopetwin.sim"', "range_um": "[0.0, 400.0]"},
-        "devices.uv": {"kind": '"light"', "driver": '"scopetwin.sim"', "max_current_ma": "500.0"},
+        "devices.focus": {"kind": '"focus"', "driver": '"sim"', "range_um": "[0.0, 400.0]"},
+        "devices.uv": {"kind": '"light"', "driver": '"sim"', "max_current_ma": "500.0"},
     }
     for (table, key), value in changes:
         base[table][key] = value
