@@ -113,7 +113,152 @@ def _camera_limits(name: str, t: dict[str, Any]) -> CameraLimits:
     )
 
 
+def _build_sim(name: str, kind: str, t: dict[str, Any], ctx: _Context, timeout_s: float) -> Device:
+    """Build a simulated device of ``kind`` on the rig's shared virtual world."""
+    from scopetwin.instrument.simulated import devices as simd
+
+    world = ctx.sim_world()
+    if kind == "stage":
+        return simd.SimStage(
+            name,
+            world,
+            travel_mm=_take(t, "travel_mm", tuple, name),
+            max_velocity_mm_s=_take(t, "max_velocity_mm_s", float, name),
+            position_mm=_take(t, "position_mm", float, name, None),
+            timeout_s=timeout_s,
+        )
+    if kind == "focus":
+        return simd.SimFocus(
+            name,
+            world,
+            range_um=_take(t, "range_um", tuple, name, (0.0, 400.0)),
+            position_um=_take(t, "position_um", float, name, None),
+            timeout_s=timeout_s,
+        )
+    if kind == "light":
+        return simd.SimLight(
+            name,
+            world,
+            max_current_ma=_take(t, "max_current_ma", float, name),
+            shutter=_take(t, "shutter", str, name, None),
+            timeout_s=timeout_s,
+        )
+    if kind == "shutter":
+        return simd.SimShutter(name, world, timeout_s=timeout_s)
+    if kind == "trigger":
+        return simd.SimTrigger(
+            name, world, n_camera_lines=_take(t, "n_camera_lines", int, name, 4), timeout_s=timeout_s
+        )
+    return _build_sim_camera(name, t, world, timeout_s)
+
+
+def _build_sim_camera(name: str, t: dict[str, Any], world: Any, timeout_s: float) -> Device:
+    """Build a simulated camera: its limits, EMVA 1288 sensor and renderer from the table."""
+    from scopetwin.instrument.simulated import devices as simd
+    from scopetwin.instrument.simulated.renderers import make_renderer
+    from scopetwin.scenes.emva1288 import EmvaSensor
+
+    limits = _camera_limits(name, t)
+    try:  # the rig's ``sensor`` table: the fields of the EMVA 1288 model
+        emva = EmvaSensor(**t.pop("sensor", {}))
+    except TypeError as exc:
+        raise RigError(f"camera {name!r}: bad sensor field ({exc})") from exc
+    renderer = make_renderer(t.pop("renderer", {"kind": "texture"}), camera=name)
+    return simd.SimCamera(
+        name,
+        world,
+        renderer=renderer,
+        emva=emva,
+        limits=limits,
+        photons_per_unit_s=_take(t, "photons_per_unit_s", float, name, 1.0e6),
+        trigger_line=_take(t, "trigger_line", int, name, 0),
+        seed=_take(t, "seed", int, name, 0),
+        serial_number=_take(t, "serial", str, name, f"SIM-{name}"),
+        timeout_s=timeout_s,
+    )
+
+
+def _build_pi_stage(name: str, t: dict[str, Any], ctx: _Context, timeout_s: float) -> Device:
+    """Build a stage axis on a PI GCS controller."""
+    from scopetwin.instrument.drivers.pi_gcs import PiGcsStage
+
+    transport = ctx.transport(name, t, 115200)
+    return PiGcsStage(
+        name,
+        transport,
+        axis=str(t.pop("axis", "1")),
+        travel_mm=_take(t, "travel_mm", tuple, name),
+        max_velocity_mm_s=_take(t, "max_velocity_mm_s", float, name, None),  # None: read from the controller
+        velocity_mm_s=_take(t, "velocity_mm_s", float, name, None),
+        reference=_take(t, "reference", bool, name, True),
+        timeout_s=timeout_s,
+    )
+
+
+def _build_jena_focus(name: str, t: dict[str, Any], ctx: _Context, timeout_s: float) -> Device:
+    """Build a focus drive on a piezosystem jena amplifier of the table's model."""
+    from scopetwin.instrument.drivers.jena_piezo import JenaPiezoFocus, dialect_of
+
+    dialect = dialect_of(_take(t, "model", str, name, "nv40-1"))  # the model sets baud rate and XON/XOFF
+    transport = ctx.transport(name, t, dialect.baudrate, dialect.xonxoff)
+    return JenaPiezoFocus(
+        name,
+        transport,
+        model=dialect.model,
+        channel=_take(t, "channel", int, name, 0),
+        range_um=_take(t, "range_um", tuple, name, (0.0, 400.0)),
+        voltage_range_v=_take(t, "voltage_range_v", tuple, name, (-20.0, 130.0)),
+        closed_loop=_take(t, "closed_loop", bool, name, True),
+        timeout_s=timeout_s,
+    )
+
+
+def _build_fpga(name: str, kind: str, t: dict[str, Any], ctx: _Context, timeout_s: float) -> Device:
+    """Build a light, shutter or trigger on the FPGA board of the table's port (one board per port)."""
+    from scopetwin.instrument.drivers.fpga_board import FpgaBoard, FpgaLight, FpgaShutter, FpgaTrigger
+
+    port = str(t.get("port"))
+    transport = ctx.transport(name, t, 115200)
+    step = _take(t, "current_step_ma", float, name, 0.1)
+    if port not in ctx.boards:
+        ctx.boards[port] = FpgaBoard(transport, timeout_s=timeout_s, current_step_ma=step)
+    board = ctx.boards[port]
+    if kind == "light":
+        return FpgaLight(
+            name,
+            board,
+            channel=_take(t, "channel", int, name),
+            max_current_ma=_take(t, "max_current_ma", float, name),
+        )
+    if kind == "shutter":
+        return FpgaShutter(
+            name,
+            board,
+            open_output=_take(t, "open_output", int, name, 0),
+            close_output=_take(t, "close_output", int, name, 1),
+        )
+    return FpgaTrigger(name, board)
+
+
+def _build_basler(name: str, t: dict[str, Any], timeout_s: float) -> Device:
+    """Build a Basler GigE camera."""
+    from scopetwin.instrument.drivers.basler import BaslerCamera
+
+    return BaslerCamera(
+        name,
+        serial=_take(t, "serial", str, name, None),
+        pixel_size_um=_take(t, "pixel_size_um", float, name, 6.45),
+        magnification=_take(t, "magnification", float, name, 1.0),
+        gain_db_per_raw=_take(t, "gain_db_per_raw", float, name, 0.0359),
+        trigger_line=_take(t, "trigger_input", str, name, "Line1"),
+        packet_size=_take(t, "packet_size", int, name, None),  # GevSCPSPacketSize, bytes
+        inter_packet_delay=_take(t, "inter_packet_delay", int, name, None),  # GevSCPD, ticks
+        timeout_s=timeout_s,
+    )
+
+
 def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
+    """Build the device one rig-file table describes; every field must be used."""
     t = dict(table)
     kind = _take(t, "kind", str, name)
     driver = _take(t, "driver", str, name)
@@ -125,130 +270,15 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
     device: Device
     key = (kind, driver)
     if driver == "sim":
-        from scopetwin.instrument.simulated import devices as simd
-
-        world = ctx.sim_world()
-        if kind == "stage":
-            device = simd.SimStage(
-                name,
-                world,
-                travel_mm=_take(t, "travel_mm", tuple, name),
-                max_velocity_mm_s=_take(t, "max_velocity_mm_s", float, name),
-                position_mm=_take(t, "position_mm", float, name, None),
-                timeout_s=timeout_s,
-            )
-        elif kind == "focus":
-            device = simd.SimFocus(
-                name,
-                world,
-                range_um=_take(t, "range_um", tuple, name, (0.0, 400.0)),
-                position_um=_take(t, "position_um", float, name, None),
-                timeout_s=timeout_s,
-            )
-        elif kind == "light":
-            device = simd.SimLight(
-                name,
-                world,
-                max_current_ma=_take(t, "max_current_ma", float, name),
-                shutter=_take(t, "shutter", str, name, None),
-                timeout_s=timeout_s,
-            )
-        elif kind == "shutter":
-            device = simd.SimShutter(name, world, timeout_s=timeout_s)
-        elif kind == "trigger":
-            device = simd.SimTrigger(
-                name, world, n_camera_lines=_take(t, "n_camera_lines", int, name, 4), timeout_s=timeout_s
-            )
-        else:
-            from scopetwin.instrument.simulated.renderers import make_renderer
-            from scopetwin.scenes.emva1288 import EmvaSensor
-
-            limits = _camera_limits(name, t)
-            try:  # the rig's ``sensor`` table: the fields of the EMVA 1288 model
-                emva = EmvaSensor(**t.pop("sensor", {}))
-            except TypeError as exc:
-                raise RigError(f"camera {name!r}: bad sensor field ({exc})") from exc
-            renderer = make_renderer(t.pop("renderer", {"kind": "texture"}), camera=name)
-            device = simd.SimCamera(
-                name,
-                world,
-                renderer=renderer,
-                emva=emva,
-                limits=limits,
-                photons_per_unit_s=_take(t, "photons_per_unit_s", float, name, 1.0e6),
-                trigger_line=_take(t, "trigger_line", int, name, 0),
-                seed=_take(t, "seed", int, name, 0),
-                serial_number=_take(t, "serial", str, name, f"SIM-{name}"),
-                timeout_s=timeout_s,
-            )
+        device = _build_sim(name, kind, t, ctx, timeout_s)
     elif key == ("stage", "pi-gcs"):
-        from scopetwin.instrument.drivers.pi_gcs import PiGcsStage
-
-        transport = ctx.transport(name, t, 115200)
-        device = PiGcsStage(
-            name,
-            transport,
-            axis=str(t.pop("axis", "1")),
-            travel_mm=_take(t, "travel_mm", tuple, name),
-            max_velocity_mm_s=_take(t, "max_velocity_mm_s", float, name, None),  # None: read from the controller
-            velocity_mm_s=_take(t, "velocity_mm_s", float, name, None),
-            reference=_take(t, "reference", bool, name, True),
-            timeout_s=timeout_s,
-        )
+        device = _build_pi_stage(name, t, ctx, timeout_s)
     elif key == ("focus", "jena-piezo"):
-        from scopetwin.instrument.drivers.jena_piezo import JenaPiezoFocus, dialect_of
-
-        dialect = dialect_of(_take(t, "model", str, name, "nv40-1"))  # the model sets baud rate and XON/XOFF
-        transport = ctx.transport(name, t, dialect.baudrate, dialect.xonxoff)
-        device = JenaPiezoFocus(
-            name,
-            transport,
-            model=dialect.model,
-            channel=_take(t, "channel", int, name, 0),
-            range_um=_take(t, "range_um", tuple, name, (0.0, 400.0)),
-            voltage_range_v=_take(t, "voltage_range_v", tuple, name, (-20.0, 130.0)),
-            closed_loop=_take(t, "closed_loop", bool, name, True),
-            timeout_s=timeout_s,
-        )
+        device = _build_jena_focus(name, t, ctx, timeout_s)
     elif driver == "fpga-board" and kind in ("light", "shutter", "trigger"):
-        from scopetwin.instrument.drivers.fpga_board import FpgaBoard, FpgaLight, FpgaShutter, FpgaTrigger
-
-        port = str(t.get("port"))
-        transport = ctx.transport(name, t, 115200)
-        step = _take(t, "current_step_ma", float, name, 0.1)
-        if port not in ctx.boards:
-            ctx.boards[port] = FpgaBoard(transport, timeout_s=timeout_s, current_step_ma=step)
-        board = ctx.boards[port]
-        if kind == "light":
-            device = FpgaLight(
-                name,
-                board,
-                channel=_take(t, "channel", int, name),
-                max_current_ma=_take(t, "max_current_ma", float, name),
-            )
-        elif kind == "shutter":
-            device = FpgaShutter(
-                name,
-                board,
-                open_output=_take(t, "open_output", int, name, 0),
-                close_output=_take(t, "close_output", int, name, 1),
-            )
-        else:
-            device = FpgaTrigger(name, board)
+        device = _build_fpga(name, kind, t, ctx, timeout_s)
     elif key == ("camera", "basler"):
-        from scopetwin.instrument.drivers.basler import BaslerCamera
-
-        device = BaslerCamera(
-            name,
-            serial=_take(t, "serial", str, name, None),
-            pixel_size_um=_take(t, "pixel_size_um", float, name, 6.45),
-            magnification=_take(t, "magnification", float, name, 1.0),
-            gain_db_per_raw=_take(t, "gain_db_per_raw", float, name, 0.0359),
-            trigger_line=_take(t, "trigger_input", str, name, "Line1"),
-            packet_size=_take(t, "packet_size", int, name, None),  # GevSCPSPacketSize, bytes
-            inter_packet_delay=_take(t, "inter_packet_delay", int, name, None),  # GevSCPD, ticks
-            timeout_s=timeout_s,
-        )
+        device = _build_basler(name, t, timeout_s)
     else:
         raise RigError(f"device {name!r}: driver {driver!r} does not provide a {kind!r}")
     t.pop("description", None)
