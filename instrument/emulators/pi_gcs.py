@@ -268,107 +268,174 @@ class PiGcsEmulator(PtyEmulator):
 
     # commands ------------------------------------------------------------------------------------
     def _dispatch(self, cmd: str, args: list[str], now: float) -> bytes:
-        if cmd == "*IDN?":
-            return f"(c)2024 Physik Instrumente (PI) GmbH & Co. KG, {self.model}, 0000000001, 1.0.0-emu\n".encode()
-        if cmd == "ERR?":
-            code, self.error = self.error, 0
-            return f"{code}\n".encode()
-        if cmd == "CSV?":
-            return b"2.0\n"
-        if cmd == "VER?":
-            return self._lines([f"FW_ARM: V1.0.0 scopetwin emulator of the {self.model}"])
-        if cmd == "HLP?":
-            return self._lines(
-                ["The following commands are valid:"]
-                + [f"{name} {text}" for name, text in COMMANDS.items()]
-                + ["end of help"]
-            )
-        if cmd == "HPA?":
-            lines = ["The following parameters are valid:"]
-            lines += [
-                f"0x{pid:X}=\t0\t{len(self.axes)}\t{kind}\tmotion\t{text}" for pid, (kind, text) in PARAMETERS.items()
-            ]
-            return self._lines([*lines, "end of help"])
-        if cmd == "SAI?":
-            if args and [a.upper() for a in args] != ["ALL"]:
-                self._set_error(E_PARAM_SYNTAX)
-                return b""
-            return self._lines(list(self.axes))
-        queries = {
-            "POS?": lambda ax: ax.position(now),
-            "MOV?": lambda ax: ax.target,
-            "VEL?": lambda ax: ax.velocity,
-            "ONT?": lambda ax: int(not ax.moving(now)),
-            "SVO?": lambda ax: int(ax.servo),
-            "FRF?": lambda ax: int(ax.referenced),
-            "RON?": lambda ax: int(ax.reference_mode),
-            "TRS?": lambda ax: 1,  # the M-404 / M-414 stages have a reference switch
-            "LIM?": lambda ax: 1,  # ... and limit switches
-            "CST?": lambda ax: ax.stage,
-            "TMN?": lambda ax: ax.low,
-            "TMX?": lambda ax: ax.high,
-        }
-        if cmd in queries:
-            names = self._axes_of(args)
-            if names is None:
-                return b""
-            return self._lines([f"{a}={_fmt(queries[cmd](self.axes[a]))}" for a in names])
-        if cmd == "SPA?":
-            return self._spa_query(args)
-        if cmd == "SPA":
-            self._spa_set(args)
+        """Run one GCS command through :attr:`_HANDLERS`; an unknown one sets error 2 and answers nothing."""
+        handler = self._HANDLERS.get(cmd)
+        if handler is None:
+            self._set_error(E_UNKNOWN_COMMAND)
             return b""
-        if cmd == "CST":
-            for a, stage_name in self._pairs(args) or []:
-                self.axes[a].stage = stage_name
+        return handler(self, cmd, args, now)
+
+    def _cmd_idn(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``*IDN?``: the identification line."""
+        return f"(c)2024 Physik Instrumente (PI) GmbH & Co. KG, {self.model}, 0000000001, 1.0.0-emu\n".encode()
+
+    def _cmd_err(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``ERR?``: the kept error code, which the query clears."""
+        code, self.error = self.error, 0
+        return f"{code}\n".encode()
+
+    def _cmd_csv(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``CSV?``: the GCS syntax version."""
+        return b"2.0\n"
+
+    def _cmd_ver(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``VER?``: the firmware version."""
+        return self._lines([f"FW_ARM: V1.0.0 scopetwin emulator of the {self.model}"])
+
+    def _cmd_hlp(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``HLP?``: the commands of :data:`COMMANDS`."""
+        return self._lines(
+            ["The following commands are valid:"]
+            + [f"{name} {text}" for name, text in COMMANDS.items()]
+            + ["end of help"]
+        )
+
+    def _cmd_hpa(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``HPA?``: the parameters of :data:`PARAMETERS`."""
+        lines = ["The following parameters are valid:"]
+        lines += [
+            f"0x{pid:X}=\t0\t{len(self.axes)}\t{kind}\tmotion\t{text}" for pid, (kind, text) in PARAMETERS.items()
+        ]
+        return self._lines([*lines, "end of help"])
+
+    def _cmd_sai(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``SAI?`` (or ``SAI? ALL``): the axis identifiers."""
+        if args and [a.upper() for a in args] != ["ALL"]:
+            self._set_error(E_PARAM_SYNTAX)
             return b""
-        if cmd == "SVO":
-            for a, v in self._targets(args) or []:
-                self.axes[a].servo = bool(int(v))
+        return self._lines(list(self.axes))
+
+    def _cmd_axis_query(self, cmd: str, args: list[str], now: float) -> bytes:
+        """A per-axis query of :attr:`_AXIS_QUERIES` (``POS?``, ``ONT?``, ...): one ``axis=value`` line per axis."""
+        names = self._axes_of(args)
+        if names is None:
             return b""
-        if cmd == "RON":
-            for a, v in self._targets(args) or []:
-                self.axes[a].reference_mode = bool(int(v))
-            return b""
-        if cmd in ("FRF", "FNL", "FPL"):
-            self._reference(cmd, args)
-            return b""
-        if cmd == "POS":
-            pairs = self._targets(args)
-            for a, v in pairs or []:
-                ax = self.axes[a]
-                if ax.reference_mode:  # POS is only allowed with reference mode off
-                    self._set_error(E_PARAM_OUT_OF_RANGE)
-                    return b""
-                ax.start = ax.target = v
-                ax.t0 = now
-                ax.referenced = True
-            return b""
-        if cmd in ("MOV", "MVR"):
-            self._move(cmd, args, now)
-            return b""
-        if cmd == "VEL":
-            pairs = self._targets(args)
-            for a, v in pairs or []:
-                if not 0 < v <= self.axes[a].max_velocity:
-                    self._set_error(E_PARAM_OUT_OF_RANGE)
-                    return b""
-            for a, v in pairs or []:
-                ax = self.axes[a]
-                ax.go(ax.target, now)  # re-base the running move at the old speed
-                ax.velocity = v
-            return b""
-        if cmd == "HLT":
-            for a in self._axes_of(args) or []:
-                ax = self.axes[a]
-                ax.go(ax.position(now), now)
-            self._set_error(E_STOP)
-            return b""
-        if cmd == "STP":
-            self._stop_all(now)
-            return b""
-        self._set_error(E_UNKNOWN_COMMAND)
+        return self._lines([f"{a}={_fmt(self._AXIS_QUERIES[cmd](self.axes[a], now))}" for a in names])
+
+    def _cmd_spa_query(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``SPA?``: parameter values."""
+        return self._spa_query(args)
+
+    def _cmd_spa(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``SPA``: set parameters."""
+        self._spa_set(args)
         return b""
+
+    def _cmd_cst(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``CST``: name the stage on each axis."""
+        for a, stage_name in self._pairs(args) or []:
+            self.axes[a].stage = stage_name
+        return b""
+
+    def _cmd_svo(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``SVO``: servo on or off per axis."""
+        for a, v in self._targets(args) or []:
+            self.axes[a].servo = bool(int(v))
+        return b""
+
+    def _cmd_ron(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``RON``: reference mode on or off per axis."""
+        for a, v in self._targets(args) or []:
+            self.axes[a].reference_mode = bool(int(v))
+        return b""
+
+    def _cmd_reference(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``FRF``, ``FNL``, ``FPL``: reference moves."""
+        self._reference(cmd, args)
+        return b""
+
+    def _cmd_pos(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``POS``: set the real position (only with reference mode off), which marks the axis referenced."""
+        pairs = self._targets(args)
+        for a, v in pairs or []:
+            ax = self.axes[a]
+            if ax.reference_mode:  # POS is only allowed with reference mode off
+                self._set_error(E_PARAM_OUT_OF_RANGE)
+                return b""
+            ax.start = ax.target = v
+            ax.t0 = now
+            ax.referenced = True
+        return b""
+
+    def _cmd_move(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``MOV``, ``MVR``: absolute and relative moves."""
+        self._move(cmd, args, now)
+        return b""
+
+    def _cmd_vel(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``VEL``: closed-loop velocities, all within 0 < v <= the maximum or none set."""
+        pairs = self._targets(args)
+        for a, v in pairs or []:
+            if not 0 < v <= self.axes[a].max_velocity:
+                self._set_error(E_PARAM_OUT_OF_RANGE)
+                return b""
+        for a, v in pairs or []:
+            ax = self.axes[a]
+            ax.go(ax.target, now)  # re-base the running move at the old speed
+            ax.velocity = v
+        return b""
+
+    def _cmd_hlt(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``HLT``: stop the named axes (default all) where they are; sets error 10."""
+        for a in self._axes_of(args) or []:
+            ax = self.axes[a]
+            ax.go(ax.position(now), now)
+        self._set_error(E_STOP)
+        return b""
+
+    def _cmd_stp(self, cmd: str, args: list[str], now: float) -> bytes:
+        """``STP``: stop all axes; sets error 10."""
+        self._stop_all(now)
+        return b""
+
+    #: Per-axis queries: command -> the value of an axis at time ``now``.
+    _AXIS_QUERIES = {
+        "POS?": lambda ax, now: ax.position(now),
+        "MOV?": lambda ax, now: ax.target,
+        "VEL?": lambda ax, now: ax.velocity,
+        "ONT?": lambda ax, now: int(not ax.moving(now)),
+        "SVO?": lambda ax, now: int(ax.servo),
+        "FRF?": lambda ax, now: int(ax.referenced),
+        "RON?": lambda ax, now: int(ax.reference_mode),
+        "TRS?": lambda ax, now: 1,  # the M-404 / M-414 stages have a reference switch
+        "LIM?": lambda ax, now: 1,  # ... and limit switches
+        "CST?": lambda ax, now: ax.stage,
+        "TMN?": lambda ax, now: ax.low,
+        "TMX?": lambda ax, now: ax.high,
+    }
+
+    #: The command table: command -> handler(self, cmd, args, now) returning the answer bytes.
+    _HANDLERS = {
+        "*IDN?": _cmd_idn,
+        "ERR?": _cmd_err,
+        "CSV?": _cmd_csv,
+        "VER?": _cmd_ver,
+        "HLP?": _cmd_hlp,
+        "HPA?": _cmd_hpa,
+        "SAI?": _cmd_sai,
+        **dict.fromkeys(_AXIS_QUERIES, _cmd_axis_query),
+        "SPA?": _cmd_spa_query,
+        "SPA": _cmd_spa,
+        "CST": _cmd_cst,
+        "SVO": _cmd_svo,
+        "RON": _cmd_ron,
+        **dict.fromkeys(("FRF", "FNL", "FPL"), _cmd_reference),
+        "POS": _cmd_pos,
+        **dict.fromkeys(("MOV", "MVR"), _cmd_move),
+        "VEL": _cmd_vel,
+        "HLT": _cmd_hlt,
+        "STP": _cmd_stp,
+    }
 
     def _reference(self, cmd: str, args: list[str]) -> None:
         names = self._axes_of(args)
