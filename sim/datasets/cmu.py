@@ -222,24 +222,24 @@ def affine_truth(a: np.ndarray, pixel_um: float) -> dict[str, Any]:
     }
 
 
-def write_cmu(cfg: DatasetConfig, index: int, sample: CmuSample, stage: StagedOutput) -> dict[str, Any]:
-    """One channel set of the four-channel unit (seed §5.1.2, §5.2.2): an image per channel, the plates' maps, truth.
+@dataclass(frozen=True)
+class _UnitRender:
+    """What every channel of one cmu sample shares: plate maps, scene, window, sensor, fill and truth-grid half size."""
 
-    Each camera sits at its channel's refocused image distance (the numpy tracer's RMS-spot focus, §5.1.2) plus
-    the drawn defocus, with the drawn tilt and offset; the truth is the tracer's object->pixel map of that camera.
-    """
-    from scopetwin.scenes.cmu.analysis import analyse, channel_optics
-    from scopetwin.scenes.cmu.plates import plate_heightmap
-    from scopetwin.scenes.io import write_heightmap, write_image
-    from scopetwin.scenes.mitsuba.cmu import CameraPose, render_channel, unit_scene
+    maps: dict[str, Any]
+    scene: Any
+    box: tuple[int, int, int, int]
+    sensor: Any
+    fill: float
+    half: float
 
-    setup = sample.setup
-    master, spp = cfg.dataset.master_seed, cfg.dataset.spp
-    files: dict[str, str] = {}
-    elements = {**setup.splitters, **setup.mirrors}
-    maps = {name: plate_heightmap(spec, setup.plate) for name, spec in elements.items()}
+
+def _write_plates(setup: Any, maps: dict[str, Any], stage: StagedOutput, files: dict[str, str]) -> dict[str, Any]:
+    """Write the height map of every splitter and every bent mirror (adding them to ``files``); their truth entries."""
+    from scopetwin.scenes.io import write_heightmap
+
     plates = {}
-    for name, spec in elements.items():
+    for name, spec in {**setup.splitters, **setup.mirrors}.items():
         role = "splitter" if name in setup.splitters else "mirror"
         if role == "mirror" and not np.any(maps[name].z):
             continue
@@ -256,76 +256,90 @@ def write_cmu(cfg: DatasetConfig, index: int, sample: CmuSample, stage: StagedOu
             "height_map": spec.height_map,
             "range_um": float(np.ptp(maps[name].z) * 1e3),
         }
-    scene = unit_scene(setup, maps)
-    box = image_box(cfg, setup)
-    noise = bool(cfg.dataset.noise or sample.exposure_fill is not None)
-    fill = CMU_FILL_DEFAULT if sample.exposure_fill is None else float(sample.exposure_fill)
-    sensor = cmu_sensor(setup.camera.bit_depth) if noise else None
-    half = 0.5 * setup.target.frame_side if sample.target == "star" else 0.25 * min(setup.field_mm)
-    channels, images = {}, []
-    for ch in sample.channels:
-        opt = channel_optics(setup, ch, maps, stop=cfg.cmu.stop)
-        focus = analyse(setup, opt, n_pupil=cfg.cmu.n_pupil)
-        b = focus.image_distance_mm + sample.defocus[ch]
-        res = focus if sample.defocus[ch] == 0 else analyse(setup, opt, n_pupil=cfg.cmu.n_pupil, image_distance=b)
-        pose = CameraPose(b, sample.tilt_deg[ch], sample.offset_px[ch])
-        rseed = sample_seed(master, index, f"render:{ch}")
-        img = render_channel(
-            setup, ch, pose, sample.target, spp=spp, window=box, stop=cfg.cmu.stop, seed=rseed, scene=scene
+    return plates
+
+
+def _expose(
+    sensor: Any, img: np.ndarray, fill: float, master: int, index: int, ch: str
+) -> tuple[np.ndarray, float, int]:
+    """Capture ``img`` through the noise model at the exposure that fills its 99.9th percentile to ``fill``."""
+    peak = float(np.percentile(img, 99.9))  # Monte-Carlo outliers above it saturate, as hot spots would
+    if not peak > 0:
+        raise ScopetwinError(
+            f"sample {index}, channel {ch}: the rendered image is black: cannot choose an exposure for the noise model"
         )
-        exposure, nseed = None, None
-        if sensor is not None:
-            peak = float(np.percentile(img, 99.9))  # Monte-Carlo outliers above it saturate, as hot spots would
-            if not peak > 0:
-                raise ScopetwinError(
-                    f"sample {index}, channel {ch}: the rendered image is black: cannot choose an "
-                    "exposure for the noise model"
-                )
-            exposure = sensor.exposure_for(peak, 1.0, fill)
-            nseed = sample_seed(master, index, f"noise:{ch}")
-            img = sensor.capture(img, 1.0, exposure, rng=nseed)
-        fname = f"image_{ch}.exr"
-        prov = {
-            "seed": rseed,
-            "spp": spp,
-            "renderer": "mitsuba-cmu",
-            "channel": ch,
-            "target": sample.target,
-            "noise_seed": nseed,
-            "versions": versions(SAMPLE_PACKAGES),
-        }
-        write_image(stage.path(fname), img, setup.to_json(), prov, image_distance_mm=float(b), scopetwin_channel=ch)
-        files[f"image_{ch}"] = fname
-        images.append(img)
-        spec = setup.channels[ch]
-        channels[ch] = {
-            "image": fname,
-            "path": list(spec.path),
-            "filter": spec.filter,
-            "image_distance_mm": float(b),
-            "refocused_image_distance_mm": focus.image_distance_mm,
-            "defocus_mm": sample.defocus[ch],
-            "camera": {"tilt_deg": pose.tilt_deg, "offset_px": list(pose.offset_px)},
-            **affine_truth(object_to_pixel(setup, opt, ch, pose, box, half), setup.camera.pixel_um),
-            "rms_spot_um": res.rms_spot_um,
-            "astigmatism_mm": res.astigmatism_mm,
-            "transmitted_fraction": res.transmitted_fraction,
-            "exposure_e_per_unit": exposure,
-            "seeds": {"render": rseed, "noise": nseed},
-        }
-    if cfg.dataset.preview:
-        tiles = [im / (float(np.percentile(im, 99.9)) or 1.0) for im in images]
-        write_preview(stage.path("preview.png"), np.hstack(tiles))
-        files["preview"] = "preview.png"
+    exposure = sensor.exposure_for(peak, 1.0, fill)
+    nseed = sample_seed(master, index, f"noise:{ch}")
+    return sensor.capture(img, 1.0, exposure, rng=nseed), exposure, nseed
+
+
+def _write_channel(
+    cfg: DatasetConfig, index: int, sample: CmuSample, ch: str, unit: _UnitRender, stage: StagedOutput
+) -> tuple[str, np.ndarray, dict[str, Any]]:
+    """Render, expose and write channel ``ch`` at its refocused distance plus defocus; file name, image and truth."""
+    from scopetwin.scenes.cmu.analysis import analyse, channel_optics
+    from scopetwin.scenes.io import write_image
+    from scopetwin.scenes.mitsuba.cmu import CameraPose, render_channel
+
+    setup = sample.setup
+    master, spp = cfg.dataset.master_seed, cfg.dataset.spp
+    opt = channel_optics(setup, ch, unit.maps, stop=cfg.cmu.stop)
+    focus = analyse(setup, opt, n_pupil=cfg.cmu.n_pupil)
+    b = focus.image_distance_mm + sample.defocus[ch]
+    res = focus if sample.defocus[ch] == 0 else analyse(setup, opt, n_pupil=cfg.cmu.n_pupil, image_distance=b)
+    pose = CameraPose(b, sample.tilt_deg[ch], sample.offset_px[ch])
+    rseed = sample_seed(master, index, f"render:{ch}")
+    img = render_channel(
+        setup, ch, pose, sample.target, spp=spp, window=unit.box, stop=cfg.cmu.stop, seed=rseed, scene=unit.scene
+    )
+    exposure, nseed = None, None
+    if unit.sensor is not None:
+        img, exposure, nseed = _expose(unit.sensor, img, unit.fill, master, index, ch)
+    fname = f"image_{ch}.exr"
+    prov = {
+        "seed": rseed,
+        "spp": spp,
+        "renderer": "mitsuba-cmu",
+        "channel": ch,
+        "target": sample.target,
+        "noise_seed": nseed,
+        "versions": versions(SAMPLE_PACKAGES),
+    }
+    write_image(stage.path(fname), img, setup.to_json(), prov, image_distance_mm=float(b), scopetwin_channel=ch)
+    spec = setup.channels[ch]
+    entry = {
+        "image": fname,
+        "path": list(spec.path),
+        "filter": spec.filter,
+        "image_distance_mm": float(b),
+        "refocused_image_distance_mm": focus.image_distance_mm,
+        "defocus_mm": sample.defocus[ch],
+        "camera": {"tilt_deg": pose.tilt_deg, "offset_px": list(pose.offset_px)},
+        **affine_truth(object_to_pixel(setup, opt, ch, pose, unit.box, unit.half), setup.camera.pixel_um),
+        "rms_spot_um": res.rms_spot_um,
+        "astigmatism_mm": res.astigmatism_mm,
+        "transmitted_fraction": res.transmitted_fraction,
+        "exposure_e_per_unit": exposure,
+        "seeds": {"render": rseed, "noise": nseed},
+    }
+    return fname, img, entry
+
+
+def _cmu_truth(
+    cfg: DatasetConfig, sample: CmuSample, unit: _UnitRender, channels: dict[str, Any], plates: dict[str, Any]
+) -> dict[str, Any]:
+    """The sample's truth: target, window, sensor, per-channel truth, plates and every seed."""
+    setup = sample.setup
     target = setup.target if sample.target == "star" else setup.cells
-    truth = {
+    sensor = unit.sensor
+    return {
         "setup": setup.name,
         "scene": "cmu",
         "target": {"name": sample.target, **target.model_dump()},
-        "window": list(box),
+        "window": list(unit.box),
         "stop": cfg.cmu.stop,
-        "spp": spp,
-        "sensor": None if sensor is None else {**dataclasses.asdict(sensor), "fill_fraction": fill},
+        "spp": cfg.dataset.spp,
+        "sensor": None if sensor is None else {**dataclasses.asdict(sensor), "fill_fraction": unit.fill},
         "channels": channels,
         "plates": plates,
         "seeds": {
@@ -336,4 +350,54 @@ def write_cmu(cfg: DatasetConfig, index: int, sample: CmuSample, stage: StagedOu
         },
         "setup_json": json.loads(setup.to_json()),
     }
-    return {"files": files, "truth": truth}
+
+
+def write_cmu(cfg: DatasetConfig, index: int, sample: CmuSample, stage: StagedOutput) -> dict[str, Any]:
+    """One channel set of the four-channel unit (seed §5.1.2, §5.2.2): an image per channel, the plates' maps, truth.
+
+    Each camera sits at its channel's refocused image distance (the numpy tracer's RMS-spot focus, §5.1.2) plus
+    the drawn defocus, with the drawn tilt and offset; the truth is the tracer's object->pixel map of that camera.
+
+    Parameters
+    ----------
+    cfg : DatasetConfig
+        The dataset's configuration (seeds, spp, noise, preview, the ``cmu`` table).
+    index : int
+        Sample index (seeds the render and noise of each channel).
+    sample : CmuSample
+        The sample's unit and camera poses (:func:`cmu_sample`).
+    stage : StagedOutput
+        Where the sample's files are written.
+
+    Returns
+    -------
+    dict
+        ``files`` (role -> file name) and ``truth``.
+    """
+    from scopetwin.scenes.cmu.plates import plate_heightmap
+    from scopetwin.scenes.mitsuba.cmu import unit_scene
+
+    setup = sample.setup
+    files: dict[str, str] = {}
+    elements = {**setup.splitters, **setup.mirrors}
+    maps = {name: plate_heightmap(spec, setup.plate) for name, spec in elements.items()}
+    plates = _write_plates(setup, maps, stage, files)
+    noise = bool(cfg.dataset.noise or sample.exposure_fill is not None)
+    unit = _UnitRender(
+        maps=maps,
+        scene=unit_scene(setup, maps),
+        box=image_box(cfg, setup),
+        sensor=cmu_sensor(setup.camera.bit_depth) if noise else None,
+        fill=CMU_FILL_DEFAULT if sample.exposure_fill is None else float(sample.exposure_fill),
+        half=0.5 * setup.target.frame_side if sample.target == "star" else 0.25 * min(setup.field_mm),
+    )
+    channels, images = {}, []
+    for ch in sample.channels:
+        fname, img, channels[ch] = _write_channel(cfg, index, sample, ch, unit, stage)
+        files[f"image_{ch}"] = fname
+        images.append(img)
+    if cfg.dataset.preview:
+        tiles = [im / (float(np.percentile(im, 99.9)) or 1.0) for im in images]
+        write_preview(stage.path("preview.png"), np.hstack(tiles))
+        files["preview"] = "preview.png"
+    return {"files": files, "truth": _cmu_truth(cfg, sample, unit, channels, plates)}
