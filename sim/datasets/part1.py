@@ -47,52 +47,41 @@ def _rotation(rotvec: Sequence[float]) -> np.ndarray:
     return Rotation.from_rotvec(np.asarray(rotvec, dtype=np.float64)).as_matrix()
 
 
-def part1_setup(cfg: DatasetConfig, base: dict[str, Any], index: int, params: dict[str, Any]) -> Setup:
-    """The validated :class:`scopetwin.scenes.setup.Setup` of sample ``index`` (varied quantities applied).
+def _vary_surface(d: dict[str, Any], params: dict[str, Any], master: int, index: int) -> None:
+    """Give the deflectometry substrate's surface its sample seed and its drawn range, length, kind and roughness."""
+    surf = d.setdefault("substrate", {}).setdefault("surface", {})
+    surf["seed"] = sample_seed(master, index, "surface")
+    for key, field in (
+        ("surface_range_um", "range_um"),
+        ("surface_correlation_length", "correlation_length"),
+        ("surface_kind", "kind"),
+        ("surface_broadband_rms_nm", "broadband_rms_nm"),
+    ):
+        if key in params:
+            surf[field] = params[key]
 
-    Parameters
-    ----------
-    cfg : DatasetConfig
-        The dataset config.
-    base : dict
-        The setup dictionary every sample starts from (:func:`base_setup_dict`).
-    index : int
-        The sample.
-    params : dict
-        Its varied quantities (:func:`scopetwin.sim.datasets.seeding.draw_parameters`).
-    """
-    from scopetwin.scenes.setup import setup_from_dict
 
-    d = json.loads(json.dumps(base))
-    cam = d.setdefault("camera", {})
-    master = cfg.dataset.master_seed
-    if cfg.dataset.kind == "deflectometry":
-        surf = d.setdefault("substrate", {}).setdefault("surface", {})
-        surf["seed"] = sample_seed(master, index, "surface")
-        for key, field in (
-            ("surface_range_um", "range_um"),
-            ("surface_correlation_length", "correlation_length"),
-            ("surface_kind", "kind"),
-            ("surface_broadband_rms_nm", "broadband_rms_nm"),
-        ):
-            if key in params:
-                surf[field] = params[key]
-    if "view_angle_deg" in params or "view_distance" in params:
-        if d.get("scene") != "target":
-            raise DatasetError("dataset config: key vary.view_angle_deg: the viewing-angle scan needs a target scene")
-        a = math.radians(float(params.get("view_angle_deg", 90.0)))
-        dist = float(params.get("view_distance", math.dist(cam.get("origin", (0, 0, 0)), (0, 0, 0))))
-        s, c = math.sin(a), math.cos(a)
-        centre = np.asarray(d.get("pattern", {}).get("origin", (0.0, 0.0, 0.0)), dtype=np.float64)
-        for k in ("r_0", "phi"):
-            cam.pop(k, None)
-        cam.update(
-            origin=(centre + [0.0, -dist * c, dist * s]).tolist(),
-            t_x=[1.0, 0.0, 0.0],
-            t_y=[0.0, s, c],
-            n_z=[0.0, -c, s],
-        )
-        cam.setdefault("image_distance", 28.0)
+def _view_from_angle(d: dict[str, Any], cam: dict[str, Any], params: dict[str, Any]) -> None:
+    """Place the camera on the target's y-z circle at the drawn viewing angle and distance (camera given by axes)."""
+    if d.get("scene") != "target":
+        raise DatasetError("dataset config: key vary.view_angle_deg: the viewing-angle scan needs a target scene")
+    a = math.radians(float(params.get("view_angle_deg", 90.0)))
+    dist = float(params.get("view_distance", math.dist(cam.get("origin", (0, 0, 0)), (0, 0, 0))))
+    s, c = math.sin(a), math.cos(a)
+    centre = np.asarray(d.get("pattern", {}).get("origin", (0.0, 0.0, 0.0)), dtype=np.float64)
+    for k in ("r_0", "phi"):
+        cam.pop(k, None)
+    cam.update(
+        origin=(centre + [0.0, -dist * c, dist * s]).tolist(),
+        t_x=[1.0, 0.0, 0.0],
+        t_y=[0.0, s, c],
+        n_z=[0.0, -c, s],
+    )
+    cam.setdefault("image_distance", 28.0)
+
+
+def _vary_camera(cam: dict[str, Any], params: dict[str, Any]) -> None:
+    """Apply the drawn camera shift and rotation, f-number, distortion and principal-point offset."""
     if "camera_shift" in params:
         cam["origin"] = (np.asarray(cam["origin"], dtype=np.float64) + params["camera_shift"]).tolist()
     if "camera_rotation" in params:
@@ -110,16 +99,12 @@ def part1_setup(cfg: DatasetConfig, base: dict[str, Any], index: int, params: di
         cam["c2"] = params["distortion_c2"]
     if "principal_offset" in params:
         cam["r_cs"] = list(params["principal_offset"])
-    if "exposure_fill" in params:
-        d.setdefault("sensor", {})["fill_fraction"] = params["exposure_fill"]
-    if "exposure_s" in params:
-        d.setdefault("sensor", {})["exposure_s"] = params["exposure_s"]
-    d.setdefault("render", {}).update(
-        spp=cfg.dataset.spp,
-        seed=sample_seed(master, index, "render"),
-        noise=bool(cfg.dataset.noise or "exposure_fill" in params or "exposure_s" in params),
-    )
-    d["name"] = f"{d.get('name', 'setup')}-sample-{index:06d}"
+
+
+def _validated_setup(d: dict[str, Any], cam: dict[str, Any], index: int, params: dict[str, Any]) -> Setup:
+    """Validate ``d`` as sample ``index``'s setup; a drawn defocus moves the thin lens's focus and validates again."""
+    from scopetwin.scenes.setup import setup_from_dict
+
     try:
         setup = setup_from_dict(d, f"sample {index}")
         if "defocus" in params:
@@ -134,6 +119,41 @@ def part1_setup(cfg: DatasetConfig, base: dict[str, Any], index: int, params: di
     except SetupError as exc:
         raise DatasetError(f"sample {index} (parameters {params}): {exc}") from None
     return setup
+
+
+def part1_setup(cfg: DatasetConfig, base: dict[str, Any], index: int, params: dict[str, Any]) -> Setup:
+    """The validated :class:`scopetwin.scenes.setup.Setup` of sample ``index`` (varied quantities applied).
+
+    Parameters
+    ----------
+    cfg : DatasetConfig
+        The dataset config.
+    base : dict
+        The setup dictionary every sample starts from (:func:`base_setup_dict`).
+    index : int
+        The sample.
+    params : dict
+        Its varied quantities (:func:`scopetwin.sim.datasets.seeding.draw_parameters`).
+    """
+    d = json.loads(json.dumps(base))
+    cam = d.setdefault("camera", {})
+    master = cfg.dataset.master_seed
+    if cfg.dataset.kind == "deflectometry":
+        _vary_surface(d, params, master, index)
+    if "view_angle_deg" in params or "view_distance" in params:
+        _view_from_angle(d, cam, params)
+    _vary_camera(cam, params)
+    if "exposure_fill" in params:
+        d.setdefault("sensor", {})["fill_fraction"] = params["exposure_fill"]
+    if "exposure_s" in params:
+        d.setdefault("sensor", {})["exposure_s"] = params["exposure_s"]
+    d.setdefault("render", {}).update(
+        spp=cfg.dataset.spp,
+        seed=sample_seed(master, index, "render"),
+        noise=bool(cfg.dataset.noise or "exposure_fill" in params or "exposure_s" in params),
+    )
+    d["name"] = f"{d.get('name', 'setup')}-sample-{index:06d}"
+    return _validated_setup(d, cam, index, params)
 
 
 def write_normals(path: Path, heights: HeightMap) -> None:
