@@ -6,7 +6,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: run test lint bench llvm setup clean
+.PHONY: run test lint docs bench llvm setup clean
 
 run: setup
 	$(VENV)/bin/scopetwin run
@@ -30,6 +30,10 @@ lint: setup
 	$(VENV)/bin/ruff format --check .
 	@sh .ci/typecheck-tree.sh
 	$(VENV)/bin/mypy
+
+# the documentation (docs/: Sphinx, MyST Markdown, autodoc) as HTML in build/docs; warnings are errors
+docs: setup
+	$(VENV)/bin/sphinx-build -W --keep-going -b html docs build/docs
 
 bench: setup
 	$(PY) benchmarks/render_speed.py

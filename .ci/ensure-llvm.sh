@@ -1,5 +1,5 @@
 #!/bin/sh
-# Mitsuba's llvm_* variants need a shared LLVM library >= 16 (NOTES-rendering.md: Debian 12's
+# Mitsuba's llvm_* variants need a shared LLVM library >= 16 (docs/rendering.md: Debian 12's
 # LLVM 15 aborts). Install libllvm19 when root; otherwise say what to install.
 set -e
 have_llvm() {

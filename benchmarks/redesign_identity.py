@@ -1,7 +1,7 @@
 """Same seeds, same bytes: renders of every preset and the figures of ``scopetwin run`` / ``study thesis``.
 
 Issue 12 (the redesign) promises that behaviour does not change.  This script drives the command line only (the
-contract, DESIGN.md), so it survives any internal restructuring:
+contract, docs/contract.md), so it survives any internal restructuring:
 
 * every Part I preset rendered with Mitsuba (``scopetwin render PRESET --spp 4 --seed 1``),
 * a GRIN target image (``optics grin thesis-8.3.2-grin-realized --image dots-25``) and the four CMU Siemens-star

@@ -120,7 +120,7 @@ class SetupCalibration:
     shared_intrinsics: bool
 
     def as_dict(self) -> dict[str, Any]:
-        """JSON-ready result (DESIGN.md, ``calibrate-setup``): camera, pattern and both calibrations."""
+        """JSON-ready result (docs/contract.md, ``calibrate-setup``): camera, pattern and both calibrations."""
         cal = self.substrate.as_dict()
         return {
             "camera": cal["camera"],

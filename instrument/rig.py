@@ -1,6 +1,6 @@
 """Rigs: a TOML file names each device and its implementation; :func:`open_rig` opens them all.
 
-Format (DESIGN.md, 'Rig files')::
+Format (docs/contract.md, 'Rig files')::
 
     [rig]
     name = "sim-cmu"

@@ -4,7 +4,7 @@ A marker is a round spot on the pattern (grey value g = 1 - r/r_m, seed §1.6.3)
 disk mapped through the optics: perspective on a tilted target (§2.8.2) and reflection in the bent
 substrate (§1.6.5) bend that map, so the grey-weighted centroid of the spot (§1.5.1) is not the
 image of the marker's centre. The difference — the bias — reaches 0.05-0.1 px on a calibration
-target tilted by 20-40° and several tenths of a pixel on a 40 µm bow (NOTES-rendering.md), far more
+target tilted by 20-40° and several tenths of a pixel on a 40 µm bow (docs/rendering.md, "Centroid bias"), far more
 than the photon-noise scatter. This module predicts it from a model, so that calibration and
 reconstruction can iterate: estimate the setup -> predict the bias -> correct the centroids ->
 estimate again.
@@ -227,7 +227,7 @@ def predict_spots(
         Camera + plane target (:class:`PlaneTarget`) or camera + surface + pattern
         (:func:`model_for_setup`).
     ij : array_like, (n, 2)
-        Marker indices (DESIGN.md).
+        Marker indices (docs/contract.md, "Marker indices").
     guess_px : array_like, (n, 2), optional
         Where the spots are roughly (e.g. the measured centroids); default: the image through a flat
         mirror z = 0 or the direct view.

@@ -196,14 +196,14 @@ class SplineSurface:
         return np.sum(wx * c, axis=1).reshape(xa.shape), np.sum(wy * c, axis=1).reshape(xa.shape)
 
     def heightmap(self, sub: Substrate2D, nx: int = 128, ny: int = 288) -> HeightMap:
-        """The surface on the contract's node grid over the substrate (DESIGN.md height-map files)."""
+        """The surface on the contract's node grid over the substrate (docs/contract.md, "Height maps")."""
         xs = np.linspace(*sub.x_range, nx)
         ys = np.linspace(*sub.y_range, ny)
         xx, yy = np.meshgrid(xs, ys)
         return HeightMap(self.height(xx, yy), sub.x_range[0], sub.x_range[1], sub.y_range[0], sub.y_range[1])
 
     def smoothness(self) -> sp.csr_matrix:
-        """D: second differences (xx, yy, sqrt(2) xy) of the coefficient grid per mm^2 (thin-plate energy |D c|^2)."""
+        """D: second differences (xx, yy, sqrt(2) xy) of the coefficient grid per mm^2 (thin-plate ``|D c|^2``)."""
         ny, nx = self.shape
 
         def second(n: int, h: float) -> sp.csr_matrix:
@@ -311,7 +311,7 @@ class InverseConfig:
     outer_max : int
         Largest number of start heights tried.
     outer_tol_um : float
-        Start-height search stops when |criterion| falls below this, µm.
+        Start-height search stops when ``|criterion|`` falls below this, µm.
     frame_step : float
         Spacing of the evaluation grid over the frame regions, mm.
     noise : {"auto", "emva", "none"}

@@ -7,7 +7,7 @@ process (:mod:`scopetwin.recon.shifted_basis`). Read that way explicitly, the sa
   held-out bands;
 * a prior that **admits broadband content**: height covariance k = k_smooth + k_broad + plane, two squared-
   exponential (SE) components — the smooth bow (long correlation) and the nm-level short-wavelength part real
-  glass has (NOTES-rendering.md, "Absolute height") — plus unpenalised tilt terms;
+  glass has (docs/rendering.md, "Absolute height") — plus unpenalised tilt terms;
 * the **posterior** of any linear functional of the heights, and by sampling of the frame criterion itself: the
   start height of seed §1.4 rests on the surface's maxima over the frame regions, 1-6 mm beyond the last marker,
   where the posterior variance (chiefly the broadband part's, which no data constrain there) dominates the error.

@@ -166,7 +166,7 @@ class ReconstructionConfig:
     inner_tol_um, inner_max : float, int
         Inner loop stops when the RMS height change over the ROI is below ``inner_tol_um``.
     outer_tol_um, outer_max : float, int
-        Outer loop stops when |criterion| <= ``outer_tol_um``.
+        Outer loop stops when ``|criterion|`` <= ``outer_tol_um``.
     criterion : {"level", "delta"}
         Frame-region criterion (module docstring).
     search : {"secant", "thesis"}
@@ -200,8 +200,8 @@ class ReconstructionConfig:
         again without them (:meth:`Reconstructor._index_outliers`): a wrongly indexed marker is ~3 mrad off, a
         good one within ~5 times the median (2-20 µrad); 0 turns the check off.
     consistency_um : float
-        After convergence the criterion not searched on must hold too: |Delta h_max| (criterion
-        ``level``) or |mean frame maximum - frame position| (criterion ``delta``) above this is an
+        After convergence the criterion not searched on must hold too: ``|Delta h_max|`` (criterion
+        ``level``) or ``|mean frame maximum - frame position|`` (criterion ``delta``) above this is an
         :class:`InconsistentError` (a mis-indexed image or a wrong setup gives a smooth but tilted
         surface that only one of the two frame conditions can hide).
     """
@@ -405,7 +405,7 @@ class ReconstructionResult:
         return self.history[-1].delta_h_max_um
 
     def heightmap(self, nx: int = 128, ny: int = 288) -> HeightMap:
-        """The surface on a node grid covering the whole substrate (DESIGN.md height-map contract)."""
+        """The surface on a node grid covering the whole substrate (docs/contract.md, "Height maps")."""
         return self.surface.heightmap(self.substrate.x_range, self.substrate.y_range, nx, ny)
 
     def std_heightmap(self, nx: int = 128, ny: int = 288) -> HeightMap | None:
@@ -470,7 +470,7 @@ def intersect_surface(
     frame : Frame, optional
         The substrate's base plane (None: the rays are given in it).
     tol, max_iter : float, int
-        Convergence threshold on |f|, mm, and largest number of secant steps.
+        Convergence threshold on ``|f|``, mm, and largest number of secant steps.
 
     Returns
     -------

@@ -270,7 +270,7 @@ class SBFSurface:
     def heightmap(
         self, x_range: tuple[float, float], y_range: tuple[float, float], nx: int = 128, ny: int = 256
     ) -> HeightMap:
-        """Sample the surface on the contract's node grid (DESIGN.md: nodes span the extents inclusive)."""
+        """Sample the surface on the contract's node grid, extents inclusive (docs/contract.md, "Height maps")."""
         xs = np.linspace(*x_range, nx)
         ys = np.linspace(*y_range, ny)
         xx, yy = np.meshgrid(xs, ys)

@@ -16,7 +16,7 @@ Coordinates
 * Pixels: continuous coordinates (x_px, y_px) = (column, row); pixel (row, col)
   covers [col, col+1) x [row, row+1), so its centre is (col+0.5, row+0.5).
   ``u_dist = (x_px - nx/2)*pitch + x_cs`` and ``v_dist = (ny/2 - y_px)*pitch + y_cs``
-  (DESIGN.md: column grows along T_x, row grows against T_y).
+  (docs/contract.md, "Camera": column grows along T_x, row grows against T_y).
 """
 
 from __future__ import annotations
@@ -76,7 +76,7 @@ def _plus(value: Any, term: Any) -> Any:
 
 @dataclass(frozen=True)
 class PixelGrid:
-    """The sensor's pixel grid: continuous pixel coordinates <-> sensor coordinates (DESIGN.md, "Camera").
+    """The sensor's pixel grid: continuous pixel coordinates <-> sensor coordinates (docs/contract.md, "Camera").
 
     The one definition of the pixel convention, used by every renderer (Part I, the CMU channels, the GRIN image
     plane), the datasets and the analyses. Pixel (row, col) covers [col, col+1) x [row, row+1); the column grows
@@ -258,9 +258,9 @@ class Camera:
     ) -> Camera:
         """Camera from the optimisation parameters of seed §2.5.2.
 
-        N_z = (r_c - r_0)/|r_c - r_0|, T_0x = e_y x N_z, T_0y = N_z x T_0x,
+        ``N_z = (r_c - r_0)/|r_c - r_0|``, T_0x = e_y x N_z, T_0y = N_z x T_0x,
         T_x = cos(phi) T_0x + sin(phi) T_0y, T_y = cos(phi) T_0y - sin(phi) T_0x,
-        g = |r_c - r_0|, b = g f/(g - f). ``r_0`` may be 2-D (a point of the plane z = 0).
+        ``g = |r_c - r_0|``, b = g f/(g - f). ``r_0`` may be 2-D (a point of the plane z = 0).
         """
         rc = np.asarray(r_c, dtype=np.float64)
         r0 = np.zeros(3)
@@ -290,8 +290,8 @@ class Camera:
     def undistort(self, uv_dist: ArrayLike) -> Array:
         """Closed-form inverse of :meth:`distort`.
 
-        |r_d| = c0 rho + c2 rho^2 is solved for rho with the cancellation-free
-        root rho = 2|r_d| / (c0 + sqrt(c0^2 + 4 c2 |r_d|)); then r = r_d/(c0 + c2 rho).
+        ``|r_d| = c0 rho + c2 rho^2`` is solved for rho with the cancellation-free
+        root ``rho = 2|r_d| / (c0 + sqrt(c0^2 + 4 c2 |r_d|))``; then r = r_d/(c0 + c2 rho).
         """
         rd = np.asarray(uv_dist, dtype=np.float64)
         s = np.linalg.norm(rd, axis=-1, keepdims=True)
@@ -338,7 +338,7 @@ class Camera:
         return self.sensor_to_pixel(self.distort(self.project_ideal(points)))
 
     def rays_from_sensor(self, uv_ideal: ArrayLike) -> tuple[Array, Array]:
-        """Pinhole chief rays through ideal sensor points: origin r_c, unit direction (r_s - r_c)/|r_s - r_c|."""
+        """Pinhole chief rays through ideal sensor points: origin r_c, unit direction ``(r_s - r_c)/|r_s - r_c|``."""
         q = np.asarray(uv_ideal, dtype=np.float64)
         f = self.frame
         d = -self.b * f.nz + q[..., :1] * f.tx + q[..., 1:2] * f.ty
@@ -393,7 +393,7 @@ class Camera:
         focus: bool = False,
         grid: bool = True,
     ) -> dict[str, Any]:
-        """JSON-ready camera parameters with the contract's keys (DESIGN.md, `calibrate`): the one camera writer.
+        """JSON-ready camera parameters with the contract's keys (docs/contract.md, `calibrate`): the one camera writer.
 
         Always the frame and image distance (``r_c``, ``t_x``, ``t_y``, ``n_z``, ``b``), then, with ``pose`` =
         (r_0, phi, g), the optimisation parameters of §2.5.2 (``g``, ``r_0`` as its x, y, ``phi``), the

@@ -15,7 +15,7 @@ from scopetwin.scenes.errors import GeometryError
 
 Array = NDArray[np.float64]
 
-#: Tolerance (dimensionless) on |T|=1, T_x.T_y=0 and T_x x T_y = N_z when a frame is built.
+#: Tolerance (dimensionless) on ``|T|=1``, ``T_x.T_y=0`` and T_x x T_y = N_z when a frame is built.
 #: The seed prints its unit vectors with four digits (0.5145, 0.8575), so a
 #: looser check than machine precision is needed; the frame is then made exactly
 #: orthonormal (see :class:`Frame`).

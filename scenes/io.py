@@ -1,4 +1,4 @@
-"""OpenEXR files of the contract (DESIGN.md): images (channel ``Y``) and height maps (channel ``Z``).
+"""OpenEXR files of the contract (docs/contract.md, "Files"): images (channel ``Y``) and height maps (channel ``Z``).
 
 Writes are atomic: the file is written next to its destination under a
 temporary name and moved into place with :func:`os.replace`, so a reader never
@@ -149,7 +149,7 @@ def write_heightmap(path: str | Path, heights: HeightMap, std: HeightMap | None 
     """Write a height map in the contract's format (channel ``Z`` in mm, extents as header attributes).
 
     ``std``: the per-node standard uncertainty of a reconstruction on the same nodes, written as channel ``Z_std``
-    (mm; DESIGN.md, the reconstruct contract).
+    (mm; docs/contract.md, "Height maps").
     """
     extents = dict(zip(EXTENT_KEYS, (heights.x_min, heights.x_max, heights.y_min, heights.y_max), strict=True))
     extra = None

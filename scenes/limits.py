@@ -12,7 +12,7 @@ weeks. Two checks:
   24 h, or ``SCOPETWIN_RENDER_LIMIT_S`` seconds).
 
 The estimates are coarse on purpose (a factor of two either way): they exist to refuse what is far out of reach,
-not to predict run times. The ray rates are the measured figures of ``shared/NOTES-rendering.md`` on 2 CPU cores
+not to predict run times. The ray rates are the measured figures of ``docs/rendering.md`` on 2 CPU cores
 (a GPU is faster, which only makes the time check conservative).
 """
 
@@ -31,7 +31,7 @@ FLOATS_PER_PIXEL = 12
 MEMORY_FRACTION = 0.8
 #: Default render time limit, seconds (``SCOPETWIN_RENDER_LIMIT_S`` overrides it).
 RENDER_LIMIT_S = 24 * 3600.0
-#: Measured ray rates on 2 CPU cores (NOTES-rendering.md): Part I ~8e7 rays/s (1360x1024 at 64 spp in 1.1 s),
+#: Measured ray rates on 2 CPU cores (docs/rendering.md): Part I ~8e7 rays/s (1360x1024 at 64 spp in 1.1 s),
 #: GRIN rods ~1e7 rays/s (float32, 36 RKN steps), the float64 numpy reference renderer ~7e5 rays/s on one core; the
 #: spectral four-channel unit traces a plate stack per ray (an assumed 5e6 rays/s).
 RAYS_PER_S = {"setup": 8.0e7, "analytic": 7.0e5, "grin": 1.0e7, "cmu": 5.0e6}

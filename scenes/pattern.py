@@ -5,8 +5,8 @@ grid of round markers whose grey value fades linearly from 1 at the centre to
 0 at the rim, g = 1 - r/r_m (seed §1.6.3, "Marker Shape"). One marker, the
 reference, is larger.
 
-Index conventions (DESIGN.md, "Marker indices")
------------------------------------------------
+Index conventions (docs/contract.md, "Marker indices")
+------------------------------------------------------
 (i, j) counts pitches along the pattern's own T_x, T_y.
 
 * ``layout="deflectometry"``: the reference marker is (0, 0). For an odd
@@ -114,7 +114,7 @@ class MarkerPattern:
 
     @property
     def reference_index(self) -> tuple[int, int]:
-        """Index of the reference marker: always (0, 0) (DESIGN.md)."""
+        """Index of the reference marker: always (0, 0) (docs/contract.md, "Marker indices")."""
         return (0, 0)
 
     def indices(self) -> NDArray[np.int64]:

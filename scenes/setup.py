@@ -11,7 +11,7 @@ A setup describes one physical scene of Part I of the seed:
 
 Presets live in ``scenes/presets/NAME.toml``; each names the section it comes
 from. A TOML file may say ``base = "PRESET"`` and override any field (tables
-merge key by key). All lengths are mm, angles rad (DESIGN.md).
+merge key by key). All lengths are mm, angles rad (docs/contract.md, "Units").
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ class CameraSpec(CameraGridSpec):
 
     Give the pose either as axes (``t_x``, ``t_y``, ``n_z`` and ``image_distance``)
     or as the optimisation parameters of §2.5.2 (``r_0``, ``phi``; b then follows from
-    the thin-lens equation b = g f/(g - f) with g = |r_c - r_0|). Every number must be finite, and one image of
+    the thin-lens equation b = g f/(g - f) with ``g = |r_c - r_0|``). Every number must be finite, and one image of
     ``pixels`` must fit in this machine's memory (:func:`scopetwin.scenes.limits.check_image_size`).
     """
 

@@ -6,7 +6,7 @@ the secant iteration of eq. 1.6. The substrate lies on a holding frame at both
 ends (seed §1.4, Fig. 1.3); only the gap between the frame regions — the region
 of interest (ROI), 48 mm long in §1.10 — reflects into the camera.
 
-Height maps follow DESIGN.md's file contract: node (row k, column l) is at
+Height maps follow the file contract (docs/contract.md, "Height maps"): node (row k, column l) is at
 (x_min + l*dx, y_min + k*dy), nodes span the extents inclusive.
 """
 
@@ -48,7 +48,7 @@ def secant_intersection(
 
     The root of f(lambda) = h(x(lambda), y(lambda)) - z(lambda) along each ray is searched by
     lambda_{k+1} = (lambda_{k-1} f_k - lambda_k f_{k-1}) / (f_k - f_{k-1}), vectorised over the rays;
-    a ray stops when |f| < ``tol`` (its value is kept), or when a step is undefined (f_k = f_{k-1}) or
+    a ray stops when ``|f|`` < ``tol`` (its value is kept), or when a step is undefined (f_k = f_{k-1}) or
     not finite. Only the rays still iterating are evaluated.
 
     Parameters
@@ -64,7 +64,7 @@ def secant_intersection(
         Second start value. None: the intersection with the plane z = h at the first start point,
         lambda_1 = lambda_0 + f(lambda_0) / d_z (one Newton step with the slope of a flat surface).
     tol : float
-        Convergence threshold on |f|, mm.
+        Convergence threshold on ``|f|``, mm.
     max_iter : int
         Largest number of secant steps.
 
@@ -73,7 +73,7 @@ def secant_intersection(
     lam : ndarray, (n,)
         Last iterate of each ray (the hit where ``converged``).
     converged : ndarray of bool, (n,)
-        Where |f(lam)| < ``tol`` was reached. Whether the hit is in front of the camera (lam > 0) or on
+        Where ``|f(lam)|`` < ``tol`` was reached. Whether the hit is in front of the camera (lam > 0) or on
         the substrate is for the caller to decide.
     """
     height = surface.height if hasattr(surface, "height") else surface
@@ -223,7 +223,7 @@ class Substrate:
         Substrate extent, mm, centred on the frame origin (25.2 x 57 mm in §1.10).
     roi_length : float
         Length along y of the gap between the two frame regions, mm (48 mm in §1.10).
-        The frame regions are roi_length/2 <= |y| <= size_y/2.
+        The frame regions are ``roi_length/2 <= |y| <= size_y/2``.
     frame : Frame
         The base plane (the global frame by definition, §1.10).
     """
@@ -260,14 +260,14 @@ class Substrate:
         """Ray parameters of the intersection with the surface by the secant iteration (seed §1.6.4, eq. 1.6).
 
         :func:`secant_intersection` on f(lambda) = h(r_perp(lambda)) - z(lambda) in the base frame;
-        lambda_0 = 0 (the ray origin), lambda_1 = the base-plane intersection; iterate until |f| < ``tol`` mm.
+        lambda_0 = 0 (the ray origin), lambda_1 = the base-plane intersection; iterate until ``|f|`` < ``tol`` mm.
 
         Returns
         -------
         lam : ndarray
             Ray parameter of the hit (NaN where the iteration did not converge).
         converged : ndarray of bool
-            Where |f(lambda)| < tol was reached. Whether the hit lies on the substrate or in
+            Where ``|f(lambda)| < tol`` was reached. Whether the hit lies on the substrate or in
             the ROI is for the caller to decide (:meth:`in_roi`).
         """
         o = self.frame.to_local(origins)

@@ -1,6 +1,6 @@
 """One rendered measurement: render (plus the sensor model), write image + truth + preview, staged output folders.
 
-A measurement is what ``scopetwin render`` writes and what every Part I dataset sample holds (DESIGN.md,
+A measurement is what ``scopetwin render`` writes and what every Part I dataset sample holds (docs/contract.md,
 "Images"): the camera image as OpenEXR (channel ``Y``; the setup and the provenance in the header), its truth
 JSON (the image of every marker centre, seed §1.5 / §2.6, and the height map of the surface), and an 8-bit
 preview PNG.
@@ -226,7 +226,7 @@ def versions(packages: Sequence[str] = PROVENANCE_PACKAGES) -> dict[str, str]:
 
 
 def provenance(seed: int, spp: int, renderer: str) -> dict[str, Any]:
-    """The ``scopetwin_provenance`` header of a rendered image (DESIGN.md "Images"): seed, spp, renderer, versions."""
+    """The ``scopetwin_provenance`` header of a render (docs/contract.md, "Images"): seed, spp, renderer, versions."""
     return {"seed": seed, "spp": spp, "renderer": renderer, "versions": versions()}
 
 

@@ -4,7 +4,7 @@ Two random families: the seed's §1.9 generator (white noise, Gaussian low-pass:
 Gaussian random fields drawn from a power spectral density (:func:`psd_noise`) as glass flatness and waviness
 are specified — the K-correlation (ABC) model and a power law with roll-off. Either can carry an nm-level
 broadband part (:func:`broadband_noise`, flat spectrum over a band of short wavelengths), which decides how
-well the surface extrapolates into the frame regions (NOTES-rendering.md, "Absolute height").
+well the surface extrapolates into the frame regions (docs/rendering.md, "Absolute height").
 
 Every generated surface satisfies the a-priori knowledge the reconstruction
 relies on (seed §1.4, §1.9): the maxima of both holding-frame regions are 0
@@ -38,7 +38,7 @@ def _grid(spec: SurfaceSpec, size: tuple[float, float]) -> tuple[Array, Array]:
 def lowpass_noise(shape: tuple[int, int], spacing: tuple[float, float], correlation_length: float, seed: int) -> Array:
     """White noise in [0, 1] low-pass filtered in the Fourier domain (seed §1.9, Fig. 1.9 a-b).
 
-    The filter is Gaussian, exp(-2 pi^2 sigma^2 |f|^2) with sigma = ``correlation_length``
+    The filter is Gaussian, ``exp(-2 pi^2 sigma^2 |f|^2)`` with sigma = ``correlation_length``
     (mm): the noise is smoothed by a Gaussian kernel of that standard deviation. The
     field is generated on a grid padded by 4 sigma on each side and cropped, so the
     FFT's periodic wrap-around does not correlate opposite edges.
@@ -96,7 +96,7 @@ def psd_noise(
     spacing : (dy, dx)
         Node spacing, mm.
     psd : callable
-        PSD as a function of the radial spatial frequency |f|, 1/mm (relative scale only).
+        PSD as a function of the radial spatial frequency ``|f|``, 1/mm (relative scale only).
     seed : int or sequence of int
         Seed of the white noise (``numpy.random.default_rng``).
     pad : (int, int)

@@ -35,7 +35,7 @@ class MarkerTruth:
     converged: NDArray[np.bool_]
 
     def as_records(self) -> list[dict]:
-        """JSON-ready records with the contract's keys (DESIGN.md, `render` truth)."""
+        """JSON-ready records with the contract's keys (docs/contract.md, "Truth")."""
         out = []
         for (i, j), (col, row), vis, ok in zip(self.ij, self.center_px, self.visible, self.converged, strict=True):
             out.append(

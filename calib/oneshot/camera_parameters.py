@@ -184,7 +184,7 @@ def wrap_angle(angle: float) -> float:
 
 
 def axis_point(frame: Frame) -> tuple[Array, float]:
-    """r_0 (x0, y0) where the optical axis meets the target plane z = 0, and g = |r_c - r_0|."""
+    """r_0 (x0, y0) where the optical axis meets the target plane z = 0, and ``g = |r_c - r_0|``."""
     nz = frame.nz
     if not nz[2] > 1e-12:
         raise CalibrationError("the optical axis does not meet the target plane in front of the camera")

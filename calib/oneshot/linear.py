@@ -64,7 +64,7 @@ class LinearResult:
 
     @property
     def m_disagreement(self) -> float:
-        """|m_x - m_y| / m: how far the two magnification equations disagree."""
+        """``|m_x - m_y| / m``: how far the two magnification equations disagree."""
         return abs(self.m_x - self.m_y) / self.m
 
 

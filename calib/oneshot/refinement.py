@@ -40,7 +40,7 @@ class Calibration:
     r_0 : ndarray (2,)
         Axis point in the target plane, mm.
     phi, g : float
-        Tilt angle, rad; object distance |r_c - r_0|, mm.
+        Tilt angle, rad; object distance ``|r_c - r_0|``, mm.
     linear : LinearResult
         The §2.4 start values.
     lens : str
@@ -113,7 +113,7 @@ class Calibration:
         return self.camera.with_(frame=frame)
 
     def as_dict(self, plane: Frame | None = None) -> dict:
-        """JSON-ready result with the keys of DESIGN.md's ``calibrate`` contract (lengths mm, angles rad)."""
+        """JSON-ready result with the keys of the ``calibrate`` contract (docs/contract.md) (lengths mm, angles rad)."""
         cam = self.to_global(plane) if plane is not None else self.camera
         pitch_um = self.camera.pitch * 1e3
         return {

@@ -20,7 +20,8 @@ Four steps, as in the seed, each a module named after its section:
 (:func:`find_markers_for`, :func:`region_for_setup`). This package's namespace is that public API.
 
 Coordinates are continuous pixel coordinates (col, row): pixel (r, c) covers [c, c+1) x [r, r+1)
-(DESIGN.md). Indices (i, j) count pitches along the pattern's own T_x, T_y (DESIGN.md, "Marker indices").
+(docs/contract.md, "Camera"). Indices (i, j) count pitches along the pattern's own T_x, T_y
+(docs/contract.md, "Marker indices").
 """
 
 from scopetwin.recon.markers.centroid_search import MarkerError, Spots, background_level, centroids, check_image

@@ -7,7 +7,8 @@ and its window is grown by a few pixels so the faint rim below the threshold is 
 minus background). That makes the centroid independent of the threshold and equal, up to pixel sampling, to the
 continuous first moment of the spot's irradiance — the quantity that :mod:`scopetwin.recon.bias` predicts from a model.
 
-Coordinates are continuous pixel coordinates (col, row): pixel (r, c) covers [c, c+1) x [r, r+1) (DESIGN.md).
+Coordinates are continuous pixel coordinates (col, row): pixel (r, c) covers [c, c+1) x [r, r+1)
+(docs/contract.md, "Camera").
 :class:`MarkerError`, raised by every step of :mod:`scopetwin.recon.markers`, is defined here, with the first step.
 """
 

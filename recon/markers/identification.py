@@ -33,7 +33,7 @@ class Markers:
     Attributes
     ----------
     ij : ndarray, (n, 2), int
-        Marker indices on the pattern (DESIGN.md), reference (0, 0).
+        Marker indices on the pattern (docs/contract.md, "Marker indices"), reference (0, 0).
     centroids : ndarray, (n, 2)
         Raw grey-weighted centroids (col, row), continuous pixel coordinates.
     areas : ndarray, (n,)
@@ -70,7 +70,7 @@ class Markers:
         return len(self.ij)
 
     def as_json(self) -> dict:
-        """The ``markers`` JSON of DESIGN.md: ``{"markers": [{i, j, col, row, area}], "rejected": n}``."""
+        """The ``markers`` JSON of docs/contract.md: ``{"markers": [{i, j, col, row, area}], "rejected": n}``."""
         recs = [
             {"i": int(i), "j": int(j), "col": float(c), "row": float(r), "area": int(a), "saturated": bool(s)}
             for (i, j), (c, r), a, s in zip(self.ij, self.centroids, self.areas, self.saturated, strict=True)
@@ -229,7 +229,7 @@ def expected_reference(setup: Setup) -> Array:
 def region_for_setup(setup: Setup, heights: HeightMap | None = None, per_side: int = 8) -> Region | None:
     """Image of the region where markers are reflected whole.
 
-    Deflectometry: the substrate's region of interest (|x| <= size_x/2, |y| < roi_length/2, §1.6.4);
+    Deflectometry: the substrate's region of interest (``|x| <= size_x/2``, ``|y| < roi_length/2``, §1.6.4);
     mirror: the mirror; calibration target: None (the markers lie on the target itself). The outline
     lies on the surface: points (x, y, h(x, y)) with ``heights`` (a current surface estimate or the
     truth), else on the flat base plane z = 0, where the seed's 40 µm bow moves the outline's image by

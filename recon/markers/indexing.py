@@ -2,7 +2,7 @@
 
 :func:`index_grid` floods the grid from the reference marker (0, 0) through the eight neighbours of each marker,
 with the neighbour steps re-estimated locally as it proceeds. Indices (i, j) count pitches along the pattern's own
-T_x, T_y (DESIGN.md, "Marker indices").
+T_x, T_y (docs/contract.md, "Marker indices").
 """
 
 from __future__ import annotations

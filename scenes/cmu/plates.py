@@ -3,7 +3,7 @@
 The measured maps of Fig. 5.1 are images in the seed; here a plate's coated surface is a *modelled* map: a
 spherical bow whose range (max - min over the whole 25.5 x 36 mm plate) is the seed's measured range (3.6, 9.4,
 10.2 µm), plus a smooth residual (Gaussian-filtered white noise, correlation ~5 mm, given RMS, seeded). A
-measured or reconstructed map (the deflectometry part's output, DESIGN.md height-map EXR in plate-local mm)
+measured or reconstructed map (the deflectometry part's output, a height-map EXR of docs/contract.md in plate-local mm)
 replaces the model when ``height_map`` is given.
 """
 

@@ -189,7 +189,7 @@ class GrinReport:
     seed: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
-        """The contract's keys first (DESIGN.md, ``optics grin``), then the extras."""
+        """The contract's keys first (docs/contract.md, ``optics grin``), then the extras."""
         d = asdict(self)
         head = {
             k: d.pop(k)

@@ -17,7 +17,7 @@ The published layout is under-determined; the readings are fields here:
 * ``rod*.profile.wavelength_ref_nm`` -- at which wavelength GrinTech's n0, nr2, nr4 hold (None:
   at the design wavelength itself).
 
-Every length is in mm, wavelengths in nm (DESIGN.md). The stack starts with the object plane at
+Every length is in mm, wavelengths in nm (docs/contract.md, "Units"). The stack starts with the object plane at
 z = 0 and runs towards the camera (+z).
 """
 
@@ -43,7 +43,7 @@ from scopetwin.scenes.grin.profiles import (
 from scopetwin.scenes.limits import check_image_size
 
 Positive = Annotated[float, Field(gt=0)]
-#: Most RKN steps through one rod: 0.01 mm steps (float64 position error ~0.005 nm, NOTES-rendering.md) through a
+#: Most RKN steps through one rod: 0.01 mm steps (float64 position error ~0.005 nm, docs/rendering.md) through a
 #: 40 mm rod are 4000; beyond 1e5 a trace only costs time.
 MAX_RKN_STEPS = 100_000
 NonNegative = Annotated[float, Field(ge=0)]

@@ -544,8 +544,9 @@ def _pupil_sensor_class(mi: Any) -> type:
         Properties: ``z`` (image plane), ``z_pupil`` (plane of the pupil disk), ``pupil_radius``, ``pixel``
         (pitch, mm), ``nx``, ``ny``, ``pitch`` (objective grid), ``x0``, ``y0`` (the grid's first axis), ``cx``, ``cy``
         (image-plane point at the sensor's centre).
-        Pixel (row, col) covers u in [(col - W/2) p, (col + 1 - W/2) p] + cx, v from the top row down (DESIGN.md;
-        the convention of :class:`scopetwin.scenes.camera.PixelGrid`, whose ``uv_film`` maps the film samples).
+        Pixel (row, col) covers u in [(col - W/2) p, (col + 1 - W/2) p] + cx, v from the top row down
+        (docs/contract.md, "Camera"; the convention of :class:`scopetwin.scenes.camera.PixelGrid`, whose ``uv_film``
+        maps the film samples).
         """
 
         def __init__(self, props: mi.Properties) -> None:

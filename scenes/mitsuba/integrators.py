@@ -10,7 +10,7 @@ The plugin ``scopetwin_mirror`` follows a camera ray to its first surface:
 
 The reflected ray starts at ``si.p + eps*r_out``, i.e. *along* the reflected ray, not
 offset along the normal as Mitsuba's ``spawn_ray`` does: the normal offset moves the
-reflected ray by up to a few µm on the pattern (0.025 px RMS centroid error, NOTES-rendering.md),
+reflected ray by up to a few µm on the pattern (0.025 px RMS centroid error, docs/rendering.md),
 the offset along the ray moves nothing. The mirror reflectance is 1.
 """
 

@@ -30,7 +30,7 @@ from scopetwin.scenes.pattern import MarkerPattern
 from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
 
-#: Texel size of the pattern texture, mm (12.5 µm: indistinguishable from finer, NOTES-rendering.md).
+#: Texel size of the pattern texture, mm (12.5 µm: indistinguishable from finer, docs/rendering.md).
 TEXEL = 0.0125
 
 Window = tuple[int, int, int, int]  # row0, row1, col0, col1 (half-open), as scenes.analytic

@@ -9,7 +9,7 @@ the aperture and aims at the chief ray's point on the plane in focus
 (:meth:`Camera.lens_rays`). All camera parameters are kept in opaque Dr.Jit
 variables, so a new camera pose reuses the compiled kernels.
 
-Camera-space convention (the one of Mitsuba's ``perspective`` sensor, NOTES-rendering.md):
+Camera-space convention (the one of Mitsuba's ``perspective`` sensor, docs/rendering.md):
 ``to_world`` has the columns (-T_x, T_y, -N_z, r_c); the camera looks along local +z.
 It is built directly from the float64 frame, never with ``look_at``.
 """
@@ -186,6 +186,6 @@ def _make_class(mi: Any) -> type:
 def register(variant: str | None = None) -> None:
     """Register ``scopetwin_camera`` for ``variant`` (default ``choose("mono")``) in this thread (idempotent).
 
-    Mitsuba's Python plugin registry is per thread and per variant (NOTES-rendering.md).
+    Mitsuba's Python plugin registry is per thread and per variant (docs/rendering.md).
     """
     register_plugin("sensor", PLUGIN, _make_class, resolve(variant, "mono"))

@@ -4,7 +4,7 @@ The substrate's height map (:class:`scopetwin.scenes.surface.HeightMap`, a bicub
 tessellated on a regular grid; vertex positions are (x, y, h(x, y)) and vertex normals
 are the spline's exact normals (-h_x, -h_y, 1)/|...| (eq. 1.2), so Mitsuba interpolates
 exact normals across each triangle. 256 x 512 vertices over the 25.2 x 57 mm substrate
-give 0.11 µm position and 0.7 µrad normal error for the §1.10 surfaces (NOTES-rendering.md).
+give 0.11 µm position and 0.7 µrad normal error for the §1.10 surfaces (docs/rendering.md).
 
 Only the region of interest reflects (seed §1.4, Fig. 1.3). The holding-frame regions
 roi_length/2 <= |y| <= size_y/2 are separate, black meshes on the same surface: they occlude
@@ -25,7 +25,7 @@ from scopetwin.scenes.errors import SetupError
 from scopetwin.scenes.mitsuba.variant import mitsuba, resolve
 from scopetwin.scenes.surface import HeightMap
 
-#: Vertex counts (x, y) of the mesh over the whole substrate (NOTES-rendering.md: enough for §1.10).
+#: Vertex counts (x, y) of the mesh over the whole substrate (docs/rendering.md: enough for §1.10).
 DEFAULT_VERTICES = (256, 512)
 
 #: A perfect mirror (reflectance 1): Mitsuba's conductor without absorption.

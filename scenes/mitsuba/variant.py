@@ -8,7 +8,7 @@ Order of choice: the environment variable ``SCOPETWIN_MI_VARIANT`` if set;
 otherwise ``cuda_ad_*`` when a CUDA device is usable, else ``llvm_ad_*``
 (``mono`` for the monochrome setups, ``spectral`` for the spectral microscope).
 The LLVM variants need a shared LLVM library of version 16 or newer (see
-NOTES-rendering.md); when it is missing the error says what to install.
+docs/rendering.md); when it is missing the error says what to install.
 """
 
 from __future__ import annotations
@@ -140,7 +140,7 @@ def register_plugin(kind: str, name: str, make_class: Callable[[Any], type], var
     """Register the Python plugin ``name`` of ``kind`` (``integrator``, ``sensor``, ``bsdf``, ...) for ``variant``.
 
     Sets ``variant`` in this thread (:func:`mitsuba`). Mitsuba's Python plugin registry is per thread and per
-    variant (NOTES-rendering.md), so the registration is remembered per thread and variant; the plugin class,
+    variant (docs/rendering.md), so the registration is remembered per thread and variant; the plugin class,
     built by ``make_class(mi)`` against that variant's base classes, is built once per variant.
     """
     mi = mitsuba(variant)

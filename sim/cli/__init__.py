@@ -1,4 +1,4 @@
-"""The ``scopetwin`` command line (DESIGN.md, "Command line"): it parses arguments and calls library functions.
+"""The ``scopetwin`` command line (docs/contract.md, "Command line"): it parses arguments and calls library functions.
 
 One module per command group, each with a ``register(subparsers)`` that adds its commands:
 

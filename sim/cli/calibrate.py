@@ -1,4 +1,4 @@
-"""``scopetwin calibrate`` and ``scopetwin calibrate-setup`` (DESIGN.md, "Command line"; seed ch. 2).
+"""``scopetwin calibrate`` and ``scopetwin calibrate-setup`` (docs/contract.md, "Command line"; seed ch. 2).
 
 :func:`register` adds both sub-commands to the ``scopetwin`` parser; each sets ``func`` to a
 function that takes the parsed arguments and returns the JSON-ready result (the caller writes

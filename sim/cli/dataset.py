@@ -1,4 +1,4 @@
-"""``scopetwin dataset generate | resume | verify`` (DESIGN.md "Scale"; :mod:`scopetwin.sim.datasets`).
+"""``scopetwin dataset generate | resume | verify`` (docs/contract.md, "Scale"; :mod:`scopetwin.sim.datasets`).
 
 ``generate CONFIG.toml --out DIR`` checks the whole config (every sample's setup), the output folder
 and the free space for the samples' estimated size before any work, then renders the samples on an

@@ -1,4 +1,4 @@
-"""``scopetwin emulate pi-gcs|jena-piezo|fpga-board [--model M] [--log FILE] [KEY=VALUE ...]`` (DESIGN.md, 'Emulators').
+"""``scopetwin emulate pi-gcs|jena-piezo|fpga-board [--model M] [--log FILE] [KEY=VALUE ...]`` (docs/contract.md).
 
 One wire-protocol emulator (:mod:`scopetwin.instrument.emulators`) on a pseudo-terminal in this process, served by
 :func:`scopetwin.instrument.emulators.serve.serve`. The first line on stdout is the port path (flushed at once), so a

@@ -1,8 +1,8 @@
-"""``scopetwin markers IMAGE.exr --pattern SETUP [--json PATH] [--overlay PNG]`` (issue 3, DESIGN.md contract).
+"""``scopetwin markers IMAGE.exr --pattern SETUP [--json PATH] [--overlay PNG]`` (issue 3, docs/contract.md).
 
 Finds, filters and indexes the markers of a camera image (:func:`scopetwin.recon.markers.find_markers_for`) with
 the pattern, camera and reflecting region of a setup (preset name or TOML path). The result is the
-``markers`` JSON of DESIGN.md, ``{"markers": [{i, j, col, row, area}], "rejected": n}`` (continuous
+``markers`` JSON of docs/contract.md, ``{"markers": [{i, j, col, row, area}], "rejected": n}`` (continuous
 pixel coordinates; (i, j) are positions on the pattern), with a ``saturated`` flag per marker and the
 rejection reasons added. ``--overlay`` writes a PNG of the image with every marker's index drawn
 (:func:`scopetwin.sim.figures.write_overlay`).
@@ -57,7 +57,9 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
         metavar="SETUP",
         help="setup (preset name or TOML path) giving the pattern, camera and reflecting region",
     )
-    p.add_argument("--json", metavar="PATH", help="write the indexed markers here (the markers JSON of DESIGN.md)")
+    p.add_argument(
+        "--json", metavar="PATH", help="write the indexed markers here (the markers JSON of docs/contract.md)"
+    )
     p.add_argument("--overlay", metavar="PNG", help="write a picture of the image with the indices drawn")
     p.set_defaults(func=cmd_markers, outputs=[("json", "file"), ("overlay", "file")])
     return p

@@ -118,7 +118,7 @@ SEED = nonnegative_int(MAX_SEED)
 
 
 def add_cluster_options(p: argparse.ArgumentParser) -> None:
-    """``--scheduler`` / ``--workers`` / ``--threads``: where a dataset or a study runs (DESIGN.md "Scale")."""
+    """``--scheduler`` / ``--workers`` / ``--threads``: where a dataset or a study runs (docs/contract.md, "Scale")."""
     p.add_argument("--scheduler", metavar="ADDRESS", help="existing Dask scheduler, e.g. tcp://host:8786")
     p.add_argument(
         "--workers",

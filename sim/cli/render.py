@@ -1,4 +1,4 @@
-"""``scopetwin render SETUP --out DIR`` and ``scopetwin presets`` (DESIGN.md "Command line";
+"""``scopetwin render SETUP --out DIR`` and ``scopetwin presets`` (docs/contract.md, "Command line";
 :mod:`scopetwin.sim.measurement`).
 
 The render's memory and time are estimated before anything is written (:func:`scopetwin.scenes.limits.check_render`).

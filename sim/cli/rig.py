@@ -1,4 +1,4 @@
-"""``scopetwin rig RIG.toml info|move|position|acquire|mda|serve`` (DESIGN.md, 'Rig files').
+"""``scopetwin rig RIG.toml info|move|position|acquire|mda|serve`` (docs/contract.md, 'Rig files').
 
 :func:`register` adds the ``rig`` command to an argparse subparsers object; each
 action's handler returns a JSON-ready dict (written by the main CLI when

@@ -171,8 +171,8 @@ def object_to_pixel(
     +-``half`` mm on the camera plane at ``pose.image_distance``, expressed in the camera's axes and tilt as
     :func:`scopetwin.scenes.mitsuba.cmu.render_channel` does, and mapped to pixels by the sensor's
     :class:`scopetwin.scenes.camera.PixelGrid`; the camera offset (col, row) shifts the grid centre. Pixel (r, c) covers
-    [c, c+1) x [r, r+1) (DESIGN.md), so the star's centre is at ``A[:, 2]``; ``box`` = (row0, col0, height,
-    width) is the written part of the sensor.
+    [c, c+1) x [r, r+1) (docs/contract.md, "Camera"), so the star's centre is at ``A[:, 2]``; ``box`` = (row0, col0,
+    height, width) is the written part of the sensor.
     """
     from scopetwin.scenes.camera import PixelGrid
     from scopetwin.scenes.cmu.analysis import image_rays

@@ -1,6 +1,6 @@
 """Where tasks run: in this process or on Dask distributed (an embedded LocalCluster or an existing scheduler).
 
-Shared by the datasets and the studies (DESIGN.md "Scale"). :func:`run_tasks` yields each task's result or error
+Shared by the datasets and the studies (docs/contract.md, "Scale"). :func:`run_tasks` yields each task's result or error
 as it finishes, so one failed task does not lose the others' results; :func:`init_worker` sets a worker process's
 Dr.Jit thread count once.
 """

@@ -469,7 +469,7 @@ def load_plan(root: str | Path) -> Plan:
 
 
 def verify(root: str | Path) -> dict[str, Any]:
-    """Check every sample against the manifest and its hashes (DESIGN.md ``dataset verify`` contract).
+    """Check every sample against the manifest and its hashes (docs/contract.md, ``dataset verify``).
 
     Returns ``{"complete": n, "missing": [...], "corrupt": [...], "duplicates": [...]}`` plus ``count``,
     ``unlisted`` (finished folders the manifest lacks), ``temporary`` (left-over temporary folders),

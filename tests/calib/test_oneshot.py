@@ -195,7 +195,7 @@ def test_bias_correction_converges_to_the_truth(angular):
     radii = s.marker_pattern.radii()
     centroids = spot_centroids(s.camera_model, xy, radii, 0.0, 0.0, 1.0, 2)
     bias = centroids - px
-    assert np.abs(bias).max() > 0.02  # the bias is real (NOTES-rendering: 0.05-0.1 px for tilted targets)
+    assert np.abs(bias).max() > 0.02  # the bias is real (docs/rendering.md: 0.05-0.1 px for tilted targets)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", CalibrationWarning)
         raw = calibrate(xy, centroids, prior, lens="fixed")

@@ -187,7 +187,7 @@ def test_cli_reconstructs_a_rendered_image(tmp_path: Path) -> None:
         ]
     )
     assert {"heights", "outer_iterations", "inner_iterations", "delta_h_max_um", "seconds"} <= set(result)
-    u = result["uncertainty"]  # DESIGN.md: one standard uncertainty each, µm
+    u = result["uncertainty"]  # docs/contract.md: one standard uncertainty each, µm
     assert 0 < u["absolute_um"] < 0.5 and 0 < u["shape_um"] < 0.5
     from scopetwin.scenes.io import read_heightmap_std
 

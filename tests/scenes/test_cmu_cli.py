@@ -1,4 +1,4 @@
-"""``optics cmu`` (sim.cli.optics): the JSON contract of DESIGN.md and the user errors."""
+"""``optics cmu`` (sim.cli.optics): the JSON contract of docs/contract.md and the user errors."""
 
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 Both renderers image the same scene; the same grey-weighted centroid code
 measures every marker spot in both images; the centroids must agree. What is
 compared is the renderer, not the marker centres: on a bowed substrate a spot's
-centroid is not the image of the marker centre (NOTES-rendering.md), and both
+centroid is not the image of the marker centre (docs/rendering.md), and both
 renderers must show the same bias.
 """
 
