@@ -24,6 +24,7 @@ import numpy as np  # noqa: E402
 
 import scopetwin.recon.reconstruct as rr  # noqa: E402
 from scopetwin.recon.markers import centroids, find_markers_for  # noqa: E402
+from scopetwin.recon.strategy import solve
 from scopetwin.scenes.setup import load_setup  # noqa: E402
 
 TIMES: dict[str, list[float]] = defaultdict(list)
@@ -97,7 +98,7 @@ def main() -> None:
         for _ in range(repeat):
             before = {k: len(v) for k, v in TIMES.items()}
             t0 = time.perf_counter()
-            res = rec.run(obs)
+            res = solve(rec, obs)
             runs.append(time.perf_counter() - t0)
             for k, v in TIMES.items():
                 parts[k].append(sum(v[before.get(k, 0) :]))

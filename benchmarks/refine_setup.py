@@ -75,7 +75,9 @@ def pose_text(e):
 def main() -> None:
     from scopetwin.recon.inverse import InverseConfig, InverseReconstructor, pose_sigma_for
     from scopetwin.recon.markers import find_markers_for
-    from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
+    from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, centroid_bias_step
+    from scopetwin.recon.strategy import solve
+    from scopetwin.recon.substrate import Substrate2D
     from scopetwin.scenes.setup import load_setup
     from scopetwin.sim.measurement import apply_sensor, render_measurement
     from scopetwin.sim.pipeline import roi_errors
@@ -106,8 +108,8 @@ def main() -> None:
     print(f"pose errors given: {pose_text(before)}")
     found = find_markers_for(image, setup)
     t0 = time.perf_counter()
-    centroid = Reconstructor.from_setup(setup, None, centroid_bias_step(setup)).run(
-        MarkerObservations(found.ij, found.centroids)
+    centroid = solve(
+        Reconstructor.from_setup(setup, None, centroid_bias_step(setup)), MarkerObservations(found.ij, found.centroids)
     )
     e = roi_errors(centroid.surface.height, truth, sub)
     print(

@@ -28,14 +28,11 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from scopetwin.recon.reconstruct import (  # noqa: E402
-    MarkerObservations,
-    NotConvergedError,
-    ReconstructionConfig,
-    ReconstructionError,
-    Reconstructor,
-    Substrate2D,
-)
+from scopetwin.recon.config import ReconstructionConfig  # noqa: E402
+from scopetwin.recon.errors import NotConvergedError, ReconstructionError  # noqa: E402
+from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor  # noqa: E402
+from scopetwin.recon.strategy import solve  # noqa: E402
+from scopetwin.recon.substrate import Substrate2D  # noqa: E402
 from scopetwin.scenes.setup import load_setup  # noqa: E402
 from scopetwin.sim.pipeline import roi_errors  # noqa: E402
 from scopetwin.sim.surfaces import make_surface  # noqa: E402
@@ -83,7 +80,7 @@ def run(setup, obs, cfg, h, bias=None) -> dict:
     t0 = time.perf_counter()
     rec = Reconstructor.from_setup(setup, cfg, bias)
     try:
-        res = rec.run(obs)
+        res = solve(rec, obs)
         ok = True
         hist = res.history
         height = res.surface.height

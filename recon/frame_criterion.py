@@ -3,8 +3,7 @@
 The substrate's ends lie on a holding frame (seed Fig. 1.3). A surface reconstructed with a wrong start height
 shows a characteristic tilt, visible in the maxima of the surface over the two frame regions, where there are no
 data and the surface is extrapolated. The outer loop of the nested iteration (:mod:`scopetwin.recon.reconstruct`)
-searches
-the start height at which this criterion vanishes:
+searches the start height at which this criterion vanishes:
 
 * ``"delta"`` — the seed's Delta h_max = max_region1 - max_region2 (eq. 1.3);
 * ``"level"`` — both maxima at the frame position: (max_1 + max_2)/2 - z_frame. The start height moves the ROI
@@ -12,7 +11,8 @@ the start height at which this criterion vanishes:
   regions costs roughly twice as much absolute height with ``"delta"`` as with ``"level"``.
 
 :func:`frame_distance` is the seed's d_min of eq. 1.4: the frame maximum closest to the frame position, with its
-sign; the seed's start-height update is H_{i+1} = H_i - d_min.
+sign; the seed's start-height update is H_{i+1} = H_i - d_min. :func:`next_start_height` is the one root search
+on the criterion both reconstruction methods use (a secant kept inside the bracket once the root is bracketed).
 """
 
 from __future__ import annotations
@@ -69,3 +69,38 @@ def frame_distance(max_1: float, max_2: float, frame_z: float) -> float:
     """
     d1, d2 = max_1 - frame_z, max_2 - frame_z
     return d1 if abs(d1) <= abs(d2) else d2
+
+
+def next_start_height(values: list[tuple[float, float]], fallback: float) -> float:
+    """Next start height of the root search on the criterion F(H) (seed §1.4, beyond eq. 1.4).
+
+    Secant through the last two evaluations; once a sign change is known, the step is kept inside the tightest
+    bracket (bisection when the secant leaves it). ``fallback`` (the thesis step of eq. 1.4, H - d_min, or H - F)
+    is used with a single evaluation and where the last two criteria are equal.
+
+    Parameters
+    ----------
+    values : list of (float, float)
+        The (start height, criterion) pairs evaluated so far, mm, in order.
+    fallback : float
+        The step to take without a secant, mm.
+
+    Returns
+    -------
+    float
+        The next start height, mm.
+    """
+    if len(values) < 2:
+        return fallback
+    (ha, fa), (hb, fb) = values[-2], values[-1]
+    h_new = hb - fb * (hb - ha) / (fb - fa) if fb != fa else fallback
+    pos = [h for h, f in values if f > 0]
+    neg = [h for h, f in values if f < 0]
+    if pos and neg:
+        # tightest bracket around the root from all evaluations so far
+        hp = min(pos, key=lambda h: abs(h - hb))
+        hn = min(neg, key=lambda h: abs(h - hb))
+        lo, hi = min(hp, hn), max(hp, hn)
+        if not lo < h_new < hi:
+            h_new = 0.5 * (lo + hi)
+    return h_new

@@ -10,9 +10,8 @@ Loss (Gauss-Newton / Levenberg-Marquardt on the coefficients c)::
 
     sum_p (I_p - alpha*R_p(c) - beta)^2 / var_p  +  lambda * |D c|^2,   mean_ROI(h) = H
 
-* ``var_p``: the EMVA 1288 variance of pixel p (:mod:`scopetwin.scenes.emva1288`: K^2 sigma_d^2 + K (I - black) + 1/12
-  in DN)
-  for camera images; a constant for noise-free renders;
+* ``var_p``: the EMVA 1288 variance of pixel p (:mod:`scopetwin.scenes.emva1288`: K^2 sigma_d^2 + K (I - black) +
+  1/12 in DN) for camera images; a constant for noise-free renders;
 * ``alpha, beta``: the photometric gain and offset (exposure, black level), solved in closed form each step;
 * ``D``: second differences of the coefficient grid (a discrete thin-plate energy): the smoothness prior, which
   also carries the surface into the frame regions, where there are no data;
@@ -24,19 +23,17 @@ Loss (Gauss-Newton / Levenberg-Marquardt on the coefficients c)::
 
 From a converged centroid start the coefficients are held to the span of the centroid method's shifted basis
 (``surface="start-basis"``: c = P a, P the basis functions as B-splines, :meth:`SplineSurface.span`; its scale was
-chosen from the data by :func:`scopetwin.recon.reconstruct.select_sigma`): the prior the centroid method found for this
-surface,
-fitted now to every pixel instead of to the markers' centroids. The free spline (every coefficient, thin-plate prior)
-is used from a plane start and where the height is searched.
+chosen from the data by :func:`scopetwin.recon.scale.select_sigma`): the prior the centroid method found for this
+surface, fitted now to every pixel instead of to the markers' centroids. The free spline (every coefficient,
+thin-plate prior) is used from a plane start and where the height is searched.
 
 The absolute height is decided by the frame criterion (seed §1.4, eqs. 1.3-1.4,
-:mod:`scopetwin.recon.frame_criterion`): the
-fit is constrained to a mean ROI height H; from a centroid start H is the centroid method's (found by the frame
-criterion on its Gaussian-process surface, the better extrapolation into the frame regions), and with
-``absolute="frame"`` or from a plane H is searched (secant) until the fitted surface's maxima over the two frame
-regions lie on the holding frame. ``refine_setup`` adds 12 rigid-motion
-parameters of camera and pattern to the unknowns, held near the calibration by a Gaussian prior of the given
-standard deviations.
+:mod:`scopetwin.recon.frame_criterion`): the fit is constrained to a mean ROI height H; from a centroid start H is
+the centroid method's (found by the frame criterion on its Gaussian-process surface, the better extrapolation into
+the frame regions), and with ``absolute="frame"`` or from a plane H is searched (secant) until the fitted surface's
+maxima over the two frame regions lie on the holding frame (the one bracketed secant of both methods,
+:func:`scopetwin.recon.frame_criterion.next_start_height`). ``refine_setup`` adds 12 rigid-motion parameters of
+camera and pattern to the unknowns, held near the calibration by a Gaussian prior of the given standard deviations.
 
 This is the one reconstruction module that renders: it imports the renderer (:mod:`scopetwin.scenes.mitsuba`) lazily,
 inside its functions (``tests/architecture/test_layers.py`` names it), because a differentiable render of the
@@ -55,9 +52,11 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 from scipy.linalg import null_space
 
-from scopetwin.recon.frame_criterion import FrameCriterion, frame_criterion, frame_distance
-from scopetwin.recon.reconstruct import ReconstructionError, Substrate2D
+from scopetwin.recon.errors import ReconstructionError
+from scopetwin.recon.frame_criterion import FrameCriterion, frame_criterion, frame_distance, next_start_height
 from scopetwin.recon.shifted_basis import ShiftedBasis
+from scopetwin.recon.spline import SplineSurface
+from scopetwin.recon.substrate import Substrate2D
 from scopetwin.scenes.camera import Camera
 from scopetwin.scenes.geometry import Array, Frame
 from scopetwin.scenes.pattern import MarkerPattern
@@ -65,7 +64,7 @@ from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
 
 if TYPE_CHECKING:  # the renderer is imported lazily at run time
-    from scopetwin.scenes.mitsuba.deflectometry_ad import RayModel, SplineGrid
+    from scopetwin.scenes.mitsuba.deflectometry_ad import RayModel
 
 
 def _pixel_moments(res: Any, ok: NDArray[np.bool_], spp: int, block: int = 32768) -> tuple[Array, ...]:
@@ -95,171 +94,6 @@ def _pixel_moments(res: Any, ok: NDArray[np.bool_], spp: int, block: int = 32768
         part[7], part[8] = (sb * ddx).mean(axis=1), (sb * ddy).mean(axis=1)
         part[9], part[10] = (sc * ddx).mean(axis=1), (sc * ddy).mean(axis=1)
     return tuple(out)
-
-
-# -- the surface: a uniform cubic B-spline ------------------------------------------------------------------------
-@dataclass(frozen=True)
-class SplineSurface:
-    """h(x, y) = sum c_mk B((x - x_k)/dx) B((y - y_m)/dy): a uniform cubic B-spline over the base plane.
-
-    Coefficient (row m, column k) sits at (x0 + k*dx, y0 + m*dy)
-    (:class:`scopetwin.scenes.mitsuba.deflectometry_ad.SplineGrid`).
-    """
-
-    x0: float
-    y0: float
-    dx: float
-    dy: float
-    coef: Array
-
-    @classmethod
-    def covering(cls, sub: Substrate2D, spacing: float, value: float = 0.0) -> SplineSurface:
-        """A spline of knot spacing ``spacing`` (mm) whose domain covers the substrate with half a cell to spare."""
-        nx = int(np.ceil(sub.size_x / spacing)) + 4
-        ny = int(np.ceil(sub.size_y / spacing)) + 4
-        x0 = -0.5 * (nx - 1) * spacing
-        y0 = -0.5 * (ny - 1) * spacing
-        return cls(x0, y0, spacing, spacing, np.full((ny, nx), float(value)))
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return (int(self.coef.shape[0]), int(self.coef.shape[1]))
-
-    @property
-    def grid(self) -> SplineGrid:
-        from scopetwin.scenes.mitsuba.deflectometry_ad import SplineGrid
-
-        ny, nx = self.shape
-        return SplineGrid(self.x0, self.y0, self.dx, self.dy, nx, ny)
-
-    def with_coef(self, coef: Array) -> SplineSurface:
-        return replace(self, coef=np.asarray(coef, dtype=np.float64).reshape(self.shape))
-
-    def basis_rows(self, x: Array, y: Array) -> tuple[NDArray[np.int64], Array, Array, Array]:
-        """For each point: the 16 coefficient indices (flattened) and the basis values and x/y derivatives there."""
-        idx, w, wx, wy, _ = self._rows(x, y, False)
-        return idx, w, wx, wy
-
-    def basis_rows_second(
-        self, x: Array, y: Array
-    ) -> tuple[NDArray[np.int64], Array, Array, Array, tuple[Array, Array, Array]]:
-        """:meth:`basis_rows` and the second derivatives (xx, xy, yy) of the basis."""
-        idx, w, wx, wy, second = self._rows(x, y, True)
-        assert second is not None
-        return idx, w, wx, wy, second
-
-    def _rows(
-        self, x: Array, y: Array, second: bool
-    ) -> tuple[NDArray[np.int64], Array, Array, Array, tuple[Array, Array, Array] | None]:
-        from scopetwin.scenes.mitsuba.deflectometry_ad import cubic_bspline_weights
-
-        ny, nx = self.shape
-        u = (np.asarray(x, dtype=np.float64).ravel() - self.x0) / self.dx
-        v = (np.asarray(y, dtype=np.float64).ravel() - self.y0) / self.dy
-        i = np.clip(np.floor(u).astype(np.int64), 1, nx - 3)
-        j = np.clip(np.floor(v).astype(np.int64), 1, ny - 3)
-        tu, tv = u - i, v - j
-        wu = np.stack(cubic_bspline_weights(tu), axis=-1)  # (n, 8)
-        wv = np.stack(cubic_bspline_weights(tv), axis=-1)
-        m_grid, k_grid = np.meshgrid(np.arange(4), np.arange(4), indexing="ij")
-        mm, kk = m_grid.ravel(), k_grid.ravel()
-        idx = (j[:, None] - 1 + mm[None, :]) * nx + (i[:, None] - 1 + kk[None, :])
-        w = wv[:, mm] * wu[:, kk]
-        wx = wv[:, mm] * wu[:, 4 + kk] / self.dx
-        wy = wv[:, 4 + mm] * wu[:, kk] / self.dy
-        if not second:
-            return idx, w, wx, wy, None
-        su = np.stack([1.0 - tu, 3.0 * tu - 2.0, 1.0 - 3.0 * tu, tu], axis=-1)  # d^2 w / dt^2
-        sv = np.stack([1.0 - tv, 3.0 * tv - 2.0, 1.0 - 3.0 * tv, tv], axis=-1)
-        wxx = wv[:, mm] * su[:, kk] / self.dx**2
-        wyy = sv[:, mm] * wu[:, kk] / self.dy**2
-        wxy = wv[:, 4 + mm] * wu[:, 4 + kk] / (self.dx * self.dy)
-        return idx, w, wx, wy, (wxx, wxy, wyy)
-
-    def design(self, x: Array, y: Array) -> sp.csr_matrix:
-        """Sparse matrix of basis values: (design @ coef.ravel()) = h(x, y)."""
-        idx, w, _, _ = self.basis_rows(x, y)
-        n = idx.shape[0]
-        return sp.csr_matrix((w.ravel(), (np.repeat(np.arange(n), 16), idx.ravel())), shape=(n, self.coef.size))
-
-    def height(self, x: Any, y: Any) -> Array:
-        """h(x, y), mm (any array shape)."""
-        xa = np.asarray(x, dtype=np.float64)
-        idx, w, _, _ = self.basis_rows(xa, np.asarray(y, dtype=np.float64))
-        return np.sum(w * self.coef.ravel()[idx], axis=1).reshape(xa.shape)
-
-    def gradient(self, x: Any, y: Any) -> tuple[Array, Array]:
-        """(dh/dx, dh/dy)."""
-        xa = np.asarray(x, dtype=np.float64)
-        idx, _, wx, wy = self.basis_rows(xa, np.asarray(y, dtype=np.float64))
-        c = self.coef.ravel()[idx]
-        return np.sum(wx * c, axis=1).reshape(xa.shape), np.sum(wy * c, axis=1).reshape(xa.shape)
-
-    def heightmap(self, sub: Substrate2D, nx: int = 128, ny: int = 288) -> HeightMap:
-        """The surface on the contract's node grid over the substrate (docs/contract.md, "Height maps")."""
-        xs = np.linspace(*sub.x_range, nx)
-        ys = np.linspace(*sub.y_range, ny)
-        xx, yy = np.meshgrid(xs, ys)
-        return HeightMap(self.height(xx, yy), sub.x_range[0], sub.x_range[1], sub.y_range[0], sub.y_range[1])
-
-    def smoothness(self) -> sp.csr_matrix:
-        """D: second differences (xx, yy, sqrt(2) xy) of the coefficient grid per mm^2 (thin-plate ``|D c|^2``)."""
-        ny, nx = self.shape
-
-        def second(n: int, h: float) -> sp.csr_matrix:
-            return sp.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(n - 2, n)) / (h * h)
-
-        def first(n: int, h: float) -> sp.csr_matrix:
-            return sp.diags([-1.0, 1.0], [0, 1], shape=(n - 1, n)) / h
-
-        ix, iy = sp.identity(nx), sp.identity(ny)
-        dxx = sp.kron(iy, second(nx, self.dx))
-        dyy = sp.kron(second(ny, self.dy), ix)
-        dxy = sp.kron(first(ny, self.dy), first(nx, self.dx)) * np.sqrt(2.0)
-        # scaled by the cell area so that |D c|^2 approximates the integral of the curvature energy
-        return sp.vstack([dxx, dyy, dxy]).tocsr() * np.sqrt(self.dx * self.dy)
-
-    @classmethod
-    def fit(cls, func: Any, sub: Substrate2D, spacing: float, step: float | None = None) -> SplineSurface:
-        """Least-squares B-spline approximation of ``func(x, y)`` over the substrate (a light thin-plate damping)."""
-        s, project = cls._projector(sub, spacing, step)
-        return s.with_coef(project(func))
-
-    @classmethod
-    def span(cls, basis: ShiftedBasis, sub: Substrate2D, spacing: float) -> Array:
-        """Spline coefficients of every term of a shifted basis and of a constant: the columns of P, (n, k + 1).
-
-        The surfaces c = P a are those of the basis (plus an offset), as B-splines of knot spacing ``spacing``.
-        """
-        cols = cls.fit_columns(lambda x, y: basis.values(x.ravel(), y.ravel()), sub, spacing)
-        return np.column_stack([cols, np.ones(cols.shape[0])])
-
-    @classmethod
-    def fit_columns(cls, func: Any, sub: Substrate2D, spacing: float) -> Array:
-        """:meth:`fit` of many functions at once: ``func(x, y)`` gives (points, k) values; returns (n, k)."""
-        s, project = cls._projector(sub, spacing, None)
-        return np.asarray(project(func), dtype=np.float64).reshape(s.coef.size, -1)
-
-    @classmethod
-    def _projector(cls, sub: Substrate2D, spacing: float, step: float | None) -> tuple[SplineSurface, Any]:
-        """The spline covering ``sub`` and a function taking func(x, y) (one or more columns) to its coefficients."""
-        s = cls.covering(sub, spacing)
-        step = step or spacing / 3.0
-        # samples on the substrate only (beyond it the thin-plate damping continues the surface smoothly)
-        xs = np.linspace(*sub.x_range, int(np.ceil(sub.size_x / step)) + 1)
-        ys = np.linspace(*sub.y_range, int(np.ceil(sub.size_y / step)) + 1)
-        xx, yy = np.meshgrid(xs, ys)
-        a = s.design(xx, yy)
-        d = s.smoothness()
-        ata = a.T @ a
-        lu = spla.splu((ata + 1e-8 * ata.diagonal().mean() * (d.T @ d)).tocsc())
-
-        def project(func: Any) -> Array:
-            z = np.asarray(func(xx, yy), dtype=np.float64).reshape(xx.size, -1)
-            out = np.asarray(lu.solve(np.asarray(a.T @ z)), dtype=np.float64)
-            return out[:, 0] if out.shape[1] == 1 else out
-
-        return s, project
 
 
 # -- configuration and results ------------------------------------------------------------------------------------
@@ -917,14 +751,12 @@ class InverseReconstructor:
                 converged = True
                 break
             d_min = frame_distance(m1, m2, self.sub.frame_z)
-            h_new = h - (d_min if cfg.criterion == "delta" else crit)
-            if len(values) >= 2:
-                (ha, fa), (hb, fb) = values[-2], values[-1]
-                if fb != fa:
-                    h_new = hb - fb * (hb - ha) / (fb - fa)
-                    # warm start: the surfaces depend almost linearly on H
-                    wgt = (h_new - hb) / (hb - ha)
-                    surf = surfaces[-1].with_coef(surfaces[-1].coef + wgt * (surfaces[-1].coef - surfaces[-2].coef))
+            h_new = next_start_height(values, h - (d_min if cfg.criterion == "delta" else crit))
+            if len(values) >= 2 and values[-1][1] != values[-2][1] and values[-1][0] != values[-2][0]:
+                # warm start: the surfaces depend almost linearly on H
+                (ha, _), (hb, _) = values[-2], values[-1]
+                wgt = (h_new - hb) / (hb - ha)
+                surf = surfaces[-1].with_coef(surfaces[-1].coef + wgt * (surfaces[-1].coef - surfaces[-2].coef))
             h = float(h_new)
         cam, pat = (
             _pose_update(self.camera, self.pattern, self.pose) if cfg.refine_setup else (self.camera, self.pattern)
@@ -957,100 +789,6 @@ class InverseReconstructor:
                 "start_height_term_um": height_term,
             },
         )
-
-
-@dataclass
-class InverseStart:
-    """Where the inverse fit starts from (:func:`inverse_start`).
-
-    Attributes
-    ----------
-    surface : object with ``height(x, y)`` or None
-        The start surface (None: a plane at the frame height).
-    kind : str
-        "centroid" (the centroid method with its bias step), "centroid-unbiased" (without it), "centroid-unconverged"
-        (the last surface of a start-height loop that did not converge), "coarse" (:meth:`Reconstructor.
-        coarse_surface`: the markers' gradients at the frame height) or "plane".
-    note : str
-        What failed on the way, one entry per attempt.
-    absolute_std_um : float or None
-        The centroid method's standard uncertainty of the absolute height, µm.
-    markers : object or None
-        The indexed markers used.
-    """
-
-    surface: Any
-    kind: str
-    note: str = ""
-    absolute_std_um: float | None = None
-    markers: Any = None
-
-    @property
-    def holds_height(self) -> bool:
-        """The fit keeps the start's mean height (``absolute="start"``) rather than searching it on its own surface.
-
-        Every start but a plane: where the centroid method converged its frame criterion decided the height; where
-        it did not (a coarse fit or an unconverged loop on a 3 mm / 60 µm surface) the frame criterion on the fitted
-        B-spline, whose thin-plate continuation into the frame regions of so short-correlated a surface is no
-        estimate of their maxima, ran away (the height -29 µm off from the unbiased centroid start of surface seed 4,
-        which held +2.6 µm; -420 µm from the coarse start of seed 5, which holds the frame height, ~27 µm off).
-        """
-        return self.kind != "plane"
-
-
-def inverse_start(setup: Setup, image: NDArray[Any], config: Any = None, bias: bool = True) -> InverseStart:
-    """The start of the inverse fit: the centroid method's surface where it reconstructs, else the best that is left.
-
-    In order: the centroid method (seed §1.4-§1.8) with its bias step; without it (the bias model cannot be evaluated
-    near a caustic — "singular at a marker" — and the start-height loop swings with it on some 3 mm / 60 µm surfaces
-    that converge without it; the inverse fit needs no centroid model, it only needs a start inside its basin); the
-    last surface of a start-height loop that did not converge; a coarse fit of the indexed markers
-    (:meth:`scopetwin.recon.reconstruct.Reconstructor.coarse_surface`); a plane at the frame height. A tied reference
-    marker
-    is decided on the way (:func:`scopetwin.recon.reconstruct.reconstruct_image`). ``config``: the centroid method's
-    :class:`scopetwin.recon.reconstruct.ReconstructionConfig`; ``bias=False``: never the bias step.
-    """
-    from scopetwin.recon.markers import find_markers_for
-    from scopetwin.recon.reconstruct import (
-        MarkerObservations,
-        NotConvergedError,
-        Reconstructor,
-        centroid_bias_step,
-        reconstruct_image,
-    )
-    from scopetwin.scenes.errors import ScopetwinError
-
-    notes: list[str] = []
-    unconverged: Any = None
-    attempts: list[tuple[Any, str]] = [(centroid_bias_step(setup), "centroid")] if bias else []
-    attempts.append((None, "centroid-unbiased" if bias else "centroid"))
-    for step, kind in attempts:
-        try:
-            found, res, _ = reconstruct_image(image, setup, config, step)
-        except NotConvergedError as exc:
-            unconverged = unconverged if unconverged is not None else exc.surface
-            notes.append(f"{kind}: {type(exc).__name__}: {exc}")
-            continue
-        except ScopetwinError as exc:
-            notes.append(f"{kind}: {type(exc).__name__}: {exc}")
-            continue
-        u = res.uncertainty
-        return InverseStart(
-            res.surface,
-            kind,
-            "; ".join(notes),
-            None if u is None else u.absolute_um,
-            found,
-        )
-    if unconverged is not None:
-        return InverseStart(unconverged, "centroid-unconverged", "; ".join(notes))
-    try:
-        found = find_markers_for(image, setup)
-        surface = Reconstructor.from_setup(setup, config).coarse_surface(MarkerObservations(found.ij, found.centroids))
-        return InverseStart(surface, "coarse", "; ".join(notes), markers=found)
-    except ScopetwinError as exc:
-        notes.append(f"coarse: {type(exc).__name__}: {exc}")
-    return InverseStart(None, "plane", "; ".join(notes))
 
 
 def pose_sigma_for(

@@ -34,7 +34,13 @@ controls the extrapolation into the frame regions. Its scale is chosen from the 
 (:func:`select_sigma`, after a first pass with ``sigma``: converged, or not converged because that scale cannot
 fit the surface, as a 12 mm basis on a 3 mm correlated glass). After convergence the
 frame condition that was not searched on is checked (``consistency_um``), so a mis-indexed
-image or a wrong setup raises instead of giving a smooth, tilted, wrong map.
+image or a wrong setup is reported instead of giving a smooth, tilted, wrong map.
+
+This module holds the iteration's pieces — the inner loop, the start-height loop, the coarse fit, the scale chosen
+on the flat start, the outlier test — each returning what happened as a value (:class:`InnerRun`,
+:class:`LoopOutcome`). What is done when one of them fails, and in which order, is decided in one place:
+:func:`scopetwin.recon.strategy.solve` under a :class:`scopetwin.recon.policy.ReconstructionPolicy`; the
+uncertainty is :mod:`scopetwin.recon.uncertainty`.
 
 Nothing here imports Mitsuba or sim: input is a setup (camera, pattern, substrate
 geometry) and marker observations (index + image position).
@@ -43,255 +49,69 @@ geometry) and marker observations (index + image position).
 from __future__ import annotations
 
 import contextlib
-import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
-from pathlib import Path
+from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
-from scopetwin.recon.frame_criterion import FrameCriterion, frame_criterion, frame_distance
+from scopetwin.recon.config import ReconstructionConfig
+from scopetwin.recon.errors import ReconstructionError, SubstrateNotVisibleError, TooFewMarkersError
+from scopetwin.recon.frame_criterion import frame_criterion, frame_distance, next_start_height
 from scopetwin.recon.gradients import marker_gradients
-from scopetwin.recon.shifted_basis import BasisKind, SBFSurface, ShiftedBasis, fit_gradients
+from scopetwin.recon.policy import DEFAULT_POLICY
+from scopetwin.recon.scale import select_sigma
+from scopetwin.recon.shifted_basis import SBFSurface, ShiftedBasis, fit_gradients
+from scopetwin.recon.substrate import Substrate2D, check_substrate_visible, intersect_surface
+from scopetwin.recon.uncertainty import Uncertainty
 from scopetwin.scenes.camera import Camera
-from scopetwin.scenes.errors import ScopetwinError
-from scopetwin.scenes.geometry import Array, Frame
+from scopetwin.scenes.geometry import Array
 from scopetwin.scenes.pattern import MarkerPattern
 from scopetwin.scenes.setup import Setup
-from scopetwin.scenes.surface import HeightMap, secant_intersection
+from scopetwin.scenes.surface import HeightMap
 
 #: A centroid-bias step: (current surface, marker indices (n, 2), measured image positions (n, 2) px)
 #: -> corrected image positions of the marker centres (n, 2) px.
 BiasStep = Callable[[SBFSurface, NDArray[np.int64], Array], Array]
 
 
-class ReconstructionError(ScopetwinError, ValueError):
-    """The reconstruction cannot be done with this input; the message says why."""
-
-
-class TooFewMarkersError(ReconstructionError):
-    """Too few markers overall, or next to one of the frame regions."""
-
-
-class SubstrateNotVisibleError(ReconstructionError):
-    """The setup's camera does not see the substrate (or the markers' rays miss it)."""
-
-
-class InconsistentError(ReconstructionError):
-    """The converged surface violates the frame condition that was not searched on (wrong indexing or setup)."""
-
-
-class NotConvergedError(ReconstructionError):
-    """The outer start-height loop did not converge; ``history`` holds what was done, ``surface`` its last surface."""
-
-    def __init__(
-        self, message: str, history: list[dict[str, Any]], history_path: Path | None, surface: Any = None
-    ) -> None:
-        super().__init__(message)
-        self.history = history
-        self.history_path = history_path
-        self.surface = surface
-
-
 @dataclass(frozen=True)
-class Substrate2D:
-    """The substrate's footprint on its base plane (seed §1.4, §1.10): extent, ROI length, frame position."""
+class Failure:
+    """A step that could not be done, as a value: the error a user would see if nothing else worked."""
 
-    size_x: float
-    size_y: float
-    roi_length: float
-    frame: Frame = field(default_factory=Frame.identity)
-    frame_z: float = 0.0
+    kind: type[ReconstructionError]
+    message: str
 
-    @classmethod
-    def from_setup(cls, setup: Setup, frame_z: float = 0.0) -> Substrate2D:
-        if setup.scene != "deflectometry" or setup.substrate is None:
-            raise ReconstructionError(f"setup {setup.name} is a {setup.scene!r} scene, not a deflectometry setup")
-        sx, sy = setup.substrate.size
-        return cls(float(sx), float(sy), float(setup.substrate.roi_length), Frame.identity(), frame_z)
-
-    @property
-    def x_range(self) -> tuple[float, float]:
-        return (-0.5 * self.size_x, 0.5 * self.size_x)
-
-    @property
-    def y_range(self) -> tuple[float, float]:
-        return (-0.5 * self.size_y, 0.5 * self.size_y)
-
-    def roi_grid(self, step: float) -> tuple[Array, Array]:
-        """Points of a regular grid over the ROI (flattened x, y)."""
-        nx = max(2, int(round(self.size_x / step)) + 1)
-        ny = max(2, int(round(self.roi_length / step)) + 1)
-        xx, yy = np.meshgrid(np.linspace(*self.x_range, nx), np.linspace(-0.5, 0.5, ny) * self.roi_length)
-        return xx.ravel(), yy.ravel()
-
-    def frame_grid(self, region: int, step: float) -> tuple[Array, Array]:
-        """Points of a regular grid over frame region 1 (y < 0) or 2 (y > 0), edges included."""
-        depth = 0.5 * (self.size_y - self.roi_length)
-        nx = max(2, int(round(self.size_x / step)) + 1)
-        ny = max(2, int(round(depth / step)) + 1)
-        ys = 0.5 * self.roi_length + np.linspace(0.0, depth, ny)
-        xx, yy = np.meshgrid(np.linspace(*self.x_range, nx), ys if region == 2 else -ys)
-        return xx.ravel(), yy.ravel()
+    def error(self, extra: str = "") -> ReconstructionError:
+        """The user-facing error (``extra`` appended to the message)."""
+        return self.kind(self.message + extra)
 
 
-@dataclass(frozen=True)
-class ReconstructionConfig:
-    """Parameters of the reconstruction (basis of §1.8, thresholds and criterion of §1.4).
-
-    Attributes
-    ----------
-    basis : {"gauss", "imq"}
-        Basis function (§1.8).
-    counts : (int, int) or None
-        Centre grid (n_x, n_y) spanning the substrate (the seed's layout); None: a
-        ``covering`` grid of spacing ``spacing*sigma`` overhanging by ``margin*sigma``.
-    sigma : (float, float)
-        Scales sigma_x, sigma_y, mm (a covering grid uses sigma_x).
-    sigma_candidates : tuple of float or None
-        Covering grids only: choose sigma among these from the data (:func:`select_sigma`: the scale
-        whose fit best extrapolates the gradients of a held-out band of ``holdout_band`` mm at each
-        end of the data, the situation of the frame regions) among those that fit the data; None: use ``sigma``.
-    fit_ratio : float
-        A candidate scale fits the data when its gradient residual on all markers is at most this many times the
-        smallest candidate residual (:func:`select_sigma`; the finest candidate fits the noise too, so a basis
-        that follows the surface lies within ~2-3 times of it: 2.7-5.2 against 1.4 µrad on the seed's surfaces,
-        while a 12 mm basis on a 3 mm correlated glass leaves 240 times).
-    tilt : bool
-        Add the unpenalised plane terms x, y.
-    regularization : float
-        Relative ridge weight (see :func:`scopetwin.recon.shifted_basis.fit_gradients`).
-    inner_tol_um, inner_max : float, int
-        Inner loop stops when the RMS height change over the ROI is below ``inner_tol_um``.
-    outer_tol_um, outer_max : float, int
-        Outer loop stops when ``|criterion|`` <= ``outer_tol_um``.
-    criterion : {"level", "delta"}
-        Frame-region criterion (module docstring).
-    search : {"secant", "thesis"}
-        Start-height update (module docstring).
-    warm_start : bool
-        Start each inner loop from the previous surface moved to the new H (the seed starts from a plane).
-    grid_step, frame_step : float
-        Spacing of the evaluation grids over the ROI and over the frame regions, mm.
-    min_markers : int
-        Minimum number of usable markers overall.
-    edge_band, min_edge_markers : float, int
-        Each frame region needs at least ``min_edge_markers`` markers within ``edge_band`` mm of it.
-    method : {"lstsq", "normal"}
-        Linear solver of the fit.
-    posterior : {"correct", "report", "off"}
-        After convergence, read the fit as a Gaussian process (:mod:`scopetwin.recon.posterior`: smooth + broadband
-        prior,
-        scales and amplitudes by evidence) and give every reconstruction its uncertainty (absolute height, shape,
-        per node); ``"correct"`` also replaces the extrapolated frame maxima of the fitted surface by their
-        posterior mean (a Newton step on the start height, criterion ``level`` only); ``"off"``: neither.
-    evidence_points : int
-        Gradient observations (an even subsample) entering the evidence maximisation.
-    posterior_iterations : int
-        Most Newton steps on the start height with the posterior frame criterion (``posterior = "correct"``).
-    posterior_points : int
-        Most gradient observations entering the posterior (:func:`_posterior_subset`: all of the outermost
-        along y, an even subsample of the rest).
-    outlier_factor : float
-        After convergence, markers whose gradient residual exceeds this many times the median residual are
-        rejected one at a time (worst first, refitting in between, at most 5 % of them) and the surface is found
-        again without them (:meth:`Reconstructor._index_outliers`): a wrongly indexed marker is ~3 mrad off, a
-        good one within ~5 times the median (2-20 µrad); 0 turns the check off.
-    consistency_um : float
-        After convergence the criterion not searched on must hold too: ``|Delta h_max|`` (criterion
-        ``level``) or ``|mean frame maximum - frame position|`` (criterion ``delta``) above this is an
-        :class:`InconsistentError` (a mis-indexed image or a wrong setup gives a smooth but tilted
-        surface that only one of the two frame conditions can hide).
+@dataclass
+class InnerRun:
+    """One inner loop (§1.4, eq. 1.5): its surface, RMS height changes (µm), gradient residual (rad), markers used;
+    ``lost`` when the rays lost the substrate's ROI or a frame region's markers (the surface is the last one fitted).
     """
 
-    basis: BasisKind = "gauss"
-    counts: tuple[int, int] | None = None
-    sigma: tuple[float, float] = (12.0, 12.0)
-    sigma_candidates: tuple[float, ...] | None = (2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 15.0, 18.0, 24.0)
-    holdout_band: float = 4.0
-    fit_ratio: float = 5.0
-    spacing: float = 0.7
-    margin: float = 1.0
-    tilt: bool = True
-    regularization: float = 1e-9
-    inner_tol_um: float = 1e-4
-    inner_max: int = 12
-    outer_tol_um: float = 1e-4
-    outer_max: int = 30
-    criterion: FrameCriterion = "level"
-    search: Literal["secant", "thesis"] = "secant"
-    warm_start: bool = True
-    grid_step: float = 0.5
-    frame_step: float = 0.2
-    min_markers: int = 20
-    edge_band: float = 6.0
-    min_edge_markers: int = 5
-    method: Literal["lstsq", "normal"] = "lstsq"
-    consistency_um: float = 10.0
-    posterior: Literal["correct", "report", "off"] = "correct"
-    evidence_points: int = 250
-    posterior_points: int = 800
-    posterior_iterations: int = 4
-    outlier_factor: float = 10.0
+    surface: SBFSurface
+    rms_changes_um: list[float]
+    residual_rad: float
+    used: int
+    lost: Failure | None = None
 
-    @classmethod
-    def thesis(cls, literal_axes: bool = True, **changes: Any) -> ReconstructionConfig:
-        """The seed's §1.10 reconstruction: 9x5 inverse multiquadrics, sigma_x = 4, sigma_y = 3, Delta h_max, eq. 1.4.
 
-        ``literal_axes``: 9 centres and sigma 4 along x (the 25.2 mm side) as printed; False swaps
-        them onto the long side (9 centres and sigma 4 along y), which fits the substrate's aspect.
-        """
-        counts, sigma = ((9, 5), (4.0, 3.0)) if literal_axes else ((5, 9), (3.0, 4.0))
-        base = cls(
-            basis="imq",
-            counts=counts,
-            sigma=sigma,
-            sigma_candidates=None,
-            tilt=False,
-            regularization=0.0,
-            inner_tol_um=1e-2,
-            inner_max=3,
-            outer_tol_um=0.01,
-            outer_max=60,
-            criterion="delta",
-            search="thesis",
-            warm_start=False,
-            consistency_um=float("inf"),
-            posterior="report",
-        )
-        return replace(base, **changes)
+@dataclass(frozen=True)
+class LoopOutcome:
+    """How a start-height loop ended: ``"converged"``, ``"not-converged"`` (the budget of runs spent) or ``"lost"``
+    (an inner loop's rays lost the substrate: ``failure`` says how)."""
 
-    @classmethod
-    def realtime(cls, sigma: float = 12.0, **changes: Any) -> ReconstructionConfig:
-        """A fixed-scale configuration for one frame period: coarser centre grid, normal equations, 2 nm tolerances."""
-        base = cls(
-            sigma=(sigma, sigma),
-            sigma_candidates=None,
-            spacing=1.0,
-            method="normal",
-            inner_tol_um=1e-3,
-            outer_tol_um=2e-3,
-            grid_step=1.0,
-            frame_step=0.3,
-            posterior="off",
-        )
-        return replace(base, **changes)
+    status: Literal["converged", "not-converged", "lost"]
+    failure: Failure | None = None
 
-    def make_basis(self, sub: Substrate2D, sigma: float | None = None) -> ShiftedBasis:
-        """The shifted basis of this configuration over a substrate (``sigma`` overrides a covering grid's scale)."""
-        if self.counts is not None:
-            return ShiftedBasis.grid(self.counts, sub.x_range, sub.y_range, self.sigma, self.basis, self.tilt)
-        return ShiftedBasis.covering(
-            sub.x_range,
-            sub.y_range,
-            sigma if sigma is not None else self.sigma[0],
-            self.spacing,
-            self.margin,
-            self.basis,
-            self.tilt,
-        )
+    @property
+    def converged(self) -> bool:
+        return self.status == "converged"
 
 
 @dataclass(frozen=True)
@@ -334,50 +154,6 @@ class OuterStep:
     sigma_mm: float
 
 
-@dataclass(frozen=True)
-class Uncertainty:
-    """Standard uncertainties of a reconstruction (from :func:`scopetwin.recon.posterior.frame_posterior`).
-
-    Attributes
-    ----------
-    absolute_um : float
-        Of the absolute height (the ROI mean), µm: the posterior spread of the frame criterion's shape functional,
-        plus the offset of the fitted surface's value from the posterior mean when no correction was applied,
-        divided by the criterion's slope in the start height.
-    shape_um : float
-        Of the shape (RMS over the ROI after removing the mean), µm: sqrt of the mean, over the ROI, of the
-        posterior variance of the height contrasts, the squared difference between the fitted and the
-        posterior-mean contrasts, and the start height's uncertainty carried into the contrasts (a wrong start
-        height tilts the traced gradients: :meth:`Reconstructor._start_height_sensitivity`).
-    node_std : HeightMap
-        Standard uncertainty of the height at the nodes of a coarse grid over the whole substrate, mm
-        (absolute and shape parts together).
-    correction_um : float
-        Start-height correction applied from the posterior (0 when ``posterior`` is ``"report"``), µm.
-    slope : float
-        d criterion / d start height of the outer loop (from its last two runs; 1 when unknown).
-    hyper : dict
-        The prior chosen by evidence (:meth:`scopetwin.recon.posterior.Hyper.as_dict`).
-    """
-
-    absolute_um: float
-    shape_um: float
-    node_std: HeightMap
-    correction_um: float
-    slope: float
-    hyper: dict[str, float]
-
-    def summary(self) -> dict[str, Any]:
-        """JSON-ready (the contract's ``uncertainty`` object plus details)."""
-        return {
-            "absolute_um": self.absolute_um,
-            "shape_um": self.shape_um,
-            "correction_um": self.correction_um,
-            "criterion_slope": self.slope,
-            "prior": self.hyper,
-        }
-
-
 @dataclass
 class ReconstructionResult:
     """The reconstructed surface with its iteration history and (``config.posterior`` on) its uncertainty."""
@@ -390,6 +166,11 @@ class ReconstructionResult:
     config: ReconstructionConfig
     uncertainty: Uncertainty | None = None
     rejected: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+    strategy: list[str] = field(default_factory=list)
+
+    def height_at(self, x_mm: Any, y_mm: Any) -> NDArray[np.float64]:
+        """Heights of the reconstructed surface at substrate coordinates (x, y), mm (vectorised, broadcast)."""
+        return np.asarray(self.surface.height(np.asarray(x_mm, float), np.asarray(y_mm, float)), dtype=np.float64)
 
     @property
     def outer_iterations(self) -> int:
@@ -433,6 +214,7 @@ class ReconstructionResult:
             "sigma_mm": list(self.surface.basis.sigma),
             "basis_functions": self.surface.basis.n_basis,
             **({"rejected_markers": self.rejected.tolist()} if len(self.rejected) else {}),
+            **({"strategy": list(self.strategy)} if self.strategy else {}),
             **({"uncertainty": self.uncertainty.summary()} if self.uncertainty is not None else {}),
             "history": self.history_dicts(),
         }
@@ -452,96 +234,12 @@ def single_thread_blas() -> contextlib.AbstractContextManager:
     return threadpool_limits(limits=1, user_api="blas")
 
 
-# -- geometry helpers ---------------------------------------------------------------------
-def intersect_surface(
-    surface: SBFSurface, origins: Array, dirs: Array, frame: Frame | None = None, tol: float = 1e-10, max_iter: int = 30
-) -> tuple[Array, NDArray[np.bool_]]:
-    """Ray parameters where rays meet a fitted surface z = f(x, y) (secant iteration of seed §1.6.4, eq. 1.6).
-
-    :func:`scopetwin.scenes.surface.secant_intersection`, started at the rays' intersections with the plane
-    z = offset and with the plane z = f there, which is close to the root for a nearly flat substrate.
-
-    Parameters
-    ----------
-    surface : SBFSurface
-        The current surface estimate (§1.8), in the coordinates of ``frame``.
-    origins, dirs : ndarray, (n, 3)
-        Camera rays, global coordinates.
-    frame : Frame, optional
-        The substrate's base plane (None: the rays are given in it).
-    tol, max_iter : float, int
-        Convergence threshold on ``|f|``, mm, and largest number of secant steps.
-
-    Returns
-    -------
-    lam : ndarray, (n,)
-        Ray parameters (meaningful where ``ok``).
-    ok : ndarray of bool, (n,)
-        Converged, and in front of the ray origin (lam > 0).
-    """
-    o = frame.to_local(origins) if frame is not None else np.asarray(origins, dtype=np.float64)
-    d = frame.vectors_to_local(dirs) if frame is not None else np.asarray(dirs, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam0 = (surface.offset - o[:, 2]) / d[:, 2]
-    lam, converged = secant_intersection(surface, o, d, lam0, tol=tol, max_iter=max_iter)
-    return lam, converged & (lam > 0)
-
-
-def check_substrate_visible(camera: Camera, sub: Substrate2D) -> None:
-    """Raise :class:`SubstrateNotVisibleError` if no point of the ROI projects into the image."""
-    xs, ys = sub.roi_grid(max(sub.size_x, sub.roi_length) / 12.0)
-    pts = sub.frame.to_global(np.stack([xs, ys, np.full_like(xs, sub.frame_z)], axis=-1))
-    px = camera.project(pts)
-    inside = np.all(np.isfinite(px), axis=1) & camera.in_image(np.nan_to_num(px, nan=-1.0))
-    if not inside.any():
-        raise SubstrateNotVisibleError(
-            "the setup's camera cannot see the substrate: no point of the region of interest projects into the "
-            f"{camera.nx} x {camera.ny} image (check the camera pose in the setup)"
-        )
-
-
-def select_sigma(
-    sub: Substrate2D, x: Array, y: Array, hx: Array, hy: Array, config: ReconstructionConfig
-) -> tuple[float, dict[float, float], dict[float, float]]:
-    """Basis scale from the data: among the scales that fit the data, the one that best extrapolates.
-
-    A scale fits when its residual on all the gradients is at most ``config.fit_ratio`` times the smallest
-    residual of the candidates (a basis too coarse for the surface — a 12 mm Gaussian on a 3 mm correlated
-    glass — leaves hundreds of µrad and would otherwise win by extrapolating smoothly). Among those, for each end
-    of the data along y the markers within ``config.holdout_band`` mm of the data's edge are held out, the basis
-    is fitted to the rest, and the RMS gradient error on the held-out band is measured: the same extrapolation the
-    frame criterion relies on (seed §1.4). The scale with the smallest RMS over both ends wins. Returns
-    (sigma, {sigma: held-out score in µrad}, {sigma: residual of the fit to all gradients in µrad}).
-    """
-    scores: dict[float, float] = {}
-    fits: dict[float, float] = {}
-    ends = [y >= y.max() - config.holdout_band, y <= y.min() + config.holdout_band]
-    for sigma in config.sigma_candidates or ():
-        basis = config.make_basis(sub, sigma)
-        coef, _ = fit_gradients(basis, x, y, hx, hy, config.regularization, method=config.method)
-        gx, gy = SBFSurface(basis, coef).gradient(x, y)
-        fits[float(sigma)] = float(np.sqrt(np.mean((gx - hx) ** 2 + (gy - hy) ** 2)) * 1e6)
-        errs = []
-        for test in ends:
-            if test.all() or (~test).sum() * 2 < basis.n_terms // 4:
-                continue
-            coef, _ = fit_gradients(
-                basis, x[~test], y[~test], hx[~test], hy[~test], config.regularization, method=config.method
-            )
-            gx, gy = SBFSurface(basis, coef).gradient(x[test], y[test])
-            errs.append(np.mean((gx - hx[test]) ** 2 + (gy - hy[test]) ** 2))
-        if errs:
-            scores[float(sigma)] = float(np.sqrt(np.mean(errs)) * 1e6)
-    if not scores:
-        return float(config.sigma[0]), scores, fits
-    floor = min(fits.values())
-    fitting = [s for s in scores if fits[s] <= config.fit_ratio * floor] or list(scores)
-    return min(fitting, key=scores.__getitem__), scores, fits
-
-
 # -- the nested iteration ---------------------------------------------------------------
 class Reconstructor:
-    """The nested iteration of seed §1.4 for one setup, basis and set of marker observations.
+    """The pieces of the nested iteration of seed §1.4 for one setup and basis.
+
+    :func:`scopetwin.recon.strategy.solve` runs them in order (start-height loop, scale chosen from the data, outlier
+    test, posterior) and decides what to do where one fails.
 
     Parameters
     ----------
@@ -572,11 +270,10 @@ class Reconstructor:
         self.bias = bias
         check_substrate_visible(camera, substrate)
         self.sigma_scores: dict[float, float] = {}
-        self._last: SBFSurface | None = None
-        self._post_delta: tuple[float, float] | None = None
-        self._use_basis(self.config.make_basis(substrate))
+        self.last: SBFSurface | None = None
+        self.use_basis(self.config.make_basis(substrate))
 
-    def _use_basis(self, basis: ShiftedBasis) -> None:
+    def use_basis(self, basis: ShiftedBasis) -> None:
         """Set the basis and precompute its values on the ROI and frame-region evaluation grids."""
         self.basis = basis
         gx, gy = self.sub.roi_grid(self.config.grid_step)
@@ -591,10 +288,12 @@ class Reconstructor:
         bias: BiasStep | None = None,
         frame_z: float = 0.0,
     ) -> Reconstructor:
+        """The pieces for a deflectometry setup's camera, pattern and substrate."""
         return cls(setup.camera_model, setup.marker_pattern, Substrate2D.from_setup(setup, frame_z), config, bias)
 
     # -- pieces --------------------------------------------------------------------------
-    def _roi_mean(self, coef: Array) -> float:
+    def roi_mean(self, coef: Array) -> float:
+        """Mean over the ROI's evaluation grid of the basis part with coefficients ``coef``, mm."""
         return float(np.mean(self._roi_values @ coef))
 
     def frame_maxima(self, surface: SBFSurface) -> tuple[float, float]:
@@ -604,7 +303,8 @@ class Reconstructor:
             float(np.max(self._frame_values[1] @ surface.coef)) + surface.offset,
         )
 
-    def _prepare(self, markers: MarkerObservations) -> tuple[NDArray[np.int64], Array, Array]:
+    def prepare(self, markers: MarkerObservations) -> tuple[NDArray[np.int64], Array, Array]:
+        """Indices, image positions and pattern positions of the markers; bad input is an error here, before work."""
         cfg = self.config
         if len(markers.ij) < cfg.min_markers:
             raise TooFewMarkersError(
@@ -628,7 +328,8 @@ class Reconstructor:
         self._ray_cache = (px, rays)
         return rays
 
-    def _trace(self, surface: SBFSurface, px: Array, targets: Array) -> tuple[Array, Array, Array, NDArray]:
+    def trace(self, surface: SBFSurface, px: Array, targets: Array) -> tuple[Array, Array, Array, NDArray]:
+        """Marker rays through ``surface``: points (x, y) and gradients of those that meet the ROI, and the mask."""
         o, d = self._rays(px)
         lam, ok = intersect_surface(surface, o, d, self.sub.frame)
         hit = o + np.where(ok, lam, 0.0)[:, None] * d
@@ -637,78 +338,86 @@ class Reconstructor:
         xy, hx, hy = marker_gradients(hit[ok], d[ok], targets[ok], self.sub.frame)
         return xy, hx, hy, ok
 
-    def _check_coverage(self, xy: Array, n_total: int) -> None:
+    def corrected(self, surface: SBFSurface, ij: NDArray[np.int64], px: Array, bias: bool = True) -> Array:
+        """The image positions the inner loop uses: bias-corrected through ``surface`` where there is a bias step."""
+        return self.bias(surface, ij, px) if bias and self.bias is not None else px
+
+    def coverage(self, xy: Array, n_total: int) -> Failure | None:
+        """Whether the traced markers cover the ROI and both frame regions' neighbourhoods (None: they do)."""
         cfg = self.config
         if len(xy) < max(cfg.min_markers, 0.5 * n_total):
-            raise SubstrateNotVisibleError(
+            return Failure(
+                SubstrateNotVisibleError,
                 f"only {len(xy)} of {n_total} marker rays meet the substrate's region of interest: the camera "
-                "does not see the substrate as the setup describes it (wrong setup for this image?)"
+                "does not see the substrate as the setup describes it (wrong setup for this image?)",
             )
         half = 0.5 * self.sub.roi_length
         for region, near in ((1, xy[:, 1] <= -half + cfg.edge_band), (2, xy[:, 1] >= half - cfg.edge_band)):
             n = int(near.sum())
             if n < cfg.min_edge_markers:
                 side = "y < 0" if region == 1 else "y > 0"
-                raise TooFewMarkersError(
+                return Failure(
+                    TooFewMarkersError,
                     f"only {n} markers within {cfg.edge_band} mm of frame region {region} ({side}); at least "
-                    f"{cfg.min_edge_markers} are needed to extrapolate the surface onto the holding frame (seed §1.4)"
+                    f"{cfg.min_edge_markers} are needed to extrapolate the surface onto the holding frame (seed §1.4)",
                 )
+        return None
 
     def inner_loop(
         self, start_height: float, markers: MarkerObservations, initial: SBFSurface | None = None
-    ) -> tuple[SBFSurface, list[float], float, int]:
-        """Self-consistent surface for one start height (seed §1.4, eq. 1.5).
-
-        Returns the surface, the RMS height changes (µm) per iteration, the final gradient
-        residual RMS (rad) and the number of markers used.
-        """
+    ) -> InnerRun:
+        """Self-consistent surface for one start height (seed §1.4, eq. 1.5)."""
         cfg = self.config
-        ij, px_meas, targets = self._prepare(markers)
+        ij, px_meas, targets = self.prepare(markers)
         if initial is not None:
-            surface = initial.shifted(start_height - self._roi_mean(initial.coef))
+            surface = initial.shifted(start_height - self.roi_mean(initial.coef))
         else:
             surface = SBFSurface.plane(self.basis, start_height)
-        rms_changes: list[float] = []
-        resid = float("nan")
-        used = 0
+        run = InnerRun(surface, [], float("nan"), 0)
         prev_roi = self._roi_values @ surface.coef + surface.offset
         for _ in range(cfg.inner_max):
-            px = self.bias(surface, ij, px_meas) if self.bias is not None else px_meas
-            xy, hx, hy, ok = self._trace(surface, px, targets)
-            self._check_coverage(xy, len(ij))
-            used = int(ok.sum())
-            coef, resid = fit_gradients(self.basis, xy[:, 0], xy[:, 1], hx, hy, cfg.regularization, method=cfg.method)
+            xy, hx, hy, ok = self.trace(surface, self.corrected(surface, ij, px_meas), targets)
+            run.lost = self.coverage(xy, len(ij))
+            if run.lost is not None:
+                return run
+            run.used = int(ok.sum())
+            coef, run.residual_rad = fit_gradients(
+                self.basis, xy[:, 0], xy[:, 1], hx, hy, cfg.regularization, method=cfg.method
+            )
             roi = self._roi_values @ coef
             offset = start_height - float(np.mean(roi))
-            surface = SBFSurface(self.basis, coef, offset)
+            surface = run.surface = SBFSurface(self.basis, coef, offset)
             roi += offset
             change = float(np.sqrt(np.mean((roi - prev_roi) ** 2)))
-            rms_changes.append(change * 1e3)
+            run.rms_changes_um.append(change * 1e3)
             prev_roi = roi
             if change * 1e3 < cfg.inner_tol_um:
                 break
-        return surface, rms_changes, resid, used
+        return run
 
-    def _outer(
+    def start_height_loop(
         self,
         markers: MarkerObservations,
         h_start: float,
         history: list[OuterStep],
         surfaces: list[SBFSurface],
         runs: int | None = None,
-    ) -> bool:
-        """The start-height loop from ``h_start``; appends to ``history`` and ``surfaces``; True when converged.
+    ) -> LoopOutcome:
+        """The start-height loop (§1.4, eqs. 1.3-1.4) from ``h_start``; appends to ``history`` and ``surfaces``.
 
-        At most ``runs`` inner loops (default: what ``outer_max`` leaves after ``history``).
+        At most ``runs`` inner loops (default: what ``outer_max`` leaves after ``history``). The next start height
+        is the thesis step (``search = "thesis"``) or :func:`scopetwin.recon.frame_criterion.next_start_height`.
         """
         cfg = self.config
         values: list[tuple[float, float]] = []  # (H, F)
         tol = cfg.outer_tol_um * 1e-3
         h = h_start
         for _ in range(runs if runs is not None else cfg.outer_max - len(history)):
-            init = _predict_surface(surfaces, values, h) if cfg.warm_start else None
-            surf, changes, resid, used = self.inner_loop(h, markers, init)
-            m1, m2 = self.frame_maxima(surf)
+            init = predict_surface(surfaces, values, h) if cfg.warm_start else None
+            run = self.inner_loop(h, markers, init)
+            if run.lost is not None:
+                return LoopOutcome("lost", run.lost)
+            m1, m2 = self.frame_maxima(run.surface)
             crit = frame_criterion(m1, m2, self.sub.frame_z, cfg.criterion)
             history.append(
                 OuterStep(
@@ -717,335 +426,117 @@ class Reconstructor:
                     m2 * 1e3,
                     (m1 - m2) * 1e3,
                     crit * 1e3,
-                    len(changes),
-                    changes,
-                    resid * 1e6,
-                    used,
+                    len(run.rms_changes_um),
+                    run.rms_changes_um,
+                    run.residual_rad * 1e6,
+                    run.used,
                     self.basis.sigma[0],
                 )
             )
-            surfaces.append(surf)
+            surfaces.append(run.surface)
             values.append((h, crit))
             if abs(crit) <= tol:
-                self._last = surf
-                return True
+                self.last = run.surface
+                return LoopOutcome("converged")
             d_min = frame_distance(m1, m2, self.sub.frame_z)
             thesis_step = h - d_min if d_min != 0 else h - crit
-            h_new = thesis_step if cfg.search == "thesis" else _secant_step(values, thesis_step)
+            h_new = thesis_step if cfg.search == "thesis" else next_start_height(values, thesis_step)
             if not np.isfinite(h_new):
                 break
             h = float(h_new)
-        self._last = surfaces[-1] if surfaces else None
-        return False
+        self.last = surfaces[-1] if surfaces else None
+        return LoopOutcome("not-converged")
 
-    def run(self, markers: MarkerObservations, history_path: str | Path | None = None) -> ReconstructionResult:
-        """The nested iteration (seed §1.4, Fig. 1.4), with BLAS limited to one thread (see :func:`single_thread_blas`).
+    def traced_gradients(self, surface: SBFSurface, markers: MarkerObservations) -> tuple[Array, Array, Array, NDArray]:
+        """The markers' gradients traced through ``surface`` (bias-corrected through it where there is a bias step)."""
+        ij, px, targets = self.prepare(markers)
+        return self.trace(surface, self.corrected(surface, ij, px), targets)
 
-        Raises
-        ------
-        TooFewMarkersError, SubstrateNotVisibleError
-            Input that cannot give a height map.
-        NotConvergedError
-            The outer loop reached ``outer_max`` runs; the partial history is attached and, when
-            ``history_path`` is given, written there as JSON.
-        """
-        with single_thread_blas():
-            return self._run(markers, history_path)
-
-    def _index_outliers(self, markers: MarkerObservations, surface: SBFSurface) -> NDArray[np.bool_]:
+    def index_outliers(
+        self, markers: MarkerObservations, surface: SBFSurface, factor: float, max_fraction: float
+    ) -> NDArray[np.bool_]:
         """Markers whose gradients no smooth surface explains: wrongly indexed ones (True = reject).
 
         A marker given its neighbour's index points at a pattern position a pitch away: its traced gradient is
-        ~3 mrad off, while good markers scatter about the fit by a few µrad (at most ~5 times the median residual
-        on the seed's surfaces, PSD glass with broadband content and 3 mm / 60 µm surfaces). The gradients are
-        traced through the converged ``surface``; the worst marker above ``outlier_factor`` times the median
-        residual is removed and the basis refitted, until none is left above it or 5 % are gone.
+        ~3 mrad off, while good markers scatter about the fit by a few µrad. The gradients are traced through the
+        converged ``surface``; the worst marker above ``factor`` times the median residual is removed and the
+        basis refitted, until none is left above it or ``max_fraction`` of them are gone
+        (:attr:`scopetwin.recon.policy.ReconstructionPolicy.outlier_factor`).
         """
         cfg = self.config
-        ij, px, targets = self._prepare(markers)
-        px = self.bias(surface, ij, px) if self.bias is not None else px
-        xy, hx, hy, ok = self._trace(surface, px, targets)
+        xy, hx, hy, ok = self.traced_gradients(surface, markers)
         keep = np.ones(len(xy), dtype=bool)
         basis = surface.basis
-        for _ in range(int(0.05 * len(xy))):
+        for _ in range(int(max_fraction * len(xy))):
             coef, _ = fit_gradients(
                 basis, xy[keep, 0], xy[keep, 1], hx[keep], hy[keep], cfg.regularization, method=cfg.method
             )
             gx, gy = SBFSurface(basis, coef).gradient(xy[:, 0], xy[:, 1])
             r = np.hypot(gx - hx, gy - hy)
             worst = np.flatnonzero(keep)[int(np.argmax(r[keep]))]
-            if r[worst] <= cfg.outlier_factor * float(np.median(r[keep])):
+            if r[worst] <= factor * float(np.median(r[keep])):
                 break
             keep[worst] = False
-        drop = np.zeros(len(ij), dtype=bool)
+        drop = np.zeros(len(markers.ij), dtype=bool)
         drop[np.flatnonzero(ok)[~keep]] = True
         return drop
 
-    def coarse_surface(self, markers: MarkerObservations, iterations: int = 3) -> SBFSurface:
+    def coarse_surface(self, markers: MarkerObservations, iterations: int = 3, min_hit: float = 0.95) -> SBFSurface:
         """A coarse fit of the markers: the inner loop at the frame height, without the bias step or the height search.
 
         Where the nested iteration fails on a strongly bent substrate (3 mm / 60 µm: the bias model singular at a
         marker near a caustic, or start heights that throw the rays off the substrate), the markers still tell the
         surface's shape: their gradients, traced through the flat start at the frame height and through the fits
-        that follow, fitted with a basis scale chosen on them (:meth:`_scale_from_flat_start`). The traced slopes are
+        that follow, fitted with a basis scale chosen on them (:meth:`scale_from_flat_start`). The traced slopes are
         off by ~10 µrad per µm of height error, far inside the inverse fit's basin (a pitch on the pattern is ~8
-        mrad); the start for :mod:`scopetwin.recon.inverse` (:func:`scopetwin.recon.inverse.inverse_start`), whose mean
-        height — the
-        frame height, nobody measured it — the inverse fit keeps. An iteration whose rays miss the substrate for more
-        than 5 % of the markers is not taken.
+        mrad); the start for :mod:`scopetwin.recon.inverse` (:func:`scopetwin.recon.strategy.inverse_start`), whose
+        mean height — the frame height, nobody measured it — the inverse fit keeps. An iteration whose rays miss the
+        substrate for more than ``1 - min_hit`` of the markers is not taken.
         """
         cfg = self.config
         h = self.sub.frame_z
-        ij, px, targets = self._prepare(markers)
-        self._scale_from_flat_start(markers, bias=False)
+        ij, px, targets = self.prepare(markers)
+        lost = self.scale_from_flat_start(markers, bias=False)
+        if isinstance(lost, Failure):
+            raise lost.error()
         surface = SBFSurface.plane(self.basis, h)
         for _ in range(iterations):
-            xy, hx, hy, _ = self._trace(surface, px, targets)
-            if len(xy) < 0.95 * len(ij):
+            xy, hx, hy, _ = self.trace(surface, px, targets)
+            if len(xy) < min_hit * len(ij):
                 break
             coef, _ = fit_gradients(self.basis, xy[:, 0], xy[:, 1], hx, hy, cfg.regularization, method=cfg.method)
-            surface = SBFSurface(self.basis, coef, h - self._roi_mean(coef))
+            surface = SBFSurface(self.basis, coef, h - self.roi_mean(coef))
         return surface
 
-    def _scale_from_flat_start(self, markers: MarkerObservations, bias: bool = True) -> bool:
+    def scale_from_flat_start(self, markers: MarkerObservations, bias: bool = True) -> bool | Failure:
         """Choose the basis scale on the gradients traced through the flat start; True if the scale changed.
 
-        :func:`select_sigma` on the markers' gradients traced through the plane at the frame height (with the bias
-        step where ``bias`` and the reconstructor has one).
-        A default scale far too coarse for the surface (the 12 mm basis on a 3 mm / 60 µm one, whose markers the
-        topological indexing of :func:`scopetwin.recon.markers.index_lattice` numbers) cannot fit the gradients, and
-        its fits
-        swing so far that the rays miss the substrate (or its ends) — in the first inner loop, before a surface
-        exists for :func:`select_sigma` to be run on, or after many start heights that did not settle (3 mm / 60 µm
-        seeds 2 and 1). The flat start at the frame height traces every marker; the scale is chosen on those
-        gradients instead, and :meth:`_run` begins the start-height loop again (with a fresh budget of start
-        heights); :meth:`coarse_surface` fits with it.
+        :func:`scopetwin.recon.scale.select_sigma` on the markers' gradients traced through the plane at the frame
+        height (with the bias step where ``bias`` and the reconstructor has one). A default scale far too coarse for
+        the surface (the 12 mm basis on a 3 mm / 60 µm one, whose markers the topological indexing of
+        :func:`scopetwin.recon.markers.index_lattice` numbers) cannot fit the gradients, and its fits swing so far
+        that the rays miss the substrate (or its ends) — in the first inner loop, before a surface exists for
+        :func:`scopetwin.recon.scale.select_sigma` to be run on, or after many start heights that did not settle
+        (3 mm / 60 µm seeds 2 and 1). The flat start at the frame height traces every marker; the scale is chosen on
+        those gradients instead. A flat start that misses the substrate too is returned as that :class:`Failure`.
         """
         cfg = self.config
         plane = SBFSurface.plane(self.basis, self.sub.frame_z)
-        ij, px, targets = self._prepare(markers)
-        px = self.bias(plane, ij, px) if bias and self.bias is not None else px
-        xy, hx, hy, _ = self._trace(plane, px, targets)
-        self._check_coverage(xy, len(ij))  # a flat start that misses the substrate too: that error, not this one
+        ij, px, targets = self.prepare(markers)
+        xy, hx, hy, _ = self.trace(plane, self.corrected(plane, ij, px, bias), targets)
+        lost = self.coverage(xy, len(ij))
+        if lost is not None:
+            return lost
         if not cfg.sigma_candidates or cfg.counts is not None:
             return False
         best, self.sigma_scores, _ = select_sigma(self.sub, xy[:, 0], xy[:, 1], hx, hy, cfg)
         if best == float(self.basis.sigma[0]):
             return False
-        self._use_basis(cfg.make_basis(self.sub, best))
+        self.use_basis(cfg.make_basis(self.sub, best))
         return True
 
-    def _run(self, markers: MarkerObservations, history_path: str | Path | None) -> ReconstructionResult:
-        cfg = self.config
-        t0 = time.perf_counter()
-        history: list[OuterStep] = []
-        surfaces: list[SBFSurface] = []
-        try:
-            converged = self._outer(markers, self.sub.frame_z, history, surfaces)
-        except (SubstrateNotVisibleError, TooFewMarkersError):
-            if not self._scale_from_flat_start(markers):
-                raise
-            surfaces = []  # the first scale's surfaces: no warm start for another basis
-            converged = self._outer(markers, self.sub.frame_z, history, surfaces, cfg.outer_max)
-        if surfaces and cfg.sigma_candidates and cfg.counts is None:
-            # phase 2: choose the basis scale on data traced through the converged surface, then
-            # search the start height again with it (from the height just found); also when the default
-            # scale did not converge (too coarse for the surface: the bias step on a surface hundreds of
-            # µrad off keeps the start-height loop from settling)
-            ij, px, targets = self._prepare(markers)
-            px = self.bias(surfaces[-1], ij, px) if self.bias is not None else px
-            xy, hx, hy, _ = self._trace(surfaces[-1], px, targets)
-            best, self.sigma_scores, fits = select_sigma(self.sub, xy[:, 0], xy[:, 1], hx, hy, cfg)
-            current = float(self.basis.sigma[0])
-            too_coarse = current in fits and fits[current] > cfg.fit_ratio * min(fits.values())
-            if best != current and (converged or too_coarse):
-                first = (self.basis, len(history), converged, self._last)
-                self._use_basis(cfg.make_basis(self.sub, best))
-                h_found = history[-1].start_height_um * 1e-3
-                runs = None if converged else cfg.outer_max  # the scale that could not fit leaves no budget
-                try:
-                    converged = self._outer(markers, h_found, history, [], runs)
-                except (SubstrateNotVisibleError, TooFewMarkersError):
-                    # the finer scale's extrapolation into the frame regions threw the start height so far that
-                    # the rays missed the substrate: keep the first scale's result
-                    if not first[2]:
-                        raise
-                    self._use_basis(first[0])
-                    del history[first[1] :]
-                    converged, self._last = first[2], first[3]
-        rejected = np.zeros((0, 2), dtype=np.int64)
-        if converged and cfg.outlier_factor > 0 and self._last is not None:
-            drop = self._index_outliers(markers, self._last)
-            if drop.any():
-                rejected = markers.ij[drop]
-                markers = MarkerObservations(markers.ij[~drop], markers.px[~drop])
-                h_found = history[-1].start_height_um * 1e-3
-                converged = self._outer(markers, h_found, history, [], cfg.outer_max)
-        seconds = time.perf_counter() - t0
-        if self._last is None:
-            raise ReconstructionError(f"the start-height loop ran no inner loop (outer_max = {cfg.outer_max})")
-        result = ReconstructionResult(self._last, self.sub, history, converged, seconds, cfg, rejected=rejected)
-        last = history[-1]
-        other = (
-            abs(last.delta_h_max_um)
-            if cfg.criterion == "level"
-            else abs(0.5 * (last.max_region1_um + last.max_region2_um) - self.sub.frame_z * 1e3)
-        )
-        if converged and other <= cfg.consistency_um:
-            if cfg.posterior != "off":
-                self._posterior(markers, result)
-            return result
-        if converged and cfg.posterior != "off" and cfg.criterion == "level":
-            # the fitted surface's extrapolated Delta h_max can be microns off on surfaces with medium-scale
-            # content; the posterior's Delta h_max (frame maxima from the data, with its spread) decides instead
-            self._post_delta = None
-            self._posterior(markers, result)
-            if self._post_delta is not None:
-                d_mean, d_std = self._post_delta
-                other = abs(d_mean) * 1e3
-                if other <= cfg.consistency_um + 3.0 * d_std * 1e3:
-                    return result
-        path = Path(history_path) if history_path is not None else None
-        if path is not None:
-            from scopetwin.scenes.io import write_json_atomic
 
-            write_json_atomic(path, {"converged": converged, "config": asdict(cfg), **result.summary()})
-        where = f"; partial history saved to {path}" if path is not None else ""
-        if not converged:
-            raise NotConvergedError(
-                f"the start-height loop did not converge in {len(history)} runs (last criterion "
-                f"{last.criterion_um:+.4g} µm, tolerance {cfg.outer_tol_um} µm){where}",
-                result.history_dicts(),
-                path,
-                self._last,
-            )
-        what = "Delta h_max" if cfg.criterion == "level" else "the mean frame maximum's distance from the frame"
-        raise InconsistentError(
-            f"the reconstructed surface cannot lie on the holding frame: {what} is {other:.3g} µm "
-            f"(> {cfg.consistency_um} µm) — are the markers indexed correctly and is the setup right?{where}"
-        )
-
-    def _start_height_sensitivity(
-        self, surf: SBFSurface, markers: MarkerObservations, xx: Array, yy: Array, dh_mm: float = 2e-4
-    ) -> Array:
-        """d(height contrast)/d(start height) at (xx, yy): how a start-height error bends the shape (dimensionless).
-
-        The gradients are traced through a surface at the start height, so a wrong start height tilts and bends
-        them (seed §1.4: the start height is found by the frame criterion, not by the data); one more inner loop
-        at H + ``dh_mm`` from the converged surface gives the derivative by a finite difference.
-        """
-        h = self._roi_mean(surf.coef) + surf.offset
-        try:
-            other = self.inner_loop(h + dh_mm, markers, surf)[0]
-        except ScopetwinError:
-            return np.zeros_like(np.asarray(xx, dtype=np.float64))
-        h2 = self._roi_mean(other.coef) + other.offset
-        return (_contrast(other, h2, xx, yy) - _contrast(surf, h, xx, yy)) / (h2 - h)
-
-    def _posterior(self, markers: MarkerObservations, result: ReconstructionResult) -> None:
-        """Uncertainty of the converged surface and (``posterior = "correct"``) the posterior start height.
-
-        The gradient data are traced through the converged surface; the prior is chosen by evidence
-        (:func:`scopetwin.recon.posterior.fit_hyper`) and the posterior of the frame criterion's shape functional D
-        (frame
-        maxima relative to the ROI mean) compared with the fitted surface's D. The start height solves
-        H + D(H) = z_frame; with the posterior D in place of the extrapolated one this is solved by Newton steps
-        H <- H + (D_fit - D_post) / slope (slope = dF/dH of the outer loop), each followed by the inner loop at the
-        new H, so the traced gradients — which depend on H (a wrong H tilts them) — follow the start height.
-        """
-        from scopetwin.recon.posterior import GradientGP, PosteriorError, fit_hyper, frame_posterior
-
-        cfg = self.config
-        sub = self.sub
-        rx, ry = sub.roi_grid(cfg.grid_step)
-        axes = (np.unique(rx), np.unique(ry))
-        same = [s for s in result.history if s.sigma_mm == result.history[-1].sigma_mm]
-        slope = 1.0
-        if len(same) >= 2 and same[-1].start_height_um != same[-2].start_height_um:
-            slope = (same[-1].criterion_um - same[-2].criterion_um) / (
-                same[-1].start_height_um - same[-2].start_height_um
-            )
-        if not 0.2 < abs(slope) < 5.0:
-            slope = 1.0
-        correcting = cfg.posterior == "correct" and cfg.criterion == "level"
-        surf = result.surface
-        h0 = self._roi_mean(surf.coef) + surf.offset
-        ij, px_meas, targets = self._prepare(markers)
-        hyper = None
-        tried: list[tuple[float, float, SBFSurface]] = []  # (H, F_post(H), surface) of each step
-        for it in range(cfg.posterior_iterations if correcting else 1):
-            px = self.bias(surf, ij, px_meas) if self.bias is not None else px_meas
-            xy, hx, hy, _ = self._trace(surf, px, targets)
-            try:
-                hyper = hyper or fit_hyper(xy, hx, hy, max_points=cfg.evidence_points)
-                gp = GradientGP(*_posterior_subset(xy, hx, hy, cfg.posterior_points), hyper)
-                post = frame_posterior(gp, sub.x_range, sub.y_range, sub.roi_length, axes)
-            except PosteriorError:
-                return
-            # the fitted surface's frame maxima on the posterior's own frame points (same discretisation)
-            m1 = float(np.max(surf.height(post.frame1[:, 0], post.frame1[:, 1])))
-            m2 = float(np.max(surf.height(post.frame2[:, 0], post.frame2[:, 1])))
-            h = self._roi_mean(surf.coef) + surf.offset
-            self._post_delta = (post.delta_mean, post.delta_std)
-            if cfg.criterion == "level":
-                err, spread = (0.5 * (m1 + m2) - h) - post.d_mean, post.d_std
-            else:
-                err, spread = (m1 - m2) - post.delta_mean, post.delta_std
-            if not correcting:
-                break
-            # F_post(H) = H + D_post(H) - z_frame; the fitted surface satisfies H + D_fit(H) ~ z_frame
-            f_post = h + post.d_mean - sub.frame_z
-            tried.append((h, f_post, surf))
-            if len(tried) >= 2 and tried[-1][0] != tried[-2][0]:
-                (ha, fa, _), (hb, fb, _) = tried[-2], tried[-1]
-                s_post = (fb - fa) / (hb - ha)
-                s_post = s_post if 0.2 < abs(s_post) < 5.0 else slope
-            else:
-                s_post = slope
-            step = -f_post / s_post
-            if abs(step) * 1e3 <= cfg.outer_tol_um or it == cfg.posterior_iterations - 1:
-                surf = surf.shifted(surf.offset + step)  # the last, small step without another inner loop
-                break
-            surf = self.inner_loop(h + step, markers, surf)[0]
-        if correcting:
-            u_abs = spread / abs(slope)
-        else:
-            u_abs = float(np.hypot(err, spread)) / abs(slope)
-        h_final = self._roi_mean(surf.coef) + surf.offset
-        nxx, nyy = np.meshgrid(post.node_x, post.node_y)
-        fit_c = surf.height(nxx, nyy) - h_final
-        dev2 = (fit_c - post.contrast_mean) ** 2
-        # the traced gradients depend on the start height: an error dH of it bends the shape by sens * dH
-        sens = self._start_height_sensitivity(surf, markers, nxx, nyy)
-        shape_var = post.contrast_std**2 + dev2 + (sens * u_abs) ** 2
-        u_shape = float(np.sqrt(np.mean(shape_var[post.roi])))
-        node = np.sqrt((u_abs * (1.0 + sens)) ** 2 + post.contrast_std**2 + dev2)
-        std_map = HeightMap(node, post.node_x[0], post.node_x[-1], post.node_y[0], post.node_y[-1])
-        result.surface = surf
-        result.uncertainty = Uncertainty(
-            u_abs * 1e3, u_shape * 1e3, std_map, (h_final - h0) * 1e3, slope, hyper.as_dict() if hyper else {}
-        )
-
-
-def _contrast(surf: SBFSurface, h: float, xx: Array, yy: Array) -> Array:
-    """Heights relative to the ROI mean ``h``, mm."""
-    return np.asarray(surf.height(xx, yy)) - h
-
-
-def _posterior_subset(xy: Array, hx: Array, hy: Array, budget: int) -> tuple[Array, Array, Array]:
-    """At most ``budget`` observations for the posterior: the outer half of the budget nearest the frame regions
-    (largest |y|) in full, an even subsample of the interior for the rest; the extrapolation rests on the former."""
-    if len(xy) <= budget:
-        return xy, hx, hy
-    order = np.argsort(-np.abs(xy[:, 1]))
-    outer = order[: budget // 2]
-    inner = order[budget // 2 :]
-    inner = inner[np.linspace(0, len(inner) - 1, budget - len(outer)).round().astype(int)]
-    keep = np.sort(np.concatenate([outer, inner]))
-    return xy[keep], hx[keep], hy[keep]
-
-
-def _predict_surface(surfaces: list[SBFSurface], values: list[tuple[float, float]], h: float) -> SBFSurface | None:
+def predict_surface(surfaces: list[SBFSurface], values: list[tuple[float, float]], h: float) -> SBFSurface | None:
     """Warm start for start height ``h``: the last surface, or the linear extrapolation of the last two in H.
 
     The self-consistent surface depends almost linearly on the start height, so extrapolating the
@@ -1063,67 +554,9 @@ def _predict_surface(surfaces: list[SBFSurface], values: list[tuple[float, float
     return SBFSurface(b.basis, b.coef + w * (b.coef - a.coef), b.offset + w * (b.offset - a.offset))
 
 
-def _secant_step(values: list[tuple[float, float]], fallback: float) -> float:
-    """Next start height of the root search on the criterion F(H).
-
-    Secant through the last two evaluations; once a sign change is known, the step is kept
-    inside the tightest bracket (bisection when the secant leaves it). ``fallback`` (the
-    thesis step of eq. 1.4) is used with a single evaluation.
-    """
-    if len(values) < 2:
-        return fallback
-    (ha, fa), (hb, fb) = values[-2], values[-1]
-    h_new = hb - fb * (hb - ha) / (fb - fa) if fb != fa else fallback
-    pos = [h for h, f in values if f > 0]
-    neg = [h for h, f in values if f < 0]
-    if pos and neg:
-        # tightest bracket around the root from all evaluations so far
-        hp = min(pos, key=lambda h: abs(h - hb))
-        hn = min(neg, key=lambda h: abs(h - hb))
-        lo, hi = min(hp, hn), max(hp, hn)
-        if not lo < h_new < hi:
-            h_new = 0.5 * (lo + hi)
-    return h_new
-
-
-def reconstruct(
-    setup: Setup,
-    markers: MarkerObservations | ArrayLike,
-    px: ArrayLike | None = None,
-    config: ReconstructionConfig | None = None,
-    bias: BiasStep | None = None,
-    history_path: str | Path | None = None,
-    frame_z: float = 0.0,
-) -> ReconstructionResult:
-    """Reconstruct the substrate's heights from indexed markers (seed §1.4, §1.7, §1.8).
-
-    Parameters
-    ----------
-    setup : Setup
-        A (calibrated) deflectometry setup.
-    markers : MarkerObservations or array_like (n, 2)
-        Observations, or the marker indices (i, j) with ``px`` their image positions.
-    px : array_like, (n, 2), optional
-        Continuous pixel coordinates (col, row) when ``markers`` are indices.
-    config : ReconstructionConfig, optional
-        Default: the improved reconstruction (Gaussian basis with ridge, ``level`` criterion, secant search).
-    bias : BiasStep, optional
-        Centroid-bias correction inside the inner loop.
-    history_path : path, optional
-        Where a partial history is written if the outer loop does not converge.
-    frame_z : float
-        z of the holding frame in the substrate's base frame, mm.
-    """
-    if isinstance(markers, MarkerObservations):
-        obs = markers
-    elif px is None:
-        raise ReconstructionError("marker indices need their image positions px")
-    else:
-        obs = MarkerObservations(np.asarray(markers), np.asarray(px, dtype=np.float64))
-    return Reconstructor.from_setup(setup, config, bias, frame_z).run(obs, history_path)
-
-
-def centroid_bias_step(setup: Setup, recompute_um: float = 0.2, grid: tuple[int, int] = (48, 112)) -> BiasStep:
+def centroid_bias_step(
+    setup: Setup, recompute_um: float = DEFAULT_POLICY.bias_recompute_um, grid: tuple[int, int] = (48, 112)
+) -> BiasStep:
     """A bias step for the inner loop built on :mod:`scopetwin.recon.bias` (markers issue), or an error if absent.
 
     The bias of each marker's centroid (the spot is distorted by the curved mirror) is predicted
@@ -1152,47 +585,3 @@ def centroid_bias_step(setup: Setup, recompute_um: float = 0.2, grid: tuple[int,
         return px + cache["correction"]
 
     return step
-
-
-def reconstruct_image(
-    image: NDArray[Any],
-    setup: Setup,
-    config: ReconstructionConfig | None = None,
-    bias: BiasStep | None = None,
-    history_path: str | Path | None = None,
-) -> tuple[Any, ReconstructionResult, Reconstructor]:
-    """Markers of a deflectometry image (:func:`scopetwin.recon.markers.find_markers_for`) and the surface they give
-    (§1.4).
-
-    Where the spots are distorted so much that two or more are about as large as the reference marker should be
-    (:class:`scopetwin.recon.markers.ReferenceTieError`; 3 mm / 60 µm surfaces), each candidate is taken as the
-    reference in
-    turn: with a wrong one every index is a few pitches off, the traced slopes are milliradians off and the
-    start-height loop cannot lay such a surface on the holding frame (its rays miss the substrate or one of its
-    ends, or it does not converge). The one candidate whose markers reconstruct is kept; if none or several do,
-    the tie is reported. Measured on 3 mm / 60 µm surface seed 7 (four candidates): the true one reconstructs
-    (0.14 µm shape), the three others fail in 4-6 s each.
-
-    Returns (markers, result, reconstructor).
-    """
-    from scopetwin.recon.markers import ReferenceTieError, find_markers_for
-
-    def attempt(reference: int | None, path: str | Path | None) -> tuple[Any, ReconstructionResult, Reconstructor]:
-        found = find_markers_for(image, setup, reference=reference)
-        rec = Reconstructor.from_setup(setup, config, bias)
-        return found, rec.run(MarkerObservations(found.ij, found.centroids), history_path=path), rec
-
-    try:
-        return attempt(None, history_path)
-    except ReferenceTieError as tie:
-        good = []
-        for cand in tie.candidates:  # a candidate that fails leaves no partial history behind
-            with contextlib.suppress(ScopetwinError):
-                good.append(attempt(int(cand), None))
-        if len(good) == 1:
-            return good[0]
-        raise ReferenceTieError(
-            tie.candidates,
-            f"{tie}; taken as the reference in turn, {len(good)} of the {len(tie.candidates)} candidates "
-            "reconstruct a surface on the holding frame",
-        ) from None

@@ -22,6 +22,7 @@ from scopetwin.recon.markers.centroid_search import Array, MarkerError, Spots, c
 from scopetwin.recon.markers.filtering import Region, filter_spots
 from scopetwin.recon.markers.grid_identification import fourier_axes, nearest_spacing, orient_axes, reference_axes
 from scopetwin.recon.markers.indexing import index_grid, index_lattice
+from scopetwin.recon.policy import DEFAULT_POLICY
 from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
 
@@ -84,14 +85,6 @@ class Markers:
         }
 
 
-#: The topological indexing (:func:`index_lattice`) is tried when the flood numbers fewer than this fraction of the
-#: kept spots. Measured on 3 mm / 60 µm surfaces (seeds 1-8, Mitsuba 16 spp): the flood reached 12 and 308 of ~470
-#: on seeds 2 and 1, the lattice 454 and 458 (none nearer another marker's true image than its own); on the other
-#: six, and on the seed's surfaces (5-20 mm correlation), the flood reaches more than this and is kept, so their
-#: results are unchanged.
-LATTICE_FALLBACK = 0.8
-
-
 def find_markers(
     image: NDArray,
     layout: str = "deflectometry",
@@ -106,6 +99,7 @@ def find_markers(
     region_margin: float = 0.5,
     reference_hint: Array | None = None,
     reference: int | None = None,
+    lattice_below: float = DEFAULT_POLICY.lattice_below,
 ) -> Markers:
     """Find, filter and index the markers of an image (seed §1.5 and §2.6).
 
@@ -139,6 +133,10 @@ def find_markers(
         Take this spot of the centroid search as the reference marker (one of the ``candidates`` of a
         :class:`scopetwin.recon.markers.filtering.ReferenceTieError`, which the search raises where two spots are about
         equally large).
+    lattice_below : float
+        Where the flood indexing numbers fewer than this fraction of the kept spots, the grid's topology
+        (:func:`index_lattice`) numbers them too and the indexing that reached more is kept
+        (:attr:`scopetwin.recon.policy.ReconstructionPolicy.lattice_below`).
 
     Raises
     ------
@@ -172,7 +170,7 @@ def find_markers(
     ij = index_grid(pts, ref, axes, blockers=spots.centroids)
     found = ij[:, 0] != np.iinfo(np.int32).min
     indexing = "flood"
-    if found.sum() < LATTICE_FALLBACK * len(keep):
+    if found.sum() < lattice_below * len(keep):
         # the flood stopped early (a strongly bent substrate): number the grid by its topology instead, over every
         # spot of the image (a rejected spot still holds its place in the grid), and keep whichever reached more
         ij_all = index_lattice(spots.centroids, int(filt.reference), axes)

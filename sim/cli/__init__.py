@@ -15,13 +15,21 @@ One module per command group, each with a ``register(subparsers)`` that adds its
 :mod:`scopetwin.sim.cli.study`     ``study NAME``
 =======================  =====================================================================================
 
-:mod:`scopetwin.sim.cli.outputs` checks and writes the outputs every command declares (below).
+:mod:`scopetwin.sim.cli.outputs` checks and writes the outputs every command declares (below);
+:mod:`scopetwin.sim.cli.logs` writes the log on stderr.
 
 Every command function takes the parsed arguments and returns its result as a JSON-ready dict; :func:`main`
 writes it to ``--json PATH`` when given. A command whose result decides the exit status (``dataset verify``:
 1 when the dataset is incomplete) sets ``exit_code`` (a function of the result) beside ``func`` in its parser's
 defaults. Bad input gives one line ``scopetwin: error: ...`` on stderr and exit code 2, and leaves no partial
 output behind.
+
+Every parser of the tree (commands and their sub-commands) shares the conventions of issue 22
+(:func:`scopetwin.sim.cli.options.conventions`): ``-v``/``--verbose`` (repeatable) and ``-q``/``--quiet``, before or
+after the command words; a help text ending in ``examples:``. :func:`main` sets the ``scopetwin`` logger's level from
+them for the command (:mod:`scopetwin.sim.cli.logs`: warnings by default, ``-v`` notes, ``-vv`` debugging, ``-q``
+errors only, and no progress bars); the library logs through it and never prints, the commands print their results
+on stdout.
 
 Around every command :func:`main` applies the two policies of issue 15:
 
@@ -37,15 +45,31 @@ Around every command :func:`main` applies the two policies of issue 15:
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
+import time
 from collections.abc import Sequence
 
+from scopetwin._version import __version__
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.sim import signals
 from scopetwin.sim.cli import calibrate, dataset, emulate, markers, optics, reconstruct, render, rig, run, study
+from scopetwin.sim.cli.logs import log_to_stderr
+from scopetwin.sim.cli.options import VERBOSE, HelpFormatter, common_options, verbosity
 from scopetwin.sim.cli.outputs import OutputTransaction, describe_os_error
 
 EXIT_BAD_INPUT = 2
+
+log = logging.getLogger(__name__)
+
+#: Attributes naming the words of a nested command (``dataset generate``, ``optics grin``, ``rig RIG info``).
+_COMMAND_WORDS = ("command", "dataset_command", "optics_command", "rig_action")
+
+EXAMPLES = """examples:
+  scopetwin presets
+  scopetwin render thesis-1.10-deflectometry --out r1 --spp 16
+  scopetwin -v reconstruct r1/image.exr --setup thesis-1.10-deflectometry --out r1/heights.exr
+  scopetwin COMMAND --help"""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -53,8 +77,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="scopetwin",
         description="Physically based testbed: deflectometry, one-shot calibration, the four-channel and GRIN "
-        "microscopes, and the instruments that drive them.",
+        "microscopes, and the instruments that drive them. -v / -q (before or after the command) set how much "
+        "is logged on stderr; results go to stdout.",
+        parents=[common_options(top=True)],
+        formatter_class=HelpFormatter,
+        epilog=EXAMPLES,
     )
+    parser.add_argument("--version", action="version", version=f"scopetwin {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     render.register(sub)
     run.register(sub)
@@ -74,6 +103,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     write; 128 + n after signal n: 130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    level = verbosity(args)
+    if level and args.quiet:
+        parser.error("-v/--verbose and -q/--quiet exclude each other")
+    with log_to_stderr(level, args.quiet):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
+    """The command of ``args`` with the policies of :func:`main` around it (logging already set up)."""
+    name = " ".join(str(w) for w in (getattr(args, k, None) for k in _COMMAND_WORDS) if w)
+    shown = {k: v for k, v in sorted(vars(args).items()) if not (callable(v) or k.startswith(VERBOSE))}
+    log.debug("%s: arguments %s", name, shown)
+    t0 = time.perf_counter()
     try:
         with signals.terminate_on_signals():
             with OutputTransaction(args) as tx:
@@ -89,4 +131,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"scopetwin: {signals.describe(exc)}", file=sys.stderr)
         return signals.exit_status(exc)
     exit_code = getattr(args, "exit_code", None)
-    return int(exit_code(result)) if exit_code is not None else 0
+    status = int(exit_code(result)) if exit_code is not None else 0
+    log.info("%s finished in %.2f s (exit status %d)", name, time.perf_counter() - t0, status)
+    return status

@@ -15,8 +15,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from scopetwin.recon.reconstruct import ReconstructionConfig
+from scopetwin.recon.config import ReconstructionConfig
+from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
 from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.sim.cli.options import conventions
 
 
 def _config(args: argparse.Namespace) -> ReconstructionConfig:
@@ -33,9 +35,14 @@ def _config(args: argparse.Namespace) -> ReconstructionConfig:
     return ReconstructionConfig(**changes)
 
 
+def _policy(args: argparse.Namespace) -> ReconstructionPolicy:
+    """The strategy's policy: the default, without the bias step under ``--no-bias-correction``."""
+    return DEFAULT_POLICY.with_changes(bias_step=not args.no_bias_correction)
+
+
 def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
     """Handler of ``scopetwin reconstruct``."""
-    from scopetwin.recon.reconstruct import MarkerObservations, centroid_bias_step, reconstruct_image
+    from scopetwin.recon.strategy import reconstruct_image
     from scopetwin.scenes.io import read_image, write_heightmap
     from scopetwin.scenes.setup import load_setup
 
@@ -54,11 +61,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         )
     if args.method == "inverse":
         return _cmd_inverse(args, setup, image, out, t0)
-    bias = None if args.no_bias_correction else centroid_bias_step(setup)
     history_path = out.with_name(out.name + ".history.json")
-    # NotConvergedError: history saved, no map written; a tied reference marker: each candidate tried
-    found, result, _ = reconstruct_image(image, setup, _config(args), bias, history_path)
-    obs = MarkerObservations(found.ij, found.centroids)
+    # every fallback is the strategy's (recon.strategy); NotConvergedError: history saved, no map written
+    found, result, _ = reconstruct_image(image, setup, _config(args), _policy(args), history_path)
     heights = result.heightmap()
     write_heightmap(
         out,
@@ -71,7 +76,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
     u = result.uncertainty
     u_text = f", u(absolute) = {u.absolute_um:.3f} µm, u(shape) = {u.shape_um:.3f} µm" if u is not None else ""
     print(
-        f"reconstructed {len(obs.ij)} markers: {result.outer_iterations} start heights, "
+        f"reconstructed {len(found.ij)} markers: {result.outer_iterations} start heights, "
         f"{result.inner_iterations} inner iterations, Delta h_max = {result.delta_h_max_um:+.4f} µm{u_text}, "
         f"{seconds:.2f} s -> {out}"
     )
@@ -82,7 +87,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         "inner_iterations": result.inner_iterations,
         "delta_h_max_um": result.delta_h_max_um,
         "seconds": seconds,
-        "markers": len(obs.ij),
+        "markers": len(found.ij),
+        "strategy": list(result.strategy),
         "start_height_um": result.history[-1].start_height_um,
         **extra,
         "history": result.history_dicts(),
@@ -92,21 +98,21 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
 def _cmd_inverse(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0: float) -> dict[str, Any]:
     """``--method inverse`` (:mod:`scopetwin.recon.inverse`): start from the centroid method's surface where it
     succeeds."""
-    from scopetwin.recon.inverse import InverseConfig, inverse_start, pose_sigma_for, reconstruct_inverse
+    from scopetwin.recon.inverse import InverseConfig, pose_sigma_for
+    from scopetwin.recon.strategy import reconstruct
     from scopetwin.scenes.io import write_heightmap
 
-    # the centroid method's surface where it reconstructs, else (in order) without its bias step, an unconverged
-    # start-height loop's last surface, a coarse fit of the markers, a plane
-    begin = inverse_start(setup, image, _config(args), bias=not args.no_bias_correction)
-    start, u_abs = begin.surface, begin.absolute_std_um
-    start_note = begin.kind + (f" ({begin.note})" if begin.note else "")
+    # the inverse fit from the best start the strategy can give (recon.strategy.inverse_start): the centroid
+    # method's surface where it reconstructs, else without its bias step, an unconverged start-height loop's last
+    # surface, a coarse fit of the markers, a plane — holding the start's height unless it is a plane
     cfg = InverseConfig(
         refine_setup=bool(args.refine_setup),
         pose_sigma=pose_sigma_for(setup),  # the calibration's uncertainties where the setup carries them
         criterion=args.criterion or "level",
-        absolute="start" if begin.holds_height else "frame",  # from a plane: search the height
     )
-    result = reconstruct_inverse(setup, image, start, cfg, absolute_std_um=u_abs)
+    done = reconstruct(image, setup, "inverse", config=_config(args), inverse_config=cfg, policy=_policy(args))
+    result, start_note = done.result, done.start or ""
+    u_abs = done.uncertainty.absolute_um
     write_heightmap(
         out,
         result.heightmap(),
@@ -128,6 +134,7 @@ def _cmd_inverse(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0
         "seconds": seconds,
         "start": start_note,
         "uncertainty": {"absolute_um": u_abs, "shape_um": result.shape_std_um},
+        "strategy": list(done.strategy),
         **(
             {
                 "camera": result.camera.as_dict(),
@@ -148,7 +155,15 @@ _POSE_PRIOR_KEYS = ("camera_shift_mm", "camera_rotation_rad", "pattern_shift_mm"
 def register(subparsers: Any) -> None:
     """Add ``reconstruct`` to the ``scopetwin`` sub-command parsers."""
     h = "deflectometric height reconstruction from one image and a (calibrated) setup (seed §1.4)"
-    p = subparsers.add_parser("reconstruct", help=h, description=h)
+    p = subparsers.add_parser(
+        "reconstruct",
+        help=h,
+        description=h,
+        **conventions(
+            "scopetwin render thesis-1.10-deflectometry --out r1 --spp 16",
+            "scopetwin reconstruct r1/image.exr --setup thesis-1.10-deflectometry --out r1/heights.exr --json r1.json",
+        ),
+    )
     p.set_defaults(func=cmd_reconstruct, outputs=[("out", "file"), ("json", "file")])
     p.add_argument("image", help="camera image of the reflected pattern (OpenEXR, channel Y)")
     p.add_argument("--setup", required=True, help="preset name or TOML (e.g. the one calibrate-setup wrote)")

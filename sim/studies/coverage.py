@@ -55,7 +55,9 @@ def coverage_task(
     """Reconstruct one surface from exact marker images plus centroid noise; errors and uncertainties, µm."""
     import time
 
-    from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, single_thread_blas
+    from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, single_thread_blas
+    from scopetwin.recon.strategy import solve
+    from scopetwin.recon.substrate import Substrate2D
     from scopetwin.scenes.errors import ScopetwinError
     from scopetwin.scenes.setup import load_setup
     from scopetwin.sim.datasets.config import merge
@@ -77,7 +79,7 @@ def coverage_task(
         px = truth.center_px[vis] + noise_px * np.random.default_rng([seed, 7]).standard_normal((int(vis.sum()), 2))
         t0 = time.perf_counter()
         with single_thread_blas():
-            res = Reconstructor.from_setup(setup).run(MarkerObservations(truth.ij[vis], px))
+            res = solve(Reconstructor.from_setup(setup), MarkerObservations(truth.ij[vis], px))
         errs = roi_errors(res.surface.height, heights, Substrate2D.from_setup(setup))
     except ScopetwinError as exc:
         return {**row, "error": f"{type(exc).__name__}: {exc}"}

@@ -5,7 +5,7 @@ it
 is there), with and without the EMVA 1288 sensor model, the §1.10 measurement is rendered with Mitsuba and
 reconstructed by the centroid method (:mod:`scopetwin.recon.reconstruct`) and by inverse rendering
 (:mod:`scopetwin.recon.inverse`,
-started from the centroid result, or where that fails from :func:`scopetwin.recon.inverse.inverse_start`'s next choice
+started from the centroid result, or where that fails from :func:`scopetwin.recon.strategy.inverse_start`'s next choice
 — the
 centroid method without its bias step, a coarse fit of the markers, a plane); each Gauss-Newton step's
 surface is compared with the truth (shape and absolute error against the step's time). Beside them: the
@@ -62,7 +62,7 @@ def family_prior(setup: Any, spacing: float, draws: int = 400, seed0: int = 10_0
     frame and scaled to the range), for :meth:`scopetwin.recon.inverse.InverseReconstructor.shape_bayes_bound_um`.
     """
     from scopetwin.recon.inverse import SplineSurface
-    from scopetwin.recon.reconstruct import Substrate2D
+    from scopetwin.recon.substrate import Substrate2D
     from scopetwin.sim.surfaces import make_surface
 
     sub = Substrate2D.from_setup(setup)
@@ -107,8 +107,9 @@ def inverse_task(
 
     ``bounds=False`` leaves out the Cramér-Rao and Bayesian bounds (the family prior's hundreds of draws).
     """
-    from scopetwin.recon.inverse import InverseConfig, InverseReconstructor, SplineSurface, inverse_start
-    from scopetwin.recon.reconstruct import Substrate2D
+    from scopetwin.recon.inverse import InverseConfig, InverseReconstructor, SplineSurface
+    from scopetwin.recon.strategy import inverse_start
+    from scopetwin.recon.substrate import Substrate2D
     from scopetwin.scenes.errors import ScopetwinError
     from scopetwin.scenes.setup import load_setup
     from scopetwin.sim.measurement import render_measurement
@@ -133,7 +134,7 @@ def inverse_task(
     sub = Substrate2D.from_setup(setup)
     row: dict[str, Any] = {"kind": kind, "correlation_mm": corr, "range_um": range_um, "noise": noise, "seed": seed}
     t0 = time.perf_counter()
-    begin = inverse_start(setup, image)  # the centroid method, or what is left where it fails
+    begin = inverse_start(image, setup)  # the centroid method, or what is left where it fails
     row["start"] = begin.kind
     if begin.markers is not None:
         row |= {"markers": len(begin.markers), "indexing": begin.markers.indexing}
@@ -150,7 +151,7 @@ def inverse_task(
         e = roi_errors(begin.surface.height, truth, sub)
         row |= {"start_shape_um": e["roi_shape_um"], "start_abs_um": e["roi_absolute_um"]}
     row["centroid_s"] = time.perf_counter() - t0
-    cfg = {"absolute": "start" if begin.holds_height else "frame"} | (config or {})
+    cfg = {"absolute": begin.absolute} | (config or {})
     rec = InverseReconstructor(setup, image, InverseConfig(**cfg))
     steps: list[dict[str, float]] = []
     fit_level = rec.fit_level

@@ -36,18 +36,15 @@ def surface_task(folder: str, config: str = "default") -> dict[str, Any]:
 
 def broadband_task(folder: str) -> dict[str, Any]:
     """Errors and reported uncertainties of one PSD-surface sample (ideal setup, bias step on), µm."""
-    from scopetwin.recon.markers import find_markers_for
-    from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
+    from scopetwin.recon.strategy import reconstruct_image
+    from scopetwin.recon.substrate import Substrate2D
     from scopetwin.scenes.io import read_heightmap
     from scopetwin.sim.pipeline import roi_errors
 
     quiet()
     setup, image, truth = read_sample(folder)
     heights = read_heightmap(Path(folder) / "surface.exr")
-    found = find_markers_for(image, setup)
-    res = Reconstructor.from_setup(setup, bias=centroid_bias_step(setup)).run(
-        MarkerObservations(found.ij, found.centroids)
-    )
+    res = reconstruct_image(image, setup).result
     u = res.uncertainty
     return {
         "folder": folder,

@@ -61,28 +61,20 @@ def reconstruct(
     recon_setup: Setup | None = None,
     config: str = "default",
 ) -> dict[str, Any]:
-    """Find markers with the nominal setup, reconstruct with ``recon_setup`` (default: the same), compare."""
-    from scopetwin.recon.markers import find_markers_for
-    from scopetwin.recon.reconstruct import (
-        MarkerObservations,
-        ReconstructionConfig,
-        Reconstructor,
-        Substrate2D,
-        centroid_bias_step,
-    )
+    """Reconstruct with ``recon_setup`` (default: the same) by the one strategy (markers found with it), compare."""
+    from scopetwin.recon.config import ReconstructionConfig
+    from scopetwin.recon.strategy import reconstruct_image
+    from scopetwin.recon.substrate import Substrate2D
     from scopetwin.sim.pipeline import roi_errors
 
     rs = recon_setup or setup
-    found = find_markers_for(image, setup)
     cfg = None
     if config == "thesis":
         cfg = ReconstructionConfig.thesis(literal_axes=False)
     elif config.startswith("spacing="):
         cfg = ReconstructionConfig(spacing=float(config.split("=")[1]))
     t0 = time.perf_counter()
-    res = Reconstructor.from_setup(rs, cfg, bias=centroid_bias_step(rs)).run(
-        MarkerObservations(found.ij, found.centroids)
-    )
+    found, res, _ = reconstruct_image(image, rs, cfg)
     errs = roi_errors(res.surface.height, heights, Substrate2D.from_setup(setup))
     return {
         **errs,

@@ -108,7 +108,11 @@ def test_inverse_rendering_imports_the_renderer_lazily():
     ]
     assert not others, f"only recon/inverse.py may import the renderer, also: {others}"
     out = subprocess.run(
-        [sys.executable, "-c", "import sys, scopetwin.recon.inverse; print('mitsuba' in sys.modules or 'drjit' in sys.modules)"],
+        [
+            sys.executable,
+            "-c",
+            "import sys, scopetwin.recon.inverse; print('mitsuba' in sys.modules or 'drjit' in sys.modules)",
+        ],
         capture_output=True,
         text=True,
         cwd=ROOT,

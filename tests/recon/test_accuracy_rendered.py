@@ -13,7 +13,9 @@ import pytest
 from psd_cases import PSD_CASES, psd_surface
 
 from scopetwin.recon.markers import find_markers_for
-from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
+from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, centroid_bias_step
+from scopetwin.recon.strategy import solve
+from scopetwin.recon.substrate import Substrate2D
 from scopetwin.scenes.setup import load_setup
 from scopetwin.sim.measurement import apply_sensor
 from scopetwin.sim.pipeline import roi_errors
@@ -35,8 +37,9 @@ def test_rendered_psd_surfaces_accuracy_and_coverage(mono_variant: str) -> None:
         for noisy in (False, True):
             image = apply_sensor(SETUP, clean, seed) if noisy else clean
             found = find_markers_for(image, SETUP)
-            res = Reconstructor.from_setup(SETUP, None, centroid_bias_step(SETUP)).run(
-                MarkerObservations(found.ij, found.centroids)
+            res = solve(
+                Reconstructor.from_setup(SETUP, None, centroid_bias_step(SETUP)),
+                MarkerObservations(found.ij, found.centroids),
             )
             e = roi_errors(res.surface.height, truth, sub)
             u = res.uncertainty

@@ -42,7 +42,9 @@ def test_unknown_criterion_is_rejected() -> None:
 
 
 def test_the_reconstructor_records_the_frame_criterion() -> None:
-    from scopetwin.recon.reconstruct import MarkerObservations, ReconstructionConfig, reconstruct
+    from scopetwin.recon.config import ReconstructionConfig
+    from scopetwin.recon.reconstruct import MarkerObservations
+    from scopetwin.recon.strategy import reconstruct_markers as reconstruct
     from scopetwin.scenes.setup import load_setup
     from scopetwin.sim.surfaces import make_surface
     from scopetwin.sim.truth import marker_truth

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from scopetwin.recon.inverse import InverseConfig, InverseReconstructor, SplineSurface
-from scopetwin.recon.reconstruct import Substrate2D
+from scopetwin.recon.substrate import Substrate2D
 from scopetwin.scenes.setup import load_setup
 from scopetwin.scenes.surface import HeightMap
 
@@ -340,54 +340,3 @@ def test_pose_steps_stay_in_their_box():
     assert _box_fraction(np.array([0.5, 0.0]), np.array([1.0, 0.0]), bound) == pytest.approx(0.5)
     assert _box_fraction(np.array([0.0, -1.5]), np.array([0.0, -1.0]), bound) == pytest.approx(0.5)
     assert _box_fraction(np.array([1.0, 0.0]), np.array([1.0, 1.0]), bound) == 0.0  # at the wall, pushing out
-
-
-def test_inverse_start_falls_back_in_order(monkeypatch):
-    """The centroid method with its bias step; without it; a coarse fit of the markers; a plane — each taken only
-    where the ones before failed, and what failed is said."""
-    import scopetwin.recon.markers as markers_mod
-    import scopetwin.recon.reconstruct as rr
-    from scopetwin.recon.bias import BiasError
-    from scopetwin.recon.inverse import inverse_start
-
-    setup = load_setup("thesis-1.10-deflectometry")
-    image = np.zeros((setup.camera_model.ny, setup.camera_model.nx))
-
-    class Result:
-        surface = "centroid surface"
-        uncertainty = None
-
-    calls: list[object] = []
-
-    def bias_fails(image, setup, config, bias):
-        calls.append(bias)
-        if bias is not None:
-            raise BiasError("the model's map from pixels to the pattern is singular at a marker")
-        return "markers", Result(), None
-
-    monkeypatch.setattr(rr, "reconstruct_image", bias_fails)
-    start = inverse_start(setup, image)
-    assert start.kind == "centroid-unbiased" and start.holds_height
-    assert calls[0] is not None and calls[1] is None and "singular" in start.note
-
-    def both_fail(image, setup, config, bias):
-        raise rr.TooFewMarkersError("only 0 markers within 6.0 mm of frame region 1")
-
-    class Found:
-        ij = np.zeros((0, 2), dtype=np.int64)
-        centroids = np.zeros((0, 2))
-
-    monkeypatch.setattr(rr, "reconstruct_image", both_fail)
-    monkeypatch.setattr(markers_mod, "find_markers_for", lambda image, setup: Found())
-    monkeypatch.setattr(rr.Reconstructor, "coarse_surface", lambda self, obs: "coarse surface")
-    start = inverse_start(setup, image)
-    assert (start.kind, start.surface, start.holds_height) == ("coarse", "coarse surface", True)
-    assert start.note.count("TooFewMarkersError") == 2
-
-    def no_markers(image, setup):
-        raise markers_mod.MarkerError("too few markers left after filtering (0)")
-
-    monkeypatch.setattr(markers_mod, "find_markers_for", no_markers)
-    start = inverse_start(setup, image)
-    assert start.kind == "plane" and start.surface is None and "too few markers" in start.note
-    assert not start.holds_height  # from a plane the height is searched

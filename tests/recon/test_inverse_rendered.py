@@ -9,7 +9,9 @@ import pytest
 
 from scopetwin.recon.inverse import reconstruct_inverse
 from scopetwin.recon.markers import find_markers_for
-from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
+from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, centroid_bias_step
+from scopetwin.recon.strategy import solve
+from scopetwin.recon.substrate import Substrate2D
 from scopetwin.scenes.setup import load_setup
 from scopetwin.sim.measurement import apply_sensor
 from scopetwin.sim.pipeline import roi_errors
@@ -28,8 +30,8 @@ def test_inverse_fit_of_a_noisy_render_beats_the_centroid_method_and_covers_its_
     sub = Substrate2D.from_setup(SETUP)
     image = apply_sensor(SETUP, render_setup(SETUP, truth, spp=4, seed=1, variant=mono_variant), 1)
     found = find_markers_for(image, SETUP)
-    centroid = Reconstructor.from_setup(SETUP, None, centroid_bias_step(SETUP)).run(
-        MarkerObservations(found.ij, found.centroids)
+    centroid = solve(
+        Reconstructor.from_setup(SETUP, None, centroid_bias_step(SETUP)), MarkerObservations(found.ij, found.centroids)
     )
     assert centroid.uncertainty is not None
     out = reconstruct_inverse(SETUP, image, centroid.surface, absolute_std_um=centroid.uncertainty.absolute_um)
@@ -62,8 +64,8 @@ def test_inverse_fit_of_a_surface_the_flood_could_not_index(mono_variant: str) -
     image = apply_sensor(setup, render_setup(setup, truth, spp=4, seed=1, variant=mono_variant), 1)
     found = find_markers_for(image, setup)
     assert found.indexing == "lattice" and len(found) > 400
-    centroid = Reconstructor.from_setup(setup, None, centroid_bias_step(setup)).run(
-        MarkerObservations(found.ij, found.centroids)
+    centroid = solve(
+        Reconstructor.from_setup(setup, None, centroid_bias_step(setup)), MarkerObservations(found.ij, found.centroids)
     )
     assert centroid.uncertainty is not None
     out = reconstruct_inverse(setup, image, centroid.surface, absolute_std_um=centroid.uncertainty.absolute_um)

@@ -85,7 +85,8 @@ def test_tied_reference_marker_decided_by_which_candidate_reconstructs() -> None
     """3 mm / 60 µm surface seed 7: four spots about as large as the reference marker should be near its nominal
     image. Taken as the reference in turn, only the true one gives markers whose surface lies on the frame."""
     from scopetwin.recon.markers import ReferenceTieError
-    from scopetwin.recon.reconstruct import Substrate2D, centroid_bias_step, reconstruct_image
+    from scopetwin.recon.strategy import reconstruct_image
+    from scopetwin.recon.substrate import Substrate2D
     from scopetwin.scenes.mitsuba.render import render_setup
     from scopetwin.sim.pipeline import roi_errors
 
@@ -97,7 +98,8 @@ def test_tied_reference_marker_decided_by_which_candidate_reconstructs() -> None
     with pytest.raises(ReferenceTieError) as tie:
         find_markers_for(image, setup)
     assert len(tie.value.candidates) >= 2
-    markers, result, _ = reconstruct_image(image, setup, None, centroid_bias_step(setup))
+    markers, result, _ = reconstruct_image(image, setup)  # the default policy: bias step, tie resolved
+    assert result.strategy[0].startswith("reference marker tied between"), result.strategy
     true_ref = truth.center_px[np.flatnonzero(np.all(truth.ij == 0, axis=1))[0]]
     assert np.hypot(*(markers.centroids[np.all(markers.ij == 0, axis=1)][0] - true_ref)) < 3.0
     assert _wrong_indices(markers, truth) <= 0.01 * len(markers)

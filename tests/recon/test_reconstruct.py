@@ -9,15 +9,11 @@ import numpy as np
 import pytest
 from psd_cases import PSD_CASES, psd_surface
 
-from scopetwin.recon.reconstruct import (
-    MarkerObservations,
-    NotConvergedError,
-    ReconstructionConfig,
-    Reconstructor,
-    SubstrateNotVisibleError,
-    TooFewMarkersError,
-    reconstruct,
-)
+from scopetwin.recon.config import ReconstructionConfig
+from scopetwin.recon.errors import NotConvergedError, SubstrateNotVisibleError, TooFewMarkersError
+from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor
+from scopetwin.recon.strategy import reconstruct_markers as reconstruct
+from scopetwin.recon.strategy import solve
 from scopetwin.scenes.setup import load_setup
 from scopetwin.scenes.surface import HeightMap
 from scopetwin.sim.surfaces import make_surface
@@ -133,7 +129,7 @@ def test_basis_scale_is_chosen_from_the_data_on_a_rough_surface() -> None:
     rough = make_surface(spec, SETUP.substrate)
     obs = _observations(rough)
     rec = Reconstructor.from_setup(SETUP, ReconstructionConfig(method="normal", inner_tol_um=1e-3))
-    res = rec.run(obs)
+    res = solve(rec, obs)
     err, _, _ = _roi_error(res, rough)
     assert 5.0 <= res.surface.basis.sigma[0] <= 8.0  # the surface was low-passed with sigma 6 mm
     assert min(rec.sigma_scores.values()) == rec.sigma_scores[res.surface.basis.sigma[0]]
@@ -202,7 +198,7 @@ def test_cli_reconstructs_a_rendered_image(tmp_path: Path) -> None:
 
 
 def test_misindexed_markers_are_an_error_not_a_tilted_map(tilt, tmp_path: Path) -> None:
-    from scopetwin.recon.reconstruct import InconsistentError
+    from scopetwin.recon.errors import InconsistentError
 
     h, obs = tilt
     shifted = MarkerObservations(obs.ij + np.array([0, 1]), obs.px)  # every marker one row off
@@ -217,8 +213,8 @@ def test_misindexed_markers_are_an_error_not_a_tilted_map(tilt, tmp_path: Path) 
 def test_one_secant_intersection_for_height_maps_fitted_surfaces_and_functions() -> None:
     """scopetwin.scenes.surface.secant_intersection (seed §1.6.4) serves the truth tracer and the reconstruction
     alike."""
-    from scopetwin.recon.reconstruct import Substrate2D, intersect_surface
     from scopetwin.recon.shifted_basis import SBFSurface
+    from scopetwin.recon.substrate import Substrate2D, intersect_surface
     from scopetwin.scenes.surface import Substrate, secant_intersection
 
     sub = SETUP.substrate
@@ -283,7 +279,7 @@ def test_strongly_bent_substrate_chooses_a_basis_that_fits() -> None:
     t = marker_truth(SETUP, h)
     px = t.center_px[t.visible] + 0.005 * np.random.default_rng(3).standard_normal((int(t.visible.sum()), 2))
     rec = Reconstructor.from_setup(SETUP)
-    res = rec.run(MarkerObservations(t.ij[t.visible], px))
+    res = solve(rec, MarkerObservations(t.ij[t.visible], px))
     assert rec.basis.sigma[0] <= 4.0, rec.sigma_scores
     err, _, _ = _roi_error(res, h)
     u = res.uncertainty

@@ -1,0 +1,164 @@
+"""Parameters of the nested start-height iteration: the §1.8 basis, the §1.4 tolerances and criterion.
+
+What the reconstruction does when a step fails is not configured here but in
+:class:`scopetwin.recon.policy.ReconstructionPolicy`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any, Literal
+
+from scopetwin.recon.frame_criterion import FrameCriterion
+from scopetwin.recon.shifted_basis import BasisKind, ShiftedBasis
+from scopetwin.recon.substrate import Substrate2D
+
+
+@dataclass(frozen=True)
+class ReconstructionConfig:
+    """Parameters of the reconstruction (basis of §1.8, thresholds and criterion of §1.4).
+
+    Attributes
+    ----------
+    basis : {"gauss", "imq"}
+        Basis function (§1.8).
+    counts : (int, int) or None
+        Centre grid (n_x, n_y) spanning the substrate (the seed's layout); None: a
+        ``covering`` grid of spacing ``spacing*sigma`` overhanging by ``margin*sigma``.
+    sigma : (float, float)
+        Scales sigma_x, sigma_y, mm (a covering grid uses sigma_x).
+    sigma_candidates : tuple of float or None
+        Covering grids only: choose sigma among these from the data (:func:`select_sigma`: the scale
+        whose fit best extrapolates the gradients of a held-out band of ``holdout_band`` mm at each
+        end of the data, the situation of the frame regions) among those that fit the data; None: use ``sigma``.
+    fit_ratio : float
+        A candidate scale fits the data when its gradient residual on all markers is at most this many times the
+        smallest candidate residual (:func:`select_sigma`; the finest candidate fits the noise too, so a basis
+        that follows the surface lies within ~2-3 times of it: 2.7-5.2 against 1.4 µrad on the seed's surfaces,
+        while a 12 mm basis on a 3 mm correlated glass leaves 240 times).
+    tilt : bool
+        Add the unpenalised plane terms x, y.
+    regularization : float
+        Relative ridge weight (see :func:`scopetwin.recon.shifted_basis.fit_gradients`).
+    inner_tol_um, inner_max : float, int
+        Inner loop stops when the RMS height change over the ROI is below ``inner_tol_um``.
+    outer_tol_um, outer_max : float, int
+        Outer loop stops when ``|criterion|`` <= ``outer_tol_um``.
+    criterion : {"level", "delta"}
+        Frame-region criterion (module docstring).
+    search : {"secant", "thesis"}
+        Start-height update (module docstring).
+    warm_start : bool
+        Start each inner loop from the previous surface moved to the new H (the seed starts from a plane).
+    grid_step, frame_step : float
+        Spacing of the evaluation grids over the ROI and over the frame regions, mm.
+    min_markers : int
+        Minimum number of usable markers overall.
+    edge_band, min_edge_markers : float, int
+        Each frame region needs at least ``min_edge_markers`` markers within ``edge_band`` mm of it.
+    method : {"lstsq", "normal"}
+        Linear solver of the fit.
+    posterior : {"correct", "report", "off"}
+        After convergence, read the fit as a Gaussian process (:mod:`scopetwin.recon.posterior`: smooth +
+        broadband prior, scales and amplitudes by evidence) and give every reconstruction its uncertainty (absolute
+        height, shape, per node); ``"correct"`` also replaces the extrapolated frame maxima of the fitted surface by
+        their posterior mean (a Newton step on the start height, criterion ``level`` only); ``"off"``: neither.
+    evidence_points : int
+        Gradient observations (an even subsample) entering the evidence maximisation.
+    posterior_iterations : int
+        Most Newton steps on the start height with the posterior frame criterion (``posterior = "correct"``).
+    posterior_points : int
+        Most gradient observations entering the posterior (:func:`scopetwin.recon.uncertainty.posterior_subset`:
+        all of the outermost along y, an even subsample of the rest).
+    consistency_um : float
+        After convergence the criterion not searched on must hold too: ``|Delta h_max|`` (criterion
+        ``level``) or ``|mean frame maximum - frame position|`` (criterion ``delta``) above this is an
+        :class:`InconsistentError` (a mis-indexed image or a wrong setup gives a smooth but tilted
+        surface that only one of the two frame conditions can hide).
+    """
+
+    basis: BasisKind = "gauss"
+    counts: tuple[int, int] | None = None
+    sigma: tuple[float, float] = (12.0, 12.0)
+    sigma_candidates: tuple[float, ...] | None = (2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0, 15.0, 18.0, 24.0)
+    holdout_band: float = 4.0
+    fit_ratio: float = 5.0
+    spacing: float = 0.7
+    margin: float = 1.0
+    tilt: bool = True
+    regularization: float = 1e-9
+    inner_tol_um: float = 1e-4
+    inner_max: int = 12
+    outer_tol_um: float = 1e-4
+    outer_max: int = 30
+    criterion: FrameCriterion = "level"
+    search: Literal["secant", "thesis"] = "secant"
+    warm_start: bool = True
+    grid_step: float = 0.5
+    frame_step: float = 0.2
+    min_markers: int = 20
+    edge_band: float = 6.0
+    min_edge_markers: int = 5
+    method: Literal["lstsq", "normal"] = "lstsq"
+    consistency_um: float = 10.0
+    posterior: Literal["correct", "report", "off"] = "correct"
+    evidence_points: int = 250
+    posterior_points: int = 800
+    posterior_iterations: int = 4
+
+    @classmethod
+    def thesis(cls, literal_axes: bool = True, **changes: Any) -> ReconstructionConfig:
+        """The seed's §1.10 reconstruction: 9x5 inverse multiquadrics, sigma_x = 4, sigma_y = 3, Delta h_max, eq. 1.4.
+
+        ``literal_axes``: 9 centres and sigma 4 along x (the 25.2 mm side) as printed; False swaps
+        them onto the long side (9 centres and sigma 4 along y), which fits the substrate's aspect.
+        """
+        counts, sigma = ((9, 5), (4.0, 3.0)) if literal_axes else ((5, 9), (3.0, 4.0))
+        base = cls(
+            basis="imq",
+            counts=counts,
+            sigma=sigma,
+            sigma_candidates=None,
+            tilt=False,
+            regularization=0.0,
+            inner_tol_um=1e-2,
+            inner_max=3,
+            outer_tol_um=0.01,
+            outer_max=60,
+            criterion="delta",
+            search="thesis",
+            warm_start=False,
+            consistency_um=float("inf"),
+            posterior="report",
+        )
+        return replace(base, **changes)
+
+    @classmethod
+    def realtime(cls, sigma: float = 12.0, **changes: Any) -> ReconstructionConfig:
+        """A fixed-scale configuration for one frame period: coarser centre grid, normal equations, 2 nm tolerances."""
+        base = cls(
+            sigma=(sigma, sigma),
+            sigma_candidates=None,
+            spacing=1.0,
+            method="normal",
+            inner_tol_um=1e-3,
+            outer_tol_um=2e-3,
+            grid_step=1.0,
+            frame_step=0.3,
+            posterior="off",
+        )
+        return replace(base, **changes)
+
+    def make_basis(self, sub: Substrate2D, sigma: float | None = None) -> ShiftedBasis:
+        """The shifted basis of this configuration over a substrate (``sigma`` overrides a covering grid's scale)."""
+        if self.counts is not None:
+            return ShiftedBasis.grid(self.counts, sub.x_range, sub.y_range, self.sigma, self.basis, self.tilt)
+        return ShiftedBasis.covering(
+            sub.x_range,
+            sub.y_range,
+            sigma if sigma is not None else self.sigma[0],
+            self.spacing,
+            self.margin,
+            self.basis,
+            self.tilt,
+        )

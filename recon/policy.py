@@ -1,0 +1,127 @@
+"""The reconstruction's fallbacks and their thresholds: one policy object (issue 22, item 3).
+
+The nested start-height iteration of seed §1.4 (:mod:`scopetwin.recon.reconstruct`) and the inverse fit
+(:mod:`scopetwin.recon.inverse`) are algorithms; whether they succeed on a hard image depends on what is done when a
+step fails — the markers numbered by another indexing, a tied reference marker retried, the basis scale chosen again,
+wrongly indexed markers rejected, the start height taken from the posterior, the inverse fit started from the best
+surface left. Every one of those decisions is a named field here, with the measurement that chose its value; the
+strategy (:mod:`scopetwin.recon.strategy`) is the one place that reads them and acts.
+
+Nothing here imports the rest of :mod:`scopetwin.recon`: the marker identification, the nested iteration and the
+strategy all read their thresholds from :data:`DEFAULT_POLICY` or from a policy passed in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any, Literal
+
+#: The starts of the inverse fit, best first (:func:`scopetwin.recon.strategy.inverse_start`).
+InverseStartKind = Literal["centroid", "centroid-unbiased", "centroid-unconverged", "coarse", "plane"]
+
+
+@dataclass(frozen=True)
+class ReconstructionPolicy:
+    """What the reconstruction does when a step fails, and the thresholds that decide it.
+
+    Attributes
+    ----------
+    lattice_below : float
+        The topological indexing (:func:`scopetwin.recon.markers.index_lattice`) is tried when the seed's flood
+        indexing (§1.5.4) numbers fewer than this fraction of the kept spots; the indexing that numbers more is
+        kept. Measured on 3 mm / 60 µm surfaces (seeds 1-8, Mitsuba 16 spp): the flood reached 12 and 308 of ~470
+        spots on seeds 2 and 1, the lattice 454 and 458 (none nearer another marker's true image than its own); on
+        the other six and on the seed's surfaces (5-20 mm correlation) the flood reaches more than 0.8 and is kept.
+    resolve_tied_reference : bool
+        Where two or more spots are about as large as the reference marker
+        (:class:`scopetwin.recon.markers.ReferenceTieError`), take each as the reference in turn and keep the one
+        whose markers reconstruct a surface on the holding frame (3 mm / 60 µm seed 7: four candidates, the true one
+        reconstructs with 0.14 µm shape error, the others fail in 4-6 s each).
+    bias_step : bool
+        Correct the marker centroids for the spot distortion of the curved mirror inside the inner loop
+        (:func:`scopetwin.recon.reconstruct.centroid_bias_step`).
+    bias_recompute_um : float
+        The bias is predicted again only when the surface's shape (mean removed) moved by more than this RMS, µm:
+        it follows the curvature, which settles after the first inner iterations.
+    rescale_from_flat_start : bool
+        Where the default basis scale's fits throw the rays off the substrate (or leave a frame region without
+        markers) — a 12 mm basis on a 3 mm / 60 µm surface — choose the scale on the gradients traced through the
+        plane at the frame height and search the start height again with a fresh budget
+        (:meth:`scopetwin.recon.reconstruct.Reconstructor.scale_from_flat_start`; 3 mm / 60 µm seeds 1 and 2).
+    rechoose_scale : bool
+        After the first start-height search, choose the basis scale on data traced through its surface
+        (:func:`scopetwin.recon.scale.select_sigma`) and search again with it; also when the first scale did not
+        converge because it cannot fit the data (its residual above ``fit_ratio`` times the best).
+    keep_first_scale : bool
+        Where the re-chosen (finer) scale's extrapolation throws the start height so far that the rays miss the
+        substrate, keep the first scale's converged result instead of failing.
+    outlier_factor : float
+        After convergence, markers whose gradient residual exceeds this many times the median residual are rejected
+        one at a time (worst first, refitting in between) and the surface is found again without them: a wrongly
+        indexed marker is ~3 mrad off, a good one within ~5 times the median (2-20 µrad). 0 turns it off.
+    outlier_max_fraction : float
+        At most this fraction of the markers is rejected as wrongly indexed (a missed row skip of five markers on
+        the §1.10 pattern of ~470 is 1 %).
+    posterior_consistency_sigmas : float
+        A converged surface whose extrapolated Delta h_max exceeds ``consistency_um`` is still accepted when the
+        posterior's Delta h_max (frame maxima from the data, :mod:`scopetwin.recon.posterior`) lies within
+        ``consistency_um`` plus this many of its standard deviations: on surfaces with medium-scale content the
+        fitted surface's extrapolation is microns off while the data are consistent.
+    slope_range : (float, float)
+        The criterion's slope in the start height (dF/dH, ~1 for the ``level`` criterion, ~0.5 for ``delta``) is
+        trusted only inside this range; outside it (two start heights too close, a noisy pair) 1 is used.
+    inverse_starts : tuple of str
+        The inverse fit's starts, tried in order (:func:`scopetwin.recon.strategy.inverse_start`): the centroid
+        method with its bias step, without it (the bias model is singular near a caustic on some 3 mm / 60 µm
+        surfaces that converge without it), the last surface of a start-height loop that did not converge, a coarse
+        fit of the markers, a plane at the frame height.
+    coarse_iterations : int
+        Fits of the coarse start (the markers' gradients traced at the frame height, then through each fit).
+    coarse_min_hit : float
+        A coarse iteration whose rays meet the substrate for fewer than this fraction of the markers is not taken.
+    """
+
+    lattice_below: float = 0.8
+    resolve_tied_reference: bool = True
+    bias_step: bool = True
+    bias_recompute_um: float = 0.2
+    rescale_from_flat_start: bool = True
+    rechoose_scale: bool = True
+    keep_first_scale: bool = True
+    outlier_factor: float = 10.0
+    outlier_max_fraction: float = 0.05
+    posterior_consistency_sigmas: float = 3.0
+    slope_range: tuple[float, float] = (0.2, 5.0)
+    inverse_starts: tuple[InverseStartKind, ...] = (
+        "centroid",
+        "centroid-unbiased",
+        "centroid-unconverged",
+        "coarse",
+        "plane",
+    )
+    coarse_iterations: int = 3
+    coarse_min_hit: float = 0.95
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.lattice_below <= 1.0:
+            raise ValueError(f"lattice_below must lie in [0, 1], got {self.lattice_below}")
+        if self.outlier_factor < 0 or not 0.0 <= self.outlier_max_fraction < 1.0:
+            raise ValueError("outlier_factor must be >= 0 and outlier_max_fraction in [0, 1)")
+        lo, hi = self.slope_range
+        if not 0.0 < lo < hi:
+            raise ValueError(f"slope_range must be 0 < low < high, got {self.slope_range}")
+        if not self.inverse_starts:
+            raise ValueError("inverse_starts needs at least one start")
+
+    def with_changes(self, **changes: Any) -> ReconstructionPolicy:
+        """A copy with some fields changed (validated like a new one)."""
+        return replace(self, **changes)
+
+    def trusted_slope(self, slope: float) -> float:
+        """``slope`` where it lies inside :attr:`slope_range`, else 1."""
+        lo, hi = self.slope_range
+        return slope if lo < abs(slope) < hi else 1.0
+
+
+#: The policy every entry point uses unless given another.
+DEFAULT_POLICY = ReconstructionPolicy()

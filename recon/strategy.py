@@ -1,0 +1,588 @@
+"""The one reconstruction strategy: what is tried, in which order, when a step fails (issue 22, item 3).
+
+Every entry point — ``scopetwin reconstruct`` and ``run``, the studies, the datasets, the focus map and
+:func:`scopetwin.reconstruct` — goes through :func:`reconstruct` (an image) or :func:`solve` (indexed markers), so
+one image and setup give the same heights everywhere. The thresholds are the fields of
+:class:`scopetwin.recon.policy.ReconstructionPolicy`; the pieces are those of the nested iteration of seed §1.4
+(:class:`scopetwin.recon.reconstruct.Reconstructor`), the uncertainty step (:mod:`scopetwin.recon.uncertainty`) and
+the inverse fit (:mod:`scopetwin.recon.inverse`).
+
+The order, for one image:
+
+1. markers: the seed's flood indexing, the grid's topology where the flood numbers too few
+   (:attr:`~scopetwin.recon.policy.ReconstructionPolicy.lattice_below`); a tied reference marker decided by which
+   candidate reconstructs (:attr:`~scopetwin.recon.policy.ReconstructionPolicy.resolve_tied_reference`);
+2. the start-height search with the default basis scale; where its rays lose the substrate, the scale chosen on the
+   flat start and the search again (``rescale_from_flat_start``);
+3. the scale chosen on the data traced through that surface and the search again (``rechoose_scale``), keeping the
+   first scale's result where the finer one loses the substrate (``keep_first_scale``);
+4. wrongly indexed markers rejected and the search again (``outlier_factor``);
+5. the posterior: uncertainty and start height; the frame condition not searched on checked, by the posterior where
+   the extrapolation disagrees (``posterior_consistency_sigmas``);
+6. ``method="inverse"``: the inverse fit from the best start left (``inverse_starts``).
+
+Inside, a failed step is a value (:class:`scopetwin.recon.reconstruct.LoopOutcome`,
+:class:`scopetwin.recon.reconstruct.Failure`); the user sees one error, only when every path failed, and its message
+names what each path tried. Each result lists the path it took (``strategy``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal, NamedTuple
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scopetwin.recon.config import ReconstructionConfig
+from scopetwin.recon.errors import InconsistentError, NotConvergedError, ReconstructionError
+from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
+from scopetwin.recon.reconstruct import (
+    BiasStep,
+    Failure,
+    LoopOutcome,
+    MarkerObservations,
+    ReconstructionResult,
+    Reconstructor,
+    centroid_bias_step,
+    single_thread_blas,
+)
+from scopetwin.recon.scale import select_sigma
+from scopetwin.recon.uncertainty import posterior
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.setup import Setup
+
+if TYPE_CHECKING:
+    from scopetwin.recon.inverse import InverseConfig, InverseResult
+    from scopetwin.recon.markers import Markers
+    from scopetwin.recon.shifted_basis import SBFSurface
+
+Method = Literal["centroid", "inverse"]
+
+
+# -- indexed markers -> surface (seed §1.4) --------------------------------------------------------------------------
+def solve(
+    rec: Reconstructor,
+    markers: MarkerObservations,
+    policy: ReconstructionPolicy = DEFAULT_POLICY,
+    history_path: str | Path | None = None,
+) -> ReconstructionResult:
+    """The nested iteration of seed §1.4 on indexed markers, with every fallback of ``policy``.
+
+    Parameters
+    ----------
+    rec : Reconstructor
+        The iteration's pieces for one setup (camera, pattern, substrate, configuration, bias step).
+    markers : MarkerObservations
+        Indexed markers of one image.
+    policy : ReconstructionPolicy
+        The fallbacks and their thresholds.
+    history_path : path, optional
+        Where the history is written (atomically, JSON) when no surface is accepted.
+
+    Returns
+    -------
+    ReconstructionResult
+        With ``strategy``: the path taken, one line per step.
+
+    Raises
+    ------
+    TooFewMarkersError, SubstrateNotVisibleError, NotConvergedError, InconsistentError
+        Only when every path failed; the message names what each tried.
+    """
+    with single_thread_blas():
+        return _solve(rec, markers, policy, history_path)
+
+
+class _Search:
+    """The state of one image's search: history of start heights, the current loop's surfaces, the path taken."""
+
+    def __init__(self, rec: Reconstructor, markers: MarkerObservations, policy: ReconstructionPolicy) -> None:
+        self.rec, self.markers, self.policy = rec, markers, policy
+        self.history: list[Any] = []
+        self.surfaces: list[SBFSurface] = []
+        self.path: list[str] = []
+        self.rejected: NDArray[np.int64] = np.zeros((0, 2), dtype=np.int64)
+
+    def loop(self, h: float, runs: int | None = None, fresh: bool = False) -> LoopOutcome:
+        """One start-height loop from ``h`` (``fresh``: no warm start from an earlier loop's surfaces)."""
+        if fresh:
+            self.surfaces = []
+        out = self.rec.start_height_loop(self.markers, h, self.history, self.surfaces, runs)
+        what = {"converged": "converged", "not-converged": "did not converge", "lost": "lost the substrate"}
+        self.path.append(
+            f"start-height search, basis scale {self.rec.basis.sigma[0]:g} mm: {what[out.status]} "
+            f"after {len(self.history)} runs" + (f" ({out.failure.message})" if out.failure is not None else "")
+        )
+        return out
+
+    def fail(self, failure: Failure) -> ReconstructionError:
+        """The user-facing error of ``failure``, naming the path tried."""
+        return failure.error(self.tried())
+
+    def tried(self) -> str:
+        return " [tried: " + "; ".join(self.path) + "]" if self.path else ""
+
+
+def _solve(
+    rec: Reconstructor, markers: MarkerObservations, policy: ReconstructionPolicy, history_path: str | Path | None
+) -> ReconstructionResult:
+    t0 = time.perf_counter()
+    search = _Search(rec, markers, policy)
+    out = _first_search(search)
+    out = _rechoose_scale(search, out)
+    out = _reject_outliers(search, out)
+    if rec.last is None:
+        raise ReconstructionError(f"the start-height loop ran no inner loop (outer_max = {rec.config.outer_max})")
+    result = ReconstructionResult(
+        rec.last,
+        rec.sub,
+        search.history,
+        out.converged,
+        time.perf_counter() - t0,
+        rec.config,
+        rejected=search.rejected,
+        strategy=search.path,
+    )
+    return _accept(search, result, history_path)
+
+
+def _first_search(search: _Search) -> LoopOutcome:
+    """The start-height search from the frame height; where its rays lose the substrate, the scale chosen on the flat
+    start and the search again with a fresh budget (``rescale_from_flat_start``)."""
+    rec, policy = search.rec, search.policy
+    out = search.loop(rec.sub.frame_z)
+    if out.status != "lost":
+        return out
+    assert out.failure is not None
+    changed = rec.scale_from_flat_start(search.markers) if policy.rescale_from_flat_start else False
+    if isinstance(changed, Failure):
+        search.path.append("basis scale on the flat start: its rays lose the substrate too")
+        raise search.fail(changed)
+    if not changed:
+        raise search.fail(out.failure)
+    search.path.append(f"basis scale chosen on the flat start: {rec.basis.sigma[0]:g} mm")
+    out = search.loop(rec.sub.frame_z, rec.config.outer_max, fresh=True)
+    if out.failure is not None:
+        raise search.fail(out.failure)
+    return out
+
+
+def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
+    """The basis scale chosen on the data traced through the search's surface, and the search again with it
+    (``rechoose_scale``); the first scale's result kept where the finer one loses the substrate (``keep_first_scale``).
+    """
+    rec, policy, cfg = search.rec, search.policy, search.rec.config
+    if not (policy.rechoose_scale and search.surfaces and cfg.sigma_candidates and cfg.counts is None):
+        return out
+    xy, hx, hy, _ = rec.traced_gradients(search.surfaces[-1], search.markers)
+    best, rec.sigma_scores, fits = select_sigma(rec.sub, xy[:, 0], xy[:, 1], hx, hy, cfg)
+    current = float(rec.basis.sigma[0])
+    too_coarse = current in fits and fits[current] > cfg.fit_ratio * min(fits.values())
+    if best == current or not (out.converged or too_coarse):
+        return out
+    first = (rec.basis, len(search.history), out, rec.last)
+    rec.use_basis(cfg.make_basis(rec.sub, best))
+    search.path.append(f"basis scale chosen on the data: {current:g} -> {best:g} mm")
+    h_found = search.history[-1].start_height_um * 1e-3
+    again = search.loop(h_found, None if out.converged else cfg.outer_max, fresh=True)
+    if again.status != "lost":
+        return again
+    assert again.failure is not None
+    if not (first[2].converged and policy.keep_first_scale):
+        raise search.fail(again.failure)
+    rec.use_basis(first[0])
+    del search.history[first[1] :]
+    rec.last = first[3]
+    search.path.append(f"kept the first basis scale, {first[0].sigma[0]:g} mm")
+    return first[2]
+
+
+def _reject_outliers(search: _Search, out: LoopOutcome) -> LoopOutcome:
+    """Wrongly indexed markers rejected after convergence and the search again without them (``outlier_factor``)."""
+    rec, policy = search.rec, search.policy
+    if not (out.converged and policy.outlier_factor > 0 and rec.last is not None):
+        return out
+    drop = rec.index_outliers(search.markers, rec.last, policy.outlier_factor, policy.outlier_max_fraction)
+    if not drop.any():
+        return out
+    search.rejected = search.markers.ij[drop]
+    search.markers = MarkerObservations(search.markers.ij[~drop], search.markers.px[~drop])
+    search.path.append(f"{int(drop.sum())} wrongly indexed marker(s) rejected")
+    again = search.loop(search.history[-1].start_height_um * 1e-3, rec.config.outer_max, fresh=True)
+    if again.failure is not None:
+        raise search.fail(again.failure)
+    return again
+
+
+def _accept(search: _Search, result: ReconstructionResult, history_path: str | Path | None) -> ReconstructionResult:
+    """The posterior step and the check of the frame condition not searched on; the user-facing error if neither
+    the fitted surface nor the posterior lays the surface on the holding frame."""
+    rec, policy, cfg = search.rec, search.policy, search.rec.config
+    last = result.history[-1]
+    other = (
+        abs(last.delta_h_max_um)
+        if cfg.criterion == "level"
+        else abs(0.5 * (last.max_region1_um + last.max_region2_um) - rec.sub.frame_z * 1e3)
+    )
+    if result.converged and (other <= cfg.consistency_um or cfg.criterion == "level"):
+        post = (
+            posterior(rec, search.markers, result.surface, result.history, policy) if cfg.posterior != "off" else None
+        )
+        if post is not None:
+            result.surface, result.uncertainty = post.surface, post.uncertainty
+            search.path.append(
+                f"posterior ({cfg.posterior}): start height moved {post.uncertainty.correction_um:+.3g} µm"
+            )
+        if other <= cfg.consistency_um:
+            return result
+        if post is not None:
+            d_mean, d_std = post.delta
+            other = abs(d_mean) * 1e3
+            if other <= cfg.consistency_um + policy.posterior_consistency_sigmas * d_std * 1e3:
+                search.path.append("frame condition checked on the posterior's Delta h_max")
+                return result
+    path = Path(history_path) if history_path is not None else None
+    if path is not None:
+        from scopetwin.scenes.io import write_json_atomic
+
+        write_json_atomic(path, {"converged": result.converged, "config": asdict(cfg), **result.summary()})
+    where = f"; partial history saved to {path}" if path is not None else ""
+    if not result.converged:
+        raise NotConvergedError(
+            f"the start-height loop did not converge in {len(result.history)} runs (last criterion "
+            f"{last.criterion_um:+.4g} µm, tolerance {cfg.outer_tol_um} µm){where}{search.tried()}",
+            result.history_dicts(),
+            path,
+            rec.last,
+        )
+    what = "Delta h_max" if cfg.criterion == "level" else "the mean frame maximum's distance from the frame"
+    raise InconsistentError(
+        f"the reconstructed surface cannot lie on the holding frame: {what} is {other:.3g} µm "
+        f"(> {cfg.consistency_um} µm) — are the markers indexed correctly and is the setup right?{where}"
+        f"{search.tried()}"
+    )
+
+
+def reconstruct_markers(
+    setup: Setup,
+    markers: MarkerObservations | ArrayLike,
+    px: ArrayLike | None = None,
+    config: ReconstructionConfig | None = None,
+    bias: BiasStep | None = None,
+    history_path: str | Path | None = None,
+    frame_z: float = 0.0,
+    policy: ReconstructionPolicy = DEFAULT_POLICY,
+) -> ReconstructionResult:
+    """Reconstruct the substrate's heights from indexed markers (seed §1.4, §1.7, §1.8): :func:`solve` for a setup.
+
+    Parameters
+    ----------
+    setup : Setup
+        A (calibrated) deflectometry setup.
+    markers : MarkerObservations or array_like (n, 2)
+        Observations, or the marker indices (i, j) with ``px`` their image positions.
+    px : array_like, (n, 2), optional
+        Continuous pixel coordinates (col, row) when ``markers`` are indices.
+    config : ReconstructionConfig, optional
+        Default: the improved reconstruction (Gaussian basis with ridge, ``level`` criterion, secant search).
+    bias : BiasStep, optional
+        Centroid-bias correction inside the inner loop (exact marker images need none).
+    history_path : path, optional
+        Where a partial history is written if no surface is accepted.
+    frame_z : float
+        z of the holding frame in the substrate's base frame, mm.
+    policy : ReconstructionPolicy
+        The fallbacks and their thresholds.
+    """
+    if isinstance(markers, MarkerObservations):
+        obs = markers
+    elif px is None:
+        raise ReconstructionError("marker indices need their image positions px")
+    else:
+        obs = MarkerObservations(np.asarray(markers), np.asarray(px, dtype=np.float64))
+    return solve(Reconstructor.from_setup(setup, config, bias, frame_z), obs, policy, history_path)
+
+
+# -- an image -> surface -------------------------------------------------------------------------------------------
+class ImageReconstruction(NamedTuple):
+    """The markers of an image, the surface they give, and the iteration that gave it."""
+
+    markers: Markers
+    result: ReconstructionResult
+    reconstructor: Reconstructor
+
+
+def reconstruct_image(
+    image: NDArray[Any],
+    setup: Setup,
+    config: ReconstructionConfig | None = None,
+    policy: ReconstructionPolicy = DEFAULT_POLICY,
+    history_path: str | Path | None = None,
+) -> ImageReconstruction:
+    """Markers of a deflectometry image and the surface they give (seed §1.4-§1.8), with every fallback of ``policy``.
+
+    The bias step is on where ``policy.bias_step``. Where the spots are distorted so much that two or more are
+    about as large as the reference marker should be (:class:`scopetwin.recon.markers.ReferenceTieError`; 3 mm /
+    60 µm surfaces), each candidate is taken as the reference in turn (``resolve_tied_reference``): with a wrong one
+    every index is a few pitches off, the traced slopes are milliradians off and no start height lays such a surface
+    on the holding frame. The one candidate whose markers reconstruct is kept; if none or several do, the tie is
+    reported.
+    """
+    from scopetwin.recon.markers import ReferenceTieError, find_markers_for
+
+    bias = centroid_bias_step(setup, policy.bias_recompute_um) if policy.bias_step else None
+
+    def attempt(reference: int | None, path: str | Path | None) -> ImageReconstruction:
+        found = find_markers_for(image, setup, reference=reference, lattice_below=policy.lattice_below)
+        rec = Reconstructor.from_setup(setup, config, bias)
+        result = solve(rec, MarkerObservations(found.ij, found.centroids), policy, path)
+        return ImageReconstruction(found, result, rec)
+
+    try:
+        return attempt(None, history_path)
+    except ReferenceTieError as tie:
+        if not policy.resolve_tied_reference:
+            raise
+        good, notes = [], []
+        for cand in tie.candidates:  # a candidate that fails leaves no partial history behind
+            try:
+                good.append(attempt(int(cand), None))
+            except ScopetwinError as exc:
+                notes.append(f"spot {int(cand)}: {type(exc).__name__}")
+        if len(good) == 1:
+            good[0].result.strategy.insert(
+                0,
+                f"reference marker tied between {len(tie.candidates)} spots: "
+                f"the one whose markers reconstruct taken ({', '.join(notes)} failed)",
+            )
+            return good[0]
+        raise ReferenceTieError(
+            tie.candidates,
+            f"{tie}; taken as the reference in turn, {len(good)} of the {len(tie.candidates)} candidates "
+            "reconstruct a surface on the holding frame",
+        ) from None
+
+
+# -- the inverse fit's start --------------------------------------------------------------------------------------
+@dataclass
+class InverseStart:
+    """Where the inverse fit starts from (:func:`inverse_start`).
+
+    Attributes
+    ----------
+    surface : object with ``height(x, y)`` or None
+        The start surface (None: a plane at the frame height).
+    kind : str
+        One of :attr:`scopetwin.recon.policy.ReconstructionPolicy.inverse_starts`: "centroid" (the centroid method
+        with its bias step), "centroid-unbiased" (without it), "centroid-unconverged" (the last surface of a
+        start-height loop that did not converge), "coarse" (:meth:`scopetwin.recon.reconstruct.Reconstructor.
+        coarse_surface`: the markers' gradients at the frame height) or "plane".
+    note : str
+        What failed on the way, one entry per attempt.
+    absolute_std_um : float or None
+        The centroid method's standard uncertainty of the absolute height, µm.
+    markers : object or None
+        The indexed markers used.
+    strategy : list of str
+        The centroid method's path where it gave the start.
+    """
+
+    surface: Any
+    kind: str
+    note: str = ""
+    absolute_std_um: float | None = None
+    markers: Any = None
+    strategy: list[str] = field(default_factory=list)
+
+    @property
+    def holds_height(self) -> bool:
+        """The fit keeps the start's mean height (``absolute="start"``) rather than searching it on its own surface.
+
+        Every start but a plane: where the centroid method converged its frame criterion decided the height; where
+        it did not (a coarse fit or an unconverged loop on a 3 mm / 60 µm surface) the frame criterion on the fitted
+        B-spline, whose thin-plate continuation into the frame regions of so short-correlated a surface is no
+        estimate of their maxima, ran away (the height -29 µm off from the unbiased centroid start of surface seed 4,
+        which held +2.6 µm; -420 µm from the coarse start of seed 5, which holds the frame height, ~27 µm off).
+        """
+        return self.kind != "plane"
+
+    @property
+    def absolute(self) -> Literal["start", "frame"]:
+        """The inverse fit's ``absolute`` setting for this start: hold its height, or search it from a plane."""
+        return "start" if self.holds_height else "frame"
+
+
+def inverse_start(
+    image: NDArray[Any],
+    setup: Setup,
+    config: ReconstructionConfig | None = None,
+    policy: ReconstructionPolicy = DEFAULT_POLICY,
+) -> InverseStart:
+    """The start of the inverse fit: the first of ``policy.inverse_starts`` that can be had.
+
+    In the default order: the centroid method (seed §1.4-§1.8) with its bias step; without it (the bias model cannot
+    be evaluated near a caustic — "singular at a marker" — and the start-height loop swings with it on some 3 mm /
+    60 µm surfaces that converge without it; the inverse fit needs no centroid model, only a start inside its basin);
+    the last surface of a start-height loop that did not converge; a coarse fit of the indexed markers
+    (:meth:`scopetwin.recon.reconstruct.Reconstructor.coarse_surface`); a plane at the frame height. A tied
+    reference marker is decided on the way (:func:`reconstruct_image`). ``policy.bias_step`` False leaves out the
+    biased start.
+    """
+    notes: list[str] = []
+    unconverged: Any = None
+    for kind in policy.inverse_starts:
+        if kind in ("centroid", "centroid-unbiased"):
+            biased = kind == "centroid" and policy.bias_step
+            if kind == "centroid" and not policy.bias_step:
+                continue
+            name = kind if policy.bias_step else "centroid"
+            try:
+                done = reconstruct_image(image, setup, config, policy.with_changes(bias_step=biased))
+            except NotConvergedError as exc:
+                unconverged = unconverged if unconverged is not None else exc.surface
+                notes.append(f"{name}: {type(exc).__name__}: {exc}")
+                continue
+            except ScopetwinError as exc:
+                notes.append(f"{name}: {type(exc).__name__}: {exc}")
+                continue
+            u = done.result.uncertainty
+            absolute = None if u is None else u.absolute_um
+            return InverseStart(
+                done.result.surface, name, "; ".join(notes), absolute, done.markers, done.result.strategy
+            )
+        if kind == "centroid-unconverged" and unconverged is not None:
+            return InverseStart(unconverged, kind, "; ".join(notes))
+        if kind == "coarse":
+            with contextlib.suppress(ScopetwinError):
+                return _coarse_start(image, setup, config, policy, notes)
+        if kind == "plane":
+            return InverseStart(None, "plane", "; ".join(notes))
+    raise ReconstructionError("no start for the inverse fit: " + "; ".join(notes))
+
+
+def _coarse_start(
+    image: NDArray[Any],
+    setup: Setup,
+    config: ReconstructionConfig | None,
+    policy: ReconstructionPolicy,
+    notes: list[str],
+) -> InverseStart:
+    """A coarse fit of the indexed markers (its failure noted in ``notes`` and raised)."""
+    from scopetwin.recon.markers import find_markers_for
+
+    try:
+        found = find_markers_for(image, setup, lattice_below=policy.lattice_below)
+        rec = Reconstructor.from_setup(setup, config)
+        obs = MarkerObservations(found.ij, found.centroids)
+        surface = rec.coarse_surface(obs, policy.coarse_iterations, policy.coarse_min_hit)
+    except ScopetwinError as exc:
+        notes.append(f"coarse: {type(exc).__name__}: {exc}")
+        raise
+    return InverseStart(surface, "coarse", "; ".join(notes), markers=found)
+
+
+# -- one entry point for both methods ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class StandardUncertainty:
+    """One standard uncertainty of the absolute height (ROI mean) and of the shape (RMS about it), µm (None: not
+    known, e.g. the inverse fit from a plane)."""
+
+    absolute_um: float | None
+    shape_um: float | None
+
+
+@dataclass
+class Reconstruction:
+    """A reconstructed surface, whichever method gave it, with its uncertainty and the path the strategy took.
+
+    Attributes
+    ----------
+    method : {"centroid", "inverse"}
+        The marker centroids (seed §1.4-§1.8) or the inverse fit of the whole image.
+    result : ReconstructionResult or InverseResult
+        The method's own result (history, iterations, per-node uncertainty).
+    markers : Markers or None
+        The indexed markers the surface rests on (the inverse fit's start's).
+    uncertainty : StandardUncertainty
+        Absolute and shape, µm.
+    strategy : list of str
+        The path taken, one line per step (fallbacks included).
+    start : str or None
+        The inverse fit's start (``kind (what failed)``); None for the centroid method.
+    """
+
+    method: Method
+    result: Any
+    markers: Any
+    uncertainty: StandardUncertainty
+    strategy: list[str]
+    start: str | None = None
+
+    def height_at(self, x_mm: Any, y_mm: Any) -> NDArray[np.float64]:
+        """Heights at substrate coordinates (x, y), mm (vectorised: arrays broadcast)."""
+        return np.asarray(self.result.surface.height(np.asarray(x_mm, float), np.asarray(y_mm, float)), float)
+
+    def heightmap(self, nx: int = 128, ny: int = 288) -> Any:
+        """The surface on a node grid over the whole substrate (:class:`scopetwin.scenes.surface.HeightMap`, mm)."""
+        return self.result.heightmap(nx, ny)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready: the method's own summary, the uncertainty and the strategy's path."""
+        return {
+            "method": self.method,
+            **self.result.summary(),
+            "uncertainty": {"absolute_um": self.uncertainty.absolute_um, "shape_um": self.uncertainty.shape_um},
+            "strategy": list(self.strategy),
+            **({"start": self.start} if self.start is not None else {}),
+        }
+
+
+def reconstruct(
+    image: NDArray[Any],
+    setup: Setup,
+    method: Method = "centroid",
+    *,
+    config: ReconstructionConfig | None = None,
+    inverse_config: InverseConfig | None = None,
+    policy: ReconstructionPolicy = DEFAULT_POLICY,
+    history_path: str | Path | None = None,
+) -> Reconstruction:
+    """The surface of one deflectometry image by either method, with every fallback of ``policy``.
+
+    ``method="centroid"``: :func:`reconstruct_image`. ``method="inverse"``: the inverse fit
+    (:func:`scopetwin.recon.inverse.reconstruct_inverse`) from :func:`inverse_start`, holding the start's height
+    unless it starts from a plane (``inverse_config``'s other settings are kept).
+    """
+    if method == "centroid":
+        done = reconstruct_image(image, setup, config, policy, history_path)
+        u = done.result.uncertainty
+        unc = StandardUncertainty(u.absolute_um, u.shape_um) if u is not None else StandardUncertainty(None, None)
+        return Reconstruction("centroid", done.result, done.markers, unc, done.result.strategy)
+    if method != "inverse":
+        raise ReconstructionError(f"method must be 'centroid' or 'inverse', got {method!r}")
+    return _reconstruct_inverse(image, setup, config, inverse_config, policy)
+
+
+def _reconstruct_inverse(
+    image: NDArray[Any],
+    setup: Setup,
+    config: ReconstructionConfig | None,
+    inverse_config: InverseConfig | None,
+    policy: ReconstructionPolicy,
+) -> Reconstruction:
+    """The inverse fit from the best start left (``policy.inverse_starts``)."""
+    from dataclasses import replace
+
+    from scopetwin.recon.inverse import InverseConfig, reconstruct_inverse
+
+    begin = inverse_start(image, setup, config, policy)
+    cfg = replace(inverse_config or InverseConfig(), absolute=begin.absolute)
+    result: InverseResult = reconstruct_inverse(setup, image, begin.surface, cfg, absolute_std_um=begin.absolute_std_um)
+    start = begin.kind + (f" ({begin.note})" if begin.note else "")
+    path = [*begin.strategy, f"inverse fit from the {begin.kind} start ({cfg.absolute} height)"]
+    unc = StandardUncertainty(begin.absolute_std_um, result.shape_std_um)
+    return Reconstruction("inverse", result, begin.markers, unc, path, start)

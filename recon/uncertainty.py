@@ -1,0 +1,245 @@
+"""The uncertainty of a centroid reconstruction: the Gaussian-process reading of the fit (beyond the seed, §1.4).
+
+After the nested iteration converged, the markers' gradients traced through its surface are read as observations of
+a Gaussian process (:mod:`scopetwin.recon.posterior`: prior by evidence). Its posterior of the frame criterion's
+shape functional gives the absolute height's uncertainty and — with ``posterior = "correct"`` — a better start
+height (Newton steps on the posterior criterion, each followed by the inner loop); the posterior of the height
+contrasts gives the shape's. A wrong start height tilts the traced gradients, so its uncertainty is carried into
+the shape (:func:`start_height_sensitivity`).
+
+The iteration is used through the :class:`Iteration` protocol (what :class:`scopetwin.recon.reconstruct.
+Reconstructor` offers), so this module does not import it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
+from scopetwin.recon.substrate import Substrate2D
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.geometry import Array
+from scopetwin.scenes.surface import HeightMap
+
+if TYPE_CHECKING:
+    from scopetwin.recon.config import ReconstructionConfig
+    from scopetwin.recon.posterior import FramePosterior, Hyper
+    from scopetwin.recon.shifted_basis import SBFSurface
+
+
+class Iteration(Protocol):
+    """What the posterior step needs of the nested iteration (:class:`scopetwin.recon.reconstruct.Reconstructor`)."""
+
+    config: ReconstructionConfig
+    sub: Substrate2D
+
+    def roi_mean(self, coef: Array) -> float: ...
+
+    def traced_gradients(self, surface: SBFSurface, markers: Any) -> tuple[Array, Array, Array, NDArray]: ...
+
+    def inner_loop(self, start_height: float, markers: Any, initial: SBFSurface | None = None) -> Any: ...
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """Standard uncertainties of a reconstruction (from :func:`scopetwin.recon.posterior.frame_posterior`).
+
+    Attributes
+    ----------
+    absolute_um : float
+        Of the absolute height (the ROI mean), µm: the posterior spread of the frame criterion's shape functional,
+        plus the offset of the fitted surface's value from the posterior mean when no correction was applied,
+        divided by the criterion's slope in the start height.
+    shape_um : float
+        Of the shape (RMS over the ROI after removing the mean), µm: sqrt of the mean, over the ROI, of the
+        posterior variance of the height contrasts, the squared difference between the fitted and the
+        posterior-mean contrasts, and the start height's uncertainty carried into the contrasts (a wrong start
+        height tilts the traced gradients: :meth:`Reconstructor._start_height_sensitivity`).
+    node_std : HeightMap
+        Standard uncertainty of the height at the nodes of a coarse grid over the whole substrate, mm
+        (absolute and shape parts together).
+    correction_um : float
+        Start-height correction applied from the posterior (0 when ``posterior`` is ``"report"``), µm.
+    slope : float
+        d criterion / d start height of the outer loop (from its last two runs; 1 when unknown).
+    hyper : dict
+        The prior chosen by evidence (:meth:`scopetwin.recon.posterior.Hyper.as_dict`).
+    """
+
+    absolute_um: float
+    shape_um: float
+    node_std: HeightMap
+    correction_um: float
+    slope: float
+    hyper: dict[str, float]
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready (the contract's ``uncertainty`` object plus details)."""
+        return {
+            "absolute_um": self.absolute_um,
+            "shape_um": self.shape_um,
+            "correction_um": self.correction_um,
+            "criterion_slope": self.slope,
+            "prior": self.hyper,
+        }
+
+
+@dataclass
+class Posterior:
+    """The posterior step's outcome: the surface (moved to the posterior start height where corrected), its
+    uncertainty, and the posterior Delta h_max (mean, standard deviation), mm."""
+
+    surface: SBFSurface
+    uncertainty: Uncertainty
+    delta: tuple[float, float]
+
+
+@dataclass
+class _Reading:
+    """The last Gaussian-process reading of the traced gradients: posterior, prior, and the fitted surface's error
+    of the criterion's shape functional against the posterior with its spread, mm."""
+
+    post: FramePosterior
+    hyper: Hyper
+    err: float
+    spread: float
+
+
+def criterion_slope(history: list[Any], policy: ReconstructionPolicy = DEFAULT_POLICY) -> float:
+    """dF/dH of the outer loop from its last two runs with the final basis scale (1 where not trusted)."""
+    same = [s for s in history if s.sigma_mm == history[-1].sigma_mm]
+    slope = 1.0
+    if len(same) >= 2 and same[-1].start_height_um != same[-2].start_height_um:
+        slope = (same[-1].criterion_um - same[-2].criterion_um) / (same[-1].start_height_um - same[-2].start_height_um)
+    return policy.trusted_slope(slope)
+
+
+def _read(it: Iteration, surf: SBFSurface, markers: Any, hyper: Hyper | None) -> _Reading | None:
+    """Trace the gradients through ``surf`` and read them as a Gaussian process; None where the posterior fails."""
+    from scopetwin.recon.posterior import GradientGP, PosteriorError, fit_hyper, frame_posterior
+
+    cfg, sub = it.config, it.sub
+    rx, ry = sub.roi_grid(cfg.grid_step)
+    xy, hx, hy, _ = it.traced_gradients(surf, markers)
+    try:
+        hyper = hyper or fit_hyper(xy, hx, hy, max_points=cfg.evidence_points)
+        gp = GradientGP(*posterior_subset(xy, hx, hy, cfg.posterior_points), hyper)
+        post = frame_posterior(gp, sub.x_range, sub.y_range, sub.roi_length, (np.unique(rx), np.unique(ry)))
+    except PosteriorError:
+        return None
+    # the fitted surface's frame maxima on the posterior's own frame points (same discretisation)
+    m1 = float(np.max(surf.height(post.frame1[:, 0], post.frame1[:, 1])))
+    m2 = float(np.max(surf.height(post.frame2[:, 0], post.frame2[:, 1])))
+    h = it.roi_mean(surf.coef) + surf.offset
+    if cfg.criterion == "level":
+        return _Reading(post, hyper, (0.5 * (m1 + m2) - h) - post.d_mean, post.d_std)
+    return _Reading(post, hyper, (m1 - m2) - post.delta_mean, post.delta_std)
+
+
+def _newton_start_height(
+    it: Iteration, surf: SBFSurface, markers: Any, slope: float, policy: ReconstructionPolicy
+) -> tuple[SBFSurface, _Reading | None]:
+    """The start height from the posterior frame criterion: H + D_post(H) = z_frame by Newton steps (each followed
+    by the inner loop at the new H, so the traced gradients follow the start height); one reading without steps
+    where the configuration only reports."""
+    cfg = it.config
+    correcting = cfg.posterior == "correct" and cfg.criterion == "level"
+    tried: list[tuple[float, float]] = []  # (H, F_post(H)) of each step
+    reading: _Reading | None = None
+    for k in range(cfg.posterior_iterations if correcting else 1):
+        reading = _read(it, surf, markers, reading.hyper if reading is not None else None)
+        if reading is None or not correcting:
+            break
+        h = it.roi_mean(surf.coef) + surf.offset
+        f_post = h + reading.post.d_mean - it.sub.frame_z  # the fitted surface satisfies H + D_fit(H) ~ z_frame
+        tried.append((h, f_post))
+        s_post = slope
+        if len(tried) >= 2 and tried[-1][0] != tried[-2][0]:
+            (ha, fa), (hb, fb) = tried[-2], tried[-1]
+            s_post = (fb - fa) / (hb - ha)
+            lo, hi = policy.slope_range
+            s_post = s_post if lo < abs(s_post) < hi else slope
+        step = -f_post / s_post
+        if abs(step) * 1e3 <= cfg.outer_tol_um or k == cfg.posterior_iterations - 1:
+            return surf.shifted(surf.offset + step), reading  # the last, small step without another inner loop
+        run = it.inner_loop(h + step, markers, surf)
+        if run.lost is not None:
+            return surf, reading
+        surf = run.surface
+    return surf, reading
+
+
+def posterior(
+    it: Iteration, markers: Any, surface: SBFSurface, history: list[Any], policy: ReconstructionPolicy = DEFAULT_POLICY
+) -> Posterior | None:
+    """Uncertainty of the converged ``surface`` and (``posterior = "correct"``) the posterior start height.
+
+    The gradient data are traced through the converged surface; the prior is chosen by evidence
+    (:func:`scopetwin.recon.posterior.fit_hyper`) and the posterior of the frame criterion's shape functional D
+    (frame maxima relative to the ROI mean) compared with the fitted surface's D. The start height solves
+    H + D(H) = z_frame; with the posterior D in place of the extrapolated one this is solved by Newton steps
+    H <- H + (D_fit - D_post) / slope (slope = dF/dH of the outer loop). None where the posterior cannot be formed.
+    """
+    cfg = it.config
+    slope = criterion_slope(history, policy)
+    h0 = it.roi_mean(surface.coef) + surface.offset
+    surf, reading = _newton_start_height(it, surface, markers, slope, policy)
+    if reading is None:
+        return None
+    post = reading.post
+    correcting = cfg.posterior == "correct" and cfg.criterion == "level"
+    u_abs = reading.spread / abs(slope) if correcting else float(np.hypot(reading.err, reading.spread)) / abs(slope)
+    h_final = it.roi_mean(surf.coef) + surf.offset
+    nxx, nyy = np.meshgrid(post.node_x, post.node_y)
+    dev2 = (surf.height(nxx, nyy) - h_final - post.contrast_mean) ** 2
+    # the traced gradients depend on the start height: an error dH of it bends the shape by sens * dH
+    sens = start_height_sensitivity(it, surf, markers, nxx, nyy)
+    shape_var = post.contrast_std**2 + dev2 + (sens * u_abs) ** 2
+    u_shape = float(np.sqrt(np.mean(shape_var[post.roi])))
+    node = np.sqrt((u_abs * (1.0 + sens)) ** 2 + post.contrast_std**2 + dev2)
+    std_map = HeightMap(node, post.node_x[0], post.node_x[-1], post.node_y[0], post.node_y[-1])
+    u = Uncertainty(u_abs * 1e3, u_shape * 1e3, std_map, (h_final - h0) * 1e3, slope, reading.hyper.as_dict())
+    return Posterior(surf, u, (post.delta_mean, post.delta_std))
+
+
+def start_height_sensitivity(
+    it: Iteration, surf: SBFSurface, markers: Any, xx: Array, yy: Array, dh_mm: float = 2e-4
+) -> Array:
+    """d(height contrast)/d(start height) at (xx, yy): how a start-height error bends the shape (dimensionless).
+
+    The gradients are traced through a surface at the start height, so a wrong start height tilts and bends
+    them (seed §1.4: the start height is found by the frame criterion, not by the data); one more inner loop
+    at H + ``dh_mm`` from the converged surface gives the derivative by a finite difference.
+    """
+    h = it.roi_mean(surf.coef) + surf.offset
+    try:
+        run = it.inner_loop(h + dh_mm, markers, surf)
+    except ScopetwinError:
+        run = None
+    if run is None or run.lost is not None:
+        return np.zeros_like(np.asarray(xx, dtype=np.float64))
+    other = run.surface
+    h2 = it.roi_mean(other.coef) + other.offset
+    return (_contrast(other, h2, xx, yy) - _contrast(surf, h, xx, yy)) / (h2 - h)
+
+
+def _contrast(surf: SBFSurface, h: float, xx: Array, yy: Array) -> Array:
+    """Heights relative to the ROI mean ``h``, mm."""
+    return np.asarray(surf.height(xx, yy)) - h
+
+
+def posterior_subset(xy: Array, hx: Array, hy: Array, budget: int) -> tuple[Array, Array, Array]:
+    """At most ``budget`` observations for the posterior: the outer half of the budget nearest the frame regions
+    (largest |y|) in full, an even subsample of the interior for the rest; the extrapolation rests on the former."""
+    if len(xy) <= budget:
+        return xy, hx, hy
+    order = np.argsort(-np.abs(xy[:, 1]))
+    outer = order[: budget // 2]
+    inner = order[budget // 2 :]
+    inner = inner[np.linspace(0, len(inner) - 1, budget - len(outer)).round().astype(int)]
+    keep = np.sort(np.concatenate([outer, inner]))
+    return xy[keep], hx[keep], hy[keep]

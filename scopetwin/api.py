@@ -1,0 +1,387 @@
+"""The Python front door: the main jobs of scopetwin in a few lines, with the command line's defaults.
+
+Every function here is a thin, documented entry to the layers below (:mod:`scopetwin.scenes`, :mod:`scopetwin.recon`,
+:mod:`scopetwin.calib`, :mod:`scopetwin.instrument`, :mod:`scopetwin.sim`); each imports what it needs when it is
+called, so ``import scopetwin`` loads neither Mitsuba nor the reconstruction. Lengths are mm, angles rad, heights of
+a reconstruction mm (uncertainties µm, as their names say).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from contextlib import AbstractContextManager
+
+    from scopetwin.calib.oneshot.refinement import Calibration
+    from scopetwin.calib.setup_calibration import CalibratedSetup
+    from scopetwin.instrument.rig import Rig
+    from scopetwin.recon.policy import ReconstructionPolicy
+    from scopetwin.recon.strategy import Reconstruction
+    from scopetwin.scenes.setup import Setup
+    from scopetwin.scenes.surface import HeightMap
+    from scopetwin.sim.datasets.reader import Dataset
+    from scopetwin.sim.truth import MarkerTruth
+
+
+def load_setup(name_or_toml: Setup | str | Path, overrides: dict[str, Any] | None = None) -> Setup:
+    """A setup of the thesis by preset name, or from a TOML file (which may start from a preset), validated.
+
+    Parameters
+    ----------
+    name_or_toml : Setup, str or path
+        A preset name (``scopetwin presets`` lists them, e.g. ``"thesis-1.10-deflectometry"``), a TOML file, or a
+        setup (returned as it is when there are no ``overrides``).
+    overrides : dict, optional
+        Fields to change, nested as in the TOML (``{"render": {"spp": 4}}``).
+
+    Returns
+    -------
+    Setup
+        The validated setup (lengths in mm).
+
+    Raises
+    ------
+    scopetwin.scenes.setup.SetupError
+        Unknown preset, unreadable file, or a field out of range (the message names it).
+
+    Examples
+    --------
+    >>> import scopetwin
+    >>> setup = scopetwin.load_setup("thesis-1.10-deflectometry", {"render": {"spp": 4}})
+    >>> setup.render.spp
+    4
+    """
+    from scopetwin.scenes.setup import Setup as _Setup
+    from scopetwin.scenes.setup import load_setup as _load
+
+    if isinstance(name_or_toml, _Setup):
+        if not overrides:
+            return name_or_toml
+        from scopetwin.scenes.setup import setup_from_json
+
+        return _load_with(setup_from_json(name_or_toml.to_json()), overrides)
+    return _load(name_or_toml, overrides)
+
+
+def _load_with(setup: Setup, overrides: dict[str, Any]) -> Setup:
+    """``setup`` with ``overrides`` merged into its fields, validated."""
+    import json
+
+    from scopetwin.scenes.setup import setup_from_dict
+    from scopetwin.sim.datasets.config import merge
+
+    return setup_from_dict(merge(json.loads(setup.to_json()), overrides), setup.name)
+
+
+@dataclass
+class Measurement:
+    """A rendered camera image with its truth.
+
+    Attributes
+    ----------
+    image : ndarray, (rows, cols), float32
+        The camera image (digital numbers with sensor noise, or irradiance without).
+    setup : Setup
+        The setup rendered.
+    heights : HeightMap or None
+        The substrate's true surface (deflectometry), mm.
+    truth : MarkerTruth or None
+        The exact image of every marker centre (deflectometry and calibration scenes).
+    spp, seed : int
+        Samples per pixel and the seed of the render and the sensor noise.
+    seconds : float
+        Wall time of the render and the sensor model.
+    """
+
+    image: NDArray[np.float32]
+    setup: Setup
+    heights: HeightMap | None
+    truth: MarkerTruth | None
+    spp: int
+    seed: int
+    seconds: float
+
+
+def render(
+    setup: Setup | str | Path,
+    surface: HeightMap | str | Path | NDArray[Any] | None = None,
+    spp: int | None = None,
+    noise: bool = True,
+    seed: int | None = None,
+    renderer: Literal["mitsuba", "analytic"] = "mitsuba",
+) -> Measurement:
+    """Render one setup as its camera would see it, with its exact truth (``scopetwin render``).
+
+    Parameters
+    ----------
+    setup : Setup, str or path
+        A setup or what :func:`load_setup` takes.
+    surface : HeightMap, path, ndarray or None
+        The substrate's heights (deflectometry): None for the setup's own surface (seed §1.9), a height-map EXR, a
+        :class:`~scopetwin.scenes.surface.HeightMap`, or a 2-D array of heights in mm spanning the substrate (row 0
+        at its -y end, column 0 at its -x end).
+    spp : int, optional
+        Samples per pixel (default: the setup's).
+    noise : bool
+        Apply the setup's EMVA 1288 sensor model (photon and read noise, quantisation).
+    seed : int, optional
+        Seed of the render and the noise (default: the setup's); the same seed gives the same image.
+    renderer : {"mitsuba", "analytic"}
+        Mitsuba 3 (default) or the project's own ray model (§1.6), the independent cross-check.
+
+    Returns
+    -------
+    Measurement
+        ``.image`` and its truth (``.heights``, ``.truth``).
+
+    Examples
+    --------
+    >>> import scopetwin
+    >>> m = scopetwin.render("thesis-1.10-deflectometry", spp=4, seed=1)  # doctest: +SKIP
+    >>> m.image.shape  # doctest: +SKIP
+    (1024, 1360)
+    """
+    from scopetwin.sim.measurement import render_measurement
+
+    s = load_setup(setup)
+    heights = _surface(s, surface)
+    n = int(spp if spp is not None else s.render.spp)
+    sd = int(seed if seed is not None else s.render.seed)
+    image, seconds = render_measurement(s, heights, n, sd, noise, renderer)
+    return Measurement(image, s, heights, _truth(s, heights), n, sd, seconds)
+
+
+def _surface(setup: Setup, surface: HeightMap | str | Path | NDArray[Any] | None) -> HeightMap | None:
+    """The substrate's heights of :func:`render` (checked against the substrate's extent)."""
+    from scopetwin.scenes.errors import ScopetwinError
+    from scopetwin.scenes.io import read_heightmap
+    from scopetwin.scenes.surface import HeightMap as _HeightMap
+    from scopetwin.sim.surfaces import surface_for
+
+    if surface is None:
+        return surface_for(setup)
+    if setup.scene != "deflectometry" or setup.substrate is None:
+        raise ScopetwinError(f"a surface applies to deflectometry setups; {setup.name} is a {setup.scene} scene")
+    if isinstance(surface, _HeightMap):
+        return surface
+    if isinstance(surface, str | Path):
+        return read_heightmap(surface)
+    z = np.asarray(surface, dtype=np.float64)
+    if z.ndim != 2 or min(z.shape) < 4 or not np.all(np.isfinite(z)):
+        raise ScopetwinError(f"a height array must be 2-D, at least 4 x 4 and finite, got shape {z.shape}")
+    sx, sy = setup.substrate.size
+    return _HeightMap(z, -0.5 * sx, 0.5 * sx, -0.5 * sy, 0.5 * sy)
+
+
+def _truth(setup: Setup, heights: HeightMap | None) -> MarkerTruth | None:
+    """The exact marker images of a deflectometry or target scene (None for the other scenes)."""
+    from scopetwin.sim.truth import marker_truth
+
+    if setup.scene not in ("deflectometry", "target", "mirror"):
+        return None
+    return marker_truth(setup, heights)
+
+
+def reconstruct(
+    image: NDArray[Any],
+    setup: Setup | str | Path,
+    method: Literal["centroid", "inverse"] = "centroid",
+    *,
+    policy: ReconstructionPolicy | None = None,
+) -> Reconstruction:
+    """The substrate's heights from one deflectometry image (``scopetwin reconstruct``, seed §1.4-§1.8).
+
+    One strategy for every entry point (:mod:`scopetwin.recon.strategy`): the markers found and indexed, the nested
+    start-height iteration with the basis scale chosen from the data and the centroid bias corrected, every
+    fallback of the :class:`~scopetwin.recon.policy.ReconstructionPolicy` where a step fails.
+
+    Parameters
+    ----------
+    image : ndarray, (rows, cols)
+        The camera image (any scale).
+    setup : Setup, str or path
+        The (calibrated) deflectometry setup, or what :func:`load_setup` takes.
+    method : {"centroid", "inverse"}
+        The marker centroids (default) or the inverse fit of the whole image through a differentiable render
+        (slower; started from the centroid method's surface).
+    policy : ReconstructionPolicy, optional
+        The fallbacks and their thresholds (default: :data:`scopetwin.recon.policy.DEFAULT_POLICY`).
+
+    Returns
+    -------
+    Reconstruction
+        ``.height_at(x_mm, y_mm)`` (vectorised, mm), ``.heightmap()``, ``.uncertainty.absolute_um`` and
+        ``.uncertainty.shape_um`` (one standard uncertainty each), ``.strategy`` (the path taken).
+
+    Raises
+    ------
+    scopetwin.recon.errors.ReconstructionError
+        Only when every path failed; the message names what each tried.
+
+    Examples
+    --------
+    >>> import scopetwin
+    >>> m = scopetwin.render("thesis-1.10-deflectometry", spp=4, seed=1)  # doctest: +SKIP
+    >>> r = scopetwin.reconstruct(m.image, m.setup)  # doctest: +SKIP
+    >>> float(r.height_at(0.0, 0.0)), r.uncertainty.absolute_um  # doctest: +SKIP
+    """
+    from scopetwin.recon.policy import DEFAULT_POLICY
+    from scopetwin.recon.strategy import reconstruct as _reconstruct
+
+    return _reconstruct(np.asarray(image), load_setup(setup), method, policy=policy or DEFAULT_POLICY)
+
+
+def calibrate(
+    image: NDArray[Any],
+    target: Setup | str | Path,
+    *,
+    focal_length: float | None = None,
+    distortion: bool = False,
+    bias_correction: bool = True,
+) -> Calibration:
+    """One-shot camera calibration from one image of a calibration target (``scopetwin calibrate``, seed ch. 2).
+
+    Parameters
+    ----------
+    image : ndarray, (rows, cols)
+        The camera image of the target.
+    target : Setup, str or path
+        A ``target`` scene: the target's markers and pose, the camera's a-priori values.
+    focal_length : float, optional
+        A-priori focal length, mm (default: the setup camera's).
+    distortion : bool
+        Fit the radial distortion too (seed §2.5.2).
+    bias_correction : bool
+        Correct the markers' centroid bias (seed §2.8.2).
+
+    Returns
+    -------
+    Calibration
+        ``.camera`` (the calibrated :class:`~scopetwin.scenes.camera.Camera`), residuals, ``.as_dict()``, and the
+        standard uncertainties.
+
+    Examples
+    --------
+    >>> import scopetwin
+    >>> m = scopetwin.render("thesis-2.8.1-perpendicular", spp=4)  # doctest: +SKIP
+    >>> cal = scopetwin.calibrate(m.image, m.setup)  # doctest: +SKIP
+    >>> cal.camera.center  # doctest: +SKIP
+    """
+    from scopetwin.calib.oneshot.from_image import calibrate_image
+
+    cal, _ = calibrate_image(
+        np.asarray(image),
+        load_setup(target),
+        focal_length=focal_length,
+        distortion=distortion,
+        bias_correction=bias_correction,
+    )
+    return cal
+
+
+def calibrate_setup(
+    target_image: NDArray[Any],
+    mirror_image: NDArray[Any],
+    target: Setup | str | Path = "thesis-2.8.3-substrate",
+    mirror: Setup | str | Path = "thesis-2.8.3-mirror",
+    *,
+    focal_length: float | None = None,
+    bias_correction: bool = True,
+) -> CalibratedSetup:
+    """Calibrate the deflectometry setup from its two calibration images (``scopetwin calibrate-setup``, seed §2.7).
+
+    Parameters
+    ----------
+    target_image : ndarray
+        The calibration target lying on the holding frame (§2.7.1).
+    mirror_image : ndarray
+        The marker pattern seen in a flat mirror on the frame (§2.7.2).
+    target, mirror : Setup, str or path
+        The two calibration scenes (default: the seed's §2.8.3 presets).
+    focal_length : float, optional
+        A-priori focal length, mm.
+    bias_correction : bool
+        Correct the markers' centroid bias.
+
+    Returns
+    -------
+    CalibratedSetup
+        ``.setup`` (the calibrated deflectometry setup, ready for :func:`reconstruct`), ``.toml`` (its file),
+        ``.uncertainties`` (of the camera and pattern poses).
+
+    Examples
+    --------
+    >>> import scopetwin
+    >>> t = scopetwin.render("thesis-2.8.3-substrate", spp=4)  # doctest: +SKIP
+    >>> m = scopetwin.render("thesis-2.8.3-mirror", spp=4)  # doctest: +SKIP
+    >>> calibrated = scopetwin.calibrate_setup(t.image, m.image).setup  # doctest: +SKIP
+    """
+    from scopetwin.calib.setup_calibration import calibrate_setup_from_images
+
+    return calibrate_setup_from_images(
+        np.asarray(target_image),
+        np.asarray(mirror_image),
+        load_setup(target),
+        load_setup(mirror),
+        focal_length=focal_length,
+        bias_correction=bias_correction,
+    )
+
+
+def open_rig(path: str | Path) -> AbstractContextManager[Rig]:
+    """Open a rig file: simulated devices or the hardware, with the same interfaces (``scopetwin rig``).
+
+    Parameters
+    ----------
+    path : str or path
+        A rig TOML (``rigs/sim-deflectometry.toml``, ``rigs/sim-cmu.toml``, ``rigs/emulated-hardware.toml``, or your
+        own with real ports).
+
+    Returns
+    -------
+    context manager of Rig
+        ``with`` gives the rig, its devices initialised: ``rig.devices`` by name (cameras, stages, focus drives,
+        lights, shutters, trigger); on every exit — an error or a signal included — every light is off, every
+        shutter closed and every port closed.
+
+    Examples
+    --------
+    >>> import scopetwin
+    >>> with scopetwin.open_rig("rigs/sim-deflectometry.toml") as rig:  # doctest: +SKIP
+    ...     print(sorted(rig.devices))
+    """
+    from scopetwin.instrument.rig import open_rig as _open
+
+    return _open(path)
+
+
+def open_dataset(path: str | Path) -> Dataset:
+    """A dataset written by ``scopetwin dataset generate``, as a lazy sequence of samples.
+
+    Parameters
+    ----------
+    path : str or path
+        The dataset folder (it holds ``dataset.json`` and ``samples/``).
+
+    Returns
+    -------
+    Dataset
+        ``len(ds)``, ``ds[i]``, ``ds[a:b]``, iteration; each sample has ``.image``, ``.truth``, ``.setup``, ``.meta``
+        read from its files when first asked for. A ``torch.utils.data.DataLoader`` takes it as a map-style dataset.
+
+    Examples
+    --------
+    >>> import scopetwin
+    >>> ds = scopetwin.open_dataset("ds-deflectometry")  # doctest: +SKIP
+    >>> sample = ds[0]  # doctest: +SKIP
+    >>> sample.image.shape  # doctest: +SKIP
+    """
+    from scopetwin.sim.datasets.reader import open_dataset as _open
+
+    return _open(path)

@@ -1,0 +1,135 @@
+"""The one reconstruction strategy (recon.strategy) and its policy (recon.policy): every fallback named, taken in
+order, recorded in the result, and one error naming every path when all failed (issue 22, item 3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from scopetwin.recon.errors import TooFewMarkersError
+from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
+from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor
+from scopetwin.recon.strategy import reconstruct_markers, solve
+from scopetwin.scenes.setup import load_setup
+from scopetwin.scenes.surface import HeightMap
+from scopetwin.sim.surfaces import make_surface
+from scopetwin.sim.truth import marker_truth
+
+SETUP = load_setup("thesis-1.10-deflectometry")
+
+
+@pytest.fixture(scope="module")
+def exact() -> tuple[HeightMap, MarkerObservations]:
+    """Exact marker images of the preset's §1.9 surface (the truth tracer, no renderer)."""
+    heights = make_surface(SETUP.substrate.surface, SETUP.substrate)
+    t = marker_truth(SETUP, heights)
+    return heights, MarkerObservations(t.ij[t.visible], t.center_px[t.visible])
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"lattice_below": 1.5},
+        {"outlier_factor": -1.0},
+        {"outlier_max_fraction": 1.0},
+        {"slope_range": (5.0, 0.2)},
+        {"inverse_starts": ()},
+    ],
+)
+def test_a_policy_out_of_range_is_refused(changes):
+    with pytest.raises(ValueError):
+        ReconstructionPolicy(**changes)
+
+
+def test_the_result_says_which_path_it_took(exact):
+    heights, obs = exact
+    res = reconstruct_markers(SETUP, obs)
+    assert res.converged and res.strategy, res.strategy
+    assert res.strategy[0].startswith("start-height search, basis scale 12 mm: converged")
+    assert any("posterior" in step for step in res.strategy)
+    assert res.summary()["strategy"] == res.strategy
+    # the result's heights are the surface's, vectorised over any shape
+    x, y = np.meshgrid(np.linspace(-10, 10, 3), np.linspace(-20, 20, 4))
+    assert res.height_at(x, y).shape == (4, 3)
+    assert np.allclose(res.height_at(x, y), res.surface.height(x, y))
+    err = res.height_at(x, y) - heights.height(x, y)
+    assert np.abs(err - err.mean()).max() < 1e-3  # mm: the shape within a micrometre
+
+
+def test_the_policy_turns_a_fallback_off(exact):
+    _, obs = exact
+    off = DEFAULT_POLICY.with_changes(rechoose_scale=False)
+    res = solve(Reconstructor.from_setup(SETUP), obs, off)
+    assert not any("chosen on the data" in step for step in res.strategy)
+    assert {s.sigma_mm for s in res.history} == {12.0}  # the default scale kept throughout
+
+
+def test_one_error_names_every_path_tried(exact):
+    """Markers only in the middle of the substrate: the default scale loses the frame regions, the flat start's
+    scale choice cannot help; the one error says both."""
+    _, obs = exact
+    keep = np.abs(obs.ij[:, 1]) <= 3
+    middle = MarkerObservations(obs.ij[keep], obs.px[keep])
+    with pytest.raises(TooFewMarkersError) as info:
+        reconstruct_markers(SETUP, middle)
+    msg = str(info.value)
+    assert "frame region" in msg and "[tried: start-height search" in msg and "flat start" in msg
+
+
+def test_inverse_start_falls_back_in_order(monkeypatch):
+    """The centroid method with its bias step; without it; a coarse fit of the markers; a plane — each taken only
+    where the ones before failed, and what failed is said."""
+    import scopetwin.recon.markers as markers_mod
+    from scopetwin.recon import strategy
+    from scopetwin.recon.bias import BiasError
+    from scopetwin.recon.errors import TooFewMarkersError
+    from scopetwin.recon.reconstruct import Reconstructor
+
+    setup = load_setup("thesis-1.10-deflectometry")
+    image = np.zeros((setup.camera_model.ny, setup.camera_model.nx))
+
+    class Result:
+        surface = "centroid surface"
+        uncertainty = None
+        strategy: list[str] = []
+
+    calls: list[object] = []
+
+    def bias_fails(image, setup, config, policy):
+        calls.append(policy.bias_step)
+        if policy.bias_step:
+            raise BiasError("the model's map from pixels to the pattern is singular at a marker")
+        return strategy.ImageReconstruction("markers", Result(), None)
+
+    monkeypatch.setattr(strategy, "reconstruct_image", bias_fails)
+    start = strategy.inverse_start(image, setup)
+    assert start.kind == "centroid-unbiased" and start.holds_height and start.absolute == "start"
+    assert calls == [True, False] and "singular" in start.note
+
+    def both_fail(image, setup, config, policy):
+        raise TooFewMarkersError("only 0 markers within 6.0 mm of frame region 1")
+
+    class Found:
+        ij = np.zeros((0, 2), dtype=np.int64)
+        centroids = np.zeros((0, 2))
+
+    monkeypatch.setattr(strategy, "reconstruct_image", both_fail)
+    monkeypatch.setattr(markers_mod, "find_markers_for", lambda image, setup, **kw: Found())
+    monkeypatch.setattr(Reconstructor, "coarse_surface", lambda self, obs, *a: "coarse surface")
+    start = strategy.inverse_start(image, setup)
+    assert (start.kind, start.surface, start.holds_height) == ("coarse", "coarse surface", True)
+    assert start.note.count("TooFewMarkersError") == 2
+
+    def no_markers(image, setup, **kw):
+        raise markers_mod.MarkerError("too few markers left after filtering (0)")
+
+    monkeypatch.setattr(markers_mod, "find_markers_for", no_markers)
+    start = strategy.inverse_start(image, setup)
+    assert start.kind == "plane" and start.surface is None and "too few markers" in start.note
+    assert not start.holds_height and start.absolute == "frame"  # from a plane the height is searched
+
+    # the policy decides which starts there are: without the bias step the biased one is never tried
+    calls.clear()
+    monkeypatch.setattr(strategy, "reconstruct_image", bias_fails)
+    start = strategy.inverse_start(image, setup, policy=strategy.DEFAULT_POLICY.with_changes(bias_step=False))
+    assert calls == [False] and start.kind == "centroid"
