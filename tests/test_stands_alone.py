@@ -2,8 +2,8 @@
 
 * No tracked file refers to the steering's design note, to its rendering notes, or to paths outside the
   repository (the folder beside it, the seed's text file): the project's own pages in ``docs/`` say all of it.
-* ``docs/contract.md`` has every section that code and users cite by name, and every section that a file cites as
-  ``(docs/contract.md, "NAME")`` or ``(docs/rendering.md, "NAME")`` exists.
+* ``docs/contract.md`` has every section that code and users cite by name, and every section of
+  ``docs/contract.md`` or ``docs/rendering.md`` that a tracked file cites by its quoted name exists.
 """
 
 from __future__ import annotations
