@@ -26,13 +26,22 @@ EMULATOR_PACKAGE = "scopetwin.instrument.emulators"
 def open_transport(port: str, *, baudrate: int = 115200, timeout_s: float = 1.0, **kwargs: Any) -> serial.Serial:
     """Open ``port`` (a device path or any pyserial URL) and return the pyserial object.
 
-    ``emu://NAME`` URLs start an in-process wire-protocol emulator on a pseudo-terminal.
+    ``emu://NAME`` URLs start an in-process wire-protocol emulator on a pseudo-terminal (POSIX only).
 
     Raises
     ------
     DisconnectedError
         If the port cannot be opened.
+    EmulatorUnavailable
+        ``port`` is an ``emu://`` URL and the platform has no POSIX pseudo-terminal (Windows).
     """
+    if port.lower().startswith("emu://"):
+        from scopetwin.instrument.emulators.base import EmulatorUnavailable, require_pty
+
+        try:
+            require_pty()
+        except EmulatorUnavailable as exc:
+            raise EmulatorUnavailable(f"port {port!r}: {exc}") from None
     if EMULATOR_PACKAGE not in serial.protocol_handler_packages:
         serial.protocol_handler_packages.append(EMULATOR_PACKAGE)
     try:

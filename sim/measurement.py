@@ -16,7 +16,6 @@ clean-up in another process removes only stages of dead processes (:func:`remove
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import importlib.metadata as md
 import os
 import shutil
@@ -169,8 +168,21 @@ def deferred_commits() -> Iterator[list[StagedOutput]]:
                 stage.discard()
 
 
+def _flock() -> Any:
+    """:mod:`fcntl` on POSIX; None where the platform has no ``flock`` (Windows: staging folders are not locked)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        return None
+    return fcntl
+
+
 def _lock_folder(folder: Path) -> int | None:
-    """An open descriptor of ``folder`` holding an exclusive flock on it (None where the file system has none)."""
+    """An open descriptor of ``folder`` holding an exclusive flock on it (None where the file system or the
+    platform has none)."""
+    fcntl = _flock()
+    if fcntl is None:  # pragma: no cover - not POSIX
+        return None
     fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -191,8 +203,15 @@ def _same_folder(fd: int, path: Path) -> bool:
 def remove_stale_stage(folder: Path) -> bool:
     """Remove a staging folder unless a live process holds its lock (:class:`StagedOutput` ``lock=True``).
 
-    Returns True when the folder was removed (or was already gone), False when it is in use.
+    Returns True when the folder was removed (or was already gone), False when it is in use. Where the platform
+    has no ``flock`` (Windows) no stage is locked, and every staging folder counts as stale.
     """
+    fcntl = _flock()
+    if fcntl is None:  # pragma: no cover - not POSIX
+        shutil.rmtree(folder, ignore_errors=True)
+        with contextlib.suppress(OSError):
+            folder.unlink()  # a stray file
+        return True
     try:
         fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
     except FileNotFoundError:

@@ -8,9 +8,10 @@ dataset sample listed in the manifest. Python turns SIGINT into :class:`Keyboard
 or ``finally`` clean-up of the package (and of the instrument layer, which catches ``KeyboardInterrupt`` to switch
 lights off) runs for all three signals, and :func:`exit_status` gives the shell's convention, 128 + n.
 
-:func:`deferred_signals` protects a short clean-up (writing the manifest lines of finished samples) from a second
-signal: signals that arrive inside the block are held and raised when it ends, or dropped when the block runs because
-of an earlier interruption. :func:`ignore_interrupts_in_worker` is run by every Dask worker process the package starts
+:func:`deferred_signals` (the one implementation, :mod:`scopetwin.instrument.interrupts`, re-exported here) protects a
+short clean-up (writing the manifest lines of finished samples) from a second signal: signals that arrive inside the
+block are held and delivered to these handlers when it ends, or dropped when the block runs because of an earlier
+interruption. :func:`ignore_interrupts_in_worker` is run by every Dask worker process the package starts
 (a Dask *preload*): the client, not each worker, handles Ctrl-C, so a terminal's SIGINT to the whole process group
 prints no worker tracebacks.
 """
@@ -19,16 +20,18 @@ from __future__ import annotations
 
 import contextlib
 import signal
-import sys
 import threading
-from collections.abc import Callable, Iterator, Sequence
-from types import FrameType, TracebackType
+from collections.abc import Iterator, Sequence
+from types import FrameType
 from typing import Any
 
-#: The signals that :func:`terminate_on_signals` turns into :class:`Terminated` (SIGINT stays KeyboardInterrupt).
-TERMINATING: tuple[signal.Signals, ...] = (signal.SIGTERM, signal.SIGHUP)
-#: Every signal the policy covers.
-INTERRUPTING: tuple[signal.Signals, ...] = (signal.SIGINT, *TERMINATING)
+from scopetwin.instrument.interrupts import HELD_SIGNALS, available_signals, deferred_signals
+
+#: The signals that :func:`terminate_on_signals` turns into :class:`Terminated` (SIGINT stays KeyboardInterrupt);
+#: SIGHUP only where the platform has it (not on Windows).
+TERMINATING: tuple[signal.Signals, ...] = available_signals("SIGTERM", "SIGHUP")
+#: Every signal the policy covers (those :func:`deferred_signals` holds).
+INTERRUPTING: tuple[signal.Signals, ...] = HELD_SIGNALS
 
 
 def signal_name(signum: int) -> str:
@@ -87,7 +90,8 @@ def terminate_on_signals(signals: Sequence[int] = TERMINATING) -> Iterator[None]
     previous: dict[int, Any] = {}
     try:
         for s in signals:
-            if signal.getsignal(s) is not signal.SIG_IGN:
+            current = signal.getsignal(s)
+            if current is not signal.SIG_IGN and current is not None:  # None: not installed from Python, kept
                 previous[s] = signal.signal(s, _raise_terminated)
         yield
     finally:
@@ -95,55 +99,10 @@ def terminate_on_signals(signals: Sequence[int] = TERMINATING) -> Iterator[None]
             signal.signal(s, handler)
 
 
-class deferred_signals:  # noqa: N801 - used like a function: ``with deferred_signals():``
-    """Hold SIGINT, SIGTERM and SIGHUP during a short clean-up; raise the first one when the block ends.
-
-    When the block itself runs because of an earlier interruption (inside an ``except``/``finally`` of it) or raises,
-    a held signal is dropped: the command is already stopping. ``on_signal(signum)`` is called as each one arrives;
-    :meth:`interruption` gives the exception to raise for a caller that must tidy up first. Outside the main thread
-    this does nothing.
-    """
-
-    def __init__(self, on_signal: Callable[[int], None] | None = None) -> None:
-        self.pending: list[int] = []
-        self.on_signal = on_signal
-        self._previous: dict[int, Any] = {}
-
-    def _hold(self, signum: int, frame: FrameType | None) -> None:
-        self.pending.append(signum)
-        if self.on_signal is not None:
-            self.on_signal(signum)
-
-    def interruption(self) -> KeyboardInterrupt | None:
-        """The exception of the first held signal (:class:`Terminated`, or KeyboardInterrupt for SIGINT), or None."""
-        if not self.pending:
-            return None
-        first = self.pending[0]
-        return KeyboardInterrupt() if first == signal.SIGINT else Terminated(first)
-
-    def __enter__(self) -> deferred_signals:
-        if _in_main_thread():
-            for s in INTERRUPTING:
-                current = signal.getsignal(s)
-                if current not in (signal.SIG_IGN, signal.SIG_DFL, None):
-                    self._previous[s] = signal.signal(s, self._hold)
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        for s, handler in self._previous.items():
-            signal.signal(s, handler)
-        self._previous.clear()
-        interruption = self.interruption()
-        if interruption is not None and exc_type is None and sys.exc_info()[1] is None:
-            raise interruption
-
-
 def ignore_interrupts_in_worker() -> None:
     """In a worker process: ignore SIGINT and SIGHUP (the client stops its workers; SIGTERM still ends one)."""
     if _in_main_thread():
-        for s in (signal.SIGINT, signal.SIGHUP):
+        for s in available_signals("SIGINT", "SIGHUP"):
             signal.signal(s, signal.SIG_IGN)
 
 
@@ -151,3 +110,18 @@ def dask_setup(worker: Any = None) -> None:
     """Dask preload hook (``distributed.worker.preload = ["scopetwin.sim.signals"]``):
     :func:`ignore_interrupts_in_worker`."""
     ignore_interrupts_in_worker()
+
+
+__all__ = [
+    "INTERRUPTING",
+    "TERMINATING",
+    "Terminated",
+    "dask_setup",
+    "deferred_signals",
+    "describe",
+    "exit_status",
+    "ignore_interrupts_in_worker",
+    "interrupt_signal",
+    "signal_name",
+    "terminate_on_signals",
+]

@@ -16,6 +16,10 @@ reply and hangs the line up.
 simulated devices of the same rig); :attr:`PtyEmulator.on_request`, when set,
 is called after every request with ``(request, reply, state)`` — the hook behind
 ``scopetwin emulate --log`` (:func:`scopetwin.instrument.emulators.serve.serve`).
+
+Pseudo-terminals are POSIX (Linux, macOS): elsewhere (Windows) the emulators import, but starting one
+(``scopetwin emulate``, a rig with an ``emu://`` port) raises :class:`EmulatorUnavailable` with one line
+(:func:`require_pty`).
 """
 
 from __future__ import annotations
@@ -25,11 +29,43 @@ import os
 import select
 import threading
 import time
-import tty
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+
+from scopetwin.instrument.errors import InstrumentError
+
+#: The one line said where an emulator is started on a platform without pseudo-terminals.
+NO_PTY = "emulators need a POSIX pseudo-terminal (Linux, macOS); not available on this platform"
+
+
+class EmulatorUnavailable(InstrumentError):
+    """This platform has no POSIX pseudo-terminal (Windows), so no wire-protocol emulator can run here."""
+
+
+def pty_available() -> bool:
+    """Whether this platform has POSIX pseudo-terminals (:func:`os.openpty`, :mod:`tty`, :mod:`termios`)."""
+    if not hasattr(os, "openpty") or not hasattr(os, "ttyname"):
+        return False
+    try:
+        import termios  # noqa: F401 - only whether it imports
+        import tty  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def require_pty() -> None:
+    """Raise :class:`EmulatorUnavailable` (one line) where the platform has no POSIX pseudo-terminal.
+
+    Raises
+    ------
+    EmulatorUnavailable
+        Not on a POSIX platform (Windows).
+    """
+    if not pty_available():
+        raise EmulatorUnavailable(NO_PTY)
 
 
 class Fault(enum.Enum):
@@ -77,7 +113,16 @@ class PtyEmulator:
 
     # lifecycle ---------------------------------------------------------------------------------
     def start(self) -> str:
-        """Open the pseudo-terminal, start answering, and return the slave's path."""
+        """Open the pseudo-terminal, start answering, and return the slave's path.
+
+        Raises
+        ------
+        EmulatorUnavailable
+            The platform has no POSIX pseudo-terminal (Windows).
+        """
+        require_pty()
+        import tty
+
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
         tty.setraw(self._master)

@@ -14,10 +14,13 @@ from __future__ import annotations
 import urllib.parse
 from typing import Any
 
-from serial.serialposix import Serial as PosixSerial
-
-from scopetwin.instrument.emulators.base import PtyEmulator
+from scopetwin.instrument.emulators.base import PtyEmulator, require_pty
 from scopetwin.instrument.errors import RigError
+
+try:
+    from serial.serialposix import Serial as PortBase
+except ImportError:  # no termios/fcntl (Windows): the class imports, and opening it says emulators need a pty
+    from serial import Serial as PortBase
 
 
 def option_value(key: str, text: str) -> Any:
@@ -45,16 +48,23 @@ def parse_url(url: str) -> tuple[str, dict[str, Any]]:
     return name, options
 
 
-class Serial(PosixSerial):
+class Serial(PortBase):
     """A pyserial port whose other end is an in-process emulator."""
 
     emulator: PtyEmulator | None = None
     portstr: str
 
     def open(self) -> None:
-        """Start the emulator named by the URL and open its pseudo-terminal."""
+        """Start the emulator named by the URL and open its pseudo-terminal.
+
+        Raises
+        ------
+        EmulatorUnavailable
+            The platform has no POSIX pseudo-terminal (Windows).
+        """
         from scopetwin.instrument.emulators import EMULATORS
 
+        require_pty()
         url = self.portstr
         name, options = parse_url(url)
         if name not in EMULATORS:

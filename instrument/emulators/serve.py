@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from scopetwin.instrument.emulators import EMULATORS
-from scopetwin.instrument.emulators.base import PtyEmulator
+from scopetwin.instrument.emulators.base import PtyEmulator, require_pty
 from scopetwin.instrument.emulators.protocol_emu import option_value
 from scopetwin.instrument.errors import RigError
 
@@ -104,7 +104,15 @@ def serve(
     -------
     dict
         ``{"emulator": kind, "port": path, "requests": n, "state": {...}}`` after stopping.
+
+    Raises
+    ------
+    EmulatorUnavailable
+        The platform has no POSIX pseudo-terminal (Windows).
+    RigError
+        Unknown kind or option.
     """
+    require_pty()  # before the log file is opened: nothing is left behind where emulators cannot run
     emulator = make_emulator(kind, options)
     stop = stop or threading.Event()
     counter = {"n": 0}

@@ -148,14 +148,15 @@ def _start_resource_tracker(resource_tracker: Any) -> None:
     import signal
     import threading
 
-    if threading.current_thread() is not threading.main_thread():
+    hup = getattr(signal, "SIGHUP", None)  # POSIX only
+    if hup is None or threading.current_thread() is not threading.main_thread():
         resource_tracker.ensure_running()
         return
-    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)  # inherited by the tracker process
+    previous = signal.signal(hup, signal.SIG_IGN)  # inherited by the tracker process
     try:
         resource_tracker.ensure_running()
     finally:
-        signal.signal(signal.SIGHUP, previous)
+        signal.signal(hup, previous)
 
 
 def _close_quietly(*closables: Any, interrupted: bool) -> None:
