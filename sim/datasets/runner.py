@@ -171,44 +171,33 @@ def _close_quietly(*closables: Any, interrupted: bool) -> None:
                     raise
 
 
-@contextlib.contextmanager
-def dask_client(scheduler: str | None = None, workers: int | None = None) -> Iterator[Any]:
-    """A Dask client: on ``scheduler`` (an existing cluster, unchanged) or on an embedded LocalCluster.
-
-    The local cluster has ``workers`` worker processes (default: one per core) with one thread each,
-    started with ``spawn`` (Mitsuba's plugin registry is per thread and does not survive ``fork``),
-    and listens on 127.0.0.1 only, without a dashboard. Its workers ignore SIGINT and SIGHUP
-    (:func:`scopetwin.sim.signals.dask_setup`, a worker preload): the client handles an interruption, cancels its
-    work and closes the cluster without distributed's logs, so Ctrl-C prints no worker tracebacks.
-
-    Raises
-    ------
-    DatasetError
-        Dask is not installed, or the scheduler address is malformed or does not answer.
-    """
+def _require_distributed() -> None:
+    """Raise a :class:`DatasetError` that says what to do when Dask distributed is not installed."""
     try:
-        import dask
-        from distributed import Client, LocalCluster
+        import dask  # noqa: F401
+        from distributed import Client, LocalCluster  # noqa: F401
     except ImportError as exc:
         raise DatasetError(
             f"Dask distributed is not installed ({exc}); install dask[distributed] or use "
             "--workers 0 to work in this process"
         ) from None
-    if scheduler:
-        check_scheduler(scheduler)
-        try:
-            client: Any = Client(scheduler, timeout="30s")
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise DatasetError(f"cannot connect to the Dask scheduler {scheduler}: {exc}") from None
-        interrupted = False
-        try:
-            yield client
-        except BaseException as exc:
-            interrupted = isinstance(exc, KeyboardInterrupt)
-            raise
-        finally:
-            _close_quietly(client, interrupted=interrupted)
-        return
+
+
+def _connect(scheduler: str) -> Any:
+    """A client of the existing cluster at ``scheduler`` (its address checked first)."""
+    from distributed import Client
+
+    check_scheduler(scheduler)
+    try:
+        return Client(scheduler, timeout="30s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise DatasetError(f"cannot connect to the Dask scheduler {scheduler}: {exc}") from None
+
+
+def _start_local_cluster(workers: int | None) -> tuple[Any, Any]:
+    """Start the embedded LocalCluster and its client (see :func:`dask_client`), holding signals until both run."""
+    import dask
+
     from scopetwin.sim.signals import deferred_signals
 
     # A signal while the cluster starts is held (an interrupted start leaves half-started nannies that log
@@ -226,30 +215,74 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
             }
         ),
     ):
-        cluster: Any = None
-        client = None
-        try:
-            cluster = LocalCluster(
-                n_workers=workers or default_workers(),
-                threads_per_worker=1,
-                processes=True,
-                host="127.0.0.1",
-                dashboard_address=None,
-                scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},  # its HTTP endpoint: any free local port
-                silence_logs=logging.CRITICAL,  # a closing cluster logs errors (heartbeats) in every worker
-            )
-            client = Client(cluster)
-        except Exception:
-            if cluster is not None:
-                _close_quietly(cluster, interrupted=True)
-            stop = shield.interruption()
-            if stop is not None:  # e.g. SIGTERM to the process group killed the starting workers
-                raise stop from None
-            raise
+        client, cluster = _new_local_cluster(workers, shield)
         stop = shield.interruption()
         if stop is not None:
             _close_quietly(client, cluster, interrupted=True)
             raise stop
+    return client, cluster
+
+
+def _new_local_cluster(workers: int | None, shield: Any) -> tuple[Any, Any]:
+    """Create the LocalCluster and its client; a failed start closes what started, then raises (a held signal first)."""
+    from distributed import Client, LocalCluster
+
+    cluster: Any = None
+    try:
+        cluster = LocalCluster(
+            n_workers=workers or default_workers(),
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},  # its HTTP endpoint: any free local port
+            silence_logs=logging.CRITICAL,  # a closing cluster logs errors (heartbeats) in every worker
+        )
+        client = Client(cluster)
+    except Exception:
+        if cluster is not None:
+            _close_quietly(cluster, interrupted=True)
+        stop = shield.interruption()
+        if stop is not None:  # e.g. SIGTERM to the process group killed the starting workers
+            raise stop from None
+        raise
+    return client, cluster
+
+
+@contextlib.contextmanager
+def dask_client(scheduler: str | None = None, workers: int | None = None) -> Iterator[Any]:
+    """A Dask client: on ``scheduler`` (an existing cluster, unchanged) or on an embedded LocalCluster.
+
+    The local cluster has ``workers`` worker processes (default: one per core) with one thread each,
+    started with ``spawn`` (Mitsuba's plugin registry is per thread and does not survive ``fork``),
+    and listens on 127.0.0.1 only, without a dashboard. Its workers ignore SIGINT and SIGHUP
+    (:func:`scopetwin.sim.signals.dask_setup`, a worker preload): the client handles an interruption, cancels its
+    work and closes the cluster without distributed's logs, so Ctrl-C prints no worker tracebacks.
+
+    Parameters
+    ----------
+    scheduler : str, optional
+        Address of an existing scheduler (``tcp://host:8786``); None starts an embedded local cluster.
+    workers : int, optional
+        Worker processes of the local cluster (default: :func:`default_workers`).
+
+    Yields
+    ------
+    distributed.Client
+        The client; on exit it is closed, and so is the local cluster (quietly after a Ctrl-C).
+
+    Raises
+    ------
+    DatasetError
+        Dask is not installed, or the scheduler address is malformed or does not answer.
+    """
+    _require_distributed()
+    if scheduler:
+        client = _connect(scheduler)
+        closables: tuple[Any, ...] = (client,)
+    else:
+        client, cluster = _start_local_cluster(workers)
+        closables = (client, cluster)
     interrupted = False
     try:
         yield client
@@ -257,7 +290,7 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
         interrupted = isinstance(exc, KeyboardInterrupt)
         raise
     finally:
-        _close_quietly(client, cluster, interrupted=interrupted)
+        _close_quietly(*closables, interrupted=interrupted)
 
 
 class TaskFailure(ScopetwinError):
