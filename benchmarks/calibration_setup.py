@@ -1,7 +1,8 @@
 """Setup calibration (seed §2.7, §2.8.3) from Mitsuba renders: deviations beside the seed's Tables 2.5 and 2.6.
 
-Renders the substrate-target and mirror scenes, finds and indexes the markers (recon.markers), calibrates
-camera and pattern in several variants (the seed's per-view thin-lens b; shared b; with and without the
+Renders the substrate-target and mirror scenes, finds and indexes the markers (recon.markers, through
+:func:`scopetwin.calib.setup_calibration.calibrate_setup_from_images`), calibrates camera and pattern in several
+variants (the seed's per-view thin-lens b; shared b; with and without the
 centroid-bias correction), and compares OpenCV's solvePnP on the same detected centroids.
 Run: ``PYTHONPATH=. python benchmarks/calibration_setup.py [--spp 64]``.
 """
@@ -20,10 +21,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from calibration_common import fmt, frame_dev, pose_error, solvepnp  # noqa: E402
 
-from scopetwin.calib.oneshot import CalibrationWarning, Prior  # noqa: E402
-from scopetwin.calib.setup_calibration import calibrate_setup, mirror_prior, virtual_coordinates  # noqa: E402
-from scopetwin.recon.bias import spot_bias_model  # noqa: E402
-from scopetwin.recon.markers import find_markers_for  # noqa: E402
+from scopetwin.calib.oneshot import CalibrationWarning  # noqa: E402
+from scopetwin.calib.setup_calibration import calibrate_setup, calibrate_setup_from_images  # noqa: E402
 from scopetwin.scenes.mitsuba.render import render_setup  # noqa: E402
 from scopetwin.scenes.setup import load_setup  # noqa: E402
 from scopetwin.sim.truth import marker_truth  # noqa: E402
@@ -58,7 +57,9 @@ def main() -> None:
     img_s = render_setup(ss, None, spp=args.spp, seed=1)
     img_m = render_setup(sm, None, spp=args.spp, seed=2)
     print(f"rendered both scenes at {args.spp} spp in {time.perf_counter() - t0:.1f} s")
-    fs, fm = find_markers_for(img_s, ss), find_markers_for(img_m, sm)
+    # markers, their plane coordinates, priors and bias models as the calibration of the setup takes them (§2.7)
+    cal = calibrate_setup_from_images(img_s, img_m, ss, sm)
+    fs, fm = cal.target.markers, cal.mirror.markers
     ts, tm = marker_truth(ss), marker_truth(sm)
     for name, f, t in (("substrate", fs, ts), ("mirror", fm, tm)):
         lut = {tuple(k): n for n, k in enumerate(t.ij)}
@@ -67,11 +68,10 @@ def main() -> None:
             f"{name}: {len(f)} markers, centroid - truth: rms {np.sqrt(np.mean(np.sum(d**2, 1))):.4f} px, "
             f"mean {fmt(d.mean(0), digits=2)} px"
         )
-    xs = ss.marker_pattern.centers_local(fs.ij)
-    xm = virtual_coordinates(sm.marker_pattern, fm.ij)
-    ps, pm = Prior.from_camera(ss.camera_model, 25.0), mirror_prior(sm)
-    bs = spot_bias_model(xs, ss.marker_pattern.radii(fs.ij))
-    bm = spot_bias_model(xm, sm.marker_pattern.radii(fm.ij))
+    xs, xm = cal.target.xy, cal.mirror.xy
+    ps, pm = cal.target.prior, cal.mirror.prior
+    bs, bm = cal.target.bias, cal.mirror.bias
+    assert bs is not None and bm is not None
     cam_t, pat_t = ss.camera_model.frame, sm.marker_pattern.frame
     variants = [
         ("seed: thin-lens b per view, raw centroids", dict(lens="thin-lens", share_intrinsics=False)),

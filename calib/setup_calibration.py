@@ -19,6 +19,11 @@ nearly face-on in the mirror, where b cannot be told from the distance.
 
 The result is written as a setup TOML (:func:`write_setup_toml`) that
 :func:`scopetwin.scenes.setup.load_setup` reads back.
+
+:func:`calibrate_setup_from_images` is the whole job from the two calibration images to the calibrated setup and
+its TOML text (markers found and indexed with :mod:`scopetwin.recon.markers`, centroid bias corrected with
+:func:`scopetwin.recon.bias.spot_bias_model`); ``scopetwin run``, ``scopetwin calibrate-setup``, the ``thesis``
+study and ``benchmarks/calibration_setup.py`` all call it.
 """
 
 from __future__ import annotations
@@ -26,18 +31,29 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from scopetwin.calib.oneshot import Calibration, CalibrationError, LensMode, Prior, calibrate, calibrate_bias_corrected
+from scopetwin.calib.oneshot import (
+    MIN_MARKERS,
+    Calibration,
+    CalibrationError,
+    LensMode,
+    Prior,
+    calibrate,
+    calibrate_bias_corrected,
+)
 from scopetwin.scenes.camera import Camera
 from scopetwin.scenes.geometry import Array, Frame
 from scopetwin.scenes.pattern import MarkerPattern
 from scopetwin.scenes.setup import Setup
+
+if TYPE_CHECKING:
+    from scopetwin.recon.markers import Markers
 
 BiasModel = Callable[[Camera], Array]
 
@@ -317,14 +333,206 @@ def pose_uncertainties(result: SetupCalibration) -> dict[str, Any] | None:
     }
 
 
+#: The first line of the TOML that ``scopetwin calibrate-setup`` writes.
+CALIBRATE_SETUP_COMMENT = "scopetwin calibrate-setup: deflectometry setup calibrated as in seed §2.7"
+
+
+def calibrated_setup(nominal: Setup, result: SetupCalibration, comment: str) -> tuple[Setup, str]:
+    """The calibrated setup (validated) and its TOML text headed by ``comment`` (:func:`calibrated_setup_dict`)."""
+    from scopetwin.scenes.setup import setup_from_dict
+
+    data = calibrated_setup_dict(nominal, result)
+    setup = setup_from_dict(data, "calibrated setup")  # validate before anything is written
+    return setup, toml_dumps(data, comment)
+
+
 def write_setup_toml(path: str | Path, nominal: Setup, result: SetupCalibration) -> str:
     """Write the calibrated setup as TOML (atomically) and return the text; :func:`scopetwin.scenes.setup.load_setup`
     reads it."""
     from scopetwin.scenes.io import write_text_atomic
-    from scopetwin.scenes.setup import setup_from_dict
 
-    data = calibrated_setup_dict(nominal, result)
-    setup_from_dict(data, "calibrated setup")  # validate before anything is written
-    text = toml_dumps(data, "scopetwin calibrate-setup: deflectometry setup calibrated as in seed §2.7")
+    text = calibrated_setup(nominal, result, CALIBRATE_SETUP_COMMENT)[1]
     write_text_atomic(path, text)
     return text
+
+
+# -- from the two calibration images ------------------------------------------------------------
+@dataclass(frozen=True)
+class CalibrationView:
+    """One calibration image as it entered the calibration (seed §2.7.1 or §2.7.2).
+
+    Attributes
+    ----------
+    markers : Markers
+        The markers found and indexed in the image (:func:`scopetwin.recon.markers.find_markers_for`).
+    xy : ndarray, (n, 2)
+        Their centres in the view's plane coordinates, mm: the target's (§2.7.1) or the virtual pattern's
+        (:func:`virtual_coordinates`, §2.7.2).
+    prior : Prior
+        The a-priori camera values of the view (N_z estimate in the view's plane coordinates).
+    bias : callable or None
+        The centroid-bias model of the markers (:func:`scopetwin.recon.bias.spot_bias_model`); None with the bias
+        correction off.
+    """
+
+    markers: Markers
+    xy: Array
+    prior: Prior
+    bias: BiasModel | None
+
+
+@dataclass(frozen=True)
+class CalibratedSetup:
+    """The deflectometry setup calibrated from the two calibration images (seed §2.7).
+
+    Attributes
+    ----------
+    calibration : SetupCalibration
+        Camera and pattern in the global frame and both one-shot calibrations (:func:`calibrate_setup`).
+    setup : Setup
+        The calibrated deflectometry setup: the nominal setup with the calibrated camera and pattern and the
+        ``[calibration]`` pose uncertainties (:func:`calibrated_setup_dict`).
+    toml : str
+        Its TOML text (:func:`toml_dumps`), read back by :func:`scopetwin.scenes.setup.load_setup`.
+    uncertainties : dict or None
+        Standard deviations of the camera and pattern poses (:func:`pose_uncertainties`; None where a calibration
+        left one undetermined).
+    target, mirror : CalibrationView
+        The substrate-target view (§2.7.1) and the mirror view (§2.7.2) as calibrated.
+    """
+
+    calibration: SetupCalibration
+    setup: Setup
+    toml: str
+    uncertainties: dict[str, Any] | None
+    target: CalibrationView
+    mirror: CalibrationView
+
+
+def _check_setups(target_setup: Setup, mirror_setup: Setup) -> None:
+    if mirror_setup.scene != "mirror":
+        raise CalibrationError(
+            f"the pattern setup {mirror_setup.name} is a {mirror_setup.scene} scene; the mirror image needs "
+            "a mirror scene (seed §2.7.2)"
+        )
+    if target_setup.scene != "target":
+        raise CalibrationError(
+            f"the target setup {target_setup.name} is a {target_setup.scene} scene, not a calibration target"
+        )
+
+
+def _check_image_format(image: Any, prior: Prior, name: str) -> None:
+    shape = np.shape(image)
+    if shape != (prior.ny, prior.nx):
+        raise CalibrationError(
+            f"{name} has {shape[1]} x {shape[0]} pixels but the setup's camera has {prior.nx} x {prior.ny}"
+        )
+
+
+def _priors(
+    target_setup: Setup, mirror_setup: Setup, focal_length: float | None, pixel_pitch: float | None
+) -> tuple[Prior, Prior]:
+    """A-priori camera values of the target view (target coordinates) and of the mirror view (:func:`mirror_prior`)."""
+    f = focal_length if focal_length is not None else target_setup.camera.focal_length
+    target = Prior.from_camera(target_setup.camera_model, f, plane=target_setup.marker_pattern.frame)
+    mirror = mirror_prior(mirror_setup, focal_length)
+    if pixel_pitch is None:
+        return target, mirror
+    return replace(target, pitch=pixel_pitch), replace(mirror, pitch=pixel_pitch)
+
+
+def _view(image: Any, setup: Setup, prior: Prior, bias: bool, name: str) -> CalibrationView:
+    """Markers of one calibration image, their plane coordinates and bias model (recon.markers, recon.bias).
+
+    The plane coordinates are the target's in a ``target`` scene, the virtual pattern's in a ``mirror`` scene.
+    """
+    from scopetwin.recon.bias import spot_bias_model
+    from scopetwin.recon.markers import find_markers_for
+
+    found = find_markers_for(image, setup)
+    if len(found) < MIN_MARKERS:
+        raise CalibrationError(f"{name}: only {len(found)} markers were found and indexed")
+    pattern = setup.marker_pattern
+    xy = virtual_coordinates(pattern, found.ij) if setup.scene == "mirror" else pattern.centers_local(found.ij)
+    model = spot_bias_model(xy, pattern.radii(found.ij)) if bias else None
+    return CalibrationView(found, xy, prior, model)
+
+
+def calibrate_setup_from_images(
+    target_image: ArrayLike,
+    mirror_image: ArrayLike,
+    target_setup: Setup,
+    mirror_setup: Setup,
+    *,
+    nominal: Setup | None = None,
+    focal_length: float | None = None,
+    pixel_pitch: float | None = None,
+    lens: LensMode = "auto",
+    distortion: bool = False,
+    share_intrinsics: bool = True,
+    bias_correction: bool = True,
+    comment: str = "deflectometry setup calibrated as in seed §2.7",
+    image_names: tuple[str, str] = ("target image", "mirror image"),
+) -> CalibratedSetup:
+    """Calibrate the deflectometry setup from its two calibration images, seed §2.7 (§2.8.3 on renders).
+
+    The target on the holding frame gives the global camera (§2.7.1; the target setup places the target in the
+    global frame), the pattern seen in a flat mirror on the frame gives the pattern through its virtual image
+    (§2.7.2). The markers of each image are found and indexed (:func:`scopetwin.recon.markers.find_markers_for`)
+    and, with ``bias_correction``, their centroid bias corrected (:func:`scopetwin.recon.bias.spot_bias_model`);
+    then :func:`calibrate_setup`, and the nominal setup with the calibrated poses, validated, and its TOML.
+
+    Parameters
+    ----------
+    target_image, mirror_image : array_like, (ny, nx)
+        The image of the calibration target on the holding frame and the image of the pattern in the flat mirror.
+    target_setup : Setup
+        A ``target`` scene: the target (its frame in the global frame) and the a-priori camera.
+    mirror_setup : Setup
+        A ``mirror`` scene: the nominal pattern and the a-priori camera of the mirror image.
+    nominal : Setup, optional
+        The setup the calibrated camera and pattern are written into (default ``mirror_setup``).
+    focal_length, pixel_pitch : float, optional
+        A-priori focal length and pixel size, mm (default: the setups' cameras').
+    lens, distortion, share_intrinsics
+        As in :func:`calibrate_setup`.
+    bias_correction : bool
+        Correct the markers' centroid bias (default); False: the raw centroids.
+    comment : str
+        The TOML's comment line.
+    image_names : (str, str)
+        How error messages name the two images (e.g. their paths).
+
+    Returns
+    -------
+    CalibratedSetup
+        The calibration, the calibrated setup and its TOML, the pose uncertainties and both views as calibrated.
+
+    Raises
+    ------
+    CalibrationError
+        Wrong scene kinds, an image whose format is not the camera's, fewer than :data:`MIN_MARKERS` markers in an
+        image, or a calibration that fails.
+    """
+    _check_setups(target_setup, mirror_setup)
+    prior_t, prior_m = _priors(target_setup, mirror_setup, focal_length, pixel_pitch)
+    _check_image_format(target_image, prior_t, image_names[0])
+    _check_image_format(mirror_image, prior_m, image_names[1])
+    target = _view(target_image, target_setup, prior_t, bias_correction, image_names[0])
+    mirror = _view(mirror_image, mirror_setup, prior_m, bias_correction, image_names[1])
+    result = calibrate_setup(
+        target.xy,
+        target.markers.centroids,
+        prior_t,
+        mirror.xy,
+        mirror.markers.centroids,
+        prior_m,
+        target_frame=target_setup.marker_pattern.frame,
+        lens=lens,
+        distortion=distortion,
+        share_intrinsics=share_intrinsics,
+        substrate_bias=target.bias,
+        mirror_bias=mirror.bias,
+    )
+    setup, text = calibrated_setup(nominal if nominal is not None else mirror_setup, result, comment)
+    return CalibratedSetup(result, setup, text, pose_uncertainties(result), target, mirror)

@@ -20,7 +20,7 @@ import time
 import traceback
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,6 +28,11 @@ from numpy.typing import NDArray
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
+
+if TYPE_CHECKING:
+    from scopetwin.recon.focusmap import FocusMap
+    from scopetwin.recon.markers import Markers
+    from scopetwin.recon.reconstruct import MarkerObservations, ReconstructionResult, Substrate2D
 
 MEASUREMENT = "thesis-1.10-deflectometry"
 TARGET = "thesis-2.8.3-substrate"
@@ -44,46 +49,6 @@ def render_with_noise(setup: Setup, heights: HeightMap | None, spp: int, seed: i
 
     image = render_setup(setup, heights, spp=spp, seed=seed)
     return np.asarray(apply_sensor(setup, image, seed), dtype=np.float32)
-
-
-def calibrate_from_images(
-    target_setup: Setup, mirror_setup: Setup, img_target: NDArray[Any], img_mirror: NDArray[Any]
-) -> tuple[Setup, str]:
-    """Setup calibration of §2.7 with calib/ (bias-corrected): the calibrated deflectometry setup and its TOML."""
-    from scopetwin.calib.oneshot import Prior
-    from scopetwin.calib.setup_calibration import (
-        calibrate_setup,
-        calibrated_setup_dict,
-        mirror_prior,
-        toml_dumps,
-        virtual_coordinates,
-    )
-    from scopetwin.recon.bias import spot_bias_model
-    from scopetwin.recon.markers import find_markers_for
-    from scopetwin.scenes.setup import setup_from_dict
-
-    tframe = target_setup.marker_pattern.frame
-    prior_s = Prior.from_camera(target_setup.camera_model, target_setup.camera.focal_length, plane=tframe)
-    prior_m = mirror_prior(mirror_setup)
-    tp, pp = target_setup.marker_pattern, mirror_setup.marker_pattern
-    found_s = find_markers_for(img_target, target_setup)
-    found_m = find_markers_for(img_mirror, mirror_setup)
-    xs = tp.centers_local(found_s.ij)
-    xm = virtual_coordinates(pp, found_m.ij)
-    result = calibrate_setup(
-        xs,
-        found_s.centroids,
-        prior_s,
-        xm,
-        found_m.centroids,
-        prior_m,
-        target_frame=tframe,
-        substrate_bias=spot_bias_model(xs, tp.radii(found_s.ij)),
-        mirror_bias=spot_bias_model(xm, pp.radii(found_m.ij)),
-    )
-    data = calibrated_setup_dict(mirror_setup, result)
-    text = toml_dumps(data, "scopetwin run: setup calibrated as in seed §2.7")
-    return setup_from_dict(data, "calibrated setup"), text
 
 
 def roi_errors(
@@ -283,6 +248,24 @@ def run_pipeline(
         return _run(Path(out_dir), spp, seed, progress, setup, surface)
 
 
+class _Steps:
+    """The progress bar over the seven steps of a run and the seconds each timed step took (``timings_s``)."""
+
+    def __init__(self, progress: bool) -> None:
+        from tqdm import tqdm
+
+        self.timings: dict[str, float] = {}
+        self.bar = tqdm(total=7, desc="scopetwin run", unit="step", disable=not progress)
+        self.t = time.perf_counter()
+
+    def tick(self, name: str) -> None:
+        """Step ``name`` is done: record its time, advance the bar."""
+        self.timings[name] = time.perf_counter() - self.t
+        self.bar.update(1)
+        self.bar.set_postfix_str(name)
+        self.t = time.perf_counter()
+
+
 def _run(
     out_dir: Path,
     spp: int | None,
@@ -291,28 +274,54 @@ def _run(
     setup_name: str | None,
     surface_file: str | Path | None,
 ) -> dict[str, Any]:
-    from tqdm import tqdm
-
-    from scopetwin.recon.focusmap import focus_map
-    from scopetwin.recon.markers import find_markers_for
-    from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, Substrate2D, centroid_bias_step
-    from scopetwin.scenes.io import write_heightmap, write_image
-    from scopetwin.sim.surfaces import surface_for
-    from scopetwin.sim.truth import marker_truth
+    from scopetwin.recon.reconstruct import Substrate2D
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
-    timings: dict[str, float] = {}
-    bar = tqdm(total=7, desc="scopetwin run", unit="step", disable=not progress)
+    steps = _Steps(progress)
+    setup, target_setup, mirror_setup, heights = _surface_and_setups(spp, seed, setup_name, surface_file)
+    sub = Substrate2D.from_setup(setup)
+    r_spp, r_seed = setup.render.spp, setup.render.seed
+    steps.tick("surface")
+    img_target = render_with_noise(target_setup, None, r_spp, r_seed + 1)
+    img_mirror = render_with_noise(mirror_setup, None, r_spp, r_seed + 2)
+    steps.tick("render calibration images")
+    image = render_with_noise(setup, heights, r_spp, r_seed)
+    steps.tick("render measurement")
+    calibrated, calibration_note = _calibrate(target_setup, mirror_setup, img_target, img_mirror, out)
+    steps.tick("calibrate")
+    setups = {"ideal": setup, "calibrated": calibrated if calibrated is not None else setup}
+    found, obs, results = _detect_and_reconstruct(image, setups, out, heights, sub)
+    steps.tick("detect + reconstruct")
+    res_exact, exact_err = _truth_reference(setup, heights, sub)
+    steps.tick("truth reference")
+    images = {
+        "measurement.exr": (image, setup),
+        "calib-target.exr": (img_target, target_setup),
+        "calib-mirror.exr": (img_mirror, mirror_setup),
+    }
+    files = _write_files(out, heights, images, calibrated is not None, results)
+    fm = _write_focus_map(out, results, sub)
+    files += ["focusmap.csv"] + _plots(out, image, found, heights, results, sub)
+    summary = _summary(setup, len(obs.ij), calibration_note, results, (res_exact, exact_err), fm)
+    summary.update({"focus_map": fm.summary(), "timings_s": steps.timings, "files": files})
+    if calibrated is not None:
+        summary["calibration_deviation"] = _calibration_deviation(setup, calibrated)
+    summary["seconds"] = time.perf_counter() - t_start
+    (out / "report.md").write_text(_report(summary))
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    steps.bar.update(1)
+    steps.bar.close()
+    return summary
 
-    def tick(name: str, t0: float) -> float:
-        timings[name] = time.perf_counter() - t0
-        bar.update(1)
-        bar.set_postfix_str(name)
-        return time.perf_counter()
 
-    t = time.perf_counter()
+def _surface_and_setups(
+    spp: int | None, seed: int | None, setup_name: str | None, surface_file: str | Path | None
+) -> tuple[Setup, Setup, Setup, HeightMap]:
+    """The measurement and calibration setups (:func:`run_setups`, noise on) and the substrate's true surface."""
+    from scopetwin.sim.surfaces import surface_for
+
     over: dict[str, Any] = {"render": {"noise": True}}
     if spp is not None:
         over["render"]["spp"] = spp
@@ -322,29 +331,47 @@ def _run(
     setup, target_setup, mirror_setup = run_setups(setup_name, surface_file, over)
     heights = surface_for(setup)
     assert heights is not None
-    sub = Substrate2D.from_setup(setup)
-    r_spp, r_seed = setup.render.spp, setup.render.seed
-    t = tick("surface", t)
+    return setup, target_setup, mirror_setup, heights
 
-    img_target = render_with_noise(target_setup, None, r_spp, r_seed + 1)
-    img_mirror = render_with_noise(mirror_setup, None, r_spp, r_seed + 2)
-    t = tick("render calibration images", t)
-    image = render_with_noise(setup, heights, r_spp, r_seed)
-    t = tick("render measurement", t)
 
-    calibration_note = "calib/ (§2.7: target on the frame + pattern in a flat mirror, bias-corrected)"
+def _calibrate(
+    target_setup: Setup, mirror_setup: Setup, img_target: NDArray[Any], img_mirror: NDArray[Any], out: Path
+) -> tuple[Setup | None, str]:
+    """Setup calibration of §2.7 from the two calibration images (calib/, bias-corrected); writes its TOML.
+
+    Returns the calibrated setup (None where the calibration is unavailable or failed) and the report's note.
+    """
     try:
-        calibrated, toml_text = calibrate_from_images(target_setup, mirror_setup, img_target, img_mirror)
-        (out / "calibrated-setup.toml").write_text(toml_text)
-    except (ImportError, ScopetwinError) as exc:
-        calibrated = None
-        calibration_note = f"UNAVAILABLE ({type(exc).__name__}: {exc}); the 'calibrated' row uses the ideal setup"
-        traceback.print_exc()
-    t = tick("calibrate", t)
+        from scopetwin.calib.setup_calibration import calibrate_setup_from_images
 
-    found = find_markers_for(image, setup)
+        cal = calibrate_setup_from_images(
+            img_target,
+            img_mirror,
+            target_setup,
+            mirror_setup,
+            comment="scopetwin run: setup calibrated as in seed §2.7",
+        )
+        (out / "calibrated-setup.toml").write_text(cal.toml)
+    except (ImportError, ScopetwinError) as exc:
+        traceback.print_exc()
+        return None, f"UNAVAILABLE ({type(exc).__name__}: {exc}); the 'calibrated' row uses the ideal setup"
+    return cal.setup, "calib/ (§2.7: target on the frame + pattern in a flat mirror, bias-corrected)"
+
+
+def _detect_and_reconstruct(
+    image: NDArray[Any], setups: dict[str, Setup], out: Path, heights: HeightMap, sub: Substrate2D
+) -> tuple[Markers, MarkerObservations, dict[str, Any]]:
+    """Markers of the measurement image (found with the ideal setup) and a reconstruction with each setup.
+
+    Returns the markers, their observations and per setup name ``{"result", "seconds", "errors"}``
+    (:func:`roi_errors` against the truth ``heights``); each reconstruction's history goes to
+    ``out/<name>-history.json``.
+    """
+    from scopetwin.recon.markers import find_markers_for
+    from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, centroid_bias_step
+
+    found = find_markers_for(image, setups["ideal"])
     obs = MarkerObservations(found.ij, found.centroids)
-    setups = {"ideal": setup, "calibrated": calibrated if calibrated is not None else setup}
     results: dict[str, Any] = {}
     for name, s in setups.items():
         t0 = time.perf_counter()
@@ -355,31 +382,54 @@ def _run(
             "seconds": time.perf_counter() - t0,
             "errors": roi_errors(res.surface.height, heights, sub),
         }
-    t = tick("detect + reconstruct", t)
+    return found, obs, results
+
+
+def _truth_reference(
+    setup: Setup, heights: HeightMap, sub: Substrate2D
+) -> tuple[ReconstructionResult, dict[str, float]]:
+    """Reconstruction from the exact marker images with the ideal setup and its errors (the method's own floor)."""
+    from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor
+    from scopetwin.sim.truth import marker_truth
 
     truth = marker_truth(setup, heights)
     exact = MarkerObservations(truth.ij[truth.visible], truth.center_px[truth.visible])
     res_exact = Reconstructor.from_setup(setup).run(exact)
-    exact_err = roi_errors(res_exact.surface.height, heights, sub)
-    t = tick("truth reference", t)
+    return res_exact, roi_errors(res_exact.surface.height, heights, sub)
+
+
+def _write_files(
+    out: Path,
+    heights: HeightMap,
+    images: dict[str, tuple[NDArray[Any], Setup]],
+    calibrated: bool,
+    results: dict[str, Any],
+) -> list[str]:
+    """The truth, the images (each with its setup in the header), each reconstruction's heights and error maps."""
+    from scopetwin.scenes.io import write_heightmap, write_image
 
     write_heightmap(out / "truth-heights.exr", heights)
-    write_image(out / "measurement.exr", image, setup.to_json())
-    write_image(out / "calib-target.exr", img_target, target_setup.to_json())
-    write_image(out / "calib-mirror.exr", img_mirror, mirror_setup.to_json())
-    files = ["truth-heights.exr", "measurement.exr", "calib-target.exr", "calib-mirror.exr"]
-    if calibrated is not None:
+    for name, (image, setup) in images.items():
+        write_image(out / name, image, setup.to_json())
+    files = ["truth-heights.exr", *images]
+    if calibrated:
         files.append("calibrated-setup.toml")
+    nx, ny = heights.z.shape[1] // 2, heights.z.shape[0] // 2
     for name, r in results.items():
-        hm = r["result"].heightmap(heights.z.shape[1] // 2, heights.z.shape[0] // 2)
-        write_heightmap(
-            out / f"heights-{name}.exr", hm, r["result"].std_heightmap(heights.z.shape[1] // 2, heights.z.shape[0] // 2)
-        )
+        hm = r["result"].heightmap(nx, ny)
+        write_heightmap(out / f"heights-{name}.exr", hm, r["result"].std_heightmap(nx, ny))
         err = HeightMap(
             hm.z - heights.height(*np.meshgrid(hm.x_nodes, hm.y_nodes)), hm.x_min, hm.x_max, hm.y_min, hm.y_max
         )
         write_heightmap(out / f"error-{name}.exr", err)
         files += [f"heights-{name}.exr", f"error-{name}.exr"]
+    return files
+
+
+def _write_focus_map(out: Path, results: dict[str, Any], sub: Substrate2D) -> FocusMap:
+    """The focus map over the ROI from the calibrated reconstruction and its uncertainty; writes focusmap.csv."""
+    from scopetwin.recon.focusmap import focus_map
+
     cal_res = results["calibrated"]["result"]
     cal_std = cal_res.std_heightmap()
     fm = focus_map(
@@ -389,12 +439,23 @@ def _run(
         height_std=cal_std.height if cal_std is not None else None,
     )
     (out / "focusmap.csv").write_text(fm.to_csv())
-    files += ["focusmap.csv"] + _plots(out, image, found, heights, results, sub)
+    return fm
 
+
+def _summary(
+    setup: Setup,
+    markers: int,
+    calibration_note: str,
+    results: dict[str, Any],
+    exact: tuple[ReconstructionResult, dict[str, float]],
+    fm: FocusMap,
+) -> dict[str, Any]:
+    """The summary up to the focus map (the caller adds it, the timings, the files and the calibration deviation)."""
     surface = setup.substrate.surface if setup.substrate is not None else None
     if surface is None:
         raise ScopetwinError(f"setup {setup.name} has no substrate surface to compare with")
-    summary: dict[str, Any] = {
+    res_exact, exact_err = exact
+    return {
         "setup": setup.name,
         "surface": {
             "kind": surface.kind,
@@ -404,48 +465,45 @@ def _run(
             "seed": surface.seed,
             "broadband_rms_nm": surface.broadband_rms_nm,
         },
-        "spp": r_spp,
-        "render_seed": r_seed,
-        "markers": int(len(obs.ij)),
+        "spp": setup.render.spp,
+        "render_seed": setup.render.seed,
+        "markers": int(markers),
         "calibration": calibration_note,
-        "reconstructions": {
-            name: {
-                **r["errors"],
-                "outer_iterations": r["result"].outer_iterations,
-                "inner_iterations": r["result"].inner_iterations,
-                "delta_h_max_um": r["result"].delta_h_max_um,
-                "seconds": r["seconds"],
-                "sigma_mm": r["result"].surface.basis.sigma[0],
-                **({"uncertainty": r["result"].uncertainty.summary()} if r["result"].uncertainty is not None else {}),
-                "history": r["result"].history_dicts(),
-            }
-            for name, r in results.items()
-        },
+        "reconstructions": {name: _reconstruction_summary(r) for name, r in results.items()},
         "exact_markers": {
             **exact_err,
             "outer_iterations": res_exact.outer_iterations,
             **({"uncertainty": res_exact.uncertainty.summary()} if res_exact.uncertainty is not None else {}),
         },
-        "focus_map": fm.summary(),
-        "timings_s": timings,
-        "files": files,
     }
-    if calibrated is not None:
-        cam_i, cam_c = setup.camera_model, calibrated.camera_model
-        pat_i, pat_c = setup.marker_pattern.frame, calibrated.marker_pattern.frame
-        summary["calibration_deviation"] = {
-            "camera_r_c_mm": (cam_c.center - cam_i.center).tolist(),
-            "camera_b_mm": cam_c.b - cam_i.b,
-            "camera_n_z": (cam_c.frame.nz - cam_i.frame.nz).tolist(),
-            "pattern_r_c_mm": (pat_c.origin - pat_i.origin).tolist(),
-            "pattern_n_z": (pat_c.nz - pat_i.nz).tolist(),
-        }
-    summary["seconds"] = time.perf_counter() - t_start
-    (out / "report.md").write_text(_report(summary))
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    bar.update(1)
-    bar.close()
-    return summary
+
+
+def _reconstruction_summary(r: dict[str, Any]) -> dict[str, Any]:
+    """One reconstruction's entry of ``summary["reconstructions"]``: errors, iterations, time, uncertainty, history."""
+    res = r["result"]
+    return {
+        **r["errors"],
+        "outer_iterations": res.outer_iterations,
+        "inner_iterations": res.inner_iterations,
+        "delta_h_max_um": res.delta_h_max_um,
+        "seconds": r["seconds"],
+        "sigma_mm": res.surface.basis.sigma[0],
+        **({"uncertainty": res.uncertainty.summary()} if res.uncertainty is not None else {}),
+        "history": res.history_dicts(),
+    }
+
+
+def _calibration_deviation(setup: Setup, calibrated: Setup) -> dict[str, Any]:
+    """Calibrated minus ideal camera and pattern poses (the report's "Calibration deviation" section)."""
+    cam_i, cam_c = setup.camera_model, calibrated.camera_model
+    pat_i, pat_c = setup.marker_pattern.frame, calibrated.marker_pattern.frame
+    return {
+        "camera_r_c_mm": (cam_c.center - cam_i.center).tolist(),
+        "camera_b_mm": cam_c.b - cam_i.b,
+        "camera_n_z": (cam_c.frame.nz - cam_i.frame.nz).tolist(),
+        "pattern_r_c_mm": (pat_c.origin - pat_i.origin).tolist(),
+        "pattern_n_z": (pat_c.nz - pat_i.nz).tolist(),
+    }
 
 
 def _report(s: dict[str, Any]) -> str:

@@ -163,60 +163,36 @@ def cmd_calibrate(args: argparse.Namespace) -> dict[str, Any]:
 
 def cmd_calibrate_setup(args: argparse.Namespace) -> dict[str, Any]:
     """Calibration of the deflectometry setup from the substrate and mirror images (seed §2.7)."""
-    from scopetwin.calib.setup_calibration import calibrate_setup, mirror_prior, virtual_coordinates, write_setup_toml
+    from scopetwin.calib.setup_calibration import CALIBRATE_SETUP_COMMENT, calibrate_setup_from_images
+    from scopetwin.scenes.io import write_text_atomic
 
     t0 = time.perf_counter()
     img_s, head_s = _load_image(args.substrate_image)
     img_m, head_m = _load_image(args.mirror_image)
     target = _setup(args.target, head_s, args.substrate_image, "--target SETUP")
     nominal = _setup(args.pattern_setup, head_m, args.mirror_image, "--pattern-setup SETUP")
-    if nominal.scene != "mirror":
-        raise CalibrationError(
-            f"the pattern setup {nominal.name} is a {nominal.scene} scene; the mirror image needs "
-            "a mirror scene (seed §2.7.2)"
-        )
-    if target.scene != "target":
-        raise CalibrationError(f"the target setup {target.name} is a {target.scene} scene, not a calibration target")
-    tframe = target.marker_pattern.frame
-    prior_s = _prior(target, tframe, args)
-    _check_image_format(img_s, prior_s, args.substrate_image)
-    pm = mirror_prior(nominal, args.focal_length)
-    if args.pixel_pitch is not None:
-        pm = Prior(
-            pm.focal_length, pm.nx, pm.ny, args.pixel_pitch, pm.nz_estimate, pm.r_cs, pm.c0, pm.c2, pm.image_distance
-        )
-    _check_image_format(img_m, pm, args.mirror_image)
-    tp = target.marker_pattern
-    pp = nominal.marker_pattern
-    found_s = _markers(img_s, target, args.substrate_image)
-    found_m = _markers(img_m, nominal, args.mirror_image)
-    xs = tp.centers_local(found_s.ij)
-    xm = virtual_coordinates(pp, found_m.ij)
-    bias_s = bias_m = None
-    if not args.no_bias_correction:
-        bias_s = spot_bias_model(xs, tp.radii(found_s.ij))
-        bias_m = spot_bias_model(xm, pp.radii(found_m.ij))
-    result = calibrate_setup(
-        xs,
-        found_s.centroids,
-        prior_s,
-        xm,
-        found_m.centroids,
-        pm,
-        target_frame=tframe,
+    cal = calibrate_setup_from_images(
+        img_s,
+        img_m,
+        target,
+        nominal,
+        focal_length=args.focal_length,
+        pixel_pitch=args.pixel_pitch,
         lens=args.lens,
         distortion=args.distortion,
         share_intrinsics=not args.per_view_lens,
-        substrate_bias=bias_s,
-        mirror_bias=bias_m,
+        bias_correction=not args.no_bias_correction,
+        comment=CALIBRATE_SETUP_COMMENT,
+        image_names=(args.substrate_image, args.mirror_image),
     )
-    text = write_setup_toml(args.out, nominal, result)
+    write_text_atomic(args.out, cal.toml)
+    result = cal.calibration
     out = result.as_dict()
     out.update(
         {
             "setup_toml": str(args.out),
-            "toml": text,
-            "markers_used": {"substrate": int(len(found_s.ij)), "mirror": int(len(found_m.ij))},
+            "toml": cal.toml,
+            "markers_used": {"substrate": int(len(cal.target.markers.ij)), "mirror": int(len(cal.mirror.markers.ij))},
             "seconds": time.perf_counter() - t0,
         }
     )
@@ -226,8 +202,8 @@ def cmd_calibrate_setup(args: argparse.Namespace) -> dict[str, Any]:
         f"pattern centre = ({o[0]:.4f}, {o[1]:.4f}, {o[2]:.4f}) mm"
     )
     hint = "give the setup's camera (in --target / --pattern-setup) a pose closer to the real one."
-    for line in _warnings(result.substrate, "substrate view", prior_s.nz_estimate, hint) + _warnings(
-        result.mirror, "mirror view", pm.nz_estimate, hint
+    for line in _warnings(result.substrate, "substrate view", cal.target.prior.nz_estimate, hint) + _warnings(
+        result.mirror, "mirror view", cal.mirror.prior.nz_estimate, hint
     ):
         print(line)
     return out

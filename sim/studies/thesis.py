@@ -1,5 +1,10 @@
 """The ``thesis`` study: every table of Part I of the seed side by side (§1.10, Tables 2.2-2.8) and Part III's
-§8.3 figures of the GRIN objectives."""
+§8.3 figures of the GRIN objectives.
+
+The tasks (``*_task``, :func:`oneshot_exact`) compute our figures; the seed's figures and each table's title, note and
+rows are module-level data (``SEED_*``, :data:`TABLES`, ``ROWS_*``); one builder per table (:data:`BUILDERS`) turns
+the task results into the table, and :func:`thesis` runs the tasks and the builders.
+"""
 
 from __future__ import annotations
 
@@ -126,40 +131,17 @@ def measurement_task(
 
 def setup_calibration_task(spp: int) -> dict[str, Any]:
     """Tables 2.5, 2.6 (seed §2.8.3): calibrate camera and pattern from rendered target and mirror images."""
-    from scopetwin.calib.oneshot import Prior
-    from scopetwin.calib.setup_calibration import (
-        calibrate_setup,
-        calibrated_setup_dict,
-        mirror_prior,
-        virtual_coordinates,
-    )
-    from scopetwin.recon.bias import spot_bias_model
-    from scopetwin.recon.markers import find_markers_for
+    from scopetwin.calib.setup_calibration import calibrate_setup_from_images
     from scopetwin.scenes.mitsuba.render import render_setup
-    from scopetwin.scenes.setup import load_setup, setup_from_dict
+    from scopetwin.scenes.setup import load_setup
 
     quiet()
     ss, sm = load_setup("thesis-2.8.3-substrate"), load_setup("thesis-2.8.3-mirror")
     img_s = render_setup(ss, None, spp=spp, seed=1)
     img_m = render_setup(sm, None, spp=spp, seed=2)
-    fs, fm = find_markers_for(img_s, ss), find_markers_for(img_m, sm)
-    xs = ss.marker_pattern.centers_local(fs.ij)
-    xm = virtual_coordinates(sm.marker_pattern, fm.ij)
-    tframe = ss.marker_pattern.frame
-    ps = Prior.from_camera(ss.camera_model, ss.camera.focal_length, plane=tframe)
-    r = calibrate_setup(
-        xs,
-        fs.centroids,
-        ps,
-        xm,
-        fm.centroids,
-        mirror_prior(sm),
-        target_frame=tframe,
-        substrate_bias=spot_bias_model(xs, ss.marker_pattern.radii(fs.ij)),
-        mirror_bias=spot_bias_model(xm, sm.marker_pattern.radii(fm.ij)),
-    )
+    cal = calibrate_setup_from_images(img_s, img_m, ss, sm, nominal=load_setup(THESIS_DEFLECTOMETRY))
+    r = cal.calibration
     cam_t, pat_t = ss.camera_model, sm.marker_pattern.frame
-    calibrated = setup_from_dict(calibrated_setup_dict(load_setup(THESIS_DEFLECTOMETRY), r), "calibrated setup")
     pitch_um = ss.camera.pixel_pitch * 1e3
     return {
         "camera": {**frame_deviation(r.camera.frame, cam_t.frame), "b": r.camera.b - cam_t.b},
@@ -168,8 +150,8 @@ def setup_calibration_task(spp: int) -> dict[str, Any]:
         "substrate_pv_um": r.substrate.residual_pv_px * pitch_um,
         "mirror_rms_um": r.mirror.residual_rms_px * pitch_um,
         "mirror_pv_um": r.mirror.residual_pv_px * pitch_um,
-        "markers": [int(len(fs.ij)), int(len(fm.ij))],
-        "calibrated_setup": calibrated.to_json(),
+        "markers": [int(len(cal.target.markers.ij)), int(len(cal.mirror.markers.ij))],
+        "calibrated_setup": cal.setup.to_json(),
     }
 
 
@@ -304,6 +286,111 @@ SEED_28 = {
 }
 AXES = (("r", "Δr_c", "mm"), ("t_x", "ΔT_x", ""), ("t_y", "ΔT_y", ""), ("n_z", "ΔN_z", ""))
 
+# -- the tables, as data: title, note (a str.format template over the builder's values) and rows ------------------
+
+EXACT_NOTE = (
+    "Exact marker images ({markers} markers); image distance: {lens}. Values near 1e-13 and below are round-off "
+    "on both sides: their ratio means nothing."
+)
+
+#: Title and note of each table, in the report's order.
+TABLES: dict[str, tuple[str, str]] = {
+    "1.10": (
+        "§1.10 Simulations: reconstruction with the ideal setup",
+        "Height distributions 1 and 2 of the seed (Fig. 1.10) are not published as data; ours are §1.9 "
+        "random surfaces with the same 40 µm range (surface seeds 1 and 2). Mitsuba renders at "
+        "{spp} spp, no sensor noise, markers found and indexed in the image (recon.markers).",
+    ),
+    "2.2": (
+        "Table 2.2: one-shot calibration, perpendicular view (§2.8.1)",
+        EXACT_NOTE,
+    ),
+    "2.3": (
+        "Table 2.3: one-shot calibration, angular view (§2.8.1)",
+        EXACT_NOTE,
+    ),
+    "2.4": (
+        "Table 2.4: calibration with marker images disturbed by σ = 0.233 µm (§2.8.2)",
+        "One seeded draw of the disturbance (as the seed's single draw) and, for a fair comparison, the RMS over "
+        "200 draws.",
+    ),
+    "2.8": (
+        "Table 2.8: distortion and optical axis (§2.8.5)",
+        "r_cs = (46.5, 46.5) µm, c_2 = 0.00123 /mm refined together with the pose; exact images.",
+    ),
+    "2.5": (
+        "Table 2.5: setup calibration, camera (§2.8.3)",
+        "From Mitsuba renders ({spp} spp) of the target on the frame and of the pattern in a flat mirror; "
+        "{substrate_markers} and {mirror_markers} markers; bias-corrected centroids.",
+    ),
+    "2.6": ("Table 2.6: setup calibration, pattern (§2.8.3)", ""),
+    "2.7": (
+        "Table 2.7: reconstruction with ideal and with calibrated setup (§2.8.4)",
+        "Height distribution 2 (ours: surface seed 2); the calibrated setup is the one of Tables 2.5/2.6.",
+    ),
+    "8.3": (
+        "Part III §8.3: GRIN objectives (seed's Zemax figures)",
+        "Our figures: real rays traced through the radial index profiles (scenes.grin), image plane at best focus.",
+    ),
+}
+
+#: §1.10, per height distribution and reconstruction: (quantity, seed key, our key, unit).
+ROWS_110 = (
+    ("outer iterations", "outer", "outer_iterations", ""),
+    ("Δh of the frame maxima", "delta_h_um", "delta_h_max_um", "µm"),
+    ("max deviation, whole substrate", "all_max_um", "all_max_um", "µm"),
+    ("RMS deviation, whole substrate", "all_rms_um", "all_rms_um", "µm"),
+    ("max deviation, ROI", "roi_max_um", "roi_max_um", "µm"),
+    ("RMS deviation, ROI", "roi_rms_um", "roi_rms_um", "µm"),
+)
+#: §1.10: the reconstructions compared (result key with ``{hd}``, label).
+RECONSTRUCTIONS_110 = (
+    ("hd{hd}", "ours (Gaussian SBF, bias-corrected)"),
+    ("hd{hd}_thesis", "seed's 9x5 IMQ (9 along y)"),
+)
+#: Tables 2.2, 2.3, after the frame rows of each step: (quantity, key, unit).
+ROWS_22 = (("Δb", "b", "mm"), ("RMS of the marker-centre comparison", "rms", "mm"), ("peak-to-valley", "pv", "mm"))
+#: Table 2.8, after the frame rows: (quantity, seed key, our key, unit, scale of ours or None).
+ROWS_28 = (
+    ("Δr_cs", "r_cs_um", "r_cs", "µm", 1e3),
+    ("Δc_0", "c0", "c0", "", None),
+    ("Δc_2", "c2", "c2", "1/mm", None),
+    ("RMS of the marker-centre comparison", "rms", "rms", "mm", None),
+    ("peak-to-valley", "pv", "pv", "mm", None),
+    ("RMS without offset and distortion", "rms_without", "rms_without", "mm", None),
+    ("peak-to-valley without offset and distortion", "pv_without", "pv_without", "mm", None),
+)
+#: Table 2.5, after the camera's frame rows: (quantity, seed key, our key, unit); Δb is the camera's.
+ROWS_25 = (
+    ("substrate-plane residual RMS", "substrate_rms_um", "substrate_rms_um", "µm"),
+    ("substrate-plane residual peak-to-valley", "substrate_pv_um", "substrate_pv_um", "µm"),
+)
+#: Table 2.6, after the pattern's frame rows.
+ROWS_26 = (
+    ("mirror residual RMS", "mirror_rms_um", "mirror_rms_um", "µm"),
+    ("mirror residual peak-to-valley", "mirror_pv_um", "mirror_pv_um", "µm"),
+)
+#: Table 2.7: (label, result key, seed key), each with the ROI maximum and RMS.
+ROWS_27 = (("with ideal data", "hd2", "ideal"), ("with calibration data", "hd2_calibrated", "calibrated"))
+#: §8.3: the GRIN objectives (result keys) and their quantities (key, unit).
+GRIN_RESULTS = ("grin_831", "grin_832")
+GRIN_QUANTITIES = (
+    ("magnification", ""),
+    ("na_object", ""),
+    ("rms_axis_um", "µm"),
+    ("rms_edge_um", "µm"),
+    ("airy_um", "µm"),
+    ("image_distance", "mm"),
+    ("object_distance", "mm"),
+)
+
+TITLE = "Study: the seed's tables side by side"
+INTRO = (
+    "Every table of Part I of the seed (§1.10, Tables 2.2-2.8) and the §8.3 GRIN figures, reproduced with "
+    "scopetwin: the seed's number, ours, and their ratio (|ours|/|seed|; vector rows compare Euclidean "
+    "norms). Deviations are ours minus truth."
+)
+
 THESIS_MODULES = {
     "scopetwin.calib.oneshot": "one-shot camera calibration",
     "scopetwin.calib.setup_calibration": "setup calibration",
@@ -313,15 +400,139 @@ THESIS_MODULES = {
     "scopetwin.scenes.grin.analysis": "GRIN objective analysis",
 }
 
+#: Task results by key, failed tasks left out (a builder's table needs only its own tasks).
+Results = dict[str, Any]
+
 
 def _frame_rows(seed: dict[str, Any], ours: dict[str, Any], suffix: str = "") -> list[Row]:
     return [Row(f"{lab}{suffix}", seed.get(k), ours.get(k), unit) for k, lab, unit in AXES]
 
 
-def thesis(ctx: StudyContext, spp: int = 16) -> StudyResult:
-    """Every Part I table of the seed side by side (module docstring)."""
-    require("thesis", THESIS_MODULES)
-    tasks: list[tuple[str, Callable[..., Any], tuple]] = [
+def _table(key: str, rows: list[Row], **values: Any) -> Table:
+    """Table ``key`` of :data:`TABLES` with ``rows``, its note filled in with ``values``."""
+    title, note = TABLES[key]
+    return Table(title, rows, note.format(**values))
+
+
+# -- one builder per table: the task results -> the table (None where its task failed) -------------------------
+def _table_110(ok: Results, spp: int) -> Table | None:
+    """§1.10: reconstruction of height distributions 1 and 2 with the ideal setup."""
+    rows = []
+    for hd in (1, 2):
+        s = SEED_110[hd]
+        for key, label in RECONSTRUCTIONS_110:
+            o = ok.get(key.format(hd=hd))
+            if o is not None:
+                rows += [Row(f"HD{hd} {label}: {q}", s[sk], o[ok_], u) for q, sk, ok_, u in ROWS_110]
+    return _table("1.10", rows, spp=spp)
+
+
+def _table_exact_oneshot(table: str, key: str, seed: dict[str, Any], o: dict[str, Any] | None) -> Table | None:
+    """Tables 2.2 and 2.3: linear and non-linear one-shot calibration on exact marker images."""
+    if o is None:
+        return None
+    t = o[key]
+    rows = []
+    for kind in ("linear", "nonlinear"):
+        sfx = f" ({'non-linear' if kind == 'nonlinear' else 'linear'})"
+        rows += _frame_rows(seed[kind], t[kind], sfx)
+        rows += [Row(f"{q}{sfx}", seed[kind][k], t[kind][k], u) for q, k, u in ROWS_22]
+    return _table(table, rows, markers=t["markers"], lens=t["lens"])
+
+
+def _table_22(ok: Results, spp: int) -> Table | None:
+    """Table 2.2: one-shot calibration, perpendicular view."""
+    return _table_exact_oneshot("2.2", "t22", SEED_22, ok.get("oneshot"))
+
+
+def _table_23(ok: Results, spp: int) -> Table | None:
+    """Table 2.3: one-shot calibration, angular view."""
+    return _table_exact_oneshot("2.3", "t23", SEED_23, ok.get("oneshot"))
+
+
+def _table_24(ok: Results, spp: int) -> Table | None:
+    """Table 2.4: calibration with disturbed marker images (one draw and the RMS over 200)."""
+    o = ok.get("oneshot")
+    if o is None:
+        return None
+    t24 = o["t24"]
+    rows = _frame_rows(SEED_24["with"], t24["with"], " (with distortion)")
+    rows += _frame_rows(SEED_24["without"], t24["without"], " (without)")
+    rows.append(Row("RMS Δr_c over 200 draws (with distortion)", None, t24["rms_r_200"], "mm"))
+    return _table("2.4", rows)
+
+
+def _table_28(ok: Results, spp: int) -> Table | None:
+    """Table 2.8: principal-point offset and distortion refined with the pose."""
+    o = ok.get("oneshot")
+    if o is None:
+        return None
+    t28 = o["t28"]
+    rows = [Row("Δr_c", SEED_28["r_um"], np.asarray(t28["r"]) * 1e3, "µm")] + _frame_rows(SEED_28, t28)[1:]
+    for q, sk, k, u, scale in ROWS_28:
+        rows.append(Row(q, SEED_28[sk], t28[k] if scale is None else np.asarray(t28[k]) * scale, u))
+    return _table("2.8", rows)
+
+
+def _table_25(ok: Results, spp: int) -> Table | None:
+    """Table 2.5: setup calibration, the camera."""
+    c = ok.get("setup_cal")
+    if c is None:
+        return None
+    rows = _frame_rows(SEED_25, c["camera"]) + [Row("Δb", SEED_25["b"], c["camera"]["b"], "mm")]
+    rows += [Row(q, SEED_25[sk], c[k], u) for q, sk, k, u in ROWS_25]
+    return _table("2.5", rows, spp=spp, substrate_markers=c["markers"][0], mirror_markers=c["markers"][1])
+
+
+def _table_26(ok: Results, spp: int) -> Table | None:
+    """Table 2.6: setup calibration, the pattern."""
+    c = ok.get("setup_cal")
+    if c is None:
+        return None
+    rows = _frame_rows(SEED_26, c["pattern"]) + [Row(q, SEED_26[sk], c[k], u) for q, sk, k, u in ROWS_26]
+    return _table("2.6", rows)
+
+
+def _table_27(ok: Results, spp: int) -> Table | None:
+    """Table 2.7: height distribution 2 reconstructed with the ideal and with the calibrated setup."""
+    rows = []
+    for label, key, seed_key in ROWS_27:
+        r, s = ok.get(key), SEED_27[seed_key]
+        if r is not None:
+            rows += [
+                Row(f"max deviation (ROI), {label}", s["roi_max_um"], r["roi_max_um"], "µm"),
+                Row(f"RMS (ROI), {label}", s["roi_rms_um"], r["roi_rms_um"], "µm"),
+            ]
+    return _table("2.7", rows)
+
+
+def _table_grin(ok: Results, spp: int) -> Table | None:
+    """Part III §8.3: the GRIN objectives beside the seed's Zemax figures."""
+    rows = []
+    for key in GRIN_RESULTS:
+        g = ok.get(key)
+        if g is not None:
+            rows += [Row(f"{g['section']} {q}", g["seed"].get(q), g["ours"].get(q), u) for q, u in GRIN_QUANTITIES]
+    return _table("8.3", rows)
+
+
+#: The table builders in the report's order.
+BUILDERS: tuple[Callable[[Results, int], Table | None], ...] = (
+    _table_110,
+    _table_22,
+    _table_23,
+    _table_24,
+    _table_28,
+    _table_25,
+    _table_26,
+    _table_27,
+    _table_grin,
+)
+
+
+def _tasks(spp: int) -> list[tuple[str, Callable[..., Any], tuple]]:
+    """The study's tasks: (result key, function, arguments)."""
+    return [
         ("oneshot", oneshot_exact, ()),
         ("hd1", measurement_task, (1, spp, "default")),
         ("hd2", measurement_task, (2, spp, "default")),
@@ -331,6 +542,11 @@ def thesis(ctx: StudyContext, spp: int = 16) -> StudyResult:
         ("grin_831", grin_task, ("thesis-8.3.1-grin-optimized",)),
         ("grin_832", grin_task, ("thesis-8.3.2-grin-realized",)),
     ]
+
+
+def _run_tasks(ctx: StudyContext, spp: int) -> dict[str, Any]:
+    """Every task's result (or exception) by key; then height distribution 2 with the calibrated setup."""
+    tasks = _tasks(spp)
     res = dict(zip([t[0] for t in tasks], ctx.map(call, [(f, a) for _, f, a in tasks], "thesis tasks"), strict=True))
     cal = res["setup_cal"]
     if not failed(cal):
@@ -341,177 +557,21 @@ def thesis(ctx: StudyContext, spp: int = 16) -> StudyResult:
         )[0]
     else:
         res["hd2_calibrated"] = cal
-    tables: list[Table] = []
-    notes: list[str] = []
-    for name, r in res.items():
-        if failed(r):
-            notes.append(f"**{name} failed**: {error_text(r)}")
+    return res
 
-    def ok(name: str) -> dict[str, Any] | None:
-        r = res.get(name)
-        return None if failed(r) else r
 
-    # §1.10
-    rows = []
-    for hd in (1, 2):
-        s = SEED_110[hd]
-        for key, label in (
-            (f"hd{hd}", "ours (Gaussian SBF, bias-corrected)"),
-            (f"hd{hd}_thesis", "seed's 9x5 IMQ (9 along y)"),
-        ):
-            o = ok(key)
-            if o is None:
-                continue
-            rows += [
-                Row(f"HD{hd} {label}: outer iterations", s["outer"], o["outer_iterations"]),
-                Row(f"HD{hd} {label}: Δh of the frame maxima", s["delta_h_um"], o["delta_h_max_um"], "µm"),
-                Row(f"HD{hd} {label}: max deviation, whole substrate", s["all_max_um"], o["all_max_um"], "µm"),
-                Row(f"HD{hd} {label}: RMS deviation, whole substrate", s["all_rms_um"], o["all_rms_um"], "µm"),
-                Row(f"HD{hd} {label}: max deviation, ROI", s["roi_max_um"], o["roi_max_um"], "µm"),
-                Row(f"HD{hd} {label}: RMS deviation, ROI", s["roi_rms_um"], o["roi_rms_um"], "µm"),
-            ]
-    tables.append(
-        Table(
-            "§1.10 Simulations: reconstruction with the ideal setup",
-            rows,
-            "Height distributions 1 and 2 of the seed (Fig. 1.10) are not published as data; ours are §1.9 "
-            "random surfaces with the same 40 µm range (surface seeds 1 and 2). Mitsuba renders at "
-            f"{spp} spp, no sensor noise, markers found and indexed in the image (recon.markers).",
-        )
-    )
-    o = ok("oneshot")
-    if o is not None:
-        for key, seed, title in (
-            ("t22", SEED_22, "Table 2.2: one-shot calibration, perpendicular view (§2.8.1)"),
-            ("t23", SEED_23, "Table 2.3: one-shot calibration, angular view (§2.8.1)"),
-        ):
-            rows = []
-            for kind in ("linear", "nonlinear"):
-                sfx = f" ({'non-linear' if kind == 'nonlinear' else 'linear'})"
-                rows += _frame_rows(seed[kind], o[key][kind], sfx)
-                rows += [
-                    Row(f"Δb{sfx}", seed[kind]["b"], o[key][kind]["b"], "mm"),
-                    Row(f"RMS of the marker-centre comparison{sfx}", seed[kind]["rms"], o[key][kind]["rms"], "mm"),
-                    Row(f"peak-to-valley{sfx}", seed[kind]["pv"], o[key][kind]["pv"], "mm"),
-                ]
-            tables.append(
-                Table(
-                    title,
-                    rows,
-                    f"Exact marker images ({o[key]['markers']} markers); image distance: "
-                    f"{o[key]['lens']}. Values near 1e-13 and below are round-off on both "
-                    "sides: their ratio means nothing.",
-                )
-            )
-        t24 = o["t24"]
-        rows = _frame_rows(SEED_24["with"], t24["with"], " (with distortion)")
-        rows += _frame_rows(SEED_24["without"], t24["without"], " (without)")
-        rows.append(Row("RMS Δr_c over 200 draws (with distortion)", None, t24["rms_r_200"], "mm"))
-        tables.append(
-            Table(
-                "Table 2.4: calibration with marker images disturbed by σ = 0.233 µm (§2.8.2)",
-                rows,
-                "One seeded draw of the disturbance (as the seed's single draw) and, for a fair "
-                "comparison, the RMS over 200 draws.",
-            )
-        )
-        t28 = o["t28"]
-        rows = [Row("Δr_c", SEED_28["r_um"], np.asarray(t28["r"]) * 1e3, "µm")] + _frame_rows(SEED_28, t28)[1:]
-        rows += [
-            Row("Δr_cs", SEED_28["r_cs_um"], np.asarray(t28["r_cs"]) * 1e3, "µm"),
-            Row("Δc_0", SEED_28["c0"], t28["c0"]),
-            Row("Δc_2", SEED_28["c2"], t28["c2"], "1/mm"),
-            Row("RMS of the marker-centre comparison", SEED_28["rms"], t28["rms"], "mm"),
-            Row("peak-to-valley", SEED_28["pv"], t28["pv"], "mm"),
-            Row("RMS without offset and distortion", SEED_28["rms_without"], t28["rms_without"], "mm"),
-            Row("peak-to-valley without offset and distortion", SEED_28["pv_without"], t28["pv_without"], "mm"),
-        ]
-        tables.append(
-            Table(
-                "Table 2.8: distortion and optical axis (§2.8.5)",
-                rows,
-                "r_cs = (46.5, 46.5) µm, c_2 = 0.00123 /mm refined together with the pose; exact images.",
-            )
-        )
-    c = ok("setup_cal")
-    if c is not None:
-        rows = _frame_rows(SEED_25, c["camera"]) + [
-            Row("Δb", SEED_25["b"], c["camera"]["b"], "mm"),
-            Row("substrate-plane residual RMS", SEED_25["substrate_rms_um"], c["substrate_rms_um"], "µm"),
-            Row("substrate-plane residual peak-to-valley", SEED_25["substrate_pv_um"], c["substrate_pv_um"], "µm"),
-        ]
-        tables.append(
-            Table(
-                "Table 2.5: setup calibration, camera (§2.8.3)",
-                rows,
-                f"From Mitsuba renders ({spp} spp) of the target on the frame and of the pattern in a flat "
-                f"mirror; {c['markers'][0]} and {c['markers'][1]} markers; bias-corrected centroids.",
-            )
-        )
-        rows = _frame_rows(SEED_26, c["pattern"]) + [
-            Row("mirror residual RMS", SEED_26["mirror_rms_um"], c["mirror_rms_um"], "µm"),
-            Row("mirror residual peak-to-valley", SEED_26["mirror_pv_um"], c["mirror_pv_um"], "µm"),
-        ]
-        tables.append(Table("Table 2.6: setup calibration, pattern (§2.8.3)", rows))
-    ideal, calibrated = ok("hd2"), ok("hd2_calibrated")
-    rows = []
-    for label, r, s in (
-        ("with ideal data", ideal, SEED_27["ideal"]),
-        ("with calibration data", calibrated, SEED_27["calibrated"]),
-    ):
-        if r is not None:
-            rows += [
-                Row(f"max deviation (ROI), {label}", s["roi_max_um"], r["roi_max_um"], "µm"),
-                Row(f"RMS (ROI), {label}", s["roi_rms_um"], r["roi_rms_um"], "µm"),
-            ]
-    tables.append(
-        Table(
-            "Table 2.7: reconstruction with ideal and with calibrated setup (§2.8.4)",
-            rows,
-            "Height distribution 2 (ours: surface seed 2); the calibrated setup is the one of Tables 2.5/2.6.",
-        )
-    )
-    rows = []
-    for key in ("grin_831", "grin_832"):
-        g = ok(key)
-        if g is None:
-            continue
-        for q, unit in (
-            ("magnification", ""),
-            ("na_object", ""),
-            ("rms_axis_um", "µm"),
-            ("rms_edge_um", "µm"),
-            ("airy_um", "µm"),
-            ("image_distance", "mm"),
-            ("object_distance", "mm"),
-        ):
-            rows.append(Row(f"{g['section']} {q}", g["seed"].get(q), g["ours"].get(q), unit))
-    tables.append(
-        Table(
-            "Part III §8.3: GRIN objectives (seed's Zemax figures)",
-            rows,
-            "Our figures: real rays traced through the radial index profiles (scenes.grin), image plane at best focus.",
-        )
-    )
-    plots = _thesis_plot(ctx.out, tables)
-    intro = (
-        "Every table of Part I of the seed (§1.10, Tables 2.2-2.8) and the §8.3 GRIN figures, reproduced with "
-        "scopetwin: the seed's number, ours, and their ratio (|ours|/|seed|; vector rows compare Euclidean "
-        "norms). Deviations are ours minus truth."
-    )
-    return StudyResult(
-        "Study: the seed's tables side by side",
-        intro,
-        tables,
-        plots,
-        jsonable(
-            {
-                k: (error_text(v) if failed(v) else {kk: vv for kk, vv in v.items() if kk != "calibrated_setup"})
-                for k, v in res.items()
-            }
-        ),
-        notes,
-    )
+def thesis(ctx: StudyContext, spp: int = 16) -> StudyResult:
+    """Every Part I table of the seed side by side (module docstring)."""
+    require("thesis", THESIS_MODULES)
+    res = _run_tasks(ctx, spp)
+    notes = [f"**{name} failed**: {error_text(r)}" for name, r in res.items() if failed(r)]
+    ok = {name: r for name, r in res.items() if not failed(r)}
+    tables = [t for build in BUILDERS if (t := build(ok, spp)) is not None]
+    summary = {
+        k: (error_text(v) if failed(v) else {kk: vv for kk, vv in v.items() if kk != "calibrated_setup"})
+        for k, v in res.items()
+    }
+    return StudyResult(TITLE, INTRO, tables, _thesis_plot(ctx.out, tables), jsonable(summary), notes)
 
 
 def call(func: Callable[..., Any], args: tuple) -> Any:
