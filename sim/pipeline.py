@@ -16,8 +16,8 @@ The caller stages ``out_dir`` atomically; this module only writes into it.
 from __future__ import annotations
 
 import json
+import logging
 import time
-import traceback
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -28,6 +28,8 @@ from numpy.typing import NDArray
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from scopetwin.recon.focusmap import FocusMap
@@ -353,7 +355,7 @@ def _calibrate(
         )
         (out / "calibrated-setup.toml").write_text(cal.toml)
     except (ImportError, ScopetwinError) as exc:
-        traceback.print_exc()
+        log.warning("setup calibration failed; the 'calibrated' row uses the ideal setup", exc_info=True)
         return None, f"UNAVAILABLE ({type(exc).__name__}: {exc}); the 'calibrated' row uses the ideal setup"
     return cal.setup, "calib/ (§2.7: target on the frame + pattern in a flat mirror, bias-corrected)"
 

@@ -32,7 +32,7 @@ from scopetwin.recon.bias import spot_bias_model
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.geometry import Frame
 from scopetwin.scenes.setup import Setup
-from scopetwin.sim.cli.options import finite_vector, positive_float
+from scopetwin.sim.cli.options import conventions, finite_vector, positive_float
 
 
 def _markers(image: NDArray, setup: Setup, path: str) -> Any:
@@ -248,7 +248,15 @@ def _quiet(func: Any) -> Any:
 def register(subparsers: Any) -> None:
     """Add ``calibrate`` and ``calibrate-setup`` to the ``scopetwin`` sub-command parsers."""
     h = "one-shot camera calibration from one image of a marker target (seed ch. 2)"
-    p = subparsers.add_parser("calibrate", help=h, description=h)
+    p = subparsers.add_parser(
+        "calibrate",
+        help=h,
+        description=h,
+        **conventions(
+            "scopetwin render thesis-2.8.1-angular --out t1 --spp 64",
+            "scopetwin calibrate t1/image.exr --target thesis-2.8.1-angular --json calibration.json",
+        ),
+    )
     p.set_defaults(func=_quiet(cmd_calibrate))
     p.add_argument("image", help="camera image (OpenEXR, channel Y)")
     p.add_argument(
@@ -266,7 +274,16 @@ def register(subparsers: Any) -> None:
     _common(p)
 
     h = "calibrate the deflectometry setup from a substrate-target image and a mirror image (seed §2.7)"
-    p = subparsers.add_parser("calibrate-setup", help=h, description=h)
+    p = subparsers.add_parser(
+        "calibrate-setup",
+        help=h,
+        description=h,
+        **conventions(
+            "scopetwin render thesis-2.8.3-substrate --out s --spp 64; scopetwin render thesis-2.8.3-mirror --out m "
+            "--spp 64",
+            "scopetwin calibrate-setup --substrate-image s/image.exr --mirror-image m/image.exr --out calibrated.toml",
+        ),
+    )
     p.set_defaults(func=_quiet(cmd_calibrate_setup), outputs=[("out", "file"), ("json", "file")])
     p.add_argument("--substrate-image", required=True, metavar="A.exr", help="target on the holding frame")
     p.add_argument("--mirror-image", required=True, metavar="B.exr", help="pattern seen in a flat mirror on the frame")

@@ -17,7 +17,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from scopetwin.sim.cli.options import add_cluster_options
+from scopetwin.sim.cli.options import add_cluster_options, conventions
 from scopetwin.sim.cli.outputs import check_space, human_bytes
 from scopetwin.sim.datasets.config import DatasetError, load_config
 from scopetwin.sim.datasets.plan import Plan
@@ -36,7 +36,6 @@ DESCRIPTION = (
 
 def _common(p: argparse.ArgumentParser) -> None:
     add_cluster_options(p)
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
 
 
@@ -131,10 +130,23 @@ def register(subparsers: Any) -> None:
         "dataset",
         help="synthetic datasets with exact truth (local or on a Dask cluster)",
         description=DESCRIPTION,
+        **conventions(
+            "scopetwin dataset generate examples/datasets/01-deflectometry-small.toml --out ds1 --workers 2",
+            "scopetwin dataset verify ds1",
+        ),
     )
     sub = top.add_subparsers(dest="dataset_command", required=True)
 
-    p = sub.add_parser("generate", help="render a dataset described by a config TOML")
+    h = "render a dataset described by a config TOML"
+    p = sub.add_parser(
+        "generate",
+        help=h,
+        description=h,
+        **conventions(
+            "scopetwin dataset generate examples/datasets/01-deflectometry-small.toml --out ds1 --workers 2",
+            "scopetwin dataset generate examples/datasets/03-grin-targets.toml --out grin --indices 0:2 --workers 0 -q",
+        ),
+    )
     p.add_argument("config", help="dataset config TOML (see examples/datasets/)")
     p.add_argument("--out", required=True, help="dataset folder")
     p.add_argument("--count", type=int, help="override the config's sample count")
@@ -142,12 +154,24 @@ def register(subparsers: Any) -> None:
     _common(p)
     p.set_defaults(func=cmd_generate, outputs=[("out", "dir", "keep"), ("json", "file")])
 
-    p = sub.add_parser("resume", help="finish an interrupted dataset without redoing finished samples")
+    h = "finish an interrupted dataset without redoing finished samples"
+    p = sub.add_parser(
+        "resume",
+        help=h,
+        description=h,
+        **conventions("scopetwin dataset resume ds1", "scopetwin dataset resume ds1 --workers 4 -q"),
+    )
     p.add_argument("dir", help="dataset folder")
     _common(p)
     p.set_defaults(func=cmd_resume, outputs=[("dir", "dir", "keep", "positional"), ("json", "file")])
 
-    p = sub.add_parser("verify", help="check every sample against the manifest and its hashes")
+    h = "check every sample against the manifest and its hashes (exit status 1 when anything is wrong)"
+    p = sub.add_parser(
+        "verify",
+        help=h,
+        description=h,
+        **conventions("scopetwin dataset verify ds1", "scopetwin dataset verify ds1 --json ds1-verify.json"),
+    )
     p.add_argument("dir", help="dataset folder")
     p.add_argument("--json", metavar="PATH", help="write {complete, missing, corrupt, duplicates, ...} here")
     p.set_defaults(func=cmd_verify, exit_code=lambda result: 0 if result["ok"] else 1)

@@ -22,6 +22,7 @@ from typing import Any
 from scopetwin.instrument.emulators import EMULATORS
 from scopetwin.instrument.emulators.serve import parse_options, serve
 from scopetwin.instrument.errors import RigError
+from scopetwin.sim.cli.options import conventions
 
 OPTIONS_HELP = {
     "pi-gcs": "axes=1,2 travel_mm=0,150 max_velocity_mm_s=50 reference_mm=0 stage=M-404.6PD (--model C-863.11)",
@@ -64,7 +65,11 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
         "FPGA light/trigger board) on a pseudo-terminal until SIGINT or SIGTERM. The first stdout line is the "
         'port path: open it as a serial port, or put it in a rig TOML as port = "/dev/pts/N". The emulator '
         "keeps its state between commands (an emu:// port in a rig starts a fresh one for every command).",
-        epilog=f"device options (KEY=VALUE) — {options}",
+        **conventions(
+            "scopetwin emulate pi-gcs travel_mm=0,150 max_velocity_mm_s=50 --model C-863.11",
+            "scopetwin emulate fpga-board --log board.jsonl",
+            note=f"device options (KEY=VALUE) — {options}",
+        ),
     )
     parser.add_argument("kind", choices=kinds, help="the wire protocol to emulate")
     parser.add_argument("options", nargs="*", metavar="KEY=VALUE", help="device options, as in emu:// URLs")

@@ -20,6 +20,7 @@ from typing import Any
 from scopetwin.recon.markers import MarkerError, find_markers_for
 from scopetwin.scenes.io import read_image
 from scopetwin.scenes.setup import load_setup
+from scopetwin.sim.cli.options import conventions
 from scopetwin.sim.figures import write_overlay
 
 
@@ -49,7 +50,15 @@ def cmd_markers(args: argparse.Namespace) -> dict[str, Any]:
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add ``markers`` to a ``scopetwin`` subparsers object (sets ``func`` = :func:`cmd_markers`)."""
     help_ = "find and index the markers of a camera image (seed §1.5, §2.6)"
-    p = subparsers.add_parser("markers", help=help_, description=help_)
+    p = subparsers.add_parser(
+        "markers",
+        help=help_,
+        description=help_,
+        **conventions(
+            "scopetwin render thesis-1.10-deflectometry --out r1 --spp 16",
+            "scopetwin markers r1/image.exr --pattern thesis-1.10-deflectometry --overlay r1/markers.png",
+        ),
+    )
     p.add_argument("image", help="camera image (OpenEXR, channel Y)")
     p.add_argument(
         "--pattern",

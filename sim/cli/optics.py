@@ -33,7 +33,7 @@ import numpy as np
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.io import read_image, write_image
 from scopetwin.sim import cmu_unit
-from scopetwin.sim.cli.options import SEED, SIDE_PX, SPP, finite_float, positive_float, positive_int
+from scopetwin.sim.cli.options import SEED, SIDE_PX, SPP, conventions, finite_float, positive_float, positive_int
 from scopetwin.sim.figures import write_spots
 from scopetwin.sim.measurement import write_preview
 
@@ -46,11 +46,24 @@ MAX_OBJECTIVES = 100_000
 def register(subparsers: Any) -> argparse.ArgumentParser:
     """Add ``optics`` (with ``grin`` and ``scan``) to ``subparsers``; returns the ``optics`` parser."""
     h = "the four-channel unit, GRIN objectives (spots, target images) and scan-time models (seed Parts II, III)"
-    optics = subparsers.add_parser("optics", help=h, description=h)
+    optics = subparsers.add_parser(
+        "optics",
+        help=h,
+        description=h,
+        **conventions("scopetwin optics cmu", "scopetwin optics grin thesis-8.3.2-grin-realized --spots spots.png"),
+    )
     sub = optics.add_subparsers(dest="optics_command", required=True)
     register_cmu(sub)
     h = "analyse a GRIN objective preset, draw its spot diagrams, render a target image (seed §7.5.2, §8.3)"
-    g = sub.add_parser("grin", help=h, description=h)
+    g = sub.add_parser(
+        "grin",
+        help=h,
+        description=h,
+        **conventions(
+            "scopetwin optics grin thesis-8.3.2-grin-realized --spots spots.png --sensitivity",
+            "scopetwin optics grin thesis-7.5.2-grin-egfp --image dots-25 --out egfp.exr --spp 16",
+        ),
+    )
     g.add_argument("preset", help="preset name (thesis-8.3.2-grin-realized, ...) or TOML path")
     g.add_argument("--json", type=Path, help="write the results as JSON")
     g.add_argument("--spots", type=Path, help="write spot diagrams (axis, 0.7 field, edge) as PNG")
@@ -72,7 +85,12 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     g.add_argument("--seed", type=SEED, default=0, help="sampler seed for --image, >= 0")
     g.set_defaults(func=cmd_grin, outputs=[("json", "file"), ("spots", "file"), ("out", "file")])
     h = "scan-time models (seed §7.2-7.4) and the objective count (§8.2.2)"
-    s = sub.add_parser("scan", help=h, description=h)
+    s = sub.add_parser(
+        "scan",
+        help=h,
+        description=h,
+        **conventions("scopetwin optics scan", "scopetwin optics scan --n 4 --n-y 2 --json scan.json"),
+    )
     pos, count = positive_float(MAX_LENGTH_MM), positive_int(MAX_OBJECTIVES)
     s.add_argument("--width", type=pos, default=75.0, help="substrate width W (mm)")
     s.add_argument("--height", type=pos, default=25.0, help="substrate height H (mm)")
@@ -251,7 +269,12 @@ def cmd_scan(args: argparse.Namespace) -> dict[str, Any]:
 def register_cmu(optics_subparsers: Any) -> argparse.ArgumentParser:
     """Add ``cmu`` to the ``optics`` sub-parsers; returns its parser."""
     h = "the four-channel microscope unit (seed ch. 3-5): spots, PSF, magnification, Siemens star, crosstalk"
-    p = optics_subparsers.add_parser("cmu", help=h, description=h)
+    p = optics_subparsers.add_parser(
+        "cmu",
+        help=h,
+        description=h,
+        **conventions("scopetwin optics cmu --json cmu.json", "scopetwin optics cmu --stop --out cmu --spp 16"),
+    )
     p.add_argument("--setup", default="thesis-cmu", help="preset name or TOML (default thesis-cmu)")
     p.add_argument(
         "--splitter-maps",

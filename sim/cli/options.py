@@ -1,4 +1,5 @@
-"""Argparse ``type=`` functions for the numeric options: finite, positive, in range (issue 15).
+"""Argparse ``type=`` functions for the numeric options: finite, positive, in range (issue 15); the options and
+help layout every command shares (issue 22: :func:`conventions`).
 
 Each factory returns a converter that argparse calls with the option's text; a value that is not a number, not
 finite, or out of range raises :class:`argparse.ArgumentTypeError`, which argparse prints as one line naming the
@@ -16,8 +17,10 @@ argparse.ArgumentTypeError: must be a finite number >= 0, got '-1'
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 from collections.abc import Callable
+from typing import Any
 
 #: Largest pixel count accepted for an image side (``--width``, ``--height``): beyond it the render estimate of
 #: :func:`scopetwin.scenes.limits.check_render` refuses the request anyway, this only stops absurd numbers early.
@@ -132,3 +135,77 @@ def add_cluster_options(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="Dr.Jit threads per worker (default 1 on a local cluster)",
     )
+
+
+# -- what every (sub)command shares (issue 22) --------------------------------------------------------------------
+#: Attribute holding the top level's ``-v`` count; a sub-command level counts in ``verbose.N`` (see common_options).
+VERBOSE = "verbose"
+_LEVELS = itertools.count(1)
+
+
+def common_options(top: bool = False) -> argparse.ArgumentParser:
+    """A parent parser with ``-v/--verbose`` (repeatable) and ``-q/--quiet`` for one parser of the command tree.
+
+    Every parser of the tree gets its own (``parents=[common_options()]``, :func:`conventions`), so the options work
+    before and after any command word: ``scopetwin -v reconstruct ...`` and ``scopetwin reconstruct ... -v``. argparse
+    parses a sub-command into a fresh namespace and copies it over its parent's, which would reset a count made
+    above it; so each sub-level counts ``-v`` in an attribute of its own (``verbose.1``, ``verbose.2``, ...; the
+    top level in ``verbose``) and :func:`verbosity` adds them up. ``quiet`` is one flag: below the top level its
+    default is suppressed, so a sub-command leaves the top level's ``-q`` standing.
+    """
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        dest=VERBOSE if top else f"{VERBOSE}.{next(_LEVELS)}",
+        default=0 if top else argparse.SUPPRESS,
+        help="log what the command does on stderr (-vv: debugging detail too)",
+    )
+    p.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        default=False if top else argparse.SUPPRESS,
+        help="errors only: no warnings, notes or progress bars",
+    )
+    return p
+
+
+def verbosity(args: argparse.Namespace) -> int:
+    """How many ``-v`` were given, at any level of the command (see :func:`common_options`)."""
+    return sum(int(v) for k, v in vars(args).items() if k == VERBOSE or k.startswith(f"{VERBOSE}."))
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Help text: a description's or epilog's paragraphs wrapped to the terminal, indented lines (the
+    ``examples:`` command lines) kept as written."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        lines: list[str] = []
+        paragraph: list[str] = []
+
+        def flush() -> None:
+            if paragraph:
+                lines.append(argparse.HelpFormatter._fill_text(self, " ".join(paragraph), width, indent))
+                paragraph.clear()
+
+        for line in text.splitlines():
+            if line.strip() and not line[0].isspace():
+                paragraph.append(line)
+                continue
+            flush()
+            lines.append(indent + line if line.strip() else "")
+        flush()
+        return "\n".join(lines)
+
+
+def conventions(*examples: str, note: str | None = None) -> dict[str, Any]:
+    """Keyword arguments of ``add_parser`` that every parser of the command tree takes (issue 22).
+
+    ``-v``/``-q`` (:func:`common_options`), the :class:`HelpFormatter`, and an epilog ending in ``examples:`` and
+    the command lines given, one per line, indented (each one that works with the shipped presets, rigs and
+    examples); ``note``, a paragraph before them.
+    """
+    epilog = ([note, ""] if note else []) + ["examples:"] + [f"  {e}" for e in examples]
+    return {"parents": [common_options()], "formatter_class": HelpFormatter, "epilog": "\n".join(epilog)}

@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import logging
 import os
 import shutil
 import tempfile
@@ -33,6 +34,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 from scopetwin.scenes.errors import ScopetwinError
+
+log = logging.getLogger(__name__)
 
 #: Free space every output needs at the least (a JSON file, a report).
 MIN_FREE_BYTES = 1 << 20
@@ -173,6 +176,7 @@ def check_outputs(args: argparse.Namespace) -> list[tuple[Output, Path, bool]]:
             continue
         need = max(MIN_FREE_BYTES, int(sizes.get(out.attr, 0)))
         path = check_output_path(value, out.kind, out.option, need)
+        log.debug("%s %s: writable, %s free space needed", out.option, path, human_bytes(need))
         checked.append((out, path, path.exists() or path.is_symlink()))
     return checked
 
@@ -236,6 +240,7 @@ class OutputTransaction:
                     except TypeError as exc:  # a command returned something JSON cannot hold: a bug, said plainly
                         raise OutputError(f"--json {json_path}: the result is not JSON ({exc})") from None
                     tmp.write_text(text)
+                    log.info("wrote the result to --json %s", json_path)
                 for stage in list(self._pending):
                     stage.commit_now()
                     self._pending.remove(stage)
@@ -250,6 +255,7 @@ class OutputTransaction:
         """Remove the declared outputs (not ``keep``) that the command created before it failed."""
         for out, path, existed in self.outputs:
             if not (existed or out.keep):
+                log.info("the command failed: removing %s %s", out.option, path)
                 _remove_created(path, self._bases.get(out.attr))
 
 

@@ -7,12 +7,15 @@ The render's memory and time are estimated before anything is written (:func:`sc
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 from typing import Any
 
 from scopetwin.scenes.limits import check_render
-from scopetwin.sim.cli.options import SEED, SPP
+from scopetwin.sim.cli.options import SEED, SPP, conventions
 from scopetwin.sim.measurement import StagedOutput, load_measurement, render_measurement, write_measurement
+
+log = logging.getLogger(__name__)
 
 
 def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
@@ -22,6 +25,17 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
     renderer = "analytic" if args.renderer == "analytic" else "setup"
     check_render(cam.nx, cam.ny, setup.render.spp, f"render {setup.name}", renderer)  # before anything is written
     stage = StagedOutput(Path(args.out))
+    log.info(
+        "rendering %s (%s scene): %d x %d px, %d spp, seed %d, noise %s, %s renderer",
+        setup.name,
+        setup.scene,
+        cam.nx,
+        cam.ny,
+        setup.render.spp,
+        setup.render.seed,
+        "on" if setup.render.noise else "off",
+        args.renderer,
+    )
     try:
         image, seconds = render_measurement(
             setup, heights, setup.render.spp, setup.render.seed, setup.render.noise, args.renderer
@@ -55,7 +69,15 @@ def cmd_presets(args: argparse.Namespace) -> dict[str, Any]:
 def register(subparsers: Any) -> None:
     """Add ``render`` and ``presets`` to the ``scopetwin`` sub-command parsers."""
     help_ = "render one setup (preset name or TOML path) to EXR with its truth"
-    p = subparsers.add_parser("render", help=help_, description=help_)
+    p = subparsers.add_parser(
+        "render",
+        help=help_,
+        description=help_,
+        **conventions(
+            "scopetwin render thesis-1.10-deflectometry --out r1 --spp 16",
+            "scopetwin render thesis-2.8.1-angular --out t1 --spp 64 --no-noise --json t1.json",
+        ),
+    )
     p.set_defaults(func=cmd_render, outputs=[("out", "dir"), ("json", "file")], estimate="render")
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
     p.add_argument("setup", help="preset name (see: scopetwin presets) or TOML path")
@@ -74,6 +96,11 @@ def register(subparsers: Any) -> None:
     )
 
     help_ = "list the setup presets"
-    p = subparsers.add_parser("presets", help=help_, description=help_)
+    p = subparsers.add_parser(
+        "presets",
+        help=help_,
+        description=help_,
+        **conventions("scopetwin presets", "scopetwin presets --json presets.json"),
+    )
     p.set_defaults(func=cmd_presets)
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")

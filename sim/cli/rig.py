@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import threading
 import tomllib
@@ -41,7 +42,9 @@ from typing import Any
 from scopetwin.instrument.devices import FocusDrive, Stage
 from scopetwin.instrument.errors import RigError
 from scopetwin.instrument.rig import Rig, open_rig
-from scopetwin.sim.cli.options import finite_float, int_range, positive_float, positive_int
+from scopetwin.sim.cli.options import conventions, finite_float, int_range, positive_float, positive_int
+
+log = logging.getLogger(__name__)
 
 EMU_NOTE = (
     "note: devices on emu:// ports talk to emulators inside this one command; each command starts them "
@@ -171,11 +174,7 @@ def cmd_acquire(args: argparse.Namespace) -> dict[str, Any]:
         exposure = cam.exposure_s
         black, saturation = cam.black_level_dn, cam.saturation_dn
         lamp = rig.light(args.light)
-        unseen = (
-            cam.driver_name() == "sim"
-            and lamp.driver_name() != "sim"
-            and lamp.name not in rig.emulated_ports()
-        )
+        unseen = cam.driver_name() == "sim" and lamp.driver_name() != "sim" and lamp.name not in rig.emulated_ports()
     manifest_path = Path(args.out) / "manifest.json"
     signals = [float(f["signal_dn"]) for f in json.loads(manifest_path.read_text())["frames"]]
     dark = dark_frames(signals, black, saturation)
@@ -186,10 +185,12 @@ def cmd_acquire(args: argparse.Namespace) -> dict[str, Any]:
             if unseen
             else "is the light on, and can the camera see it?"
         )
-        print(
-            f"scopetwin: warning: the frames carry no signal (brightest at {max(signals):.1f} DN above the black "
-            f"level, under 1 % of the {saturation - black:g} DN range): {why}",
-            file=sys.stderr,
+        log.warning(
+            "the frames carry no signal (brightest at %.1f DN above the black level, under 1 %% of the %g DN "
+            "range): %s",
+            max(signals),
+            saturation - black,
+            why,
         )
     return {
         "frames": [str(p) for p in paths],
@@ -245,7 +246,8 @@ def cmd_mda(args: argparse.Namespace) -> dict[str, Any]:
     if total == 0:
         raise RigError(f"MDA sequence {args.sequence!r} has no events")
     _quiet_pymmcore_plus()
-    with open_rig(args.rig) as rig, tqdm(total=total, desc="mda", unit="plane", file=sys.stderr) as bar:
+    bar_ = tqdm(total=total, desc="mda", unit="plane", file=sys.stderr, disable=args.quiet)
+    with open_rig(args.rig) as rig, bar_ as bar:
         rig.camera(args.camera)  # a clear error for an unknown camera before the core loads
         out.parent.mkdir(parents=True, exist_ok=True)
         result = run_mda(rig, sequence, camera=args.camera, output=str(out), on_frame=lambda *_: bar.update(1))
@@ -300,12 +302,15 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
         "Micro-Manager MDA into OME files, serve the devices to python-microscope clients. Devices on emu:// "
         "ports talk to emulators that live for one command only (each command starts them fresh); run "
         "'scopetwin emulate KIND' and put its port in the rig file to keep their state between commands.",
+        **conventions("scopetwin rig rigs/sim-cmu.toml info", "scopetwin rig rigs/emulated-hardware.toml move x 80"),
     )
     parser.add_argument("rig", help="rig TOML file (see rigs/)")
     actions = parser.add_subparsers(dest="rig_action", required=True)
 
-    def add(name: str, func: Any, help_: str) -> argparse.ArgumentParser:
-        p = actions.add_parser(name, help=help_, description=help_, prog=f"scopetwin rig RIG {name}")
+    def add(name: str, func: Any, help_: str, *examples: str) -> argparse.ArgumentParser:
+        p = actions.add_parser(
+            name, help=help_, description=help_, prog=f"scopetwin rig RIG {name}", **conventions(*examples)
+        )
         p.set_defaults(func=func)
         p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
         return p
@@ -315,17 +320,33 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
         cmd_info,
         "list the devices, their drivers, ports and limits (travel, velocity, focus range, maximum current, "
         "exposure range)",
+        "scopetwin rig rigs/sim-cmu.toml info",
+        "scopetwin rig rigs/emulated-hardware.toml info --json rig.json",
     )
-    p = add("move", cmd_move, "move a stage (mm) or the focus drive (um) to an absolute position")
+    p = add(
+        "move",
+        cmd_move,
+        "move a stage (mm) or the focus drive (um) to an absolute position",
+        "scopetwin rig rigs/sim-cmu.toml move x 80",
+        "scopetwin rig rigs/emulated-hardware.toml move focus 120",
+    )
     p.add_argument("name", help="device name in the rig")
     p.add_argument("value", type=finite_float(), help="target: mm for a stage, um for a focus drive")
-    p = add("position", cmd_position, "report a stage's (mm) or the focus drive's (um) position")
+    p = add(
+        "position",
+        cmd_position,
+        "report a stage's (mm) or the focus drive's (um) position",
+        "scopetwin rig rigs/sim-cmu.toml position focus",
+        "scopetwin rig rigs/emulated-hardware.toml position y --json y.json",
+    )
     p.add_argument("name", help="device name in the rig")
     p = add(
         "acquire",
         cmd_acquire,
         "grab frames with a light on, each written as it arrives and listed in manifest.json; preview.png shows "
         "the last; SIGINT/SIGTERM/SIGHUP switch the lights off and keep every frame written",
+        "scopetwin rig rigs/sim-cmu.toml acquire frames --camera cam_blue --light uv --frames 3",
+        "scopetwin rig rigs/sim-deflectometry.toml acquire deflectometry-frame",
     )
     p.add_argument("out", help="output folder")
     p.set_defaults(outputs=[("out", "dir", "keep", "positional"), ("json", "file")], estimate=estimate_acquire)
@@ -338,6 +359,9 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
         cmd_mda,
         "run a useq MDA sequence (YAML or JSON; um and ms) through pymmcore-plus into OME-TIFF or OME-Zarr; every "
         "light is a preset of config group Channel; Ctrl-C keeps the planes written",
+        "scopetwin rig rigs/sim-cmu.toml mda examples/mda/2-positions-2-channels-z.json --camera cam_nir "
+        "--out stack.ome.tif",
+        "scopetwin rig rigs/sim-cmu.toml mda examples/mda/2-positions-2-channels-z.json --out stack.ome.zarr -q",
     )
     p.add_argument("sequence", help="MDA sequence file (.yaml or .json, useq-schema)")
     p.add_argument("--camera", help="camera name (default: the first)")
@@ -347,6 +371,8 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
         "serve",
         cmd_serve,
         "serve the devices through python-microscope's device server (Pyro) on 127.0.0.1 until SIGINT/SIGTERM",
+        "scopetwin rig rigs/sim-cmu.toml serve",
+        "scopetwin rig rigs/emulated-hardware.toml serve --port 0",
     )
     p.add_argument("--port", type=int_range(0, 65535), default=8000, help="first port; one per device (0: free ports)")
     p.add_argument("--host", default=LOCALHOSTS[0], help="only 127.0.0.1 (or localhost) is accepted")

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from scopetwin.sim.cli.options import conventions
 from scopetwin.sim.measurement import StagedOutput
 
 
@@ -37,13 +38,20 @@ def cmd_run(args: argparse.Namespace) -> dict[str, Any]:
 def register(subparsers: Any) -> None:
     """Add ``run`` to the ``scopetwin`` sub-command parsers."""
     help_ = "the main job on the embedded default: simulate, render, calibrate, reconstruct, compare"
-    p = subparsers.add_parser("run", help=help_, description=help_)
+    p = subparsers.add_parser(
+        "run",
+        help=help_,
+        description=help_,
+        **conventions(
+            "scopetwin run",
+            "scopetwin run --setup thesis-1.10-deflectometry --spp 16 --seed 2 --out run-seed2 -q",
+        ),
+    )
     p.set_defaults(func=cmd_run, outputs=[("out", "dir"), ("json", "file")], estimate="run")
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
     p.add_argument("--out", default="scopetwin-run", help="report folder (default: scopetwin-run)")
     p.add_argument("--spp", type=int, help="samples per pixel")
     p.add_argument("--seed", type=int, help="random seed")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument(
         "--setup", metavar="SETUP", help="measurement setup: preset name or TOML (default thesis-1.10-deflectometry)"
     )

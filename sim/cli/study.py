@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from scopetwin.sim.cli.options import add_cluster_options
+from scopetwin.sim.cli.options import add_cluster_options, conventions
 from scopetwin.sim.cli.outputs import check_output_path
 from scopetwin.sim.datasets.runner import check_scheduler
 from scopetwin.sim.studies.context import StudyError
@@ -51,10 +51,10 @@ def register(subparsers: Any) -> None:
         "study",
         help="an accuracy study against rendered truth; thesis reproduces the seed's tables side by side",
         description=DESCRIPTION,
+        **conventions("scopetwin study noise --workers 2", "scopetwin study thesis --out tables --workers 0"),
     )
     p.add_argument("name", help=f"one of: {', '.join(STUDIES)}")
     p.add_argument("--out", help="report folder (default: study-NAME)")
     add_cluster_options(p)
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
     p.set_defaults(func=cmd_study, outputs=[("out", "dir"), ("json", "file")])
