@@ -111,10 +111,12 @@ def _broadband_table(ctx: StudyContext, spp: int) -> tuple[Table, list[str]]:
     )
 
 
-def surface(ctx: StudyContext, spp: int = 16) -> StudyResult:
-    """Reconstruction error against correlation length and range, and against the basis density."""
-    require("surface", SURFACE_MODULES)
-    lengths, ranges = [6.0, 12.0, 24.0], [20.0, 40.0, 80.0]
+#: Basis densities of the second table: Gaussian grid spacings (in σ) and the seed's own basis.
+DENSITIES = ["spacing=0.5", "spacing=0.7", "spacing=1.0", "spacing=1.5", "thesis"]
+
+
+def _surface_dataset(ctx: StudyContext, lengths: list[float], ranges: list[float], spp: int) -> Path:
+    """Render the random surfaces of every correlation length x range (§1.9), clean, on the §1.10 setup."""
     cfg = {
         "dataset": {
             "kind": "deflectometry",
@@ -127,24 +129,21 @@ def surface(ctx: StudyContext, spp: int = 16) -> StudyResult:
         },
         "vary": {"surface_correlation_length": {"sweep": lengths}, "surface_range_um": {"sweep": ranges}},
     }
-    root = ctx.dataset(cfg, "samples-surface")
-    folders = sample_folders(root)
-    nominal = next(
+    return ctx.dataset(cfg, "samples-surface")
+
+
+def _nominal_folder(folders: list[str]) -> str:
+    """The sample with the nominal surface (12 mm correlation length, 40 µm range)."""
+    return next(
         f
         for f in folders
         if json.loads((Path(f) / "truth.json").read_text())["parameters"]
         == {"surface_correlation_length": 12.0, "surface_range_um": 40.0}
     )
-    densities = ["spacing=0.5", "spacing=0.7", "spacing=1.0", "spacing=1.5", "thesis"]
-    args = [(f, "default") for f in folders] + [(nominal, d) for d in densities if d != "spacing=0.7"]
-    rows = ctx.map(surface_task, args, "surface: reconstruct")
-    notes = [f"sample failed: {error_text(r)}" for r in rows if failed(r)]
-    good = [r for r in rows if not failed(r)]
-    grid = {
-        (r["parameters"]["surface_correlation_length"], r["parameters"]["surface_range_um"]): r
-        for r in good
-        if r["config"] == "default"
-    }
+
+
+def _surface_table(grid: dict[tuple[float, float], Any], lengths: list[float], ranges: list[float], spp: int) -> Table:
+    """Errors of the default reconstruction per correlation length and range."""
     cells = []
     for L in lengths:
         for R in ranges:
@@ -157,7 +156,7 @@ def surface(ctx: StudyContext, spp: int = 16) -> StudyResult:
                     else [None] * 5
                 )
             )
-    t1 = Table(
+    return Table(
         "Reconstruction error against the surface (ideal setup)",
         columns=[
             "correlation length (mm)",
@@ -173,10 +172,14 @@ def surface(ctx: StudyContext, spp: int = 16) -> StudyResult:
         "reconstruction (Gaussian shifted basis, scale chosen from the data, centroid-"
         "bias correction). Seed: ROI RMS 0.092-0.097 µm at 40 µm range.",
     )
+
+
+def _density_table(grid: dict[tuple[float, float], Any], good: list[dict[str, Any]]) -> Table:
+    """Errors on the nominal surface per basis density (the default, spacing 0.7 σ, from the surface grid)."""
     dens = {"spacing=0.7": grid.get((12.0, 40.0))}
     dens.update({r["config"]: r for r in good if r["config"] != "default"})
     cells = []
-    for d in densities:
+    for d in DENSITIES:
         r = dens.get(d)
         label = (
             "seed's 9x5 IMQ (9 along y), σ = (3, 4) mm"
@@ -191,11 +194,17 @@ def surface(ctx: StudyContext, spp: int = 16) -> StudyResult:
                 else [None] * 5
             )
         )
-    t2 = Table(
+    return Table(
         "Reconstruction error against the basis density (12 mm, 40 µm surface)",
         columns=["basis", "ROI RMS (µm)", "ROI max (µm)", "whole RMS (µm)", "outer iterations", "seconds"],
         cells=cells,
     )
+
+
+def _plot_surface_errors(
+    out: Path, grid: dict[tuple[float, float], Any], lengths: list[float], ranges: list[float]
+) -> None:
+    """Write ``surface-errors.png``: ROI RMS error against correlation length, one line per range."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -212,8 +221,41 @@ def surface(ctx: StudyContext, spp: int = 16) -> StudyResult:
     ax.legend(fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
     ax.set_title("Reconstruction error vs surface")
-    fig.savefig(ctx.out / "surface-errors.png", dpi=100)
+    fig.savefig(out / "surface-errors.png", dpi=100)
     plt.close(fig)
+
+
+def surface(ctx: StudyContext, spp: int = 16) -> StudyResult:
+    """Reconstruction error against correlation length and range, and against the basis density (seed §1.8).
+
+    Parameters
+    ----------
+    ctx : StudyContext
+        Where the datasets are written and the tasks run.
+    spp : int
+        Mitsuba samples per pixel of the renders.
+
+    Returns
+    -------
+    StudyResult
+        The surface, basis-density and broadband tables and the plot ``surface-errors.png``.
+    """
+    require("surface", SURFACE_MODULES)
+    lengths, ranges = [6.0, 12.0, 24.0], [20.0, 40.0, 80.0]
+    folders = sample_folders(_surface_dataset(ctx, lengths, ranges, spp))
+    nominal = _nominal_folder(folders)
+    args = [(f, "default") for f in folders] + [(nominal, d) for d in DENSITIES if d != "spacing=0.7"]
+    rows = ctx.map(surface_task, args, "surface: reconstruct")
+    notes = [f"sample failed: {error_text(r)}" for r in rows if failed(r)]
+    good = [r for r in rows if not failed(r)]
+    grid = {
+        (r["parameters"]["surface_correlation_length"], r["parameters"]["surface_range_um"]): r
+        for r in good
+        if r["config"] == "default"
+    }
+    t1 = _surface_table(grid, lengths, ranges, spp)
+    t2 = _density_table(grid, good)
+    _plot_surface_errors(ctx.out, grid, lengths, ranges)
     t3, bb_notes = _broadband_table(ctx, spp)
     notes += bb_notes
     return StudyResult(
