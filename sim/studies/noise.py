@@ -13,6 +13,7 @@ draws (:data:`DRAW_WEIGHTS`): 64 at 2 % bring the standard error to ~1 µm.
 from __future__ import annotations
 
 from collections import Counter
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -69,36 +70,21 @@ def failure_notes(rows: list[Any], good: list[dict[str, Any]]) -> list[str]:
     return notes
 
 
-def noise(ctx: StudyContext, spp: int = 16, replicates: int = 8, renders: int = 4) -> StudyResult:
-    """Centroid and calibration error against the exposure (EMVA sensor model), angular calibration view.
-
-    ``renders`` clean Mitsuba renders (``spp``) of the §2.8.1 angular view; each exposure captures them
-    :func:`draws_per_fill` times in all (draw k: render k mod ``renders``), every draw with its own noise seed.
-    """
-    require("noise", CALIB_MODULES)
-    draws = draws_per_fill(replicates)
-    cfg = calibration_dataset({}, "thesis-2.8.1-angular", renders, MASTER_SEED, False, spp)
-    root = ctx.dataset(cfg, "samples-noise")
-    folders = sample_folders(root)
-    args = [
+def _noise_args(folders: list[str], draws: dict[float, int]) -> list[tuple[str, float, int]]:
+    """Task arguments (render folder, fill, noise seed): draw k of a fill captures render k mod the renders."""
+    return [
         (folders[k % len(folders)], fill, sample_seed(MASTER_SEED, k, f"noise:{fill:g}"))
         for fill in FILLS
         for k in range(draws[fill])
     ]
-    rows = ctx.map(calibration_view_task, args, "noise: calibrate")
-    good = [r for r in rows if not failed(r)]
-    notes = failure_notes(rows, good)
-    groups = dict(sorted(group(good, "exposure_fill").items()))
-    x = list(groups)
-    t = view_table(
-        "Centroid and calibration error against the exposure",
-        groups,
-        "full-well fill at the peak",
-        f"Angular view of §2.8.1 (11x9 target), {len(folders)} Mitsuba renders at {spp} spp, EMVA 1288 sensor "
-        f"(12 bit, 18 ke- full well, 10 e- dark noise); exposure set so the brightest pixel collects the given "
-        f"fraction of the full well; {', '.join(f'{n} at {f:g}' for f, n in draws.items())} noise draws. "
-        "Centroids against the exact marker images.",
-    )
+
+
+#: Per fill: ((bias, scatter) of the raw centroids, (bias, scatter) corrected), µm.
+_BiasStats = dict[float, tuple[tuple[float | None, float | None], tuple[float | None, float | None]]]
+
+
+def _bias_table(groups: dict[float, list[dict[str, Any]]]) -> tuple[Table, _BiasStats, dict[float, float | None]]:
+    """The camera-centre bias and scatter table; per fill the (raw, corrected) (bias, scatter) and the bias's SE."""
     stats = {fill: (bias_and_scatter(g, "raw_r_c_vec_um"), bias_and_scatter(g)) for fill, g in groups.items()}
     cells = []
     se: dict[float, float | None] = {}
@@ -107,7 +93,7 @@ def noise(ctx: StudyContext, spp: int = 16, replicates: int = 8, renders: int = 
         n = sum(1 for r in g if r.get("corrected_r_c_vec_um") is not None)
         se[fill] = None if cor_s is None else cor_s / np.sqrt(max(n, 1))
         cells.append([fill, n, raw_b, raw_s, cor_b, cor_s, se[fill], floor_removed(cor_b, cor_s, n)])
-    bias_table = Table(
+    table = Table(
         "Camera-centre bias and scatter against the exposure",
         columns=[
             "full-well fill at the peak",
@@ -125,9 +111,21 @@ def noise(ctx: StudyContext, spp: int = 16, replicates: int = 8, renders: int = 
         "one standard error where the true bias is 0; 'less its noise floor' = sqrt(max(bias^2 - SE^2, 0)). "
         "Target (issue 14): bias <= 2 µm.",
     )
-    plots = [
+    return table, stats, se
+
+
+def _noise_plots(
+    out: Path,
+    groups: dict[float, list[dict[str, Any]]],
+    stats: _BiasStats,
+    se: dict[float, float | None],
+    draws: dict[float, int],
+) -> list[str]:
+    """Write the centroid-error and the calibration bias/scatter plots against the fill; their file names."""
+    x = list(groups)
+    return [
         line_plot(
-            ctx.out,
+            out,
             "noise-centroids.png",
             x,
             {
@@ -141,7 +139,7 @@ def noise(ctx: StudyContext, spp: int = 16, replicates: int = 8, renders: int = 
             refs={"1/20 px": 0.05, "1/40 px": 0.025},
         ),
         line_plot(
-            ctx.out,
+            out,
             "noise-calibration.png",
             x,
             {
@@ -157,12 +155,55 @@ def noise(ctx: StudyContext, spp: int = 16, replicates: int = 8, renders: int = 
             refs={"2 µm target": 2.0},
         ),
     ]
+
+
+def noise(ctx: StudyContext, spp: int = 16, replicates: int = 8, renders: int = 4) -> StudyResult:
+    """Centroid and calibration error against the exposure (EMVA sensor model), angular calibration view.
+
+    ``renders`` clean Mitsuba renders (``spp``) of the §2.8.1 angular view; each exposure captures them
+    :func:`draws_per_fill` times in all (draw k: render k mod ``renders``), every draw with its own noise seed.
+
+    Parameters
+    ----------
+    ctx : StudyContext
+        Where the dataset is written and the tasks run.
+    spp : int
+        Mitsuba samples per pixel of the clean renders.
+    replicates : int
+        Noise draws per exposure at weight 1 (:data:`DRAW_WEIGHTS`).
+    renders : int
+        Clean renders the draws cycle through.
+
+    Returns
+    -------
+    StudyResult
+        The error and bias tables, the two plots, and per fill the corrected bias, scatter and standard error.
+    """
+    require("noise", CALIB_MODULES)
+    draws = draws_per_fill(replicates)
+    cfg = calibration_dataset({}, "thesis-2.8.1-angular", renders, MASTER_SEED, False, spp)
+    folders = sample_folders(ctx.dataset(cfg, "samples-noise"))
+    rows = ctx.map(calibration_view_task, _noise_args(folders, draws), "noise: calibrate")
+    good = [r for r in rows if not failed(r)]
+    notes = failure_notes(rows, good)
+    groups = dict(sorted(group(good, "exposure_fill").items()))
+    x = list(groups)
+    t = view_table(
+        "Centroid and calibration error against the exposure",
+        groups,
+        "full-well fill at the peak",
+        f"Angular view of §2.8.1 (11x9 target), {len(folders)} Mitsuba renders at {spp} spp, EMVA 1288 sensor "
+        f"(12 bit, 18 ke- full well, 10 e- dark noise); exposure set so the brightest pixel collects the given "
+        f"fraction of the full well; {', '.join(f'{n} at {f:g}' for f, n in draws.items())} noise draws. "
+        "Centroids against the exact marker images.",
+    )
+    bias_table, stats, se = _bias_table(groups)
     return StudyResult(
         "Study: error against exposure",
         "How photon and read noise at a given exposure limit the "
         "centroids and the one-shot calibration (seed §2.8.2 / §2.9.1).",
         [t, bias_table],
-        plots,
+        _noise_plots(ctx.out, groups, stats, se, draws),
         {
             "rows": jsonable(good),
             "bias_scatter_um": {str(f): stats[f][1] for f in x},
