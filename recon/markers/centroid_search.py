@@ -227,6 +227,203 @@ class _Scratch(threading.local):
 _scratch = _Scratch()
 
 
+def _spot_threshold(
+    top: float, level: float, sigma: float, threshold: float | None, relative_threshold: float, noise_sigmas: float
+) -> float:
+    """The spot threshold: given, or from the background noise and the peak; a blank image raises."""
+    if threshold is None:
+        if not top > level + max(noise_sigmas * sigma, 1e-12 * max(abs(level), 1.0)):
+            raise MarkerError("image is blank: no pixel stands out of the background")
+        threshold = level + max(noise_sigmas * sigma, relative_threshold * (top - level))
+    if not top > threshold:
+        raise MarkerError(f"image is blank: no pixel exceeds the threshold {threshold:.6g}")
+    return threshold
+
+
+def _label_spots(
+    img: NDArray[np.float32], threshold: float, connectivity: int, fragment_fraction: float
+) -> tuple[NDArray[np.uint8], tuple[int, int, int, int], NDArray, int]:
+    """Threshold mask, bounding box (x, y, w, h) of the spots, and their labels within the box (no fragments)."""
+    ny, nx = img.shape
+    # OpenCV takes a scalar as the second operand; its stubs list arrays only
+    mask = cv2.compare(img, float(threshold), cv2.CMP_GT, dst=_scratch.get("mask", (ny, nx), np.uint8))  # type: ignore[call-overload]
+    # all work below happens in the bounding box of the spots, grown by the window margin
+    bx, by, bw, bh = cv2.boundingRect(mask)
+    if bw == 0 or bh == 0:
+        raise MarkerError("image is blank: no spot found")
+    n, labels = cv2.connectedComponents(mask[by : by + bh, bx : bx + bw], connectivity=connectivity, ltype=cv2.CV_32S)
+    if n <= 1:
+        raise MarkerError("image is blank: no spot found")
+    labels, n = _drop_fragments(labels, n, fragment_fraction)
+    return mask, (bx, by, bw, bh), labels, n
+
+
+def _default_grow(threshold: float, level: float, top: float, labels: NDArray, n: int) -> int:
+    """Window margin reaching the rim of a cone spot of twice the mean area (the reference marker), plus 1.5 px."""
+    frac = (threshold - level) / max(top - level, 1e-300)
+    r_eq = np.sqrt(2.0 * cv2.countNonZero(labels) / (n - 1) / np.pi)
+    return int(np.ceil(frac / max(1.0 - frac, 1e-3) * r_eq + 1.5))
+
+
+@dataclass
+class _Window:
+    """The pixels of the spots' windows as flat lists in raster order (views of the scratch buffers)."""
+
+    idx: NDArray[np.intp]
+    lab: NDArray[np.intp]
+    values: Array
+    inside: NDArray[np.bool_]
+    rows: NDArray[np.intp]
+    x: Array
+    w: Array
+    flags: NDArray[np.uint8]
+    mask_c: NDArray[np.uint8]
+    shape: tuple[int, int]
+    r0: int
+
+
+@dataclass
+class _Runs:
+    """Sums over the runs of :func:`_run_sums`: weight, x moments, pixels above threshold, peak, boundary weight."""
+
+    starts: NDArray[np.intp]
+    w: Array
+    wx: Array
+    wxx: Array
+    inside: Array
+    peak: Array
+    edge: Array
+
+
+def _window_labels(
+    labels: NDArray, n: int, box: tuple[int, int, int, int], corner: tuple[int, int], shape: tuple[int, int], grow: int
+) -> NDArray:
+    """The label image over the crop at ``corner`` (r0, c0), dilated by ``grow``: each spot's window."""
+    bx, by, bw, bh = box
+    r0, c0 = corner
+    # pixels outside the box are below the threshold: labels and window there are 0, as on the whole image
+    lab_img = _scratch.get("labels", shape, np.uint16 if n < 65535 else np.float32)
+    lab_img.fill(0)
+    lab_img[by - r0 : by - r0 + bh, bx - c0 : bx - c0 + bw] = labels
+    win = lab_img
+    if grow > 0:
+        win = cv2.dilate(
+            lab_img,
+            cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1)),
+            dst=_scratch.get("window", shape, lab_img.dtype),
+        )
+    return win
+
+
+def _window_pixels(
+    img: NDArray[np.float32],
+    mask: NDArray[np.uint8],
+    box: tuple[int, int, int, int],
+    labels: NDArray,
+    n: int,
+    grow: int,
+    level: float,
+) -> _Window:
+    """Gather the pixels of every spot's window (the spot grown by ``grow`` px) into flat lists (reused buffers)."""
+    ny, nx = img.shape
+    bx, by, bw, bh = box
+    r0, r1 = max(by - grow, 0), min(by + bh + grow, ny)
+    c0, c1 = max(bx - grow, 0), min(bx + bw + grow, nx)
+    shape = (r1 - r0, c1 - c0)
+    win = _window_labels(labels, n, box, (r0, c0), shape, grow)
+    # every spot pixel lies in its window: gather the window pixels into flat lists (reused buffers)
+    idx = np.flatnonzero(np.not_equal(win, 0, out=_scratch.get("nonzero", shape, np.bool_)))
+    m = idx.size
+    lab = _scratch.get("lab", m, np.intp)
+    np.copyto(lab, np.take(win.ravel(), idx, out=_scratch.get("lab_raw", m, win.dtype), mode="clip"), casting="unsafe")
+    crop = _scratch.get("crop", shape, np.float32)
+    np.copyto(crop, img[r0:r1, c0:c1])
+    values = _scratch.get("values", m, np.float64)
+    np.copyto(values, np.take(crop.ravel(), idx, out=_scratch.get("values32", m, np.float32), mode="clip"))
+    mask_c = _scratch.get("mask_crop", shape, np.uint8)
+    np.copyto(mask_c, mask[r0:r1, c0:c1])
+    flags = _scratch.get("flags", m, np.uint8)
+    inside = np.not_equal(
+        np.take(mask_c.ravel(), idx, out=flags, mode="clip"), 0, out=_scratch.get("inside", m, np.bool_)
+    )
+    w = np.subtract(values, level, out=_scratch.get("w", m, np.float64))
+    rows = np.floor_divide(idx, shape[1], out=_scratch.get("rows", m, np.intp))
+    x = np.subtract(
+        idx, np.multiply(rows, shape[1], out=_scratch.get("cols", m, np.intp)), out=_scratch.get("x", m, np.float64)
+    )
+    x += c0 + 0.5
+    return _Window(idx, lab, values, inside, rows, x, w, flags, mask_c, shape, r0)
+
+
+def _boundary_weights(win: _Window, out: Array) -> Array:
+    """``out`` holding the weights of the threshold-boundary pixels (a 4-neighbour below the threshold), else 0."""
+    # outside the box: below the threshold
+    eroded = cv2.erode(
+        win.mask_c,
+        cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3)),
+        borderValue=0,
+        dst=_scratch.get("eroded", win.shape, np.uint8),
+    )
+    m = win.idx.size
+    bnd = np.equal(
+        np.take(eroded.ravel(), win.idx, out=win.flags, mode="clip"), 0, out=_scratch.get("bnd", m, np.bool_)
+    )
+    bnd &= win.inside
+    out.fill(0.0)
+    np.copyto(out, win.w, where=bnd)
+    return out
+
+
+def _run_sums(win: _Window) -> _Runs:
+    """Sums along runs: stretches of one label within one image row (the lists are in raster order).
+
+    y is constant along a run, so only the x moments need per-pixel sums.
+    """
+    lab, rows, w, x = win.lab, win.rows, win.w, win.x
+    m = win.idx.size
+    start = _scratch.get("start", m, np.bool_)
+    start[0] = True
+    np.not_equal(lab[1:], lab[:-1], out=start[1:])
+    start[1:] |= np.not_equal(rows[1:], rows[:-1], out=_scratch.get("row_change", m - 1, np.bool_))
+    runs = np.flatnonzero(start)
+    tmp = _scratch.get("tmp", m, np.float64)
+    tmp2 = _scratch.get("tmp2", m, np.float64)
+    run_w = np.add.reduceat(w, runs)
+    wx = np.multiply(w, x, out=tmp)
+    run_wx = np.add.reduceat(wx, runs)
+    run_wxx = np.add.reduceat(np.multiply(wx, x, out=tmp2), runs)
+    np.copyto(tmp, win.inside)
+    run_in = np.add.reduceat(tmp, runs)
+    tmp.fill(-np.inf)
+    np.copyto(tmp, win.values, where=win.inside)
+    run_peak = np.maximum.reduceat(tmp, runs)
+    run_edge = np.maximum.reduceat(_boundary_weights(win, tmp), runs)
+    return _Runs(runs, run_w, run_wx, run_wxx, run_in, run_peak, run_edge)
+
+
+def _spot_sums(
+    win: _Window, runs: _Runs, n: int, level: float
+) -> tuple[NDArray[np.int64], Array, Array, Array, Array, Array]:
+    """Per label, summed over its runs: area, mass, centroid (cx, cy), covariance, peak, relative boundary value."""
+    rl = win.lab[runs.starts]
+    ry = win.rows[runs.starts] + (win.r0 + 0.5)
+    areas = np.bincount(rl, weights=runs.inside, minlength=n).astype(np.int64)
+    mass = np.asarray(np.bincount(rl, weights=runs.w, minlength=n), dtype=np.float64)  # weighted: float64
+    safe = np.where(mass > 0, mass, 1.0)
+    cx = np.bincount(rl, weights=runs.wx, minlength=n) / safe
+    cy = np.bincount(rl, weights=runs.w * ry, minlength=n) / safe
+    sxx = np.bincount(rl, weights=runs.wxx, minlength=n) / safe - cx * cx
+    syy = np.bincount(rl, weights=runs.w * ry * ry, minlength=n) / safe - cy * cy
+    sxy = np.bincount(rl, weights=runs.wx * ry, minlength=n) / safe - cx * cy
+    cov = np.stack([np.stack([sxx, sxy], -1), np.stack([sxy, syy], -1)], -2)
+    peak = np.full(n, -np.inf)
+    np.maximum.at(peak, rl, runs.peak)
+    edge = np.zeros(n)
+    np.maximum.at(edge, rl, runs.edge)
+    edge = edge / np.maximum(peak - level, 1e-300)
+    return areas, mass, np.stack([cx, cy], axis=-1), cov, peak, edge
+
+
 def centroids(
     image: NDArray,
     threshold: float | None = None,
@@ -273,115 +470,17 @@ def centroids(
     img = check_image(image)
     level, sigma = background_level(img) if background is None else (float(background), 0.0)
     top = float(img.max())
-    if threshold is None:
-        if not top > level + max(noise_sigmas * sigma, 1e-12 * max(abs(level), 1.0)):
-            raise MarkerError("image is blank: no pixel stands out of the background")
-        threshold = level + max(noise_sigmas * sigma, relative_threshold * (top - level))
-    if not top > threshold:
-        raise MarkerError(f"image is blank: no pixel exceeds the threshold {threshold:.6g}")
-    ny, nx = img.shape
-    # OpenCV takes a scalar as the second operand; its stubs list arrays only
-    mask = cv2.compare(img, float(threshold), cv2.CMP_GT, dst=_scratch.get("mask", (ny, nx), np.uint8))  # type: ignore[call-overload]
-    # all work below happens in the bounding box of the spots, grown by the window margin
-    bx, by, bw, bh = cv2.boundingRect(mask)
-    if bw == 0 or bh == 0:
-        raise MarkerError("image is blank: no spot found")
-    n, labels = cv2.connectedComponents(mask[by : by + bh, bx : bx + bw], connectivity=connectivity, ltype=cv2.CV_32S)
-    if n <= 1:
-        raise MarkerError("image is blank: no spot found")
-    labels, n = _drop_fragments(labels, n, fragment_fraction)
+    threshold = _spot_threshold(top, level, sigma, threshold, relative_threshold, noise_sigmas)
+    mask, box, labels, n = _label_spots(img, threshold, connectivity, fragment_fraction)
     if grow is None:  # reach the rim of a spot twice the mean area (the reference marker)
-        frac = (threshold - level) / max(top - level, 1e-300)
-        r_eq = np.sqrt(2.0 * cv2.countNonZero(labels) / (n - 1) / np.pi)
-        grow = int(np.ceil(frac / max(1.0 - frac, 1e-3) * r_eq + 1.5))
-    grow = int(max(grow, 0))
-    r0, r1 = max(by - grow, 0), min(by + bh + grow, ny)
-    c0, c1 = max(bx - grow, 0), min(bx + bw + grow, nx)
-    shape = (r1 - r0, c1 - c0)
-    # pixels outside the box are below the threshold: labels and window there are 0, as on the whole image
-    lab_img = _scratch.get("labels", shape, np.uint16 if n < 65535 else np.float32)
-    lab_img.fill(0)
-    lab_img[by - r0 : by - r0 + bh, bx - c0 : bx - c0 + bw] = labels
-    win = lab_img
-    if grow > 0:
-        win = cv2.dilate(
-            lab_img,
-            cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1)),
-            dst=_scratch.get("window", shape, lab_img.dtype),
-        )
-    # every spot pixel lies in its window: gather the window pixels into flat lists (reused buffers)
-    idx = np.flatnonzero(np.not_equal(win, 0, out=_scratch.get("nonzero", shape, np.bool_)))
-    m = idx.size
-    lab = _scratch.get("lab", m, np.intp)
-    np.copyto(lab, np.take(win.ravel(), idx, out=_scratch.get("lab_raw", m, win.dtype), mode="clip"), casting="unsafe")
-    crop = _scratch.get("crop", shape, np.float32)
-    np.copyto(crop, img[r0:r1, c0:c1])
-    values = _scratch.get("values", m, np.float64)
-    np.copyto(values, np.take(crop.ravel(), idx, out=_scratch.get("values32", m, np.float32), mode="clip"))
-    mask_c = _scratch.get("mask_crop", shape, np.uint8)
-    np.copyto(mask_c, mask[r0:r1, c0:c1])
-    flags = _scratch.get("flags", m, np.uint8)
-    inside = np.not_equal(
-        np.take(mask_c.ravel(), idx, out=flags, mode="clip"), 0, out=_scratch.get("inside", m, np.bool_)
-    )
-    w = np.subtract(values, level, out=_scratch.get("w", m, np.float64))
-    rows = np.floor_divide(idx, shape[1], out=_scratch.get("rows", m, np.intp))
-    x = np.subtract(
-        idx, np.multiply(rows, shape[1], out=_scratch.get("cols", m, np.intp)), out=_scratch.get("x", m, np.float64)
-    )
-    x += c0 + 0.5
-    # sum along runs: stretches of one label within one image row (the lists are in raster order);
-    # y is constant along a run, so only the x moments need per-pixel sums
-    start = _scratch.get("start", m, np.bool_)
-    start[0] = True
-    np.not_equal(lab[1:], lab[:-1], out=start[1:])
-    start[1:] |= np.not_equal(rows[1:], rows[:-1], out=_scratch.get("row_change", m - 1, np.bool_))
-    runs = np.flatnonzero(start)
-    tmp = _scratch.get("tmp", m, np.float64)
-    tmp2 = _scratch.get("tmp2", m, np.float64)
-    run_w = np.add.reduceat(w, runs)
-    wx = np.multiply(w, x, out=tmp)
-    run_wx = np.add.reduceat(wx, runs)
-    run_wxx = np.add.reduceat(np.multiply(wx, x, out=tmp2), runs)
-    np.copyto(tmp, inside)
-    run_in = np.add.reduceat(tmp, runs)
-    tmp.fill(-np.inf)
-    np.copyto(tmp, values, where=inside)
-    run_peak = np.maximum.reduceat(tmp, runs)
-    # threshold boundary: spot pixels with a 4-neighbour below the threshold (outside the box: below)
-    eroded = cv2.erode(
-        mask_c,
-        cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3)),
-        borderValue=0,
-        dst=_scratch.get("eroded", shape, np.uint8),
-    )
-    bnd = np.equal(np.take(eroded.ravel(), idx, out=flags, mode="clip"), 0, out=_scratch.get("bnd", m, np.bool_))
-    bnd &= inside
-    tmp.fill(0.0)
-    np.copyto(tmp, w, where=bnd)
-    run_edge = np.maximum.reduceat(tmp, runs)
-    # per spot: sums over its runs
-    rl = lab[runs]
-    ry = rows[runs] + (r0 + 0.5)
-    areas = np.bincount(rl, weights=run_in, minlength=n).astype(np.int64)
-    mass = np.asarray(np.bincount(rl, weights=run_w, minlength=n), dtype=np.float64)  # weighted: float64
-    safe = np.where(mass > 0, mass, 1.0)
-    cx = np.bincount(rl, weights=run_wx, minlength=n) / safe
-    cy = np.bincount(rl, weights=run_w * ry, minlength=n) / safe
-    sxx = np.bincount(rl, weights=run_wxx, minlength=n) / safe - cx * cx
-    syy = np.bincount(rl, weights=run_w * ry * ry, minlength=n) / safe - cy * cy
-    sxy = np.bincount(rl, weights=run_wx * ry, minlength=n) / safe - cx * cy
-    cov = np.stack([np.stack([sxx, sxy], -1), np.stack([sxy, syy], -1)], -2)
-    peak = np.full(n, -np.inf)
-    np.maximum.at(peak, rl, run_peak)
-    edge = np.zeros(n)
-    np.maximum.at(edge, rl, run_edge)
-    edge = edge / np.maximum(peak - level, 1e-300)
+        grow = _default_grow(threshold, level, top, labels, n)
+    win = _window_pixels(img, mask, box, labels, n, int(max(grow, 0)), level)
+    areas, mass, cen, cov, peak, edge = _spot_sums(win, _run_sums(win), n, level)
     sat_level = _saturation_level(image, saturation, top if np.asarray(image) is img else None)
     s = slice(1, None)
     ok = mass[s] > 0
     return Spots(
-        centroids=np.stack([cx[s], cy[s]], axis=-1)[ok],
+        centroids=cen[s][ok],
         areas=areas[s].astype(np.int64)[ok],
         mass=mass[s][ok],
         peak=peak[s][ok],

@@ -172,6 +172,43 @@ def rim_clearance(
     return border, inner
 
 
+def _cut_off(spots: Spots, edge_slack: float, edge_noise_sigmas: float) -> NDArray[np.bool_]:
+    """Spots whose threshold boundary does not fade out: cut off by the edge of the reflecting region."""
+    noise_rel = spots.noise / np.maximum(spots.peak - spots.background, 1e-300)
+    return spots.edge > (
+        spots.relative_threshold + edge_slack / np.maximum(spots.minor_radius(), 1.0) + edge_noise_sigmas * noise_rel
+    )
+
+
+def _hint_radius(spots: Spots, big: NDArray[np.bool_], reference_hint: Array | None, hint_spacings: float) -> float:
+    """Radius (px) of the reference search around the hint: ``hint_spacings`` median spacings (0 without a hint)."""
+    radius = 0.0
+    if reference_hint is not None:
+        pts = spots.centroids[big]
+        d, _ = cKDTree(pts).query(pts, k=2)
+        radius = hint_spacings * float(np.median(np.asarray(d)[:, 1]))
+    return radius
+
+
+def _rejections(
+    tiny: NDArray[np.bool_],
+    big: NDArray[np.bool_],
+    at_border: NDArray[np.bool_],
+    outside: NDArray[np.bool_],
+    whole: NDArray[np.bool_],
+    in_range: NDArray[np.bool_],
+    sharp: NDArray[np.bool_],
+) -> dict[str, int]:
+    """Number of spots rejected for each reason (the reference marker is not counted among the areas)."""
+    return {
+        "tiny": int(tiny.sum()),
+        "image_border": int((big & at_border).sum()),
+        "outside_region": int((big & outside).sum()),
+        "area": int((big & whole & ~in_range).sum()) - 1,
+        "clipped_edge": int((big & whole & in_range & sharp).sum()),
+    }
+
+
 def filter_spots(
     spots: Spots,
     shape: tuple[int, int],
@@ -227,15 +264,8 @@ def filter_spots(
     whole = ~at_border & ~outside
     neighbours = (whole & (spots.areas >= 0.5 * np.median(spots.areas[big])))[big]
     ratio[big] = local_area_ratio(spots.centroids[big], spots.areas[big], neighbours)
-    noise_rel = spots.noise / np.maximum(spots.peak - spots.background, 1e-300)
-    sharp = spots.edge > (
-        spots.relative_threshold + edge_slack / np.maximum(spots.minor_radius(), 1.0) + edge_noise_sigmas * noise_rel
-    )
-    radius = 0.0
-    if reference_hint is not None:
-        pts = spots.centroids[big]
-        d, _ = cKDTree(pts).query(pts, k=2)
-        radius = hint_spacings * float(np.median(np.asarray(d)[:, 1]))
+    sharp = _cut_off(spots, edge_slack, edge_noise_sigmas)
+    radius = _hint_radius(spots, big, reference_hint, hint_spacings)
     if reference is not None:
         if not 0 <= int(reference) < n:
             raise MarkerError(f"reference spot {reference} is not one of the {n} spots")
@@ -247,11 +277,4 @@ def filter_spots(
     in_range = (ratio >= area_range[0]) & (ratio <= area_range[1])
     keep = big & whole & in_range & ~sharp
     keep[ref] = True
-    reasons = {
-        "tiny": int(tiny.sum()),
-        "image_border": int((big & at_border).sum()),
-        "outside_region": int((big & outside).sum()),
-        "area": int((big & whole & ~in_range).sum()) - 1,
-        "clipped_edge": int((big & whole & in_range & sharp).sum()),
-    }
-    return Filtered(keep, ref, ratio, reasons)
+    return Filtered(keep, ref, ratio, _rejections(tiny, big, at_border, outside, whole, in_range, sharp))

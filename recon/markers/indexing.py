@@ -7,6 +7,8 @@ T_x, T_y (docs/contract.md, "Marker indices").
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
@@ -55,6 +57,161 @@ def _grow_table(table: NDArray, off: int) -> tuple[NDArray, int]:
     out = np.full((size, size), -1, dtype=table.dtype)
     out[off : off + table.shape[0], off : off + table.shape[1]] = table
     return out, new_off
+
+
+#: Neighbour offsets as floats (the steps' coefficients on a_x, a_y).
+_OFFS = NEIGHBOURS.astype(np.float64)
+
+#: Index of spots not (or not consistently) indexed.
+_UNREACHED = np.iinfo(np.int32).min
+
+
+@dataclass
+class _Flood:
+    """State of the :func:`index_grid` flood: indices, index table (offset ``off``), local steps, assigned spots."""
+
+    pts: Array
+    ij: NDArray[np.int64]
+    table: NDArray[np.int64]
+    off: int
+    basis: Array
+    assigned: NDArray[np.bool_]
+
+
+def _start_flood(pts: Array, ref: int, axes: Array, ij: NDArray[np.int64]) -> _Flood:
+    """The flood's state with only the reference marker indexed, as (0, 0), with the steps ``axes``."""
+    n = len(pts)
+    # table of spot rows by index (i + off, j + off); it grows as the flood spreads, always keeping
+    # two indices of room beyond every assigned marker (neighbour look-ups go one step further)
+    off = 16
+    table = np.full((2 * off + 1, 2 * off + 1), -1, dtype=np.int64)
+    basis = np.zeros((n, 2, 2))
+    assigned = np.zeros(n, dtype=bool)
+    ij[ref] = 0
+    table[off, off] = ref
+    basis[ref] = axes
+    assigned[ref] = True
+    return _Flood(pts, ij, table, off, basis, assigned)
+
+
+def _flood_candidates(
+    fl: _Flood, frontier: NDArray, tree: cKDTree, tol: float
+) -> tuple[Array, NDArray[np.bool_], Array, NDArray[np.intp], NDArray[np.int64]]:
+    """Local steps of the frontier, and per neighbour (m, 8): acceptable, distance and nearest spot, its index."""
+    b = fl.basis[frontier]  # (m, 2, 2) rows a_x, a_y
+    pred = fl.pts[frontier][:, None, :] + (
+        _OFFS[None, :, 0, None] * b[:, None, 0] + _OFFS[None, :, 1, None] * b[:, None, 1]
+    )
+    tij = fl.ij[frontier][:, None, :] + NEIGHBOURS[None]
+    free = fl.table[tij[..., 0] + fl.off, tij[..., 1] + fl.off] < 0
+    step = np.minimum(np.linalg.norm(b[:, 0], axis=1), np.linalg.norm(b[:, 1], axis=1))
+    # only predictions of indices still free need a search
+    dist = np.full(free.shape, np.inf)
+    sid = np.zeros(free.shape, dtype=np.intp)
+    dist[free], sid[free] = tree.query(pred[free])
+    ok = free & (dist < tol * step[:, None]) & ~fl.assigned[sid]
+    return b, ok, dist, sid, tij
+
+
+def _refuse_off_axis(
+    ok: NDArray[np.bool_], b: Array, pts: Array, sid: NDArray[np.intp], frontier: NDArray, axis_tol: float
+) -> None:
+    """Clear ``ok`` where the step, in the parent's local basis, misses its neighbour offset on an axis."""
+    # the step in the local basis: each coefficient must match the neighbour offset on its own axis
+    pp, kk = np.nonzero(ok)
+    u, v = _in_basis(b[pp], pts[sid[pp, kk]] - pts[frontier[pp]])
+    off_axis = np.maximum(np.abs(u - NEIGHBOURS[kk, 0]), np.abs(v - NEIGHBOURS[kk, 1])) > axis_tol
+    ok[pp[off_axis], kk[off_axis]] = False
+
+
+def _refuse_blocked(
+    ok: NDArray[np.bool_], pts: Array, sid: NDArray[np.intp], frontier: NDArray, btree: cKDTree, gap: float
+) -> None:
+    """Clear ``ok`` where a blocker lies within ``gap`` step lengths of the step's midpoint."""
+    pp, kk = np.nonzero(ok)
+    a, c = pts[frontier[pp]], pts[sid[pp, kk]]
+    over = btree.query_ball_point(0.5 * (a + c), gap * np.linalg.norm(c - a, axis=1), return_length=True) > 0
+    ok[pp[over], kk[over]] = False
+
+
+def _first_claims(s: NDArray[np.intp], t: NDArray[np.int64], off: int) -> NDArray[np.bool_]:
+    """Of claims ``s`` -> ``t`` ordered by distance, those first on their spot and then first on their index."""
+    _, first_s = np.unique(s, return_index=True)
+    keep = np.zeros(len(s), dtype=bool)
+    keep[first_s] = True
+    key = (t[:, 0] + off) * (2 * off + 1) + (t[:, 1] + off)  # >= 0: never equal to the sentinels below
+    _, first_t = np.unique(np.where(keep, key, -1 - np.arange(len(key))), return_index=True)
+    keep2 = np.zeros(len(s), dtype=bool)
+    keep2[first_t] = True
+    keep &= keep2
+    return keep
+
+
+def _assign_claims(fl: _Flood, parent: NDArray, k: NDArray[np.intp], s: NDArray[np.intp], t: NDArray[np.int64]) -> None:
+    """Index spots ``s`` as ``t`` (reached from ``parent`` along neighbour ``k``) and estimate their local steps."""
+    while np.abs(t).max() > fl.off - 2:
+        fl.table, fl.off = _grow_table(fl.table, fl.off)
+    fl.ij[s] = t
+    fl.table[t[:, 0] + fl.off, t[:, 1] + fl.off] = s
+    fl.assigned[s] = True
+    fb = fl.basis[parent].copy()
+    # keep the parent's steps, corrected by what the step to this marker showed
+    resid = fl.pts[s] - fl.pts[parent] - (_OFFS[k, 0, None] * fb[:, 0] + _OFFS[k, 1, None] * fb[:, 1])
+    nz = NEIGHBOURS[k] != 0
+    share = nz / np.maximum(nz.sum(axis=1, keepdims=True), 1)
+    fb += (share * np.sign(NEIGHBOURS[k]))[:, :, None] * resid[:, None, :]
+    fl.basis[s] = _local_basis(fl.pts, fl.table, fl.off, t, fb)
+
+
+def _flood_step(
+    fl: _Flood,
+    frontier: NDArray,
+    tree: cKDTree,
+    btree: cKDTree | None,
+    tol: float,
+    gap: float,
+    axis_tol: float | None,
+) -> NDArray:
+    """Index the neighbours of the whole frontier at once; returns the next frontier (empty: the flood ends)."""
+    b, ok, dist, sid, tij = _flood_candidates(fl, frontier, tree, tol)
+    if axis_tol is not None and ok.any():
+        _refuse_off_axis(ok, b, fl.pts, sid, frontier, axis_tol)
+    if btree is not None and ok.any():
+        _refuse_blocked(ok, fl.pts, sid, frontier, btree, gap)
+    par, k = np.nonzero(ok)
+    if par.size == 0:
+        return par
+    d, s, t = dist[par, k], sid[par, k], tij[par, k]
+    order = np.argsort(d, kind="stable")
+    par, k, s, t = par[order], k[order], s[order], t[order]
+    keep = _first_claims(s, t, fl.off)
+    par, k, s, t = par[keep], k[keep], s[keep], t[keep]
+    _assign_claims(fl, frontier[par], k, s, t)
+    return s
+
+
+def _inconsistent(fl: _Flood, check: float) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
+    """Assigned spots, and which depart from the mean of two opposite neighbours by > ``check`` local steps."""
+    pts, table, off = fl.pts, fl.table, fl.off
+    idx = np.flatnonzero(fl.assigned)
+    tt = fl.ij[idx]
+    bad = np.zeros(len(idx), dtype=bool)
+    size = table.shape[0]
+    for axis in (0, 1):
+        lo, hi = tt.copy(), tt.copy()
+        lo[:, axis] -= 1
+        hi[:, axis] += 1
+        inside = np.all((lo + off >= 0) & (hi + off < size), axis=1)
+        a = np.full(len(idx), -1)
+        c = np.full(len(idx), -1)
+        a[inside] = table[lo[inside, 0] + off, lo[inside, 1] + off]
+        c[inside] = table[hi[inside, 0] + off, hi[inside, 1] + off]
+        both = (a >= 0) & (c >= 0)
+        mid = 0.5 * (pts[a[both]] + pts[c[both]])
+        dev = np.linalg.norm(pts[idx[both]] - mid, axis=1)
+        loc = 0.5 * np.linalg.norm(pts[c[both]] - pts[a[both]], axis=1)
+        bad[np.flatnonzero(both)[dev > check * loc]] = True
+    return idx, bad
 
 
 def index_grid(
@@ -113,97 +270,19 @@ def index_grid(
         (i, j) of each spot; unreached spots get the sentinel ``-2**31``.
     """
     n = len(points)
-    none = np.iinfo(np.int32).min
+    none = _UNREACHED
     ij = np.full((n, 2), none, dtype=np.int64)
     if n == 0:
         return ij
     pts = np.asarray(points, dtype=np.float64)
     tree = cKDTree(pts)
     btree = cKDTree(np.asarray(blockers, dtype=np.float64)) if blockers is not None and len(blockers) else None
-    # table of spot rows by index (i + off, j + off); it grows as the flood spreads, always keeping
-    # two indices of room beyond every assigned marker (neighbour look-ups go one step further)
-    off = 16
-    table = np.full((2 * off + 1, 2 * off + 1), -1, dtype=np.int64)
-    basis = np.zeros((n, 2, 2))
-    assigned = np.zeros(n, dtype=bool)
-    ij[ref] = 0
-    table[off, off] = ref
-    basis[ref] = axes
-    assigned[ref] = True
+    fl = _start_flood(pts, ref, axes, ij)
     frontier = np.array([ref])
-    offs = NEIGHBOURS.astype(np.float64)
     while frontier.size:
-        b = basis[frontier]  # (m, 2, 2) rows a_x, a_y
-        pred = pts[frontier][:, None, :] + (
-            offs[None, :, 0, None] * b[:, None, 0] + offs[None, :, 1, None] * b[:, None, 1]
-        )
-        tij = ij[frontier][:, None, :] + NEIGHBOURS[None]
-        free = table[tij[..., 0] + off, tij[..., 1] + off] < 0
-        step = np.minimum(np.linalg.norm(b[:, 0], axis=1), np.linalg.norm(b[:, 1], axis=1))
-        # only predictions of indices still free need a search
-        dist = np.full(free.shape, np.inf)
-        sid = np.zeros(free.shape, dtype=np.intp)
-        dist[free], sid[free] = tree.query(pred[free])
-        ok = free & (dist < tol * step[:, None]) & ~assigned[sid]
-        if axis_tol is not None and ok.any():
-            # the step in the local basis: each coefficient must match the neighbour offset on its own axis
-            pp, kk = np.nonzero(ok)
-            u, v = _in_basis(b[pp], pts[sid[pp, kk]] - pts[frontier[pp]])
-            off_axis = np.maximum(np.abs(u - NEIGHBOURS[kk, 0]), np.abs(v - NEIGHBOURS[kk, 1])) > axis_tol
-            ok[pp[off_axis], kk[off_axis]] = False
-        if btree is not None and ok.any():
-            pp, kk = np.nonzero(ok)
-            a, c = pts[frontier[pp]], pts[sid[pp, kk]]
-            over = btree.query_ball_point(0.5 * (a + c), gap * np.linalg.norm(c - a, axis=1), return_length=True) > 0
-            ok[pp[over], kk[over]] = False
-        par, k = np.nonzero(ok)
-        if par.size == 0:
-            break
-        d, s, t = dist[par, k], sid[par, k], tij[par, k]
-        order = np.argsort(d, kind="stable")
-        par, k, s, t = par[order], k[order], s[order], t[order]
-        _, first_s = np.unique(s, return_index=True)
-        keep = np.zeros(len(s), dtype=bool)
-        keep[first_s] = True
-        key = (t[:, 0] + off) * (2 * off + 1) + (t[:, 1] + off)  # >= 0: never equal to the sentinels below
-        _, first_t = np.unique(np.where(keep, key, -1 - np.arange(len(key))), return_index=True)
-        keep2 = np.zeros(len(s), dtype=bool)
-        keep2[first_t] = True
-        keep &= keep2
-        par, k, s, t = par[keep], k[keep], s[keep], t[keep]
-        while np.abs(t).max() > off - 2:
-            table, off = _grow_table(table, off)
-        ij[s] = t
-        table[t[:, 0] + off, t[:, 1] + off] = s
-        assigned[s] = True
-        parent = frontier[par]
-        fb = basis[parent].copy()
-        # keep the parent's steps, corrected by what the step to this marker showed
-        resid = pts[s] - pts[parent] - (offs[k, 0, None] * fb[:, 0] + offs[k, 1, None] * fb[:, 1])
-        nz = NEIGHBOURS[k] != 0
-        share = nz / np.maximum(nz.sum(axis=1, keepdims=True), 1)
-        fb += (share * np.sign(NEIGHBOURS[k]))[:, :, None] * resid[:, None, :]
-        basis[s] = _local_basis(pts, table, off, t, fb)
-        frontier = s
+        frontier = _flood_step(fl, frontier, tree, btree, tol, gap, axis_tol)
     # consistency check against opposite neighbours
-    idx = np.flatnonzero(assigned)
-    tt = ij[idx]
-    bad = np.zeros(len(idx), dtype=bool)
-    size = table.shape[0]
-    for axis in (0, 1):
-        lo, hi = tt.copy(), tt.copy()
-        lo[:, axis] -= 1
-        hi[:, axis] += 1
-        inside = np.all((lo + off >= 0) & (hi + off < size), axis=1)
-        a = np.full(len(idx), -1)
-        c = np.full(len(idx), -1)
-        a[inside] = table[lo[inside, 0] + off, lo[inside, 1] + off]
-        c[inside] = table[hi[inside, 0] + off, hi[inside, 1] + off]
-        both = (a >= 0) & (c >= 0)
-        mid = 0.5 * (pts[a[both]] + pts[c[both]])
-        dev = np.linalg.norm(pts[idx[both]] - mid, axis=1)
-        loc = 0.5 * np.linalg.norm(pts[c[both]] - pts[a[both]], axis=1)
-        bad[np.flatnonzero(both)[dev > check * loc]] = True
+    idx, bad = _inconsistent(fl, check)
     bad &= idx != ref
     ij[idx[bad]] = none
     return ij
@@ -235,6 +314,112 @@ def _axial_neighbour(
         return -1
     c = cand[ok]
     return int(c[np.argmin(np.einsum("ij,ij->i", dv[ok], dv[ok]))])
+
+
+class _Lattice:
+    """State of the :func:`index_lattice` flood: indices, index -> spot map, local steps, spots in conflict."""
+
+    def __init__(self, pts: Array, on: tuple[float, float], off_tol: float) -> None:
+        n = len(pts)
+        self.pts = pts
+        self.tree = cKDTree(pts)
+        self.on, self.off_tol = on, off_tol
+        self.ij = np.full((n, 2), _UNREACHED, dtype=np.int64)
+        self.basis = np.zeros((n, 2, 2))
+        self.where: dict[tuple[int, int], int] = {}
+        self.bad = np.zeros(n, dtype=bool)
+
+    def near(self, a: int, b: NDArray, k: int) -> int:
+        """The axial neighbour of spot ``a`` along direction ``k`` in the basis ``b`` (:func:`_axial_neighbour`)."""
+        return _axial_neighbour(self.pts, self.tree, a, b, k, self.on, self.off_tol)
+
+    def local(self, a: int) -> NDArray:
+        """The local steps of indexed spot ``a`` from its indexed axial neighbours (else the inherited ones)."""
+        pts, ij, where = self.pts, self.ij, self.where
+        b = self.basis[a].copy()
+        for axis in (0, 1):
+            steps = [
+                s * (pts[o] - pts[a])
+                for s in (1, -1)
+                if (o := where.get((int(ij[a, 0]) + s * (axis == 0), int(ij[a, 1]) + s * (axis == 1)))) is not None
+            ]
+            if steps:
+                b[axis] = np.mean(steps, axis=0)
+        return b
+
+    def stepped(self, b: NDArray, a: int, c: int, k: int) -> NDArray:
+        """Basis ``b`` of ``a`` with the axis of direction ``k`` replaced by the step a -> c."""
+        out = b.copy()
+        axis = 0 if _AXIAL[k, 0] else 1
+        out[axis] = _AXIAL_SIGN[k] * (self.pts[c] - self.pts[a])
+        return out
+
+    def assign(self, c: int, t: tuple[int, int], b: NDArray) -> None:
+        """Index spot ``c`` as ``t`` with the local steps ``b``."""
+        self.ij[c] = t
+        self.where[t] = c
+        self.basis[c] = b
+
+
+def _first_quad(lat: _Lattice, ref: int, axes: Array) -> tuple[int, int, int, int, int, NDArray, NDArray] | None:
+    """The first closed quadrilateral at the reference: (kx, ky, cx, cy, d, bx, by), or None."""
+    for kx in (0, 1):
+        for ky in (2, 3):
+            cx, cy = lat.near(ref, axes, kx), lat.near(ref, axes, ky)
+            if cx < 0 or cy < 0:
+                continue
+            bx, by = lat.stepped(axes, ref, cx, kx), lat.stepped(axes, ref, cy, ky)
+            if lat.near(cx, bx, kx ^ 1) != ref or lat.near(cy, by, ky ^ 1) != ref:
+                continue
+            d = lat.near(cx, bx, ky)
+            if d >= 0 and d == lat.near(cy, by, kx) and d not in (ref, cx, cy):
+                return kx, ky, cx, cy, d, bx, by
+    return None
+
+
+def _closes_quad(lat: _Lattice, ia: tuple[int, int], c: int, bc: NDArray, k: int) -> bool:
+    """Whether the step a -> c along ``k`` closes a quadrilateral with an indexed perpendicular neighbour of a.
+
+    a -> c, a -> p (indexed perpendicular neighbour), p -> q along k, c -> q across; ``ia`` is the index of a.
+    """
+    for kp in (2, 3) if k < 2 else (0, 1):
+        p = lat.where.get((ia[0] + int(_AXIAL[kp, 0]), ia[1] + int(_AXIAL[kp, 1])))
+        if p is None or lat.bad[p]:
+            continue
+        q = lat.near(p, lat.local(p), k)
+        if q >= 0 and q == lat.near(c, bc, kp):
+            return True
+    return False
+
+
+def _extend_lattice(lat: _Lattice, a: int, queue: list[int]) -> None:
+    """Index the mutual axial neighbours of spot ``a`` that close a quadrilateral; queue them and their neighbours."""
+    b = lat.local(a)
+    lat.basis[a] = b
+    ia = (int(lat.ij[a, 0]), int(lat.ij[a, 1]))
+    for k in range(4):
+        t = (ia[0] + int(_AXIAL[k, 0]), ia[1] + int(_AXIAL[k, 1]))
+        if t in lat.where:
+            continue
+        c = lat.near(a, b, k)
+        if c < 0:
+            continue
+        bc = lat.stepped(b, a, c, k)
+        if lat.near(c, bc, k ^ 1) != a:  # mutual
+            continue
+        if not _closes_quad(lat, ia, c, bc, k):
+            continue
+        if lat.ij[c, 0] != _UNREACHED:
+            lat.bad[c] = True  # reached before with another index
+            continue
+        lat.assign(c, t, bc)
+        queue.append(c)
+        # the indexed neighbours of c may close quadrilaterals now
+        queue.extend(
+            o
+            for kk in range(4)
+            if (o := lat.where.get((t[0] + int(_AXIAL[kk, 0]), t[1] + int(_AXIAL[kk, 1])))) is not None and o != a
+        )
 
 
 def index_lattice(
@@ -277,111 +462,26 @@ def index_lattice(
         (i, j) of each spot; unreached or conflicting spots get the sentinel ``-2**31``.
     """
     pts = np.asarray(points, dtype=np.float64)
-    n = len(pts)
-    none = np.iinfo(np.int32).min
-    ij = np.full((n, 2), none, dtype=np.int64)
-    if n == 0:
-        return ij
-    tree = cKDTree(pts)
-    basis = np.zeros((n, 2, 2))
-    where: dict[tuple[int, int], int] = {}
-    bad = np.zeros(n, dtype=bool)
-
-    def near(a: int, b: NDArray, k: int) -> int:
-        return _axial_neighbour(pts, tree, a, b, k, on, off_tol)
-
-    def local(a: int) -> NDArray:
-        """The local steps of indexed spot ``a`` from its indexed axial neighbours (else the inherited ones)."""
-        b = basis[a].copy()
-        for axis in (0, 1):
-            steps = [
-                s * (pts[o] - pts[a])
-                for s in (1, -1)
-                if (o := where.get((int(ij[a, 0]) + s * (axis == 0), int(ij[a, 1]) + s * (axis == 1)))) is not None
-            ]
-            if steps:
-                b[axis] = np.mean(steps, axis=0)
-        return b
-
-    def stepped(b: NDArray, a: int, c: int, k: int) -> NDArray:
-        """Basis ``b`` of ``a`` with the axis of direction ``k`` replaced by the step a -> c."""
-        out = b.copy()
-        axis = 0 if _AXIAL[k, 0] else 1
-        out[axis] = _AXIAL_SIGN[k] * (pts[c] - pts[a])
-        return out
-
-    def assign(c: int, t: tuple[int, int], b: NDArray) -> None:
-        ij[c] = t
-        where[t] = c
-        basis[c] = b
-
+    if len(pts) == 0:
+        return np.full((0, 2), _UNREACHED, dtype=np.int64)
+    lat = _Lattice(pts, on, off_tol)
     # the first quadrilateral, at the reference
     axes_ref = np.asarray(axes, dtype=np.float64)
-    start = None
-    for kx in (0, 1):
-        for ky in (2, 3):
-            cx, cy = near(ref, axes_ref, kx), near(ref, axes_ref, ky)
-            if cx < 0 or cy < 0:
-                continue
-            bx, by = stepped(axes_ref, ref, cx, kx), stepped(axes_ref, ref, cy, ky)
-            if near(cx, bx, kx ^ 1) != ref or near(cy, by, ky ^ 1) != ref:
-                continue
-            d = near(cx, bx, ky)
-            if d >= 0 and d == near(cy, by, kx) and d not in (ref, cx, cy):
-                start = (kx, ky, cx, cy, d, bx, by)
-                break
-        if start is not None:
-            break
-    assign(ref, (0, 0), axes_ref)
+    start = _first_quad(lat, ref, axes_ref)
+    lat.assign(ref, (0, 0), axes_ref)
     if start is None:
-        return ij
+        return lat.ij
     kx, ky, cx, cy, d, bx, by = start
-    assign(cx, (int(_AXIAL[kx, 0]), 0), bx)
-    assign(cy, (0, int(_AXIAL[ky, 1])), by)
-    assign(d, (int(_AXIAL[kx, 0]), int(_AXIAL[ky, 1])), by)
+    lat.assign(cx, (int(_AXIAL[kx, 0]), 0), bx)
+    lat.assign(cy, (0, int(_AXIAL[ky, 1])), by)
+    lat.assign(d, (int(_AXIAL[kx, 0]), int(_AXIAL[ky, 1])), by)
     queue = [ref, cx, cy, d]
     head = 0
     while head < len(queue):
         a = queue[head]
         head += 1
-        if bad[a]:
-            continue
-        b = local(a)
-        basis[a] = b
-        ia = (int(ij[a, 0]), int(ij[a, 1]))
-        for k in range(4):
-            t = (ia[0] + int(_AXIAL[k, 0]), ia[1] + int(_AXIAL[k, 1]))
-            if t in where:
-                continue
-            c = near(a, b, k)
-            if c < 0:
-                continue
-            bc = stepped(b, a, c, k)
-            if near(c, bc, k ^ 1) != a:  # mutual
-                continue
-            # a quadrilateral a -> c, a -> p (indexed perpendicular neighbour), p -> q along k, c -> q across
-            closed = False
-            for kp in (2, 3) if k < 2 else (0, 1):
-                p = where.get((ia[0] + int(_AXIAL[kp, 0]), ia[1] + int(_AXIAL[kp, 1])))
-                if p is None or bad[p]:
-                    continue
-                q = near(p, local(p), k)
-                if q >= 0 and q == near(c, bc, kp):
-                    closed = True
-                    break
-            if not closed:
-                continue
-            if ij[c, 0] != none:
-                bad[c] = True  # reached before with another index
-                continue
-            assign(c, t, bc)
-            queue.append(c)
-            # the indexed neighbours of c may close quadrilaterals now
-            queue.extend(
-                o
-                for kk in range(4)
-                if (o := where.get((t[0] + int(_AXIAL[kk, 0]), t[1] + int(_AXIAL[kk, 1])))) is not None and o != a
-            )
-    bad[ref] = False
-    ij[bad] = none
-    return ij
+        if not lat.bad[a]:
+            _extend_lattice(lat, a, queue)
+    lat.bad[ref] = False
+    lat.ij[lat.bad] = _UNREACHED
+    return lat.ij
