@@ -209,6 +209,49 @@ def _start(model: Model, ij: NDArray) -> Array:
     return model.camera.project(pts * np.array([1.0, 1.0, -1.0]))
 
 
+def _fit_local_map(
+    model: Model, x0: Array, c_loc: Array, radius: Array, grid: Array
+) -> tuple[Array, Array, NDArray[np.bool_]]:
+    """Cubic map P(q) (n, 10, 2) fitted to rays traced over each marker's spot around ``x0``, its RMS, and reach.
+
+    ``grid`` holds the unit-radius pattern offsets the fit points are aimed at (through the local Jacobian at
+    ``x0``); q is the pattern offset from the marker centre ``c_loc`` in marker radii.
+    """
+    unit = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    # local Jacobian d(pattern)/d(pixel) at x0, to place the fit points over the spot
+    y3, _ = _trace(model, x0[:, None, :] + unit[None])
+    jac = np.stack([y3[:, 1] - y3[:, 0], y3[:, 2] - y3[:, 0]], axis=-1)  # (n, 2 pattern, 2 pixel)
+    det = np.linalg.det(jac)
+    if not np.all(np.isfinite(det)) or np.any(np.abs(det) < 1e-300):
+        raise BiasError("the model's map from pixels to the pattern is singular at a marker")
+    inv = np.linalg.inv(jac)
+    target = c_loc[:, None, :] + radius[:, None, None] * grid[None]
+    px = x0[:, None, :] + np.einsum("npq,nkq->nkp", inv, target - y3[:, None, 0])
+    y, ok = _trace(model, px)
+    q = (y - c_loc[:, None, :]) / radius[:, None, None]
+    reaches = np.all(ok | (np.hypot(q[..., 0], q[..., 1]) > 1.0), axis=1)
+    use = ok | (ok.sum(axis=1, keepdims=True) < 16)  # fit the rays that reach, if there are enough
+    a = _design(q)  # (n, k, 10)
+    aw = a * use[..., None]
+    coef = np.linalg.solve(np.einsum("nkt,nks->nts", aw, a), np.einsum("nkt,nkc->ntc", aw, px))
+    res = np.sum((np.einsum("nkt,ntc->nkc", a, coef) - px) ** 2, axis=-1)
+    fit_rms = np.sqrt(np.sum(res * use, axis=1) / use.sum(axis=1))
+    return coef, fit_rms, reaches
+
+
+def _map_first_moment(coef: Array, n_r: int, n_theta: int) -> Array:
+    """First moment of the cone marker through the cubic maps ``coef``: the quadrature of the module docstring."""
+    nodes, weights = _quadrature(n_r, n_theta)
+    basis = _design(nodes)  # (k, 10)
+    dx, dy = _design_grad(nodes)
+    pos = np.einsum("kt,ntc->nkc", basis, coef)
+    jx = np.einsum("kt,ntc->nkc", dx, coef)  # dP/dq_x, (n, k, 2)
+    jy = np.einsum("kt,ntc->nkc", dy, coef)
+    jdet = np.abs(jx[..., 0] * jy[..., 1] - jx[..., 1] * jy[..., 0])
+    wk = weights[None] * jdet
+    return np.einsum("nk,nkc->nc", wk, pos) / wk.sum(axis=1, keepdims=True)
+
+
 def predict_spots(
     model: Model,
     ij: ArrayLike,
@@ -255,40 +298,14 @@ def predict_spots(
         raise BiasError("the model does not image every requested marker (no start position)")
     g = np.linspace(-span, span, n_fit)
     grid = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)  # unit-radius pattern offsets
-    unit = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
     fit_rms = np.zeros(n)
     reaches = np.zeros(n, dtype=bool)
     for _ in range(max(1, passes)):
-        # local Jacobian d(pattern)/d(pixel) at x0, to place the fit points over the spot
-        y3, _ = _trace(model, x0[:, None, :] + unit[None])
-        jac = np.stack([y3[:, 1] - y3[:, 0], y3[:, 2] - y3[:, 0]], axis=-1)  # (n, 2 pattern, 2 pixel)
-        det = np.linalg.det(jac)
-        if not np.all(np.isfinite(det)) or np.any(np.abs(det) < 1e-300):
-            raise BiasError("the model's map from pixels to the pattern is singular at a marker")
-        inv = np.linalg.inv(jac)
-        target = c_loc[:, None, :] + radius[:, None, None] * grid[None]
-        px = x0[:, None, :] + np.einsum("npq,nkq->nkp", inv, target - y3[:, None, 0])
-        y, ok = _trace(model, px)
-        q = (y - c_loc[:, None, :]) / radius[:, None, None]
-        reaches = np.all(ok | (np.hypot(q[..., 0], q[..., 1]) > 1.0), axis=1)
-        use = ok | (ok.sum(axis=1, keepdims=True) < 16)  # fit the rays that reach, if there are enough
-        a = _design(q)  # (n, k, 10)
-        aw = a * use[..., None]
-        coef = np.linalg.solve(np.einsum("nkt,nks->nts", aw, a), np.einsum("nkt,nkc->ntc", aw, px))
-        res = np.sum((np.einsum("nkt,ntc->nkc", a, coef) - px) ** 2, axis=-1)
-        fit_rms = np.sqrt(np.sum(res * use, axis=1) / use.sum(axis=1))
+        coef, fit_rms, reaches = _fit_local_map(model, x0, c_loc, radius, grid)
         x0 = coef[:, 0, :].copy()  # P(y_c): the monomial 1 is the only one not vanishing at q = 0
     if not np.all(np.isfinite(coef)):
         raise BiasError("the model's map around a marker could not be fitted")
-    nodes, weights = _quadrature(n_r, n_theta)
-    basis = _design(nodes)  # (k, 10)
-    dx, dy = _design_grad(nodes)
-    pos = np.einsum("kt,ntc->nkc", basis, coef)
-    jx = np.einsum("kt,ntc->nkc", dx, coef)  # dP/dq_x, (n, k, 2)
-    jy = np.einsum("kt,ntc->nkc", dy, coef)
-    jdet = np.abs(jx[..., 0] * jy[..., 1] - jx[..., 1] * jy[..., 0])
-    wk = weights[None] * jdet
-    centroid = np.einsum("nk,nkc->nc", wk, pos) / wk.sum(axis=1, keepdims=True)
+    centroid = _map_first_moment(coef, n_r, n_theta)
     return SpotPrediction(centroid=centroid, center=coef[:, 0, :].copy(), fit_rms=fit_rms, reaches=reaches)
 
 
@@ -312,6 +329,62 @@ def correct_centroids(centroids: ArrayLike, ij: ArrayLike, model: Model, **kwarg
 
 
 # -- the pixel-sampled evaluation on a plane target (the bias-corrected calibration) ----------
+def _window_groups(lo: NDArray, hi: NDArray, s: int, chunk: int) -> list[NDArray]:
+    """Markers grouped, by increasing window size, so that one group's samples stay about within ``chunk``."""
+    n = len(lo)
+    order = np.argsort((hi - lo).prod(axis=1))
+    groups: list[NDArray] = []
+    start = 0
+    while start < n:
+        # group markers with windows of one size so that one array holds them
+        k = order[start]
+        wx, wy = hi[k] - lo[k]
+        group = [k]
+        total = wx * wy * s * s
+        j = start + 1
+        while j < n and total < chunk:
+            group.append(order[j])
+            total += wx * wy * s * s
+            j += 1
+        start = j
+        groups.append(np.asarray(group))
+    return groups
+
+
+def _group_centroids(
+    camera: Camera,
+    xy: Array,
+    radii: Array,
+    lo: NDArray,
+    hi: NDArray,
+    off: Array,
+    threshold: float,
+    background: float,
+    radiance: float,
+) -> Array:
+    """Thresholded centroids (m, 2) of one group of markers (centres ``xy``, mm) in pixel windows from ``lo``."""
+    m, ss = len(xy), len(off)
+    target_plane = Frame.identity()  # the target's own coordinates: markers at (x, y, 0)
+    size = (hi - lo).max(axis=0)
+    cols = np.arange(size[0])
+    rows = np.arange(size[1])
+    cc, rr = np.meshgrid(cols, rows)  # (H, W)
+    base = np.stack([cc, rr], -1).reshape(-1, 2).astype(np.float64)  # (P, 2) pixel corners
+    pix = lo[:, None, None, :] + base[None, :, None, :] + off[None, None, :, :]  # (m, P, S, 2)
+    o, d = camera.rays(pix.reshape(-1, 2))
+    hit, reaches = plane_hits(target_plane, o, d)
+    hit = hit.reshape(m, -1, 2) - xy[:, None, :]
+    r = np.hypot(hit[..., 0], hit[..., 1]) / radii[:, None]
+    grey = radiance * np.clip(1.0 - r, 0.0, 1.0)
+    grey = np.where(reaches.reshape(m, -1), grey, 0.0)
+    val = grey.reshape(m, -1, ss).mean(axis=2)  # (m, P) pixel values
+    w = np.where(val > threshold, val - background, 0.0)
+    centres = base + 0.5
+    mass = w.sum(axis=1)
+    c = (w @ centres) / np.where(mass > 0, mass, np.nan)[:, None]
+    return c + lo
+
+
 def spot_centroids(
     camera: Camera,
     xy: ArrayLike,
@@ -346,7 +419,6 @@ def spot_centroids(
     ndarray (n, 2)
         Centroids, continuous px (NaN for markers not wholly in front of the camera).
     """
-    target_plane = Frame.identity()  # the target's own coordinates: markers at (x, y, 0)
     xy = np.asarray(xy, dtype=np.float64)
     radii = np.asarray(radii, dtype=np.float64)
     n = len(xy)
@@ -362,39 +434,10 @@ def spot_centroids(
     s = supersample
     sub = (np.arange(s) + 0.5) / s
     off = np.stack(np.meshgrid(sub, sub), -1).reshape(-1, 2)  # (s*s, 2) within a pixel
-    order = np.argsort((hi - lo).prod(axis=1))
-    start = 0
-    while start < n:
-        # group markers with windows of one size so that one array holds them
-        k = order[start]
-        wx, wy = hi[k] - lo[k]
-        group = [k]
-        total = wx * wy * s * s
-        j = start + 1
-        while j < n and total < chunk:
-            group.append(order[j])
-            total += wx * wy * s * s
-            j += 1
-        start = j
-        g_idx = np.asarray(group)
-        size = (hi[g_idx] - lo[g_idx]).max(axis=0)
-        cols = np.arange(size[0])
-        rows = np.arange(size[1])
-        cc, rr = np.meshgrid(cols, rows)  # (H, W)
-        base = np.stack([cc, rr], -1).reshape(-1, 2).astype(np.float64)  # (P, 2) pixel corners
-        pix = lo[g_idx][:, None, None, :] + base[None, :, None, :] + off[None, None, :, :]  # (m, P, S, 2)
-        o, d = camera.rays(pix.reshape(-1, 2))
-        hit, reaches = plane_hits(target_plane, o, d)
-        hit = hit.reshape(len(g_idx), -1, 2) - xy[g_idx][:, None, :]
-        r = np.hypot(hit[..., 0], hit[..., 1]) / radii[g_idx][:, None]
-        grey = radiance * np.clip(1.0 - r, 0.0, 1.0)
-        grey = np.where(reaches.reshape(len(g_idx), -1), grey, 0.0)
-        val = grey.reshape(len(g_idx), -1, s * s).mean(axis=2)  # (m, P) pixel values
-        w = np.where(val > threshold, val - background, 0.0)
-        centres = base + 0.5
-        mass = w.sum(axis=1)
-        c = (w @ centres) / np.where(mass > 0, mass, np.nan)[:, None]
-        out[g_idx] = c + lo[g_idx]
+    for g_idx in _window_groups(lo, hi, s, chunk):
+        out[g_idx] = _group_centroids(
+            camera, xy[g_idx], radii[g_idx], lo[g_idx], hi[g_idx], off, threshold, background, radiance
+        )
     return out
 
 

@@ -114,6 +114,34 @@ class FocusMap:
         }
 
 
+def _serpentine_raster(
+    x_range: tuple[float, float], y_range: tuple[float, float], fov: tuple[float, float], step: tuple[float, float]
+) -> tuple[Array, Array]:
+    """Centres (x, y) of the fields of a serpentine raster, centred in the ROI; every other row runs backwards."""
+    sx, sy = step
+    (x0, x1), (y0, y1) = x_range, y_range
+    nx = int(np.floor((x1 - x0 - fov[0]) / sx + 1e-9)) + 1
+    ny = int(np.floor((y1 - y0 - fov[1]) / sy + 1e-9)) + 1
+    if nx < 1 or ny < 1:
+        raise FocusMapError(f"the region {x_range} x {y_range} mm holds no {fov[0]:.3f} x {fov[1]:.3f} mm field")
+    xc = 0.5 * (x0 + x1) + (np.arange(nx) - 0.5 * (nx - 1)) * sx
+    yc = 0.5 * (y0 + y1) + (np.arange(ny) - 0.5 * (ny - 1)) * sy
+    xx, yy = np.meshgrid(xc, yc)
+    xx[1::2] = xx[1::2, ::-1]  # serpentine: every other row runs backwards
+    return xx.ravel(), yy.ravel()
+
+
+def _check_travel(focus: Array, piezo_range_um: tuple[float, float]) -> None:
+    """Raise :class:`FocusMapError` when a focus position lies outside the drive's travel."""
+    lo, hi = piezo_range_um
+    bad = (focus < lo) | (focus > hi)
+    if bad.any():
+        raise FocusMapError(
+            f"{int(bad.sum())} focus positions fall outside the drive's {lo}-{hi} µm travel "
+            f"(range {focus.min():.1f}-{focus.max():.1f} µm); change the reference position"
+        )
+
+
 def focus_map(
     height,
     x_range: tuple[float, float],
@@ -162,28 +190,13 @@ def focus_map(
     obj = objective or Objective()
     fov = obj.field_of_view_mm
     sx, sy = step_mm if step_mm is not None else fov
-    (x0, x1), (y0, y1) = x_range, y_range
-    nx = int(np.floor((x1 - x0 - fov[0]) / sx + 1e-9)) + 1
-    ny = int(np.floor((y1 - y0 - fov[1]) / sy + 1e-9)) + 1
-    if nx < 1 or ny < 1:
-        raise FocusMapError(f"the region {x_range} x {y_range} mm holds no {fov[0]:.3f} x {fov[1]:.3f} mm field")
-    xc = 0.5 * (x0 + x1) + (np.arange(nx) - 0.5 * (nx - 1)) * sx
-    yc = 0.5 * (y0 + y1) + (np.arange(ny) - 0.5 * (ny - 1)) * sy
-    xx, yy = np.meshgrid(xc, yc)
-    xx[1::2] = xx[1::2, ::-1]  # serpentine: every other row runs backwards
-    xf, yf = xx.ravel(), yy.ravel()
+    xf, yf = _serpentine_raster(x_range, y_range, fov, (sx, sy))
     t = np.linspace(-0.5, 0.5, samples)
     ox, oy = np.meshgrid(t * fov[0], t * fov[1])
     hs = np.asarray(height(xf[:, None] + ox.ravel()[None], yf[:, None] + oy.ravel()[None]), dtype=np.float64)
     centre = np.asarray(height(xf, yf), dtype=np.float64)
     focus = reference_um + sign * centre * 1e3
-    lo, hi = piezo_range_um
-    bad = (focus < lo) | (focus > hi)
-    if bad.any():
-        raise FocusMapError(
-            f"{int(bad.sum())} focus positions fall outside the drive's {lo}-{hi} µm travel "
-            f"(range {focus.min():.1f}-{focus.max():.1f} µm); change the reference position"
-        )
+    _check_travel(focus, piezo_range_um)
     std = None
     if height_std is not None:
         std = np.max(np.asarray(height_std(xf[:, None] + ox.ravel()[None], yf[:, None] + oy.ravel()[None])), axis=1)

@@ -289,6 +289,49 @@ def _grid_axes(centers: Array) -> tuple[Array, Array] | None:
     return None
 
 
+def _gradient_data(
+    basis: ShiftedBasis, x: ArrayLike, y: ArrayLike, hx: ArrayLike, hy: ArrayLike, regularization: float
+) -> tuple[Array, Array, Array, Array]:
+    """Positions and gradients as flat float64 arrays, checked (lengths, finite, enough equations)."""
+    xa = np.asarray(x, dtype=np.float64).ravel()
+    ya = np.asarray(y, dtype=np.float64).ravel()
+    gx = np.asarray(hx, dtype=np.float64).ravel()
+    gy = np.asarray(hy, dtype=np.float64).ravel()
+    if not (len(xa) == len(ya) == len(gx) == len(gy)):
+        raise BasisError("positions and gradients must have the same length")
+    if not np.all(np.isfinite(np.concatenate([xa, ya, gx, gy]))):
+        raise BasisError("gradient data contain NaN or infinite values")
+    if 2 * len(xa) < basis.n_terms and regularization <= 0:
+        raise BasisError(
+            f"{2 * len(xa)} gradient equations cannot determine {basis.n_terms} coefficients; "
+            "use fewer basis functions or regularisation"
+        )
+    return xa, ya, gx, gy
+
+
+def _solve_normal(a: Array, b: Array, nb: int, lam: float) -> Array:
+    """Least squares of a c = b with ridge ``lam`` on the first ``nb`` coefficients, by the normal equations."""
+    m = a.T @ a
+    m[np.arange(nb), np.arange(nb)] += lam
+    v = a.T @ b
+    try:
+        return sla.cho_solve(sla.cho_factor(m, lower=False, check_finite=False), v, check_finite=False)
+    except np.linalg.LinAlgError:
+        return sla.lstsq(m, v, lapack_driver="gelsy", check_finite=False)[0]
+
+
+def _solve_lstsq(a: Array, b: Array, nb: int, lam: float) -> Array:
+    """Least squares of a c = b with ridge ``lam`` on the first ``nb`` coefficients, on the stacked design."""
+    if lam > 0:
+        damp = np.zeros((nb, a.shape[1]))
+        damp[np.arange(nb), np.arange(nb)] = np.sqrt(lam)
+        a_s = np.concatenate([a, damp], axis=0)
+        b_s = np.concatenate([b, np.zeros(nb)])
+    else:
+        a_s, b_s = a, b
+    return sla.lstsq(a_s, b_s, lapack_driver="gelsy", check_finite=False)[0]
+
+
 def fit_gradients(
     basis: ShiftedBasis,
     x: ArrayLike,
@@ -330,19 +373,7 @@ def fit_gradients(
     BasisError
         Fewer gradient equations than unknowns without regularisation, or non-finite data.
     """
-    xa = np.asarray(x, dtype=np.float64).ravel()
-    ya = np.asarray(y, dtype=np.float64).ravel()
-    gx = np.asarray(hx, dtype=np.float64).ravel()
-    gy = np.asarray(hy, dtype=np.float64).ravel()
-    if not (len(xa) == len(ya) == len(gx) == len(gy)):
-        raise BasisError("positions and gradients must have the same length")
-    if not np.all(np.isfinite(np.concatenate([xa, ya, gx, gy]))):
-        raise BasisError("gradient data contain NaN or infinite values")
-    if 2 * len(xa) < basis.n_terms and regularization <= 0:
-        raise BasisError(
-            f"{2 * len(xa)} gradient equations cannot determine {basis.n_terms} coefficients; "
-            "use fewer basis functions or regularisation"
-        )
+    xa, ya, gx, gy = _gradient_data(basis, x, y, hx, hy, regularization)
     px, py = basis.derivatives(xa, ya)
     a = np.concatenate([px, py], axis=0)
     b = np.concatenate([gx, gy])
@@ -355,22 +386,6 @@ def fit_gradients(
     lam = 0.0
     if regularization > 0:
         lam = float(regularization) * float(np.mean(np.einsum("ij,ij->j", a[:, :nb], a[:, :nb])))
-    if method == "normal":
-        m = a.T @ a
-        m[np.arange(nb), np.arange(nb)] += lam
-        v = a.T @ b
-        try:
-            coef = sla.cho_solve(sla.cho_factor(m, lower=False, check_finite=False), v, check_finite=False)
-        except np.linalg.LinAlgError:
-            coef = sla.lstsq(m, v, lapack_driver="gelsy", check_finite=False)[0]
-    else:
-        if lam > 0:
-            damp = np.zeros((nb, basis.n_terms))
-            damp[np.arange(nb), np.arange(nb)] = np.sqrt(lam)
-            a_s = np.concatenate([a, damp], axis=0)
-            b_s = np.concatenate([b, np.zeros(nb)])
-        else:
-            a_s, b_s = a, b
-        coef = sla.lstsq(a_s, b_s, lapack_driver="gelsy", check_finite=False)[0]
+    coef = _solve_normal(a, b, nb, lam) if method == "normal" else _solve_lstsq(a, b, nb, lam)
     resid = a @ coef - b
     return coef, float(np.sqrt(np.mean(resid**2)))
