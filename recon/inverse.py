@@ -64,7 +64,7 @@ from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
 
 if TYPE_CHECKING:  # the renderer is imported lazily at run time
-    from scopetwin.scenes.mitsuba.deflectometry_ad import RayModel
+    from scopetwin.scenes.mitsuba.deflectometry_ad import RayModel, SplineGrid
 
 
 def _pixel_moments(res: Any, ok: NDArray[np.bool_], spp: int, block: int = 32768) -> tuple[Array, ...]:
@@ -319,6 +319,15 @@ def _binned_camera(camera: Camera, b: int, r0: int, c0: int) -> Camera:
     return camera.with_(nx=nx_b, ny=ny_b, pitch=pitch, r_cs=(x_cs, y_cs))
 
 
+def spline_grid(surf: SplineSurface) -> SplineGrid:
+    """The renderer's description of a spline surface's knot grid (:class:`scopetwin.scenes.mitsuba.deflectometry_ad.
+    SplineGrid`)."""
+    from scopetwin.scenes.mitsuba.deflectometry_ad import SplineGrid
+
+    ny, nx = surf.shape
+    return SplineGrid(surf.x0, surf.y0, surf.dx, surf.dy, nx, ny)
+
+
 def without_plane(x: Array, y: Array, values: Array) -> Array:
     """``values`` (points, ...) less their least-squares plane a + b x + c y over the points (x, y)."""
     plane = np.column_stack([np.ones(len(x)), x, y])
@@ -445,7 +454,9 @@ class InverseReconstructor:
     ) -> tuple[Array, NDArray[np.bool_], sp.csr_matrix | None, Array | None]:
         """Model pixel values, usable-pixel mask, sparse Jacobian (usable pixels x coefficients), pose Jacobian."""
         model = lev.model
-        res = model.trace(surf.grid, surf.coef, sensitivities=need_jac, pose=need_jac and self.config.refine_setup)
+        res = model.trace(
+            spline_grid(surf), surf.coef, sensitivities=need_jac, pose=need_jac and self.config.refine_setup
+        )
         vals, ok = model.pixel_values(res)
         if not need_jac:
             return vals, ok, None, None

@@ -8,7 +8,7 @@ centroid method's shifted basis (§1.8) as B-splines, so that the inverse fit ca
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -17,11 +17,9 @@ from numpy.typing import NDArray
 
 from scopetwin.recon.shifted_basis import ShiftedBasis
 from scopetwin.recon.substrate import Substrate2D
+from scopetwin.scenes.bspline import cubic_bspline_weights
 from scopetwin.scenes.geometry import Array
 from scopetwin.scenes.surface import HeightMap
-
-if TYPE_CHECKING:  # the renderer is imported lazily at run time
-    from scopetwin.scenes.mitsuba.deflectometry_ad import SplineGrid
 
 
 @dataclass(frozen=True)
@@ -29,7 +27,7 @@ class SplineSurface:
     """h(x, y) = sum c_mk B((x - x_k)/dx) B((y - y_m)/dy): a uniform cubic B-spline over the base plane.
 
     Coefficient (row m, column k) sits at (x0 + k*dx, y0 + m*dy)
-    (:class:`scopetwin.scenes.mitsuba.deflectometry_ad.SplineGrid`).
+    (the renderer's :class:`scopetwin.scenes.mitsuba.deflectometry_ad.SplineGrid` describes the same grid).
     """
 
     x0: float
@@ -51,13 +49,6 @@ class SplineSurface:
     def shape(self) -> tuple[int, int]:
         return (int(self.coef.shape[0]), int(self.coef.shape[1]))
 
-    @property
-    def grid(self) -> SplineGrid:
-        from scopetwin.scenes.mitsuba.deflectometry_ad import SplineGrid
-
-        ny, nx = self.shape
-        return SplineGrid(self.x0, self.y0, self.dx, self.dy, nx, ny)
-
     def with_coef(self, coef: Array) -> SplineSurface:
         return replace(self, coef=np.asarray(coef, dtype=np.float64).reshape(self.shape))
 
@@ -77,8 +68,6 @@ class SplineSurface:
     def _rows(
         self, x: Array, y: Array, second: bool
     ) -> tuple[NDArray[np.int64], Array, Array, Array, tuple[Array, Array, Array] | None]:
-        from scopetwin.scenes.mitsuba.deflectometry_ad import cubic_bspline_weights
-
         ny, nx = self.shape
         u = (np.asarray(x, dtype=np.float64).ravel() - self.x0) / self.dx
         v = (np.asarray(y, dtype=np.float64).ravel() - self.y0) / self.dy

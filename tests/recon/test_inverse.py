@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scopetwin.recon.inverse import InverseConfig, InverseReconstructor, SplineSurface
+from scopetwin.recon.inverse import InverseConfig, InverseReconstructor, spline_grid
+from scopetwin.recon.spline import SplineSurface
 from scopetwin.recon.substrate import Substrate2D
 from scopetwin.scenes.setup import load_setup
 from scopetwin.scenes.surface import HeightMap
@@ -70,7 +71,7 @@ def test_jacobian_matches_finite_differences(case):
     _, _, truth, rec, lev = case
     vals, ok, jac, _ = rec._linearise(lev, truth)
     assert jac is not None
-    res = lev.model.trace(truth.grid, truth.coef)
+    res = lev.model.trace(spline_grid(truth), truth.coef)
     assert res.sens is not None
     idx, w, wx, wy = truth.basis_rows(res.x, res.y)
     per_ray = res.sens[0][:, None] * w + res.sens[1][:, None] * wx + res.sens[2][:, None] * wy
@@ -100,7 +101,7 @@ def test_recovers_a_known_surface_from_its_own_render(case):
     vals, ok, _, _ = rec._linearise(lev, truth, need_jac=False)
     lev.data = vals.copy()
     lev.var = np.ones_like(vals)
-    res = lev.model.trace(truth.grid, truth.coef, sensitivities=False)
+    res = lev.model.trace(spline_grid(truth), truth.coef, sensitivities=False)
     hx, hy = res.x[res.valid], res.y[res.valid]
     xc, yc = float(np.mean(hx)), float(np.mean(hy))
     bump = 3e-4 * np.exp(-((hx - xc) ** 2 + (hy - yc) ** 2) / 2.0)
@@ -156,7 +157,7 @@ def test_pose_jacobian_matches_finite_differences(case):
                 None,
                 m.jitter,
             )
-            v, _ = moved.pixel_values(moved.trace(truth.grid, truth.coef, sensitivities=False))
+            v, _ = moved.pixel_values(moved.trace(spline_grid(truth), truth.coef, sensitivities=False))
             fd.append(v[ok])
         num = (fd[0] - fd[1]) / (2 * eps)
         assert np.linalg.norm(num) > 0
@@ -221,7 +222,7 @@ def test_fit_in_a_basis_span_recovers_a_surface_of_that_basis(case):
         fitted = rec.fit_level(lev, start, h, 8, 0)
     finally:
         rec._span = None
-    res = lev.model.trace(truth.grid, truth.coef, sensitivities=False)
+    res = lev.model.trace(spline_grid(truth), truth.coef, sensitivities=False)
     hx, hy = res.x[res.valid], res.y[res.valid]
     err = fitted.height(hx, hy) - truth.height(hx, hy)
     err0 = start.height(hx, hy) - truth.height(hx, hy)
