@@ -85,6 +85,76 @@ def channel_table(setup: Any, maps: dict[str, Any], stop: bool) -> dict[str, dic
     return out
 
 
+#: Provenance seed id written with every CMU render.
+_RENDER_SEED_ID = "000_a2b7d38b4750eb48"
+
+
+def _render_star(
+    setup: Any, ch: str, pose: Any, out: Path, spp: int, stop: bool, scene: Any, report: Callable[[str], None]
+) -> tuple[Path, Any]:
+    """Render, write (``star_<ch>.exr``) and measure channel ``ch``'s Siemens star; the path and the measurement."""
+    from scopetwin.calib.channels import measure_channel
+    from scopetwin.scenes.io import write_image
+    from scopetwin.scenes.mitsuba.cmu import render_channel
+
+    t0 = time.perf_counter()
+    img = render_channel(setup, ch, pose, "star", spp=spp, stop=stop, scene=scene)
+    secs = time.perf_counter() - t0
+    path = out / f"star_{ch}.exr"
+    write_image(
+        path,
+        img,
+        setup.to_json(),
+        {"seed": _RENDER_SEED_ID, "section": "§5.2.2", "spp": spp, "channel": ch},
+        image_distance_mm=float(pose.image_distance),
+    )
+    meas = measure_channel(
+        img,
+        setup.camera.pixel_um,
+        setup.target.frame_side * 1e3,
+        setup.target.star_radius * 1e3,
+        setup.target.spokes,
+    )
+    report(f"rendered star, {ch}: {img.shape[1]}x{img.shape[0]} px, {spp} spp, {secs:.1f} s -> {path}")
+    return path, meas
+
+
+def _render_cells(setup: Any, ch: str, pose: Any, out: Path, spp: int, stop: bool, scene: Any) -> Path:
+    """Render and write (``cells_<ch>.exr``) the dummy cells through channel ``ch``; the path."""
+    from scopetwin.scenes.io import write_image
+    from scopetwin.scenes.mitsuba.cmu import render_channel
+
+    cimg = render_channel(setup, ch, pose, "cells", spp=spp, stop=stop, scene=scene)
+    cpath = out / f"cells_{ch}.exr"
+    write_image(
+        cpath,
+        cimg,
+        setup.to_json(),
+        {"seed": _RENDER_SEED_ID, "section": "§5.1.2", "spp": spp, "channel": ch},
+    )
+    return cpath
+
+
+def _measured(meas: dict[str, Any], pixel_um: float) -> dict[str, dict[str, Any]]:
+    """Per channel the star's measurement, plus offset and tilt relative to the NIR channel (Tables 5.3, 5.4)."""
+    from scopetwin.calib.channels import relative_pose
+
+    ref = meas.get("nir")
+    result = {}
+    for ch, m in meas.items():
+        entry = {
+            "magnification": m.magnification,
+            "delta_x_um": m.delta_x_um,
+            "r_min_um": m.r_min_um,
+            "resolved_to_limit": m.resolved_to_limit,
+            "frame_center_px": list(m.frame.center),
+        }
+        if ref is not None and ch != "nir":
+            entry |= relative_pose(m, ref, pixel_um)
+        result[ch] = entry
+    return result
+
+
 def render_and_measure(
     setup: Any,
     maps: dict[str, Any],
@@ -122,58 +192,17 @@ def render_and_measure(
         ``{"measured": {channel: {magnification, delta_x_um, r_min_um, ...}}, "files": {name: path}}``; offset and
         tilt relative to the NIR channel (Tables 5.3, 5.4).
     """
-    from scopetwin.calib.channels import measure_channel, relative_pose
-    from scopetwin.scenes.io import write_image
-    from scopetwin.scenes.mitsuba.cmu import CameraPose, render_channel, unit_scene
+    from scopetwin.scenes.mitsuba.cmu import CameraPose, unit_scene
 
     scene = unit_scene(setup, maps)
     meas, files = {}, {}
     for ch in setup.channels:
         pose = CameraPose(table[ch]["image_distance_mm"])
-        t0 = time.perf_counter()
-        img = render_channel(setup, ch, pose, "star", spp=spp, stop=stop, scene=scene)
-        secs = time.perf_counter() - t0
-        path = out / f"star_{ch}.exr"
-        write_image(
-            path,
-            img,
-            setup.to_json(),
-            {"seed": "000_a2b7d38b4750eb48", "section": "§5.2.2", "spp": spp, "channel": ch},
-            image_distance_mm=float(pose.image_distance),
-        )
+        path, meas[ch] = _render_star(setup, ch, pose, out, spp, stop, scene, report)
         files[f"star_{ch}"] = str(path)
-        meas[ch] = measure_channel(
-            img,
-            setup.camera.pixel_um,
-            setup.target.frame_side * 1e3,
-            setup.target.star_radius * 1e3,
-            setup.target.spokes,
-        )
-        report(f"rendered star, {ch}: {img.shape[1]}x{img.shape[0]} px, {spp} spp, {secs:.1f} s -> {path}")
         if cells:
-            cimg = render_channel(setup, ch, pose, "cells", spp=spp, stop=stop, scene=scene)
-            cpath = out / f"cells_{ch}.exr"
-            write_image(
-                cpath,
-                cimg,
-                setup.to_json(),
-                {"seed": "000_a2b7d38b4750eb48", "section": "§5.1.2", "spp": spp, "channel": ch},
-            )
-            files[f"cells_{ch}"] = str(cpath)
-    ref = meas.get("nir")
-    result = {}
-    for ch, m in meas.items():
-        entry = {
-            "magnification": m.magnification,
-            "delta_x_um": m.delta_x_um,
-            "r_min_um": m.r_min_um,
-            "resolved_to_limit": m.resolved_to_limit,
-            "frame_center_px": list(m.frame.center),
-        }
-        if ref is not None and ch != "nir":
-            entry |= relative_pose(m, ref, setup.camera.pixel_um)
-        result[ch] = entry
-    return {"measured": result, "files": files}
+            files[f"cells_{ch}"] = str(_render_cells(setup, ch, pose, out, spp, stop, scene))
+    return {"measured": _measured(meas, setup.camera.pixel_um), "files": files}
 
 
 def crosstalk() -> dict[str, Any]:
