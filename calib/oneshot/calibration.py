@@ -9,6 +9,7 @@ how the image distance b is obtained (``lens``, see :mod:`scopetwin.calib.onesho
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -50,6 +51,62 @@ def _start_of(camera: Camera, linear: LinearResult) -> LinearResult:
     )
 
 
+def _lens_mode(lens: LensMode, b: float | None, prior: Prior) -> tuple[str, float | None]:
+    """The lens mode of the refinement (``"auto"`` resolved) and the a-priori b of the linear approximation."""
+    a_priori_b = b if b is not None else prior.image_distance
+    # auto: the a-priori b where the prior has one (the camera's stated image distance), else the thin-lens b
+    mode = ("fixed" if a_priori_b is not None else "thin-lens") if lens == "auto" else lens
+    b_lin = a_priori_b if mode == "fixed" else None
+    if mode == "fixed" and b_lin is None:
+        raise CalibrationError("lens mode 'fixed' needs an a-priori image distance b")
+    return mode, b_lin
+
+
+def _mirror_pose(
+    cal: Calibration,
+    lin: LinearResult,
+    prior: Prior,
+    refit: Callable[[LinearResult], Calibration],
+    notes: list[str],
+) -> Calibration:
+    """The mirror-ambiguous pose (other sign s): keep the N_z estimate's choice unless the data clearly reject it."""
+    alt_nz = lin.alternative.frame.nz
+    est = np.asarray(prior.nz_estimate)
+    undecided = abs(est @ (lin.camera.frame.nz - alt_nz)) < 1e-3 * np.linalg.norm(lin.camera.frame.nz - alt_nz)
+    suspicious = cal.residual_rms_px > 2 * PRIOR_NOISE_PX or undecided
+    if not (suspicious and np.arccos(np.clip(alt_nz @ lin.camera.frame.nz, -1, 1)) > 1e-3):
+        return cal
+    try:
+        alt = refit(_start_of(lin.alternative, lin))
+    except CalibrationError:
+        alt = None
+    if alt is not None and not undecided and np.sum(alt.residual_px**2) < 0.25 * np.sum(cal.residual_px**2):
+        notes.append(
+            f"the N_z estimate {format_vector(prior.nz_estimate)} picked the mirror-ambiguous "
+            f"pose that fits worse (rms {cal.residual_rms_px:.3g} px against "
+            f"{alt.residual_rms_px:.3g} px); the better-fitting pose is used"
+        )
+        cal = alt
+    elif alt is not None and undecided and np.sum(alt.residual_px**2) < np.sum(cal.residual_px**2):
+        cal = alt
+    if undecided:
+        notes.append(
+            f"the N_z estimate {format_vector(est)} does not tell the two mirror-ambiguous poses "
+            "apart; the better-fitting one is used"
+        )
+    return cal
+
+
+def _check_free_b(cal: Calibration, tilt: float) -> None:
+    """Raise where a free b is not determined by the view (face-on: its sigma above :data:`MAX_SIGMA_B`)."""
+    if not (cal.sigma_b_prior is not None and cal.sigma_b_prior <= MAX_SIGMA_B):
+        raise CalibrationError(
+            f"the view is too close to face-on (tilt {np.rad2deg(tilt):.2f} deg) to estimate the image distance b: "
+            f"its standard deviation at {PRIOR_NOISE_PX} px centroid noise would be {cal.sigma_b_prior:.3g} mm "
+            f"(limit {MAX_SIGMA_B} mm); use the thin-lens or fixed mode"
+        )
+
+
 def calibrate(
     xy: ArrayLike,
     px: ArrayLike,
@@ -88,12 +145,7 @@ def calibrate(
     if lens not in LENS_MODES:
         raise CalibrationError(f"lens mode must be one of {', '.join(LENS_MODES)}, got {lens!r}")
     xy, px = check_points(xy, px)
-    a_priori_b = b if b is not None else prior.image_distance
-    # auto: the a-priori b where the prior has one (the camera's stated image distance), else the thin-lens b
-    mode = ("fixed" if a_priori_b is not None else "thin-lens") if lens == "auto" else lens
-    b_lin = a_priori_b if mode == "fixed" else None
-    if mode == "fixed" and b_lin is None:
-        raise CalibrationError("lens mode 'fixed' needs an a-priori image distance b")
+    mode, b_lin = _lens_mode(lens, b, prior)
     lin = linear_approximation(xy, px, prior, b_lin)
     tilt = float(np.arccos(np.clip(lin.camera.frame.nz[2], -1, 1)))
     notes: list[str] = []
@@ -106,37 +158,9 @@ def calibrate(
     def run(start: LinearResult | Calibration, how: str) -> Calibration:
         return refine(xy, px, prior, start, how, distortion, b)
 
-    cal = run(lin, mode)
-    # the mirror-ambiguous pose (other sign s): keep the N_z estimate's choice unless the data clearly reject it
-    alt_nz = lin.alternative.frame.nz
-    est = np.asarray(prior.nz_estimate)
-    undecided = abs(est @ (lin.camera.frame.nz - alt_nz)) < 1e-3 * np.linalg.norm(lin.camera.frame.nz - alt_nz)
-    suspicious = cal.residual_rms_px > 2 * PRIOR_NOISE_PX or undecided
-    if suspicious and np.arccos(np.clip(alt_nz @ lin.camera.frame.nz, -1, 1)) > 1e-3:
-        try:
-            alt = run(_start_of(lin.alternative, lin), mode)
-        except CalibrationError:
-            alt = None
-        if alt is not None and not undecided and np.sum(alt.residual_px**2) < 0.25 * np.sum(cal.residual_px**2):
-            notes.append(
-                f"the N_z estimate {format_vector(prior.nz_estimate)} picked the mirror-ambiguous "
-                f"pose that fits worse (rms {cal.residual_rms_px:.3g} px against "
-                f"{alt.residual_rms_px:.3g} px); the better-fitting pose is used"
-            )
-            cal = alt
-        elif alt is not None and undecided and np.sum(alt.residual_px**2) < np.sum(cal.residual_px**2):
-            cal = alt
-        if undecided:
-            notes.append(
-                f"the N_z estimate {format_vector(est)} does not tell the two mirror-ambiguous poses "
-                "apart; the better-fitting one is used"
-            )
-    if lens == "free" and not (cal.sigma_b_prior is not None and cal.sigma_b_prior <= MAX_SIGMA_B):
-        raise CalibrationError(
-            f"the view is too close to face-on (tilt {np.rad2deg(tilt):.2f} deg) to estimate the image distance b: "
-            f"its standard deviation at {PRIOR_NOISE_PX} px centroid noise would be {cal.sigma_b_prior:.3g} mm "
-            f"(limit {MAX_SIGMA_B} mm); use the thin-lens or fixed mode"
-        )
+    cal = _mirror_pose(run(lin, mode), lin, prior, lambda start: run(start, mode), notes)
+    if lens == "free":
+        _check_free_b(cal, tilt)
     if lens == "auto" and not distortion and tilt >= AUTO_FREE_TILT:
         cal = _choose_lens(cal, run(cal, "free"))
     if cal.residual_rms_px > residual_warn_px:

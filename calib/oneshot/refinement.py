@@ -215,6 +215,134 @@ def _sigmas(model: ReprojectionModel, p: Array, cov: Array, scale: float) -> dic
     return sig
 
 
+def _b_of(lens: str, b: float | None, prior: Prior) -> float:
+    """The image distance held fixed (0 where none is known); an unknown lens mode or a fixed one without b raise."""
+    if lens not in ("thin-lens", "free", "fixed"):
+        raise CalibrationError(f"lens mode must be thin-lens, free or fixed here, got {lens!r}")
+    b_fixed = float(b if b is not None else (prior.image_distance or 0.0))
+    if lens == "fixed" and not b_fixed > 0:
+        raise CalibrationError("lens mode 'fixed' needs an a-priori image distance b")
+    return b_fixed
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """The data and settings of one refinement (arguments of :class:`ReprojectionModel`)."""
+
+    xy: Array
+    px: Array
+    prior: Prior
+    lens: str
+    distortion: bool
+    b_fixed: float
+
+    def weighted(self, noise_px: float) -> ReprojectionModel:
+        """The model with the a-priori distortion (if refined) as pseudo-observations weighed at ``noise_px``."""
+        weights = {k: noise_px / v for k, v in DISTORTION_PRIOR_SIGMA.items()} if self.distortion else {}
+        return ReprojectionModel(
+            self.xy, self.px, self.prior, self.lens, self.distortion, self.b_fixed, prior_weight=weights
+        )
+
+    def free(self) -> ReprojectionModel:
+        """The model without pseudo-observations."""
+        return ReprojectionModel(self.xy, self.px, self.prior, self.lens, self.distortion, self.b_fixed)
+
+
+def _first_fit(
+    model: ReprojectionModel, start: LinearResult | Calibration, max_nfev: int
+) -> tuple[Array, Array, Array, int]:
+    """Parameters, residuals, Jacobian and evaluations of the refinement from the start values (checked)."""
+    check_points(model.xy, model.px, len(model.names))
+    cam0 = start.camera
+    r00, phi0 = np.asarray(start.r_0, dtype=np.float64), float(start.phi)
+    p0 = model.start(cam0, r00, phi0)
+    if model.lens == "thin-lens" and not np.linalg.norm(cam0.center - np.append(r00, 0.0)) > model.prior.focal_length:
+        raise CalibrationError("the start camera is closer to the target than the focal length")
+    try:
+        p, res, jmat, nfev, status = _solve(model, p0, max_nfev)
+    except GeometryError as exc:
+        raise CalibrationError(f"the refinement failed: {exc}") from None
+    if status <= 0:
+        raise CalibrationError("the non-linear refinement did not converge (too many evaluations)")
+    return p, res, jmat, nfev
+
+
+def _refit_distortion(
+    prob: _Problem, p: Array, nfev: int, s2: float, max_nfev: int, notes: list[str]
+) -> tuple[ReprojectionModel, Array, Array, Array, int, float]:
+    """The distortion refit's model, parameters, residuals, Jacobian, evaluations and residual variance.
+
+    First the a-priori r_cs, c0 weighed at the a-priori centroid noise (a well-posed problem that converges
+    quickly); then at the noise the residuals show: where the data determine every parameter, once more from
+    there without them (they then pull nothing); where they do not, the first estimate is kept, and the
+    covariance carries the a-priori standard deviation (DISTORTION_PRIOR_SIGMA) in those directions (a note).
+    """
+    n_data = 2 * len(prob.xy)
+    model = prob.weighted(max(float(np.sqrt(s2)), 1e-9))
+    res, jmat = model.residual_and_jacobian(p)
+    undetermined = _undetermined(jmat, model)
+    if undetermined:
+        notes.append(
+            f"this view hardly determines {', '.join(undetermined)} (no distortion shows where the optical "
+            "axis is): kept near the a-priori values, within their a-priori uncertainty"
+        )
+        return model, p, res, jmat, nfev, s2
+    # the data determine every parameter: solve once more without the a-priori pseudo-observations, so
+    # that they pull nothing (exact data are then recovered to round-off)
+    free_model = prob.free()
+    try:
+        p2, res2, jmat2, nfev2, status2 = _solve(free_model, p, max_nfev)
+    except GeometryError:
+        status2 = 0
+    if status2 > 0:
+        dof = max(n_data - len(p2), 1)
+        return free_model, p2, res2, jmat2, nfev + nfev2, float(res2[:n_data] @ res2[:n_data]) / dof
+    return model, p, res, jmat, nfev, s2
+
+
+def _calibration(
+    model: ReprojectionModel,
+    p: Array,
+    res: Array,
+    jmat: Array,
+    s2: float,
+    start: LinearResult | Calibration,
+    notes: list[str],
+    nfev: int,
+) -> Calibration:
+    """The :class:`Calibration` of the refined parameters ``p``, with their covariance scaled by ``s2``."""
+    n_data = 2 * len(model.xy)
+    cov = _covariance(jmat)
+    sig = _sigmas(model, p, cov, np.sqrt(s2))
+    sigma_b_prior = None
+    if model.lens == "free":
+        sigma_b_prior = float(np.sqrt(cov[6, 6]) * PRIOR_NOISE_PX) if np.isfinite(cov[6, 6]) else float("inf")
+    dvec = model.X - p[0:3]
+    camera = model.camera(p)
+    if np.any(dvec @ camera.frame.nz >= 0):
+        raise CalibrationError("the refinement ended with markers behind the camera: the start values are unusable")
+    r0 = p[3:5].copy()
+    g = float(np.linalg.norm(camera.center - np.append(r0, 0.0)))
+    resid = res[:n_data].reshape(2, -1).T
+    start_lin = start.linear if isinstance(start, Calibration) else start
+    params = {name: float(v) for name, v in zip(model.names, p, strict=True)}
+    return Calibration(
+        camera,
+        r0,
+        wrap_angle(float(p[5])),
+        g,
+        start_lin,
+        model.lens,
+        model.distortion,
+        params,
+        sig,
+        sigma_b_prior,
+        resid,
+        tuple(notes),
+        nfev,
+    )
+
+
 def refine(
     xy: ArrayLike,
     px: ArrayLike,
@@ -242,85 +370,16 @@ def refine(
     b : float, optional
         The image distance for ``lens="fixed"`` (default: ``prior.image_distance``).
     """
-    if lens not in ("thin-lens", "free", "fixed"):
-        raise CalibrationError(f"lens mode must be thin-lens, free or fixed here, got {lens!r}")
-    b_fixed = float(b if b is not None else (prior.image_distance or 0.0))
-    if lens == "fixed" and not b_fixed > 0:
-        raise CalibrationError("lens mode 'fixed' needs an a-priori image distance b")
-    xy_a, px_a = np.asarray(xy, dtype=np.float64), np.asarray(px, dtype=np.float64)
-
-    def model_for(noise_px: float) -> ReprojectionModel:
-        weights = {k: noise_px / v for k, v in DISTORTION_PRIOR_SIGMA.items()} if distortion else {}
-        return ReprojectionModel(xy_a, px_a, prior, lens, distortion, b_fixed, prior_weight=weights)
-
-    model = model_for(PRIOR_NOISE_PX)
-    check_points(model.xy, model.px, len(model.names))
-    cam0 = start.camera
-    r00, phi0 = np.asarray(start.r_0, dtype=np.float64), float(start.phi)
-    p0 = model.start(cam0, r00, phi0)
-    if lens == "thin-lens" and not np.linalg.norm(cam0.center - np.append(r00, 0.0)) > prior.focal_length:
-        raise CalibrationError("the start camera is closer to the target than the focal length")
+    b_fixed = _b_of(lens, b, prior)
+    prob = _Problem(
+        np.asarray(xy, dtype=np.float64), np.asarray(px, dtype=np.float64), prior, lens, distortion, b_fixed
+    )
+    model = prob.weighted(PRIOR_NOISE_PX)
+    p, res, jmat, nfev = _first_fit(model, start, max_nfev)
     n_data = 2 * len(model.xy)
-    try:
-        p, res, jmat, nfev, status = _solve(model, p0, max_nfev)
-    except GeometryError as exc:
-        raise CalibrationError(f"the refinement failed: {exc}") from None
-    if status <= 0:
-        raise CalibrationError("the non-linear refinement did not converge (too many evaluations)")
     notes: list[str] = []
     dof = max(n_data - len(p) + len(model.prior_weight), 1)
     s2 = float(res[:n_data] @ res[:n_data]) / dof
     if distortion:
-        # first the a-priori r_cs, c0 weighed at the a-priori centroid noise (a well-posed problem that converges
-        # quickly); then at the noise the residuals show: where the data determine every parameter, once more from
-        # there without them (they then pull nothing); where they do not, the first estimate is kept, and the
-        # covariance carries the a-priori standard deviation (DISTORTION_PRIOR_SIGMA) in those directions
-        model = model_for(max(float(np.sqrt(s2)), 1e-9))
-        res, jmat = model.residual_and_jacobian(p)
-        undetermined = _undetermined(jmat, model)
-        if not undetermined:
-            # the data determine every parameter: solve once more without the a-priori pseudo-observations, so
-            # that they pull nothing (exact data are then recovered to round-off)
-            free_model = ReprojectionModel(xy_a, px_a, prior, lens, distortion, b_fixed)
-            try:
-                p2, res2, jmat2, nfev2, status2 = _solve(free_model, p, max_nfev)
-            except GeometryError:
-                status2 = 0
-            if status2 > 0:
-                model, p, res, jmat, nfev = free_model, p2, res2, jmat2, nfev + nfev2
-                dof = max(n_data - len(p), 1)
-                s2 = float(res[:n_data] @ res[:n_data]) / dof
-        else:
-            notes.append(
-                f"this view hardly determines {', '.join(undetermined)} (no distortion shows where the optical "
-                "axis is): kept near the a-priori values, within their a-priori uncertainty"
-            )
-    cov = _covariance(jmat)
-    sig = _sigmas(model, p, cov, np.sqrt(s2))
-    sigma_b_prior = None
-    if lens == "free":
-        sigma_b_prior = float(np.sqrt(cov[6, 6]) * PRIOR_NOISE_PX) if np.isfinite(cov[6, 6]) else float("inf")
-    dvec = model.X - p[0:3]
-    camera = model.camera(p)
-    if np.any(dvec @ camera.frame.nz >= 0):
-        raise CalibrationError("the refinement ended with markers behind the camera: the start values are unusable")
-    r0 = p[3:5].copy()
-    g = float(np.linalg.norm(camera.center - np.append(r0, 0.0)))
-    resid = res[:n_data].reshape(2, -1).T
-    start_lin = start.linear if isinstance(start, Calibration) else start
-    params = {name: float(v) for name, v in zip(model.names, p, strict=True)}
-    return Calibration(
-        camera,
-        r0,
-        wrap_angle(float(p[5])),
-        g,
-        start_lin,
-        lens,
-        distortion,
-        params,
-        sig,
-        sigma_b_prior,
-        resid,
-        tuple(notes),
-        nfev,
-    )
+        model, p, res, jmat, nfev, s2 = _refit_distortion(prob, p, nfev, s2, max_nfev, notes)
+    return _calibration(model, p, res, jmat, s2, start, notes, nfev)
