@@ -28,7 +28,7 @@ def test_ratio_and_table_rows():
 
 
 def test_missing_capability_is_named_and_nothing_is_written(tmp_path, monkeypatch):
-    with pytest.raises(StudyError, match=r"height reconstruction \(recon\.nonexistent\)"):
+    with pytest.raises(StudyError, match=r"height reconstruction \(scopetwin\.recon\.nonexistent\)"):
         require("demo", {"scopetwin.recon.nonexistent": "height reconstruction"})
 
     def needs_missing(ctx):
