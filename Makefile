@@ -6,12 +6,17 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: run test lint docs bench llvm setup clean
+.PHONY: run test test-all lint docs bench llvm setup clean
 
 run: setup
 	$(VENV)/bin/scopetwin run
 
+# the default before each commit (<= 5 min on 2 cores): everything but the tests marked slow
 test: setup
+	$(PY) -m pytest -m "not slow"
+
+# everything (<= 15 min on 2 cores): what .ci/run runs
+test-all: setup
 	$(PY) -m pytest
 
 setup: $(STAMP) llvm
