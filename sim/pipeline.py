@@ -29,12 +29,13 @@ from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
 
-log = logging.getLogger(__name__)
-
 if TYPE_CHECKING:
     from scopetwin.recon.focusmap import FocusMap
     from scopetwin.recon.markers import Markers
-    from scopetwin.recon.reconstruct import MarkerObservations, ReconstructionResult, Substrate2D
+    from scopetwin.recon.reconstruct import MarkerObservations, ReconstructionResult
+    from scopetwin.recon.substrate import Substrate2D
+
+log = logging.getLogger(__name__)
 
 MEASUREMENT = "thesis-1.10-deflectometry"
 TARGET = "thesis-2.8.3-substrate"
@@ -276,7 +277,7 @@ def _run(
     setup_name: str | None,
     surface_file: str | Path | None,
 ) -> dict[str, Any]:
-    from scopetwin.recon.reconstruct import Substrate2D
+    from scopetwin.recon.substrate import Substrate2D
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -363,28 +364,30 @@ def _calibrate(
 def _detect_and_reconstruct(
     image: NDArray[Any], setups: dict[str, Setup], out: Path, heights: HeightMap, sub: Substrate2D
 ) -> tuple[Markers, MarkerObservations, dict[str, Any]]:
-    """Markers of the measurement image (found with the ideal setup) and a reconstruction with each setup.
+    """The measurement image reconstructed with each setup by the one strategy (:mod:`scopetwin.recon.strategy`:
+    markers found with that setup, a tied reference marker decided, every fallback), as ``scopetwin reconstruct``
+    does.
 
-    Returns the markers, their observations and per setup name ``{"result", "seconds", "errors"}``
-    (:func:`roi_errors` against the truth ``heights``); each reconstruction's history goes to
+    Returns the markers found with the ideal setup, their observations and per setup name ``{"result", "seconds",
+    "errors"}`` (:func:`roi_errors` against the truth ``heights``); a history that is not accepted goes to
     ``out/<name>-history.json``.
     """
-    from scopetwin.recon.markers import find_markers_for
-    from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, centroid_bias_step
+    from scopetwin.recon.reconstruct import MarkerObservations
+    from scopetwin.recon.strategy import reconstruct_image
 
-    found = find_markers_for(image, setups["ideal"])
-    obs = MarkerObservations(found.ij, found.centroids)
     results: dict[str, Any] = {}
+    found: Markers | None = None
     for name, s in setups.items():
         t0 = time.perf_counter()
-        rec = Reconstructor.from_setup(s, bias=centroid_bias_step(s))
-        res = rec.run(obs, history_path=out / f"{name}-history.json")
+        markers, res, _ = reconstruct_image(image, s, history_path=out / f"{name}-history.json")
+        found = markers if found is None or name == "ideal" else found
         results[name] = {
             "result": res,
             "seconds": time.perf_counter() - t0,
             "errors": roi_errors(res.surface.height, heights, sub),
         }
-    return found, obs, results
+    assert found is not None
+    return found, MarkerObservations(found.ij, found.centroids), results
 
 
 def _truth_reference(
@@ -392,11 +395,12 @@ def _truth_reference(
 ) -> tuple[ReconstructionResult, dict[str, float]]:
     """Reconstruction from the exact marker images with the ideal setup and its errors (the method's own floor)."""
     from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor
+    from scopetwin.recon.strategy import solve
     from scopetwin.sim.truth import marker_truth
 
     truth = marker_truth(setup, heights)
     exact = MarkerObservations(truth.ij[truth.visible], truth.center_px[truth.visible])
-    res_exact = Reconstructor.from_setup(setup).run(exact)
+    res_exact = solve(Reconstructor.from_setup(setup), exact)
     return res_exact, roi_errors(res_exact.surface.height, heights, sub)
 
 
