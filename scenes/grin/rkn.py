@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scopetwin.scenes.grin.profiles import NP, RadialProfile
-from scopetwin.scenes.grin.setup import Stack
+from scopetwin.scenes.grin.setup import Layer, Stack
 
 Array = NDArray[np.float64]
 
@@ -173,6 +173,51 @@ class RayState:
         return self.x + dz * self.tx / tz, self.y + dz * self.ty / tz
 
 
+def _through_homogeneous(
+    layer: Layer, x: Array, y: Array, tx: Array, ty: Array, opl: Array, alive: NDArray[np.bool_]
+) -> tuple[Array, Array, Array, NDArray[np.bool_]]:
+    """Ray heights, OPL and survivors (``alive`` updated in place) after a homogeneous layer (T is conserved)."""
+    t2 = tx * tx + ty * ty
+    n = layer.index
+    tz2 = n * n - t2
+    alive &= tz2 > 0
+    tz = np.sqrt(np.maximum(tz2, 1e-300))
+    x = x + layer.thickness * tx / tz
+    y = y + layer.thickness * ty / tz
+    opl = opl + layer.thickness * n * n / tz
+    return x, y, opl, alive
+
+
+def _through_rod(
+    layer: Layer,
+    axis: tuple[float, float],
+    x: Array,
+    y: Array,
+    tx: Array,
+    ty: Array,
+    opl: Array,
+    alive: NDArray[np.bool_],
+) -> tuple[Array, Array, Array, Array, Array, NDArray[np.bool_], Array]:
+    """State after a GRIN rod layer (``alive`` updated in place), and each ray's radius on the rod's exit face."""
+    rod, profile = layer.rod, layer.profile
+    assert rod is not None and profile is not None  # a rod layer carries its profile (build_stack)
+    ax, ay = axis
+    t2 = tx * tx + ty * ty
+    lx, ly = x - ax, y - ay
+    r2 = lx * lx + ly * ly
+    inside = r2 <= rod.radius**2
+    n_rod = np.asarray(profile.index(np.minimum(r2, rod.radius**2))) * np.ones_like(x)
+    n_in = np.where(inside, n_rod, 1.0)
+    tz2 = n_in * n_in - t2
+    alive &= inside & (tz2 > 0)
+    tz = np.sqrt(np.maximum(tz2, 1e-300))
+    lx, ly, tx, ty, dopl, ok = rkn_rod(
+        lx, ly, tx, ty, tz, profile, rod.length, rod_steps(rod.length, rod.step_mm), rod.radius
+    )
+    alive &= ok
+    return lx + ax, ly + ay, tx, ty, opl + dopl, alive, np.hypot(lx, ly)
+
+
 def trace_stack(
     stack: Stack,
     x0: Array,
@@ -220,33 +265,10 @@ def trace_stack(
     ax, ay = axis
     n_last = stack.layers[0].index
     for layer in layers:
-        t2 = tx * tx + ty * ty
         if layer.rod is None:
-            n = layer.index
-            tz2 = n * n - t2
-            alive &= tz2 > 0
-            tz = np.sqrt(np.maximum(tz2, 1e-300))
-            x = x + layer.thickness * tx / tz
-            y = y + layer.thickness * ty / tz
-            opl = opl + layer.thickness * n * n / tz
+            x, y, opl, alive = _through_homogeneous(layer, x, y, tx, ty, opl, alive)
         else:
-            rod, profile = layer.rod, layer.profile
-            assert profile is not None  # a rod layer carries its profile (build_stack)
-            lx, ly = x - ax, y - ay
-            r2 = lx * lx + ly * ly
-            inside = r2 <= rod.radius**2
-            n_rod = np.asarray(profile.index(np.minimum(r2, rod.radius**2))) * np.ones_like(x)
-            n_in = np.where(inside, n_rod, 1.0)
-            tz2 = n_in * n_in - t2
-            alive &= inside & (tz2 > 0)
-            tz = np.sqrt(np.maximum(tz2, 1e-300))
-            lx, ly, tx, ty, dopl, ok = rkn_rod(
-                lx, ly, tx, ty, tz, profile, rod.length, rod_steps(rod.length, rod.step_mm), rod.radius
-            )
-            alive &= ok
-            x, y = lx + ax, ly + ay
-            opl = opl + dopl
-            max_r[layer.name] = np.hypot(lx, ly)
+            x, y, tx, ty, opl, alive, max_r[layer.name] = _through_rod(layer, axis, x, y, tx, ty, opl, alive)
         if stop is not None and abs(layer.z1 - stack.stop_z) < 1e-12:
             alive &= (x - ax) ** 2 + (y - ay) ** 2 <= stop * stop
         n_last = layer.index

@@ -36,7 +36,7 @@ from scopetwin.scenes.camera import PixelGrid
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.grin.profiles import RadialProfile
 from scopetwin.scenes.grin.rkn import rkn_step, rod_steps
-from scopetwin.scenes.grin.setup import GrinSetup, Stack
+from scopetwin.scenes.grin.setup import GrinSetup, Layer, Stack
 from scopetwin.scenes.grin.targets import Target
 from scopetwin.scenes.limits import check_render
 from scopetwin.scenes.mitsuba.variant import mitsuba, register_plugin, render_complete, resolve
@@ -81,6 +81,36 @@ def _rkn_state_step(state: tuple[Any, ...], dt: Any, profile: RadialProfile, rr:
     return x, y, tx, ty, opl, n2, k, alive & (r2 <= rr)
 
 
+def _split_groups(inputs: list[Any], groups: int, n: int, UInt: type) -> tuple[list[list[Any]], int]:
+    """The ray arrays ``inputs`` gathered into ``groups`` groups of equal size (the last padded), and that size."""
+    if groups > 1:
+        size = -(-n // groups)
+        parts = []
+        for g in range(groups):
+            idx = dr.minimum(dr.arange(UInt, size) + g * size, n - 1)
+            parts.append([dr.gather(type(v), v, idx) for v in inputs])
+    else:
+        size = n
+        parts = [inputs]
+    return parts, size
+
+
+def _merge_groups(res: list[list[Any]], n: int, size: int, UInt: type) -> tuple[Any, ...]:
+    """The per-group results ``res`` (evaluated first) put back in ray order (inverse of :func:`_split_groups`)."""
+    groups = len(res)
+    dr.eval(*[v for r in res for v in r])
+    idx = dr.arange(UInt, n)
+    g_of = idx // size
+    local = idx - g_of * size
+    merged = []
+    for j in range(6):
+        v = dr.gather(type(res[0][j]), res[0][j], local)
+        for g in range(1, groups):
+            v = dr.select(g_of == g, dr.gather(type(res[g][j]), res[g][j], local), v)
+        merged.append(v)
+    return tuple(merged)
+
+
 def rkn_rod_dr(
     x: Any,
     y: Any,
@@ -117,15 +147,7 @@ def rkn_rod_dr(
     if groups > 1 and n < 2 * groups:
         groups = 1
     inputs = [x, y, tx, ty, tz, Bool(active) & dr.full(Bool, True, n)]
-    if groups > 1:
-        size = -(-n // groups)
-        parts = []
-        for g in range(groups):
-            idx = dr.minimum(dr.arange(UInt, size) + g * size, n - 1)
-            parts.append([dr.gather(type(v), v, idx) for v in inputs])
-    else:
-        size = n
-        parts = [inputs]
+    parts, size = _split_groups(inputs, groups, n, UInt)
     state: list[Any] = [dr.zeros(UInt, size)]
     dts = []
     for gx, gy, gtx, gty, gtz, gact in parts:
@@ -151,17 +173,7 @@ def rkn_rod_dr(
     res = [[final[1 + 8 * g + j] for j in (0, 1, 2, 3, 4, 7)] for g in range(groups)]
     if groups == 1:
         return tuple(res[0])
-    dr.eval(*[v for r in res for v in r])
-    idx = dr.arange(UInt, n)
-    g_of = idx // size
-    local = idx - g_of * size
-    merged = []
-    for j in range(6):
-        v = dr.gather(type(res[0][j]), res[0][j], local)
-        for g in range(1, groups):
-            v = dr.select(g_of == g, dr.gather(type(res[g][j]), res[g][j], local), v)
-        merged.append(v)
-    return tuple(merged)
+    return _merge_groups(res, n, size, UInt)
 
 
 # -- the scene -------------------------------------------------------------------------------------
@@ -189,6 +201,173 @@ class _RodLayer:
     z1: float
     n_before: float
     n_after: float
+
+
+def _rod_layers(layers: tuple[Layer, ...], step_mm: float | None) -> list[_RodLayer]:
+    """The GRIN rods of a stack with their RKN steps (``step_mm`` overrides the rods' own) and outer indices."""
+    rods: list[_RodLayer] = []
+    for i, layer in enumerate(layers):
+        if layer.rod is None:
+            continue
+        assert layer.profile is not None  # a rod layer carries its profile (build_stack)
+        steps = rod_steps(layer.rod.length, step_mm or layer.rod.step_mm)
+        rods.append(
+            _RodLayer(
+                layer.profile,
+                layer.rod.length,
+                layer.rod.radius,
+                steps,
+                layer.z0,
+                layer.z1,
+                layers[i - 1].index if i > 0 else 1.0,
+                layers[i + 1].index if i + 1 < len(layers) else 1.0,
+            )
+        )
+    return rods
+
+
+def _stack_planes(layers: tuple[Layer, ...]) -> list[dict[str, Any]]:
+    """The planes of a stack: z, kind, the indices and rods (-1: none) on both sides; a zero-thickness layer raises.
+
+    One plane at z = 0 (object), one between consecutive layers, one at the image plane.
+    """
+    rod_index = {i: j for j, i in enumerate(i for i, layer in enumerate(layers) if layer.rod is not None)}
+    planes: list[dict[str, Any]] = []
+    for b in range(len(layers) + 1):
+        below = layers[b - 1] if b > 0 else None
+        above = layers[b] if b < len(layers) else None
+        if above is not None:
+            z = above.z0
+        else:
+            assert below is not None  # b = len(layers) >= 1
+            z = below.z1
+        kind = KIND_OBJECT if below is None else (KIND_IMAGE if above is None else KIND_INTERFACE)
+        planes.append(
+            {
+                "z": z,
+                "kind": kind,
+                "n_minus": below.index if below is not None else 1.0,
+                "n_plus": above.index if above is not None else 1.0,
+                "rod_minus": rod_index.get(b - 1, -1) if below is not None else -1,
+                "rod_plus": rod_index.get(b, -1) if above is not None else -1,
+            }
+        )
+    zs = [p["z"] for p in planes]
+    if any(b - a <= 1e-9 for a, b in zip(zs[:-1], zs[1:], strict=True)):
+        raise ScopetwinError(
+            "GRIN stack has a layer of zero or negative thickness (two planes at one z): "
+            f"plane z = {[round(z, 6) for z in zs]}"
+        )
+    return planes
+
+
+def _scene_dict(planes: list[dict[str, Any]], rods: list[_RodLayer], axes: np.ndarray, half: float) -> dict[str, Any]:
+    """The scene dictionary: a square mesh of side 2 ``half`` per plane, a cylinder per rod wall and objective."""
+    scene: dict[str, Any] = {"type": "scene"}
+    for k, p in enumerate(planes):
+        scene[f"plane_{k:02d}"] = _square_mesh(f"plane_{k:02d}", p["z"], half)
+    for j, rod in enumerate(rods):
+        for a, (ax, ay) in enumerate(axes):
+            scene[f"wall_{j}_{a}"] = {
+                "type": "cylinder",
+                "p0": [ax, ay, rod.z0],
+                "p1": [ax, ay, rod.z1],
+                "radius": rod.radius,
+            }
+    return scene
+
+
+def _shape_tables(
+    scene: Any, planes: list[dict[str, Any]]
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], np.ndarray]:
+    """The per-shape tables (by shape id) of the loaded scene: plane z and indices, rods beyond, kind (walls else)."""
+    ids = np.asarray(dr.reinterpret_array(mi.UInt32, scene.shapes_dr()), dtype=np.int64)
+    size = int(ids.max()) + 1
+    tab = {k: np.zeros(size) for k in ("z", "n_minus", "n_plus")}
+    itab = {k: np.full(size, -1, dtype=np.int32) for k in ("rod_minus", "rod_plus")}
+    kinds = np.full(size, KIND_WALL, dtype=np.int32)
+    for sid, shape in zip(ids, scene.shapes(), strict=True):
+        name = shape.id()
+        if name.startswith("plane_"):
+            p = planes[int(name[6:])]
+            for key in tab:
+                tab[key][sid] = p[key]
+            for key in itab:
+                itab[key][sid] = p[key]
+            kinds[sid] = p["kind"]
+    return tab, itab, kinds
+
+
+@dataclass
+class _Rays:
+    """The state of the rays of :meth:`GrinScene.trace`: position, T, index, OPL, fate (Dr.Jit arrays)."""
+
+    px: Any
+    py: Any
+    pz: Any
+    tx: Any
+    ty: Any
+    tz: Any
+    n_cur: Any
+    opl: Any
+    alive: Any
+    done: Any
+    term_kind: Any
+
+    @classmethod
+    def start(cls, F: type, p: tuple[Any, Any, Any], t: tuple[Any, Any, Any], n_start: float, active: Any) -> _Rays:
+        """Rays at ``p`` with optical direction cosines ``t`` in a medium of index ``n_start``, none ended yet."""
+        px, py, pz = (F(v) for v in p)
+        tx, ty, tz = (F(v) for v in t)
+        n_cur = dr.zeros(F, dr.width(px)) + n_start
+        opl = dr.zeros(F, dr.width(px))
+        alive = dr.mask_t(F)(active) & dr.full(dr.mask_t(F), True, dr.width(px))
+        done = dr.full(dr.mask_t(F), False, dr.width(px))
+        term_kind = dr.zeros(mi.Int32, dr.width(px))
+        return cls(px, py, pz, tx, ty, tz, n_cur, opl, alive, done, term_kind)
+
+    def arrays(self) -> tuple[Any, ...]:
+        """The state's arrays, in the order the trace evaluates them."""
+        return (
+            self.px,
+            self.py,
+            self.pz,
+            self.tx,
+            self.ty,
+            self.tz,
+            self.n_cur,
+            self.opl,
+            self.alive,
+            self.done,
+            self.term_kind,
+        )
+
+
+def _to_next_plane(scene: Any, rays: _Rays, tab: dict[str, Any], F: type, eps: float) -> tuple[Any, Any, Any]:
+    """Move the running rays to the next plane (hit point recomputed from its z); returns hit, its kind, shape id.
+
+    Rays that meet nothing or a rod wall are absorbed.
+    """
+    run = rays.alive & ~rays.done
+    inv_n = 1.0 / rays.n_cur
+    dx, dy, dz = rays.tx * inv_n, rays.ty * inv_n, rays.tz * inv_n
+    o = mi.Point3f(mi.Float(rays.px + eps * dx), mi.Float(rays.py + eps * dy), mi.Float(rays.pz + eps * dz))
+    ray = mi.Ray3f(o, mi.Vector3f(mi.Float(dx), mi.Float(dy), mi.Float(dz)))
+    # only the shape id is needed (the hit point is recomputed from the plane's z): the preliminary
+    # intersection skips the per-shape surface-interaction call
+    si = scene.ray_intersect_preliminary(ray, coherent=True, active=run)
+    sid = dr.reinterpret_array(mi.UInt32, si.shape)
+    valid = run & si.is_valid()
+    kind = dr.gather(mi.Int32, tab["kind"], sid, valid)
+    rays.alive &= ~run | (valid & (kind != KIND_WALL))
+    hit = run & rays.alive
+    zp = dr.gather(F, tab["z"], sid, hit)
+    s = (zp - rays.pz) / dz
+    rays.px = dr.select(hit, rays.px + s * dx, rays.px)
+    rays.py = dr.select(hit, rays.py + s * dy, rays.py)
+    rays.pz = dr.select(hit, zp, rays.pz)
+    rays.opl = dr.select(hit, rays.opl + rays.n_cur * s, rays.opl)
+    return hit, kind, sid
 
 
 class GrinScene:
@@ -227,87 +406,16 @@ class GrinScene:
         self.stack = stack
         self.axes = np.array(setup.array.axes(), dtype=np.float64)
         half = 0.5 * setup.array.substrate_side
-        planes: list[dict[str, Any]] = []
-        layers = stack.layers
-        rod_index = {i: j for j, i in enumerate(i for i, layer in enumerate(layers) if layer.rod is not None)}
-        self.rods: list[_RodLayer] = []
-        for i, layer in enumerate(layers):
-            if layer.rod is None:
-                continue
-            assert layer.profile is not None  # a rod layer carries its profile (build_stack)
-            steps = rod_steps(layer.rod.length, step_mm or layer.rod.step_mm)
-            self.rods.append(
-                _RodLayer(
-                    layer.profile,
-                    layer.rod.length,
-                    layer.rod.radius,
-                    steps,
-                    layer.z0,
-                    layer.z1,
-                    layers[i - 1].index if i > 0 else 1.0,
-                    layers[i + 1].index if i + 1 < len(layers) else 1.0,
-                )
-            )
-        # one plane at z = 0 (object), one between consecutive layers, one at the image plane
-        for b in range(len(layers) + 1):
-            below = layers[b - 1] if b > 0 else None
-            above = layers[b] if b < len(layers) else None
-            if above is not None:
-                z = above.z0
-            else:
-                assert below is not None  # b = len(layers) >= 1
-                z = below.z1
-            kind = KIND_OBJECT if below is None else (KIND_IMAGE if above is None else KIND_INTERFACE)
-            planes.append(
-                {
-                    "z": z,
-                    "kind": kind,
-                    "n_minus": below.index if below is not None else 1.0,
-                    "n_plus": above.index if above is not None else 1.0,
-                    "rod_minus": rod_index.get(b - 1, -1) if below is not None else -1,
-                    "rod_plus": rod_index.get(b, -1) if above is not None else -1,
-                }
-            )
-        zs = [p["z"] for p in planes]
-        if any(b - a <= 1e-9 for a, b in zip(zs[:-1], zs[1:], strict=True)):
-            raise ScopetwinError(
-                "GRIN stack has a layer of zero or negative thickness (two planes at one z): "
-                f"plane z = {[round(z, 6) for z in zs]}"
-            )
+        self.rods: list[_RodLayer] = _rod_layers(stack.layers, step_mm)
+        planes = _stack_planes(stack.layers)
         self.planes = planes
-        scene: dict[str, Any] = {"type": "scene"}
-        for k, p in enumerate(planes):
-            scene[f"plane_{k:02d}"] = _square_mesh(f"plane_{k:02d}", p["z"], half)
-        for j, rod in enumerate(self.rods):
-            for a, (ax, ay) in enumerate(self.axes):
-                scene[f"wall_{j}_{a}"] = {
-                    "type": "cylinder",
-                    "p0": [ax, ay, rod.z0],
-                    "p1": [ax, ay, rod.z1],
-                    "radius": rod.radius,
-                }
+        scene = _scene_dict(planes, self.rods, self.axes, half)
         if sensor is not None:
             scene["sensor"] = sensor
         if integrator is not None:
             scene["integrator"] = integrator
         self.scene = mi.load_dict(scene)
-        ids = np.asarray(dr.reinterpret_array(mi.UInt32, self.scene.shapes_dr()), dtype=np.int64)
-        size = int(ids.max()) + 1
-        tab = {k: np.zeros(size) for k in ("z", "n_minus", "n_plus")}
-        itab = {k: np.full(size, -1, dtype=np.int32) for k in ("rod_minus", "rod_plus")}
-        kinds = np.full(size, KIND_WALL, dtype=np.int32)
-        for sid, shape in zip(ids, self.scene.shapes(), strict=True):
-            name = shape.id()
-            if name.startswith("plane_"):
-                p = planes[int(name[6:])]
-                for key in tab:
-                    tab[key][sid] = p[key]
-                for key in itab:
-                    itab[key][sid] = p[key]
-                kinds[sid] = p["kind"]
-        self._tab_np = tab
-        self._itab_np = itab
-        self._kind_np = kinds
+        self._tab_np, self._itab_np, self._kind_np = _shape_tables(self.scene, planes)
         self.stop_z = stack.stop_z
         self.stop_radius = stack.stop_radius
         self.z_image = planes[-1]["z"]
@@ -380,13 +488,7 @@ class GrinScene:
         """
         F = float_type(precision, self.variant)
         tab = self.tables(precision)
-        px, py, pz = (F(v) for v in p)
-        tx, ty, tz = (F(v) for v in t)
-        n_cur = dr.zeros(F, dr.width(px)) + n_start
-        opl = dr.zeros(F, dr.width(px))
-        alive = dr.mask_t(F)(active) & dr.full(dr.mask_t(F), True, dr.width(px))
-        done = dr.full(dr.mask_t(F), False, dr.width(px))
-        term_kind = dr.zeros(mi.Int32, dr.width(px))
+        rays = _Rays.start(F, p, t, n_start, active)
         eps = _EPS[precision]
         stop_r2 = None if self.stop_radius is None else self.stop_radius**2
         # a sequential path meets every plane once, except the far faces of the rods (reached by the RKN jump)
@@ -394,98 +496,102 @@ class GrinScene:
         events = max_events or len(plan)
         plan = (plan + [list(range(len(self.rods)))] * events)[:events]
         for event in range(events):
-            run = alive & ~done
-            inv_n = 1.0 / n_cur
-            dx, dy, dz = tx * inv_n, ty * inv_n, tz * inv_n
-            o = mi.Point3f(mi.Float(px + eps * dx), mi.Float(py + eps * dy), mi.Float(pz + eps * dz))
-            ray = mi.Ray3f(o, mi.Vector3f(mi.Float(dx), mi.Float(dy), mi.Float(dz)))
-            # only the shape id is needed (the hit point is recomputed from the plane's z): the preliminary
-            # intersection skips the per-shape surface-interaction call
-            si = self.scene.ray_intersect_preliminary(ray, coherent=True, active=run)
-            sid = dr.reinterpret_array(mi.UInt32, si.shape)
-            valid = run & si.is_valid()
-            kind = dr.gather(mi.Int32, tab["kind"], sid, valid)
-            alive &= ~run | (valid & (kind != KIND_WALL))
-            hit = run & alive
-            zp = dr.gather(F, tab["z"], sid, hit)
-            s = (zp - pz) / dz
-            px = dr.select(hit, px + s * dx, px)
-            py = dr.select(hit, py + s * dy, py)
-            pz = dr.select(hit, zp, pz)
-            opl = dr.select(hit, opl + n_cur * s, opl)
-            up = tz > 0
-            n_next = dr.select(up, dr.gather(F, tab["n_plus"], sid, hit), dr.gather(F, tab["n_minus"], sid, hit))
-            rod_next = dr.select(
-                up, dr.gather(mi.Int32, tab["rod_plus"], sid, hit), dr.gather(mi.Int32, tab["rod_minus"], sid, hit)
-            )
-            rod_prev = dr.select(
-                up, dr.gather(mi.Int32, tab["rod_minus"], sid, hit), dr.gather(mi.Int32, tab["rod_plus"], sid, hit)
-            )
-            term = hit & ((kind == KIND_OBJECT) | (kind == KIND_IMAGE))
-            done |= term
-            term_kind = dr.select(term, kind, term_kind)
-            cont = hit & ~term
-            # rays that reached a plane through a rod layer outside the rods met the holders: absorbed
-            alive &= ~cont | (rod_prev < 0)
-            cont &= alive
-            ax, ay = self.nearest_axis(px, py)
-            lx, ly = px - ax, py - ay
-            r2 = lx * lx + ly * ly
-            if stop_r2 is not None:
-                at_stop = cont & (dr.abs(pz - self.stop_z) < 1e-6)
-                alive &= ~at_stop | (r2 <= stop_r2)
-                cont &= alive
-            plain = cont & (rod_next < 0)
-            tz2 = n_next * n_next - tx * tx - ty * ty
-            alive &= ~plain | (tz2 > 0)
-            plain &= alive
-            sign = dr.select(up, F(1.0), F(-1.0))
-            tz = dr.select(plain, sign * dr.sqrt(dr.maximum(tz2, 0.0)), tz)
-            n_cur = dr.select(plain, n_next, n_cur)
-            for j in plan[event]:
-                rod = self.rods[j]
-                m = cont & (rod_next == j)
-                alive &= ~m | (r2 <= rod.radius**2)
-                m &= alive
-                n_in = rod.profile.index(dr.minimum(r2, rod.radius**2), DR)
-                tzi2 = n_in * n_in - tx * tx - ty * ty
-                tz_in = dr.sqrt(dr.maximum(tzi2, 1e-12))
-                ox, oy, otx, oty, dopl, ok = rkn_rod_dr(
-                    lx, ly, tx, ty, tz_in, rod.profile, rod.length, rod.steps, rod.radius, m
-                )
-                alive &= ~m | ok
-                m &= alive
-                px = dr.select(m, ox + ax, px)
-                py = dr.select(m, oy + ay, py)
-                pz = dr.select(m, dr.select(up, F(rod.z1), F(rod.z0)), pz)
-                opl = dr.select(m, opl + dopl, opl)
-                tx = dr.select(m, otx, tx)
-                ty = dr.select(m, oty, ty)
-                n_b = dr.select(up, F(rod.n_after), F(rod.n_before))
-                tzo2 = n_b * n_b - tx * tx - ty * ty
-                alive &= ~m | (tzo2 > 0)
-                m &= alive
-                if stop_r2 is not None:
-                    at_stop = m & (dr.abs(pz - self.stop_z) < 1e-6)
-                    alive &= ~at_stop | (ox * ox + oy * oy <= stop_r2)
-                    m &= alive
-                tz = dr.select(m, sign * dr.sqrt(dr.maximum(tzo2, 0.0)), tz)
-                n_cur = dr.select(m, n_b, n_cur)
+            self._event(rays, tab, F, eps, stop_r2, plan[event])
             if eval_each:
-                dr.eval(px, py, pz, tx, ty, tz, n_cur, opl, alive, done, term_kind)
-        alive &= done
+                dr.eval(*rays.arrays())
+        rays.alive &= rays.done
         return {
-            "x": px,
-            "y": py,
-            "z": pz,
-            "tx": tx,
-            "ty": ty,
-            "tz": tz,
-            "opl": opl,
-            "alive": alive,
-            "kind": term_kind,
-            "n": n_cur,
+            "x": rays.px,
+            "y": rays.py,
+            "z": rays.pz,
+            "tx": rays.tx,
+            "ty": rays.ty,
+            "tz": rays.tz,
+            "opl": rays.opl,
+            "alive": rays.alive,
+            "kind": rays.term_kind,
+            "n": rays.n_cur,
         }
+
+    def _event(
+        self, rays: _Rays, tab: dict[str, Any], F: type, eps: float, stop_r2: float | None, rods: list[int]
+    ) -> None:
+        """One event of the trace: running rays move to the next plane and end there, cross it, or enter a rod."""
+        hit, kind, sid = _to_next_plane(self.scene, rays, tab, F, eps)
+        up = rays.tz > 0
+        n_next = dr.select(up, dr.gather(F, tab["n_plus"], sid, hit), dr.gather(F, tab["n_minus"], sid, hit))
+        rod_next = dr.select(
+            up, dr.gather(mi.Int32, tab["rod_plus"], sid, hit), dr.gather(mi.Int32, tab["rod_minus"], sid, hit)
+        )
+        rod_prev = dr.select(
+            up, dr.gather(mi.Int32, tab["rod_minus"], sid, hit), dr.gather(mi.Int32, tab["rod_plus"], sid, hit)
+        )
+        term = hit & ((kind == KIND_OBJECT) | (kind == KIND_IMAGE))
+        rays.done |= term
+        rays.term_kind = dr.select(term, kind, rays.term_kind)
+        cont = hit & ~term
+        # rays that reached a plane through a rod layer outside the rods met the holders: absorbed
+        rays.alive &= ~cont | (rod_prev < 0)
+        cont &= rays.alive
+        ax, ay = self.nearest_axis(rays.px, rays.py)
+        lx, ly = rays.px - ax, rays.py - ay
+        r2 = lx * lx + ly * ly
+        if stop_r2 is not None:
+            at_stop = cont & (dr.abs(rays.pz - self.stop_z) < 1e-6)
+            rays.alive &= ~at_stop | (r2 <= stop_r2)
+            cont &= rays.alive
+        plain = cont & (rod_next < 0)
+        tz2 = n_next * n_next - rays.tx * rays.tx - rays.ty * rays.ty
+        rays.alive &= ~plain | (tz2 > 0)
+        plain &= rays.alive
+        sign = dr.select(up, F(1.0), F(-1.0))
+        rays.tz = dr.select(plain, sign * dr.sqrt(dr.maximum(tz2, 0.0)), rays.tz)
+        rays.n_cur = dr.select(plain, n_next, rays.n_cur)
+        for j in rods:
+            self._through_rod(rays, j, cont & (rod_next == j), (lx, ly, r2), (ax, ay), up, sign, F, stop_r2)
+
+    def _through_rod(
+        self,
+        rays: _Rays,
+        j: int,
+        m: Any,
+        local: tuple[Any, Any, Any],
+        axis: tuple[Any, Any],
+        up: Any,
+        sign: Any,
+        F: type,
+        stop_r2: float | None,
+    ) -> None:
+        """Carry the rays ``m`` from rod ``j``'s entry face (at ``local`` = (x, y, r²) from ``axis``) to its exit."""
+        rod = self.rods[j]
+        lx, ly, r2 = local
+        ax, ay = axis
+        rays.alive &= ~m | (r2 <= rod.radius**2)
+        m &= rays.alive
+        n_in = rod.profile.index(dr.minimum(r2, rod.radius**2), DR)
+        tzi2 = n_in * n_in - rays.tx * rays.tx - rays.ty * rays.ty
+        tz_in = dr.sqrt(dr.maximum(tzi2, 1e-12))
+        ox, oy, otx, oty, dopl, ok = rkn_rod_dr(
+            lx, ly, rays.tx, rays.ty, tz_in, rod.profile, rod.length, rod.steps, rod.radius, m
+        )
+        rays.alive &= ~m | ok
+        m &= rays.alive
+        rays.px = dr.select(m, ox + ax, rays.px)
+        rays.py = dr.select(m, oy + ay, rays.py)
+        rays.pz = dr.select(m, dr.select(up, F(rod.z1), F(rod.z0)), rays.pz)
+        rays.opl = dr.select(m, rays.opl + dopl, rays.opl)
+        rays.tx = dr.select(m, otx, rays.tx)
+        rays.ty = dr.select(m, oty, rays.ty)
+        n_b = dr.select(up, F(rod.n_after), F(rod.n_before))
+        tzo2 = n_b * n_b - rays.tx * rays.tx - rays.ty * rays.ty
+        rays.alive &= ~m | (tzo2 > 0)
+        m &= rays.alive
+        if stop_r2 is not None:
+            at_stop = m & (dr.abs(rays.pz - self.stop_z) < 1e-6)
+            rays.alive &= ~at_stop | (ox * ox + oy * oy <= stop_r2)
+            m &= rays.alive
+        rays.tz = dr.select(m, sign * dr.sqrt(dr.maximum(tzo2, 0.0)), rays.tz)
+        rays.n_cur = dr.select(m, n_b, rays.n_cur)
 
 
 # -- plugins -------------------------------------------------------------------------------------
