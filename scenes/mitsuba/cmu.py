@@ -133,6 +133,55 @@ def _perfect_lens_class(mi: Any) -> type:
     return PerfectLensBSDF
 
 
+def _plate_gradient(plate: Any, x: Any, y: Any) -> tuple[Any, Any]:
+    """The gradient (h_x, h_y) of a ``scopetwin_bowed_plate`` at plate coordinates (x, y): bilinear in its tables."""
+    fx = dr.clip((x - plate.x0) / plate.dx, 0.0, plate.nx - 1.001)
+    fy = dr.clip((y - plate.y0) / plate.dy, 0.0, plate.ny - 1.001)
+    ix, iy = mi.UInt32(dr.floor(fx)), mi.UInt32(dr.floor(fy))
+    wx, wy = fx - dr.floor(fx), fy - dr.floor(fy)
+    i00 = iy * plate.nx + ix
+    out = []
+    for tab in (plate.hx, plate.hy):
+        a = dr.gather(mi.Float, tab, i00) * (1 - wx) + dr.gather(mi.Float, tab, i00 + 1) * wx
+        b = dr.gather(mi.Float, tab, i00 + plate.nx) * (1 - wx) + dr.gather(mi.Float, tab, i00 + plate.nx + 1) * wx
+        out.append(a * (1 - wy) + b * wy)
+    return out[0], out[1]
+
+
+def _refract(d: Any, n: Any, n_glass: Any, coated: bool) -> tuple[Any, Any]:
+    """Snell's law at a plate face: air on the +N_z side of the front (``coated``) face, on the -N_z side of the back.
+
+    Returns the refracted direction and a mask of rays that are not totally internally reflected."""
+    from_plus = dr.dot(d, n) < 0.0
+    into_glass = from_plus == coated
+    eta = dr.select(into_glass, 1.0 / n_glass, n_glass)
+    m = dr.select(from_plus, n, -n)  # the normal facing the incident side
+    c = -dr.dot(d, m)
+    k = 1.0 - eta * eta * (1.0 - c * c)
+    return dr.normalize(eta * d + (eta * c - dr.sqrt(dr.maximum(k, 0.0))) * m), k >= 0.0
+
+
+def _dichroic_sample(plate: Any, si: Any, sample1: Any, d: Any, n: Any, refracted: tuple[Any, Any]) -> tuple[Any, Any]:
+    """The coated face's sample: reflect with probability p = mean R / (mean R + mean T), else transmit.
+
+    Each wavelength is weighted by R/p or T/(1-p); ``refracted`` is the transmitted direction and its not-TIR mask.
+    """
+    d_t, ok = refracted
+    r = _lookup_spectrum(plate.refl, si.wavelengths)
+    t = _lookup_spectrum(plate.trans, si.wavelengths)
+    rm, tm = dr.mean(r), dr.mean(t)
+    p = rm / dr.maximum(rm + tm, 1e-12)
+    reflect = sample1 < p
+    d_r = d - 2.0 * dr.dot(d, n) * n
+    wo = dr.select(reflect, d_r, d_t)
+    flag = dr.select(reflect, mi.UInt32(+mi.BSDFFlags.DeltaReflection), mi.UInt32(+mi.BSDFFlags.DeltaTransmission))
+    bs = _delta_sample(si, wo, mi.BSDFFlags.DeltaReflection)
+    bs.sampled_type = flag
+    bs.sampled_component = dr.select(reflect, mi.UInt32(0), mi.UInt32(1))
+    w = dr.select(reflect, r / dr.maximum(p, 1e-12), dr.select(ok, t / dr.maximum(1.0 - p, 1e-12), 0.0))
+    return bs, w
+
+
 def _bowed_plate_class(mi: Any) -> type:
     """The BSDF class of ``scopetwin_bowed_plate`` for the variant of ``mi``."""
 
@@ -162,60 +211,18 @@ def _bowed_plate_class(mi: Any) -> type:
                 mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide,
             ]
 
-        def _gradient(self, x: Any, y: Any) -> tuple[Any, Any]:
-            fx = dr.clip((x - self.x0) / self.dx, 0.0, self.nx - 1.001)
-            fy = dr.clip((y - self.y0) / self.dy, 0.0, self.ny - 1.001)
-            ix, iy = mi.UInt32(dr.floor(fx)), mi.UInt32(dr.floor(fy))
-            wx, wy = fx - dr.floor(fx), fy - dr.floor(fy)
-            i00 = iy * self.nx + ix
-            out = []
-            for tab in (self.hx, self.hy):
-                a = dr.gather(mi.Float, tab, i00) * (1 - wx) + dr.gather(mi.Float, tab, i00 + 1) * wx
-                b = (
-                    dr.gather(mi.Float, tab, i00 + self.nx) * (1 - wx)
-                    + dr.gather(mi.Float, tab, i00 + self.nx + 1) * wx
-                )
-                out.append(a * (1 - wy) + b * wy)
-            return out[0], out[1]
-
-        def _refract(self, d: Any, n: Any, n_glass: Any) -> tuple[Any, Any]:
-            """Snell's law at this face: air on the +N_z side of the front face and on the -N_z side of the back face.
-
-            Returns the refracted direction and a mask of rays that are not totally internally reflected."""
-            from_plus = dr.dot(d, n) < 0.0
-            into_glass = from_plus == self.coated
-            eta = dr.select(into_glass, 1.0 / n_glass, n_glass)
-            m = dr.select(from_plus, n, -n)  # the normal facing the incident side
-            c = -dr.dot(d, m)
-            k = 1.0 - eta * eta * (1.0 - c * c)
-            return dr.normalize(eta * d + (eta * c - dr.sqrt(dr.maximum(k, 0.0))) * m), k >= 0.0
-
         def sample(self, ctx: Any, si: Any, sample1: Any, sample2: Any, active: Any = True) -> tuple[Any, Any]:
             d = -si.to_world(si.wi)
             tx, ty, nz = mi.Vector3f(self.tx), mi.Vector3f(self.ty), mi.Vector3f(self.nz)
             q = si.p - mi.Point3f(self.c)
-            hx, hy = self._gradient(dr.dot(q, tx), dr.dot(q, ty))
+            hx, hy = _plate_gradient(self, dr.dot(q, tx), dr.dot(q, ty))
             n = dr.normalize(nz - hx * tx - hy * ty)
-            d_t, ok = self._refract(d, n, _lookup(self.index, si.wavelengths[0]))
+            d_t, ok = _refract(d, n, _lookup(self.index, si.wavelengths[0]), self.coated)
             if not self.coated:  # the uncoated back face: refraction only
                 bs = _delta_sample(si, d_t, mi.BSDFFlags.DeltaTransmission)
                 bs.sampled_component = mi.UInt32(1)
                 return bs, dr.select(ok, mi.Spectrum(1.0), mi.Spectrum(0.0))
-            r = _lookup_spectrum(self.refl, si.wavelengths)
-            t = _lookup_spectrum(self.trans, si.wavelengths)
-            rm, tm = dr.mean(r), dr.mean(t)
-            p = rm / dr.maximum(rm + tm, 1e-12)
-            reflect = sample1 < p
-            d_r = d - 2.0 * dr.dot(d, n) * n
-            wo = dr.select(reflect, d_r, d_t)
-            flag = dr.select(
-                reflect, mi.UInt32(+mi.BSDFFlags.DeltaReflection), mi.UInt32(+mi.BSDFFlags.DeltaTransmission)
-            )
-            bs = _delta_sample(si, wo, mi.BSDFFlags.DeltaReflection)
-            bs.sampled_type = flag
-            bs.sampled_component = dr.select(reflect, mi.UInt32(0), mi.UInt32(1))
-            w = dr.select(reflect, r / dr.maximum(p, 1e-12), dr.select(ok, t / dr.maximum(1.0 - p, 1e-12), 0.0))
-            return bs, w
+            return _dichroic_sample(self, si, sample1, d, n, (d_t, ok))
 
         def eval(self, ctx: Any, si: Any, wo: Any, active: Any = True) -> Any:
             return mi.Spectrum(0.0)
@@ -511,6 +518,77 @@ def land_rays(
     )
 
 
+def _check_channel(setup: CmuSetup, channel: str, spp: int) -> None:
+    """Raise for a channel the setup does not have or fewer than one sample per pixel."""
+    if channel not in setup.channels:
+        raise ScopetwinError(f"unknown channel {channel!r} (channels: {', '.join(setup.channels)})")
+    if spp < 1:
+        raise ScopetwinError(f"spp must be >= 1, got {spp}")
+
+
+def _cells_texture(setup: CmuSetup) -> tuple[Any, tuple[int, ...], float, float]:
+    """The dummy cells' texture (a Dr.Jit array), its shape and its origin (x, y), mm."""
+    tex, tx0, ty0 = dummy_cells(setup.cells, setup.field_mm)
+    return mi.Float(tex.ravel()), tex.shape, tx0, ty0
+
+
+def _sensor_rays(
+    sampler: Any,
+    idx: Any,
+    window: tuple[int, int, int],
+    grid: Any,
+    pose: CameraPose,
+    axes: tuple[np.ndarray, ...],
+    lens_r: float,
+    dist: Any,
+) -> tuple[Any, Any]:
+    """Rays from the sensor points of pixels ``idx`` to the tube-lens disk, four wavelengths each, and their weight.
+
+    ``window`` is (row0, col0, width); ``axes`` the tube lens's origin, tx, ty, nz and the sensor axes ex, ey.
+    The weight A cos^2 / d^2 makes the image the irradiance.
+    """
+    row0, col0, wid = window
+    origin, tx, ty, nz, ex, ey = axes
+    L0, LX, LY, LZ = (mi.ScalarVector3f(*[float(c) for c in v]) for v in (origin, tx, ty, nz))
+    ang = np.deg2rad(pose.tilt_deg)
+    row = mi.Float(idx // wid) + row0
+    col = mi.Float(idx % wid) + col0
+    s_pix = sampler.next_2d()
+    # sensor coordinates of the pixel grid (cols along ex, rows against ey), content shifted by the offset
+    a, b = grid.uv(col + s_pix.x, row + s_pix.y, shift_px=pose.offset_px)
+    ca, sa = float(np.cos(-ang)), float(np.sin(-ang))
+    a, b = ca * a - sa * b, sa * a + ca * b
+    u = a * float(ex[0]) + b * float(ey[0])
+    v = a * float(ex[1]) + b * float(ey[1])
+    o_img = mi.Point3f(L0) + u * mi.Vector3f(LX) + v * mi.Vector3f(LY) + pose.image_distance * mi.Vector3f(LZ)
+    s_lens = sampler.next_2d()
+    rr = lens_r * dr.sqrt(s_lens.x)
+    phi = 2.0 * dr.pi * s_lens.y
+    p_lens = mi.Point3f(L0) + rr * dr.cos(phi) * mi.Vector3f(LX) + rr * dr.sin(phi) * mi.Vector3f(LY)
+    d = p_lens - o_img
+    d2 = dr.squared_norm(d)
+    d = d * dr.rsqrt(d2)
+    cosz = dr.abs(dr.dot(d, mi.Vector3f(LZ)))
+    weight = dr.pi * lens_r * lens_r * cosz * cosz / d2
+    u_wl = sampler.next_1d()
+    lanes = [dist.sample(u_wl + q / 4.0 - dr.floor(u_wl + q / 4.0)) for q in range(4)]
+    wl = mi.UnpolarizedSpectrum(*lanes)
+    return mi.Ray3f(o_img, d, 0.0, wl), weight
+
+
+def _object_value(
+    target: Target, p_obj: Any, hit: Any, star: Any, tex: tuple[Any, tuple[int, ...], float, float] | None
+) -> Any:
+    """The test object at the object-plane points: the Siemens star ``star``, or the cells' texture ``tex``."""
+    if target == "star":
+        return siemens_star(p_obj.x, p_obj.y, star, DR)
+    assert tex is not None  # the cells: render_channel made their texture
+    tex_dr, tex_shape, tx0, ty0 = tex
+    fx = dr.clip((p_obj.x - tx0) / 0.5e-3, 0, tex_shape[1] - 1)
+    fy = dr.clip((p_obj.y - ty0) / 0.5e-3, 0, tex_shape[0] - 1)
+    return dr.gather(mi.Float, tex_dr, mi.UInt32(fy) * tex_shape[1] + mi.UInt32(fx), hit)
+
+
 def render_channel(
     setup: CmuSetup,
     channel: str,
@@ -544,27 +622,18 @@ def render_channel(
     """
     variant = resolve(variant, "spectral")
     mitsuba(variant)
-    if channel not in setup.channels:
-        raise ScopetwinError(f"unknown channel {channel!r} (channels: {', '.join(setup.channels)})")
-    if spp < 1:
-        raise ScopetwinError(f"spp must be >= 1, got {spp}")
+    _check_channel(setup, channel, spp)
     cam = setup.camera
     row0, col0, hgt, wid = window or (0, 0, cam.height_px, cam.width_px)
     check_render(wid, hgt, spp, f"{setup.name or 'CMU'} {target} image, channel {channel}", "cmu")
     sc, obj_id = scene or unit_scene(setup, maps, tube_f, flat, variant)
     ch = setup.channels[channel]
     lens = axis_frame(np.asarray(ch.tube_center, dtype=np.float64), np.asarray(ch.tube_axis, dtype=np.float64))
-    L0, LX, LY, LZ = (mi.ScalarVector3f(*[float(c) for c in v]) for v in (lens.origin, lens.tx, lens.ty, lens.nz))
-    ex, ey = sensor_axes(setup, channel)
-    ang = np.deg2rad(pose.tilt_deg)
+    axes = (lens.origin, lens.tx, lens.ty, lens.nz, *sensor_axes(setup, channel))
     grid = cam.grid()
     pdf, norm = _wavelength_table(setup, channel, target)
     dist = mi.ContinuousDistribution([WL0_NM, WL1_NM], pdf[:-1] + 1e-30)
-    star_spec = setup.target
-    if target == "cells":
-        tex, tx0, ty0 = dummy_cells(setup.cells, setup.field_mm)
-        tex_dr = mi.Float(tex.ravel())
-        tex_shape = tex.shape
+    tex = _cells_texture(setup) if target == "cells" else None
     lens_r = (0.5 * setup.tube.stop_diameter) if stop else 12.5
     stop_c = lens.origin - setup.tube.stop_gap * lens.nz
     stop_plane = (stop_c, lens.nz, 0.5 * setup.tube.stop_diameter) if stop else None
@@ -579,36 +648,9 @@ def render_channel(
         sampler = mi.load_dict({"type": "independent"})
         sampler.seed((seed * 100003 + pass_index) & 0xFFFFFFFF, n)  # the sampler takes a 32-bit seed
         idx = dr.arange(mi.UInt32, n) // k
-        row = mi.Float(idx // wid) + row0
-        col = mi.Float(idx % wid) + col0
-        s_pix = sampler.next_2d()
-        # sensor coordinates of the pixel grid (cols along ex, rows against ey), content shifted by the offset
-        a, b = grid.uv(col + s_pix.x, row + s_pix.y, shift_px=pose.offset_px)
-        ca, sa = float(np.cos(-ang)), float(np.sin(-ang))
-        a, b = ca * a - sa * b, sa * a + ca * b
-        u = a * float(ex[0]) + b * float(ey[0])
-        v = a * float(ex[1]) + b * float(ey[1])
-        o_img = mi.Point3f(L0) + u * mi.Vector3f(LX) + v * mi.Vector3f(LY) + pose.image_distance * mi.Vector3f(LZ)
-        s_lens = sampler.next_2d()
-        rr = lens_r * dr.sqrt(s_lens.x)
-        phi = 2.0 * dr.pi * s_lens.y
-        p_lens = mi.Point3f(L0) + rr * dr.cos(phi) * mi.Vector3f(LX) + rr * dr.sin(phi) * mi.Vector3f(LY)
-        d = p_lens - o_img
-        d2 = dr.squared_norm(d)
-        d = d * dr.rsqrt(d2)
-        cosz = dr.abs(dr.dot(d, mi.Vector3f(LZ)))
-        weight = dr.pi * lens_r * lens_r * cosz * cosz / d2
-        u_wl = sampler.next_1d()
-        lanes = [dist.sample(u_wl + q / 4.0 - dr.floor(u_wl + q / 4.0)) for q in range(4)]
-        wl = mi.UnpolarizedSpectrum(*lanes)
-        ray = mi.Ray3f(o_img, d, 0.0, wl)
+        ray, weight = _sensor_rays(sampler, idx, (row0, col0, wid), grid, pose, axes, lens_r, dist)
         p_obj, thr, hit, _, _ = _trace_to_object(sc, obj_id, ray, mi.Spectrum(weight), sampler, stop_plane)
-        if target == "star":
-            tval = siemens_star(p_obj.x, p_obj.y, star_spec, DR)
-        else:
-            fx = dr.clip((p_obj.x - tx0) / 0.5e-3, 0, tex_shape[1] - 1)
-            fy = dr.clip((p_obj.y - ty0) / 0.5e-3, 0, tex_shape[0] - 1)
-            tval = dr.gather(mi.Float, tex_dr, mi.UInt32(fy) * tex_shape[1] + mi.UInt32(fx), hit)
+        tval = _object_value(target, p_obj, hit, setup.target, tex)
         value = dr.select(hit, dr.mean(thr) * tval, 0.0)
         vals = np.asarray(value, dtype=np.float64)
         acc += np.bincount(np.asarray(idx, dtype=np.int64), vals, minlength=n_pix)

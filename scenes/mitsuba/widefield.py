@@ -199,6 +199,96 @@ def patch_half_size_mm(optics: WidefieldOptics) -> float:
     return 0.5 * max(optics.field_mm) * math.sqrt(2.0) + optics.blur_radius_mm(optics.max_defocus_mm) + 0.01
 
 
+def _patch_geometry(
+    height_mm: HeightFunction, sx: float, sy: float, half: float, step_mm: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """Vertices (x, y, h), texture coordinates and triangles of the heightfield patch |x|, |y| <= ``half``.
+
+    Vertex (x, y) is the sample point (sx + x, sy + y); the patch is centred on the optical axis.
+    """
+    n_vert = max(4, int(math.ceil(2 * half / step_mm)) + 1)
+    u = np.linspace(-half, half, n_vert)
+    uu, vv = np.meshgrid(u, u)
+    zz = np.asarray(height_mm(sx + uu, sy + vv), dtype=np.float64) * np.ones_like(uu)
+    if not np.all(np.isfinite(zz)):
+        raise SetupError("the sample height function returned non-finite heights")
+    positions = np.stack([uu, vv, zz], axis=-1).reshape(-1, 3)
+    texcoords = np.stack([(uu + half) / (2 * half), (vv + half) / (2 * half)], axis=-1).reshape(-1, 2)
+    col, row = np.meshgrid(np.arange(n_vert - 1), np.arange(n_vert - 1))
+    v00 = (row * n_vert + col).ravel()
+    faces = np.concatenate(
+        [np.stack([v00, v00 + 1, v00 + n_vert + 1], -1), np.stack([v00, v00 + n_vert + 1, v00 + n_vert], -1)]
+    )
+    return positions, texcoords, faces
+
+
+def _patch_radiance(
+    sx: float, sy: float, half: float, optics: WidefieldOptics, radiance_scale: float
+) -> NDArray[np.float32]:
+    """The patch's radiance texture: the sample's fluorescence at half an object pixel per texel."""
+    texel = optics.object_pixel_mm / 2.0
+    n_tex = int(math.ceil(2 * half / texel))
+    t = (np.arange(n_tex) + 0.5) / n_tex * 2 * half - half
+    tx, ty = np.meshgrid(t, t)
+    return sample_texture(sx + tx, sy + ty, optics) * np.float32(radiance_scale)
+
+
+def _sample_mesh(
+    mi: Any,
+    positions: NDArray[np.float64],
+    texcoords: NDArray[np.float64],
+    faces: NDArray[np.int64],
+    radiance: NDArray[np.float32],
+) -> Any:
+    """The sample as a Mitsuba mesh: a black surface emitting the ``radiance`` texture (bilinear, raw)."""
+    props = mi.Properties()
+    props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "uniform", "value": 0.0}})
+    radiance_texture = {
+        "type": "bitmap",
+        "data": mi.TensorXf(radiance[..., None]),
+        "raw": True,
+        "filter_type": "bilinear",
+        "wrap_mode": "clamp",
+    }
+    props["emitter"] = mi.load_dict({"type": "area", "radiance": radiance_texture})
+    mesh = mi.Mesh("sample", len(positions), len(faces), props=props, has_vertex_texcoords=True)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(positions.astype(np.float32).ravel())
+    params["vertex_texcoords"] = mi.Float(texcoords.astype(np.float32).ravel())
+    params["faces"] = mi.UInt32(faces.astype(np.uint32).ravel())
+    params.update()
+    return mesh
+
+
+def _thinlens_sensor(mi: Any, optics: WidefieldOptics, focus_um: float, seed: int) -> dict[str, Any]:
+    """The ``thinlens`` sensor dictionary: ``working_distance_mm`` above the plane in focus, looking down."""
+    z_focus = optics.focal_plane_z_mm(focus_um)
+    d = optics.working_distance_mm
+    # columns (-T_x, T_y, -N_z, r_c) with T_x = +x, T_y = +y, N_z = +z: looks down, upright image
+    to_world = np.array([[-1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, -1.0, z_focus + d], [0, 0, 0, 1.0]])
+    fov = math.degrees(2 * math.atan(0.5 * optics.field_mm[0] / d))
+    cols, rows = optics.pixels
+    film = {
+        "type": "hdrfilm",
+        "width": int(cols),
+        "height": int(rows),
+        "rfilter": {"type": "box"},
+        "pixel_format": "luminance",
+        "component_format": "float32",
+    }
+    sampler = {"type": "multijitter", "sample_count": int(optics.spp), "seed": int(seed)}
+    return {
+        "type": "thinlens",
+        "fov": fov,
+        "fov_axis": "x",
+        "aperture_radius": optics.aperture_radius_mm,
+        "focus_distance": d,
+        "to_world": mi.ScalarTransform4f(to_world),
+        "film": film,
+        "sampler": sampler,
+    }
+
+
 def tile_scene_dict(
     height_mm: HeightFunction,
     stage_xy_mm: tuple[float, float],
@@ -216,72 +306,13 @@ def tile_scene_dict(
     mi = mitsuba(resolve(variant, "mono"))
     sx, sy = (float(v) for v in stage_xy_mm)
     half = patch_half_size_mm(optics)
-    n_vert = max(4, int(math.ceil(2 * half / optics.mesh_step_mm)) + 1)
-    u = np.linspace(-half, half, n_vert)
-    uu, vv = np.meshgrid(u, u)
-    zz = np.asarray(height_mm(sx + uu, sy + vv), dtype=np.float64) * np.ones_like(uu)
-    if not np.all(np.isfinite(zz)):
-        raise SetupError("the sample height function returned non-finite heights")
-    positions = np.stack([uu, vv, zz], axis=-1).reshape(-1, 3)
-    texcoords = np.stack([(uu + half) / (2 * half), (vv + half) / (2 * half)], axis=-1).reshape(-1, 2)
-    col, row = np.meshgrid(np.arange(n_vert - 1), np.arange(n_vert - 1))
-    v00 = (row * n_vert + col).ravel()
-    faces = np.concatenate(
-        [np.stack([v00, v00 + 1, v00 + n_vert + 1], -1), np.stack([v00, v00 + n_vert + 1, v00 + n_vert], -1)]
-    )
-    texel = optics.object_pixel_mm / 2.0
-    n_tex = int(math.ceil(2 * half / texel))
-    t = (np.arange(n_tex) + 0.5) / n_tex * 2 * half - half
-    tx, ty = np.meshgrid(t, t)
-    radiance = sample_texture(sx + tx, sy + ty, optics) * np.float32(radiance_scale)
-
-    props = mi.Properties()
-    props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "uniform", "value": 0.0}})
-    props["emitter"] = mi.load_dict(
-        {
-            "type": "area",
-            "radiance": {
-                "type": "bitmap",
-                "data": mi.TensorXf(radiance[..., None]),
-                "raw": True,
-                "filter_type": "bilinear",
-                "wrap_mode": "clamp",
-            },
-        }
-    )
-    mesh = mi.Mesh("sample", len(positions), len(faces), props=props, has_vertex_texcoords=True)
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(positions.astype(np.float32).ravel())
-    params["vertex_texcoords"] = mi.Float(texcoords.astype(np.float32).ravel())
-    params["faces"] = mi.UInt32(faces.astype(np.uint32).ravel())
-    params.update()
-
-    z_focus = optics.focal_plane_z_mm(focus_um)
-    d = optics.working_distance_mm
-    # columns (-T_x, T_y, -N_z, r_c) with T_x = +x, T_y = +y, N_z = +z: looks down, upright image
-    to_world = np.array([[-1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, -1.0, z_focus + d], [0, 0, 0, 1.0]])
-    fov = math.degrees(2 * math.atan(0.5 * optics.field_mm[0] / d))
-    cols, rows = optics.pixels
+    positions, texcoords, faces = _patch_geometry(height_mm, sx, sy, half, optics.mesh_step_mm)
+    radiance = _patch_radiance(sx, sy, half, optics, radiance_scale)
+    mesh = _sample_mesh(mi, positions, texcoords, faces, radiance)
     return {
         "type": "scene",
         "integrator": {"type": "path", "max_depth": 1},
-        "sensor": {
-            "type": "thinlens",
-            "fov": fov,
-            "fov_axis": "x",
-            "aperture_radius": optics.aperture_radius_mm,
-            "focus_distance": d,
-            "to_world": mi.ScalarTransform4f(to_world),
-            "film": {
-                "type": "hdrfilm",
-                "width": int(cols),
-                "height": int(rows),
-                "rfilter": {"type": "box"},
-                "pixel_format": "luminance",
-                "component_format": "float32",
-            },
-            "sampler": {"type": "multijitter", "sample_count": int(optics.spp), "seed": int(seed)},
-        },
+        "sensor": _thinlens_sensor(mi, optics, focus_um, seed),
         "sample": mesh,
     }
 
