@@ -124,6 +124,11 @@ def height_kernel(p: Array, q: Array, hyper: Hyper) -> Array:
     return np.asarray(out)
 
 
+def _height_variance(p: Array, hyper: Hyper) -> Array:
+    """The diagonal of :func:`height_kernel` (p, p): var f(p) under the prior, (m,)."""
+    return TILT_STD**2 * (p[:, 0] ** 2 + p[:, 1] ** 2) + hyper.smooth_amp**2 + hyper.broad_amp**2
+
+
 class GradientGP:
     """A Gaussian process conditioned on gradient observations (module docstring).
 
@@ -203,7 +208,7 @@ def _evidence_and_gradient(theta: Array, xy: Array, g: Array) -> tuple[float, Ar
     alpha = sla.cho_solve(c, g, check_finite=False)
     logdet = 2.0 * float(np.sum(np.log(np.diag(c[0]))))
     nll = float(0.5 * g @ alpha + 0.5 * logdet + 0.5 * len(g) * np.log(2 * np.pi))
-    kinv = sla.cho_solve(c, np.eye(2 * n), check_finite=False)
+    kinv = _inverse_from_cholesky(c[0])
     a = np.outer(alpha, alpha) - kinv
     grad = np.array(
         [
@@ -216,6 +221,14 @@ def _evidence_and_gradient(theta: Array, xy: Array, g: Array) -> tuple[float, Ar
         ]
     )
     return nll, -grad
+
+
+def _inverse_from_cholesky(low: Array) -> Array:
+    """K^-1 from the lower Cholesky factor of K (LAPACK potri: a third of the work of solving against I)."""
+    inv, info = sla.lapack.dpotri(low, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"potri failed ({info})")
+    return np.tril(inv) + np.tril(inv, -1).T
 
 
 def fit_hyper(
@@ -389,14 +402,13 @@ def frame_posterior(
     wmat = gp.whitened(pts)  # (2n, P)
     w_m = sla.solve_triangular(gp.chol[0], k_gm, lower=True, check_finite=False)
     wc = wmat - w_m[:, None]
-    kpp = height_kernel(pts, pts, gp.hyper)
-    kc = kpp - k_pm[:, None] - k_pm[None, :] + k_mm
-    cov = kc - wc.T @ wc
-    var = np.clip(np.diag(cov), 0.0, None)
-    # D by sampling the frame points' joint posterior (maxima: location and excess included)
+    # the contrasts' posterior variance at every point: prior variance less the explained part (diagonals only)
+    var = np.clip(_height_variance(pts, gp.hyper) - 2.0 * k_pm + k_mm - np.einsum("ij,ij->j", wc, wc), 0.0, None)
+    # D by sampling the frame points' joint posterior (maxima: location and excess included); only the frame
+    # points need their joint covariance
     fr = slice(0, n1 + n2)
-    cf = cov[fr, fr]
-    root = _sqrt_psd(cf)
+    kf = height_kernel(pts[fr], pts[fr], gp.hyper) - k_pm[fr, None] - k_pm[None, fr] + k_mm
+    root = _sqrt_psd(kf - wc[:, fr].T @ wc[:, fr])
     draws = mu[fr][None, :] + np.random.default_rng(seed).standard_normal((samples, n1 + n2)) @ root.T
     max1, max2 = draws[:, :n1].max(axis=1), draws[:, n1:].max(axis=1)
     d = 0.5 * (max1 + max2)

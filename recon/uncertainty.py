@@ -13,6 +13,7 @@ Reconstructor` offers), so this module does not import it.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -24,6 +25,8 @@ from scopetwin.recon.substrate import Substrate2D
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.geometry import Array
 from scopetwin.scenes.surface import HeightMap
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from scopetwin.recon.config import ReconstructionConfig
@@ -164,7 +167,9 @@ def _newton_start_height(
             lo, hi = policy.slope_range
             s_post = s_post if lo < abs(s_post) < hi else slope
         step = -f_post / s_post
-        if abs(step) * 1e3 <= cfg.outer_tol_um or k == cfg.posterior_iterations - 1:
+        settled = abs(step) <= cfg.posterior_settle * reading.spread / abs(slope)
+        log.debug("posterior Newton step %d: %+.3g µm (u %.3g µm)", k, step * 1e3, reading.spread / abs(slope) * 1e3)
+        if settled or abs(step) * 1e3 <= cfg.outer_tol_um or k == cfg.posterior_iterations - 1:
             return surf.shifted(surf.offset + step), reading  # the last, small step without another inner loop
         run = it.inner_loop(h + step, markers, surf)
         if run.lost is not None:

@@ -161,43 +161,9 @@ def find_markers(
         raise MarkerError(f"too few markers left after filtering ({len(keep)})")
     pts = spots.centroids[keep]
     ref = int(np.flatnonzero(keep == filt.reference)[0])
-    if layout == "calibration":
-        axes = reference_axes(pts, ref, mirrored)
-    else:
-        h = hint if hint is not None else np.array([[1.0, 0.0], [0.0, 1.0 if mirrored else -1.0]])
-        steps = fourier_axes(image, pts[ref], nearest_spacing(pts))
-        axes = orient_axes(steps, np.asarray(h, dtype=np.float64))
-    ij = index_grid(pts, ref, axes, blockers=spots.centroids)
-    found = ij[:, 0] != np.iinfo(np.int32).min
-    indexing = "flood"
-    if found.sum() < lattice_below * len(keep):
-        # the flood stopped early (a strongly bent substrate): number the grid by its topology instead, over every
-        # spot of the image (a rejected spot still holds its place in the grid), and keep whichever reached more
-        ij_all = index_lattice(spots.centroids, int(filt.reference), axes)
-        ij_lat = ij_all[keep]
-        found_lat = ij_lat[:, 0] != np.iinfo(np.int32).min
-        if found_lat.sum() > found.sum():
-            ij, found, indexing = ij_lat, found_lat, "lattice"
-    reasons = dict(filt.reasons)
-    reasons["not_indexed"] = int((~found).sum())
-    if index_range is not None:
-        (i0, i1), (j0, j1) = index_range
-        inside = (ij[:, 0] >= i0) & (ij[:, 0] <= i1) & (ij[:, 1] >= j0) & (ij[:, 1] <= j1)
-        reasons["index_range"] = int((found & ~inside).sum())
-        found &= inside
-    sel = keep[found]
-    return Markers(
-        ij=ij[found],
-        centroids=spots.centroids[sel],
-        areas=spots.areas[sel],
-        peak=spots.peak[sel],
-        saturated=spots.saturated[sel],
-        axes=axes,
-        rejected=len(spots) - len(sel),
-        reasons=reasons,
-        spots=spots,
-        indexing=indexing,
-    )
+    axes = _grid_axes(image, pts, ref, layout, mirrored, hint)
+    ij, found, indexing = _index(spots.centroids, keep, int(filt.reference), ref, axes, lattice_below)
+    return _markers(spots, keep, ij, found, axes, filt.reasons, index_range, indexing)
 
 
 def _seen_points(setup: Setup, points: Array) -> Array:
@@ -261,6 +227,68 @@ def index_range(setup: Setup) -> tuple[tuple[int, int], tuple[int, int]]:
     """Smallest and largest marker index along T_x and T_y of a setup's pattern."""
     ij = setup.marker_pattern.indices()
     return (int(ij[:, 0].min()), int(ij[:, 0].max())), (int(ij[:, 1].min()), int(ij[:, 1].max()))
+
+
+def _markers(
+    spots: Spots,
+    keep: NDArray[np.int64],
+    ij: NDArray[np.int64],
+    found: NDArray[np.bool_],
+    axes: Array,
+    filtered: dict[str, int],
+    index_range: tuple[tuple[int, int], tuple[int, int]] | None,
+    indexing: str,
+) -> Markers:
+    """The indexed markers inside ``index_range``, with the count of rejected spots per reason."""
+    reasons = dict(filtered)
+    reasons["not_indexed"] = int((~found).sum())
+    if index_range is not None:
+        (i0, i1), (j0, j1) = index_range
+        inside = (ij[:, 0] >= i0) & (ij[:, 0] <= i1) & (ij[:, 1] >= j0) & (ij[:, 1] <= j1)
+        reasons["index_range"] = int((found & ~inside).sum())
+        found &= inside
+    sel = keep[found]
+    return Markers(
+        ij=ij[found],
+        centroids=spots.centroids[sel],
+        areas=spots.areas[sel],
+        peak=spots.peak[sel],
+        saturated=spots.saturated[sel],
+        axes=axes,
+        rejected=len(spots) - len(sel),
+        reasons=reasons,
+        spots=spots,
+        indexing=indexing,
+    )
+
+
+def _grid_axes(image: NDArray, pts: Array, ref: int, layout: str, mirrored: bool, hint: Array | None) -> Array:
+    """Image steps of +T_x, +T_y at the reference marker: from its neighbours on a calibration target (§2.6.1), from
+    the Fourier transform of the image, oriented by ``hint``, on the deflectometry grid (§1.5.3)."""
+    if layout == "calibration":
+        return reference_axes(pts, ref, mirrored)
+    h = hint if hint is not None else np.array([[1.0, 0.0], [0.0, 1.0 if mirrored else -1.0]])
+    steps = fourier_axes(image, pts[ref], nearest_spacing(pts))
+    return orient_axes(steps, np.asarray(h, dtype=np.float64))
+
+
+def _index(
+    centroids: Array, keep: NDArray[np.int64], reference: int, ref: int, axes: Array, lattice_below: float
+) -> tuple[NDArray[np.int64], NDArray[np.bool_], str]:
+    """Indices of the kept spots (§1.5.4): the seed's flood (:func:`index_grid`), or where it numbers fewer than
+    ``lattice_below`` of them the grid's topology (:func:`index_lattice`) if that numbers more. Returns the indices,
+    which were numbered, and which indexing won."""
+    pts = centroids[keep]
+    ij = index_grid(pts, ref, axes, blockers=centroids)
+    found = ij[:, 0] != np.iinfo(np.int32).min
+    if found.sum() < lattice_below * len(keep):
+        # the flood stopped early (a strongly bent substrate): number the grid by its topology instead, over every
+        # spot of the image (a rejected spot still holds its place in the grid), and keep whichever reached more
+        ij_lat = index_lattice(centroids, reference, axes)[keep]
+        found_lat = ij_lat[:, 0] != np.iinfo(np.int32).min
+        if found_lat.sum() > found.sum():
+            return ij_lat, found_lat, "lattice"
+    return ij, found, "flood"
 
 
 def find_markers_for(image: NDArray, setup: Setup, heights: HeightMap | None = None, **kwargs) -> Markers:
