@@ -25,25 +25,12 @@ from scopetwin.calib.oneshot import (
     Calibration,
     CalibrationError,
     Prior,
-    calibrate,
-    calibrate_bias_corrected,
 )
-from scopetwin.recon.bias import spot_bias_model
+from scopetwin.calib.oneshot.from_image import calibrate_image
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.geometry import Frame
 from scopetwin.scenes.setup import Setup
 from scopetwin.sim.cli.options import conventions, finite_vector, positive_float
-
-
-def _markers(image: NDArray, setup: Setup, path: str) -> Any:
-    """Found and indexed markers of an image (recon.markers, seed §1.5 / §2.6)."""
-    from scopetwin.recon.markers import find_markers_for
-
-    found = find_markers_for(image, setup)
-    if len(found) < 6:
-        raise CalibrationError(f"{path}: only {len(found)} markers were found and indexed")
-    return found
-
 
 #: How the calibration's note about the mirror-ambiguous pose (calib.oneshot.calibration) starts.
 _AMBIGUOUS = "does not tell the two mirror-ambiguous poses"
@@ -70,12 +57,6 @@ def _warnings(cal: Calibration, view: str, nz_estimate: Any, what_to_do: str) ->
             note = f"{view}: {note}"
         lines.append(f"warning: {note}")
     return lines
-
-
-def _calibrate(xy: NDArray[Any], px: NDArray[Any], prior: Prior, bias: Any, **kw: Any) -> Calibration:
-    if bias is None:
-        return calibrate(xy, px, prior, **kw)
-    return calibrate_bias_corrected(xy, px, prior, bias, **kw)[0]
 
 
 def _load_image(path: str) -> tuple[NDArray, Setup | None]:
@@ -115,13 +96,6 @@ def _prior(setup: Setup, plane: Frame, args: argparse.Namespace) -> Prior:
     return Prior.from_camera(cam, f, plane=plane, **changes)
 
 
-def _check_image_format(image: NDArray, prior: Prior, path: str) -> None:
-    if image.shape != (prior.ny, prior.nx):
-        raise CalibrationError(
-            f"{path} has {image.shape[1]} x {image.shape[0]} pixels but the setup's camera has {prior.nx} x {prior.ny}"
-        )
-
-
 def cmd_calibrate(args: argparse.Namespace) -> dict[str, Any]:
     """One-shot calibration from one image of the target of ``--target`` (seed §2.4-2.5)."""
     t0 = time.perf_counter()
@@ -129,16 +103,19 @@ def cmd_calibrate(args: argparse.Namespace) -> dict[str, Any]:
     setup = _setup(args.target, header, args.image, "--target SETUP")
     if setup.scene != "target":
         raise CalibrationError(f"setup {setup.name} is a {setup.scene} scene, not a calibration target")
-    pattern = setup.marker_pattern
-    plane = pattern.frame
+    plane = setup.marker_pattern.frame
     prior = _prior(setup, plane, args)
-    _check_image_format(image, prior, args.image)
-    found = _markers(image, setup, args.image)
-    xy = pattern.centers_local(found.ij)
-    bias = None if args.no_bias_correction else spot_bias_model(xy, pattern.radii(found.ij))
-    cal = _calibrate(
-        xy, found.centroids, prior, bias, lens=args.lens, distortion=args.distortion, b=args.image_distance
+    cal, found = calibrate_image(  # the one path from an image to a calibration (also scopetwin.calibrate)
+        image,
+        setup,
+        prior=prior,
+        lens=args.lens,
+        distortion=args.distortion,
+        image_distance=args.image_distance,
+        bias_correction=not args.no_bias_correction,
+        name=args.image,
     )
+    bias = not args.no_bias_correction
     out = cal.as_dict(plane=plane)
     out.update(
         {
@@ -146,7 +123,7 @@ def cmd_calibrate(args: argparse.Namespace) -> dict[str, Any]:
             "target": setup.name,
             "markers_used": int(len(found.ij)),
             "markers_rejected": int(found.rejected),
-            "bias_corrected": bias is not None,
+            "bias_corrected": bias,
             "seconds": time.perf_counter() - t0,
         }
     )
