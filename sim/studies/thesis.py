@@ -346,7 +346,7 @@ ROWS_110 = (
 #: §1.10: the reconstructions compared (result key with ``{hd}``, label).
 RECONSTRUCTIONS_110 = (
     ("hd{hd}", "ours (Gaussian SBF, bias-corrected)"),
-    ("hd{hd}_thesis", "seed's 9x5 IMQ (9 along y)"),
+    ("hd{hd}_thesis", "seed's 9x5 IMQ (9 along y), Δh_max = 0 by a secant"),
 )
 #: Tables 2.2, 2.3, after the frame rows of each step: (quantity, key, unit).
 ROWS_22 = (("Δb", "b", "mm"), ("RMS of the marker-centre comparison", "rms", "mm"), ("peak-to-valley", "pv", "mm"))
