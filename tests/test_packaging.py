@@ -32,6 +32,7 @@ def test_the_wheel_holds_one_top_level_package(wheel):
     for layer in ("scenes", "sim", "recon", "calib", "instrument"):
         assert f"scopetwin/{layer}/__init__.py" in names
     assert "scopetwin/scenes/presets/thesis-1.10-deflectometry.toml" in names  # the presets travel with it
+    assert "scopetwin/sim/datasets/schemas/truth.schema.json" in names  # and the datasets' JSON Schemas
     entry = next(n for n in names if n.endswith("entry_points.txt"))
     assert "scopetwin = scopetwin.sim.cli:main" in zipfile.ZipFile(wheel).read(entry).decode()
 

@@ -6,8 +6,10 @@ embedded Dask LocalCluster (``--workers N`` processes, one thread each, 127.0.0.
 cluster (``--scheduler tcp://host:8786``), or in this process (``--workers 0``). One run at a time
 holds a dataset folder: a second run on it is refused with one line naming the holder's host and pid.
 ``resume DIR`` finishes an interrupted set and says what it found and repaired; ``verify DIR``
-checks it (exit code 1 when anything is missing, corrupt, duplicated or left over). Ctrl-C, SIGTERM
-and SIGHUP stop a run with every finished sample listed in the manifest.
+checks it (exit code 1 when anything is missing, corrupt, duplicated, left over, or breaks its format's schemas or
+holds values that cannot be true). Ctrl-C, SIGTERM and SIGHUP stop a run with every finished sample listed in the
+manifest. ``show DIR --out sheet.png`` draws a contact sheet of the samples with their truth; ``export DIR --to zarr |
+hdf5 OUT`` stacks every sample into one array store; ``generate --set KEY=VALUE`` overrides a config key.
 """
 
 from __future__ import annotations
@@ -29,8 +31,9 @@ DESCRIPTION = (
     "Synthetic datasets with exact truth. generate CONFIG.toml --out DIR checks the whole config, the output folder "
     "and the free space before any work, then renders the samples on a local Dask cluster (--workers N), an existing "
     "one (--scheduler tcp://host:8786) or in this process (--workers 0). resume DIR finishes an interrupted dataset "
-    "and says what it repaired; verify DIR checks every sample (exit 1 when anything is missing or corrupt). One run "
-    "at a time holds a dataset folder."
+    "and says what it repaired; verify DIR checks every sample against the schemas and its values (exit 1 when "
+    "anything is missing, corrupt or invalid); show DIR --out sheet.png draws a contact sheet; export DIR --to "
+    "zarr|hdf5 OUT stacks every sample into one array store. One run at a time holds a dataset folder."
 )
 
 
@@ -85,7 +88,7 @@ def _report(result: dict[str, Any]) -> None:
 def cmd_generate(args: argparse.Namespace) -> dict[str, Any]:
     """Render a dataset described by a config TOML; returns the generation summary."""
     _check_workers(args)
-    cfg = load_config(args.config, args.count)
+    cfg = load_config(args.config, args.count, args.set)
     indices = parse_indices(args.indices, cfg.dataset.count)
     plan = Plan.build(cfg, indices)  # every sample's setup is validated before any work
     _check_space(plan, Path(args.out), indices, "--out")
@@ -113,15 +116,57 @@ def cmd_verify(args: argparse.Namespace) -> dict[str, Any]:
     print(
         f"{result['complete']} of {result['count']} samples complete; missing {len(result['missing'])}, corrupt "
         f"{len(result['corrupt'])}, duplicated {len(result['duplicates'])}, unlisted {len(result['unlisted'])}, "
-        f"temporary {len(result['temporary'])}"
+        f"temporary {len(result['temporary'])}, invalid {len(result['invalid'])} (format {result['format']})"
     )
     for c in result["corrupt"][:10]:
         print(f"  corrupt sample {c['index']}: {c['reason']}")
+    for c in result["invalid"][:10]:
+        print(f"  invalid sample {c['index']}: {'; '.join(c['reasons'][:3])}")
+    for e in result["config_errors"][:3]:
+        print(f"  dataset.json: {e}")
     if result["in_use_by"]:
         from scopetwin.sim.datasets.lock import describe_holder
 
         print(f"  the folder is in use: {describe_holder(result['in_use_by'])} is still writing it")
     return json.loads(json.dumps(result))
+
+
+def _open(folder: str) -> Any:
+    from scopetwin.sim.datasets.reader import open_dataset
+
+    return open_dataset(folder)
+
+
+def _positions(ds: Any, text: str | None, default: int | None = None) -> list[int]:
+    """Positions in ``ds`` of the samples whose indices lie in ``A:B`` (all, or the first ``default``, without)."""
+    if text is None:
+        return list(range(len(ds) if default is None else min(default, len(ds))))
+    count = int(ds.config.get("config", {}).get("dataset", {}).get("count", len(ds)))
+    wanted = set(parse_indices(text, count))
+    return [k for k, index in enumerate(ds.indices) if index in wanted]
+
+
+def cmd_show(args: argparse.Namespace) -> dict[str, Any]:
+    """Draw a contact sheet of a dataset's samples with their truth; returns ``{out, samples, columns, rows}``."""
+    from scopetwin.sim.datasets.sheet import MAX_TILES, contact_sheet
+
+    ds = _open(args.dir)
+    result = contact_sheet(ds, _positions(ds, args.indices, 16 if args.indices is None else MAX_TILES), args.out)
+    print(f"{len(result['samples'])} sample(s) drawn -> {result['out']}")
+    return result
+
+
+def cmd_export(args: argparse.Namespace) -> dict[str, Any]:
+    """Stack every sample's image and maps into one zarr store or HDF5 file; returns the export summary."""
+    from tqdm import tqdm
+
+    from scopetwin.sim.datasets.export import export
+
+    ds = _open(args.dir)
+    with tqdm(total=len(ds), unit="sample", desc="export", disable=args.quiet) as bar:
+        result = export(ds, args.out, args.to, args.only, progress=bar.update)
+    print(f"{result['samples']} sample(s), {len(result['variables'])} variable(s) -> {result['out']} ({args.to})")
+    return result
 
 
 def register(subparsers: Any) -> None:
@@ -151,6 +196,14 @@ def register(subparsers: Any) -> None:
     p.add_argument("--out", required=True, help="dataset folder")
     p.add_argument("--count", type=int, help="override the config's sample count")
     p.add_argument("--indices", metavar="A:B", help="only samples A..B-1")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config key (TOML value, validated as the file is), e.g. --set dataset.spp=4, "
+        "--set render.spp=4, --set setup.camera.pixels=[340,256]; repeatable",
+    )
     _common(p)
     p.set_defaults(func=cmd_generate, outputs=[("out", "dir", "keep"), ("json", "file")])
 
@@ -175,3 +228,34 @@ def register(subparsers: Any) -> None:
     p.add_argument("dir", help="dataset folder")
     p.add_argument("--json", metavar="PATH", help="write {complete, missing, corrupt, duplicates, ...} here")
     p.set_defaults(func=cmd_verify, exit_code=lambda result: 0 if result["ok"] else 1)
+
+    h = "draw a contact sheet of the samples with their truth overlaid (substrate outline, heights, marker ids)"
+    p = sub.add_parser(
+        "show",
+        help=h,
+        description=h + "; the first 16 samples without --indices",
+        **conventions(
+            "scopetwin dataset show ds1 --out sheet.png", "scopetwin dataset show ds1 --indices 0:8 --out s.png"
+        ),
+    )
+    p.add_argument("dir", help="dataset folder")
+    p.add_argument("--indices", metavar="A:B", help="the samples with indices A..B-1 (at most 64)")
+    p.add_argument("--out", required=True, help="PNG file to write")
+    p.add_argument("--json", metavar="PATH", help="write {out, samples, columns, rows} here")
+    p.set_defaults(func=cmd_show, outputs=[("out", "file"), ("json", "file")])
+
+    h = "stack every sample's image and per-pixel maps into one zarr store or HDF5 file (named dimensions)"
+    p = sub.add_parser(
+        "export",
+        help=h,
+        description=h + "; xarray opens either as one dataset (open_zarr, open_dataset(engine='h5netcdf'))",
+        **conventions(
+            "scopetwin dataset export ds1 --to zarr ds1.zarr", "scopetwin dataset export ds1 --to hdf5 ds1.h5 -q"
+        ),
+    )
+    p.add_argument("dir", help="dataset folder")
+    p.add_argument("--to", required=True, choices=("zarr", "hdf5"), help="the format of OUT")
+    p.add_argument("out", help="the zarr store (a folder) or HDF5 file to create")
+    p.add_argument("--only", nargs="+", metavar="NAME", help="export only these variables (e.g. image height mask)")
+    p.add_argument("--json", metavar="PATH", help="write {out, to, samples, variables} here")
+    p.set_defaults(func=cmd_export, outputs=[("out", "path", "positional"), ("json", "file")])

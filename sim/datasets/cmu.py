@@ -19,6 +19,7 @@ import numpy as np
 from scopetwin.scenes.errors import ScopetwinError, SetupError
 from scopetwin.sim.datasets.config import SAMPLE_PACKAGES, DatasetConfig, DatasetError
 from scopetwin.sim.datasets.seeding import sample_seed
+from scopetwin.sim.datasets.validate import check_image
 from scopetwin.sim.measurement import StagedOutput, versions, write_preview
 
 
@@ -163,8 +164,15 @@ def cmu_sensor(bit_depth: int) -> Any:
 
 
 def object_to_pixel(
-    setup: Any, opt: Any, channel: str, pose: Any, box: tuple[int, int, int, int], half: float, n_pupil: int = 15
-) -> np.ndarray:
+    setup: Any,
+    opt: Any,
+    channel: str,
+    pose: Any,
+    box: tuple[int, int, int, int],
+    half: float,
+    n_pupil: int = 15,
+    return_residual: bool = False,
+) -> Any:
     """Affine map (2 x 3) from object (x, y, 1) in mm to (col, row) in the written image's pixel coordinates.
 
     Fitted to the traced spot centroids (numpy tracer, the channel's real plates) of a 3 x 3 object grid of
@@ -172,7 +180,8 @@ def object_to_pixel(
     :func:`scopetwin.scenes.mitsuba.cmu.render_channel` does, and mapped to pixels by the sensor's
     :class:`scopetwin.scenes.camera.PixelGrid`; the camera offset (col, row) shifts the grid centre. Pixel (r, c) covers
     [c, c+1) x [r, r+1) (docs/contract.md, "Camera"), so the star's centre is at ``A[:, 2]``; ``box`` = (row0, col0,
-    height, width) is the written part of the sensor.
+    height, width) is the written part of the sensor. With ``return_residual``: (map, the largest distance in px
+    between a traced centroid and the affine map's pixel of its object point).
     """
     from scopetwin.scenes.camera import PixelGrid
     from scopetwin.scenes.cmu.analysis import image_rays
@@ -201,6 +210,9 @@ def object_to_pixel(
             img.append((col - c0, row - r0))
             obj.append((x0, y0, 1.0))
     coef, *_ = np.linalg.lstsq(np.asarray(obj), np.asarray(img), rcond=None)
+    residual = float(np.abs(np.asarray(obj) @ coef - np.asarray(img)).max())
+    if return_residual:
+        return coef.T, residual
     return coef.T
 
 
@@ -244,7 +256,7 @@ def _write_plates(setup: Any, maps: dict[str, Any], stage: StagedOutput, files: 
         if role == "mirror" and not np.any(maps[name].z):
             continue
         fname = f"height_{name}.exr"
-        write_heightmap(stage.path(fname), maps[name], scopetwin_element=name)
+        write_heightmap(stage.path(fname), maps[name], scopetwin_element=name, scopetwin_format="heightmap/1")
         files[f"height_{name}"] = fname
         plates[name] = {
             "file": fname,
@@ -292,9 +304,11 @@ def _write_channel(
     img = render_channel(
         setup, ch, pose, sample.target, spp=spp, window=unit.box, stop=cfg.cmu.stop, seed=rseed, scene=unit.scene
     )
+    check_image(img, f"sample {index}, channel {ch}: the render")
     exposure, nseed = None, None
     if unit.sensor is not None:
         img, exposure, nseed = _expose(unit.sensor, img, unit.fill, master, index, ch)
+        check_image(img, f"sample {index}, channel {ch}: the image after the sensor model")
     fname = f"image_{ch}.exr"
     prov = {
         "seed": rseed,
@@ -305,8 +319,17 @@ def _write_channel(
         "noise_seed": nseed,
         "versions": versions(SAMPLE_PACKAGES),
     }
-    write_image(stage.path(fname), img, setup.to_json(), prov, image_distance_mm=float(b), scopetwin_channel=ch)
+    write_image(
+        stage.path(fname),
+        img,
+        setup.to_json(),
+        prov,
+        image_distance_mm=float(b),
+        scopetwin_channel=ch,
+        scopetwin_format="image/1",
+    )
     spec = setup.channels[ch]
+    affine, residual = object_to_pixel(setup, opt, ch, pose, unit.box, unit.half, return_residual=True)
     entry = {
         "image": fname,
         "path": list(spec.path),
@@ -315,7 +338,8 @@ def _write_channel(
         "refocused_image_distance_mm": focus.image_distance_mm,
         "defocus_mm": sample.defocus[ch],
         "camera": {"tilt_deg": pose.tilt_deg, "offset_px": list(pose.offset_px)},
-        **affine_truth(object_to_pixel(setup, opt, ch, pose, unit.box, unit.half), setup.camera.pixel_um),
+        **affine_truth(affine, setup.camera.pixel_um),
+        "object_to_pixel_residual_px": residual,
         "rms_spot_um": res.rms_spot_um,
         "astigmatism_mm": res.astigmatism_mm,
         "transmitted_fraction": res.transmitted_fraction,
@@ -400,4 +424,13 @@ def write_cmu(cfg: DatasetConfig, index: int, sample: CmuSample, stage: StagedOu
         tiles = [im / (float(np.percentile(im, 99.9)) or 1.0) for im in images]
         write_preview(stage.path("preview.png"), np.hstack(tiles))
         files["preview"] = "preview.png"
-    return {"files": files, "truth": _cmu_truth(cfg, sample, unit, channels, plates)}
+    truth = _cmu_truth(cfg, sample, unit, channels, plates)
+    if cfg.dataset.maps:
+        from scopetwin.sim.datasets.maps import MAPS_FILE, MAPS_FORMAT, MAPS_VERSION, cmu_object_maps, write_maps
+
+        _, _, h, w = unit.box
+        object_maps = cmu_object_maps(channels, h, w)
+        write_maps(stage.path(MAPS_FILE), object_maps)
+        files["maps"] = MAPS_FILE
+        truth["maps"] = {"file": MAPS_FILE, "format": f"{MAPS_FORMAT}/{MAPS_VERSION}", "layers": list(object_maps)}
+    return {"files": files, "truth": truth}

@@ -121,6 +121,12 @@ class Domain:
     text: str
     strings: tuple[str, ...] | dict[str, tuple[str, ...]] = ()
     per: Literal["", "splitter", "channel"] = ""
+    #: The physical range every value must lie in (a drawn one included): finite bounds where ``lo``/``hi`` are not.
+    limit: tuple[float, float] | None = None
+
+    def names_any(self) -> bool:
+        """Whether the quantity is a name (for some kind), not a number."""
+        return bool(self.strings)
 
     def names(self, kind: str) -> tuple[str, ...]:
         """The allowed names of a string-valued quantity for samples of ``kind`` (empty: numeric)."""
@@ -138,14 +144,31 @@ class Domain:
         """The domain as an interval, e.g. ``(0, 90]``."""
         return f"{'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
 
+    def physical(self) -> tuple[float, float]:
+        """The finite range every value must lie in (:attr:`limit`, else the domain's own bounds)."""
+        return self.limit if self.limit is not None else (self.lo, self.hi)
+
+    def check_value(self, v: Any) -> str | None:
+        """Why a value cannot be used (not a finite number, outside the domain or the physical range), or None."""
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            return f"{v!r} is not a finite number"
+        if not self.contains(v):
+            return f"{v:g} {self.unit} lies outside {self.describe()}".replace("  ", " ")
+        lo, hi = self.physical()
+        if not lo <= v <= hi:
+            return f"{v:g} {self.unit} lies outside the physical range [{lo:g}, {hi:g}]".replace("  ", " ")
+        return None
+
 
 _INF = math.inf
 _PART1 = ("deflectometry", "calibration")
 _SURFACE_KINDS = ("random", "psd", "plane", "sphere", "saddle", "cylinder")
 DOMAINS: dict[str, Domain] = {
-    "surface_range_um": Domain(0, _INF, False, True, ("deflectometry",), 1, "µm", "peak-to-valley range (§1.9)"),
+    "surface_range_um": Domain(
+        0, _INF, False, True, ("deflectometry",), 1, "µm", "peak-to-valley range (§1.9)", limit=(0, 10_000)
+    ),
     "surface_correlation_length": Domain(
-        0, _INF, True, True, ("deflectometry",), 1, "mm", "low-pass correlation length (§1.9)"
+        0, _INF, True, True, ("deflectometry",), 1, "mm", "low-pass correlation length (§1.9)", limit=(0, 10_000)
     ),
     "surface_kind": Domain(0, 0, False, False, ("deflectometry",), 1, "", "surface generator", strings=_SURFACE_KINDS),
     "surface_broadband_rms_nm": Domain(
@@ -154,15 +177,23 @@ DOMAINS: dict[str, Domain] = {
     "view_angle_deg": Domain(
         0, 90, True, False, ("calibration",), 1, "deg", "camera elevation over the target (§2.8.2 angle scan)"
     ),
-    "view_distance": Domain(0, _INF, True, True, ("calibration",), 1, "mm", "camera distance from the target centre"),
-    "camera_shift": Domain(-_INF, _INF, True, True, _PART1, 3, "mm", "camera centre jitter, per axis"),
-    "camera_rotation": Domain(-_INF, _INF, True, True, _PART1, 3, "rad", "camera rotation vector, per axis"),
-    "f_number": Domain(0, _INF, True, True, _PART1, 1, "", "thin-lens f-number"),
-    "defocus": Domain(-_INF, _INF, True, True, _PART1, 1, "mm", "plane in focus minus the nominal one"),
-    "distortion_c2": Domain(-_INF, _INF, True, True, _PART1, 1, "1/mm", "radial distortion c2 (§2.5.1)"),
-    "principal_offset": Domain(-_INF, _INF, True, True, _PART1, 2, "mm", "r_cs, per axis (§2.8.5)"),
+    "view_distance": Domain(
+        0, _INF, True, True, ("calibration",), 1, "mm", "camera distance from the target centre", limit=(0, 100_000)
+    ),
+    "camera_shift": Domain(
+        -_INF, _INF, True, True, _PART1, 3, "mm", "camera centre jitter, per axis", limit=(-10_000, 10_000)
+    ),
+    "camera_rotation": Domain(
+        -_INF, _INF, True, True, _PART1, 3, "rad", "camera rotation vector, per axis", limit=(-math.pi, math.pi)
+    ),
+    "f_number": Domain(0, _INF, True, True, _PART1, 1, "", "thin-lens f-number", limit=(0, 1000)),
+    "defocus": Domain(
+        -_INF, _INF, True, True, _PART1, 1, "mm", "plane in focus minus the nominal one", limit=(-10_000, 10_000)
+    ),
+    "distortion_c2": Domain(-_INF, _INF, True, True, _PART1, 1, "1/mm", "radial distortion c2 (§2.5.1)", limit=(-1, 1)),
+    "principal_offset": Domain(-_INF, _INF, True, True, _PART1, 2, "mm", "r_cs, per axis (§2.8.5)", limit=(-100, 100)),
     "exposure_fill": Domain(0, 1, True, False, (*_PART1, "cmu"), 1, "", "fraction of the full well at the image peak"),
-    "exposure_s": Domain(0, _INF, True, True, _PART1, 1, "s", "exposure time"),
+    "exposure_s": Domain(0, _INF, True, True, _PART1, 1, "s", "exposure time", limit=(0, 3600)),
     "target": Domain(
         0,
         0,
@@ -174,15 +205,44 @@ DOMAINS: dict[str, Domain] = {
         "test object (grin: §8.5 target; cmu: §5.2.2 Siemens star or §5.1.2 dummy cells)",
         strings={"grin": ("dots-25", "grid-25", "grid-12.5", "lines-8"), "cmu": ("star", "cells")},
     ),
-    "target_offset": Domain(-_INF, _INF, True, True, ("grin",), 2, "mm", "target offset from the axis, per axis"),
+    "target_offset": Domain(
+        -_INF, _INF, True, True, ("grin",), 2, "mm", "target offset from the axis, per axis", limit=(-100, 100)
+    ),
     "bow_range_um": Domain(
-        0, _INF, False, True, ("cmu",), 1, "µm", "bow range of each beam splitter (§5.1.1)", per="splitter"
+        0,
+        _INF,
+        False,
+        True,
+        ("cmu",),
+        1,
+        "µm",
+        "bow range of each beam splitter (§5.1.1)",
+        per="splitter",
+        limit=(0, 10_000),
     ),
     "bow_scale": Domain(
-        0, _INF, False, True, ("cmu",), 1, "", "factor on each splitter's bow range of the setup", per="splitter"
+        0,
+        _INF,
+        False,
+        True,
+        ("cmu",),
+        1,
+        "",
+        "factor on each splitter's bow range of the setup",
+        per="splitter",
+        limit=(0, 1000),
     ),
     "residual_rms_um": Domain(
-        0, _INF, False, True, ("cmu",), 1, "µm", "RMS of each splitter's smooth residual", per="splitter"
+        0,
+        _INF,
+        False,
+        True,
+        ("cmu",),
+        1,
+        "µm",
+        "RMS of each splitter's smooth residual",
+        per="splitter",
+        limit=(0, 1000),
     ),
     "channel_defocus": Domain(
         -_INF,
@@ -194,6 +254,7 @@ DOMAINS: dict[str, Domain] = {
         "mm",
         "camera distance minus the refocused image distance, per channel",
         per="channel",
+        limit=(-100, 100),
     ),
     "channel_offset_px": Domain(
         -_INF,
@@ -205,6 +266,7 @@ DOMAINS: dict[str, Domain] = {
         "px",
         "camera offset (col, row) of each channel (Table 5.3)",
         per="channel",
+        limit=(-100_000, 100_000),
     ),
     "channel_tilt_deg": Domain(
         -45, 45, False, False, ("cmu",), 1, "deg", "in-plane camera tilt of each channel (Table 5.4)", per="channel"
@@ -254,6 +316,7 @@ class DatasetSection(_Model):
     noise: bool = False
     description: str = ""
     preview: bool = Field(True, description="write preview.png beside each image")
+    maps: bool = Field(True, description="write the per-pixel truth maps (maps.exr) of each sample")
 
 
 class GrinSection(_Model):
@@ -363,12 +426,23 @@ def _check_domains(cfg: DatasetConfig, label: str) -> None:
                 raise DatasetError(
                     f"{where}: impossible value {bad[0]} {dom.unit} (the {dom.text} must lie in {dom.describe()})"
                 )
+            why = next((w for w in map(dom.check_value, flat) if w is not None), None)
+            if why is not None:
+                raise DatasetError(f"{where}: impossible value: {why} (the {dom.text})")
             continue
         lo, hi = dist.support()  # type: ignore[misc]
         if not (dom.contains(lo) and dom.contains(hi)):
             raise DatasetError(
                 f"{where}: impossible distribution {dist.kind} {list(getattr(dist, dist.kind))}: it "
                 f"can give values outside {dom.describe()} {dom.unit} (the {dom.text})"
+            )
+        plo, phi = dom.physical()
+        # a normal distribution on an unbounded domain: its mean here, every drawn value when the plan is built
+        ends = (dist.normal[0],) if dist.normal is not None and dist.normal[1] > 0 else (lo, hi)
+        if not all(plo <= v <= phi for v in ends):
+            raise DatasetError(
+                f"{where}: impossible distribution {dist.kind} {list(getattr(dist, dist.kind))}: it can give "
+                f"values outside the physical range [{plo:g}, {phi:g}] {dom.unit} (the {dom.text})"
             )
     if cfg.vary.exposure_fill is not None and cfg.vary.exposure_s is not None:
         raise DatasetError(f"dataset config {label}: key vary.exposure_s: give exposure_fill or exposure_s, not both")
@@ -382,8 +456,70 @@ def _check_domains(cfg: DatasetConfig, label: str) -> None:
             )
 
 
-def load_config(path: str | Path, count: int | None = None) -> DatasetConfig:
-    """Read and validate a dataset config TOML (``count`` overrides ``[dataset] count``)."""
+def check_parameters(params: dict[str, Any], index: int) -> None:
+    """Check the varied values drawn for sample ``index`` like fixed ones: every number finite, in its domain and in
+    its physical range (:meth:`Domain.check_value`), before any work is done with them.
+
+    Raises
+    ------
+    DatasetError
+        A value that cannot be used; the message names the key, the sample and the value.
+    """
+    for name, value in params.items():
+        dom = DOMAINS.get(name)
+        if dom is None or dom.names_any():
+            continue
+        members = value.items() if isinstance(value, dict) else [("", value)]
+        for member, v in members:
+            for comp in v if isinstance(v, list) else [v]:
+                why = dom.check_value(comp)
+                if why is not None:
+                    who = f" ({dom.per} {member})" if member else ""
+                    raise DatasetError(f"sample {index}: key vary.{name}{who}: drawn value {why} (the {dom.text})")
+
+
+#: ``--set`` keys that name a setup's render option, which a dataset config keeps in its ``[dataset]`` table.
+SET_ALIASES = {"render.spp": "dataset.spp", "render.noise": "dataset.noise"}
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    """``data`` with ``key=value`` overrides applied (``--set``): a dotted key into the config's tables
+    (``dataset.spp=4``, ``setup.camera.pixels=[340, 256]``, ``vary.surface_range_um.uniform=[10, 30]``;
+    ``render.spp`` and ``render.noise`` mean ``dataset.spp`` / ``dataset.noise``), the value in TOML syntax (a bare
+    word is a string). The result is validated like the file (:func:`config_from_dict`), so a bad key or value is
+    named as it would be in the file.
+
+    Raises
+    ------
+    DatasetError
+        An override that is not ``key=value`` or whose value is not a TOML value.
+    """
+    out = json.loads(json.dumps(data))
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        key = SET_ALIASES.get(key.strip(), key.strip())
+        parts = key.split(".")
+        if not sep or not all(parts):
+            raise DatasetError(f"--set {item!r}: give key=value with a dotted key, e.g. --set dataset.spp=4")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            if not text.strip() or any(c in text for c in "[]{}\"'="):
+                raise DatasetError(f"--set {item!r}: {text.strip()!r} is not a TOML value") from None
+            value = text.strip()  # a bare word: a string (a preset name, a surface kind)
+        table = out
+        for k, part in enumerate(parts[:-1]):
+            nxt = table.setdefault(part, {})
+            if not isinstance(nxt, dict):
+                raise DatasetError(f"--set {item!r}: {'.'.join(parts[: k + 1])} is a value, not a table")
+            table = nxt
+        table[parts[-1]] = value
+    return out
+
+
+def load_config(path: str | Path, count: int | None = None, overrides: list[str] | None = None) -> DatasetConfig:
+    """Read and validate a dataset config TOML (``count`` overrides ``[dataset] count``; ``overrides``: ``--set``
+    items, :func:`apply_overrides`)."""
     p = Path(path)
     try:
         with open(p, "rb") as fh:
@@ -392,6 +528,8 @@ def load_config(path: str | Path, count: int | None = None) -> DatasetConfig:
         raise DatasetError(f"cannot read dataset config {p}: {exc.strerror}") from None
     except tomllib.TOMLDecodeError as exc:
         raise DatasetError(f"dataset config {p} is not valid TOML: {exc}") from None
+    if overrides:
+        data = apply_overrides(data, overrides)
     return config_from_dict(data, str(p), p.resolve().parent, count)
 
 

@@ -41,6 +41,7 @@ def write_grin(cfg: DatasetConfig, index: int, sample: tuple[Any, Any], stage: S
     from scopetwin.scenes.grin.analysis import analyse
     from scopetwin.scenes.io import write_image
     from scopetwin.scenes.mitsuba.grin import render_image
+    from scopetwin.sim.datasets.validate import check_image
 
     setup, tgt = sample
     rep = analyse(setup, samples=16)
@@ -63,8 +64,9 @@ def write_grin(cfg: DatasetConfig, index: int, sample: tuple[Any, Any], stage: S
         center=centre,
         seed=seed,
     )
+    check_image(img, f"sample {index}: the render")
     prov = {"seed": seed, "spp": cfg.dataset.spp, "renderer": "mitsuba-grin", "versions": versions(SAMPLE_PACKAGES)}
-    write_image(stage.path("image.exr"), img, setup.to_json(), prov)
+    write_image(stage.path("image.exr"), img, setup.to_json(), prov, scopetwin_format="image/1")
     truth = {
         "setup": setup.name,
         "scene": "grin",

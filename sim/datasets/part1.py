@@ -20,7 +20,7 @@ from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
 from scopetwin.sim.datasets.config import DatasetConfig, DatasetError, merge
 from scopetwin.sim.datasets.seeding import sample_seed
-from scopetwin.sim.measurement import StagedOutput, render_measurement, write_measurement
+from scopetwin.sim.measurement import StagedOutput, apply_sensor, render_measurement, write_measurement
 
 
 def base_setup_dict(cfg: DatasetConfig) -> dict[str, Any]:
@@ -166,7 +166,11 @@ def write_normals(path: Path, heights: HeightMap) -> None:
     n = heights.normals(xx, yy)
     chans = {"NX": n[..., 0], "NY": n[..., 1], "NZ": n[..., 2], "Z": heights.z}
     chans = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in chans.items()}
-    header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header: dict[str, Any] = {
+        "compression": OpenEXR.ZIP_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+        "scopetwin_format": "normals/1",
+    }
     header.update(zip(EXTENT_KEYS, (heights.x_min, heights.x_max, heights.y_min, heights.y_max), strict=True))
     with atomic_path(path) as tmp:
         try:
@@ -177,17 +181,31 @@ def write_normals(path: Path, heights: HeightMap) -> None:
 
 def write_part1(cfg: DatasetConfig, index: int, setup: Setup, stage: StagedOutput) -> dict[str, Any]:
     """Render and write Part I sample ``index`` (its ``setup``) into ``stage``; returns its files and truth."""
+    from scopetwin.scenes.opencv_camera import opencv_camera
+    from scopetwin.sim.datasets.maps import MAPS_FILE, MAPS_FORMAT, MAPS_VERSION, part1_maps, write_maps
+    from scopetwin.sim.datasets.validate import check_image
     from scopetwin.sim.surfaces import surface_for
 
     heights = surface_for(setup)
     spp, seed = setup.render.spp, setup.render.seed
-    image, _ = render_measurement(setup, heights, spp, seed, setup.render.noise)
+    # the render is checked before the sensor model (whose dark noise would hide a black render), then after it
+    image, _ = render_measurement(setup, heights, spp, seed, False)
+    check_image(image, f"sample {index}: the render")
+    if setup.render.noise:
+        image = apply_sensor(setup, image, seed)
+        check_image(image, f"sample {index}: the image after the sensor model")
     names = write_measurement(stage, "", setup, heights, image, spp, seed, "mitsuba")
     if not cfg.dataset.preview:
         stage.path(names.pop("preview")).unlink()
     if heights is not None:
         write_normals(stage.path("normals.exr"), heights)
         names["normals"] = "normals.exr"
+    maps_entry = None
+    if cfg.dataset.maps:
+        maps = part1_maps(setup, heights)
+        write_maps(stage.path(MAPS_FILE), maps)
+        names["maps"] = MAPS_FILE
+        maps_entry = {"file": MAPS_FILE, "format": f"{MAPS_FORMAT}/{MAPS_VERSION}", "layers": list(maps)}
     truth = json.loads(stage.path(names["truth"]).read_text())
     cam = setup.camera_model
     truth.update(
@@ -201,7 +219,12 @@ def write_part1(cfg: DatasetConfig, index: int, setup: Setup, stage: StagedOutpu
             "c0": cam.c0,
             "c2": cam.c2,
             "focus_distance": cam.focus_distance(),
+            "nx": cam.nx,
+            "ny": cam.ny,
+            "pitch": cam.pitch,
         },
+        camera_opencv=opencv_camera(cam).as_dict(),
+        **({"maps": maps_entry} if maps_entry else {}),
         setup_json=json.loads(setup.to_json()),
         seeds={
             "surface": setup.substrate.surface.seed if setup.substrate else None,

@@ -13,11 +13,15 @@ from typing import Any
 from scopetwin.scenes.limits import check_render
 from scopetwin.scenes.setup import Setup
 from scopetwin.sim.datasets import cmu, grin, part1
-from scopetwin.sim.datasets.config import DatasetConfig, DatasetError, config_from_dict
+from scopetwin.sim.datasets.config import DatasetConfig, DatasetError, check_parameters, config_from_dict
 from scopetwin.sim.datasets.seeding import draw_parameters
 from scopetwin.sim.measurement import StagedOutput
 
-FORMAT_VERSION = 1
+#: The format of the dataset folder this scopetwin writes (``dataset.json`` ``"format"``; docs/contract.md,
+#: "Datasets"). 2: samples carry ``maps.exr``, ``camera_opencv`` and format numbers in their JSON files.
+FORMAT_VERSION = 2
+#: Formats this scopetwin reads (``verify``, :func:`scopetwin.open_dataset`); it writes only :data:`FORMAT_VERSION`.
+READABLE_FORMATS = (1, 2)
 
 
 def _capability(kind: str) -> None:
@@ -38,6 +42,7 @@ class Plan:
 
     config: DatasetConfig
     base: dict[str, Any]
+    format: int = FORMAT_VERSION
 
     @classmethod
     def build(cls, cfg: DatasetConfig, indices: Iterable[int] | None = None, check: bool = True) -> Plan:
@@ -68,7 +73,7 @@ class Plan:
     def to_json(self) -> dict[str, Any]:
         """The plan as stored in ``dataset.json`` and sent to the workers."""
         return {
-            "format": FORMAT_VERSION,
+            "format": self.format,
             "config": self.config.model_dump(mode="json", exclude_none=True),
             "base_setup": self.base,
         }
@@ -76,16 +81,33 @@ class Plan:
     @classmethod
     def from_json(cls, data: dict[str, Any], label: str = "dataset.json") -> Plan:
         """A plan from :meth:`to_json` (``label`` names the source in error messages)."""
-        if data.get("format") != FORMAT_VERSION:
-            raise DatasetError(f"dataset format {data.get('format')!r} is not supported (expected {FORMAT_VERSION})")
-        return cls(config_from_dict(data["config"], label), data["base_setup"])
+        fmt = data.get("format")
+        if fmt not in READABLE_FORMATS:
+            raise DatasetError(
+                f"{label}: dataset format {fmt!r} is not one this scopetwin reads (formats "
+                f"{', '.join(map(str, READABLE_FORMATS))})"
+                + ("; install a newer scopetwin to read it" if isinstance(fmt, int) and fmt > FORMAT_VERSION else "")
+            )
+        return cls(config_from_dict(data["config"], label), data["base_setup"], int(fmt))
+
+    def check_writable(self, label: str) -> None:
+        """Raise unless this scopetwin writes samples of the plan's format (a folder of an older format is read,
+        verified and exported, not extended: its samples would differ from the new ones)."""
+        if self.format != FORMAT_VERSION:
+            raise DatasetError(
+                f"{label} is a dataset of format {self.format}; this scopetwin writes format {FORMAT_VERSION} "
+                "samples and does not mix them into it: generate a new dataset from the same config (reading, "
+                "verifying and exporting the old one still work)"
+            )
 
     def parameters(self, index: int) -> dict[str, Any]:
         """The varied quantities of sample ``index`` (:func:`~scopetwin.sim.datasets.seeding.draw_parameters`)."""
         groups: dict[str, Sequence[str]] | None = None
         if self.config.dataset.kind == "cmu":
             groups = {"splitter": list(self.base["splitters"]), "channel": cmu.cmu_channels(self.config, self.base)}
-        return draw_parameters(self.config, index, groups)
+        params = draw_parameters(self.config, index, groups)
+        check_parameters(params, index)  # drawn values are checked like fixed ones, before any work with them
+        return params
 
     def setup_of(self, index: int) -> Any:
         """What sample ``index`` renders: a Part I :class:`~scopetwin.scenes.setup.Setup`, a GRIN (setup, target) pair
@@ -112,7 +134,8 @@ class Plan:
 
         Images count as uncompressed float32 (4 bytes a pixel; the noise of a real image leaves little to
         compress), a preview PNG as one byte a pixel, a height map as 4 bytes a node per channel (a deflectometry
-        sample also stores three normal components), plus 256 KiB for the truth JSON and the sample record.
+        sample also stores three normal components), the per-pixel maps as 4 bytes a pixel per channel, plus
+        256 KiB for the truth JSON and the sample record.
         """
         kind = self.config.dataset.kind
         preview = 1 if self.config.dataset.preview else 0
@@ -126,8 +149,10 @@ class Plan:
         if kind == "cmu":
             _, _, h, w = cmu.image_box(self.config, sample.setup)
             px = h * w * len(sample.channels)
-            return int(px * 4 + px * preview + (4 << 20) + extra)  # + the splitters' height maps
+            maps = 2 * 4 * len(sample.channels) if self.config.dataset.maps else 0  # object_xy per channel
+            return int(px * 4 + px * preview + h * w * maps + (4 << 20) + extra)  # + the splitters' height maps
         cam = sample.camera_model
         px = cam.nx * cam.ny
         nodes = 0 if sample.substrate is None else sample.substrate.surface.grid[0] * sample.substrate.surface.grid[1]
-        return int(px * (4 + preview) + nodes * 4 * 5 + extra)
+        maps = 4 * 17 if self.config.dataset.maps else 0  # the channels of maps.exr, float32 (before compression)
+        return int(px * (4 + preview + maps) + nodes * 4 * 5 + extra)

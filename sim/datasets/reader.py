@@ -4,8 +4,22 @@
 sample folder is renamed into place only when complete, :mod:`scopetwin.sim.datasets.store`) and returns a
 :class:`Dataset`: ``len``, ``ds[i]`` (negative indices too), ``ds[a:b]`` (another dataset), iteration. A
 :class:`Sample` reads its files when an attribute is first asked for, so opening a dataset of 10,000 samples reads
-only its folder listing, and reading a sample costs what reading its files costs. A ``torch.utils.data.DataLoader``
-accepts a :class:`Dataset` as a map-style dataset (``__len__`` and ``__getitem__``) without scopetwin importing torch.
+only its folder listing, and reading a sample costs what reading its files costs:
+
+* ``.image`` / ``.images``: the camera image(s), float32 (rows, cols);
+* ``.maps``: the per-pixel truth aligned with the image (``maps.exr``, :mod:`scopetwin.sim.datasets.maps`), a dict
+  of (rows, cols[, k]) arrays: ``mask``, ``point``, ``height``, ``pattern_xy``, ``marker``, ...;
+* ``.camera``: the camera in OpenCV's convention (``K``, ``dist``, ``R``, ``t``;
+  :class:`scopetwin.scenes.opencv_camera.OpenCVCamera`), ``.thesis_camera`` the thesis's own model;
+* ``.truth``: ``truth.json`` as a :class:`Truth` (a dict with typed accessors), ``.setup``, ``.meta``.
+
+A ``torch.utils.data.DataLoader`` accepts a :class:`Dataset` as a map-style dataset (``__len__`` and
+``__getitem__``; it pickles for worker processes) without scopetwin importing torch; :meth:`Dataset.arrays` gives
+items that torch's default collate stacks into batches (dicts of arrays).
+
+Formats: this reader reads dataset formats 1 and 2 (``dataset.json`` ``"format"``). Format 1 samples have no
+``maps.exr`` and no ``camera_opencv``: both are computed from the sample's setup and surface when asked for, with
+the same code the writer uses. A newer format is refused with a message naming the format it needs.
 """
 
 from __future__ import annotations
@@ -29,6 +43,75 @@ class DatasetReadError(ScopetwinError):
 
 
 @dataclass(frozen=True)
+class MarkerTable:
+    """The markers of a Part I sample's truth as arrays (docs/contract.md, "Truth"), aligned by row.
+
+    Attributes
+    ----------
+    ij : ndarray of int, (n, 2)
+        Marker indices (i, j) (docs/contract.md, "Marker indices"); row k is ``marker_id`` k of the maps.
+    center_px : ndarray, (n, 2)
+        The exact image of each marker centre, continuous pixel coordinates (col, row) of the thesis's convention
+        (pixel centres at +0.5); NaN where the trace found none. OpenCV's coordinates are ``center_px - 0.5``.
+    visible : ndarray of bool, (n,)
+        Whether the whole marker is imaged inside the picture through the reflecting region.
+    """
+
+    ij: NDArray[np.int64]
+    center_px: NDArray[np.float64]
+    visible: NDArray[np.bool_]
+
+
+class Truth(dict[str, Any]):
+    """A sample's ``truth.json``: the JSON object itself (a dict, equal to what ``json.load`` gives), with typed
+    accessors for what every kind has (docs/contract.md, "Truth")."""
+
+    @property
+    def format(self) -> int:
+        """The file's format version (1: written before truth files carried one)."""
+        return int(self.get("format", 1))
+
+    @property
+    def kind(self) -> str:
+        """``deflectometry``, ``calibration``, ``grin`` or ``cmu``."""
+        return str(self.get("kind", ""))
+
+    @property
+    def index(self) -> int:
+        """The sample's index."""
+        return int(self["sample"])
+
+    @property
+    def parameters(self) -> dict[str, Any]:
+        """The varied quantities drawn for the sample (keys of the config's ``[vary]``; units as their names)."""
+        return dict(self.get("parameters", {}))
+
+    @property
+    def seeds(self) -> dict[str, Any]:
+        """Every seed the sample used (surface, render, noise; per channel for ``cmu``)."""
+        return dict(self.get("seeds", {}))
+
+    @property
+    def markers(self) -> MarkerTable:
+        """The marker truth as arrays (Part I kinds); raises for kinds without markers."""
+        if "markers" not in self:
+            raise DatasetReadError(f"a {self.kind!r} sample has no marker truth")
+        rows = self["markers"]
+        ij = np.array([[m["i"], m["j"]] for m in rows], dtype=np.int64).reshape(-1, 2)
+        centre = np.array(
+            [
+                [
+                    np.nan if m["center_col"] is None else m["center_col"],
+                    np.nan if m["center_row"] is None else m["center_row"],
+                ]
+                for m in rows
+            ],
+            dtype=np.float64,
+        ).reshape(-1, 2)
+        return MarkerTable(ij, centre, np.array([bool(m["visible"]) for m in rows], dtype=bool))
+
+
+@dataclass(frozen=True)
 class Sample:
     """One sample of a dataset; its files are read when an attribute is first asked for.
 
@@ -45,13 +128,18 @@ class Sample:
 
     @cached_property
     def meta(self) -> dict[str, Any]:
-        """The sample's ``sample.json``: its kind and its files with their SHA-256 and sizes."""
+        """The sample's ``sample.json``: its format, kind and files with their SHA-256 and sizes."""
         return _read_json(self.folder / SAMPLE_FILE)
 
     @cached_property
-    def truth(self) -> dict[str, Any]:
-        """The sample's ``truth.json``: the parameters drawn for it, the setup, marker images, poses (per kind)."""
-        return _read_json(self.folder / "truth.json")
+    def truth(self) -> Truth:
+        """The sample's ``truth.json`` (:class:`Truth`): parameters, setup, marker images, cameras, poses (per kind)."""
+        return Truth(_read_json(self.folder / "truth.json"))
+
+    @property
+    def format(self) -> int:
+        """The sample's format version (``sample.json`` ``"format"``; 1 before it carried one)."""
+        return int(self.meta.get("format", 1))
 
     @property
     def kind(self) -> str:
@@ -76,14 +164,90 @@ class Sample:
         return images["image"] if "image" in images else images[sorted(images)[0]]
 
     @cached_property
+    def maps(self) -> dict[str, NDArray[Any]]:
+        """The per-pixel truth aligned with the image (:mod:`scopetwin.sim.datasets.maps`): layer -> (rows, cols)
+        or (rows, cols, k) array; ``mask``/``roi`` bool, ``marker_id`` int32 (-1: no marker), the rest float32 with
+        NaN where a value does not exist. A sample written without ``maps.exr`` (format 1, or ``maps = false``)
+        has its Part I maps computed from its setup and surface file, the ``cmu`` ones from its truth."""
+        from scopetwin.sim.datasets.maps import MAPS_FILE, cmu_object_maps, part1_maps, read_maps
+
+        path = self.folder / MAPS_FILE
+        try:
+            if path.is_file():
+                return read_maps(path)
+            if self.kind in ("deflectometry", "calibration"):
+                maps = part1_maps(self.setup, self.heights)
+                return {k: _as_stored(k, v) for k, v in maps.items()}
+            if self.kind == "cmu":
+                r0, c0, h, w = self.truth["window"]
+                return {k: v.astype(np.float32) for k, v in cmu_object_maps(self.truth["channels"], h, w).items()}
+        except ScopetwinError as exc:
+            raise DatasetReadError(f"{self.folder}: {exc}") from None
+        raise DatasetReadError(f"{self.folder}: a {self.kind!r} sample has no per-pixel maps")
+
+    @cached_property
+    def heights(self) -> Any:
+        """The true height map of a deflectometry sample (:class:`scopetwin.scenes.surface.HeightMap`), else None."""
+        name = self.truth.get("surface")
+        if not name:
+            return None
+        from scopetwin.scenes.io import read_heightmap
+
+        return read_heightmap(self.folder / str(name))
+
+    @cached_property
+    def camera(self) -> Any:
+        """The sample's camera in OpenCV's convention (:class:`scopetwin.scenes.opencv_camera.OpenCVCamera`: ``K``,
+        ``dist``, ``R``, ``t``, pixel centres at integer coordinates, and the size of the distortion's
+        approximation in px). Part I kinds only."""
+        from scopetwin.scenes.opencv_camera import OpenCVCamera, opencv_camera
+
+        if "camera_opencv" in self.truth:
+            return OpenCVCamera.from_dict(self.truth["camera_opencv"])
+        if self.kind in ("deflectometry", "calibration"):
+            return opencv_camera(self.thesis_camera)
+        raise DatasetReadError(
+            f"a {self.kind!r} sample has no single pinhole camera (see truth['channels'] or truth['magnification'])"
+        )
+
+    @property
+    def thesis_camera(self) -> Any:
+        """The sample's camera in the thesis's model (:class:`scopetwin.scenes.camera.Camera`, seed §1.6.2)."""
+        return self.setup.camera_model
+
+    @cached_property
     def setup(self) -> Any:
         """The sample's setup (:class:`scopetwin.scenes.setup.Setup`; the GRIN and CMU kinds: their JSON)."""
         data = self.truth.get("setup_json")
-        if data is None:
-            return self.truth.get("setup")
+        if data is None or self.kind in ("grin", "cmu"):
+            return data if data is not None else self.truth.get("setup")
         from scopetwin.scenes.setup import setup_from_dict
 
         return setup_from_dict(data if isinstance(data, dict) else json.loads(data), str(self.folder))
+
+    def arrays(self, names: Sequence[str] = ("image",)) -> dict[str, NDArray[Any]]:
+        """Named arrays of the sample: ``image`` (or ``image_<channel>``) and any map layer, as one dict."""
+        out: dict[str, NDArray[Any]] = {}
+        for name in names:
+            if name.startswith("image"):
+                out[name] = self.image if name == "image" else self.images[name]
+            else:
+                maps = self.maps
+                if name not in maps:
+                    raise DatasetReadError(f"sample {self.index} has no map {name!r} (it has {', '.join(maps)})")
+                out[name] = maps[name]
+        return out
+
+
+def _as_stored(name: str, arr: NDArray[Any]) -> NDArray[Any]:
+    """A computed map as :func:`~scopetwin.sim.datasets.maps.read_maps` returns the stored one."""
+    from scopetwin.sim.datasets.maps import BOOL_LAYERS, INTEGER_LAYERS
+
+    if name in BOOL_LAYERS:
+        return arr > 0.5
+    if name in INTEGER_LAYERS:
+        return arr.astype(INTEGER_LAYERS[name])
+    return arr.astype(np.float32)
 
 
 class Dataset(Sequence[Sample]):
@@ -130,8 +294,40 @@ class Dataset(Sequence[Sample]):
         """The dataset's sample kind."""
         return str(self.config.get("config", {}).get("dataset", {}).get("kind", ""))
 
+    @property
+    def format(self) -> int:
+        """The dataset's format version (``dataset.json`` ``"format"``)."""
+        return int(self.config.get("format", 1))
+
+    def arrays(self, *names: str) -> ArrayView:
+        """A view whose items are dicts of named arrays (default ``image``; any map layer, e.g. ``"height"``,
+        ``"mask"``): what torch's default collate stacks into a batch."""
+        return ArrayView(self, names or ("image",))
+
     def __repr__(self) -> str:
-        return f"Dataset({str(self.root)!r}, kind={self.kind!r}, samples={len(self)})"
+        return f"Dataset({str(self.root)!r}, kind={self.kind!r}, format={self.format}, samples={len(self)})"
+
+
+class ArrayView(Sequence[dict[str, NDArray[Any]]]):
+    """The samples of a :class:`Dataset` as dicts of named arrays (:meth:`Sample.arrays`), a map-style dataset."""
+
+    def __init__(self, dataset: Dataset, names: Sequence[str]) -> None:
+        self.dataset = dataset
+        self.names = tuple(names)
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    @overload
+    def __getitem__(self, i: int) -> dict[str, NDArray[Any]]: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> ArrayView: ...
+
+    def __getitem__(self, i: int | slice) -> dict[str, NDArray[Any]] | ArrayView:
+        if isinstance(i, slice):
+            return ArrayView(self.dataset[i], self.names)
+        return self.dataset[i].arrays(self.names)
 
 
 def open_dataset(path: str | Path) -> Dataset:
@@ -145,14 +341,24 @@ def open_dataset(path: str | Path) -> Dataset:
     Raises
     ------
     DatasetReadError
-        The folder does not exist or holds no ``dataset.json``.
+        The folder does not exist, holds no ``dataset.json``, or holds a dataset of a format this scopetwin does not
+        read (the message names it).
     """
+    from scopetwin.sim.datasets.plan import FORMAT_VERSION, READABLE_FORMATS
+
     root = Path(path)
     if not root.is_dir():
         raise DatasetReadError(f"{root} is not a folder")
     if not (root / CONFIG_FILE).is_file():
         raise DatasetReadError(f"{root} is not a dataset folder (no {CONFIG_FILE})")
     config = _read_json(root / CONFIG_FILE)
+    fmt = config.get("format")
+    if fmt not in READABLE_FORMATS:
+        newer = isinstance(fmt, int) and fmt > FORMAT_VERSION
+        raise DatasetReadError(
+            f"{root} is a dataset of format {fmt!r}; this scopetwin reads formats "
+            f"{', '.join(map(str, READABLE_FORMATS))}" + ("; install a newer scopetwin to read it" if newer else "")
+        )
     samples = root / SAMPLES
     indices = (
         sorted(

@@ -50,10 +50,15 @@ def sample_name(index: int) -> str:
 
 
 def _sample_record(folder: Path) -> dict[str, Any]:
+    """Every file of a staged sample with its SHA-256, size and, for an EXR, the format of its channel set."""
+    from scopetwin.sim.datasets.validate import exr_format
+
     files = {}
     for f in sorted(folder.iterdir()):
         if f.name != SAMPLE_FILE and f.is_file():
             files[f.name] = {"sha256": sha256_file(f), "bytes": f.stat().st_size}
+            if f.suffix == ".exr":
+                files[f.name]["format"] = exr_format(f)
     return files
 
 
@@ -76,6 +81,7 @@ def generate_sample(plan_json: dict[str, Any], index: int, root: str, threads: i
             out = plan.write_sample(index, stage)
             truth = out["truth"]
             truth.update(
+                format=plan.format,
                 sample=index,
                 master_seed=plan.config.dataset.master_seed,
                 kind=plan.config.dataset.kind,
@@ -83,7 +89,12 @@ def generate_sample(plan_json: dict[str, Any], index: int, root: str, threads: i
                 versions=versions(SAMPLE_PACKAGES),
             )
             write_json_atomic(stage.path("truth.json"), truth)
-            body = {**record, "kind": plan.config.dataset.kind, "files": _sample_record(stage.stage)}
+            body = {
+                "format": plan.format,
+                **record,
+                "kind": plan.config.dataset.kind,
+                "files": _sample_record(stage.stage),
+            }
             write_json_atomic(stage.path(SAMPLE_FILE), body)
             # False: another run finished the same sample first (identical bytes): keep theirs
             status = "written" if stage.rename() else "exists"
@@ -267,6 +278,8 @@ def _write_plan(root: Path, plan: Plan) -> None:
     new = plan.to_json()
     if path.exists():
         old = json.loads(path.read_text())
+        if old.get("format") != new["format"]:
+            Plan.from_json(old, str(path)).check_writable(str(root))
         if old != json.loads(json.dumps(new)):
             raise DatasetError(
                 f"{root} already holds a different dataset ({CONFIG_FILE} differs); choose another "
@@ -393,6 +406,7 @@ def _generate_locked(
     tqdm: Any,
 ) -> dict[str, Any]:
     _write_plan(root, plan)
+    plan.check_writable(str(root))
     state = recover(root)
     wanted = list(range(plan.config.dataset.count)) if indices is None else list(indices)
     listed = set(state["done"])
@@ -473,10 +487,16 @@ def verify(root: str | Path) -> dict[str, Any]:
 
     Returns ``{"complete": n, "missing": [...], "corrupt": [...], "duplicates": [...]}`` plus ``count``,
     ``unlisted`` (finished folders the manifest lacks), ``temporary`` (left-over temporary folders),
-    ``bad_manifest_lines`` and ``ok``.
+    ``bad_manifest_lines``, ``invalid`` (samples whose hashes match but whose files break their format's JSON
+    Schemas or hold values that cannot be true: non-finite numbers, values out of range, an image without signal,
+    inconsistent maps; :func:`scopetwin.sim.datasets.validate.check_sample`), ``format`` and ``ok``. An invalid
+    sample does not count as complete.
     """
+    from scopetwin.sim.datasets.validate import check_sample, schema_errors
+
     root = Path(root)
     plan = load_plan(root)
+    config_errors = schema_errors(json.loads((root / CONFIG_FILE).read_text()), "dataset") if plan.format >= 2 else []
     count = plan.config.dataset.count
     rows, bad = _read_manifest(root)
     by_index: dict[int, list[dict[str, Any]]] = {}
@@ -489,6 +509,7 @@ def verify(root: str | Path) -> dict[str, Any]:
     duplicates = sorted(i for i, r in by_index.items() if len(r) > 1)
     stray = sorted(n for n in folders if not (n.isdigit() and len(n) == 6 and int(n) < count))
     missing, corrupt, unlisted, complete = [], [], [], 0
+    invalid: list[dict[str, Any]] = []
     for i in range(count):
         folder = folders.get(sample_name(i))
         if folder is None:
@@ -496,8 +517,11 @@ def verify(root: str | Path) -> dict[str, Any]:
             continue
         listed = by_index.get(i)
         reason = _check_sample(folder, listed[0]["files"] if listed else None)
+        problems = check_sample(folder, plan.format) if reason is None else []
         if reason is not None:
             corrupt.append({"index": i, "reason": reason})
+        elif problems:
+            invalid.append({"index": i, "reasons": problems})
         elif not listed:
             unlisted.append(i)
         elif i not in duplicates:
@@ -514,9 +538,12 @@ def verify(root: str | Path) -> dict[str, Any]:
         "stray_folders": stray,
         "manifest_out_of_range": extra,
         "bad_manifest_lines": bad,
+        "invalid": invalid,
+        "format": plan.format,
+        "config_errors": config_errors,
     }
     result["in_use_by"] = holder(root)  # a live run is still writing (its lock file's contents)
     result["ok"] = complete == count and not (
-        missing or corrupt or duplicates or unlisted or temporary or stray or extra or bad
+        missing or corrupt or duplicates or unlisted or temporary or stray or extra or bad or invalid or config_errors
     )
     return result

@@ -1,0 +1,343 @@
+"""Per-pixel truth aligned with the image: one multi-channel EXR per sample, ``maps.exr`` (format ``maps/1``).
+
+Every map is exact for the ray through each pixel's centre (continuous pixel coordinates (col + 0.5, row + 0.5),
+docs/contract.md "Camera"), traced with the project's own float64 ray model of seed §1.6 — the camera's chief ray
+(§1.6.2; a thin lens does not move it), the secant intersection with the substrate (§1.6.4, eq. 1.6), the
+reflection (§1.6.5) and the pattern plane (§1.6.3) — vectorised over all pixels with numpy; nothing is
+supersampled. It is the model :mod:`scopetwin.scenes.analytic` renders with and :mod:`scopetwin.sim.truth` finds the
+marker images with, so the maps, the marker truth and the image agree.
+
+Channels (layer ``name`` with components ``name.X`` ... as EXR layers; float32; NaN where a value does not exist):
+
+==============  ==========  =====================================================================================
+layer           components  holds (Part I samples)
+==============  ==========  =====================================================================================
+``mask``        1           1 where the pixel's ray meets the reflecting element (the substrate, the mirror) or,
+                            in a calibration view, the target plate; else 0
+``roi``         1           deflectometry: 1 where that point lies in the region of interest between the holding
+                            frame's two supports (only there the substrate reflects into the camera, §1.10)
+``point``       X, Y, Z     world mm: where the ray first meets the substrate / mirror / target
+``surface_xy``  X, Y        substrate (base-plane) mm of that point (deflectometry and mirror)
+``height``      1           mm: the true surface h(x, y) at ``surface_xy`` (NaN off the substrate)
+``normal``      X, Y, Z     the unit surface normal there, world frame
+``pattern_xy``  X, Y        pattern-plane mm (the pattern's own T_x, T_y from its centre) where the reflected ray
+                            (in a calibration view: the ray itself) meets the pattern plane from its emitting side;
+                            NaN where it misses
+``marker``      I, J        the index (i, j) (docs/contract.md "Marker indices") of the marker whose spot the pixel
+                            sees: ``pattern_xy`` inside that marker's disc, on the plate, through the reflecting
+                            region; NaN elsewhere (deflectometry indices may be negative, so no integer marks
+                            "none" here)
+``marker_id``   1           the marker's position in ``truth.json``'s ``markers`` list (an integer), -1 elsewhere
+==============  ==========  =====================================================================================
+
+Four-channel (``cmu``) samples hold ``object_xy_<channel>`` (X, Y): object-plane mm of each pixel centre of that
+channel's image, by the inverse of the channel's object -> pixel map in ``truth.json`` (an affine map fitted to the
+numpy tracer's spot centroids of a 3 x 3 object grid; its fit residual is ``object_to_pixel_residual_px`` there).
+GRIN samples hold no maps.
+
+The file's header carries ``scopetwin_format`` = ``maps/1`` and ``scopetwin_maps``, a JSON list of its layers with
+their components and units.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scopetwin.scenes.errors import FileFormatError
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap
+
+MAPS_FILE = "maps.exr"
+MAPS_FORMAT = "maps"
+MAPS_VERSION = 1
+FORMAT_ATTRIBUTE = "scopetwin_format"
+
+
+@dataclass(frozen=True)
+class Layer:
+    """One map: its components (EXR channel suffixes), unit and meaning."""
+
+    components: tuple[str, ...]
+    unit: str
+    text: str
+
+
+#: The layers of a Part I sample's maps, in the order they are documented and returned.
+LAYERS: dict[str, Layer] = {
+    "mask": Layer((), "", "the pixel's ray meets the reflecting element (or the target plate): 1, else 0"),
+    "roi": Layer((), "", "deflectometry: the point lies in the region of interest (reflects into the camera)"),
+    "point": Layer(("X", "Y", "Z"), "mm", "world point where the ray first meets the substrate/mirror/target"),
+    "surface_xy": Layer(("X", "Y"), "mm", "substrate base-plane coordinates of that point"),
+    "height": Layer((), "mm", "true surface height h at surface_xy"),
+    "normal": Layer(("X", "Y", "Z"), "", "unit surface normal there, world frame"),
+    "pattern_xy": Layer(("X", "Y"), "mm", "pattern-plane coordinates where the (reflected) ray meets the pattern"),
+    "marker": Layer(("I", "J"), "", "index (i, j) of the marker whose spot the pixel sees"),
+    "marker_id": Layer((), "", "that marker's position in truth.json's markers list, -1 elsewhere"),
+}
+#: Layers that are integers or flags when read back (the EXR stores float32).
+INTEGER_LAYERS = {"marker_id": np.int32}
+BOOL_LAYERS = ("mask", "roi")
+OBJECT_LAYER = Layer(("X", "Y"), "mm", "object-plane coordinates of the pixel centre (inverse object->pixel map)")
+
+
+def _pixel_rays(setup: Setup) -> tuple[NDArray[np.float64], NDArray[np.float64], tuple[int, int]]:
+    """Chief rays (origin, unit direction) through every pixel centre, rows then columns; and (rows, cols)."""
+    cam = setup.camera_model
+    centres = cam.pixel_centers().reshape(-1, 2)
+    o, d = cam.rays(centres)
+    return o, d, (cam.ny, cam.nx)
+
+
+def _mul(v: NDArray[np.float64], m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``v @ m`` for (n, 3) rows and a 3 x 3 matrix, as three broadcasts (numpy's matmul is slow for this shape)."""
+    return v[:, :1] * m[0] + v[:, 1:2] * m[1] + v[:, 2:3] * m[2]
+
+
+def _to_local(frame: Any, p: NDArray[np.float64]) -> NDArray[np.float64]:
+    return _mul(p - frame.origin, frame.rotation.T)
+
+
+def _to_global(frame: Any, q: NDArray[np.float64]) -> NDArray[np.float64]:
+    return frame.origin + _mul(q, frame.rotation)
+
+
+def part1_maps(setup: Setup, heights: HeightMap | None = None) -> dict[str, NDArray[Any]]:
+    """The per-pixel maps of a Part I setup (module docstring), as (rows, cols[, k]) float64 arrays.
+
+    Parameters
+    ----------
+    setup : Setup
+        A deflectometry, mirror or calibration-target setup.
+    heights : HeightMap, optional
+        The substrate's true height map (deflectometry).
+
+    Returns
+    -------
+    dict
+        Layer name -> array (rows, cols) or (rows, cols, k); ``mask``/``roi`` as 0/1, NaN where undefined,
+        ``marker_id`` -1 where no marker is seen.
+    """
+    from scopetwin.scenes.analytic import AnalyticScene
+    from scopetwin.scenes.geometry import Frame, intersect_plane, reflect
+
+    scene = AnalyticScene(setup, heights)
+    pattern = scene.pattern
+    o, d, shape = _pixel_rays(setup)
+    out: dict[str, NDArray[Any]] = {}
+    if setup.scene == "target":
+        lam = intersect_plane(o, d, pattern.frame)
+        ok = ((d @ pattern.frame.nz) < 0) & np.isfinite(lam) & (lam > 0)
+        p = o + np.where(ok, lam, 0.0)[:, None] * d
+        xy = _to_local(pattern.frame, p)[:, :2]
+        mask = ok & (np.abs(xy[:, 0]) <= 0.5 * pattern.size_x) & (np.abs(xy[:, 1]) <= 0.5 * pattern.size_y)
+        reaches = seen = mask
+    else:
+        if setup.scene == "mirror":
+            assert setup.mirror is not None
+            lam = intersect_plane(o, d, Frame.identity())
+            ok = np.isfinite(lam) & (lam > 0) & (d[:, 2] < 0)
+            p = o + np.where(ok, lam, 0.0)[:, None] * d
+            local = p
+            sx, sy = setup.mirror.size
+            mask = ok & (np.abs(p[:, 0]) <= 0.5 * sx) & (np.abs(p[:, 1]) <= 0.5 * sy)
+            normals = np.broadcast_to(np.array([0.0, 0.0, 1.0]), p.shape)
+            h = np.zeros(len(p))
+            seen = mask
+        else:
+            sub = scene.substrate
+            assert sub is not None and heights is not None
+            p, mask, seen, normals, h, local = _substrate_hits(sub, heights, o, d)
+            out["roi"] = seen.astype(np.float64)
+        k = np.flatnonzero(mask)  # reflect only what meets the element
+        refl = reflect(d[k], normals[k])
+        lam_p = intersect_plane(p[k], refl, pattern.frame)
+        ok_k = ((refl @ pattern.frame.nz) < 0) & np.isfinite(lam_p) & (lam_p > 0)
+        reaches = np.zeros(len(o), dtype=bool)
+        reaches[k] = ok_k
+        xy = np.zeros((len(o), 2))
+        xy[k] = _to_local(pattern.frame, p[k] + np.where(ok_k, lam_p, 0.0)[:, None] * refl)[:, :2]
+        out["surface_xy"] = np.where(mask[:, None], local[:, :2], np.nan)
+        out["height"] = np.where(mask, h, np.nan)
+        out["normal"] = np.where(mask[:, None], normals, np.nan)
+    out["mask"] = mask.astype(np.float64)
+    out["point"] = np.where(mask[:, None], p, np.nan)
+    out["pattern_xy"] = np.where(reaches[:, None], xy, np.nan)
+    out["marker"], out["marker_id"] = _markers(pattern, np.where(reaches[:, None], xy, 0.0), reaches & seen)
+    # the documented order, each (rows, cols[, k])
+    return {name: out[name].reshape(*shape, *out[name].shape[1:]) for name in LAYERS if name in out}
+
+
+def _substrate_hits(
+    sub: Any, heights: HeightMap, o: NDArray[np.float64], d: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_], NDArray[np.float64], NDArray, NDArray]:
+    """Where each ray first meets the substrate: (point, on the substrate, in the ROI, normal, height, local point).
+
+    Only rays that can reach the substrate are traced: those whose base-plane hit lies within the substrate grown by
+    the largest horizontal run of a ray over the surface's height range (the spline overshoots its nodes by less than
+    their range, so twice the largest node height bounds it). The secant iteration is the renderer's
+    (:meth:`scopetwin.scenes.surface.Substrate.intersect`), on the same spline (:mod:`._spline`).
+    """
+    from scopetwin.sim.datasets._spline import FastSurface
+
+    n = len(o)
+    lo, ld = _to_local(sub.frame, o), _mul(d, sub.frame.rotation.T)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam_plane = -lo[:, 2] / ld[:, 2]
+        run = np.hypot(ld[:, 0], ld[:, 1]) / np.abs(ld[:, 2])
+    base = lo + np.where(np.isfinite(lam_plane), lam_plane, 0.0)[:, None] * ld
+    reach = 2.0 * float(np.abs(heights.z).max()) + 1e-6
+    grow = np.where(np.isfinite(run), run, np.inf) * reach
+    cand = np.flatnonzero(
+        np.isfinite(lam_plane)
+        & (lam_plane > 0)
+        & (np.abs(base[:, 0]) <= 0.5 * sub.size_x + grow)
+        & (np.abs(base[:, 1]) <= 0.5 * sub.size_y + grow)
+    )
+    lam, ok, h_c, hx, hy = FastSurface(heights).intersect(lo[cand], ld[cand])
+    ok &= lam > 0
+    local = np.full((n, 3), np.nan)
+    local[cand] = lo[cand] + np.where(ok, lam, 0.0)[:, None] * ld[cand]
+    hit = np.zeros(n, dtype=bool)
+    hit[cand] = ok
+    x, y = np.where(hit, local[:, 0], 0.0), np.where(hit, local[:, 1], 0.0)
+    mask = hit & sub.on_substrate(x, y)
+    roi = mask & sub.in_roi(x, y)
+    n_local = np.full((n, 3), np.nan)
+    n_local[cand] = np.stack([-hx, -hy, np.ones_like(hx)], axis=-1) / np.sqrt(1.0 + hx * hx + hy * hy)[:, None]
+    h = np.full(n, np.nan)
+    h[cand] = h_c
+    p = _to_global(sub.frame, np.where(hit[:, None], local, 0.0))
+    return p, mask, roi, _mul(n_local, sub.frame.rotation), h, local
+
+
+def _markers(pattern: Any, xy: NDArray[np.float64], valid: NDArray[np.bool_]) -> tuple[NDArray, NDArray]:
+    """(i, j) (NaN where none) and list position (-1 where none) of the marker whose spot each point is in.
+
+    The same rule as the rendered grey value (:meth:`scopetwin.scenes.pattern.MarkerPattern.grey_local`): the
+    nearest marker cell, strictly inside its disc, on the plate.
+    """
+    ij = pattern.nearest_index(xy)
+    rel = xy - pattern.centers_local(ij)
+    inside = np.hypot(rel[:, 0], rel[:, 1]) < pattern.radii(ij)
+    on_plate = (np.abs(xy[:, 0]) <= 0.5 * pattern.size_x) & (np.abs(xy[:, 1]) <= 0.5 * pattern.size_y)
+    hit = valid & inside & on_plate
+    first_i = int(pattern.indices()[0, 0])
+    first_j = int(pattern.indices()[0, 1])
+    position = (ij[:, 1] - first_j) * pattern.n_x + (ij[:, 0] - first_i)  # indices() runs i fastest
+    marker = np.where(hit[:, None], ij.astype(np.float64), np.nan)
+    return marker, np.where(hit, position, -1).astype(np.float64)
+
+
+def cmu_object_maps(channels: dict[str, Any], height: int, width: int) -> dict[str, NDArray[np.float64]]:
+    """``object_xy_<channel>`` (rows, cols, 2), mm: each pixel centre through the inverse of the channel's affine
+    object -> pixel map (``truth.json`` ``channels.<ch>.object_to_pixel``, (col, row) = A (x, y, 1))."""
+    cc, rr = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    px = np.stack([cc, rr], axis=-1)
+    out = {}
+    for ch, entry in channels.items():
+        a = np.asarray(entry["object_to_pixel"], dtype=np.float64)
+        inv = np.linalg.inv(a[:, :2])
+        out[f"object_xy_{ch}"] = (px - a[:, 2]) @ inv.T
+    return out
+
+
+def layer_doc(name: str) -> Layer:
+    """The documentation of a layer (``object_xy_<channel>`` included)."""
+    if name.startswith("object_xy_"):
+        return OBJECT_LAYER
+    return LAYERS[name]
+
+
+def write_maps(path: Path, maps: dict[str, NDArray[Any]], **attrs: Any) -> None:
+    """Write ``maps`` as one multi-channel float32 EXR (ZIP, scan lines) with the format and layer attributes."""
+    import OpenEXR
+
+    from scopetwin.scenes.io import atomic_path, exr_write_error
+
+    chans: dict[str, NDArray[np.float32]] = {}
+    layers = []
+    for name, arr in maps.items():
+        doc = layer_doc(name)
+        a = np.asarray(arr)
+        if doc.components:
+            if a.ndim != 3 or a.shape[2] != len(doc.components):
+                raise FileFormatError(f"map {name!r} needs {len(doc.components)} components, got shape {a.shape}")
+            for k, comp in enumerate(doc.components):
+                chans[f"{name}.{comp}"] = np.ascontiguousarray(a[..., k], dtype=np.float32)
+        else:
+            chans[name] = np.ascontiguousarray(a, dtype=np.float32)
+        layers.append({"name": name, "components": list(doc.components), "unit": doc.unit, "text": doc.text})
+    header: dict[str, Any] = {
+        "compression": OpenEXR.ZIP_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+        FORMAT_ATTRIBUTE: f"{MAPS_FORMAT}/{MAPS_VERSION}",
+        "scopetwin_maps": json.dumps(layers),
+    }
+    header.update({k: v if isinstance(v, str | int | float) else json.dumps(v) for k, v in attrs.items()})
+    with atomic_path(path) as tmp:
+        try:
+            OpenEXR.File(header, chans).write(str(tmp))
+        except RuntimeError as exc:
+            raise exr_write_error(path, exc) from None
+
+
+def read_maps(path: Path) -> dict[str, NDArray[Any]]:
+    """Read a ``maps.exr``: layer -> (rows, cols) or (rows, cols, k) arrays (flags as bool, ids as int32).
+
+    Raises
+    ------
+    FileFormatError
+        Unreadable file, or a format this reader does not know (the message names the version it needs).
+    """
+    import OpenEXR
+
+    try:
+        f = OpenEXR.File(str(path), separate_channels=True)
+        channels = f.channels()
+        header = dict(f.header())
+    except Exception as exc:  # OpenEXR raises bare RuntimeError/ValueError on corrupt files
+        raise FileFormatError(f"{path} is not a readable OpenEXR file ({exc})") from None
+    check_format(path, header, MAPS_FORMAT, MAPS_VERSION)
+    groups: dict[str, dict[str, NDArray[np.float32]]] = {}
+    for cname, chan in channels.items():
+        layer, _, comp = cname.rpartition(".")
+        groups.setdefault(layer or comp, {})[comp if layer else ""] = np.asarray(chan.pixels, dtype=np.float32)
+    order = [*[n for n in LAYERS if n in groups], *sorted(n for n in groups if n not in LAYERS)]
+    out: dict[str, NDArray[Any]] = {}
+    for name in order:
+        parts = groups[name]
+        if "" in parts:
+            arr: NDArray[Any] = parts[""]
+        else:
+            comps = layer_doc(name).components if (name in LAYERS or name.startswith("object_xy_")) else ()
+            keys = [c for c in comps if c in parts] or sorted(parts)
+            arr = np.stack([parts[c] for c in keys], axis=-1)
+        if name in BOOL_LAYERS:
+            arr = arr > 0.5
+        elif name in INTEGER_LAYERS:
+            arr = arr.astype(INTEGER_LAYERS[name])
+        out[name] = arr
+    return out
+
+
+def check_format(path: Path | str, header: dict[str, Any], name: str, version: int) -> int:
+    """The format version of a file's header (``scopetwin_format`` = ``name/N``; absent: 1); raise when this reader
+    cannot read it, naming the version it needs."""
+    text = header.get(FORMAT_ATTRIBUTE)
+    if text is None:
+        return 1
+    fname, _, ver = str(text).partition("/")
+    if fname != name or not ver.isdigit():
+        raise FileFormatError(f"{path}: scopetwin_format {text!r} is not a {name!r} file")
+    if int(ver) > version:
+        raise FileFormatError(
+            f"{path} is {name} format {ver}; this scopetwin reads {name} format {version} and older: "
+            "install a newer scopetwin to read it"
+        )
+    return int(ver)
