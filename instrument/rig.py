@@ -56,6 +56,21 @@ from scopetwin.instrument.interrupts import deferred_signals
 
 KINDS = ("camera", "stage", "focus", "light", "shutter", "trigger")
 DRIVERS = ("sim", "pi-gcs", "jena-piezo", "fpga-board", "basler")
+#: Optical facts a device table may give beside its driver's fields (any driver): they describe the light path for
+#: the metadata of acquisitions (OME channel colours and wavelengths, the objective) and limit nothing.
+OPTICAL_FIELDS = {"light": ("wavelength_nm", "emission_nm"), "camera": ("numerical_aperture",)}
+
+
+def _pop_optics(name: str, table: dict[str, Any]) -> dict[str, float]:
+    """Take the optical fields of ``table``'s kind out of it (positive numbers), by name."""
+    optics = {}
+    for key in OPTICAL_FIELDS.get(str(table.get("kind")), ()):
+        if key in table:
+            value = table.pop(key)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < 1e6:
+                raise RigError(f"device {name!r}: {key} must be a positive number, got {value!r}")
+            optics[key] = float(value)
+    return optics
 
 
 @dataclass
@@ -310,6 +325,7 @@ class Rig:
         transports: dict | None = None,
         path: str = "",
         ports: dict[str, str] | None = None,
+        optics: dict[str, dict[str, float]] | None = None,
     ) -> None:
         self.name = name
         self.devices = devices
@@ -317,6 +333,8 @@ class Rig:
         self.path = path
         self.ports = dict(ports or {})
         self._transports = transports or {}
+        #: Device name -> its optical fields (:data:`OPTICAL_FIELDS`), for devices whose table gives any.
+        self.optics = {name: dict(fields) for name, fields in (optics or {}).items() if fields}
 
     def emulated_ports(self) -> dict[str, str]:
         """Devices on ``emu://`` ports: in-process emulators that start fresh with every :func:`open_rig`."""
@@ -427,6 +445,7 @@ class Rig:
             entry = device.describe()
             if name in self.ports:
                 entry["port"] = self.ports[name]
+            entry.update(self.optics.get(name, {}))
             devices.append(entry)
         return {"rig": self.name, "path": self.path, "devices": devices}
 
@@ -449,11 +468,14 @@ def load_rig(path: str | Path) -> Rig:
         raise RigError(f"rig file {str(p)!r} has no [devices.NAME] tables")
     ctx = _Context()
     devices: dict[str, Device] = {}
+    optics: dict[str, dict[str, float]] = {}
     ports = {name: str(table["port"]) for name, table in tables.items() if isinstance(table, dict) and "port" in table}
     try:
         for name, table in tables.items():
             if not isinstance(table, dict):
                 raise RigError(f"rig file {str(p)!r}: devices.{name} is not a table")
+            table = dict(table)
+            optics[name] = _pop_optics(name, table)
             devices[name] = _build(name, table, ctx)
     except Exception:
         for transport in ctx.transports.values():
@@ -463,7 +485,7 @@ def load_rig(path: str | Path) -> Rig:
     if ctx.world is not None:
         connect_emulators(ctx.world, devices)
     rig_name = str(data.get("rig", {}).get("name", p.stem))
-    return Rig(rig_name, devices, ctx.world, ctx.transports, str(p), ports)
+    return Rig(rig_name, devices, ctx.world, ctx.transports, str(p), ports, optics)
 
 
 def _emulator_of(transport: Any) -> Any:

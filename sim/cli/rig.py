@@ -1,4 +1,4 @@
-"""``scopetwin rig RIG.toml info|move|position|acquire|mda|serve`` (docs/contract.md, 'Rig files').
+"""``scopetwin rig RIG.toml info|move|position|acquire|mda|mm-config|serve`` (docs/contract.md, 'Rig files').
 
 :func:`register` adds the ``rig`` command to an argparse subparsers object; each
 action's handler returns a JSON-ready dict (written by the main CLI when
@@ -13,7 +13,11 @@ action's handler returns a JSON-ready dict (written by the main CLI when
   to ``OUT`` as they come, plus ``manifest.json`` and ``preview.png`` (the last frame); one warning
   line when no frame carries signal;
 * ``mda SEQUENCE --camera NAME --out PATH`` — a useq MDA sequence through pymmcore-plus
-  (:func:`scopetwin.instrument.micromanager.run_mda`) into OME-TIFF or OME-Zarr, with a progress bar;
+  (:func:`scopetwin.instrument.micromanager.run_mda`) into OME-TIFF or OME-Zarr, with a progress bar; the plan is
+  sized in closed form and checked against the rig's limits before anything moves (one line naming the event and
+  the limit, exit 2, nothing written); the JSON records what the devices reported for every plane;
+* ``mm-config --out X.cfg`` — the rig's Micro-Manager configuration (pymmcore-plus Python devices that a plain
+  ``UniMMCore`` loads; :func:`scopetwin.instrument.micromanager.config_text`);
 * ``serve`` — the rig's devices through python-microscope's device server on 127.0.0.1.
 
 The rig is opened with :func:`scopetwin.instrument.rig.open_rig`, so lights are off again on every exit.
@@ -36,6 +40,7 @@ import logging
 import sys
 import threading
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -153,11 +158,26 @@ def estimate_acquire(args: argparse.Namespace) -> dict[str, int]:
     return {"out": int(args.frames) * _camera_pixels(args.rig, args.camera) * 5}
 
 
-def estimate_mda(args: argparse.Namespace) -> dict[str, int]:
-    """Bytes ``mda`` writes: each plane 16 bits per pixel (12-bit cameras deliver uint16)."""
-    from scopetwin.instrument.micromanager import load_sequence
+def mda_size(rig_path: str, camera: str | None, sequence: Any) -> Any:
+    """The plan's planes, bytes and least duration in closed form (:func:`scopetwin.instrument.mdaplan.plan_size`),
+    from the rig TOML alone: frames 16 bits per pixel (12-bit cameras deliver uint16)."""
+    from scopetwin.instrument.devices import Range
+    from scopetwin.instrument.mdaplan import PlanLimits, load_sequence, plan_size
 
-    return {"out": sum(1 for _ in load_sequence(args.sequence)) * _camera_pixels(args.rig, args.camera) * 2}
+    try:
+        tables = tomllib.loads(Path(rig_path).read_text()).get("devices", {})
+        table = next(t for n, t in tables.items() if t.get("kind") == "camera" and camera in (None, n))
+        rows, cols = (int(v) for v in table.get("sensor_shape", [1024, 1360]))
+        pixel_um = float(table.get("pixel_size_um", 6.45)) / float(table.get("magnification", 1.0))
+    except (OSError, ValueError, TypeError, StopIteration, AttributeError):
+        rows, cols, pixel_um = 0, 0, 1.0
+    limits = PlanLimits(None, None, None, Range(0.0, 0.0, "ms"), frame_shape=(rows, cols), pixel_size_um=pixel_um)
+    return plan_size(load_sequence(sequence), limits)
+
+
+def estimate_mda(args: argparse.Namespace) -> dict[str, int]:
+    """Bytes ``mda`` writes, in closed form (never by enumerating the events)."""
+    return {"out": mda_size(args.rig, args.camera, args.sequence).bytes}
 
 
 def cmd_acquire(args: argparse.Namespace) -> dict[str, Any]:
@@ -233,7 +253,8 @@ def cmd_mda(args: argparse.Namespace) -> dict[str, Any]:
     """Run a useq MDA sequence (YAML/JSON, µm and ms) on the rig through pymmcore-plus into an OME file."""
     from tqdm import tqdm
 
-    from scopetwin.instrument.micromanager import load_sequence, run_mda
+    from scopetwin.instrument.mdaplan import load_sequence
+    from scopetwin.sim.cli.outputs import human_bytes
 
     out = Path(args.out)
     if not out.name.lower().endswith(OME_SUFFIXES):
@@ -242,15 +263,29 @@ def cmd_mda(args: argparse.Namespace) -> dict[str, Any]:
         if path.exists():
             raise RigError(f"--out {args.out!r}: {str(path)!r} exists already; choose a new path")
     sequence = load_sequence(args.sequence)
-    total = sum(1 for _ in sequence)
-    if total == 0:
+    size = mda_size(args.rig, args.camera, sequence)  # closed form: a 1e8-loop plan is sized at once
+    if size.planes == 0:
         raise RigError(f"MDA sequence {args.sequence!r} has no events")
+    log.info("plan: %d plane(s), %s, at least %.3g s", size.planes, human_bytes(size.bytes), size.seconds)
+    from scopetwin.instrument.micromanager import run_mda  # pymmcore-plus is imported only now
+
     _quiet_pymmcore_plus()
-    bar_ = tqdm(total=total, desc="mda", unit="plane", file=sys.stderr, disable=args.quiet)
-    with open_rig(args.rig) as rig, bar_ as bar:
+    bars: list[Any] = []  # the progress bar starts with the first plane: a refused plan prints its one line only
+
+    def progress(*_: Any) -> None:
+        if not bars:
+            bars.append(tqdm(total=size.planes, desc="mda", unit="plane", file=sys.stderr, disable=args.quiet))
+        bars[0].update(1)
+
+    with open_rig(args.rig) as rig:
         rig.camera(args.camera)  # a clear error for an unknown camera before the core loads
-        out.parent.mkdir(parents=True, exist_ok=True)
-        result = run_mda(rig, sequence, camera=args.camera, output=str(out), on_frame=lambda *_: bar.update(1))
+        try:
+            result = run_mda(  # checked against the rig's limits before the first event: nothing written if refused
+                rig, sequence, camera=args.camera, output=str(out), on_frame=progress, single_file=args.single_file
+            )
+        finally:
+            for bar in bars:
+                bar.close()
     files = _ome_files(out)
     where = str(out) if files == [str(out)] else str(_ome_outputs(out)[-1])  # several positions: a folder of TIFFs
     print(
@@ -264,8 +299,30 @@ def cmd_mda(args: argparse.Namespace) -> dict[str, Any]:
         "pixel_size_um": result["pixel_size_um"],
         "bit_depth": result["bit_depth"],
         "channels": result["channels"],
+        "estimate": result["estimate"],
         "frames": result["frames"],
     }
+
+
+def cmd_mm_config(args: argparse.Namespace) -> dict[str, Any]:
+    """Write the rig's Micro-Manager configuration file (Python devices a plain ``UniMMCore`` loads)."""
+    from scopetwin.instrument.micromanager import config_text
+    from scopetwin.instrument.rig import load_rig
+
+    out = Path(args.out)
+    if out.suffix.lower() != ".cfg":
+        raise RigError(f"--out {args.out!r} must end in .cfg")
+    rig = load_rig(args.rig)  # nothing is sent to a device: the configuration comes from the rig file
+    try:
+        text = config_text(rig, camera=args.camera, focus=args.focus, light=args.light)
+    finally:
+        rig.close()
+    out.write_text(text)
+    lines = [line for line in text.splitlines() if line and not line.startswith("# ")]
+    devices = [line.split(",")[1] for line in lines if line.startswith("#py pyDevice,")]
+    presets = [line.split(",")[2] for line in lines if line.startswith("#py ConfigGroup,")]
+    print(f"wrote {out}: devices {', '.join(devices)}; Channel presets {', '.join(presets) or '-'}")
+    return {"path": str(out), "devices": devices, "channel_presets": presets, "rig": rig.name}
 
 
 def cmd_serve(args: argparse.Namespace) -> dict[str, Any]:
@@ -293,28 +350,8 @@ def cmd_serve(args: argparse.Namespace) -> dict[str, Any]:
     return {"rig": rig.name, "host": LOCALHOST, "uris": uris}
 
 
-def register(subparsers: Any) -> argparse.ArgumentParser:
-    """Add ``rig RIG.toml info|move|position|acquire|mda|serve`` to an argparse subparsers object."""
-    parser = subparsers.add_parser(
-        "rig",
-        help="open a rig config (simulated or hardware): list devices, move, acquire, MDA, serve",
-        description="Open a rig config (simulated or hardware): list devices and limits, move, acquire, run a "
-        "Micro-Manager MDA into OME files, serve the devices to python-microscope clients. Devices on emu:// "
-        "ports talk to emulators that live for one command only (each command starts them fresh); run "
-        "'scopetwin emulate KIND' and put its port in the rig file to keep their state between commands.",
-        **conventions("scopetwin rig rigs/sim-cmu.toml info", "scopetwin rig rigs/emulated-hardware.toml move x 80"),
-    )
-    parser.add_argument("rig", help="rig TOML file (see rigs/)")
-    actions = parser.add_subparsers(dest="rig_action", required=True)
-
-    def add(name: str, func: Any, help_: str, *examples: str) -> argparse.ArgumentParser:
-        p = actions.add_parser(
-            name, help=help_, description=help_, prog=f"scopetwin rig RIG {name}", **conventions(*examples)
-        )
-        p.set_defaults(func=func)
-        p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
-        return p
-
+def _add_motion_commands(add: Callable[..., argparse.ArgumentParser]) -> None:
+    """``rig RIG info``, ``rig RIG move`` and ``rig RIG position``."""
     add(
         "info",
         cmd_info,
@@ -340,6 +377,62 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
         "scopetwin rig rigs/emulated-hardware.toml position y --json y.json",
     )
     p.add_argument("name", help="device name in the rig")
+
+
+def _add_mda_commands(add: Callable[..., argparse.ArgumentParser]) -> None:
+    """``rig RIG mda`` and ``rig RIG mm-config``."""
+    p = add(
+        "mda",
+        cmd_mda,
+        "run a useq MDA sequence (YAML or JSON; um and ms) through pymmcore-plus into OME-TIFF or OME-Zarr; every "
+        "light is a preset of config group Channel; Ctrl-C keeps the planes written",
+        "scopetwin rig rigs/sim-cmu.toml mda examples/mda/2-positions-2-channels-z.json --camera cam_nir "
+        "--out stack.ome.tif",
+        "scopetwin rig rigs/sim-cmu.toml mda examples/mda/2-positions-2-channels-z.json --out stack.ome.zarr -q",
+    )
+    p.add_argument("sequence", help="MDA sequence file (.yaml or .json, useq-schema)")
+    p.add_argument("--camera", help="camera name (default: the first)")
+    p.add_argument("--out", required=True, help="output .ome.tif or .ome.zarr (several positions: one TIFF each)")
+    p.add_argument("--single-file", action="store_true", help="OME-TIFF: all positions in one multi-series file")
+    p.set_defaults(outputs=[("out", "path", "keep"), ("json", "file")], estimate=estimate_mda)
+    p = add(
+        "mm-config",
+        cmd_mm_config,
+        "write the rig's Micro-Manager configuration: pymmcore-plus Python devices ('#py' lines) that a plain "
+        "UniMMCore, pymmcore-widgets or napari-micromanager load; a Channel preset per light, the pixel size",
+        "scopetwin rig rigs/sim-cmu.toml mm-config --out sim-cmu.cfg",
+        "scopetwin rig rigs/sim-cmu.toml mm-config --camera cam_nir --light deep_red --out nir.cfg",
+    )
+    p.add_argument("--out", required=True, help="the .cfg file to write")
+    p.add_argument("--camera", help="the camera (device Camera; default: the first)")
+    p.add_argument("--focus", help="the focus drive (device Z; default: the first)")
+    p.add_argument("--light", help="the light selected at start (default: the first)")
+    p.set_defaults(outputs=[("out", "file"), ("json", "file")])
+
+
+def register(subparsers: Any) -> argparse.ArgumentParser:
+    """Add ``rig RIG.toml info|move|position|acquire|mda|mm-config|serve`` to an argparse subparsers object."""
+    parser = subparsers.add_parser(
+        "rig",
+        help="open a rig config (simulated or hardware): list devices, move, acquire, MDA, serve",
+        description="Open a rig config (simulated or hardware): list devices and limits, move, acquire, run a "
+        "Micro-Manager MDA into OME files, serve the devices to python-microscope clients. Devices on emu:// "
+        "ports talk to emulators that live for one command only (each command starts them fresh); run "
+        "'scopetwin emulate KIND' and put its port in the rig file to keep their state between commands.",
+        **conventions("scopetwin rig rigs/sim-cmu.toml info", "scopetwin rig rigs/emulated-hardware.toml move x 80"),
+    )
+    parser.add_argument("rig", help="rig TOML file (see rigs/)")
+    actions = parser.add_subparsers(dest="rig_action", required=True)
+
+    def add(name: str, func: Any, help_: str, *examples: str) -> argparse.ArgumentParser:
+        p = actions.add_parser(
+            name, help=help_, description=help_, prog=f"scopetwin rig RIG {name}", **conventions(*examples)
+        )
+        p.set_defaults(func=func)
+        p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
+        return p
+
+    _add_motion_commands(add)
     p = add(
         "acquire",
         cmd_acquire,
@@ -354,19 +447,7 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--light", help="light name (default: the first)")
     p.add_argument("--exposure-s", type=positive_float(), help="exposure time (default: automatic, ~70%% of the range)")
     p.add_argument("--frames", type=positive_int(MAX_FRAMES), default=1, help="number of frames (>= 1)")
-    p = add(
-        "mda",
-        cmd_mda,
-        "run a useq MDA sequence (YAML or JSON; um and ms) through pymmcore-plus into OME-TIFF or OME-Zarr; every "
-        "light is a preset of config group Channel; Ctrl-C keeps the planes written",
-        "scopetwin rig rigs/sim-cmu.toml mda examples/mda/2-positions-2-channels-z.json --camera cam_nir "
-        "--out stack.ome.tif",
-        "scopetwin rig rigs/sim-cmu.toml mda examples/mda/2-positions-2-channels-z.json --out stack.ome.zarr -q",
-    )
-    p.add_argument("sequence", help="MDA sequence file (.yaml or .json, useq-schema)")
-    p.add_argument("--camera", help="camera name (default: the first)")
-    p.add_argument("--out", required=True, help="output .ome.tif or .ome.zarr (several positions: one TIFF each)")
-    p.set_defaults(outputs=[("out", "path", "keep"), ("json", "file")], estimate=estimate_mda)
+    _add_mda_commands(add)
     p = add(
         "serve",
         cmd_serve,

@@ -140,7 +140,9 @@ def test_mda_to_ome_zarr_has_pixel_size_and_channel_names(rig_path, tmp_path):
     out = tmp_path / "x.ome.zarr"
     with open_rig(rig_path) as rig:
         assert run_mda(rig, SEQUENCE_2X2X3, output=str(out))["planes"] == 12
-    metas = [json.loads(p.read_text()) for p in sorted(out.glob("*/zarr.json"))]
+    root = json.loads((out / "zarr.json").read_text())["attributes"]["ome"]
+    assert [w["path"] for w in root["plate"]["wells"]] == ["A/1", "A/2"]  # an NGFF plate, one well per position
+    metas = [json.loads(p.read_text()) for p in sorted(out.glob("A/*/0/zarr.json"))]
     images = [m["attributes"]["ome"] for m in metas if "multiscales" in m.get("attributes", {}).get("ome", {})]
     assert len(images) == 2  # one image per stage position
     for ome in images:

@@ -1,0 +1,106 @@
+"""The OME-XML parts :mod:`scopetwin.instrument.ome` adds to what ome-writers writes, and the whole OME-XML of a
+single multi-series OME-TIFF (ome-types' model)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from scopetwin.instrument.ome import AcquisitionInfo, OmeOutput
+
+INSTRUMENT_ID = "Instrument:0"
+OBJECTIVE_ID = "Objective:0"
+DETECTOR_ID = "Detector:0"
+#: OME's order of the non-plane axes of a plane index.
+ORDER = "zct"
+
+
+def instrument(info: AcquisitionInfo) -> Any:
+    """The OME ``Instrument``: the objective (magnification, NA) and the camera as detector."""
+    from ome_types import model
+
+    objective = model.Objective(
+        id=OBJECTIVE_ID, nominal_magnification=info.magnification, lens_na=info.numerical_aperture
+    )
+    detector = model.Detector(id=DETECTOR_ID, model=info.camera or None, type="CCD")
+    return model.Instrument(id=INSTRUMENT_ID, objectives=[objective], detectors=[detector])
+
+
+def complete_image(image: Any, info: AcquisitionInfo) -> None:
+    """Bit depth, instrument references, channel colours and exact wavelengths of one OME ``Image``."""
+    from ome_types import model
+
+    image.instrument_ref = model.InstrumentRef(id=INSTRUMENT_ID)
+    image.objective_settings = model.ObjectiveSettings(id=OBJECTIVE_ID)
+    image.pixels.significant_bits = info.bit_depth
+    by_name = {c.name: c for c in info.channels}
+    for channel in image.pixels.channels:
+        known = by_name.get(channel.name or "")
+        channel.detector_settings = model.DetectorSettings(id=DETECTOR_ID)
+        if known is None:
+            continue
+        channel.color = model.Color(f"#{known.color}")
+        channel.excitation_wavelength = known.excitation_nm
+        channel.emission_wavelength = known.emission_nm
+
+
+def _pixels(out: OmeOutput, position: int, ifds: list[tuple[dict[str, int], int, dict[str, Any]]]) -> Any:
+    """The ``Pixels`` of one position: sizes, channels, the planes as reported, a ``TiffData`` per plane."""
+    from ome_types import model
+
+    info, sizes = out.info, out.layout.sizes
+    rows, cols = info.shape
+    channels = [model.Channel(id=f"Channel:{position}:{k}", name=c.name) for k, c in enumerate(info.channels)]
+    if not channels:
+        channels = [model.Channel(id=f"Channel:{position}:0")]
+    planes, tiff_data = [], []
+    for index, ifd, meta in ifds:
+        z, c, t = (int(index.get(axis, 0)) for axis in ORDER)
+        planes.append(
+            model.Plane(
+                the_z=z,
+                the_c=c,
+                the_t=t,
+                exposure_time=meta.get("exposure_time"),
+                delta_t=meta.get("delta_t"),
+                position_x=meta.get("position_x"),
+                position_y=meta.get("position_y"),
+                position_z=meta.get("position_z"),
+                position_x_unit="µm",
+                position_y_unit="µm",
+                position_z_unit="µm",
+            )
+        )
+        tiff_data.append(model.TiffData(ifd=ifd, first_z=z, first_c=c, first_t=t, plane_count=1))
+    return model.Pixels(
+        id=f"Pixels:{position}",
+        dimension_order="XYZCT",
+        type=info.dtype,
+        size_x=cols,
+        size_y=rows,
+        size_z=max(1, sizes.get("z", 0)),
+        size_c=max(1, len(channels)),
+        size_t=max(1, sizes.get("t", 0)),
+        physical_size_x=info.pixel_size_um,
+        physical_size_y=info.pixel_size_um,
+        physical_size_z=out.layout.z_step_um or None,
+        channels=channels,
+        planes=planes,
+        tiff_data_blocks=tiff_data,
+    )
+
+
+def single_file_ome(out: OmeOutput) -> Any:
+    """The OME-XML of a single multi-series OME-TIFF: one ``Image`` per position, its planes in file order."""
+    from ome_types import model
+
+    by_position: dict[int, list[tuple[dict[str, int], int, dict[str, Any]]]] = {}
+    for ifd, (position, index, meta) in enumerate(out.reported.planes):
+        by_position.setdefault(position, []).append((index, ifd, meta))
+    images = []
+    for position in sorted(by_position):
+        name = out.layout.names[position] if out.layout.names else out.path.name
+        image = model.Image(id=f"Image:{position}", name=name, pixels=_pixels(out, position, by_position[position]))
+        complete_image(image, out.info)
+        images.append(image)
+    return model.OME(instruments=[instrument(out.info)], images=images, creator="scopetwin (tifffile)")
