@@ -10,13 +10,27 @@ micrometres, as Cockpit expects. The wrappers never own the rig's devices:
 the rig device to :func:`scopetwin.instrument.rig.open_rig`. :func:`serve_devices` is the
 library function behind ``scopetwin rig RIG serve``: python-microscope's device
 server (Pyro) on 127.0.0.1 only.
+
+Security: every Pyro message to and from the server carries an HMAC of a secret key (Pyro4's ``_pyroHmacKey``),
+checked before anything in the message is deserialised, so a process without the key — another user on the
+machine — is refused before it can send a pickle. :func:`new_key_file` makes a key per server in a file only its
+owner can read; :func:`read_key_file` reads one the user gives. Lights and stages are served with Pyro's
+``serpent`` serializer, which cannot run code; cameras only with ``pickle``, because python-microscope pushes
+frames as numpy arrays, which only pickle carries (``serializer="pickle"`` serves every device with pickle, as
+python-microscope's own device server does). :func:`connect` is python-microscope's client with the key
+(and, for a camera, its data listener keyed too).
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
+import secrets
+import stat
+import tempfile
 import threading
 from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -26,6 +40,17 @@ from scopetwin.instrument.errors import InstrumentError, RigError
 from scopetwin.instrument.rig import Rig
 
 LOCALHOST = "127.0.0.1"
+#: Random bytes of a generated key (written as hex text: the file's stripped text is the key).
+KEY_BYTES = 32
+#: The fewest bytes a key given by the user may have.
+MIN_KEY_BYTES = 16
+#: The largest key file read (a key is a line of text).
+MAX_KEY_FILE_BYTES = 4096
+#: Name of the generated key file inside its private folder.
+KEY_FILE_NAME = "hmac.key"
+#: ``serve_devices(serializer=...)``: "auto" (serpent for lights and stages, pickle for cameras) or "pickle".
+SERIALIZERS = ("auto", "pickle")
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 
 
 def _microscope() -> tuple[Any, Any]:
@@ -37,9 +62,19 @@ def _microscope() -> tuple[Any, Any]:
     return microscope, microscope.abc
 
 
+def _member(kind: Any, value: Any) -> Any:
+    """``value`` as a member of the enum ``kind`` (over serpent an enum arrives as its value); None if it is none."""
+    try:
+        return kind(value)
+    except ValueError:
+        return None
+
+
 def make_device_classes() -> dict[str, type]:
     """Build the adapter classes (python-microscope is imported only here)."""
     m, mabc = _microscope()
+    import Pyro4  # type: ignore[import-untyped]  # Pyro4 ships no type information
+
     light_base: Any = mabc.LightSource
     camera_base: Any = mabc.Camera
     stage_base: Any = mabc.Stage
@@ -65,7 +100,9 @@ def make_device_classes() -> dict[str, type]:
             return m.TriggerMode.BULB
 
         def set_trigger(self, ttype: Any, tmode: Any) -> None:
-            if ttype is not m.TriggerType.SOFTWARE or tmode is not m.TriggerMode.BULB:
+            if _member(m.TriggerType, ttype) is not m.TriggerType.SOFTWARE or _member(m.TriggerMode, tmode) is not (
+                m.TriggerMode.BULB
+            ):
                 raise m.UnsupportedFeatureError("scopetwin lights trigger in software, bulb mode only")
 
         def _do_trigger(self) -> None:
@@ -110,6 +147,9 @@ def make_device_classes() -> dict[str, type]:
     class RigCamera(camera_base):
         """A rig camera as a python-microscope camera: software trigger, one frame per trigger."""
 
+        #: The HMAC key of the server that serves this camera (:func:`serve_devices` sets it; None: not served).
+        client_key: bytes | None = None
+
         def __init__(self, camera: CameraDevice, **kwargs: Any) -> None:
             super().__init__(**kwargs)
             self.camera = camera
@@ -132,7 +172,9 @@ def make_device_classes() -> dict[str, type]:
             return m.TriggerMode.ONCE
 
         def set_trigger(self, ttype: Any, tmode: Any) -> None:
-            if ttype is not m.TriggerType.SOFTWARE or tmode is not m.TriggerMode.ONCE:
+            if _member(m.TriggerType, ttype) is not m.TriggerType.SOFTWARE or _member(m.TriggerMode, tmode) is not (
+                m.TriggerMode.ONCE
+            ):
                 raise m.UnsupportedFeatureError("the python-microscope adapter triggers in software, once")
 
         def _do_trigger(self) -> None:
@@ -167,6 +209,12 @@ def make_device_classes() -> dict[str, type]:
 
         def _do_shutdown(self) -> None:
             self.abort()
+
+        def set_client(self, new_client: Any) -> None:
+            """Frames go to ``new_client`` (a listener URI); when served, over a proxy that signs with the key."""
+            if self.client_key is not None and isinstance(new_client, str | Pyro4.core.URI):
+                new_client = _keyed_proxy(new_client, self.client_key, "pickle")  # frames: numpy arrays
+            super().set_client(new_client)
 
         def set_exposure_time(self, value: float) -> None:
             self.camera.set_exposure_s(float(value))
@@ -290,42 +338,197 @@ def microscope_devices(rig: Rig, *, stage_x: str = "x", stage_y: str = "y") -> d
     return out
 
 
+# -- the key -----------------------------------------------------------------------------------------------
+def write_key_file(path: str | os.PathLike[str], key: bytes) -> Path:
+    """Write ``key`` (text) into a new file only its owner can read (0600; never through a symbolic link).
+
+    Raises
+    ------
+    RigError
+        ``path`` exists already (a file, a folder or a link), or cannot be created.
+    """
+    dest = Path(path)
+    try:
+        fd = os.open(dest, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o600)
+    except FileExistsError:
+        raise RigError(f"key file {dest} exists already; not overwritten") from None
+    except OSError as exc:
+        raise RigError(f"cannot create the key file {dest}: {exc.strerror or exc}") from None
+    try:
+        os.write(fd, key + b"\n")
+    finally:
+        os.close(fd)
+    return dest
+
+
+def new_key_file() -> tuple[bytes, Path]:
+    """A fresh key (:data:`KEY_BYTES` random bytes as hex text) in ``hmac.key`` of a new private temporary folder.
+
+    The folder is made by :func:`tempfile.mkdtemp` (mode 0700, a new name: nothing there can be a link someone
+    planted) and the file with ``O_EXCL`` and mode 0600. :func:`remove_key_file` removes both.
+    """
+    key = secrets.token_bytes(KEY_BYTES).hex().encode("ascii")
+    folder = Path(tempfile.mkdtemp(prefix="scopetwin-serve-"))
+    return key, write_key_file(folder / KEY_FILE_NAME, key)
+
+
+def remove_key_file(path: Path) -> None:
+    """Remove a key file made by :func:`new_key_file` and its folder (quietly: a server stopping)."""
+    with contextlib.suppress(OSError):
+        path.unlink()
+    with contextlib.suppress(OSError):
+        path.parent.rmdir()
+
+
+def read_key_file(path: str | os.PathLike[str]) -> bytes:
+    """The key in ``path``: its text without surrounding white space (a file made by :func:`new_key_file`, or e.g.
+    ``python -c "import secrets; print(secrets.token_hex(32))" > key; chmod 600 key``).
+
+    Raises
+    ------
+    RigError
+        ``path`` is a symbolic link, not a regular file, readable or writable by others than its owner (POSIX),
+        owned by another user (POSIX), larger than :data:`MAX_KEY_FILE_BYTES`, or holds fewer than
+        :data:`MIN_KEY_BYTES` bytes of key.
+    """
+    where = f"key file {path}"
+    try:
+        fd = os.open(path, os.O_RDONLY | _NOFOLLOW | getattr(os, "O_NONBLOCK", 0))
+    except OSError as exc:
+        if os.path.islink(path):
+            raise RigError(f"{where} is a symbolic link; give the file itself") from None
+        raise RigError(f"cannot read the {where}: {exc.strerror or exc}") from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise RigError(f"{where} is not a regular file")
+        if os.name == "posix":
+            if info.st_mode & 0o077:
+                raise RigError(
+                    f"{where} can be read or written by others (mode {info.st_mode & 0o777:o}); chmod 600 it"
+                )
+            if info.st_uid != os.getuid():
+                raise RigError(f"{where} belongs to another user")
+        if info.st_size > MAX_KEY_FILE_BYTES:
+            raise RigError(f"{where} is {info.st_size} bytes; a key file holds one line (at most {MAX_KEY_FILE_BYTES})")
+        key = os.read(fd, MAX_KEY_FILE_BYTES + 1).strip()
+    finally:
+        os.close(fd)
+    if len(key) < MIN_KEY_BYTES:
+        raise RigError(f"{where} holds {len(key)} bytes of key; at least {MIN_KEY_BYTES} are needed")
+    return key
+
+
+def _key(key: bytes | str | os.PathLike[str]) -> bytes:
+    """A key given as bytes, or as the path of a key file."""
+    return key if isinstance(key, bytes) else read_key_file(key)
+
+
+# -- Pyro with the key -------------------------------------------------------------------------------------------
+def _keyed_proxy(uri: Any, key: bytes, serializer: str) -> Any:
+    """A Pyro proxy of ``uri`` that signs its messages with ``key`` and speaks ``serializer``."""
+    import Pyro4
+
+    proxy = Pyro4.Proxy(uri)
+    proxy._pyroHmacKey = key
+    proxy._pyroSerializer = serializer
+    return proxy
+
+
+def _keyed_daemon(key: bytes, serializers: tuple[str, ...], host: str = LOCALHOST, port: int = 0) -> Any:
+    """A Pyro daemon that refuses every message without ``key``'s HMAC (checked before deserialising) and accepts
+    only ``serializers``; the proxies it hands out (a stage's axes) carry the key and the serializer."""
+    import Pyro4
+    import Pyro4.util  # type: ignore[import-untyped]
+
+    class KeyedDaemon(Pyro4.Daemon):  # Pyro4 is untyped: a subclass of Any
+        def proxyFor(self, objectOrId: Any, nat: bool = True) -> Any:  # noqa: N802,N803 - Pyro4's names
+            proxy = super().proxyFor(objectOrId, nat)
+            proxy._pyroHmacKey = self._pyroHmacKey
+            proxy._pyroSerializer = serializers[0]
+            return proxy
+
+    daemon = KeyedDaemon(host=host, port=port)
+    daemon._pyroHmacKey = key  # set before its request loop runs: no message is read without it
+    # Pyro4 reads the accepted serializers from its global config once, here per daemon (its private set)
+    daemon._Daemon__serializer_ids = {Pyro4.util.get_serializer(name).serializer_id for name in serializers}
+    return daemon
+
+
+_TYPES_REGISTERED: list[bool] = []
+
+
+def _register_microscope_types() -> None:
+    """python-microscope's exceptions keep their type over serpent (its enums arrive as their values: serpent's
+    own rule, which the adapters accept)."""
+    if _TYPES_REGISTERED:
+        return
+    import microscope
+    from Pyro4.util import SerializerBase
+
+    for name, obj in vars(microscope).items():
+        if isinstance(obj, type) and obj.__module__ == "microscope" and issubclass(obj, Exception):
+            SerializerBase.register_dict_to_class(
+                f"microscope.{name}", lambda _, d, cls=obj: SerializerBase.make_exception(cls, d)
+            )
+    _TYPES_REGISTERED.append(True)
+
+
+def _serializer_for(device: Any, serializer: str, mabc: Any) -> str:
+    """pickle for a camera (its frames are numpy arrays) or when asked; serpent (it cannot run code) otherwise."""
+    return "pickle" if serializer == "pickle" or isinstance(device, mabc.DataDevice) else "serpent"
+
+
 def serve_devices(
     devices: Mapping[str, Any],
     *,
+    key: bytes,
     port: int = 8000,
     stop: threading.Event | None = None,
     ready: Callable[[dict[str, str]], None] | None = None,
+    serializer: str = "auto",
 ) -> dict[str, str]:
     """Expose ``devices`` through Pyro (python-microscope's transport) on 127.0.0.1 until ``stop`` is set.
 
     Each device gets its own daemon on ``port``, ``port + 1``, ... (the layout of python-microscope's
     device server, one port per device; ``port = 0``: a free port each). ``ready`` receives name -> Pyro
-    URI once the daemons run, so a client (``microscope.clients.Client(uri)``, Cockpit) can connect.
-    Without ``stop`` it serves until the process ends. Returns the URIs.
+    URI once the daemons run, so a client (:func:`connect`) can connect. Without ``stop`` it serves until the
+    process ends. Returns the URIs.
+
+    Every daemon checks each message's HMAC with ``key`` before it deserialises anything: a client without the
+    key is refused. ``serializer`` "auto": cameras speak pickle (python-microscope sends frames as numpy arrays),
+    lights and stages only serpent (which cannot run code); "pickle": every device pickle (python-microscope's
+    device server, Cockpit).
 
     Raises
     ------
     RigError
-        A port outside 0..65535 (for the last device), or a port already in use.
+        A port outside 0..65535 (for the last device), a port already in use, a key shorter than
+        :data:`MIN_KEY_BYTES`, or an unknown ``serializer``.
     """
     _, mabc = _microscope()
-    import Pyro4  # type: ignore[import-untyped]  # Pyro4 ships no type information
+    import Pyro4
 
-    Pyro4.config.SERIALIZERS_ACCEPTED.add("pickle")
-    Pyro4.config.SERIALIZER = "pickle"
-    Pyro4.config.REQUIRE_EXPOSE = False
+    if not isinstance(key, bytes) or len(key) < MIN_KEY_BYTES:
+        raise RigError(f"the device server needs a key of at least {MIN_KEY_BYTES} bytes")
+    if serializer not in SERIALIZERS:
+        raise RigError(f"serializer {serializer!r}: one of {', '.join(SERIALIZERS)}")
+    Pyro4.config.REQUIRE_EXPOSE = False  # as python-microscope's device server: every public member is remote
+    _register_microscope_types()
     uris: dict[str, str] = {}
     daemons = []
     try:
         if int(port) < 0 or int(port) + len(devices) - 1 > 65535:
             raise RigError(f"device server ports {port}..{int(port) + len(devices) - 1} are outside 0..65535")
         for i, (name, device) in enumerate(devices.items()):
+            wire = _serializer_for(device, serializer, mabc)
             try:
-                daemon = Pyro4.Daemon(host=LOCALHOST, port=int(port) + i if port else 0)
+                daemon = _keyed_daemon(key, (wire,), port=int(port) + i if port else 0)
             except OSError as exc:
                 raise RigError(f"cannot serve {name!r} on {LOCALHOST}:{int(port) + i}: {exc.strerror or exc}") from None
             daemons.append(daemon)
+            if hasattr(device, "client_key"):
+                device.client_key = key  # a camera's frames go to its client's listener signed with the key
             uris[name] = str(daemon.register(device, objectId=name))
             if isinstance(device, mabc.Stage):  # as python-microscope's device server: axes travel as proxies
                 for axis in device.axes.values():
@@ -339,3 +542,93 @@ def serve_devices(
         for d in daemons:
             d.shutdown()
     return uris
+
+
+# -- python-microscope's client with the key ---------------------------------------------------------------------
+_CLIENT_CLASSES: dict[str, type] = {}
+
+
+def _client_classes() -> dict[str, type]:
+    """python-microscope's Client and DataClient, signing with a key (built once; microscope imported here)."""
+    if _CLIENT_CLASSES:
+        return _CLIENT_CLASSES
+    _microscope()
+    import inspect
+    import itertools
+    import queue
+
+    from microscope.clients import Client, DataClient
+
+    class KeyedClient(Client):
+        """python-microscope's :class:`~microscope.clients.Client` whose proxy signs with a key; it speaks serpent
+        where the server accepts it, else pickle."""
+
+        def __init__(self, url: str, key: bytes) -> None:
+            self._key = key
+            super().__init__(url)
+
+        def _connect(self) -> None:
+            self._proxy = _negotiated_proxy(self._url, self._key)
+            # from here as python-microscope's Client._connect: the remote methods and properties as attributes
+            mine = [m[0] for m in inspect.getmembers(self, predicate=inspect.ismethod)]
+            methods = set(self._proxy._pyroMethods).difference(mine)
+            my_properties = [m[0] for m in inspect.getmembers(self.__class__, predicate=inspect.isdatadescriptor)]
+            properties = set(self._proxy._pyroAttrs).difference(my_properties)
+            for attr in itertools.chain(methods, properties):
+                setattr(self, attr, getattr(self._proxy, attr))
+
+    class KeyedDataClient(KeyedClient):
+        """python-microscope's :class:`~microscope.clients.DataClient` with the key on both sides: its own listener
+        (127.0.0.1, a free port) takes frames only from the keyed server."""
+
+        def __init__(self, url: str, key: bytes) -> None:
+            super().__init__(url, key)
+            self._buffer: queue.Queue[Any] = queue.Queue()
+            self._listener = _keyed_daemon(key, ("pickle",))
+            threading.Thread(target=self._listener.requestLoop, daemon=True, name="pyro-listener").start()
+            self._client_uri = self._listener.register(self)
+
+        enable = DataClient.enable
+        receiveData = DataClient.receiveData  # noqa: N815 - python-microscope's name (exposed, one-way)
+        trigger_and_wait = DataClient.trigger_and_wait
+
+        def close(self) -> None:
+            """Stop the listener."""
+            self._listener.shutdown()
+
+    _CLIENT_CLASSES.update(client=KeyedClient, data=KeyedDataClient)
+    return _CLIENT_CLASSES
+
+
+def _negotiated_proxy(url: str, key: bytes) -> Any:
+    """A keyed proxy of ``url``, connected: serpent first, pickle when the server serves this device with pickle."""
+    import Pyro4.errors  # type: ignore[import-untyped]
+
+    _register_microscope_types()
+    for wire in ("serpent", "pickle"):
+        proxy = _keyed_proxy(url, key, wire)
+        try:
+            proxy._pyroGetMetadata()
+        except Pyro4.errors.CommunicationError as exc:
+            proxy._pyroRelease()
+            if wire == "serpent" and "serializer that is not accepted" in str(exc):
+                continue
+            raise
+        return proxy
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+def connect(uri: str, key: bytes | str | os.PathLike[str], *, data: bool = False) -> Any:
+    """python-microscope's client of one served device, signing with ``key`` (bytes, or a key file's path).
+
+    ``data=True`` gives a :class:`~microscope.clients.DataClient` (a camera: ``enable()``, ``trigger_and_wait()``
+    returns ``(frame, timestamp)``); its listener takes frames only from a server with the key.
+
+    Raises
+    ------
+    RigError
+        A key file that :func:`read_key_file` refuses.
+    Pyro4.errors.CommunicationError
+        The server is not there, or refused the key (``SecurityError``).
+    """
+    return _client_classes()["data" if data else "client"](uri, _key(key))

@@ -2,7 +2,14 @@
 
 Writes are atomic: the file is written next to its destination under a
 temporary name and moved into place with :func:`os.replace`, so a reader never
-sees a half-written file and a failure leaves nothing behind.
+sees a half-written file and a failure leaves nothing behind. The temporary
+file is made by :func:`tempfile.mkstemp` (``O_EXCL``: never a file or link that
+was there), and :func:`os.replace` replaces a symbolic link at the destination
+rather than following it. :func:`open_append` opens a log for appending without
+following a link. Nothing here writes through a link scopetwin did not make.
+
+:func:`check_surface` refuses a height map that cannot be a substrate's surface
+(heights beyond ±:data:`MAX_HEIGHT_MM`, an extent short of the substrate).
 """
 
 from __future__ import annotations
@@ -11,19 +18,25 @@ import contextlib
 import errno
 import json
 import os
+import stat
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import OpenEXR
 from numpy.typing import NDArray
 
-from scopetwin.scenes.errors import FileFormatError
+from scopetwin.scenes.errors import FileFormatError, ScopetwinError
+from scopetwin.scenes.inputs import check_input_file, native_output_captured
 from scopetwin.scenes.surface import HeightMap
 
 EXTENT_KEYS = ("x_min_mm", "x_max_mm", "y_min_mm", "y_max_mm")
+#: The largest height a substrate's surface may have, |z| in mm (bows are µm to a few mm; seed §1.9).
+MAX_HEIGHT_MM = 10.0
+#: How far (relative to the substrate's size) a height map's extent may fall short of the substrate's edge.
+COVER_TOLERANCE = 1e-6
 _UMASK = os.umask(0o022)
 os.umask(_UMASK)
 _RESERVED = {
@@ -53,6 +66,34 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def open_append(path: str | Path) -> IO[str]:
+    """Open the regular file ``path`` for appending text (created with the usual permissions when missing).
+
+    A symbolic link at ``path`` is refused, not followed (``O_NOFOLLOW``; where the platform has none, checked
+    with :func:`os.lstat` first), and so is anything but a regular file (a FIFO, a device).
+
+    Raises
+    ------
+    OSError
+        ``path`` is a link or not a regular file, or cannot be opened (the error names the path).
+    """
+    text = os.fspath(path)
+    link = OSError(errno.ELOOP, "is a symbolic link; scopetwin writes through no link it did not make", text)
+    if not hasattr(os, "O_NOFOLLOW") and os.path.islink(text):  # pragma: no cover - Windows
+        raise link
+    flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+    try:
+        fd = os.open(text, flags, 0o666)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP or os.path.islink(text):
+            raise link from None
+        raise
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise OSError(errno.EINVAL, "is not a regular file", text)
+    return os.fdopen(fd, "a", encoding="utf-8")
 
 
 def exr_write_error(path: str | Path, exc: RuntimeError) -> OSError:
@@ -100,14 +141,19 @@ def _write_exr(
 
 def _read_exr(path: str | Path, channel: str) -> tuple[NDArray[np.float32], dict[str, Any]]:
     p = Path(path)
-    if not p.is_file():
-        raise FileFormatError(f"EXR file {p} does not exist")
-    try:
-        f = OpenEXR.File(str(p), separate_channels=True)
-        channels = f.channels()
-        header = dict(f.header())
-    except Exception as exc:  # OpenEXR raises bare RuntimeError/ValueError on corrupt files
-        raise FileFormatError(f"{p} is not a readable OpenEXR file ({exc})") from None
+    check_input_file(p, "EXR")  # a regular file under the size limit: a FIFO or /dev/zero is one line (issue 25)
+    failed: Exception | None = None
+    with native_output_captured() as said:  # OpenEXR prints its own "Warning: ..." lines on a truncated file
+        try:
+            f = OpenEXR.File(str(p), separate_channels=True)
+            channels = f.channels()
+            header = dict(f.header())
+        except Exception as exc:  # OpenEXR raises bare RuntimeError/ValueError on corrupt files
+            failed = exc
+    if failed is not None or said:
+        why = next((line for line in said if "EXR_ERR" in line), said[0] if said else str(failed))
+        why = why.removeprefix(f"{p}: ")
+        raise FileFormatError(f"{p} is not a readable OpenEXR file (truncated or corrupt: {why})")
     if channel not in channels:
         raise FileFormatError(f"{p} has no channel {channel!r} (channels: {', '.join(sorted(channels)) or 'none'})")
     data = np.asarray(channels[channel].pixels, dtype=np.float32)
@@ -186,9 +232,49 @@ def read_heightmap(path: str | Path) -> HeightMap:
         ext = [float(attrs[k]) for k in EXTENT_KEYS]
     except (TypeError, ValueError):
         raise FileFormatError(f"{path}: height-map extents must be numbers") from None
+    if not all(np.isfinite(ext)):
+        raise FileFormatError(f"{path}: height-map extents must be finite, got {', '.join(f'{e:g}' for e in ext)}")
     from scopetwin.scenes.errors import GeometryError
 
     try:
         return HeightMap(data.astype(np.float64), *ext)
     except GeometryError as exc:
         raise FileFormatError(f"{path}: {exc}") from None
+
+
+def check_surface(
+    heights: HeightMap, substrate_size: Sequence[float] | None, where: str, extrapolate: bool = False
+) -> HeightMap:
+    """Refuse a height map that cannot be the substrate's surface; returns it.
+
+    Its heights must lie within ±:data:`MAX_HEIGHT_MM` and its extent cover the substrate (``substrate_size``, x and
+    y in mm, centred on the origin; None: no substrate to cover): beyond its extent a height map continues with its
+    edge values, which only ``extrapolate`` accepts.
+
+    Raises
+    ------
+    ScopetwinError
+        One line naming ``where``: heights out of range, or the extent short of the substrate.
+    """
+    top = float(np.max(np.abs(heights.z)))
+    if top > MAX_HEIGHT_MM:
+        raise ScopetwinError(
+            f"{where}: heights reach {top:.4g} mm; a substrate's surface lies within ±{MAX_HEIGHT_MM:g} mm"
+        )
+    if substrate_size is None or extrapolate:
+        return heights
+    sx, sy = (float(v) for v in substrate_size)
+    tol = COVER_TOLERANCE * max(sx, sy)
+    covers = (
+        heights.x_min <= -0.5 * sx + tol
+        and heights.x_max >= 0.5 * sx - tol
+        and heights.y_min <= -0.5 * sy + tol
+        and heights.y_max >= 0.5 * sy - tol
+    )
+    if not covers:
+        raise ScopetwinError(
+            f"{where} spans x {heights.x_min:g}..{heights.x_max:g}, y {heights.y_min:g}..{heights.y_max:g} mm but "
+            f"the substrate spans x {-0.5 * sx:g}..{0.5 * sx:g}, y {-0.5 * sy:g}..{0.5 * sy:g} mm; give a map that "
+            "covers it (or --extrapolate to continue its edge values)"
+        )
+    return heights

@@ -115,6 +115,7 @@ def render(
     noise: bool = True,
     seed: int | None = None,
     renderer: Literal["mitsuba", "analytic"] = "mitsuba",
+    extrapolate: bool = False,
 ) -> Measurement:
     """Render one setup as its camera would see it, with its exact truth (``scopetwin render``).
 
@@ -134,11 +135,20 @@ def render(
         Seed of the render and the noise (default: the setup's); the same seed gives the same image.
     renderer : {"mitsuba", "analytic"}
         Mitsuba 3 (default) or the project's own ray model (§1.6), the independent cross-check.
+    extrapolate : bool
+        Accept a height map (EXR or :class:`~scopetwin.scenes.surface.HeightMap`) smaller than the substrate; it
+        continues with its edge values. Without it the map must cover the substrate; heights must lie within
+        ±10 mm either way (:func:`scopetwin.scenes.io.check_surface`).
 
     Returns
     -------
     Measurement
         ``.image`` and its truth (``.heights``, ``.truth``).
+
+    Raises
+    ------
+    ScopetwinError
+        A surface that does not fit the substrate, or a render that is not finite or carries no signal.
 
     Examples
     --------
@@ -150,17 +160,19 @@ def render(
     from scopetwin.sim.measurement import render_measurement
 
     s = load_setup(setup)
-    heights = _surface(s, surface)
+    heights = _surface(s, surface, extrapolate)
     n = int(spp if spp is not None else s.render.spp)
     sd = int(seed if seed is not None else s.render.seed)
     image, seconds = render_measurement(s, heights, n, sd, noise, renderer)
     return Measurement(image, s, heights, _truth(s, heights), n, sd, seconds)
 
 
-def _surface(setup: Setup, surface: HeightMap | str | Path | NDArray[Any] | None) -> HeightMap | None:
-    """The substrate's heights of :func:`render` (checked against the substrate's extent)."""
+def _surface(
+    setup: Setup, surface: HeightMap | str | Path | NDArray[Any] | None, extrapolate: bool = False
+) -> HeightMap | None:
+    """The substrate's heights of :func:`render` (checked against the substrate's extent and the height range)."""
     from scopetwin.scenes.errors import ScopetwinError
-    from scopetwin.scenes.io import read_heightmap
+    from scopetwin.scenes.io import check_surface, read_heightmap
     from scopetwin.scenes.surface import HeightMap as _HeightMap
     from scopetwin.sim.surfaces import surface_for
 
@@ -168,15 +180,16 @@ def _surface(setup: Setup, surface: HeightMap | str | Path | NDArray[Any] | None
         return surface_for(setup)
     if setup.scene != "deflectometry" or setup.substrate is None:
         raise ScopetwinError(f"a surface applies to deflectometry setups; {setup.name} is a {setup.scene} scene")
+    size = setup.substrate.size
     if isinstance(surface, _HeightMap):
-        return surface
+        return check_surface(surface, size, "the height map", extrapolate)
     if isinstance(surface, str | Path):
-        return read_heightmap(surface)
+        return check_surface(read_heightmap(surface), size, f"height map {surface}", extrapolate)
     z = np.asarray(surface, dtype=np.float64)
     if z.ndim != 2 or min(z.shape) < 4 or not np.all(np.isfinite(z)):
         raise ScopetwinError(f"a height array must be 2-D, at least 4 x 4 and finite, got shape {z.shape}")
-    sx, sy = setup.substrate.size
-    return _HeightMap(z, -0.5 * sx, 0.5 * sx, -0.5 * sy, 0.5 * sy)
+    sx, sy = size
+    return check_surface(_HeightMap(z, -0.5 * sx, 0.5 * sx, -0.5 * sy, 0.5 * sy), size, "the height array")
 
 
 def _truth(setup: Setup, heights: HeightMap | None) -> MarkerTruth | None:

@@ -9,8 +9,13 @@ preview PNG.
 that writes an output folder (``render``, ``run``, a study report, a dataset sample) collects its files in a
 hidden staging folder beside the destination and moves them into place only when everything succeeded, so an
 interrupted or failed job leaves no partial output behind. Inside :func:`deferred_commits` (the command line)
-the move waits until the ``--json`` result is written; a dataset sample's stage is locked (``lock=True``) so a
-clean-up in another process removes only stages of dead processes (:func:`remove_stale_stage`).
+the move waits until the ``--json`` result is written. Every stage is locked (an exclusive ``flock`` on the folder
+while it lives), so a clean-up in another process removes only stages of dead processes (:func:`remove_stale_stage`):
+a new stage of the same output removes the ones a killed run left (``render --out o`` after a SIGKILL).
+
+Nothing is written through a link scopetwin did not make: the stage is made by :func:`tempfile.mkdtemp` (a new
+name, mode 0700 until it is finished, so no one else can plant anything in it), and a destination folder that is a
+symbolic link is refused.
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scopetwin.scenes.errors import ScopetwinError
-from scopetwin.scenes.io import write_json_atomic
+from scopetwin.scenes.io import check_surface, write_json_atomic
 from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
 
@@ -55,22 +60,28 @@ class StagedOutput:
     out : Path
         The destination folder.
     prefix : str, optional
-        Name prefix of the staging folder (default ``.NAME.staging-``); it is created in ``out``'s parent folder
-        with the permissions a new folder gets under the current umask.
+        Name prefix of the staging folder (default ``.NAME.staging-``); it is created in ``out``'s parent folder by
+        :func:`tempfile.mkdtemp` (mode 0700 while it is written; renamed into place, it gets the permissions a new
+        folder gets under the current umask). Stages of the same prefix left by dead processes are removed first.
     lock : bool
-        Hold an exclusive ``flock`` on the staging folder until it is renamed or discarded, so that a clean-up in
-        another process (:func:`remove_stale_stage`) can tell a live stage from one left by a dead process. A
-        stage that was removed and re-created meanwhile is never renamed into place.
+        Hold an exclusive ``flock`` on the staging folder until it is renamed or discarded (the default), so that a
+        clean-up in another process (:func:`remove_stale_stage`) can tell a live stage from one left by a dead
+        process. A stage that was removed and re-created meanwhile is never renamed into place.
+
+    Raises
+    ------
+    ScopetwinError
+        ``out`` is a symbolic link (scopetwin writes through no link it did not make).
     """
 
-    def __init__(self, out: str | Path, prefix: str | None = None, lock: bool = False) -> None:
+    def __init__(self, out: str | Path, prefix: str | None = None, lock: bool = True) -> None:
         self.out = Path(out)
+        _refuse_link(self.out)
         self.out.parent.mkdir(parents=True, exist_ok=True)
-        self.stage = Path(tempfile.mkdtemp(prefix=prefix or f".{self.out.name}.staging-", dir=self.out.parent))
+        name_prefix = prefix or f".{self.out.name}.staging-"
+        remove_stale_stages(self.out.parent, name_prefix)
+        self.stage = Path(tempfile.mkdtemp(prefix=name_prefix, dir=self.out.parent))
         self._lock_fd: int | None = _lock_folder(self.stage) if lock else None
-        umask = os.umask(0)
-        os.umask(umask)
-        self.stage.chmod(0o777 & ~umask)  # mkdtemp makes 0700; a finished folder gets the usual permissions
 
     def path(self, name: str) -> Path:
         """Where the file ``name`` is written while staged."""
@@ -90,12 +101,24 @@ class StagedOutput:
         return self.commit_now()
 
     def commit_now(self) -> dict[str, Path]:
-        """Move every staged entry into ``out`` now, deferred or not; returns ``{name: final path}``."""
+        """Move every staged entry into ``out`` now, deferred or not; returns ``{name: final path}``.
+
+        An entry of ``out`` with the name of a staged one is replaced (a symbolic link there is replaced, never
+        followed).
+
+        Raises
+        ------
+        ScopetwinError
+            ``out`` became a symbolic link meanwhile.
+        """
+        _refuse_link(self.out)
         self.out.mkdir(parents=True, exist_ok=True)
         moved = {}
         for f in sorted(self.stage.iterdir()):
             dest = self.out / f.name
-            if dest.is_dir() and not dest.is_symlink():
+            if dest.is_symlink():
+                dest.unlink()
+            elif dest.is_dir():
                 shutil.rmtree(dest)
             f.replace(dest)
             moved[f.name] = dest
@@ -115,6 +138,9 @@ class StagedOutput:
             self._unlock()
             self.discard()
             raise ScopetwinError(f"the staging folder {self.stage} was removed while it was written; not renamed")
+        umask = os.umask(0)
+        os.umask(umask)
+        self.stage.chmod(0o777 & ~umask)  # mkdtemp made it 0700; the finished folder gets the usual permissions
         try:
             os.rename(self.stage, self.out)
         except OSError:  # ``out`` exists (e.g. another worker finished it first)
@@ -200,6 +226,23 @@ def _same_folder(fd: int, path: Path) -> bool:
     return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
 
 
+def _refuse_link(out: Path) -> None:
+    if out.is_symlink():
+        raise ScopetwinError(f"{out} is a symbolic link; scopetwin writes through no link it did not make")
+
+
+def remove_stale_stages(parent: Path, prefix: str) -> list[Path]:
+    """Remove the staging folders ``parent/PREFIX*`` that dead processes left (:func:`remove_stale_stage`); returns
+    them. Where the platform has no ``flock`` (Windows) a live stage cannot be told from a dead one: none is removed."""
+    if _flock() is None or not parent.is_dir():  # pragma: no cover - not POSIX
+        return []
+    removed = []
+    for entry in parent.iterdir():
+        if entry.name.startswith(prefix) and remove_stale_stage(entry):
+            removed.append(entry)
+    return removed
+
+
 def remove_stale_stage(folder: Path) -> bool:
     """Remove a staging folder unless a live process holds its lock (:class:`StagedOutput` ``lock=True``).
 
@@ -213,10 +256,10 @@ def remove_stale_stage(folder: Path) -> bool:
             folder.unlink()  # a stray file
         return True
     try:
-        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | getattr(os, "O_NOFOLLOW", 0))
     except FileNotFoundError:
         return True
-    except OSError:  # not a folder (a stray file): remove it
+    except OSError:  # not a folder (a stray file, a link): remove it, never what it points to
         with contextlib.suppress(OSError):
             folder.unlink()
         return True
@@ -259,15 +302,40 @@ def write_preview(path: Path, image: NDArray[Any]) -> None:
         raise ScopetwinError(f"could not write the preview {path}")
 
 
-def load_measurement(
-    setup_arg: str, surface: str | None, spp: int | None, seed: int | None, noise: bool | None
-) -> tuple[Setup, HeightMap | None]:
-    """A setup (preset name or TOML) with render overrides, and its surface (``surface`` EXR or the generated one).
+def check_rendered(image: NDArray[Any], what: str) -> NDArray[Any]:
+    """Refuse a rendered image that is not finite everywhere or carries no signal (every pixel zero); returns it.
 
     Raises
     ------
     ScopetwinError
-        The setup cannot be loaded, or ``surface`` is given for a scene without a substrate.
+        One line: ``WHAT: ...; nothing written``.
+    """
+    if not np.all(np.isfinite(image)):
+        bad = int(np.count_nonzero(~np.isfinite(image)))
+        raise ScopetwinError(f"{what}: {bad} pixel(s) are NaN or infinite; nothing written")
+    if not np.any(image):
+        raise ScopetwinError(f"{what}: every pixel is zero (no light reaches the camera); nothing written")
+    return image
+
+
+def load_measurement(
+    setup_arg: str,
+    surface: str | None,
+    spp: int | None,
+    seed: int | None,
+    noise: bool | None,
+    extrapolate: bool = False,
+) -> tuple[Setup, HeightMap | None]:
+    """A setup (preset name or TOML) with render overrides, and its surface (``surface`` EXR or the generated one).
+
+    A ``surface`` EXR must cover the substrate (unless ``extrapolate``) with heights in a physical range
+    (:func:`check_surface`).
+
+    Raises
+    ------
+    ScopetwinError
+        The setup cannot be loaded, ``surface`` is given for a scene without a substrate, or is refused by
+        :func:`check_surface`.
     """
     from scopetwin.scenes.io import read_heightmap
     from scopetwin.scenes.setup import load_setup
@@ -281,7 +349,8 @@ def load_measurement(
     if surface is not None:
         if setup.scene != "deflectometry":
             raise ScopetwinError(f"--surface applies to deflectometry setups; {setup.name} is a {setup.scene} scene")
-        return setup, read_heightmap(surface)
+        size = setup.substrate.size if setup.substrate is not None else None
+        return setup, check_surface(read_heightmap(surface), size, f"--surface {surface}", extrapolate)
     return setup, surface_for(setup)
 
 
@@ -291,6 +360,7 @@ def render_measurement(
     """Render one setup and, with ``noise``, apply the EMVA 1288 sensor model (seed §1.11 camera class).
 
     Without a fixed exposure the exposure fills the setup's fraction of the full well at the image peak.
+    A render that is not finite or carries no signal is refused (:func:`check_rendered`).
 
     Returns
     -------
@@ -308,8 +378,9 @@ def render_measurement(
         from scopetwin.scenes.mitsuba.render import render_setup
 
         image = render_setup(setup, heights, spp=spp, seed=seed)
+    check_rendered(image, f"the render of {setup.name}")
     if noise:
-        image = apply_sensor(setup, image, seed)
+        image = check_rendered(apply_sensor(setup, image, seed), f"the sensor model of {setup.name}")
     return image, time.perf_counter() - t0
 
 

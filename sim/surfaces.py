@@ -249,9 +249,10 @@ def analytic_surface(spec: SurfaceSpec, substrate: SubstrateSpec) -> HeightMap:
 def make_surface(spec: SurfaceSpec, substrate: SubstrateSpec) -> HeightMap:
     """Height map for a surface spec (generated, analytic, or read from an EXR file)."""
     if spec.kind == "file":
-        from scopetwin.scenes.io import read_heightmap
+        from scopetwin.scenes.io import check_surface, read_heightmap
 
-        return read_heightmap(spec.path)  # type: ignore[arg-type]
+        # it must cover the substrate, heights in a physical range (issue 25 item 5)
+        return check_surface(read_heightmap(spec.path), substrate.size, f"surface file {spec.path}")  # type: ignore[arg-type]
     if spec.kind == "random":
         return random_surface(spec, substrate)
     if spec.kind == "psd":

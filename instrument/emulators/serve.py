@@ -23,6 +23,7 @@ from scopetwin.instrument.emulators import EMULATORS
 from scopetwin.instrument.emulators.base import PtyEmulator, require_pty
 from scopetwin.instrument.emulators.protocol_emu import option_value
 from scopetwin.instrument.errors import RigError
+from scopetwin.scenes.io import open_append
 
 BINARY_PROTOCOLS = {"fpga-board"}
 
@@ -116,7 +117,7 @@ def serve(
     emulator = make_emulator(kind, options)
     stop = stop or threading.Event()
     counter = {"n": 0}
-    log_file: IO[str] | None = open(log_path, "a", encoding="utf-8") if log_path else None
+    log_file: IO[str] | None = open_append(log_path) if log_path else None  # never through a link
     logger = request_logger(log_file, kind in BINARY_PROTOCOLS) if log_file is not None else None
 
     def on_request(request: bytes, reply: bytes, state: dict[str, Any]) -> None:

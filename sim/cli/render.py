@@ -2,6 +2,9 @@
 :mod:`scopetwin.sim.measurement`).
 
 The render's memory and time are estimated before anything is written (:func:`scopetwin.scenes.limits.check_render`).
+A ``--surface`` must cover the substrate (or ``--extrapolate``) with heights within ±10 mm, checked before the
+render; a render that is not finite or carries no signal is refused and nothing is written. The output is staged
+beside ``--out``; staging folders that killed runs left there are removed first.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ log = logging.getLogger(__name__)
 
 def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
     """Render one setup to EXR with its truth; returns ``{"image", "truth", "spp", "seconds"}``."""
-    setup, heights = load_measurement(args.setup, args.surface, args.spp, args.seed, args.noise)
+    setup, heights = load_measurement(args.setup, args.surface, args.spp, args.seed, args.noise, args.extrapolate)
     cam = setup.camera_model
     renderer = "analytic" if args.renderer == "analytic" else "setup"
     check_render(cam.nx, cam.ny, setup.render.spp, f"render {setup.name}", renderer)  # before anything is written
@@ -82,7 +85,15 @@ def register(subparsers: Any) -> None:
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
     p.add_argument("setup", help="preset name (see: scopetwin presets) or TOML path")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--surface", help="height-map EXR replacing the preset's generated surface")
+    p.add_argument(
+        "--surface",
+        help="height-map EXR replacing the preset's generated surface (it must cover the substrate; |z| <= 10 mm)",
+    )
+    p.add_argument(
+        "--extrapolate",
+        action="store_true",
+        help="accept a --surface smaller than the substrate (continued beyond its edges with its edge values)",
+    )
     p.add_argument("--spp", type=SPP, help="samples per pixel, >= 1 (default: the setup's)")
     p.add_argument("--seed", type=SEED, help="random seed, >= 0 (default: the setup's)")
     p.add_argument(

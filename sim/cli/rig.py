@@ -18,7 +18,8 @@ action's handler returns a JSON-ready dict (written by the main CLI when
   the limit, exit 2, nothing written); the JSON records what the devices reported for every plane;
 * ``mm-config --out X.cfg`` — the rig's Micro-Manager configuration (pymmcore-plus Python devices that a plain
   ``UniMMCore`` loads; :func:`scopetwin.instrument.micromanager.config_text`);
-* ``serve`` — the rig's devices through python-microscope's device server on 127.0.0.1.
+* ``serve`` — the rig's devices through python-microscope's device server on 127.0.0.1, to clients that sign with
+  its key (``--hmac-key-file``, or a new one in a private file it prints).
 
 The rig is opened with :func:`scopetwin.instrument.rig.open_rig`, so lights are off again on every exit.
 SIGINT, SIGTERM and SIGHUP during ``acquire`` or ``mda`` end the command cleanly: lights off,
@@ -326,28 +327,49 @@ def cmd_mm_config(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_serve(args: argparse.Namespace) -> dict[str, Any]:
-    """Serve the rig's devices through python-microscope's device server on 127.0.0.1 until SIGINT/SIGTERM."""
+    """Serve the rig's devices through python-microscope's device server on 127.0.0.1 until SIGINT/SIGTERM.
+
+    Clients must sign every message with the server's key (Pyro's HMAC, checked before anything is deserialised):
+    ``--hmac-key-file`` names a key file (only its owner may read it), else a new key is written to a private
+    temporary file, printed, and removed when the server stops.
+    """
     import signal
 
     from scopetwin.instrument.interrupts import stop_on_signals
-    from scopetwin.instrument.pymicroscope import LOCALHOST, microscope_devices, serve_devices
+    from scopetwin.instrument.pymicroscope import (
+        LOCALHOST,
+        microscope_devices,
+        new_key_file,
+        read_key_file,
+        remove_key_file,
+        serve_devices,
+    )
 
     if args.host not in LOCALHOSTS:
         raise RigError(f"--host {args.host!r} refused: the device server listens on {LOCALHOST} only")
+    if args.hmac_key_file is not None:
+        key, key_path, made = read_key_file(args.hmac_key_file), Path(args.hmac_key_file), False
     stop = threading.Event()
     with open_rig(args.rig) as rig, stop_on_signals(stop) as received:
         devices = microscope_devices(rig)
+        if args.hmac_key_file is None:
+            (key, key_path), made = new_key_file(), True
+        try:
 
-        def ready(uris: dict[str, str]) -> None:
-            served = ", ".join(f"{name}={uri}" for name, uri in uris.items())
-            print(f"serving {len(uris)} device(s) of rig {rig.name!r} on {LOCALHOST}: {served}", flush=True)
+            def ready(uris: dict[str, str]) -> None:
+                served = ", ".join(f"{name}={uri}" for name, uri in uris.items())
+                print(f"serving {len(uris)} device(s) of rig {rig.name!r} on {LOCALHOST}: {served}", flush=True)
+                print(f"clients sign with the key in {key_path} (only its owner can read it)", flush=True)
 
-        uris = serve_devices(devices, port=args.port, stop=stop, ready=ready)
+            uris = serve_devices(devices, key=key, port=args.port, stop=stop, ready=ready, serializer=args.serializer)
+        finally:
+            if made:
+                remove_key_file(key_path)
         for device in devices.values():
             device.shutdown()
     why = signal.Signals(received[0]).name if received else "stop"
     print(f"serve: stopped on {why}", flush=True)
-    return {"rig": rig.name, "host": LOCALHOST, "uris": uris}
+    return {"rig": rig.name, "host": LOCALHOST, "uris": uris, "key_file": str(key_path), "serializer": args.serializer}
 
 
 def _add_motion_commands(add: Callable[..., argparse.ArgumentParser]) -> None:
@@ -451,10 +473,24 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     p = add(
         "serve",
         cmd_serve,
-        "serve the devices through python-microscope's device server (Pyro) on 127.0.0.1 until SIGINT/SIGTERM",
+        "serve the devices through python-microscope's device server (Pyro) on 127.0.0.1 until SIGINT/SIGTERM; "
+        "clients sign every message with the printed key file (Pyro's HMAC), others are refused",
         "scopetwin rig rigs/sim-cmu.toml serve",
         "scopetwin rig rigs/emulated-hardware.toml serve --port 0",
     )
     p.add_argument("--port", type=int_range(0, 65535), default=8000, help="first port; one per device (0: free ports)")
     p.add_argument("--host", default=LOCALHOSTS[0], help="only 127.0.0.1 (or localhost) is accepted")
+    p.add_argument(
+        "--hmac-key-file",
+        metavar="PATH",
+        help="the key clients sign with (a file only its owner can read; default: a new key in a private "
+        "temporary file, printed at start and removed at exit)",
+    )
+    p.add_argument(
+        "--serializer",
+        choices=("auto", "pickle"),
+        default="auto",
+        help="auto (default): lights and stages speak serpent, which cannot run code, cameras pickle (frames are "
+        "numpy arrays); pickle: every device, as python-microscope's device server and Cockpit",
+    )
     return parser

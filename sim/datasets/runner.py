@@ -3,6 +3,13 @@
 Shared by the datasets and the studies (docs/contract.md, "Scale"). :func:`run_tasks` yields each task's result or error
 as it finishes, so one failed task does not lose the others' results; :func:`init_worker` sets a worker process's
 Dr.Jit thread count once.
+
+Security: a Dask scheduler and its workers unpickle what their clients send, so whoever can connect runs code. The
+embedded cluster therefore speaks TLS with mutual authentication on credentials made for it alone and held in memory
+(:meth:`distributed.security.Security.temporary`): another local user who reaches its port is refused before
+anything is deserialised. An existing scheduler is used with Dask's own security configuration
+(``distributed.comm.tls.*``, e.g. ``DASK_DISTRIBUTED__COMM__TLS__CA_FILE``): ``--scheduler tls://host:port`` with a
+CA file and a client certificate and key; a ``tcp://`` scheduler authenticates nobody, which a warning says.
 """
 
 from __future__ import annotations
@@ -15,6 +22,8 @@ from typing import Any
 
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.sim.datasets.config import DatasetError
+
+log = logging.getLogger(__name__)
 
 #: What :func:`init_worker` set in this process (so a second call with the same count does nothing).
 _WORKER_STATE: dict[str, Any] = {}
@@ -172,15 +181,24 @@ def _close_quietly(*closables: Any, interrupted: bool) -> None:
 
 
 def _require_distributed() -> None:
-    """Raise a :class:`DatasetError` that says what to do when Dask distributed is not installed."""
+    """Raise a :class:`DatasetError` that says what to do when Dask distributed (or, for its TLS credentials,
+    cryptography) is not installed."""
     try:
+        import cryptography  # noqa: F401  # Security.temporary(): the embedded cluster's TLS credentials
         import dask  # noqa: F401
         from distributed import Client, LocalCluster  # noqa: F401
     except ImportError as exc:
         raise DatasetError(
-            f"Dask distributed is not installed ({exc}); install dask[distributed] or use "
+            f"Dask distributed is not installed ({exc}); install dask[distributed] and cryptography or use "
             "--workers 0 to work in this process"
         ) from None
+
+
+def _tls_configured() -> bool:
+    """Whether Dask's configuration gives a client TLS credentials (``distributed.comm.tls.*``)."""
+    from distributed.security import Security
+
+    return Security().get_connection_args("client").get("ssl_context") is not None
 
 
 def _connect(scheduler: str) -> Any:
@@ -188,10 +206,23 @@ def _connect(scheduler: str) -> Any:
     from distributed import Client
 
     check_scheduler(scheduler)
+    scheme = scheduler.split("://", 1)[0].lower() if "://" in scheduler else "tcp"
+    if scheme in ("tls", "wss") and not _tls_configured():
+        raise DatasetError(
+            f"--scheduler {scheduler}: TLS needs a CA file and a client certificate and key in Dask's configuration "
+            "(distributed.comm.tls.ca-file, .client.cert, .client.key; e.g. DASK_DISTRIBUTED__COMM__TLS__CA_FILE)"
+        )
     try:
-        return Client(scheduler, timeout="30s")
+        client = Client(scheduler, timeout="30s")
     except (OSError, TimeoutError, ValueError) as exc:
         raise DatasetError(f"cannot connect to the Dask scheduler {scheduler}: {exc}") from None
+    if scheme not in ("tls", "wss", "inproc"):
+        log.warning(
+            "the Dask scheduler %s authenticates nobody: whoever reaches it runs code on its workers; prefer "
+            "tls:// with Dask's TLS configuration",
+            scheduler,
+        )
+    return client
 
 
 def _start_local_cluster(workers: int | None) -> tuple[Any, Any]:
@@ -226,6 +257,7 @@ def _start_local_cluster(workers: int | None) -> tuple[Any, Any]:
 def _new_local_cluster(workers: int | None, shield: Any) -> tuple[Any, Any]:
     """Create the LocalCluster and its client; a failed start closes what started, then raises (a held signal first)."""
     from distributed import Client, LocalCluster
+    from distributed.security import Security
 
     cluster: Any = None
     try:
@@ -234,6 +266,8 @@ def _new_local_cluster(workers: int | None, shield: Any) -> tuple[Any, Any]:
             threads_per_worker=1,
             processes=True,
             host="127.0.0.1",
+            protocol="tls://",  # mutual TLS on credentials made for this cluster alone, held in memory
+            security=Security.temporary(),
             dashboard_address=None,
             scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},  # its HTTP endpoint: any free local port
             silence_logs=logging.CRITICAL,  # a closing cluster logs errors (heartbeats) in every worker
@@ -255,14 +289,17 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
 
     The local cluster has ``workers`` worker processes (default: one per core) with one thread each,
     started with ``spawn`` (Mitsuba's plugin registry is per thread and does not survive ``fork``),
-    and listens on 127.0.0.1 only, without a dashboard. Its workers ignore SIGINT and SIGHUP
-    (:func:`scopetwin.sim.signals.dask_setup`, a worker preload): the client handles an interruption, cancels its
-    work and closes the cluster without distributed's logs, so Ctrl-C prints no worker tracebacks.
+    and listens on 127.0.0.1 only, without a dashboard, speaking TLS with credentials made for it alone
+    (:meth:`~distributed.security.Security.temporary`): a client without them is refused. Its workers ignore
+    SIGINT and SIGHUP (:func:`scopetwin.sim.signals.dask_setup`, a worker preload): the client handles an
+    interruption, cancels its work and closes the cluster without distributed's logs, so Ctrl-C prints no worker
+    tracebacks.
 
     Parameters
     ----------
     scheduler : str, optional
-        Address of an existing scheduler (``tcp://host:8786``); None starts an embedded local cluster.
+        Address of an existing scheduler (``tls://host:8786`` with Dask's TLS configuration, or ``tcp://host:8786``);
+        None starts an embedded local cluster.
     workers : int, optional
         Worker processes of the local cluster (default: :func:`default_workers`).
 
@@ -274,7 +311,8 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
     Raises
     ------
     DatasetError
-        Dask is not installed, or the scheduler address is malformed or does not answer.
+        Dask is not installed, or the scheduler address is malformed or does not answer, or a ``tls://`` scheduler
+        has no credentials in Dask's configuration.
     """
     _require_distributed()
     if scheduler:

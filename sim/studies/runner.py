@@ -1,11 +1,15 @@
-"""Running a study: the cluster (or this process), the staged report folder, ``report.md`` and ``results.json``."""
+"""Running a study: the cluster (or this process), the staged report folder, ``report.md`` and ``results.json``.
+
+A study whose tasks partly failed still writes its report (the failures listed under "Problems", the tables from
+the tasks that succeeded) and counts the failed tasks (``failed_tasks``): ``scopetwin study`` then exits 1.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,9 +31,20 @@ STUDIES: dict[str, Callable[[StudyContext], StudyResult]] = {
 }
 
 
+class _CountingContext(StudyContext):
+    """A :class:`StudyContext` that counts the tasks that failed (their exceptions stand in the results)."""
+
+    failed_tasks: int = 0
+
+    def map(self, func: Callable[..., Any], args: Sequence[tuple], desc: str) -> list[Any]:
+        results = super().map(func, args, desc)
+        self.failed_tasks += sum(1 for r in results if isinstance(r, BaseException))
+        return results
+
+
 # -- running and writing -------------------------------------------------------------------------------------
-def report_markdown(name: str, res: StudyResult, seconds: float, where: str) -> str:
-    """The ``report.md`` of a study: title, intro, problems, every table, the plots."""
+def report_markdown(name: str, res: StudyResult, seconds: float, where: str, failed_tasks: int = 0) -> str:
+    """The ``report.md`` of a study: title, intro, problems (the failed tasks first), every table, the plots."""
     lines = [
         f"# {res.title}",
         "",
@@ -39,8 +54,11 @@ def report_markdown(name: str, res: StudyResult, seconds: float, where: str) -> 
         "machine-readable: results.json.",
         "",
     ]
-    if res.notes:
-        lines += ["## Problems", ""] + [f"- {n}" for n in res.notes] + [""]
+    if res.notes or failed_tasks:
+        lines += ["## Problems", ""]
+        if failed_tasks:
+            lines += [f"- {failed_tasks} task(s) failed: the tables hold the tasks that succeeded (exit status 1)"]
+        lines += [f"- {n}" for n in res.notes] + [""]
     lines += ["## Tables", ""]
     for t in res.tables:
         lines += [table_markdown(t)]
@@ -57,9 +75,11 @@ def run_study(
     threads: int | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Run study ``name`` and write ``report.md``, ``results.json`` and plots into ``out`` (on success only).
+    """Run study ``name`` and write ``report.md``, ``results.json`` and plots into ``out``.
 
-    ``workers`` 0 runs every task in this process; otherwise an embedded LocalCluster (or ``scheduler``).
+    ``workers`` 0 runs every task in this process; otherwise an embedded LocalCluster (or ``scheduler``). The
+    report is written when the study ran to its end, also when some of its tasks failed: the result's
+    ``failed_tasks`` counts them (0: every task succeeded). A study that raised, or was interrupted, writes nothing.
     """
     if name not in STUDIES:
         raise StudyError(f"unknown study {name!r} (known: {', '.join(STUDIES)})")
@@ -79,13 +99,16 @@ def run_study(
                 if client is None
                 else (f"Dask at {client.scheduler.address} ({len(client.scheduler_info()['workers'])} workers)")
             )
-            res = STUDIES[name](StudyContext(stage, client, progress, threads))
+            ctx = _CountingContext(stage, client, progress, threads)
+            res = STUDIES[name](ctx)
         seconds = time.perf_counter() - t0
-        (stage / "report.md").write_text(report_markdown(name, res, seconds, where))
+        failed_tasks = ctx.failed_tasks
+        (stage / "report.md").write_text(report_markdown(name, res, seconds, where, failed_tasks))
         summary = {
             "study": name,
             "seconds": seconds,
             "where": where,
+            "failed_tasks": failed_tasks,
             "tables": [table_json(t) for t in res.tables],
             "plots": res.plots,
             "notes": res.notes,
@@ -103,4 +126,5 @@ def run_study(
         "seconds": seconds,
         "plots": [str(out / p) for p in res.plots],
         "notes": res.notes,
+        "failed_tasks": failed_tasks,
     }

@@ -1,8 +1,10 @@
 """``scopetwin rig RIG serve``: python-microscope's device server on 127.0.0.1, driven by python-microscope's own
-client from another process, stopped by SIGTERM (one line, exit 0); other hosts refused."""
+client (signing with the server's key) from another process, stopped by SIGTERM (one line, exit 0); other hosts
+refused. The attacks (no key, a wrong key) are in tests/robustness/test_security.py."""
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 
@@ -39,7 +41,9 @@ renderer = { kind = "texture", lights = ["uv"] }
 
 
 def test_serve_answers_a_python_microscope_client_until_sigterm(tmp_path):
-    from microscope.clients import Client
+    from functools import partial
+
+    from scopetwin.instrument.pymicroscope import connect
 
     rig = tmp_path / "rig.toml"
     rig.write_text(RIG)
@@ -50,6 +54,10 @@ def test_serve_answers_a_python_microscope_client_until_sigterm(tmp_path):
         assert line.startswith("serving 3 device(s)") and "on 127.0.0.1" in line, line
         uris = dict(re.findall(r"(\w+)=(PYRO:\S+?@127\.0\.0\.1:\d+)", line))
         assert set(uris) == {"cam", "uv", "xy"}
+        key_line = proc.stdout.readline()
+        key_file = re.search(r"key in (\S+) ", key_line).group(1)  # a new key per server, only its owner reads it
+        assert oct(os.stat(key_file).st_mode & 0o777) == "0o600", key_line
+        Client = partial(connect, key=key_file)  # python-microscope's Client with the key  # noqa: N806
         light = Client(uris["uv"])
         light.power = 0.5
         light.enable()
@@ -68,6 +76,7 @@ def test_serve_answers_a_python_microscope_client_until_sigterm(tmp_path):
     assert code == 0, err
     assert out.strip().splitlines() == ["serve: stopped on SIGTERM"]
     assert "Traceback" not in err and "Exception" not in err  # no complaint from python-microscope at exit
+    assert not os.path.exists(key_file)  # the generated key goes with its server
 
 
 def test_serve_refuses_other_hosts(tmp_path, capsys):

@@ -163,8 +163,9 @@ def test_microscope_devices_of_emulated_hardware_rig():
 
 
 def test_served_devices_answer_a_python_microscope_client():
-    from microscope.clients import Client
+    from scopetwin.instrument.pymicroscope import connect
 
+    key = b"k" * 32
     world = VirtualWorld()
     light = SimLight("uv", world, max_current_ma=500.0)
     light.initialize()
@@ -174,13 +175,13 @@ def test_served_devices_answer_a_python_microscope_client():
     thread = threading.Thread(
         target=serve_devices,
         args=({"uv": CLASSES["light"](light)},),
-        kwargs={"port": 0, "stop": stop, "ready": lambda u: (uris.update(u), got.set())},
+        kwargs={"key": key, "port": 0, "stop": stop, "ready": lambda u: (uris.update(u), got.set())},
         daemon=True,
     )
     thread.start()
     assert got.wait(10)
     assert "127.0.0.1" in uris["uv"]
-    client = Client(uris["uv"])
+    client = connect(uris["uv"], key)  # python-microscope's Client, signing with the server's key
     client.enable()
     assert light.is_on
     client.disable()
