@@ -1,12 +1,10 @@
 """The OME-XML parts :mod:`scopetwin.instrument.ome` adds to what ome-writers writes, and the whole OME-XML of a
-single multi-series OME-TIFF (ome-types' model)."""
+single multi-series OME-TIFF (ome-types' model). ``info`` is an :class:`~scopetwin.instrument.ome.AcquisitionInfo`,
+``out`` an :class:`~scopetwin.instrument.ome.OmeOutput` (typed ``Any`` here: this module is imported by that one)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
-
-if TYPE_CHECKING:
-    from scopetwin.instrument.ome import AcquisitionInfo, OmeOutput
+from typing import Any
 
 INSTRUMENT_ID = "Instrument:0"
 OBJECTIVE_ID = "Objective:0"
@@ -15,7 +13,7 @@ DETECTOR_ID = "Detector:0"
 ORDER = "zct"
 
 
-def instrument(info: AcquisitionInfo) -> Any:
+def instrument(info: Any) -> Any:
     """The OME ``Instrument``: the objective (magnification, NA) and the camera as detector."""
     from ome_types import model
 
@@ -26,7 +24,7 @@ def instrument(info: AcquisitionInfo) -> Any:
     return model.Instrument(id=INSTRUMENT_ID, objectives=[objective], detectors=[detector])
 
 
-def complete_image(image: Any, info: AcquisitionInfo) -> None:
+def complete_image(image: Any, info: Any) -> None:
     """Bit depth, instrument references, channel colours and exact wavelengths of one OME ``Image``."""
     from ome_types import model
 
@@ -44,7 +42,7 @@ def complete_image(image: Any, info: AcquisitionInfo) -> None:
         channel.emission_wavelength = known.emission_nm
 
 
-def _pixels(out: OmeOutput, position: int, ifds: list[tuple[dict[str, int], int, dict[str, Any]]]) -> Any:
+def _pixels(out: Any, position: int, ifds: list[tuple[dict[str, int], int, dict[str, Any]]]) -> Any:
     """The ``Pixels`` of one position: sizes, channels, the planes as reported, a ``TiffData`` per plane."""
     from ome_types import model
 
@@ -90,7 +88,7 @@ def _pixels(out: OmeOutput, position: int, ifds: list[tuple[dict[str, int], int,
     )
 
 
-def single_file_ome(out: OmeOutput) -> Any:
+def single_file_ome(out: Any) -> Any:
     """The OME-XML of a single multi-series OME-TIFF: one ``Image`` per position, its planes in file order."""
     from ome_types import model
 

@@ -46,6 +46,10 @@ WITHOUT_POSIX = textwrap.dedent(
     }
 
     import serial  # pyserial picks serialposix by os.name; on Windows it imports serialwin32 instead
+    try:  # platformdirs (pymmcore-plus imports it) picks its unix module by sys.platform; on Windows, windows
+        import platformdirs
+    except ImportError:
+        pass
 
     class NoPosix(importlib.abc.MetaPathFinder):
         def find_spec(self, name, path=None, target=None):
