@@ -70,238 +70,269 @@ def _member(kind: Any, value: Any) -> Any:
         return None
 
 
-def make_device_classes() -> dict[str, type]:
-    """Build the adapter classes (python-microscope is imported only here)."""
-    m, mabc = _microscope()
+def _m() -> Any:
+    """The ``microscope`` package (imported on first use)."""
+    return _microscope()[0]
+
+
+def _pyro() -> Any:
     import Pyro4  # type: ignore[import-untyped]  # Pyro4 ships no type information
 
-    light_base: Any = mabc.LightSource
-    camera_base: Any = mabc.Camera
-    stage_base: Any = mabc.Stage
-    axis_base: Any = mabc.StageAxis
+    return Pyro4
 
-    class RigLightSource(light_base):
-        """A rig light as a python-microscope light source: power = current / maximum current.
 
-        Only software triggering in bulb mode: ``enable`` switches the light on, ``disable`` off.
-        """
+#: The mixins' base for the type checker: python-microscope (untyped, optional) supplies the real base class.
+_MixinBase: Any = object
 
-        def __init__(self, light: LightSource, **kwargs: Any) -> None:
-            super().__init__(**kwargs)
-            self.light = light
+
+# The adapters' methods live in plain mixins; :func:`make_device_classes` puts each before its python-microscope
+# base class (imported only then). Each mixin's docstring is its class's.
+class _LightMixin(_MixinBase):
+    """A rig light as a python-microscope light source: power = current / maximum current.
+
+    Only software triggering in bulb mode: ``enable`` switches the light on, ``disable`` off.
+    """
+
+    def __init__(self, light: LightSource, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.light = light
+        self.light.switch_off()
+
+    @property
+    def trigger_type(self) -> Any:
+        return _m().TriggerType.SOFTWARE
+
+    @property
+    def trigger_mode(self) -> Any:
+        return _m().TriggerMode.BULB
+
+    def set_trigger(self, ttype: Any, tmode: Any) -> None:
+        if _member(_m().TriggerType, ttype) is not _m().TriggerType.SOFTWARE or _member(
+            _m().TriggerMode, tmode
+        ) is not (_m().TriggerMode.BULB):
+            raise _m().UnsupportedFeatureError("scopetwin lights trigger in software, bulb mode only")
+
+    def _do_trigger(self) -> None:
+        raise _m().UnsupportedFeatureError("a light in bulb mode is switched by enable/disable")
+
+    def get_status(self) -> list[str]:
+        on = "on" if self.light.is_on else "off"
+        return [f"{self.light.name}: {on}", f"current {self.light.current_ma:g} mA"]
+
+    def get_is_on(self) -> bool:
+        return bool(self.light.is_on)
+
+    def _current_for(self, power: float) -> float:
+        return float(power) * self.light.current_range.high
+
+    def _do_get_power(self) -> float:
+        if not self.light.is_on:
+            return 0.0
+        return float(self.light.current_ma / self.light.current_range.high)
+
+    def _do_set_power(self, power: float) -> None:
+        if self.light.is_on:
+            self.light.switch_on(self._current_for(power))
+        else:
+            self.light.set_current_ma(self._current_for(power))
+
+    def _do_enable(self) -> bool:
+        self.light.switch_on(self._current_for(self.get_set_power()))
+        return True
+
+    def _do_disable(self) -> None:
+        # python-microscope disables again from __del__, after the rig may have closed (lights off already)
+        if self.light.initialized:
             self.light.switch_off()
 
-        @property
-        def trigger_type(self) -> Any:
-            return m.TriggerType.SOFTWARE
-
-        @property
-        def trigger_mode(self) -> Any:
-            return m.TriggerMode.BULB
-
-        def set_trigger(self, ttype: Any, tmode: Any) -> None:
-            if _member(m.TriggerType, ttype) is not m.TriggerType.SOFTWARE or _member(m.TriggerMode, tmode) is not (
-                m.TriggerMode.BULB
-            ):
-                raise m.UnsupportedFeatureError("scopetwin lights trigger in software, bulb mode only")
-
-        def _do_trigger(self) -> None:
-            raise m.UnsupportedFeatureError("a light in bulb mode is switched by enable/disable")
-
-        def get_status(self) -> list[str]:
-            on = "on" if self.light.is_on else "off"
-            return [f"{self.light.name}: {on}", f"current {self.light.current_ma:g} mA"]
-
-        def get_is_on(self) -> bool:
-            return bool(self.light.is_on)
-
-        def _current_for(self, power: float) -> float:
-            return float(power) * self.light.current_range.high
-
-        def _do_get_power(self) -> float:
-            if not self.light.is_on:
-                return 0.0
-            return float(self.light.current_ma / self.light.current_range.high)
-
-        def _do_set_power(self, power: float) -> None:
-            if self.light.is_on:
-                self.light.switch_on(self._current_for(power))
-            else:
-                self.light.set_current_ma(self._current_for(power))
-
-        def _do_enable(self) -> bool:
-            self.light.switch_on(self._current_for(self.get_set_power()))
-            return True
-
-        def _do_disable(self) -> None:
-            # python-microscope disables again from __del__, after the rig may have closed (lights off already)
-            if self.light.initialized:
+    def _do_shutdown(self) -> None:
+        # python-microscope also shuts down from __del__: never raise, the rig closes the line anyway
+        if self.light.initialized:
+            with contextlib.suppress(InstrumentError):
                 self.light.switch_off()
 
-        def _do_shutdown(self) -> None:
-            # python-microscope also shuts down from __del__: never raise, the rig closes the line anyway
-            if self.light.initialized:
-                with contextlib.suppress(InstrumentError):
-                    self.light.switch_off()
 
-    class RigCamera(camera_base):
-        """A rig camera as a python-microscope camera: software trigger, one frame per trigger."""
+class _CameraMixin(_MixinBase):
+    """A rig camera as a python-microscope camera: software trigger, one frame per trigger."""
 
-        #: The HMAC key of the server that serves this camera (:func:`serve_devices` sets it; None: not served).
-        client_key: bytes | None = None
+    #: The HMAC key of the server that serves this camera (:func:`serve_devices` sets it; None: not served).
+    client_key: bytes | None = None
 
-        def __init__(self, camera: CameraDevice, **kwargs: Any) -> None:
-            super().__init__(**kwargs)
-            self.camera = camera
+    def __init__(self, camera: CameraDevice, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.camera = camera
+        self._triggered = 0
+        self._lock = threading.Lock()
+        self.add_setting(
+            "bit depth",
+            "enum",
+            lambda: self.camera.bit_depth,
+            lambda bits: self.camera.set_bit_depth(int(bits)),
+            lambda: list(self.camera.limits.bit_depths),
+        )
+
+    @property
+    def trigger_type(self) -> Any:
+        return _m().TriggerType.SOFTWARE
+
+    @property
+    def trigger_mode(self) -> Any:
+        return _m().TriggerMode.ONCE
+
+    def set_trigger(self, ttype: Any, tmode: Any) -> None:
+        if _member(_m().TriggerType, ttype) is not _m().TriggerType.SOFTWARE or _member(
+            _m().TriggerMode, tmode
+        ) is not (_m().TriggerMode.ONCE):
+            raise _m().UnsupportedFeatureError("the python-microscope adapter triggers in software, once")
+
+    def _do_trigger(self) -> None:
+        with self._lock:
+            if self._acquiring:
+                self._triggered += 1
+
+    def soft_trigger(self) -> None:
+        self.trigger()
+
+    def _fetch_data(self) -> Any:
+        with self._lock:
+            if not (self._acquiring and self._triggered > 0):
+                return None
+            self._triggered -= 1
+        frame = self.camera.grab()
+        return np.clip(np.rint(frame), 0, 65535).astype(np.uint16)
+
+    def _do_enable(self) -> bool:
+        with self._lock:
             self._triggered = 0
-            self._lock = threading.Lock()
-            self.add_setting(
-                "bit depth",
-                "enum",
-                lambda: self.camera.bit_depth,
-                lambda bits: self.camera.set_bit_depth(int(bits)),
-                lambda: list(self.camera.limits.bit_depths),
-            )
+            self._acquiring = True
+        return True
 
-        @property
-        def trigger_type(self) -> Any:
-            return m.TriggerType.SOFTWARE
+    def _do_disable(self) -> None:
+        self.abort()
 
-        @property
-        def trigger_mode(self) -> Any:
-            return m.TriggerMode.ONCE
+    def abort(self) -> None:
+        with self._lock:
+            self._acquiring = False
+            self._triggered = 0
 
-        def set_trigger(self, ttype: Any, tmode: Any) -> None:
-            if _member(m.TriggerType, ttype) is not m.TriggerType.SOFTWARE or _member(m.TriggerMode, tmode) is not (
-                m.TriggerMode.ONCE
-            ):
-                raise m.UnsupportedFeatureError("the python-microscope adapter triggers in software, once")
+    def _do_shutdown(self) -> None:
+        self.abort()
 
-        def _do_trigger(self) -> None:
-            with self._lock:
-                if self._acquiring:
-                    self._triggered += 1
+    def set_client(self, new_client: Any) -> None:
+        """Frames go to ``new_client`` (a listener URI); when served, over a proxy that signs with the key."""
+        if self.client_key is not None and isinstance(new_client, str | _pyro().core.URI):
+            new_client = _keyed_proxy(new_client, self.client_key, "pickle")  # frames: numpy arrays
+        super().set_client(new_client)
 
-        def soft_trigger(self) -> None:
-            self.trigger()
+    def set_exposure_time(self, value: float) -> None:
+        self.camera.set_exposure_s(float(value))
 
-        def _fetch_data(self) -> Any:
-            with self._lock:
-                if not (self._acquiring and self._triggered > 0):
-                    return None
-                self._triggered -= 1
-            frame = self.camera.grab()
-            return np.clip(np.rint(frame), 0, 65535).astype(np.uint16)
+    def get_exposure_time(self) -> float:
+        return float(self.camera.exposure_s)
 
-        def _do_enable(self) -> bool:
-            with self._lock:
-                self._triggered = 0
-                self._acquiring = True
-            return True
+    def get_cycle_time(self) -> float:
+        return float(self.camera.exposure_s)
 
-        def _do_disable(self) -> None:
-            self.abort()
+    def _get_sensor_shape(self) -> tuple[int, int]:
+        rows, cols = self.camera.sensor_shape
+        return cols, rows  # python-microscope: (width, height)
 
-        def abort(self) -> None:
-            with self._lock:
-                self._acquiring = False
-                self._triggered = 0
+    def _get_binning(self) -> Any:
+        return _m().Binning(self.camera.binning, self.camera.binning)
 
-        def _do_shutdown(self) -> None:
-            self.abort()
+    def _set_binning(self, binning: Any) -> bool:
+        if binning.h != binning.v:
+            raise _m().UnsupportedFeatureError("scopetwin cameras bin square only")
+        self.camera.set_binning(int(binning.h))
+        return True
 
-        def set_client(self, new_client: Any) -> None:
-            """Frames go to ``new_client`` (a listener URI); when served, over a proxy that signs with the key."""
-            if self.client_key is not None and isinstance(new_client, str | Pyro4.core.URI):
-                new_client = _keyed_proxy(new_client, self.client_key, "pickle")  # frames: numpy arrays
-            super().set_client(new_client)
+    def _get_roi(self) -> Any:
+        roi = self.camera.roi
+        return _m().ROI(roi.col, roi.row, roi.cols, roi.rows)
 
-        def set_exposure_time(self, value: float) -> None:
-            self.camera.set_exposure_s(float(value))
+    def _set_roi(self, roi: Any) -> bool:
+        self.camera.set_roi(int(roi.top), int(roi.left), int(roi.height), int(roi.width))
+        return True
 
-        def get_exposure_time(self) -> float:
-            return float(self.camera.exposure_s)
 
-        def get_cycle_time(self) -> float:
-            return float(self.camera.exposure_s)
+class _AxisMixin(_MixinBase):
+    """One rig axis in micrometres: a stage (mm inside) or the focus drive (µm inside)."""
 
-        def _get_sensor_shape(self) -> tuple[int, int]:
-            rows, cols = self.camera.sensor_shape
-            return cols, rows  # python-microscope: (width, height)
+    def __init__(self, device: Stage | FocusDrive) -> None:
+        super().__init__()
+        self.device = device
 
-        def _get_binning(self) -> Any:
-            return m.Binning(self.camera.binning, self.camera.binning)
+    @property
+    def limits(self) -> Any:
+        if isinstance(self.device, Stage):
+            return _m().AxisLimits(self.device.travel.low * 1e3, self.device.travel.high * 1e3)
+        return _m().AxisLimits(self.device.range.low, self.device.range.high)
 
-        def _set_binning(self, binning: Any) -> bool:
-            if binning.h != binning.v:
-                raise m.UnsupportedFeatureError("scopetwin cameras bin square only")
-            self.camera.set_binning(int(binning.h))
-            return True
+    @property
+    def position(self) -> float:
+        if isinstance(self.device, Stage):
+            return float(self.device.position_mm * 1e3)
+        return float(self.device.position_um)
 
-        def _get_roi(self) -> Any:
-            roi = self.camera.roi
-            return m.ROI(roi.col, roi.row, roi.cols, roi.rows)
+    def move_to(self, pos: float) -> None:
+        lim = self.limits
+        target = min(max(float(pos), lim.lower), lim.upper)  # python-microscope clips to the limits
+        if isinstance(self.device, Stage):
+            self.device.move_absolute(target * 1e-3)
+        else:
+            self.device.move_absolute_um(target)
 
-        def _set_roi(self, roi: Any) -> bool:
-            self.camera.set_roi(int(roi.top), int(roi.left), int(roi.height), int(roi.width))
-            return True
+    def move_by(self, delta: float) -> None:
+        self.move_to(self.position + float(delta))
 
-    class RigAxis(axis_base):
-        """One rig axis in micrometres: a stage (mm inside) or the focus drive (µm inside)."""
 
-        def __init__(self, device: Stage | FocusDrive) -> None:
-            super().__init__()
-            self.device = device
+class _StageMixin(_MixinBase):
+    """Rig axes as one python-microscope stage (µm); never homes on enable."""
 
-        @property
-        def limits(self) -> Any:
-            if isinstance(self.device, Stage):
-                return m.AxisLimits(self.device.travel.low * 1e3, self.device.travel.high * 1e3)
-            return m.AxisLimits(self.device.range.low, self.device.range.high)
+    def __init__(self, axes: Mapping[str, Stage | FocusDrive], **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self._axes = {name: _device_classes()["axis"](device) for name, device in axes.items()}
 
-        @property
-        def position(self) -> float:
-            if isinstance(self.device, Stage):
-                return float(self.device.position_mm * 1e3)
-            return float(self.device.position_um)
+    @property
+    def axes(self) -> Mapping[str, Any]:
+        return self._axes
 
-        def move_to(self, pos: float) -> None:
-            lim = self.limits
-            target = min(max(float(pos), lim.lower), lim.upper)  # python-microscope clips to the limits
-            if isinstance(self.device, Stage):
-                self.device.move_absolute(target * 1e-3)
-            else:
-                self.device.move_absolute_um(target)
+    def may_move_on_enable(self) -> bool:
+        return False  # the drivers reference at rig initialisation, not on enable
 
-        def move_by(self, delta: float) -> None:
-            self.move_to(self.position + float(delta))
+    def move_by(self, delta: Mapping[str, float]) -> None:
+        for name, d in delta.items():
+            self._axes[name].move_by(d)
 
-    class RigStage(stage_base):
-        """Rig axes as one python-microscope stage (µm); never homes on enable."""
+    def move_to(self, position: Mapping[str, float]) -> None:
+        for name, p in position.items():
+            self._axes[name].move_to(p)
 
-        def __init__(self, axes: Mapping[str, Stage | FocusDrive], **kwargs: Any) -> None:
-            super().__init__(**kwargs)
-            self._axes = {name: RigAxis(device) for name, device in axes.items()}
+    def _do_shutdown(self) -> None:
+        """Axes stay where they are."""
 
-        @property
-        def axes(self) -> Mapping[str, Any]:
-            return self._axes
 
-        def may_move_on_enable(self) -> bool:
-            return False  # the drivers reference at rig initialisation, not on enable
+_DEVICE_CLASSES: dict[str, type] = {}
 
-        def move_by(self, delta: Mapping[str, float]) -> None:
-            for name, d in delta.items():
-                self._axes[name].move_by(d)
 
-        def move_to(self, position: Mapping[str, float]) -> None:
-            for name, p in position.items():
-                self._axes[name].move_to(p)
+def _device_classes() -> dict[str, type]:
+    if not _DEVICE_CLASSES:
+        _, mabc = _microscope()
+        for key, mixin, base in (
+            ("light", _LightMixin, mabc.LightSource),
+            ("camera", _CameraMixin, mabc.Camera),
+            ("stage", _StageMixin, mabc.Stage),
+            ("axis", _AxisMixin, mabc.StageAxis),
+        ):
+            name = {"light": "RigLightSource", "camera": "RigCamera", "stage": "RigStage", "axis": "RigAxis"}[key]
+            namespace = {"__module__": __name__, "__doc__": mixin.__doc__, "__qualname__": name}
+            _DEVICE_CLASSES[key] = type(base)(name, (mixin, base), namespace)
+    return _DEVICE_CLASSES
 
-        def _do_shutdown(self) -> None:
-            """Axes stay where they are."""
 
-    return {"light": RigLightSource, "camera": RigCamera, "stage": RigStage, "axis": RigAxis}
+def make_device_classes() -> dict[str, type]:
+    """The adapter classes (python-microscope is imported here): ``light``, ``camera``, ``stage``, ``axis``."""
+    return dict(_device_classes())
 
 
 def microscope_devices(rig: Rig, *, stage_x: str = "x", stage_y: str = "y") -> dict[str, Any]:
