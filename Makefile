@@ -6,7 +6,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: run test test-all lint docs bench llvm setup clean
+.PHONY: run test test-all lint docs bench bench-full llvm setup clean
 
 run: setup
 	$(VENV)/bin/scopetwin run
@@ -40,8 +40,13 @@ lint: setup
 docs: setup
 	$(VENV)/bin/sphinx-build -W --keep-going -b html docs build/docs
 
+# issue 26's speed table, each row beside a reference timed in the same run (README, "Benchmarks")
 bench: setup
-	$(PY) benchmarks/render_speed.py
+	$(PY) benchmarks/speed_table.py
+
+# the same with the long rows: study thesis, inverse reconstruction, make lint + make test
+bench-full: setup
+	$(PY) benchmarks/speed_table.py --full
 
 clean:
 	rm -rf $(VENV) scopetwin-run .pytest_cache
