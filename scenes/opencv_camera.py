@@ -11,7 +11,7 @@ The thesis's camera (seed §1.6.2, §2.5.1; :mod:`scopetwin.scenes.camera`, docs
 
 * ``R`` has the rows T_x, -T_y, -N_z (right-handed: T_x x (-T_y) = -N_z), ``t = -R r_c`` (mm);
 * ``fx = fy = b c0 / pitch``, ``cx = nx/2 - 0.5 - x_cs/pitch``, ``cy = ny/2 - 0.5 + y_cs/pitch``;
-* the radial distortion r_dist = (c0 + c2 |r|) r of §2.5.1 is, in OpenCV's normalised coordinates, the factor
+* the radial distortion ``r_dist = (c0 + c2 |r|) r`` of §2.5.1 is, in OpenCV's normalised coordinates, the factor
   1 + a r with a = c2 b / c0: a term **linear** in r, which OpenCV's polynomial in r^2 lacks. With c2 = 0 the
   conversion is exact (``dist`` = 0). Otherwise ``dist`` = (k1, k2, 0, 0, k3) and a common scale s of fx, fy are
   fitted by least squares to r (1 + a r) over the ray of every pixel centre of the image, and the size of the

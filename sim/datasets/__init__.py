@@ -49,8 +49,9 @@ Layout of a dataset folder::
                               worker process that made it; time)
     DIR/.scopetwin.lock       the folder's lock (flock): host, pid, command and start of the run holding it
     DIR/samples/000000/       one folder per sample: image.exr, truth.json, surface.exr,
-                              normals.exr (deflectometry), preview.png, sample.json (hashes);
-                              'cmu': image_<channel>.exr per channel, height_<element>.exr
+                              normals.exr (deflectometry), maps.exr (per-pixel truth), preview.png,
+                              sample.json (hashes); 'cmu': image_<channel>.exr per channel,
+                              height_<element>.exr, maps.exr
 
 A sample folder is written under a temporary name in ``DIR/samples`` (its writer holds an ``flock`` on it)
 and renamed into place when complete (atomic on POSIX file systems); sample files hold no timestamps or host
@@ -58,7 +59,12 @@ names (those are in the manifest). One run at a time holds a dataset folder (:mo
 second ``generate``/``resume`` on it is refused at once, naming the holder. ``resume`` removes the temporary
 folders of dead processes (never one a live writer holds), re-lists finished samples the manifest lost (a
 killed client; such lines say ``"status": "recovered"``, their maker unknown), renders only what is missing
-and reports the counts; ``verify`` checks every sample against the manifest and its own hashes. A run stopped
+and reports the counts; ``verify`` checks every sample against the manifest and its own hashes, validates its files
+against the shipped JSON Schemas and checks their values (:mod:`~scopetwin.sim.datasets.validate`).
+
+Reading and using a dataset: :func:`scopetwin.open_dataset` (:mod:`~scopetwin.sim.datasets.reader`), the per-pixel
+truth (:mod:`~scopetwin.sim.datasets.maps`), ``dataset show`` (:mod:`~scopetwin.sim.datasets.sheet`) and
+``dataset export`` (:mod:`~scopetwin.sim.datasets.export`). A run stopped
 by Ctrl-C, SIGTERM or SIGHUP (:mod:`scopetwin.sim.signals`) lists every finished sample before it exits.
 
 """

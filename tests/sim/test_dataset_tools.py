@@ -57,6 +57,19 @@ def test_set_overrides_config_keys_with_the_files_validation(small, tmp_path, ca
     assert load_config(cfg, overrides=["render.noise=false"]).dataset.noise is False
 
 
+def test_the_readme_reads_a_dataset_in_five_lines(small):
+    import re
+
+    text = (Path(__file__).resolve().parents[2] / "README.md").read_text().split("## Datasets", 1)[1]
+    code = re.search(r"```python\n(.*?)```", text, re.S).group(1)
+    assert len(code.strip().splitlines()) == 5
+    scope: dict[str, object] = {}
+    exec(compile(code.replace('"ds-deflectometry"', repr(str(small))), "README.md", "exec"), scope)  # noqa: S102
+    image, height, mask, K = scope["image"], scope["height"], scope["mask"], scope["K"]
+    assert image.shape == height.shape == mask.shape == (64, 85) and mask.dtype == bool  # type: ignore[attr-defined]
+    assert K.shape == (3, 3)  # type: ignore[attr-defined]
+
+
 def test_show_draws_a_contact_sheet(small, tmp_path):
     import matplotlib.image as mpimg
 

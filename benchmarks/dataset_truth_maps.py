@@ -1,0 +1,155 @@
+"""What the per-pixel truth maps cost, and what reading a dataset costs (issue 23).
+
+1. Samples per minute on one core (in this process, one Dr.Jit thread) of ``examples/datasets/01-deflectometry-
+   small.toml`` with and without the truth maps (``[dataset] maps``), in one run: the two configs alternate sample
+   by sample (after a warm-up sample each: imports, Dr.Jit kernel compilation), so a load that changes during the
+   run weighs on both alike. Beside it, the maps' own time per sample (trace + EXR write) against the render's.
+   Target: the maps cost <= 15 % of a sample's time.
+2. Reader throughput: ``scopetwin.open_dataset`` reading every sample's image and maps (``.image``, ``.maps``)
+   beside the raw reads of the same files (their bytes; and OpenEXR's own decode of every channel).
+
+    PYTHONPATH=. python benchmarks/dataset_truth_maps.py [--samples 4] [--config CFG] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from scopetwin.sim.datasets.config import config_from_dict
+from scopetwin.sim.datasets.plan import Plan
+from scopetwin.sim.datasets.store import CONFIG_FILE, SAMPLES, generate_sample
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _plan(config: Path, maps: bool, count: int) -> Plan:
+    import tomllib
+
+    data = tomllib.loads(config.read_text())
+    data["dataset"]["maps"] = maps
+    data["dataset"]["count"] = count
+    return Plan.build(config_from_dict(data, str(config), config.resolve().parent))
+
+
+def _generation(config: Path, samples: int, scratch: Path) -> dict[str, float]:
+    plans = {flag: _plan(config, flag, samples + 1) for flag in (False, True)}
+    roots = {}
+    for flag, plan in plans.items():
+        roots[flag] = scratch / ("maps" if flag else "plain")
+        (roots[flag] / SAMPLES).mkdir(parents=True)
+        (roots[flag] / CONFIG_FILE).write_text(json.dumps(plan.to_json()))  # a dataset folder the reader opens
+        generate_sample(plan.to_json(), samples, str(roots[flag]), 1)  # warm-up (not counted)
+    seconds: dict[bool, list[float]] = {False: [], True: []}
+    for i in range(samples):
+        for flag in (False, True) if i % 2 == 0 else (True, False):
+            t0 = time.perf_counter()
+            generate_sample(plans[flag].to_json(), i, str(roots[flag]), 1)
+            seconds[flag].append(time.perf_counter() - t0)
+    plain, with_maps = sum(seconds[False]), sum(seconds[True])
+    return {
+        "samples": samples,
+        "plain_samples_per_min": 60.0 * samples / plain,
+        "maps_samples_per_min": 60.0 * samples / with_maps,
+        "maps_cost_percent": 100.0 * (with_maps - plain) / plain,
+        "plain_median_s": statistics.median(seconds[False]),
+        "maps_median_s": statistics.median(seconds[True]),
+        "root": str(roots[True]),
+    }
+
+
+def _maps_alone(config: Path) -> dict[str, float]:
+    """The maps' own time on one sample (trace, EXR write) beside the render of the same sample."""
+    from scopetwin.sim.datasets.maps import part1_maps, write_maps
+    from scopetwin.sim.measurement import render_measurement
+    from scopetwin.sim.surfaces import surface_for
+
+    setup = _plan(config, True, 1).setup_of(0)
+    heights = surface_for(setup)
+    render_measurement(setup, heights, setup.render.spp, 0, setup.render.noise)  # warm-up
+    t0 = time.perf_counter()
+    render_measurement(setup, heights, setup.render.spp, 0, setup.render.noise)
+    t1 = time.perf_counter()
+    maps = part1_maps(setup, heights)
+    t2 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        write_maps(Path(tmp) / "maps.exr", maps)
+    t3 = time.perf_counter()
+    return {"render_s": t1 - t0, "maps_trace_s": t2 - t1, "maps_write_s": t3 - t2}
+
+
+def _reading(root: Path) -> dict[str, float]:
+    import OpenEXR
+
+    import scopetwin
+
+    ds = scopetwin.open_dataset(root)
+    files = [s.folder / name for s in ds for name in ("image.exr", "maps.exr")]
+    nbytes = sum(f.stat().st_size for f in files)
+    t0 = time.perf_counter()
+    for f in files:
+        f.read_bytes()
+    raw = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for f in files:
+        exr = OpenEXR.File(str(f), separate_channels=True)
+        for chan in exr.channels().values():
+            _ = chan.pixels
+    decode = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for sample in scopetwin.open_dataset(root):  # a fresh reader: nothing cached
+        _ = sample.image, sample.maps
+    reader = time.perf_counter() - t0
+    n = len(ds)
+    return {
+        "samples": n,
+        "megabytes": nbytes / 1e6,
+        "raw_read_samples_per_s": n / raw,
+        "exr_decode_samples_per_s": n / decode,
+        "reader_samples_per_s": n / reader,
+        "reader_mb_per_s": nbytes / 1e6 / reader,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", default=str(ROOT / "examples" / "datasets" / "01-deflectometry-small.toml"))
+    ap.add_argument("--samples", type=int, default=4)
+    ap.add_argument("--json", help="write the figures here")
+    args = ap.parse_args()
+    scratch = Path(tempfile.mkdtemp(prefix="scopetwin-maps-bench-"))
+    try:
+        gen = _generation(Path(args.config), args.samples, scratch)
+        print(f"config {args.config}, {gen['samples']} samples each, one core, alternating")
+        print(
+            f"  without maps  {gen['plain_samples_per_min']:6.1f} samples/min  (median {gen['plain_median_s']:.2f} s)\n"
+            f"  with maps     {gen['maps_samples_per_min']:6.1f} samples/min  (median {gen['maps_median_s']:.2f} s)\n"
+            f"  maps cost     {gen['maps_cost_percent']:+5.1f} % of a sample's time (target <= 15 %)",
+            flush=True,
+        )
+        alone = _maps_alone(Path(args.config))
+        print(
+            f"  one sample: render {alone['render_s']:.2f} s, maps trace {alone['maps_trace_s']:.2f} s, "
+            f"maps EXR write {alone['maps_write_s']:.2f} s",
+            flush=True,
+        )
+        read = _reading(Path(gen.pop("root")))
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    print(
+        f"reading {read['samples']} samples ({read['megabytes']:.1f} MB of image.exr + maps.exr):\n"
+        f"  raw file reads    {read['raw_read_samples_per_s']:8.1f} samples/s\n"
+        f"  OpenEXR decode    {read['exr_decode_samples_per_s']:8.1f} samples/s\n"
+        f"  open_dataset      {read['reader_samples_per_s']:8.1f} samples/s ({read['reader_mb_per_s']:.0f} MB/s)"
+    )
+    if args.json:
+        Path(args.json).write_text(json.dumps({"generation": gen, "one_sample": alone, "reading": read}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
