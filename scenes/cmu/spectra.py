@@ -284,13 +284,14 @@ def excitation_at_object(channel: str, wl_nm: ArrayLike = GRID_NM) -> Array:
 def detection_response(channel: str, wl_nm: ArrayLike = GRID_NM, include_splitters: bool = True) -> Array:
     """Electrons per emitted photon entering the emission path at wavelength: path transmission x camera QE.
 
-    With ``include_splitters=False`` only the fixed parts in front of the camera (band pass, mirror, QE):
-    the splitters are then applied ray by ray in the renderer.
+    With ``include_splitters=False`` only the fixed parts in front of the camera (band pass, QE): the splitters and
+    the folding mirrors are then applied ray by ray in the renderer (:mod:`scopetwin.scenes.mitsuba.cmu` models both as
+    plates, the mirrors with :data:`MIRROR_REFLECTANCE`).
     """
     _check_channel(channel)
     path = EMISSION_PATHS[channel]
     if not include_splitters:
-        path = tuple(p for p in path if p[1] in ("BP", "M"))
+        path = tuple(p for p in path if p[1] == "BP")
     return path_curve(path, wl_nm) * camera_qe(wl_nm)
 
 
