@@ -7,6 +7,10 @@
   distance, magnification (Table 5.1), RMS spots, astigmatism and wavefront PSF, the 4x4 excitation crosstalk,
   printed beside the seed; with ``--out`` the Siemens star and the dummy cells rendered through each channel and
   measured (Tables 5.1-5.4).
+* ``optics cmu --budget [--snr S] [--raster COLUMNS ROWS] [--plot PNG] [--json PATH] [--out DIR [--spp N]
+  [--window PX] [--density RHO|implied]]`` -- the photon budget per channel beside the thesis's exposures, the lasers
+  of §5.2.3, the time per field and per slide against a sequential microscope (:mod:`scopetwin.sim.cmu_budget`); with
+  ``--out`` the dummy cells at the budget's photon counts and the thesis's exposures.
 * ``optics grin PRESET [--json PATH] [--spots PNG] [--image TARGET --out EXR] [--profile TOML]
   [--sensitivity] [--spp N] [--width W --height H]`` -- paraxial data, NA, Airy radius, RMS spots,
   printed beside the seed's Zemax figures; spot diagrams; an image of a §8.5 target with a PNG preview beside
@@ -268,12 +272,18 @@ def cmd_scan(args: argparse.Namespace) -> dict[str, Any]:
 # -- optics cmu ----------------------------------------------------------------------------------
 def register_cmu(optics_subparsers: Any) -> argparse.ArgumentParser:
     """Add ``cmu`` to the ``optics`` sub-parsers; returns its parser."""
-    h = "the four-channel microscope unit (seed ch. 3-5): spots, PSF, magnification, Siemens star, crosstalk"
+    h = (
+        "the four-channel microscope unit (seed ch. 3-5): spots, PSF, magnification, Siemens star, crosstalk; "
+        "--budget: photon budget per channel, the lasers of §5.2.3, time per field and per slide (ch. 6)"
+    )
     p = optics_subparsers.add_parser(
         "cmu",
         help=h,
         description=h,
-        **conventions("scopetwin optics cmu --json cmu.json", "scopetwin optics cmu --stop --out cmu --spp 16"),
+        **conventions(
+            "scopetwin optics cmu --stop --out cmu --spp 16 --json cmu.json",
+            "scopetwin optics cmu --budget --plot budget.png --out budget-cells --spp 8",
+        ),
     )
     p.add_argument("--setup", default="thesis-cmu", help="preset name or TOML (default thesis-cmu)")
     p.add_argument(
@@ -290,8 +300,45 @@ def register_cmu(optics_subparsers: Any) -> argparse.ArgumentParser:
     )
     p.add_argument("--spp", type=SPP, default=16, help="samples per pixel for --out, >= 1 (default 16)")
     p.add_argument("--no-cells", action="store_true", help="with --out: skip the dummy-cell images")
-    p.set_defaults(func=cmd_cmu, outputs=[("json", "file"), ("out", "dir")])
+    _budget_options(p)
+    p.set_defaults(func=cmd_cmu, outputs=[("json", "file"), ("out", "dir"), ("plot", "file")])
     return p
+
+
+def _density(text: str) -> float | str:
+    """``--density``: molecules/µm² (> 0) or the word ``implied``."""
+    if text == "implied":
+        return text
+    return positive_float(1e12)(text)
+
+
+def _budget_options(p: argparse.ArgumentParser) -> None:
+    """``--budget`` and its options: photon budget, lasers, time per field (:mod:`scopetwin.sim.cmu_budget`)."""
+    p.add_argument(
+        "--budget",
+        action="store_true",
+        help="instead of the ray analyses: the photon budget per channel, the lasers of §5.2.3 and the time per field "
+        "and per slide against a sequential microscope; with --out, the dummy cells at the budget's photon counts",
+    )
+    p.add_argument("--snr", type=positive_float(1e4), default=10.0, help="with --budget: the SNR an image must reach")
+    p.add_argument("--plot", type=Path, help="with --budget: write the exposures and field times as a PNG")
+    p.add_argument(
+        "--raster",
+        type=positive_int(100_000),
+        nargs=2,
+        default=(80, 25),
+        metavar=("COLUMNS", "ROWS"),
+        help="with --budget: the slide's fields (default 80 x 25 = 2000)",
+    )
+    p.add_argument(
+        "--density",
+        type=_density,
+        help="with --budget --out: labelled molecules per µm² of the nuclei, or 'implied' (each channel the density "
+        "its thesis exposure implies; default: the one the blue channel's 80 ms implies, for all)",
+    )
+    p.add_argument(
+        "--window", type=SIDE_PX, default=256, help="with --budget --out: side of the centred window, px (default 256)"
+    )
 
 
 def _maps(items: list[str]) -> dict[str, Any]:
@@ -316,6 +363,9 @@ def cmd_cmu(args: argparse.Namespace) -> dict[str, Any]:
     from scopetwin.scenes.cmu import spectra
     from scopetwin.scenes.cmu.layout import load_cmu_setup
 
+    _check_budget_args(args)
+    if args.budget:
+        return _cmd_budget(args, load_cmu_setup(args.setup))
     setup = load_cmu_setup(args.setup)
     maps = _maps(args.splitter_maps)
     unknown = set(maps) - set(setup.splitters) - set(setup.mirrors)
@@ -365,18 +415,7 @@ def cmd_cmu(args: argparse.Namespace) -> dict[str, Any]:
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         rm = cmu_unit.render_and_measure(setup, maps, table, args.out, args.spp, args.stop, not args.no_cells)
-        print("\nfrom the rendered Siemens-star images (calib.channels):")
-        print("channel  m (img)  m (T5.1)  dx (µm)  dx (T5.2)  offset px (x, y)  T5.3 px      tilt (°)  T5.4")
-        for ch, r in rm["measured"].items():
-            off = (
-                "reference" if ch == "nir" else f"({r.get('offset_x_px', 0.0):6.1f}, {r.get('offset_y_px', 0.0):6.1f})"
-            )
-            seed_off = str(cmu_unit.SEED_TABLE_5_3_PX.get(ch, "reference"))
-            print(
-                f"{ch:7s} {r['magnification']:8.3f} {cmu_unit.SEED_TABLE_5_1[ch]:9.2f} {r['delta_x_um']:8.2f} "
-                f"{_fmt_seed(cmu_unit.SEED_TABLE_5_2_UM[ch]):>10s}  {off:17s} {seed_off:12s} "
-                f"{r.get('tilt_deg', 0.0):8.3f}  {cmu_unit.SEED_TABLE_5_4_DEG.get(ch, '-')}"
-            )
+        _print_measured(rm["measured"])
         result |= rm
         previews = {}
         for name, path in rm["files"].items():
@@ -387,6 +426,73 @@ def cmd_cmu(args: argparse.Namespace) -> dict[str, Any]:
         print(f"EXR images and PNG previews of {len(previews)} renders -> {args.out}")
         for ch in table:
             table[ch]["delta_x_um"] = rm["measured"][ch]["delta_x_um"]
+    return _jsonable(result)
+
+
+def _print_measured(measured: dict[str, dict[str, Any]]) -> None:
+    """The Siemens-star measurements of ``optics cmu --out`` beside Tables 5.1-5.4."""
+    print("\nfrom the rendered Siemens-star images (calib.channels):")
+    print("channel  m (img)  m (T5.1)  dx (µm)  dx (T5.2)  offset px (x, y)  T5.3 px      tilt (°)  T5.4")
+    for ch, r in measured.items():
+        off = "reference" if ch == "nir" else f"({r.get('offset_x_px', 0.0):6.1f}, {r.get('offset_y_px', 0.0):6.1f})"
+        seed_off = str(cmu_unit.SEED_TABLE_5_3_PX.get(ch, "reference"))
+        print(
+            f"{ch:7s} {r['magnification']:8.3f} {cmu_unit.SEED_TABLE_5_1[ch]:9.2f} {r['delta_x_um']:8.2f} "
+            f"{_fmt_seed(cmu_unit.SEED_TABLE_5_2_UM[ch]):>10s}  {off:17s} {seed_off:12s} "
+            f"{r.get('tilt_deg', 0.0):8.3f}  {cmu_unit.SEED_TABLE_5_4_DEG.get(ch, '-')}"
+        )
+
+
+def _check_budget_args(args: argparse.Namespace) -> None:
+    """Refuse the options of the ray analyses with ``--budget``, and the budget's without it."""
+    if args.budget:
+        used = [
+            o
+            for o, v in (("--splitter-maps", args.splitter_maps), ("--stop", args.stop), ("--no-cells", args.no_cells))
+            if v
+        ]
+        if used:
+            raise ScopetwinError(
+                f"{', '.join(used)}: not with --budget (the budget renders the cells of the model unit)"
+            )
+        return
+    given = [o for o, v in (("--plot", args.plot), ("--density", args.density)) if v is not None]
+    given += [
+        o
+        for o, v, d in (
+            ("--snr", args.snr, 10.0),
+            ("--raster", tuple(args.raster), (80, 25)),
+            ("--window", args.window, 256),
+        )
+        if v != d
+    ]
+    if given:
+        raise ScopetwinError(f"{', '.join(given)}: only with --budget")
+
+
+def _cmd_budget(args: argparse.Namespace, setup: Any) -> dict[str, Any]:
+    """``optics cmu --budget``: the three tables (and the plot, and the cells at the budget's photon counts)."""
+    from scopetwin.sim import cmu_budget
+    from scopetwin.sim.field_time import TimingModel
+
+    if args.out is not None:
+        from scopetwin.scenes.limits import check_render
+
+        side = min(args.window, setup.camera.width_px, setup.camera.height_px)
+        check_render(side, side, args.spp * len(setup.channels), f"optics cmu --budget --out at {args.spp} spp", "cmu")
+    result = cmu_budget.report(args.snr, TimingModel(columns=args.raster[0], rows=args.raster[1]))
+    print("\n".join(cmu_budget.format_report(result)))
+    if args.plot is not None:
+        result["plot"] = str(cmu_budget.write_plot(result, args.plot))
+        print(f"plot -> {args.plot}")
+    if args.out is not None:
+        rows = cmu_budget.render_cells(
+            setup, args.out, args.snr, density=args.density, spp=args.spp, window_px=args.window
+        )
+        print()
+        print("\n".join(cmu_budget.render_lines(rows)))
+        print(f"EXR images (DN) and PNG previews of {len(rows)} channels -> {args.out}")
+        result["cells"] = rows
     return _jsonable(result)
 
 
