@@ -10,8 +10,8 @@ a setup (:mod:`~scopetwin.scenes.cmu.layout`, preset ``thesis-cmu``), bowed beam
 analyses
 (refocus, magnification, spots, astigmatism, wavefront PSF/MTF, the 4 mm stop; :mod:`~scopetwin.scenes.cmu.analysis`)
 and
-the test objects (:mod:`~scopetwin.scenes.cmu.targets`). The Mitsuba (spectral) realisation is
-:mod:`scopetwin.scenes.mitsuba.cmu`.
+the test objects (:mod:`~scopetwin.scenes.cmu.targets`), the photon budget of the four channels
+(:mod:`~scopetwin.scenes.cmu.photon_budget`). The Mitsuba (spectral) realisation is :mod:`scopetwin.scenes.mitsuba.cmu`.
 """
 
 from scopetwin.scenes.cmu.layout import CmuSetup, load_cmu_setup
