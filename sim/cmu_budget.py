@@ -320,7 +320,12 @@ def _centre_window(setup: Any, side_px: int) -> tuple[int, int, int, int]:
 
 def electrons_per_unit_ms(setup: Any, channel: str, budget: pb.ChannelBudget, image_distance_mm: float) -> float:
     """Photoelectrons per ms per unit of a rendered cell image (:func:`scopetwin.scenes.mitsuba.cmu.render_channel`):
-    a texel of value 1 then gives the budget's ``e_per_px_per_ms`` on the axis."""
+    a texel of value 1 then gives the budget's ``e_per_px_per_ms`` on the axis.
+
+    The renderer draws each channel's wavelengths from its :data:`~scopetwin.scenes.cmu.spectra.CHANNEL_FLUOROPHORE`
+    (DAPI in the blue channel) and the budget counts the stain of §5.2.3 (Hoechst 33258): the scale divides by the
+    renderer's own unit response, so the image's mean is the budget's count whatever the spectrum it was drawn from.
+    """
     from scopetwin.scenes.mitsuba.cmu import unit_texel_irradiance
 
     return budget.e_per_px_per_ms / unit_texel_irradiance(setup, channel, image_distance_mm)
