@@ -33,7 +33,7 @@ from scopetwin.scenes.inputs import check_input_file, native_output_captured
 from scopetwin.scenes.surface import HeightMap
 
 EXTENT_KEYS = ("x_min_mm", "x_max_mm", "y_min_mm", "y_max_mm")
-#: The largest height a substrate's surface may have, |z| in mm (bows are µm to a few mm; seed §1.9).
+#: The largest absolute height a substrate's surface may have, mm (bows are µm to a few mm; seed §1.9).
 MAX_HEIGHT_MM = 10.0
 #: How far (relative to the substrate's size) a height map's extent may fall short of the substrate's edge.
 COVER_TOLERANCE = 1e-6
