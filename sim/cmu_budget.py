@@ -269,7 +269,10 @@ def write_plot(result: dict[str, Any], path: Path) -> Path:
     _plot_exposures(axes[0], result)
     _plot_field_times(axes[1], result)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    from scopetwin.scenes.io import atomic_path
+
+    with atomic_path(path) as tmp:  # written beside it and renamed: never through a link at ``path``
+        fig.savefig(tmp, format="png", dpi=120)
     plt.close(fig)
     return path
 
