@@ -361,6 +361,72 @@ def _pose_update(camera: Camera, pattern: MarkerPattern, p: Array) -> tuple[Came
     return cam, replace(pattern, frame=pf)
 
 
+def _warm_start(
+    values: list[tuple[float, float]], surfaces: list[SplineSurface], h_new: float, surf: SplineSurface
+) -> SplineSurface:
+    """The start for the next start height ``h_new``: the last two fits extrapolated linearly in H (the surfaces
+    depend almost linearly on it), or ``surf`` where they do not determine the line."""
+    if len(values) >= 2 and values[-1][1] != values[-2][1] and values[-1][0] != values[-2][0]:
+        (ha, _), (hb, _) = values[-2], values[-1]
+        wgt = (h_new - hb) / (hb - ha)
+        return surfaces[-1].with_coef(surfaces[-1].coef + wgt * (surfaces[-1].coef - surfaces[-2].coef))
+    return surf
+
+
+@dataclass
+class _PoseBlocks:
+    """The pose's blocks of one step's normal equations: prior sigmas (12), A_pp, A_pc (pose x coefficients), g_p."""
+
+    sig: Array
+    a_pp: Array
+    a_pc: sp.csr_matrix
+    g_p: Array
+
+
+@dataclass
+class _NormalEquations:
+    """One Gauss-Newton step's linearisation: the model and data on the usable pixels ``ok``, the photometric gain
+    and offset, residuals, the normal equations A x = g with the mean-height row, lambda, the pose blocks and the
+    chi^2 at the current coefficients."""
+
+    vals: Array
+    ok: NDArray[np.bool_]
+    data: Array
+    wgt: Array
+    alpha: float
+    beta: float
+    r: Array
+    a: sp.csr_matrix
+    g: Array
+    m_row: Array
+    lam: float
+    pose: _PoseBlocks | None
+    chi2_old: float
+
+
+@dataclass
+class _Trial:
+    """One damped trial step: its surface, coefficient and pose steps, chi^2 and the pixels usable on both sides."""
+
+    surf: SplineSurface
+    dc: Array
+    dp: Array | None
+    chi2: float
+    both: NDArray[np.bool_]
+
+
+@dataclass
+class _HeightSearch:
+    """The start-height search's end: the start height, criterion, frame maxima, heights tried, converged."""
+
+    h: float
+    crit: float
+    m1: float
+    m2: float
+    tried: int
+    converged: bool
+
+
 class InverseReconstructor:
     """Fits the substrate's surface to one deflectometry image through the differentiable render (module doc).
 
@@ -488,13 +554,17 @@ class InverseReconstructor:
         return float(sol[0]), float(sol[1])
 
     def fit_level(self, lev: _Level, surf: SplineSurface, h: float, iterations: int, index: int) -> SplineSurface:
-        """Gauss-Newton steps at one level with mean ROI height fixed to ``h``; returns the new surface."""
+        """Gauss-Newton steps at one level with mean ROI height fixed to ``h``; returns the new surface.
+
+        Each step: the normal equations at the current surface (:meth:`_normal_equations`), then Levenberg-Marquardt
+        trials of growing damping until one lowers chi^2 (:meth:`_damped_step`); the level ends when none does, when
+        the RMS coefficient step falls below ``tol_um`` or after ``iterations`` steps.
+        """
         cfg = self.config
         d = surf.smoothness()
         dtd = (d.T @ d).tocsr()
         xs, ys = self.sub.roi_grid(max(surf.dx, 0.5))
         mean_row = np.asarray(surf.design(xs, ys).mean(axis=0)).ravel()
-        span = self._span
         lam = None
         mu = 1e-3
         c = surf.coef.ravel().copy()
@@ -502,85 +572,136 @@ class InverseReconstructor:
         c += h - float(mean_row @ c)
         surf = surf.with_coef(c)
         for _ in range(iterations):
-            vals, ok, jac, jpose = self._linearise(lev, surf)
-            assert jac is not None
-            data, wgt = lev.data[ok], 1.0 / lev.var[ok]
-            alpha, beta = self._photometric(vals[ok], data, wgt)
-            r = data - alpha * vals[ok] - beta
-            ja = jac * alpha
-            jtw = ja.T.multiply(wgt[None, :]).tocsr()
-            jtj = (jtw @ ja).tocsr()
-            if lam is None:
-                lam = cfg.smoothness * float(jtj.diagonal().mean()) / max(float(dtd.diagonal().mean()), 1e-300)
-            g = jtw @ r - lam * (dtd @ c)
-            a = (jtj + lam * dtd).tocsr()
-            m_row = mean_row
-            if span is not None:  # the surfaces c + P da: the normal equations in the span's coordinates
-                a, g, m_row = sp.csr_matrix(span.T @ (a @ span)), span.T @ g, span.T @ mean_row
-            npose = 0
-            if jpose is not None:
-                npose = 12
-                jp = jpose * alpha  # rows of the usable pixels already
-                sig = np.repeat(np.asarray(cfg.pose_sigma, dtype=np.float64), 3)  # (shift, rotation) x 3 per device
-                prior = 1.0 / np.maximum(sig, 1e-12) ** 2
-                jpw = jp.T * wgt[None, :]
-                a_pp = jpw @ jp + np.diag(prior)
-                a_pc = sp.csr_matrix(jpw @ ja if span is None else (jpw @ ja) @ span)
-                g_p = jpw @ r - prior * self.pose
-            chi2_old = float(np.sum(wgt * r * r) + lam * c @ (dtd @ c))
-            accepted = False
-            for _trial in range(4):
-                damp = a + mu * sp.diags(a.diagonal() + 1e-300)
-                blocks = [[damp, m_row[:, None]], [m_row[None, :], None]]
-                rhs = [g, np.zeros(1)]
-                if npose:
-                    blocks = [
-                        [damp, a_pc.T, m_row[:, None]],
-                        [a_pc, sp.csr_matrix(a_pp * (1 + mu)), None],
-                        [m_row[None, :], None, None],
-                    ]
-                    rhs = [g, g_p, np.zeros(1)]
-                kkt = sp.bmat(blocks, format="csc")
-                step = spla.spsolve(kkt, np.concatenate(rhs))
-                k = len(m_row)
-                frac = 1.0
-                dp = step[k : k + npose] if npose else None
-                if dp is not None:  # the joint step shortened so that the pose stays within pose_box sigma
-                    frac = _box_fraction(self.pose, dp, cfg.pose_box * sig)
-                    dp = dp * frac
-                dc = frac * (step[:k] if span is None else span @ step[:k])
-                trial = surf.with_coef(c + dc)
-                if dp is not None:
-                    saved = (lev.model.camera, lev.model.pattern)
-                    self._apply_pose(lev, dp)
-                tv, tok, _, _ = self._linearise(lev, trial, need_jac=False)
-                both = ok & tok
-                ta, tb = self._photometric(tv[both], lev.data[both], 1.0 / lev.var[both])
-                tr = lev.data[both] - ta * tv[both] - tb
-                chi2_new = float(np.sum(tr * tr / lev.var[both]) + lam * (c + dc) @ (dtd @ (c + dc)))
-                # compare on the common pixels
-                r_common = (data - alpha * vals[ok] - beta)[both[ok]]
-                chi2_ref = float(np.sum(r_common**2 * wgt[both[ok]]) + lam * c @ (dtd @ c))
-                if chi2_new <= chi2_ref or not np.isfinite(chi2_ref):
-                    accepted = True
-                    mu = max(mu / 3.0, 1e-7)
-                    break
-                if dp is not None:
-                    lev.model.camera, lev.model.pattern = saved
-                    self._rebuild_rays(lev)
-                mu *= 10.0
-            if not accepted:
-                self._record(index, lev, h, chi2_old / max(len(r), 1), 0.0, len(r))
+            ne = self._normal_equations(lev, surf, c, dtd, mean_row, lam)
+            lam = ne.lam
+            trial, mu = self._damped_step(lev, surf, c, ne, dtd, mu)
+            if trial is None:
+                self._record(index, lev, h, ne.chi2_old / max(len(ne.r), 1), 0.0, len(ne.r))
                 break
-            c = c + dc
-            if dp is not None:
-                self.pose = self.pose + dp
-            surf = trial
-            step_um = float(np.sqrt(np.mean(dc**2))) * 1e3
-            self._record(index, lev, h, chi2_new / max(int(both.sum()), 1), step_um, int(both.sum()))
+            c = c + trial.dc
+            if trial.dp is not None:
+                self.pose = self.pose + trial.dp
+            surf = trial.surf
+            step_um = float(np.sqrt(np.mean(trial.dc**2))) * 1e3
+            self._record(index, lev, h, trial.chi2 / max(int(trial.both.sum()), 1), step_um, int(trial.both.sum()))
             if step_um < cfg.tol_um:
                 break
         return surf
+
+    def _normal_equations(
+        self, lev: _Level, surf: SplineSurface, c: Array, dtd: sp.csr_matrix, mean_row: Array, lam: float | None
+    ) -> _NormalEquations:
+        """The Gauss-Newton normal equations of one step at ``surf`` (coefficients ``c``), photometry solved.
+
+        ``lam``: the thin-plate prior's weight, None at a level's first step (then set relative to the mean diagonal
+        of J^T W J). Where the fit keeps to a span, the equations are in the span's coordinates; with
+        ``refine_setup`` the pose blocks are added (:meth:`_pose_blocks`).
+        """
+        cfg = self.config
+        vals, ok, jac, jpose = self._linearise(lev, surf)
+        assert jac is not None
+        data, wgt = lev.data[ok], 1.0 / lev.var[ok]
+        alpha, beta = self._photometric(vals[ok], data, wgt)
+        r = data - alpha * vals[ok] - beta
+        ja = jac * alpha
+        jtw = ja.T.multiply(wgt[None, :]).tocsr()
+        jtj = (jtw @ ja).tocsr()
+        if lam is None:
+            lam = cfg.smoothness * float(jtj.diagonal().mean()) / max(float(dtd.diagonal().mean()), 1e-300)
+        g = jtw @ r - lam * (dtd @ c)
+        a = (jtj + lam * dtd).tocsr()
+        m_row = mean_row
+        span = self._span
+        if span is not None:  # the surfaces c + P da: the normal equations in the span's coordinates
+            a, g, m_row = sp.csr_matrix(span.T @ (a @ span)), span.T @ g, span.T @ mean_row
+        pose = None if jpose is None else self._pose_blocks(jpose * alpha, wgt, ja, r)  # rows of the usable pixels
+        chi2_old = float(np.sum(wgt * r * r) + lam * c @ (dtd @ c))
+        return _NormalEquations(vals, ok, data, wgt, alpha, beta, r, a, g, m_row, lam, pose, chi2_old)
+
+    def _pose_blocks(self, jp: Array, wgt: Array, ja: sp.csr_matrix, r: Array) -> _PoseBlocks:
+        """The 12 pose parameters' blocks of the normal equations, their Gaussian prior about the setup included.
+
+        ``jp``: the pose Jacobian of the usable pixels scaled by the photometric gain, ``ja`` the coefficients' one.
+        """
+        span = self._span
+        sig = np.repeat(np.asarray(self.config.pose_sigma, dtype=np.float64), 3)  # (shift, rotation) x 3 per device
+        prior = 1.0 / np.maximum(sig, 1e-12) ** 2
+        jpw = jp.T * wgt[None, :]
+        a_pp = jpw @ jp + np.diag(prior)
+        a_pc = sp.csr_matrix(jpw @ ja if span is None else (jpw @ ja) @ span)
+        g_p = jpw @ r - prior * self.pose
+        return _PoseBlocks(sig, a_pp, a_pc, g_p)
+
+    def _kkt_step(self, ne: _NormalEquations, mu: float) -> tuple[Array, Array | None]:
+        """The damped step (coefficients, pose or None) from the KKT system of the mean-height constraint.
+
+        Damping ``mu`` times the diagonal (Levenberg-Marquardt); the joint step is shortened so that the pose stays
+        within ``pose_box`` standard deviations of the setup.
+        """
+        a, m_row, pb = ne.a, ne.m_row, ne.pose
+        damp = a + mu * sp.diags(a.diagonal() + 1e-300)
+        blocks = [[damp, m_row[:, None]], [m_row[None, :], None]]
+        rhs = [ne.g, np.zeros(1)]
+        npose = 0
+        if pb is not None:
+            npose = 12
+            blocks = [
+                [damp, pb.a_pc.T, m_row[:, None]],
+                [pb.a_pc, sp.csr_matrix(pb.a_pp * (1 + mu)), None],
+                [m_row[None, :], None, None],
+            ]
+            rhs = [ne.g, pb.g_p, np.zeros(1)]
+        kkt = sp.bmat(blocks, format="csc")
+        step = spla.spsolve(kkt, np.concatenate(rhs))
+        k = len(m_row)
+        frac = 1.0
+        dp = step[k : k + npose] if npose else None
+        if dp is not None:  # the joint step shortened so that the pose stays within pose_box sigma
+            assert pb is not None
+            frac = _box_fraction(self.pose, dp, self.config.pose_box * pb.sig)
+            dp = dp * frac
+        dc = frac * (step[:k] if self._span is None else self._span @ step[:k])
+        return dc, dp
+
+    def _trial(
+        self, lev: _Level, surf: SplineSurface, c: Array, ne: _NormalEquations, dtd: sp.csr_matrix, mu: float
+    ) -> tuple[_Trial, float, tuple[Camera, MarkerPattern] | None]:
+        """One damped trial step: its surface (the level's rays moved with the pose), chi^2 and the reference chi^2.
+
+        Both chi^2 on the pixels usable before and after the step. Returns the trial, the reference chi^2 and the
+        level's (camera, pattern) before the pose step (None without one), to restore if the trial is rejected.
+        """
+        dc, dp = self._kkt_step(ne, mu)
+        lam = ne.lam
+        trial = surf.with_coef(c + dc)
+        saved: tuple[Camera, MarkerPattern] | None = None
+        if dp is not None:
+            saved = (lev.model.camera, lev.model.pattern)
+            self._apply_pose(lev, dp)
+        tv, tok, _, _ = self._linearise(lev, trial, need_jac=False)
+        both = ne.ok & tok
+        ta, tb = self._photometric(tv[both], lev.data[both], 1.0 / lev.var[both])
+        tr = lev.data[both] - ta * tv[both] - tb
+        chi2_new = float(np.sum(tr * tr / lev.var[both]) + lam * (c + dc) @ (dtd @ (c + dc)))
+        # compare on the common pixels
+        r_common = (ne.data - ne.alpha * ne.vals[ne.ok] - ne.beta)[both[ne.ok]]
+        chi2_ref = float(np.sum(r_common**2 * ne.wgt[both[ne.ok]]) + lam * c @ (dtd @ c))
+        return _Trial(trial, dc, dp, chi2_new, both), chi2_ref, saved
+
+    def _damped_step(
+        self, lev: _Level, surf: SplineSurface, c: Array, ne: _NormalEquations, dtd: sp.csr_matrix, mu: float
+    ) -> tuple[_Trial | None, float]:
+        """Up to four trials, the damping tenfold after each rejected one; the accepted trial (or None) and mu."""
+        for _ in range(4):
+            trial, chi2_ref, saved = self._trial(lev, surf, c, ne, dtd, mu)
+            if trial.chi2 <= chi2_ref or not np.isfinite(chi2_ref):
+                mu = max(mu / 3.0, 1e-7)
+                return trial, mu
+            if saved is not None:  # the pose step's rays undone
+                lev.model.camera, lev.model.pattern = saved
+                self._rebuild_rays(lev)
+            mu *= 10.0
+        return None, mu
 
     def _apply_pose(self, lev: _Level, dp: Array) -> None:
         cam, pat = _pose_update(self.camera, self.pattern, self.pose + dp)
@@ -726,26 +847,47 @@ class InverseReconstructor:
         """
         cfg = self.config
         t0 = self._t0 = time.perf_counter()
-        self._span = None
-        if initial is None:
-            surf = SplineSurface.covering(self.sub, cfg.spacing, self.sub.frame_z)
-        else:
-            surf = SplineSurface.fit(initial.height, self.sub, cfg.spacing)
-            basis = getattr(initial, "basis", None)
-            if cfg.surface == "start-basis" and cfg.absolute == "start" and isinstance(basis, ShiftedBasis):
-                self._span = SplineSurface.span(basis, self.sub, cfg.spacing)
+        surf = self._start_surface(initial)
         xs, ys = self.sub.roi_grid(0.5)
         h = float(np.mean(surf.height(xs, ys)))
         schedule = cfg.levels if initial is not None else cfg.plane_levels
         levels = [self._level(b, s) for b, s in schedule]
-        its = list(cfg.iterations) + [cfg.iterations[-1]] * len(levels)
         search = initial is None or cfg.absolute == "frame"
-        # coarse-to-fine at the first start height
+        surf = self._coarse_to_fine(levels, surf, h)
+        fine = levels[-1]
+        surf, found = self._height_search(fine, surf, h, len(levels) - 1, search)
+        return self._result(surf, found, fine, schedule[-1][1], search, absolute_std_um, t0)
+
+    def _start_surface(self, initial: Any) -> SplineSurface:
+        """The start's spline: a plane at the frame height, or ``initial`` fitted; the span to keep to, if any."""
+        cfg = self.config
+        self._span = None
+        if initial is None:
+            return SplineSurface.covering(self.sub, cfg.spacing, self.sub.frame_z)
+        surf = SplineSurface.fit(initial.height, self.sub, cfg.spacing)
+        basis = getattr(initial, "basis", None)
+        if cfg.surface == "start-basis" and cfg.absolute == "start" and isinstance(basis, ShiftedBasis):
+            self._span = SplineSurface.span(basis, self.sub, cfg.spacing)
+        return surf
+
+    def _coarse_to_fine(self, levels: list[_Level], surf: SplineSurface, h: float) -> SplineSurface:
+        """The levels in turn at the first start height ``h``, each from the surface (and pose) of the one before."""
+        cfg = self.config
+        its = list(cfg.iterations) + [cfg.iterations[-1]] * len(levels)
         for k, lev in enumerate(levels):
             if cfg.refine_setup and self.pose.any():  # the pose found at the coarser level
                 self._apply_pose(lev, np.zeros(12))
             surf = self.fit_level(lev, surf, h, its[k], k)
-        fine = levels[-1]
+        return surf
+
+    def _height_search(
+        self, fine: _Level, surf: SplineSurface, h: float, index: int, search: bool
+    ) -> tuple[SplineSurface, _HeightSearch]:
+        """The start-height search on the finest level (secant on the frame criterion, seed §1.4).
+
+        ``surf``: the fit at the first start height ``h``; without ``search`` only its criterion is evaluated.
+        """
+        cfg = self.config
         values: list[tuple[float, float]] = []
         surfaces: list[SplineSurface] = []
         converged = False
@@ -753,7 +895,7 @@ class InverseReconstructor:
         m1 = m2 = float("nan")
         for outer in range(cfg.outer_max):
             if outer > 0:
-                surf = self.fit_level(fine, surf, h, cfg.outer_iterations, len(levels) - 1)
+                surf = self.fit_level(fine, surf, h, cfg.outer_iterations, index)
             m1, m2 = self.frame_maxima(surf)
             crit = frame_criterion(m1, m2, self.sub.frame_z, cfg.criterion)
             values.append((h, crit))
@@ -763,19 +905,30 @@ class InverseReconstructor:
                 break
             d_min = frame_distance(m1, m2, self.sub.frame_z)
             h_new = next_start_height(values, h - (d_min if cfg.criterion == "delta" else crit))
-            if len(values) >= 2 and values[-1][1] != values[-2][1] and values[-1][0] != values[-2][0]:
-                # warm start: the surfaces depend almost linearly on H
-                (ha, _), (hb, _) = values[-2], values[-1]
-                wgt = (h_new - hb) / (hb - ha)
-                surf = surfaces[-1].with_coef(surfaces[-1].coef + wgt * (surfaces[-1].coef - surfaces[-2].coef))
+            surf = _warm_start(values, surfaces, h_new, surf)
             h = float(h_new)
+        return surf, _HeightSearch(h, crit, m1, m2, len(values), converged)
+
+    def _result(
+        self,
+        surf: SplineSurface,
+        found: _HeightSearch,
+        fine: _Level,
+        sub_rays: int,
+        search: bool,
+        absolute_std_um: float | None,
+        t0: float,
+    ) -> InverseResult:
+        """The result of :meth:`run`: the refined setup and the shape uncertainty (start-height term included)."""
+        cfg = self.config
+        h = found.h
         cam, pat = (
             _pose_update(self.camera, self.pattern, self.pose) if cfg.refine_setup else (self.camera, self.pattern)
         )
         # shape uncertainty: the Fisher information at the fit, scaled by the reduced chi^2 (the residuals' own
         # variance where the pixel variances are only known up to a factor, as for a noise-free render)
         chi2 = self.history[-1].chi2 if self.history else 1.0
-        shape_std = self.shape_std_um(surf, None, schedule[-1][1], level=fine) * float(np.sqrt(max(chi2, 0.0)))
+        shape_std = self.shape_std_um(surf, None, sub_rays, level=fine) * float(np.sqrt(max(chi2, 0.0)))
         span_terms = None if self._span is None else int(self._span.shape[1])
         height_term = None
         if absolute_std_um is not None and not search:
@@ -785,11 +938,11 @@ class InverseReconstructor:
             surf,
             self.sub,
             h * 1e3,
-            crit * 1e3,
-            (m1 - m2) * 1e3,
+            found.crit * 1e3,
+            (found.m1 - found.m2) * 1e3,
             self.history,
-            len(values),
-            converged,
+            found.tried,
+            found.converged,
             time.perf_counter() - t0,
             cam,
             pat,

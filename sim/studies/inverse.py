@@ -18,12 +18,15 @@ bound of the same pixels under the surface family's prior (:func:`family_prior`)
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from scopetwin.sim.studies.context import StudyContext, StudyResult, error_text, failed, require
 from scopetwin.sim.studies.tables import Table, jsonable
+
+if TYPE_CHECKING:  # the reconstruction is imported lazily at run time
+    from scopetwin.recon.inverse import InverseReconstructor
 
 INVERSE_MODULES = {
     "scopetwin.recon.markers": "marker detection and indexing",
@@ -107,13 +110,47 @@ def inverse_task(
 
     ``bounds=False`` leaves out the Cramér-Rao and Bayesian bounds (the family prior's hundreds of draws).
     """
-    from scopetwin.recon.inverse import InverseConfig, InverseReconstructor, SplineSurface
+    from scopetwin.recon.inverse import InverseConfig, InverseReconstructor
     from scopetwin.recon.strategy import inverse_start
     from scopetwin.recon.substrate import Substrate2D
     from scopetwin.scenes.errors import ScopetwinError
+    from scopetwin.sim.pipeline import roi_errors
+
+    setup, truth, clean, image = _render_case(kind, corr, range_um, seed, noise, spp)
+    sub = Substrate2D.from_setup(setup)
+    row: dict[str, Any] = {"kind": kind, "correlation_mm": corr, "range_um": range_um, "noise": noise, "seed": seed}
+    t0 = time.perf_counter()
+    begin = inverse_start(image, setup)  # the centroid method, or what is left where it fails
+    row |= _start_row(begin, truth, sub)
+    row["centroid_s"] = time.perf_counter() - t0
+    cfg = {"absolute": begin.absolute} | (config or {})
+    rec = InverseReconstructor(setup, image, InverseConfig(**cfg))
+    steps = _trace_steps(rec, truth, sub)
+    try:
+        out = rec.run(begin.surface, begin.absolute_std_um)
+    except ScopetwinError as exc:
+        row["inverse_error"] = f"{type(exc).__name__}: {exc}"
+        return row
+    e = roi_errors(out.surface.height, truth, sub)
+    row |= {
+        "inverse_shape_um": e["roi_shape_um"],
+        "inverse_abs_um": e["roi_absolute_um"],
+        "inverse_untilted_um": untilted_shape_um(out.surface.height, truth, sub),
+        "inverse_s": out.seconds,
+        "inverse_std_um": out.shape_std_um,
+        "steps": steps,
+    }
+    if not bounds:
+        return row
+    return row | _bounds_row(rec, setup, truth, sub, clean, corr)
+
+
+def _render_case(
+    kind: str, corr: float, range_um: float, seed: int, noise: bool, spp: int
+) -> tuple[Any, Any, Any, Any]:
+    """The study's setup for one surface, the truth, its Mitsuba render and the image (EMVA 1288 noise if asked)."""
     from scopetwin.scenes.setup import load_setup
     from scopetwin.sim.measurement import render_measurement
-    from scopetwin.sim.pipeline import roi_errors
     from scopetwin.sim.studies.tasks import THESIS_DEFLECTOMETRY, quiet
     from scopetwin.sim.surfaces import surface_for
 
@@ -131,11 +168,14 @@ def inverse_task(
         from scopetwin.sim.measurement import apply_sensor
 
         image = apply_sensor(setup, clean, 1)
-    sub = Substrate2D.from_setup(setup)
-    row: dict[str, Any] = {"kind": kind, "correlation_mm": corr, "range_um": range_um, "noise": noise, "seed": seed}
-    t0 = time.perf_counter()
-    begin = inverse_start(image, setup)  # the centroid method, or what is left where it fails
-    row["start"] = begin.kind
+    return setup, truth, clean, image
+
+
+def _start_row(begin: Any, truth: Any, sub: Any) -> dict[str, Any]:
+    """The inverse fit's start (:func:`scopetwin.recon.strategy.inverse_start`): its kind, markers and errors."""
+    from scopetwin.sim.pipeline import roi_errors
+
+    row: dict[str, Any] = {"start": begin.kind}
     if begin.markers is not None:
         row |= {"markers": len(begin.markers), "indexing": begin.markers.indexing}
     if begin.note:
@@ -150,9 +190,13 @@ def inverse_task(
     elif begin.surface is not None:
         e = roi_errors(begin.surface.height, truth, sub)
         row |= {"start_shape_um": e["roi_shape_um"], "start_abs_um": e["roi_absolute_um"]}
-    row["centroid_s"] = time.perf_counter() - t0
-    cfg = {"absolute": begin.absolute} | (config or {})
-    rec = InverseReconstructor(setup, image, InverseConfig(**cfg))
+    return row
+
+
+def _trace_steps(rec: InverseReconstructor, truth: Any, sub: Any) -> list[dict[str, float]]:
+    """Wrap ``rec.fit_level`` to take one Gauss-Newton step per call and record each step's errors; the record."""
+    from scopetwin.sim.pipeline import roi_errors
+
     steps: list[dict[str, float]] = []
     fit_level = rec.fit_level
 
@@ -172,25 +216,17 @@ def inverse_task(
         return surf
 
     rec.fit_level = traced  # type: ignore[method-assign]
-    try:
-        out = rec.run(begin.surface, begin.absolute_std_um)
-    except ScopetwinError as exc:
-        row["inverse_error"] = f"{type(exc).__name__}: {exc}"
-        return row
-    e = roi_errors(out.surface.height, truth, sub)
-    row |= {
-        "inverse_shape_um": e["roi_shape_um"],
-        "inverse_abs_um": e["roi_absolute_um"],
-        "inverse_untilted_um": untilted_shape_um(out.surface.height, truth, sub),
-        "inverse_s": out.seconds,
-        "inverse_std_um": out.shape_std_um,
-        "steps": steps,
-    }
-    if not bounds:
-        return row
+    return steps
+
+
+def _bounds_row(rec: InverseReconstructor, setup: Any, truth: Any, sub: Any, clean: Any, corr: float) -> dict[str, Any]:
+    """The Cramér-Rao bound of the free spline at the truth and the Bayesian bounds under the family's prior."""
+    from scopetwin.recon.inverse import SplineSurface
+    from scopetwin.sim.pipeline import roi_errors
+
     exact = SplineSurface.fit(truth.height, sub, rec.config.spacing)
     rec._span = None  # the Cramér-Rao column is the free spline's
-    row |= {
+    row: dict[str, Any] = {
         "spline_shape_um": roi_errors(exact.height, truth, sub)["roi_shape_um"],
         "crb_shape_um": shape_crb_um(rec, exact, emva_variance_irradiance(clean, setup)),
     }
@@ -220,31 +256,45 @@ def inverse(ctx: StudyContext, spp: int = 16, seed: int = 2) -> StudyResult:
     good = [r for r in rows if not failed(r)]
     cells = []
     for r in good:
-        crb = r.get("crb_shape_um")
-        shape = r.get("inverse_shape_um")
-        cells.append(
-            [
-                r["kind"],
-                r["seed"],
-                r.get("start", "-"),
-                r["correlation_mm"],
-                r["range_um"],
-                "EMVA" if r["noise"] else "none",
-                r.get("centroid_shape_um"),
-                r.get("centroid_untilted_um"),
-                r.get("centroid_abs_um"),
-                shape,
-                r.get("inverse_std_um"),
-                r.get("inverse_untilted_um"),
-                r.get("inverse_abs_um"),
-                crb,
-                r.get("bayes_bound_um"),
-                r.get("bayes_untilted_um"),
-                r.get("inverse_s"),
-            ]
-        )
+        cells.append(_table_row(r))
         notes += [f"{r['correlation_mm']} mm: {r[k]}" for k in ("centroid_error", "inverse_error") if k in r]
-    table = Table(
+    return StudyResult(
+        "Study: inverse rendering",
+        "The surface fitted to the whole image through a differentiable render (issue 16), beside the centroid "
+        "method and the Cramér-Rao bound of the pixels.",
+        [_inverse_table(cells, spp)],
+        [],
+        {"rows": jsonable(good)},
+        notes,
+    )
+
+
+def _table_row(r: dict[str, Any]) -> list[Any]:
+    """One surface's cells of the study's table (:func:`_inverse_table`'s columns)."""
+    return [
+        r["kind"],
+        r["seed"],
+        r.get("start", "-"),
+        r["correlation_mm"],
+        r["range_um"],
+        "EMVA" if r["noise"] else "none",
+        r.get("centroid_shape_um"),
+        r.get("centroid_untilted_um"),
+        r.get("centroid_abs_um"),
+        r.get("inverse_shape_um"),
+        r.get("inverse_std_um"),
+        r.get("inverse_untilted_um"),
+        r.get("inverse_abs_um"),
+        r.get("crb_shape_um"),
+        r.get("bayes_bound_um"),
+        r.get("bayes_untilted_um"),
+        r.get("inverse_s"),
+    ]
+
+
+def _inverse_table(cells: list[list[Any]], spp: int) -> Table:
+    """The study's table: both methods' errors beside the bounds, one row per surface."""
+    return Table(
         "Inverse rendering beside the centroid method (ROI shape = std of the error, absolute = its mean)",
         columns=[
             "surface",
@@ -275,13 +325,4 @@ def inverse(ctx: StudyContext, spp: int = 16, seed: int = 2) -> StudyResult:
         "every method's mean-square shape error over the family, the centroid method's included; the mean ROI "
         "height is known in it (the frame criterion's error, and the tilt it forces, are not part of it). "
         "Noise-free rows carry only Mitsuba's sampling noise.",
-    )
-    return StudyResult(
-        "Study: inverse rendering",
-        "The surface fitted to the whole image through a differentiable render (issue 16), beside the centroid "
-        "method and the Cramér-Rao bound of the pixels.",
-        [table],
-        [],
-        {"rows": jsonable(good)},
-        notes,
     )
