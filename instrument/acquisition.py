@@ -287,6 +287,8 @@ def calibration_capture(
             cam.set_exposure_s(exposure_s)
         for i in range(int(n_frames)):
             frame = cam.grab()
+            if not lamp.is_on:  # asked every frame: a light that stops answering (or goes off) ends the run
+                raise InstrumentError(f"light {lamp.name!r} went off during the acquisition (frame {i})")
             paths.append(
                 writer.write(
                     f"calibration_{i:03d}",

@@ -17,6 +17,12 @@ The trigger model follows python-microscope's: a :class:`TriggerType` (what
 starts an exposure: software, or an electrical edge such as the FPGA board's
 global trigger line) and a :class:`TriggerMode` (one frame per trigger, or bulb:
 exposure lasts while the line is high).
+
+Every device keeps what it knows of its own state from the requests it sent
+(:meth:`Device.known_state`): a light that was told to go on and never
+acknowledged going off *may still be on*; a stage told to move and never seen to
+arrive *may still be moving*. When a device stops answering, that is all anyone
+knows, and the rig says it (:meth:`scopetwin.instrument.rig.Rig.close`).
 """
 
 from __future__ import annotations
@@ -101,6 +107,23 @@ class Device:
         self.name = name
         self._initialized = False
 
+    def links(self) -> tuple[Any, ...]:
+        """The serial lines (:class:`scopetwin.instrument.transport.Link`) this device talks through (none: simulated
+        or not on a serial line)."""
+        return ()
+
+    def known_state(self) -> str:
+        """What is known of the device's state from the requests sent (for a message when it stops answering)."""
+        return ""
+
+    def state_is_safe(self) -> bool:
+        """Whether :meth:`known_state` is safe (a light off, a shutter closed, an axis at rest)."""
+        return True
+
+    def abandon(self) -> None:
+        """Forget the device without sending anything (it stopped answering); :meth:`known_state` stays."""
+        self._initialized = False
+
     # lifecycle -----------------------------------------------------------------------------
     def initialize(self) -> None:
         """Handshake with the device (idempotent)."""
@@ -181,15 +204,33 @@ class Stage(Device):
         self.travel = Range(float(travel_mm[0]), float(travel_mm[1]), "mm")
         self.velocity_range = Range(1e-6, float(max_velocity_mm_s), "mm/s")
         self.settle_timeout_s = float(settle_timeout_s)
+        self._last_mm: float | None = None  # the position last read or arrived at
+        self._target_mm: float | None = None  # the target of a move not yet seen to end
 
     def _limits(self) -> dict[str, Any]:
         return {"travel_mm": self.travel.as_list(), "max_velocity_mm_s": self.velocity_range.high}
+
+    def known_state(self) -> str:
+        """``stage 'x' may still be moving to 100 mm (last read at 12.5 mm)``, or where it was last seen."""
+        last = "position never read" if self._last_mm is None else f"last read at {self._last_mm:g} mm"
+        if self._target_mm is not None:
+            return f"stage {self.name!r} may still be moving to {self._target_mm:g} mm ({last})"
+        return f"stage {self.name!r} at rest ({last})"
+
+    def state_is_safe(self) -> bool:
+        """At rest: no move under way that was not seen to end."""
+        return self._target_mm is None
+
+    def _read_position(self) -> float:
+        value = float(self._do_get_position())
+        self._last_mm = value
+        return value
 
     @property
     def position_mm(self) -> float:
         """Current position in mm (seed §4.3.2 'Information: Position')."""
         self._require()
-        return float(self._do_get_position())
+        return self._read_position()
 
     @property
     def velocity_mm_s(self) -> float:
@@ -207,7 +248,8 @@ class Stage(Device):
         """Move to ``position_mm``; the target is checked against the travel range before any I/O."""
         target = self.travel.check(position_mm, f"stage {self.name!r} target position")
         self._require()
-        start = self._do_get_position() if wait else target
+        start = self._read_position() if wait else target
+        self._target_mm = target
         self._do_move_absolute(target)
         if wait:
             self.wait_until_stopped(abs(target - start))
@@ -217,8 +259,9 @@ class Stage(Device):
         self._require()
         span = self.travel.high - self.travel.low
         d = Range(-span, span, "mm").check(delta_mm, f"stage {self.name!r} step")
-        here = float(self._do_get_position())
+        here = self._read_position()
         self.travel.check(here + d, f"stage {self.name!r} target position ({here} mm + {d} mm)")
+        self._target_mm = here + d
         self._do_move_relative(d)
         if wait:
             self.wait_until_stopped(abs(d))
@@ -236,11 +279,14 @@ class Stage(Device):
             if time.monotonic() > deadline:
                 raise InstrumentTimeout(f"stage {self.name!r} still moving after {distance_mm} mm")
             time.sleep(0.002)
+        if self._target_mm is not None:
+            self._last_mm, self._target_mm = self._target_mm, None
 
     def halt(self) -> None:
         """Stop the axis now."""
         self._require()
         self._do_halt()
+        self._target_mm, self._last_mm = None, None
 
     # hooks
     @abc.abstractmethod
@@ -295,32 +341,52 @@ class FocusDrive(Device):
         self.range = Range(float(range_um[0]), float(range_um[1]), "um")
         self.tolerance_um = float(tolerance_um)
         self.settle_timeout_s = float(settle_timeout_s)
+        self._last_um: float | None = None  # the position last read
+        self._target_um: float | None = None  # the target of a move not yet seen to arrive
 
     def _limits(self) -> dict[str, Any]:
         return {"range_um": self.range.as_list()}
+
+    def known_state(self) -> str:
+        """``focus 'z' may still be moving to 300 um (last read at 12 um)``, or where it was last seen."""
+        last = "position never read" if self._last_um is None else f"last read at {self._last_um:g} um"
+        if self._target_um is not None:
+            return f"focus {self.name!r} may still be moving to {self._target_um:g} um ({last})"
+        return f"focus {self.name!r} at rest ({last})"
+
+    def state_is_safe(self) -> bool:
+        """At rest: no move under way that was not seen to arrive."""
+        return self._target_um is None
+
+    def _read_position_um(self) -> float:
+        value = float(self._do_get_position_um())
+        self._last_um = value
+        return value
 
     @property
     def position_um(self) -> float:
         """Current position in µm."""
         self._require()
-        return float(self._do_get_position_um())
+        return self._read_position_um()
 
     def move_absolute_um(self, position_um: float, wait: bool = True) -> None:
         """Move to ``position_um``, checked against ``range_um`` before any I/O."""
         target = self.range.check(position_um, f"focus {self.name!r} target")
         self._require()
+        self._target_um = target
         self._do_move_absolute_um(target)
         if wait:
             deadline = time.monotonic() + self.settle_timeout_s
-            while abs(self._do_get_position_um() - target) > self.tolerance_um:
+            while abs(self._read_position_um() - target) > self.tolerance_um:
                 if time.monotonic() > deadline:
                     raise InstrumentTimeout(f"focus {self.name!r} did not reach {target} um")
                 time.sleep(0.002)
+            self._target_um = None
 
     def move_relative_um(self, delta_um: float, wait: bool = True) -> None:
         """Move by ``delta_um``; the target is checked against ``range_um`` before moving."""
         self._require()
-        here = float(self._do_get_position_um())
+        here = self._read_position_um()
         self.move_absolute_um(self.range.check(here + float(delta_um), f"focus {self.name!r} target"), wait)
 
     @abc.abstractmethod
@@ -377,9 +443,19 @@ class LightSource(Device):
         self.current_range = Range(0.0, float(max_current_ma), "mA")
         self.timer_range = Range(0.0, MAX_TIMER_S, "s")
         self._config = LightConfig()
+        self._maybe_on = False  # told to go on and not acknowledged off since
 
     def _limits(self) -> dict[str, Any]:
         return {"max_current_ma": self.current_range.high}
+
+    def known_state(self) -> str:
+        """``light 'halogen' may still be on`` unless it acknowledged switching off (drivers switch off on
+        initialisation)."""
+        return f"light {self.name!r} " + ("may still be on" if self._maybe_on else "off")
+
+    def state_is_safe(self) -> bool:
+        """Off: every request to go on was followed by an acknowledged switch-off."""
+        return not self._maybe_on
 
     @property
     def config(self) -> LightConfig:
@@ -418,6 +494,7 @@ class LightSource(Device):
     def trigger(self) -> None:
         """Switch on now (for ``duration_s`` if ``use_duration``, else until switched off)."""
         self._require()
+        self._maybe_on = True
         self._do_trigger()
 
     def switch_on(self, current_ma: float | None = None) -> None:
@@ -431,7 +508,11 @@ class LightSource(Device):
     def switch_off(self) -> None:
         """Switch off now."""
         self._require()
+        self._switch_off_now()
+
+    def _switch_off_now(self) -> None:
         self._do_switch_off()
+        self._maybe_on = False
 
     @property
     def is_on(self) -> bool:
@@ -440,7 +521,7 @@ class LightSource(Device):
         return bool(self._do_is_on())
 
     def _do_safe_state(self) -> None:
-        self._do_switch_off()
+        self._switch_off_now()
 
     @abc.abstractmethod
     def _do_configure(self, config: LightConfig) -> None: ...
@@ -460,16 +541,27 @@ class Shutter(Device):
     """Mechanical shutter of the halogen source (seed §4.1.1, driven by two TTL outputs, §4.3.1)."""
 
     kind = "shutter"
+    _maybe_open = False  # told to open and not acknowledged closed since
+
+    def known_state(self) -> str:
+        """``shutter 's' may still be open`` unless it acknowledged closing."""
+        return f"shutter {self.name!r} " + ("may still be open" if self._maybe_open else "closed")
+
+    def state_is_safe(self) -> bool:
+        """Closed: every request to open was followed by an acknowledged close."""
+        return not self._maybe_open
 
     def open(self) -> None:
         """Open the shutter (light passes)."""
         self._require()
+        self._maybe_open = True
         self._do_set_open(True)
 
     def close(self) -> None:
         """Close the shutter."""
         self._require()
         self._do_set_open(False)
+        self._maybe_open = False
 
     @property
     def is_open(self) -> bool:
@@ -479,6 +571,7 @@ class Shutter(Device):
 
     def _do_safe_state(self) -> None:
         self._do_set_open(False)
+        self._maybe_open = False
 
     @abc.abstractmethod
     def _do_set_open(self, is_open: bool) -> None: ...

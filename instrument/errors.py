@@ -2,8 +2,10 @@
 
 Every failure a device can report is an :class:`InstrumentError`, itself a
 :class:`scopetwin.scenes.errors.ScopetwinError`, so the command line maps all of them to
-exit code 2 with a one-line message. The four subclasses say *what* went
-wrong, independent of the world (simulated or hardware) behind the device.
+exit code 2 with a one-line message — except :class:`DeviceLost`, a device that
+stopped answering mid-operation, which exits 3 (:data:`EXIT_DEVICE_LOST`). The
+subclasses say *what* went wrong, independent of the world (simulated or
+hardware) behind the device.
 """
 
 from __future__ import annotations
@@ -51,8 +53,41 @@ class RigError(InstrumentError, ValueError):
     """A rig file that cannot be loaded (unknown driver, missing field, bad limit)."""
 
 
+#: Exit status of a command whose device stopped answering mid-operation (docs/contract.md, "Command line").
+EXIT_DEVICE_LOST = 3
+
+
+class DeviceLost(DisconnectedError):
+    """A device stopped answering mid-operation (its port gone, no answer in time, garbage, a flood).
+
+    The message is one line: the device, why, what is known of its state ("light 'halogen' may still be on"), and
+    whether every other device reached its safe state. The command line exits with :data:`EXIT_DEVICE_LOST`.
+
+    Parameters
+    ----------
+    message : str
+        The line described above.
+    devices : sequence of str
+        Names of the devices that stopped answering.
+    """
+
+    exit_status = EXIT_DEVICE_LOST
+
+    def __init__(self, message: str, devices: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        self.devices = tuple(devices)
+
+    def with_note(self, note: str) -> DeviceLost:
+        """The same error with ``; note`` appended (what the command kept: frames on disk)."""
+        extended = DeviceLost(f"{self}; {note}", self.devices)
+        extended.__cause__ = self.__cause__
+        return extended
+
+
 __all__ = [
+    "EXIT_DEVICE_LOST",
     "ControllerError",
+    "DeviceLost",
     "DisconnectedError",
     "InstrumentError",
     "InstrumentTimeout",

@@ -28,13 +28,20 @@ so state such as a stage position does not carry over; ``scopetwin emulate KIND`
 its own process whose port a rig names like a device path. :func:`open_rig` is a context manager: on every
 exit, exception included, it switches every light off, closes shutters, stops
 camera acquisition and closes transports; it never moves an axis.
+
+A device that stops answering mid-operation (its port gone, no answer within its
+timeout, garbage, a flood) is not tried again on the way out beyond one attempt per
+line: every other device is brought to its safe state, and :func:`open_rig` raises one
+:class:`~scopetwin.instrument.errors.DeviceLost` whose one-line message names the
+device and what is known of its state ("light 'halogen' may still be on").
 """
 
 from __future__ import annotations
 
 import contextlib
 import functools
-import tomllib
+import logging
+import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,8 +58,11 @@ from scopetwin.instrument.devices import (
     Stage,
     TriggerController,
 )
-from scopetwin.instrument.errors import InstrumentError, RigError
+from scopetwin.instrument.errors import DeviceLost, DisconnectedError, InstrumentError, InstrumentTimeout, RigError
 from scopetwin.instrument.interrupts import deferred_signals
+from scopetwin.scenes.inputs import InputError, load_toml_input
+
+log = logging.getLogger(__name__)
 
 KINDS = ("camera", "stage", "focus", "light", "shutter", "trigger")
 DRIVERS = ("sim", "pi-gcs", "jena-piezo", "fpga-board", "basler")
@@ -90,7 +100,9 @@ class _Context:
         from scopetwin.instrument.transport import open_transport
 
         port = _take(table, "port", str, name)
-        baud = int(table.pop("baudrate", default_baud))
+        baud = _take(table, "baudrate", int, name, default_baud)
+        if not 50 <= baud <= 4_000_000:
+            raise RigError(f"device {name!r}: baudrate must be in 50..4000000, got {baud}")
         xonxoff = _take(table, "xonxoff", bool, name, default_xonxoff)
         if port not in self.transports:
             self.transports[port] = open_transport(port, baudrate=baud, timeout_s=0.02, xonxoff=xonxoff)
@@ -106,12 +118,31 @@ def _take(table: dict[str, Any], key: str, kind: type, device: str, default: Any
     if kind is float and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
     if kind is tuple:
-        if not isinstance(value, list) or len(value) != 2 or not all(isinstance(v, int | float) for v in value):
-            raise RigError(f"device {device!r}: {key} must be a list of two numbers, got {value!r}")
+        if not isinstance(value, list) or len(value) != 2 or not all(_number(v) for v in value):
+            raise RigError(f"device {device!r}: {key} must be a list of two numbers, each finite, got {value!r}")
         return (float(value[0]), float(value[1]))
-    if not isinstance(value, kind):
+    if not isinstance(value, kind) or (kind in (int, float) and isinstance(value, bool)):
         raise RigError(f"device {device!r}: {key} must be {kind.__name__}, got {value!r}")
+    if kind in (int, float) and not _number(value):
+        raise RigError(f"device {device!r}: {key} must be finite and at most {MAX_NUMBER:g} in size, got {value!r}")
     return value
+
+
+#: Largest magnitude of any number in a rig file (issue 25: every number finite and in a physical range; the
+#: device classes check their own limits, travel and current ranges, within it).
+MAX_NUMBER = 1.0e12
+#: Longest timeout of one exchange with a device, seconds.
+MAX_TIMEOUT_S = 600.0
+
+
+def _number(value: Any) -> bool:
+    """A finite int or float (not a bool) of magnitude at most :data:`MAX_NUMBER`."""
+    return (
+        isinstance(value, int | float)
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and abs(value) <= MAX_NUMBER
+    )
 
 
 def _camera_limits(name: str, t: dict[str, Any]) -> CameraLimits:
@@ -282,6 +313,8 @@ def _build(name: str, table: dict[str, Any], ctx: _Context) -> Device:
     if driver not in DRIVERS:
         raise RigError(f"device {name!r}: unknown driver {driver!r}; choose from {DRIVERS}")
     timeout_s = _take(t, "timeout_s", float, name, 1.0)
+    if not 0.0 < timeout_s <= MAX_TIMEOUT_S:
+        raise RigError(f"device {name!r}: timeout_s must be in (0, {MAX_TIMEOUT_S:g}] s, got {timeout_s}")
     device: Device
     key = (kind, driver)
     if driver == "sim":
@@ -408,35 +441,84 @@ class Rig:
         for device in self.devices.values():
             device.initialize()
 
+    def _lost_lines(self) -> set[int]:
+        """Identities of the transports whose last exchange failed (a device on them stopped answering)."""
+        return {id(link.transport) for d in self.devices.values() for link in d.links() if link.lost is not None}
+
+    @staticmethod
+    def _on(device: Device, lines: set[int]) -> bool:
+        return any(id(link.transport) in lines for link in device.links())
+
     def lights_off(self) -> list[str]:
-        """Switch every light off and close every shutter; return the failures (never raises)."""
+        """Switch every light off and close every shutter; return the failures (never raises).
+
+        A line that fails here is not tried again for the other devices on it, so each line that stopped answering
+        costs at most one timeout.
+        """
         failures = []
-        for light in self.lights():
-            if light.initialized:
-                try:
-                    light.switch_off()
-                except InstrumentError as exc:
-                    failures.append(f"{light.name}: {exc}")
-        for shutter in self.shutters():
-            if shutter.initialized:
-                try:
-                    shutter.close()
-                except InstrumentError as exc:
-                    failures.append(f"{shutter.name}: {exc}")
+        failed: set[int] = set()
+        for device in [*self.lights(), *self.shutters()]:
+            if not device.initialized:
+                continue
+            if self._on(device, failed):
+                failures.append(f"{device.name}: not tried, its line stopped answering")
+                continue
+            try:
+                if isinstance(device, LightSource):
+                    device.switch_off()
+                elif isinstance(device, Shutter):
+                    device.close()
+            except InstrumentError as exc:
+                failures.append(f"{device.name}: {exc}")
+                failed |= {id(link.transport) for link in device.links() if link.lost is not None}
         return failures
 
     def close(self) -> list[str]:
-        """Lights off, then shut every device down in reverse order and close transports (never raises)."""
+        """Lights off, then shut every device down in reverse order and close transports (never raises).
+
+        Devices on a line that stopped answering are abandoned (:meth:`Device.abandon`), not shut down: nothing more
+        is sent to them, and what is known of their state stays for :meth:`lost_message`.
+        """
         failures = self.lights_off()
+        lost = self._lost_lines()
         for device in reversed(list(self.devices.values())):
+            if self._on(device, lost):
+                device.abandon()
+                continue
             try:
                 device.shutdown()
             except Exception as exc:  # noqa: BLE001 - closing must reach every device
                 failures.append(f"{device.name}: {exc}")
+                lost |= {id(link.transport) for link in device.links() if link.lost is not None}
         for transport in self._transports.values():
             with contextlib.suppress(Exception):
                 transport.close()
         return failures
+
+    def lost_devices(self) -> list[Device]:
+        """The devices whose line stopped answering (its last exchange failed), in file order."""
+        lost = self._lost_lines()
+        return [d for d in self.devices.values() if self._on(d, lost)]
+
+    def lost_message(self, failures: list[str]) -> str | None:
+        """One line on the devices that stopped answering: which, why, what is known of their state, and whether every
+        other device reached its safe state (``failures``: what :meth:`close` returned); ``None`` if none did."""
+        lost = self.lost_devices()
+        if not lost:
+            return None
+        parts = []
+        for link in {id(link): link for d in lost for link in d.links() if link.lost is not None}.values():
+            on_line = [d for d in lost if any(own.transport is link.transport for own in d.links())]
+            port = next((self.ports[d.name] for d in on_line if d.name in self.ports), "its port")
+            who = link.name if len(on_line) == 1 else f"{link.name} ({', '.join(d.name for d in on_line)})"
+            why = str(link.lost).removeprefix(f"{link.name}: ")
+            parts.append(f"{who} on {port} stopped answering ({why})")
+        unsafe = [d.known_state() for d in lost if not d.state_is_safe()]
+        state = "; ".join(unsafe) if unsafe else "no light was left on and no axis was moving"
+        names = {d.name for d in lost}
+        others = [f for f in failures if f.split(":", 1)[0] not in names]
+        rest = f"; also: {'; '.join(others)}" if others else "; every other device is in its safe state"
+        return f"{'; '.join(parts)}: {state}{rest}"
 
     def describe(self) -> dict[str, Any]:
         """Rig name and each device's description (JSON-ready)."""
@@ -450,6 +532,21 @@ class Rig:
         return {"rig": self.name, "path": self.path, "devices": devices}
 
 
+def read_rig_toml(path: str | Path) -> dict[str, Any]:
+    """The parsed rig TOML: a regular file of at most 16 MiB, nested at most 64 levels
+    (:mod:`scopetwin.scenes.inputs`).
+
+    Raises
+    ------
+    RigError
+        Missing, not a regular file (a FIFO, a device), too large, too deep, or not valid TOML.
+    """
+    try:
+        return load_toml_input(path, "rig")
+    except InputError as exc:
+        raise RigError(str(exc)) from None
+
+
 def load_rig(path: str | Path) -> Rig:
     """Read a rig TOML and build its devices (no I/O yet except opening serial ports).
 
@@ -459,10 +556,7 @@ def load_rig(path: str | Path) -> Rig:
         Unreadable file, unknown kind/driver/field, or a bad limit.
     """
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise RigError(f"cannot read rig file {str(p)!r}: {exc}") from exc
+    data = read_rig_toml(p)
     tables = data.get("devices")
     if not isinstance(tables, dict) or not tables:
         raise RigError(f"rig file {str(p)!r} has no [devices.NAME] tables")
@@ -536,13 +630,43 @@ def open_rig(path: str | Path, on_close: Callable[[list[str]], None] | None = No
     A signal (SIGINT, SIGTERM, SIGHUP) that arrives while the rig closes is held until it is closed.
 
     ``on_close`` receives the list of failures while closing (normally empty).
+
+    Raises
+    ------
+    DeviceLost
+        A device stopped answering: the block raised an :class:`~scopetwin.instrument.errors.InstrumentError` while a
+        device's line had failed (or a timeout or lost connection of its own), or the block ended normally but a light
+        or shutter could not be made safe on the way out. The message (one line) names the device and what is known of
+        its state; every other device is in its safe state. After a signal or another error the same line is logged as
+        a warning and that error goes on.
     """
     rig = load_rig(path)
+    error: BaseException | None = None
     try:
         rig.initialize()
         yield rig
+    except BaseException as exc:
+        error = exc
+        raise
     finally:
         with deferred_signals():  # a SIGINT/SIGTERM/SIGHUP now waits until every light is off
             failures = rig.close()
         if on_close is not None:
             on_close(failures)
+        _raise_if_lost(rig, failures, error)
+
+
+def _raise_if_lost(rig: Rig, failures: list[str], error: BaseException | None) -> None:
+    """Turn a device that stopped answering into one :class:`DeviceLost` (see :func:`open_rig`)."""
+    if isinstance(error, DeviceLost):
+        return
+    message = rig.lost_message(failures)
+    if message is None and isinstance(error, InstrumentTimeout | DisconnectedError):
+        rest = f"also: {'; '.join(failures)}" if failures else "every other device is in its safe state"
+        message = f"{error}; {rest}"
+    if message is None or (error is None and not failures):
+        return
+    lost = DeviceLost(message, tuple(d.name for d in rig.lost_devices()))
+    if error is None or isinstance(error, InstrumentError):
+        raise lost from error
+    log.warning("%s", lost)

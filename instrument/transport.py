@@ -5,22 +5,50 @@ Drivers never open a global port: they receive a transport object, a pyserial
 ``loop://``, ``socket://127.0.0.1:port``, or ``emu://pi-gcs`` for an in-process
 emulator, see :mod:`scopetwin.instrument.emulators.protocol_emu`). :class:`Link` wraps it
 with the two operations every protocol here needs, each bounded by one timeout:
-write bytes, and read until a terminator or a byte count. Pyserial and OS
-errors become :class:`~scopetwin.instrument.errors.DisconnectedError`; a deadline that
-passes becomes :class:`~scopetwin.instrument.errors.InstrumentTimeout`.
+write bytes, and read until a terminator or a byte count. Pyserial, OS and
+``termios`` errors (a pseudo-terminal whose other end is gone) become
+:class:`~scopetwin.instrument.errors.DisconnectedError`; a deadline that passes
+becomes :class:`~scopetwin.instrument.errors.InstrumentTimeout`; a flood of bytes
+without a terminator a :class:`~scopetwin.instrument.errors.ProtocolError`.
+
+A driver wraps each request and its answer in :meth:`Link.exchange`: a failure
+there (the port gone, no answer in time, an answer that breaks the protocol —
+anything but an error code the device itself reported) marks the link
+:attr:`~Link.lost` with the reason; the next complete exchange clears it. The rig
+uses the mark to tell which devices stopped answering
+(:meth:`scopetwin.instrument.rig.Rig.close`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import serial
 
-from scopetwin.instrument.errors import DisconnectedError, InstrumentTimeout, ProtocolError
+from scopetwin.instrument.errors import (
+    ControllerError,
+    DisconnectedError,
+    InstrumentError,
+    InstrumentTimeout,
+    OutOfRangeError,
+    ProtocolError,
+)
+
+try:  # POSIX: tcflush/tcdrain on a tty whose other end is gone raise termios.error, not OSError
+    import termios
+
+    _TTY_ERRORS: tuple[type[Exception], ...] = (termios.error,)
+except ImportError:  # pragma: no cover - Windows
+    _TTY_ERRORS = ()
 
 EMULATOR_PACKAGE = "scopetwin.instrument.emulators"
+#: Errors of a transport that mean the line is gone (pyserial, the OS, the tty layer, a closed file object).
+LINE_ERRORS: tuple[type[Exception], ...] = (serial.SerialException, OSError, ValueError, TypeError, *_TTY_ERRORS)
+_CONFIG_ERRORS: tuple[type[Exception], ...] = (*LINE_ERRORS, AttributeError)
 
 
 def open_transport(port: str, *, baudrate: int = 115200, timeout_s: float = 1.0, **kwargs: Any) -> serial.Serial:
@@ -75,13 +103,38 @@ class Link:
         self.lock = threading.RLock()
         self._pending = bytearray()
         self._poll_s = 0.02
+        #: Why the last exchange failed (the port gone, no answer, garbage); ``None`` while the device answers.
+        self.lost: str | None = None
         try:
             transport.timeout = self._poll_s
-        except (serial.SerialException, OSError, ValueError, AttributeError) as exc:
+        except _CONFIG_ERRORS as exc:
             raise self._fail("configuring", exc) from exc
 
     def _fail(self, what: str, exc: Exception) -> DisconnectedError:
-        return DisconnectedError(f"{self.name}: line lost while {what}: {exc}")
+        text = str(exc)
+        if isinstance(exc, _TTY_ERRORS) and len(exc.args) == 2:  # termios.error carries (errno, text)
+            text = f"[Errno {exc.args[0]}] {exc.args[1]}"
+        return DisconnectedError(f"{self.name}: line lost while {what}: {text}")
+
+    @contextlib.contextmanager
+    def exchange(self) -> Iterator[None]:
+        """Hold the link for one request and its answer; record whether the device answered.
+
+        An :class:`~scopetwin.instrument.errors.InstrumentError` inside marks the link :attr:`lost` with its message,
+        except an error code the device reported (:class:`~scopetwin.instrument.errors.ControllerError`) or a value
+        refused before sending (:class:`~scopetwin.instrument.errors.OutOfRangeError`): the device answered. A complete
+        exchange clears the mark.
+        """
+        with self.lock:
+            try:
+                yield
+            except (ControllerError, OutOfRangeError):
+                self.lost = None
+                raise
+            except InstrumentError as exc:
+                self.lost = str(exc)
+                raise
+            self.lost = None
 
     def write(self, data: bytes) -> None:
         """Send ``data`` (after dropping stale input)."""
@@ -92,7 +145,7 @@ class Link:
             self._pending.clear()
             self.transport.write(data)
             self.transport.flush()
-        except (serial.SerialException, OSError, ValueError, TypeError) as exc:
+        except LINE_ERRORS as exc:
             raise self._fail("writing", exc) from exc
 
     def _read_some(self, deadline: float) -> bytes:
@@ -105,7 +158,7 @@ class Link:
         try:
             waiting = self.transport.in_waiting
             return self.transport.read(max(1, min(int(waiting), self.max_reply_bytes + 1)))
-        except (serial.SerialException, OSError, ValueError, TypeError) as exc:
+        except LINE_ERRORS as exc:
             raise self._fail("reading", exc) from exc
 
     def read_until(self, terminator: bytes, timeout_s: float | None = None) -> bytes:
@@ -147,7 +200,7 @@ class Link:
             if chunk:
                 buf += chunk
             elif time.monotonic() >= deadline:
-                got = f" (got {bytes(buf)!r})" if buf else ""
+                got = f" (got {bytes(buf[:40])!r})" if buf else ""
                 raise InstrumentTimeout(f"{self.name}: {n} bytes did not arrive within {self.timeout_s} s{got}")
         self._pending += buf[n:]
         return bytes(buf[:n])

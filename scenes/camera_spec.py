@@ -26,13 +26,13 @@ from pydantic import BaseModel, ConfigDict, Field
 from scopetwin.scenes.camera import PixelGrid
 
 PositiveInt = Annotated[int, Field(gt=0)]
-Positive = Annotated[float, Field(gt=0)]
+Positive = Annotated[float, Field(gt=0, ge=1e-9, le=1e9)]  # finite and in a physical range (issue 25)
 
 
 class CameraGridSpec(BaseModel):
     """Base of the setups' camera tables: the pixel grid, its one conversion to a PixelGrid and to a dict."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     def grid_fields(self) -> tuple[int, int, float, tuple[float, float]]:
         """(nx, ny, pitch in mm, r_cs in mm) of this camera, from the fields as its setup spells them."""
@@ -62,7 +62,7 @@ class PixelGridSpec(CameraGridSpec):
 
     width_px: PositiveInt
     height_px: PositiveInt
-    pixel_um: Positive
+    pixel_um: Annotated[float, Field(ge=0.1, le=1000.0)]  # 0.1 µm to 1 mm
 
     def grid_fields(self) -> tuple[int, int, float, tuple[float, float]]:
         """(width_px, height_px, pixel_um * 1e-3, centred on the axis)."""

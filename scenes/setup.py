@@ -16,8 +16,7 @@ merge key by key). All lengths are mm, angles rad (docs/contract.md, "Units").
 
 from __future__ import annotations
 
-import json
-import tomllib
+import os
 from functools import cached_property
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -30,15 +29,23 @@ from scopetwin.scenes.camera_spec import CameraGridSpec
 from scopetwin.scenes.emva1288 import EmvaSensor
 from scopetwin.scenes.errors import GeometryError, SetupError
 from scopetwin.scenes.geometry import Frame
+from scopetwin.scenes.inputs import InputError, load_toml_input, parse_json
 from scopetwin.scenes.limits import check_image_size
 from scopetwin.scenes.pattern import MarkerPattern
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
 
-Vec3 = tuple[float, float, float]
-Vec2 = tuple[float, float]
-Positive = Annotated[float, Field(gt=0)]
+#: Every number of a setup is finite and in a physical range, checked when the setup is loaded (issue 25): a
+#: coordinate within 1 km of the origin, a positive quantity between 1e-9 and 1e9 of its unit (mm, µm, nm, s,
+#: electrons); fields with a narrower physical range say so (a pixel pitch of 0.1 µm to 1 mm, a focal length of
+#: 0.1 mm to 10 m, an f-number of 0.5 or more, a tilt within one turn).
+MAX_COORD_MM = 1.0e6
+Coord = Annotated[float, Field(ge=-MAX_COORD_MM, le=MAX_COORD_MM)]
+Vec3 = tuple[Coord, Coord, Coord]
+Vec2 = tuple[Coord, Coord]
+Positive = Annotated[float, Field(gt=0, ge=1e-9, le=1e9)]
 PositiveInt = Annotated[int, Field(gt=0)]
+TURN_RAD = 2 * np.pi
 
 
 class _Model(BaseModel):
@@ -94,15 +101,15 @@ class CameraSpec(CameraGridSpec):
     t_y: Vec3 | None = None
     n_z: Vec3 | None = None
     r_0: Vec2 | None = Field(None, description="point where the optical axis meets z = 0, mm (§2.5.2)")
-    phi: float | None = Field(None, description="sensor tilt angle, rad (§2.5.2)")
+    phi: float | None = Field(None, ge=-TURN_RAD, le=TURN_RAD, description="sensor tilt angle, rad (§2.5.2)")
     image_distance: Positive | None = Field(None, description="b, mm")
-    focal_length: Positive = Field(25.0, description="f, mm")
+    focal_length: float = Field(25.0, ge=0.1, le=1.0e4, description="f, mm (0.1 mm to 10 m)")
     pixels: tuple[PositiveInt, PositiveInt] = Field((1360, 1024), description="(NP_x, NP_y)")
-    pixel_pitch: Positive = Field(0.00465, description="square pixel size, mm")
+    pixel_pitch: float = Field(0.00465, ge=1.0e-4, le=1.0, description="square pixel size, mm (0.1 µm to 1 mm)")
     r_cs: Vec2 = Field((0.0, 0.0), description="pixel-grid centre relative to the optical axis, mm")
-    c0: Positive = 1.0
-    c2: float = Field(0.0, description="radial distortion, 1/mm")
-    f_number: Positive | None = Field(None, description="thin-lens f-number; None = pinhole")
+    c0: float = Field(1.0, ge=1.0e-3, le=1.0e3, description="pixel scale factor")
+    c2: float = Field(0.0, ge=-1.0e3, le=1.0e3, description="radial distortion, 1/mm")
+    f_number: float | None = Field(None, ge=0.5, le=1.0e4, description="thin-lens f-number; None = pinhole")
     focus_distance: Positive | None = Field(None, description="distance of the plane in focus, mm")
 
     @model_validator(mode="after")
@@ -215,9 +222,9 @@ class SurfaceSpec(_Model):
     """
 
     kind: Literal["random", "psd", "plane", "sphere", "saddle", "cylinder", "file"] = "random"
-    range_um: float = Field(40.0, ge=0, description="peak-to-valley height range, µm (§1.10: 40 µm)")
+    range_um: float = Field(40.0, ge=0, le=2.0e4, description="peak-to-valley height range, µm (§1.10: 40 µm)")
     correlation_length: Positive = Field(12.0, description="low-pass correlation length (§1.9) or PSD B, mm")
-    seed: int = Field(1, ge=0)
+    seed: int = Field(1, ge=0, le=2**32 - 1)
     grid: tuple[Annotated[int, Field(ge=4)], Annotated[int, Field(ge=4)]] = Field(
         (256, 512), description="height-map nodes (nx, ny)"
     )
@@ -225,7 +232,7 @@ class SurfaceSpec(_Model):
     spectrum: Literal["abc", "power"] = Field("abc", description="PSD model of kind 'psd'")
     psd_exponent: float = Field(3.0, gt=0, le=12, description="C of the ABC model / power-law exponent")
     psd_rolloff_mm: float = Field(
-        6.0, ge=0, description="high-frequency roll-off of kind 'psd': PSD x exp(-4 pi^2 s^2 f^2), s in mm"
+        6.0, ge=0, le=1.0e4, description="high-frequency roll-off of kind 'psd': PSD x exp(-4 pi^2 s^2 f^2), s in mm"
     )
     broadband_rms_nm: float = Field(0.0, ge=0, le=1000, description="RMS of the broadband part, nm")
     broadband_wavelength_mm: Positive = Field(4.0, description="longest wavelength of the broadband part, mm")
@@ -271,7 +278,7 @@ class SubstrateSpec(_Model):
 class MirrorSpec(_Model):
     """A flat mirror lying on the holding frame, in the plane z = 0 (seed §2.7.2)."""
 
-    size: Vec2 = Field((60.0, 80.0), description="(x, y) extent, mm")
+    size: tuple[Positive, Positive] = Field((60.0, 80.0), description="(x, y) extent, mm")
 
 
 class RenderSpec(_Model):
@@ -290,11 +297,13 @@ class NoiseModelSpec(_Model):
 
     quantum_efficiency: Annotated[float, Field(gt=0, le=1)] = 0.55
     full_well_e: Positive = 18000.0
-    dark_noise_e: Annotated[float, Field(ge=0)] = 10.0
+    dark_noise_e: Annotated[float, Field(ge=0, le=1.0e9)] = 10.0
     gain_dn_per_e: Positive = 4000.0 / 18000.0
-    black_level_dn: Annotated[float, Field(ge=0)] = 32.0
+    black_level_dn: Annotated[float, Field(ge=0, le=2.0**32)] = 32.0
     bit_depth: Annotated[int, Field(ge=1, le=32)] = 12
-    photons_per_unit_s: Positive = Field(1.0e6, description="photons per pixel and second at irradiance 1")
+    photons_per_unit_s: float = Field(
+        1.0e6, ge=1.0e-9, le=1.0e15, description="photons per pixel and second at irradiance 1"
+    )
     exposure_s: Positive | None = Field(None, description="None: fill `fill_fraction` of the full well")
     fill_fraction: Annotated[float, Field(gt=0, le=1)] = 0.7
 
@@ -312,8 +321,8 @@ class NoiseModelSpec(_Model):
 class PoseUncertaintySpec(_Model):
     """Standard deviations of a calibrated pose (seed §2.7): position (mm) and orientation (rad)."""
 
-    shift_mm: float = Field(ge=0.0, description="standard deviation of the position, mm")
-    rotation_rad: float = Field(ge=0.0, description="standard deviation of the orientation, rad")
+    shift_mm: float = Field(ge=0.0, le=MAX_COORD_MM, description="standard deviation of the position, mm")
+    rotation_rad: float = Field(ge=0.0, le=TURN_RAD, description="standard deviation of the orientation, rad")
 
 
 class CalibrationSpec(_Model):
@@ -382,15 +391,11 @@ def preset_info() -> list[dict[str, str]]:
 
 
 def _read_toml(path: Path) -> dict[str, Any]:
+    """A setup TOML: a regular file of at most 16 MiB, nested at most 64 levels (:mod:`scopetwin.scenes.inputs`)."""
     try:
-        with open(path, "rb") as fh:
-            return tomllib.load(fh)
-    except OSError as exc:
-        raise SetupError(f"cannot read setup file {path}: {exc.strerror}") from None
-    except UnicodeDecodeError:
-        raise SetupError(f"setup file {path} is not a text (TOML) file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise SetupError(f"setup file {path} is not valid TOML: {exc}") from None
+        return load_toml_input(path, "setup")
+    except InputError as exc:
+        raise SetupError(str(exc)) from None
 
 
 def _merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
@@ -403,22 +408,32 @@ def _merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def resolve_toml(name_or_path: str | Path, _depth: int = 0) -> tuple[dict[str, Any], str]:
-    """Raw dictionary of a preset or TOML file with its ``base`` chain merged in; and a label for messages."""
+def resolve_toml(name_or_path: str | Path, _depth: int = 0, _folder: Path | None = None) -> tuple[dict[str, Any], str]:
+    """Raw dictionary of a preset or TOML file with its ``base`` chain merged in; and a label for messages.
+
+    A ``base`` that names a file is found beside the TOML that names it (a relative path is relative to that
+    TOML's folder, not to the current one); a ``base`` that names a preset is the preset.
+    """
     if _depth > 8:
         raise SetupError("setup 'base' chain is too deep (a cycle?)")
     text = str(name_or_path)
     path = Path(text)
     if text in preset_names():
         path = PRESET_DIR / f"{text}.toml"
-    elif not (path.suffix == ".toml" or path.exists()):
-        raise SetupError(f"unknown preset {text!r} (known presets: {', '.join(preset_names())})")
-    if not path.exists():
-        raise SetupError(f"setup file {text} does not exist")
+    else:
+        if _folder is not None and not path.is_absolute():
+            path = _folder / path
+        if not (path.suffix == ".toml" or os.path.lexists(path)):
+            raise SetupError(f"unknown preset {text!r} (known presets: {', '.join(preset_names())})")
+        if not os.path.lexists(path):
+            where = f" (base of a setup in {_folder})" if _folder is not None else ""
+            raise SetupError(f"setup file {path} does not exist{where}")
     data = _read_toml(path)
     base = data.pop("base", None)
     if base is not None:
-        base_data, _ = resolve_toml(base, _depth + 1)
+        if not isinstance(base, str):
+            raise SetupError(f"setup file {path}: base must be a preset name or a TOML file name, got {base!r}")
+        base_data, _ = resolve_toml(base, _depth + 1, path.parent)
         base_data.pop("name", None)
         data = _merge(base_data, data)
     data.setdefault("name", path.stem)
@@ -464,6 +479,9 @@ def load_setup(name_or_path: str | Path, overrides: dict[str, Any] | None = None
 def setup_from_json(text: str) -> Setup:
     """Inverse of :meth:`Setup.to_json` (e.g. from an image header)."""
     try:
-        return setup_from_dict(json.loads(text), "<json>")
-    except json.JSONDecodeError as exc:
-        raise SetupError(f"setup JSON is invalid: {exc}") from None
+        data = parse_json(text, "setup", "JSON")  # bounded nesting: an image header's setup is input too
+    except InputError as exc:
+        raise SetupError(str(exc)) from None
+    if not isinstance(data, dict):
+        raise SetupError(f"setup JSON must be an object, got {type(data).__name__}")
+    return setup_from_dict(data, "<json>")

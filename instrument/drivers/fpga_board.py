@@ -174,7 +174,7 @@ class FpgaBoard:
         self._lock = threading.Lock()
 
     def _exchange(self, packet: Packet, expect: int) -> bytes:
-        with self.link.lock:
+        with self.link.exchange():
             self.link.write(packet.encode())
             deadline = time.monotonic() + self.link.timeout_s
             header = self.link.read_exact(3, deadline)
@@ -183,19 +183,19 @@ class FpgaBoard:
                 raise ProtocolError(f"{self.name}: reply with unknown opcode 0x{opcode:02X}")
             payload = self.link.read_exact(length, deadline) if length else b""
             reply = decode_packet(header + payload)
-        if reply.opcode == ERROR:
-            code = reply.payload[0] if reply.payload else 0
-            raise ControllerError(
-                f"{self.name}: register 0x{packet.address:02X}: board error {code} "
-                f"({BOARD_ERRORS.get(code, 'unknown')})",
-                code,
-            )
-        if reply.opcode != expect or reply.address != packet.address:
-            raise ProtocolError(
-                f"{self.name}: expected reply 0x{expect:02X}/0x{packet.address:02X}, "
-                f"got 0x{reply.opcode:02X}/0x{reply.address:02X}"
-            )
-        return reply.payload
+            if reply.opcode == ERROR:
+                code = reply.payload[0] if reply.payload else 0
+                raise ControllerError(
+                    f"{self.name}: register 0x{packet.address:02X}: board error {code} "
+                    f"({BOARD_ERRORS.get(code, 'unknown')})",
+                    code,
+                )
+            if reply.opcode != expect or reply.address != packet.address:
+                raise ProtocolError(
+                    f"{self.name}: expected reply 0x{expect:02X}/0x{packet.address:02X}, "
+                    f"got 0x{reply.opcode:02X}/0x{reply.address:02X}"
+                )
+            return reply.payload
 
     def write(self, address: int, payload: bytes) -> None:
         """Write a register and wait for the acknowledgement."""
@@ -207,11 +207,12 @@ class FpgaBoard:
 
     def identify(self) -> str:
         """The board's identification string."""
-        raw = self.read(IDENTIFICATION)
-        try:
-            return raw.decode("ascii")
-        except UnicodeDecodeError as exc:
-            raise ProtocolError(f"{self.name}: identification is not ASCII") from exc
+        with self.link.exchange():
+            raw = self.read(IDENTIFICATION)
+            try:
+                return raw.decode("ascii")
+            except UnicodeDecodeError as exc:
+                raise ProtocolError(f"{self.name}: identification is not ASCII") from exc
 
     def acquire(self) -> None:
         """Count one more device using the board (the first identifies it)."""
@@ -245,6 +246,10 @@ class FpgaLight(LightSource):
             raise OutOfRangeError(f"light {name!r}: {max_current_ma} mA exceeds the board's current index")
         self.board = board
         self.channel = int(channel)
+
+    def links(self) -> tuple[Link, ...]:
+        """The board's serial line (shared by every device on the board)."""
+        return (self.board.link,)
 
     def _do_initialize(self) -> None:
         self.board.acquire()
@@ -284,6 +289,10 @@ class FpgaShutter(Shutter):
         self.board = board
         self.open_output, self.close_output = int(open_output), int(close_output)
 
+    def links(self) -> tuple[Link, ...]:
+        """The board's serial line (shared by every device on the board)."""
+        return (self.board.link,)
+
     def _do_initialize(self) -> None:
         self.board.acquire()
 
@@ -306,6 +315,10 @@ class FpgaTrigger(TriggerController):
     def __init__(self, name: str, board: FpgaBoard) -> None:
         super().__init__(name, n_camera_lines=N_CAMERA_LINES)
         self.board = board
+
+    def links(self) -> tuple[Link, ...]:
+        """The board's serial line (shared by every device on the board)."""
+        return (self.board.link,)
 
     def _do_initialize(self) -> None:
         self.board.acquire()

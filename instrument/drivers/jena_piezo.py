@@ -245,6 +245,10 @@ class JenaPiezoFocus(FocusDrive):
     def _limits(self) -> dict[str, Any]:
         return {**super()._limits(), "model": self.dialect.model, "closed_loop": self.closed_loop}
 
+    def links(self) -> tuple[Link, ...]:
+        """The serial line to the amplifier."""
+        return (self.link,)
+
     # wire --------------------------------------------------------------------------------------
     def _format(self, template: str, value: float | None = None) -> str:
         text = "" if value is None else self.dialect.value_format.format(value)
@@ -252,7 +256,7 @@ class JenaPiezoFocus(FocusDrive):
 
     def _read_raw(self) -> float:
         """Send the read command and return its value (µm in closed loop, volts in open loop)."""
-        with self.link.lock:
+        with self.link.exchange():
             self.link.write(self._format(self.dialect.read).encode("ascii") + TERMINATOR)
             line = self.link.read_until(self.dialect.reply_terminator)
             return decode_reply(line, self.dialect, self.channel)
@@ -263,7 +267,7 @@ class JenaPiezoFocus(FocusDrive):
         Lines are read up to the read command's answer, so no stale reply is left on the line.
         """
         read = self._format(self.dialect.read)
-        with self.link.lock:
+        with self.link.exchange():
             self.link.write(command.encode("ascii") + TERMINATOR + read.encode("ascii") + TERMINATOR)
             error: ControllerError | None = None
             for _ in range(4):

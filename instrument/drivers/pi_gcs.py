@@ -122,7 +122,7 @@ class PiGcsController:
     def query(self, command: str | bytes) -> list[str]:
         """Send a query and return its reply lines (continuation lines joined into a list)."""
         data = command if isinstance(command, bytes) else command.encode("ascii") + b"\n"
-        with self.link.lock:
+        with self.link.exchange():
             self.link.write(data)
             raw: list[bytes] = []
             while True:
@@ -132,18 +132,19 @@ class PiGcsController:
                     break
                 if len(raw) > 64:
                     raise ProtocolError(f"{self.name}: reply of more than 64 lines")
-        return decode_lines(raw)
+            return decode_lines(raw)
 
     def error_code(self) -> int:
         """Read (and clear) the controller's error code."""
-        lines = self.query("ERR?")
-        if len(lines) != 1:
-            raise ProtocolError(f"{self.name}: ERR? answered {len(lines)} lines")
-        return parse_error_code(lines[0])
+        with self.link.exchange():  # an answer that is not a code marks the line lost
+            lines = self.query("ERR?")
+            if len(lines) != 1:
+                raise ProtocolError(f"{self.name}: ERR? answered {len(lines)} lines")
+            return parse_error_code(lines[0])
 
     def command(self, command: str, check: bool = True) -> None:
         """Send a set command, then ``ERR?``; raise on a non-zero error code."""
-        with self.link.lock:
+        with self.link.exchange():
             self.link.write(command.encode("ascii") + b"\n")
             if check:
                 code = self.error_code()
@@ -155,10 +156,11 @@ class PiGcsController:
 
     def axis_values(self, query: str, axis: str) -> float:
         """Send ``QUERY axis`` and return the value for ``axis``."""
-        values = parse_axis_values(self.query(f"{query} {axis}"))
-        if axis not in values:
-            raise ProtocolError(f"{self.name}: {query} {axis} answered no value for axis {axis}")
-        return values[axis]
+        with self.link.exchange():
+            values = parse_axis_values(self.query(f"{query} {axis}"))
+            if axis not in values:
+                raise ProtocolError(f"{self.name}: {query} {axis} answered no value for axis {axis}")
+            return values[axis]
 
     def parameter(self, axis: str, parameter: int) -> float:
         """``SPA? axis 0xID``: a numeric parameter of ``axis`` from the controller's volatile memory.
@@ -168,21 +170,23 @@ class PiGcsController:
         ProtocolError
             If the answer is not ``axis 0xID=number`` (a controller error is read with ``ERR?``).
         """
-        lines = self.query(f"SPA? {axis} 0x{parameter:X}")
-        m = _SPA.match(lines[0]) if len(lines) == 1 else None
-        if m is None or m.group(1) != axis or int(m.group(2), 0) != parameter:
-            raise ProtocolError(f"{self.name}: SPA? {axis} 0x{parameter:X} answered {lines[:2]!r}")
-        try:
-            return float(m.group(3))
-        except ValueError as exc:
-            raise ProtocolError(f"{self.name}: SPA? answered a non-number {m.group(3)!r}") from exc
+        with self.link.exchange():
+            lines = self.query(f"SPA? {axis} 0x{parameter:X}")
+            m = _SPA.match(lines[0]) if len(lines) == 1 else None
+            if m is None or m.group(1) != axis or int(m.group(2), 0) != parameter:
+                raise ProtocolError(f"{self.name}: SPA? {axis} 0x{parameter:X} answered {lines[:2]!r}")
+            try:
+                return float(m.group(3))
+            except ValueError as exc:
+                raise ProtocolError(f"{self.name}: SPA? answered a non-number {m.group(3)!r}") from exc
 
     def motion_mask(self) -> int:
         """Bit mask of moving axes (``#5``)."""
-        lines = self.query(MOTION_STATUS)
-        if len(lines) != 1:
-            raise ProtocolError(f"{self.name}: #5 answered {len(lines)} lines")
-        return parse_motion_status(lines[0])
+        with self.link.exchange():
+            lines = self.query(MOTION_STATUS)
+            if len(lines) != 1:
+                raise ProtocolError(f"{self.name}: #5 answered {len(lines)} lines")
+            return parse_motion_status(lines[0])
 
     def close(self) -> None:
         """Close the transport."""
@@ -288,6 +292,10 @@ class PiGcsStage(Stage):
         if not value > 0 or value != value or value == float("inf"):
             raise ProtocolError(f"stage {self.name!r}: controller reports a velocity limit of {value} mm/s")
         return value
+
+    def links(self) -> tuple[Link, ...]:
+        """The serial line to the controller."""
+        return (self.controller.link,)
 
     def _do_safe_state(self) -> None:
         """Nothing to make safe: the stage stays where it is (no parking)."""

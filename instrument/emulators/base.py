@@ -10,7 +10,14 @@ test prove that nothing was sent when a limit check failed.
 
 Faults (:class:`Fault`) change how answers go out: ``SILENT`` stops answering,
 ``GARBAGE`` answers bytes that do not follow the protocol, ``DROP`` sends half a
-reply and hangs the line up.
+reply and hangs the line up, ``FLOOD`` answers with a stream of bytes that never
+ends in a terminator. Assign :attr:`PtyEmulator.fault`, or give the options
+``fault=NAME`` and ``fault_after=N`` (the first N requests are answered normally) —
+as ``emu://`` URL options or ``scopetwin emulate`` arguments, so a device can stop
+answering in the middle of a command.
+
+Every numeric option is checked when the emulator is built (:func:`finite_span`,
+:func:`number_in`): finite, and in the range the emulated hardware could have.
 
 :meth:`PtyEmulator.state` describes the emulated device (for logs and for the
 simulated devices of the same rig); :attr:`PtyEmulator.on_request`, when set,
@@ -25,6 +32,7 @@ Pseudo-terminals are POSIX (Linux, macOS): elsewhere (Windows) the emulators imp
 from __future__ import annotations
 
 import enum
+import math
 import os
 import select
 import threading
@@ -75,6 +83,51 @@ class Fault(enum.Enum):
     SILENT = "silent"
     GARBAGE = "garbage"
     DROP = "drop"
+    FLOOD = "flood"
+
+
+#: Bytes one flooded answer writes at most (far beyond any driver's longest reply).
+FLOOD_BYTES = 256 * 1024
+
+
+def number_in(value: Any, what: str, low: float, high: float) -> float:
+    """``value`` as a float if it is a finite number in ``[low, high]``.
+
+    Raises
+    ------
+    ValueError
+        Naming ``what`` and the range (an emulator's bad option).
+    """
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a number, got {value!r}") from None
+    if not (math.isfinite(v) and low <= v <= high):
+        raise ValueError(f"{what} must be a finite number in [{low:g}, {high:g}], got {value!r}")
+    return v
+
+
+def finite_span(value: Any, what: str, low: float, high: float) -> tuple[float, float]:
+    """``value`` as ``(a, b)``: two finite numbers in ``[low, high]`` with ``a < b``.
+
+    Raises
+    ------
+    ValueError
+        Naming ``what`` (an emulator's bad option).
+    """
+    if not isinstance(value, tuple | list) or len(value) != 2:
+        raise ValueError(f"{what} must be two numbers LOW,HIGH, got {value!r}")
+    a, b = (number_in(v, what, low, high) for v in value)
+    if not a < b:
+        raise ValueError(f"{what} must rise (LOW < HIGH), got {value!r}")
+    return a, b
+
+
+def _fault_of(name: Any) -> Fault:
+    try:
+        return Fault(str(name).lower())
+    except ValueError:
+        raise ValueError(f"fault must be one of {[f.value for f in Fault]}, got {name!r}") from None
 
 
 class PtyEmulator:
@@ -84,6 +137,11 @@ class PtyEmulator:
     ----------
     seed : int
         Seed of the generator that produces garbage answers.
+    fault : str
+        A :class:`Fault` by value (``"silent"``, ``"garbage"``, ``"drop"``, ``"flood"``) that starts after
+        ``fault_after`` requests (default ``"none"``).
+    fault_after : int
+        Requests answered normally before ``fault`` starts.
 
     Attributes
     ----------
@@ -99,10 +157,14 @@ class PtyEmulator:
     terminator = b"\n"
     on_request: Callable[[bytes, bytes, dict[str, Any]], None] | None = None
 
-    def __init__(self, *, seed: int = 0) -> None:
+    def __init__(self, *, seed: int = 0, fault: str = "none", fault_after: int = 0) -> None:
         self.port = ""
         self.log = bytearray()
         self.fault = Fault.NONE
+        self._pending_fault = _fault_of(fault)
+        self._fault_after = int(number_in(fault_after, "fault_after", 0, 1e9))
+        self._requests = 0
+        seed = int(number_in(seed, "seed", 0, 2**32 - 1))
         self.errors: list[str] = []
         self._rng = np.random.default_rng(seed)
         self._stop = threading.Event()
@@ -126,6 +188,7 @@ class PtyEmulator:
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
         tty.setraw(self._master)
+        os.set_blocking(self._master, False)  # a client that stops reading never blocks the emulator (stop() ends it)
         self.port = os.ttyname(self._slave)
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name=f"{self.protocol}-emulator", daemon=True)
@@ -175,6 +238,8 @@ class PtyEmulator:
                 continue
             try:
                 data = os.read(master, 4096)
+            except BlockingIOError:
+                continue
             except OSError:
                 return
             if not data:
@@ -185,6 +250,9 @@ class PtyEmulator:
                 requests, rest = self.split(bytes(buffer))
                 buffer = bytearray(rest)
                 for request in requests:
+                    self._requests += 1
+                    if self._pending_fault is not Fault.NONE and self._requests > self._fault_after:
+                        self.fault, self._pending_fault = self._pending_fault, Fault.NONE
                     try:
                         reply = self.handle(request)
                     except Exception as exc:  # noqa: BLE001 - an emulator bug must not kill the line
@@ -204,6 +272,9 @@ class PtyEmulator:
         fault = self.fault
         if fault is Fault.SILENT:
             return
+        if fault is Fault.FLOOD:
+            self._flood()
+            return
         if fault is Fault.GARBAGE:
             reply = self.garbage(len(reply))
         if fault is Fault.DROP:
@@ -214,10 +285,31 @@ class PtyEmulator:
             return
         self._emit(reply)
 
+    def _flood(self) -> None:
+        """Write up to :data:`FLOOD_BYTES` of printable bytes without a terminator, as fast as the line takes them
+        (stops when the reader has not taken any for 0.1 s, so the emulator never blocks)."""
+        chunk = bytes(self._rng.integers(0x21, 0x7F, size=4096, dtype=np.uint8)).replace(self.terminator or b"\n", b"x")
+        sent = 0
+        while sent < FLOOD_BYTES and self._master >= 0 and not self._stop.is_set():
+            _, writable, _ = select.select([], [self._master], [], 0.1)
+            if not writable:
+                return
+            try:
+                sent += os.write(self._master, chunk)
+            except BlockingIOError:
+                continue
+            except OSError:
+                return
+
     def _emit(self, data: bytes) -> None:
+        """Write ``data`` to the line; waits while the client's input queue is full, gives up when stopped."""
         view = memoryview(data)
-        while view:
-            written = os.write(self._master, view)
+        while view and not self._stop.is_set():
+            try:
+                written = os.write(self._master, view)
+            except BlockingIOError:
+                select.select([], [self._master], [], 0.05)
+                continue
             view = view[written:]
 
     # protocol hooks ------------------------------------------------------------------------------

@@ -35,7 +35,7 @@ from scopetwin.instrument.drivers.fpga_board import (
     TTL_OUTPUT,
     WRITE,
 )
-from scopetwin.instrument.emulators.base import PtyEmulator
+from scopetwin.instrument.emulators.base import PtyEmulator, number_in
 
 #: Table 4.2, byte 2: "12 (number of following bytes)".
 LIGHT_CONFIG_LENGTH = 12
@@ -82,9 +82,14 @@ class FpgaBoardEmulator(PtyEmulator):
     protocol = "fpga-board"
     terminator = b""
 
-    def __init__(self, *, max_current_index: int = 0xFFFF, seed: int = 0) -> None:
-        super().__init__(seed=seed)
-        self.max_current_index = int(max_current_index)
+    def __init__(
+        self, *, max_current_index: int = 0xFFFF, seed: int = 0, fault: str = "none", fault_after: int = 0
+    ) -> None:
+        super().__init__(seed=seed, fault=fault, fault_after=fault_after)
+        index = number_in(max_current_index, "max_current_index", 1, 0xFFFF)
+        if index != int(index):
+            raise ValueError(f"max_current_index must be an integer in [1, 65535], got {max_current_index!r}")
+        self.max_current_index = int(index)
         self.light_config = {i: bytes(LIGHT_CONFIG_LENGTH) for i in range(N_LIGHTS)}
         self.camera_config = {i: bytes(CAMERA_CONFIG_LENGTH) for i in range(N_CAMERA_LINES)}
         self.ttl = dict.fromkeys(range(N_TTL), 0)

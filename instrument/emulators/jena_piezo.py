@@ -26,7 +26,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from scopetwin.instrument.emulators.base import PtyEmulator
+from scopetwin.instrument.emulators.base import PtyEmulator, finite_span
+
+#: Largest travel an emulated piezo may have, µm (the MIPOS500 has 400), and its largest drive voltage, V.
+MAX_TRAVEL_UM = 10_000.0
+MAX_VOLTAGE_V = 1_000.0
 
 #: Reply terminator by model (the NV40/3 ends its answers in CR only).
 REPLY_END = {"nv40-1": b"\r\n", "nv40-3": b"\r", "30dv50": b"\r\n"}
@@ -63,14 +67,16 @@ class JenaPiezoEmulator(PtyEmulator):
         range_um: tuple[float, float] = (0.0, 400.0),
         voltage_range_v: tuple[float, float] = (-20.0, 130.0),
         seed: int = 0,
+        fault: str = "none",
+        fault_after: int = 0,
     ) -> None:
-        super().__init__(seed=seed)
+        super().__init__(seed=seed, fault=fault, fault_after=fault_after)
         key = str(model).lower().replace("/", "-")
         if key not in REPLY_END:
             raise ValueError(f"unknown jena model {model!r}; choose from {sorted(REPLY_END)}")
         self.model = key
-        self.range_um = range_um
-        self.voltage_range_v = voltage_range_v
+        self.range_um = finite_span(range_um, "range_um", -MAX_TRAVEL_UM, MAX_TRAVEL_UM)
+        self.voltage_range_v = finite_span(voltage_range_v, "voltage_range_v", -MAX_VOLTAGE_V, MAX_VOLTAGE_V)
         self.channels = [_Channel() for _ in range(3 if key == "nv40-3" else 1)]
         if key == "30dv50":
             self.channels[0].remote = True

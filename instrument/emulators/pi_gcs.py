@@ -29,7 +29,11 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from scopetwin.instrument.emulators.base import PtyEmulator
+from scopetwin.instrument.emulators.base import PtyEmulator, finite_span, number_in
+
+#: Largest travel (mm, either side of the origin) and velocity (mm/s) an emulated PI stage may have.
+MAX_TRAVEL_MM = 2_000.0
+MAX_VELOCITY_MM_S = 1_000.0
 
 CONTROL_BYTES = {0x05: "#5", 0x07: "#7", 0x18: "#24"}
 
@@ -149,8 +153,15 @@ class PiGcsEmulator(PtyEmulator):
         model: str = "C-863.11",
         stage: str = "M-404.6PD",
         seed: int = 0,
+        fault: str = "none",
+        fault_after: int = 0,
     ) -> None:
-        super().__init__(seed=seed)
+        super().__init__(seed=seed, fault=fault, fault_after=fault_after)
+        travel_mm = finite_span(travel_mm, "travel_mm", -MAX_TRAVEL_MM, MAX_TRAVEL_MM)
+        max_velocity_mm_s = number_in(max_velocity_mm_s, "max_velocity_mm_s", 1e-6, MAX_VELOCITY_MM_S)
+        reference_mm = number_in(reference_mm, "reference_mm", *travel_mm)
+        if not axes or not all(isinstance(a, str) and a.isdigit() and len(a) <= 2 for a in axes):
+            raise ValueError(f"axes must be a list of GCS axis numbers (1, 2, ...), got {axes!r}")
         self.axes = {
             a: _Axis(travel_mm[0], travel_mm[1], max_velocity_mm_s, max_velocity_mm_s, stage=stage) for a in axes
         }

@@ -4,13 +4,16 @@
 starts a :class:`~scopetwin.instrument.emulators.pi_gcs.PiGcsEmulator` on a
 pseudo-terminal and opens its slave as a real ``serial.Serial``; closing the
 port stops the emulator. The emulator object is reachable as ``port.emulator``
-(for logs and fault injection). Query values are numbers, or comma-separated
-number lists for tuple options; ``axes`` is a comma-separated list of names.
+(for logs and fault injection). Query values are finite numbers, or comma-separated
+number lists for tuple options; ``axes`` is a comma-separated list of names;
+``fault=silent|garbage|drop|flood`` with ``fault_after=N`` makes the device stop
+answering properly after N requests.
 :func:`scopetwin.instrument.transport.open_transport` registers this handler.
 """
 
 from __future__ import annotations
 
+import math
 import urllib.parse
 from typing import Any
 
@@ -27,13 +30,17 @@ def option_value(key: str, text: str) -> Any:
     """An emulator option from text: ``axes`` a name list, ``model``/``stage`` text, else numbers."""
     if key == "axes":
         return tuple(t for t in text.split(",") if t)
-    if key in ("model", "stage"):
+    if key in ("model", "stage", "fault"):
         return text
     try:
         numbers = [float(t) for t in text.split(",")]
     except ValueError as exc:
-        raise RigError(f"emu:// option {key}={text!r} is not a number or number list") from exc
-    if key == "seed" or key.endswith("_index"):
+        raise RigError(f"emulator option {key}={text!r} is not a number or number list") from exc
+    if not all(math.isfinite(v) for v in numbers):
+        raise RigError(f"emulator option {key}={text!r}: every number must be finite")
+    if key in ("seed", "fault_after") or key.endswith("_index"):
+        if len(numbers) != 1 or numbers[0] != int(numbers[0]):
+            raise RigError(f"emulator option {key}={text!r} must be one integer")
         return int(numbers[0])
     return tuple(numbers) if len(numbers) > 1 else numbers[0]
 
@@ -71,7 +78,7 @@ class Serial(PortBase):
             raise RigError(f"emu:// names an unknown emulator {name!r}; known: {sorted(EMULATORS)}")
         try:
             emulator = EMULATORS[name](**options)
-        except TypeError as exc:
+        except (TypeError, ValueError) as exc:
             raise RigError(f"emu://{name}: bad option ({exc})") from exc
         self.emulator = emulator
         self.port = emulator.start()

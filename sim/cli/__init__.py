@@ -100,7 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one ``scopetwin`` command; returns the exit status (0; 1 from ``exit_code``; 2 bad input or a failed
-    write; 128 + n after signal n: 130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)."""
+    write; 3 a device stopped answering; 128 + n after signal n: 130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     level = verbosity(args)
@@ -123,7 +123,7 @@ def _run(args: argparse.Namespace) -> int:
                 tx.finish(result)
     except ScopetwinError as exc:
         print(f"scopetwin: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return int(getattr(exc, "exit_status", EXIT_BAD_INPUT))  # 3: a device stopped answering (DeviceLost)
     except OSError as exc:  # a write that failed late (a full disk, a folder removed meanwhile), a lost device
         print(f"scopetwin: error: {describe_os_error(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT

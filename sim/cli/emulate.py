@@ -10,7 +10,10 @@ number of requests answered, the final state) and exits 0.
 ``--log FILE`` appends one JSON object per line for every request: ``{"request", "reply", "state"}``, the state
 after the request (board: ``"lights_on"``, the channels on, plus ``ttl``; stage: position, servo, referenced;
 piezo: position, loop, remote). Device options are ``KEY=VALUE`` pairs, as in ``emu://`` URLs
-(``travel_mm=0,150``, ``max_velocity_mm_s=50``, ``axes=1,2``, ``range_um=0,400``).
+(``travel_mm=0,150``, ``max_velocity_mm_s=50``, ``axes=1,2``, ``range_um=0,400``), each a finite number in the
+range the emulated hardware could have (``range_um=nan,400`` is refused with one line, exit 2); ``fault=NAME
+fault_after=N`` makes the device stop answering properly after N requests (``silent``, ``garbage``, ``drop``,
+``flood``), to test how a client copes with a device that fails mid-operation.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ OPTIONS_HELP = {
     "pi-gcs": "axes=1,2 travel_mm=0,150 max_velocity_mm_s=50 reference_mm=0 stage=M-404.6PD (--model C-863.11)",
     "jena-piezo": "range_um=0,400 voltage_range_v=-20,130 (--model nv40-1 | nv40-3 | 30dv50)",
     "fpga-board": "max_current_index=65535 (no --model)",
+    "any": "fault=silent|garbage|drop|flood fault_after=N (stop answering properly after N requests)",
 }
 
 

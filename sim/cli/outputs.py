@@ -10,7 +10,8 @@ created nothing:
 
 * an existing file where a folder is needed, or a folder where a file is needed;
 * a path under a file, or where nothing can be created (read-only file system, no permission, ``/proc``);
-* less free space than the estimate (at least :data:`MIN_FREE_BYTES` for every output).
+* less free space than the estimate (at least :data:`MIN_FREE_BYTES` for every output);
+* two outputs naming the same path (``--json`` equal to ``--out``).
 
 :class:`OutputTransaction` then runs the command with its staged commits deferred (:func:`scopetwin.sim.measurement.
 deferred_commits`): the ``--json`` result is written to a temporary file beside its destination first, then the
@@ -170,10 +171,14 @@ def check_outputs(args: argparse.Namespace) -> list[tuple[Output, Path, bool]]:
         with contextlib.suppress(ScopetwinError, OSError, ValueError):
             sizes = dict(estimate(args))
     checked = []
+    named: dict[str, Output] = {}
     for out in declared_outputs(args):
         value = getattr(args, out.attr, None)
         if value is None:
             continue
+        same = named.setdefault(os.path.realpath(os.path.abspath(str(value))), out) if str(value) else out
+        if same is not out:  # e.g. --json equal to --out: refused before any work, not found after it
+            raise OutputError(f"{same.option} and {out.option} both name {value}: give each output its own path")
         need = max(MIN_FREE_BYTES, int(sizes.get(out.attr, 0)))
         path = check_output_path(value, out.kind, out.option, need)
         log.debug("%s %s: writable, %s free space needed", out.option, path, human_bytes(need))

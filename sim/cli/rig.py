@@ -22,6 +22,10 @@ action's handler returns a JSON-ready dict (written by the main CLI when
   its key (``--hmac-key-file``, or a new one in a private file it prints).
 
 The rig is opened with :func:`scopetwin.instrument.rig.open_rig`, so lights are off again on every exit.
+A device that stops answering during ``move``, ``acquire`` or ``mda`` (its port gone, no answer in time, garbage)
+ends the command with one line naming it and what is known of its state ("light 'halogen' may still be on"),
+every other device in its safe state and, for ``acquire`` and ``mda``, the frames already taken kept and named;
+exit status 3 (:data:`scopetwin.instrument.errors.EXIT_DEVICE_LOST`).
 SIGINT, SIGTERM and SIGHUP during ``acquire`` or ``mda`` end the command cleanly: lights off,
 shutters closed, every frame on disk listed in the manifest (the OME file closed with the planes
 acquired so far); the main CLI prints the line naming the signal and exits 128 + n. ``serve`` ends
@@ -36,18 +40,18 @@ it prints in the rig file.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import sys
 import threading
-import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from scopetwin.instrument.devices import FocusDrive, Stage
-from scopetwin.instrument.errors import RigError
-from scopetwin.instrument.rig import Rig, open_rig
+from scopetwin.instrument.errors import DeviceLost, RigError
+from scopetwin.instrument.rig import Rig, open_rig, read_rig_toml
 from scopetwin.sim.cli.options import conventions, finite_float, int_range, positive_float, positive_int
 
 log = logging.getLogger(__name__)
@@ -61,6 +65,48 @@ OME_SUFFIXES = (".ome.tif", ".ome.tiff", ".ome.zarr")
 LOCALHOSTS = ("127.0.0.1", "localhost")
 #: Most frames one ``acquire`` takes (a frame file each; far beyond a calibration series).
 MAX_FRAMES = 100_000
+
+
+@contextlib.contextmanager
+def _kept(describe: Callable[[], str]) -> Iterator[None]:
+    """A device that stopped answering (exit 3): its one line also says what the command kept on disk."""
+    try:
+        yield
+    except DeviceLost as exc:
+        raise exc.with_note(describe()) from exc.__cause__
+
+
+@contextlib.contextmanager
+def _thread_errors_logged() -> Iterator[None]:
+    """An error that ends a library's worker thread (pymmcore-plus's sequence acquisition when a device stops
+    answering) is logged at debug level, not printed as a traceback: the device's own error ends the command."""
+    previous = threading.excepthook
+
+    def hook(info: threading.ExceptHookArgs) -> None:
+        name = info.thread.name if info.thread is not None else "?"
+        log.debug("thread %s ended: %s: %s", name, info.exc_type.__name__, info.exc_value)
+
+    threading.excepthook = hook
+    try:
+        yield
+    finally:
+        threading.excepthook = previous
+
+
+def _frames_kept(out: str) -> str:
+    """``12 frame(s) already taken kept in OUT, listed in OUT/manifest.json`` (or that none was taken)."""
+    manifest = Path(out) / "manifest.json"
+    try:
+        n = len(json.loads(manifest.read_text())["frames"])
+    except (OSError, ValueError, KeyError, TypeError):
+        n = 0
+    return f"{n} frame(s) already taken kept in {out}, listed in {manifest}" if n else "no frame was taken"
+
+
+def _planes_kept(out: str) -> str:
+    """Where the planes acquired before a device stopped answering are (or that none was written)."""
+    files = _ome_files(Path(out))
+    return f"the planes acquired so far kept in {', '.join(files)}" if files else "no plane was written"
 
 
 def _position(rig: Rig, name: str) -> dict[str, Any]:
@@ -145,7 +191,7 @@ def cmd_position(args: argparse.Namespace) -> dict[str, Any]:
 def _camera_pixels(rig_path: str, camera: str | None) -> int:
     """Pixels of a frame of ``camera`` (default: the rig's first camera), from the rig TOML alone; 0 if unknown."""
     try:
-        tables = tomllib.loads(Path(rig_path).read_text()).get("devices", {})
+        tables = read_rig_toml(rig_path).get("devices", {})
         cams = [(n, t) for n, t in tables.items() if isinstance(t, dict) and t.get("kind") == "camera"]
         table = next(t for n, t in cams if camera is None or n == camera)
         rows, cols = table.get("sensor_shape", [1024, 1360])
@@ -166,7 +212,7 @@ def mda_size(rig_path: str, camera: str | None, sequence: Any) -> Any:
     from scopetwin.instrument.mdaplan import PlanLimits, load_sequence, plan_size
 
     try:
-        tables = tomllib.loads(Path(rig_path).read_text()).get("devices", {})
+        tables = read_rig_toml(rig_path).get("devices", {})
         table = next(t for n, t in tables.items() if t.get("kind") == "camera" and camera in (None, n))
         rows, cols = (int(v) for v in table.get("sensor_shape", [1024, 1360]))
         pixel_um = float(table.get("pixel_size_um", 6.45)) / float(table.get("magnification", 1.0))
@@ -185,7 +231,7 @@ def cmd_acquire(args: argparse.Namespace) -> dict[str, Any]:
     """Acquire frames with a light on; each frame is on disk (and in the manifest) as soon as it is grabbed."""
     from scopetwin.instrument.acquisition import PREVIEW_NAME, calibration_capture, dark_frames
 
-    with open_rig(args.rig) as rig:
+    with _kept(lambda: _frames_kept(args.out)), open_rig(args.rig) as rig:
         cam = rig.camera(args.camera)
         if args.exposure_s is not None:
             cam.limits.exposure_s.check(args.exposure_s, f"--exposure-s of camera {cam.name!r}")
@@ -278,7 +324,7 @@ def cmd_mda(args: argparse.Namespace) -> dict[str, Any]:
             bars.append(tqdm(total=size.planes, desc="mda", unit="plane", file=sys.stderr, disable=args.quiet))
         bars[0].update(1)
 
-    with open_rig(args.rig) as rig:
+    with _kept(lambda: _planes_kept(args.out)), _thread_errors_logged(), open_rig(args.rig) as rig:
         rig.camera(args.camera)  # a clear error for an unknown camera before the core loads
         try:
             result = run_mda(  # checked against the rig's limits before the first event: nothing written if refused

@@ -19,6 +19,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.inputs import parse_toml, read_text_input
 
 KINDS = ("deflectometry", "calibration", "grin", "cmu")
 #: Most samples one dataset may have: the plan keeps every sample's setup in memory (a few kB each).
@@ -502,7 +503,7 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
         if not sep or not all(parts):
             raise DatasetError(f"--set {item!r}: give key=value with a dotted key, e.g. --set dataset.spp=4")
         try:
-            value = tomllib.loads(f"v = {text.strip()}")["v"]
+            value = parse_toml(f"v = {text.strip()}", "--set value", repr(item))["v"]  # bounded depth (issue 25)
         except tomllib.TOMLDecodeError:
             if not text.strip() or any(c in text for c in "[]{}\"'="):
                 raise DatasetError(f"--set {item!r}: {text.strip()!r} is not a TOML value") from None
@@ -522,8 +523,7 @@ def load_config(path: str | Path, count: int | None = None, overrides: list[str]
     items, :func:`apply_overrides`)."""
     p = Path(path)
     try:
-        with open(p, "rb") as fh:
-            data = tomllib.load(fh)
+        data = parse_toml(read_text_input(p, "dataset configuration"), "dataset configuration", str(p))  # issue 25
     except OSError as exc:
         raise DatasetError(f"cannot read dataset config {p}: {exc.strerror}") from None
     except tomllib.TOMLDecodeError as exc:
