@@ -133,13 +133,17 @@ class FastSurface:
         polys = self.poly[cells]
 
         def f(idx: NDArray[np.intp], lam: F64) -> F64:
-            q = o[idx] + lam[:, None] * d[idx]
-            moved = ~self.inside(cells[idx], q[:, 0], q[:, 1])
+            whole = len(idx) == n  # every ray: no gathers
+            qx = (o[:, 0] if whole else o[idx, 0]) + lam * (d[:, 0] if whole else d[idx, 0])
+            qy = (o[:, 1] if whole else o[idx, 1]) + lam * (d[:, 1] if whole else d[idx, 1])
+            qz = (o[:, 2] if whole else o[idx, 2]) + lam * (d[:, 2] if whole else d[idx, 2])
+            moved = ~self.inside(cells if whole else cells[idx], qx, qy)
             if moved.any():
                 k = idx[moved]
-                cells[k] = self.locate(q[moved, 0], q[moved, 1])
+                cells[k] = self.locate(qx[moved], qy[moved])
                 polys[k] = self.poly[cells[k]]
-            return self.evaluate(cells[idx], polys[idx], q[:, 0], q[:, 1])[0] - q[:, 2]
+            at = (cells, polys) if whole else (cells[idx], polys[idx])
+            return self.evaluate(at[0], at[1], qx, qy)[0] - qz
 
         every = np.arange(n)
         f_prev = f(every, lam_prev)

@@ -99,12 +99,24 @@ def _mul(v: NDArray[np.float64], m: NDArray[np.float64]) -> NDArray[np.float64]:
     return v[:, :1] * m[0] + v[:, 1:2] * m[1] + v[:, 2:3] * m[2]
 
 
+def _identity(frame: Any) -> bool:
+    """Whether a frame is the global one (the substrate's always is, §1.10): no transform is needed."""
+    return bool(np.array_equal(frame.rotation, np.eye(3)) and not np.any(frame.origin))
+
+
 def _to_local(frame: Any, p: NDArray[np.float64]) -> NDArray[np.float64]:
-    return _mul(p - frame.origin, frame.rotation.T)
+    return p if _identity(frame) else _mul(p - frame.origin, frame.rotation.T)
 
 
 def _to_global(frame: Any, q: NDArray[np.float64]) -> NDArray[np.float64]:
-    return frame.origin + _mul(q, frame.rotation)
+    return q if _identity(frame) else frame.origin + _mul(q, frame.rotation)
+
+
+def _vectors(frame: Any, v: NDArray[np.float64], inverse: bool) -> NDArray[np.float64]:
+    """Direction vectors into the frame (``inverse``) or out of it."""
+    if _identity(frame):
+        return v
+    return _mul(v, frame.rotation.T if inverse else frame.rotation)
 
 
 def part1_maps(setup: Setup, heights: HeightMap | None = None) -> dict[str, NDArray[Any]]:
@@ -186,7 +198,7 @@ def _substrate_hits(
     from scopetwin.sim.datasets._spline import FastSurface
 
     n = len(o)
-    lo, ld = _to_local(sub.frame, o), _mul(d, sub.frame.rotation.T)
+    lo, ld = _to_local(sub.frame, o), _vectors(sub.frame, d, inverse=True)
     with np.errstate(divide="ignore", invalid="ignore"):
         lam_plane = -lo[:, 2] / ld[:, 2]
         run = np.hypot(ld[:, 0], ld[:, 1]) / np.abs(ld[:, 2])
@@ -213,7 +225,7 @@ def _substrate_hits(
     h = np.full(n, np.nan)
     h[cand] = h_c
     p = _to_global(sub.frame, np.where(hit[:, None], local, 0.0))
-    return p, mask, roi, _mul(n_local, sub.frame.rotation), h, local
+    return p, mask, roi, _vectors(sub.frame, n_local, inverse=False), h, local
 
 
 def _markers(pattern: Any, xy: NDArray[np.float64], valid: NDArray[np.bool_]) -> tuple[NDArray, NDArray]:
