@@ -21,7 +21,7 @@ from scopetwin.scenes.geometry import Frame
 from scopetwin.scenes.limits import check_image_size
 
 Vec3 = tuple[float, float, float]
-Positive = Annotated[float, Field(gt=0)]
+Positive = Annotated[float, Field(gt=0, ge=1e-9, le=1e9)]  # finite and in a physical range (issue 25)
 CHANNEL_NAMES = ("blue", "green", "red", "nir")
 
 
@@ -66,7 +66,7 @@ class CmuCameraSpec(PixelGridSpec):
 
     width_px: Annotated[int, Field(gt=0)] = 1392
     height_px: Annotated[int, Field(gt=0)] = 1040
-    pixel_um: Positive = 6.45
+    pixel_um: Annotated[float, Field(ge=0.1, le=1000.0)] = 6.45  # 0.1 µm to 1 mm
     bit_depth: Annotated[int, Field(ge=1, le=16)] = 12
 
     @model_validator(mode="after")

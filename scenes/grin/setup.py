@@ -42,11 +42,13 @@ from scopetwin.scenes.grin.profiles import (
 )
 from scopetwin.scenes.limits import check_image_size
 
-Positive = Annotated[float, Field(gt=0)]
+Positive = Annotated[float, Field(gt=0, ge=1e-9, le=1e9)]  # finite and in a physical range (issue 25)
 #: Most RKN steps through one rod: 0.01 mm steps (float64 position error ~0.005 nm, docs/rendering.md) through a
 #: 40 mm rod are 4000; beyond 1e5 a trace only costs time.
 MAX_RKN_STEPS = 100_000
-NonNegative = Annotated[float, Field(ge=0)]
+NonNegative = Annotated[float, Field(ge=0, le=1e9)]
+#: A wavelength of light, nm: ultraviolet to infrared (the glasses' dispersion data hold there).
+Wavelength = Annotated[float, Field(ge=200.0, le=5000.0)]
 
 
 def _known_glass(name: str) -> str:
@@ -204,7 +206,7 @@ class GrinCameraSpec(PixelGridSpec):
 
     width_px: Annotated[int, Field(ge=1)] = 2592
     height_px: Annotated[int, Field(ge=1)] = 1944
-    pixel_um: Positive = 2.2
+    pixel_um: Annotated[float, Field(ge=0.1, le=1000.0)] = 2.2  # 0.1 µm to 1 mm
 
     @model_validator(mode="after")
     def _fits(self) -> GrinCameraSpec:
@@ -222,7 +224,7 @@ class IlluminationSpec(_Model):
     """
 
     led_side: Positive = 0.5
-    wavelength_nm: Positive = 488.0
+    wavelength_nm: Wavelength = 488.0
     power_mw: Positive = 1.0
     led_distance: Positive = 2.427
     rod_length: Positive = 2.369
@@ -252,7 +254,7 @@ class GrinSetup(_Model):
     name: str = ""
     section: str
     description: str = ""
-    wavelength_nm: Positive
+    wavelength_nm: Wavelength
     object: ObjectSpec = ObjectSpec()
     rod1: RodSpec
     rod2: RodSpec

@@ -492,6 +492,18 @@ ROWS: list[Row] = [
         ["sensor.exposure_s"],
     ),
     Row(
+        "grin-wavelength-1e300",
+        lambda d, s: Run(["optics", "grin", str(_setup(d, "wavelength_nm = 1e300", "thesis-7.5.2-grin-egfp"))]),
+        2,
+        ["wavelength_nm"],
+    ),
+    Row(
+        "cmu-pixel-1e-300",
+        lambda d, s: Run(["optics", "cmu", "--setup", str(_setup(d, "[camera]\npixel_um = 1e-300", "thesis-cmu"))]),
+        2,
+        ["camera.pixel_um"],
+    ),
+    Row(
         "emulate-jena-range-nan",
         lambda d, s: Run(["emulate", "jena-piezo", "range_um=nan,400"]),
         2,
