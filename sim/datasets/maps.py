@@ -33,7 +33,9 @@ layer           components  holds (Part I samples)
 Four-channel (``cmu``) samples hold ``object_xy_<channel>`` (X, Y): object-plane mm of each pixel centre of that
 channel's image, by the inverse of the channel's object -> pixel map in ``truth.json`` (an affine map fitted to the
 numpy tracer's spot centroids of a 3 x 3 object grid; its fit residual is ``object_to_pixel_residual_px`` there).
-GRIN samples hold no maps.
+GRIN samples hold ``object_xy`` (X, Y): the object-plane point (the array's x, y, mm) whose chief ray, traced
+through the objective by the RKN tracer, meets the image plane at the pixel centre (:func:`grin_object_maps`); NaN
+beyond the heights whose chief ray passes the objective.
 
 The file's header carries ``scopetwin_format`` = ``maps/1`` and ``scopetwin_maps``, a JSON list of its layers with
 their components and units.
@@ -259,9 +261,78 @@ def cmu_object_maps(channels: dict[str, Any], height: int, width: int) -> dict[s
     return out
 
 
+def _chief_rays(stack: Any, heights: NDArray[np.float64], iterations: int = 40) -> NDArray[np.float64]:
+    """T_y of the ray from each object height (along y) through the centre of the stop (the back face of rod 1), by a
+    secant iteration on all heights at once (as :func:`scopetwin.scenes.grin.analysis.chief_ray` does for one)."""
+    from scopetwin.scenes.grin.rkn import trace_stack
+
+    n_stop = next(i for i, layer in enumerate(stack.layers) if layer.name == "rod1") + 1
+    free = stack.with_stop_radius(None)
+    zeros = np.zeros_like(heights)
+
+    def y_at_stop(t: NDArray[np.float64]) -> NDArray[np.float64]:
+        st = trace_stack(free, zeros, heights, zeros, t, until_layer=n_stop)
+        return np.where(st.alive, st.y, np.nan)
+
+    a, b = zeros.copy(), -0.1 * np.sign(heights)
+    fa, fb = y_at_stop(a), y_at_stop(b)
+    for _ in range(iterations):
+        den = fb - fa
+        ok = np.isfinite(den) & (den != 0) & (np.abs(fb) >= 1e-13)
+        if not ok.any():
+            break
+        c = np.where(ok, b - fb * (b - a) / np.where(ok, den, 1.0), b)
+        a, fa = np.where(ok, b, a), np.where(ok, fb, fa)
+        b, fb = c, np.where(ok, y_at_stop(c), fb)
+    return np.where(heights == 0, 0.0, np.where(np.abs(fb) < 1e-9, b, np.nan))
+
+
+def grin_object_maps(
+    setup: Any, stack: Any, width: int, height: int, centre: tuple[float, float], samples: int = 96
+) -> dict[str, NDArray[np.float64]]:
+    """``object_xy`` (rows, cols, 2), mm: the object-plane point (the array's x, y) whose chief ray — through the
+    centre of the objective's stop, traced by the RKN tracer of :mod:`scopetwin.scenes.grin.rkn` (seed §8.3) — meets
+    the image plane at each pixel centre of a GRIN image rendered with ``stack`` (its image distance) and sensor
+    centre ``centre`` (:func:`scopetwin.scenes.mitsuba.grin.render_image`). Each pixel belongs to the nearest
+    objective, as the renderer's pupil sensor assigns it; an objective is rotationally symmetric about its axis, so
+    the map is its chief ray's image height as a function of object height (``samples`` heights out to 1.5 field
+    radii), inverted. NaN beyond the heights whose chief ray passes the objective."""
+    from scopetwin.scenes.camera import PixelGrid
+    from scopetwin.scenes.grin.rkn import trace_stack
+
+    field = 1.5 * setup.object.field_radius
+    h = np.linspace(0.0, field, samples)
+    t = _chief_rays(stack, h)
+    good = np.isfinite(t)
+    st = trace_stack(
+        stack.with_stop_radius(None), np.zeros(int(good.sum())), h[good], np.zeros(int(good.sum())), t[good]
+    )
+    _, y_img = st.at(stack.layers[-1].thickness)
+    keep = st.alive & np.isfinite(y_img)
+    h_obj, r_img = h[good][keep], y_img[keep]
+    sign = -1.0 if np.median(r_img[1:] / h_obj[1:]) < 0 else 1.0  # an inverted image: the object lies opposite
+    r_img = np.abs(r_img)
+    order = np.argsort(r_img)
+    r_img, h_obj = r_img[order], h_obj[order]
+    grid = PixelGrid(int(width), int(height), setup.camera.pitch_mm, centre)
+    cc, rr = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    u, v = grid.uv(cc, rr)
+    arr = setup.array
+    x0, y0 = -0.5 * (arr.nx - 1) * arr.pitch, -0.5 * (arr.ny - 1) * arr.pitch
+    ax = x0 + np.clip(np.round((u - x0) / arr.pitch), 0, arr.nx - 1) * arr.pitch
+    ay = y0 + np.clip(np.round((v - y0) / arr.pitch), 0, arr.ny - 1) * arr.pitch
+    du, dv = u - ax, v - ay
+    r = np.hypot(du, dv)
+    r_obj = np.interp(r, r_img, h_obj, right=np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(r > 0, sign * r_obj / np.where(r > 0, r, 1.0), 0.0)
+    scale = np.where(np.isfinite(r_obj), scale, np.nan)
+    return {"object_xy": np.stack([ax + scale * du, ay + scale * dv], axis=-1)}
+
+
 def layer_doc(name: str) -> Layer:
     """The documentation of a layer (``object_xy_<channel>`` included)."""
-    if name.startswith("object_xy_"):
+    if name.startswith("object_xy"):
         return OBJECT_LAYER
     return LAYERS[name]
 
@@ -327,7 +398,7 @@ def read_maps(path: Path) -> dict[str, NDArray[Any]]:
         if "" in parts:
             arr: NDArray[Any] = parts[""]
         else:
-            comps = layer_doc(name).components if (name in LAYERS or name.startswith("object_xy_")) else ()
+            comps = layer_doc(name).components if (name in LAYERS or name.startswith("object_xy")) else ()
             keys = [c for c in comps if c in parts] or sorted(parts)
             arr = np.stack([parts[c] for c in keys], axis=-1)
         if name in BOOL_LAYERS:

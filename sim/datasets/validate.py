@@ -208,9 +208,9 @@ def check_sample(folder: Path, fmt: int) -> list[str]:
                 maps = read_maps(path)
                 if kind in ("deflectometry", "calibration") and shape is not None:
                     problems += _maps_problems(maps, shape)
-                else:
-                    bad = [k for k, v in maps.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]
-                    problems += [f"maps.exr: {k} holds non-finite values" for k in bad]
+                else:  # object coordinates: NaN beyond the objective's field is legitimate, infinities are not
+                    bad = [k for k, v in maps.items() if np.isinf(v).any() or not np.isfinite(v).any()]
+                    problems += [f"maps.exr: {k} holds infinite values or no finite one" for k in bad]
         except ScopetwinError as exc:
             problems.append(f"{name}: {exc}")
     return problems

@@ -154,21 +154,35 @@ def test_the_reader_on_a_four_channel_sample(tmp_path):
         _ = sample.camera
 
 
-@pytest.mark.slow
-def test_the_reader_on_a_grin_sample(tmp_path):
+def test_the_reader_on_grin_samples_with_their_object_coordinates(tmp_path):
+    """GRIN samples: object_xy is where each pixel centre's chief ray comes from; the target seen through it is the
+    image (the lines run along y: swapping the axes or shifting the pattern by half a period destroys that)."""
+    from scopetwin.scenes.grin.targets import target
     from scopetwin.sim.datasets.plan import Plan
     from scopetwin.sim.datasets.store import generate
 
     cfg = tmp_path / "grin.toml"
     cfg.write_text(
-        '[dataset]\nkind = "grin"\nsetup = "thesis-8.3.2-grin-realized"\ncount = 1\nmaster_seed = 8\nspp = 1\n'
-        "preview = false\n[grin]\nwidth = 48\nheight = 48\nstep_mm = 0.9\n"
+        '[dataset]\nkind = "grin"\nsetup = "thesis-8.3.2-grin-realized"\ncount = 2\nmaster_seed = 8\nspp = 4\n'
+        "preview = false\n[grin]\nwidth = 96\nheight = 96\nstep_mm = 0.9\n[vary]\n"
+        'target = { sweep = ["lines-8", "dots-25"] }\n'
     )
     root = tmp_path / "ds"
     generate(Plan.build(load_config(cfg)), root, workers=0, progress=False)
     assert verify(root)["ok"]
-    sample = scopetwin.open_dataset(root)[0]
-    assert sample.kind == "grin" and sample.image.shape == (48, 48) and sample.truth.format == 2
-    assert sample.truth["target"]["name"] and sample.truth.seeds["render"] >= 0
-    with pytest.raises(scopetwin.sim.datasets.reader.DatasetReadError, match="no per-pixel maps"):
-        _ = sample.maps
+    for sample in scopetwin.open_dataset(root):
+        assert sample.kind == "grin" and sample.image.shape == (96, 96) and sample.truth.format == 2
+        xy = sample.maps["object_xy"]
+        assert xy.shape == (96, 96, 2) and np.isfinite(xy).all()
+        cx, cy = sample.truth["centre_mm"]  # the objective's axis (a one-objective window)
+        tgt = target(sample.truth["target"]["name"])
+        img = sample.image.ravel()
+        u, v = (xy[..., 0] - cx).ravel(), (xy[..., 1] - cy).ravel()
+        seen = np.corrcoef(img, tgt.transmission(u, v))[0, 1]
+        assert seen > 0.7, seen
+        shifted = np.corrcoef(img, tgt.transmission(u + 0.5 * tgt.period, v + 0.5 * tgt.period))[0, 1]
+        assert shifted < 0.0, shifted
+        if tgt.pattern == "lines":
+            assert abs(np.corrcoef(img, tgt.transmission(v, u))[0, 1]) < 0.3  # x and y swapped
+    with pytest.raises(scopetwin.sim.datasets.reader.DatasetReadError, match="no single pinhole camera"):
+        _ = sample.camera
