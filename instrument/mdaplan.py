@@ -128,7 +128,9 @@ def _timepoints(plan: Any) -> tuple[int, float]:
         parts = [_timepoints(phase) for phase in phases]
         return max(0, sum(n for n, _ in parts) - (len(parts) - 1)), sum(s for _, s in parts)
     loops = int(plan.loops)
-    if hasattr(plan, "duration") and not isinstance(getattr(type(plan), "duration", None), property):
+    # a plan whose duration is a field (duration + interval) gives it; where it is a property (loops x interval)
+    # it is computed here in float — useq's own timedelta product overflows for a huge loop count
+    if not isinstance(getattr(type(plan), "duration", None), property) and getattr(plan, "duration", None) is not None:
         return loops, float(plan.duration.total_seconds())
     return loops, float(plan.interval.total_seconds()) * max(0, loops - 1)
 

@@ -280,3 +280,10 @@ def test_ome_tiff_read_by_tifffile_and_ome_types(rig_path, tmp_path, single_file
         for array in arrays[: len(images)]:
             assert array.shape == (2, 3, 32, 40) and array[0].mean() > 200 > array[1].mean()  # C, Z, Y, X
     assert seen == 2
+
+
+def test_a_plan_of_2_63_loops_is_sized_not_overflowed():
+    """useq's own duration (a timedelta product) overflows for such a loop count; the size is computed in float."""
+    limits = PlanLimits(None, None, None, Range(0.0, 1.0, "ms"), frame_shape=(8, 8), pixel_size_um=1.0)
+    size = plan_size(useq.MDASequence(time_plan={"interval": 1.0, "loops": 2**63 - 1}), limits)
+    assert size.sizes["t"] == 2**63 - 1 and size.seconds == pytest.approx(float(2**63 - 2))
