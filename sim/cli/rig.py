@@ -307,7 +307,7 @@ def cmd_mda(args: argparse.Namespace) -> dict[str, Any]:
     if not out.name.lower().endswith(OME_SUFFIXES):
         raise RigError(f"--out {args.out!r} must end in one of {', '.join(OME_SUFFIXES)}")
     for path in _ome_outputs(out):
-        if path.exists():
+        if path.exists() or path.is_symlink():  # a dangling link too: the OME writer would write through it
             raise RigError(f"--out {args.out!r}: {str(path)!r} exists already; choose a new path")
     sequence = load_sequence(args.sequence)
     size = mda_size(args.rig, args.camera, sequence)  # closed form: a 1e8-loop plan is sized at once
