@@ -121,8 +121,22 @@ def _vectors(frame: Any, v: NDArray[np.float64], inverse: bool) -> NDArray[np.fl
     return _mul(v, frame.rotation.T if inverse else frame.rotation)
 
 
+@dataclass(frozen=True)
+class _Hits:
+    """The pixels whose ray meets the reflecting element (or the target): their indices and what is known there."""
+
+    idx: NDArray[np.intp]  # the pixels (flat indices) on the element
+    point: NDArray[np.float64]  # (k, 3) world points
+    seen: NDArray[np.bool_]  # (k,) the point can send light to the camera (deflectometry: in the ROI)
+    local: NDArray[np.float64] | None = None  # (k, 3) substrate / mirror coordinates
+    normal: NDArray[np.float64] | None = None  # (k, 3) world unit normals (a reflecting element)
+    height: NDArray[np.float64] | None = None  # (k,) h at local x, y
+
+
 def part1_maps(setup: Setup, heights: HeightMap | None = None) -> dict[str, NDArray[Any]]:
-    """The per-pixel maps of a Part I setup (module docstring), as (rows, cols[, k]) float64 arrays.
+    """The per-pixel maps of a Part I setup (module docstring), as :func:`read_maps` returns them from the file.
+
+    The trace itself runs in float64; its results are rounded to float32 (the EXR's type) once, at the end.
 
     Parameters
     ----------
@@ -134,63 +148,89 @@ def part1_maps(setup: Setup, heights: HeightMap | None = None) -> dict[str, NDAr
     Returns
     -------
     dict
-        Layer name -> array (rows, cols) or (rows, cols, k); ``mask``/``roi`` as 0/1, NaN where undefined,
-        ``marker_id`` -1 where no marker is seen.
+        Layer name -> array (rows, cols) or (rows, cols, k): ``mask``/``roi`` bool, ``marker_id`` int32 (-1 where no
+        marker is seen), the rest float32 with NaN where undefined.
     """
     from scopetwin.scenes.analytic import AnalyticScene
-    from scopetwin.scenes.geometry import Frame, intersect_plane, reflect
+    from scopetwin.scenes.geometry import intersect_plane, reflect
 
     scene = AnalyticScene(setup, heights)
     pattern = scene.pattern
     o, d, shape = _pixel_rays(setup)
-    out: dict[str, NDArray[Any]] = {}
+    n = len(o)
     if setup.scene == "target":
-        lam = intersect_plane(o, d, pattern.frame)
-        ok = ((d @ pattern.frame.nz) < 0) & np.isfinite(lam) & (lam > 0)
-        p = o + np.where(ok, lam, 0.0)[:, None] * d
-        xy = _to_local(pattern.frame, p)[:, :2]
-        mask = ok & (np.abs(xy[:, 0]) <= 0.5 * pattern.size_x) & (np.abs(xy[:, 1]) <= 0.5 * pattern.size_y)
-        reaches = seen = mask
+        hits = _target_hits(pattern, o, d)
+    elif setup.scene == "mirror":
+        hits = _mirror_hits(setup, o, d)
     else:
-        if setup.scene == "mirror":
-            assert setup.mirror is not None
-            lam = intersect_plane(o, d, Frame.identity())
-            ok = np.isfinite(lam) & (lam > 0) & (d[:, 2] < 0)
-            p = o + np.where(ok, lam, 0.0)[:, None] * d
-            local = p
-            sx, sy = setup.mirror.size
-            mask = ok & (np.abs(p[:, 0]) <= 0.5 * sx) & (np.abs(p[:, 1]) <= 0.5 * sy)
-            normals = np.broadcast_to(np.array([0.0, 0.0, 1.0]), p.shape)
-            h = np.zeros(len(p))
-            seen = mask
-        else:
-            sub = scene.substrate
-            assert sub is not None and heights is not None
-            p, mask, seen, normals, h, local = _substrate_hits(sub, heights, o, d)
-            out["roi"] = seen.astype(np.float64)
-        k = np.flatnonzero(mask)  # reflect only what meets the element
-        refl = reflect(d[k], normals[k])
-        lam_p = intersect_plane(p[k], refl, pattern.frame)
-        ok_k = ((refl @ pattern.frame.nz) < 0) & np.isfinite(lam_p) & (lam_p > 0)
-        reaches = np.zeros(len(o), dtype=bool)
-        reaches[k] = ok_k
-        xy = np.zeros((len(o), 2))
-        xy[k] = _to_local(pattern.frame, p[k] + np.where(ok_k, lam_p, 0.0)[:, None] * refl)[:, :2]
-        out["surface_xy"] = np.where(mask[:, None], local[:, :2], np.nan)
-        out["height"] = np.where(mask, h, np.nan)
-        out["normal"] = np.where(mask[:, None], normals, np.nan)
-    out["mask"] = mask.astype(np.float64)
-    out["point"] = np.where(mask[:, None], p, np.nan)
-    out["pattern_xy"] = np.where(reaches[:, None], xy, np.nan)
-    out["marker"], out["marker_id"] = _markers(pattern, np.where(reaches[:, None], xy, 0.0), reaches & seen)
-    # the documented order, each (rows, cols[, k])
-    return {name: out[name].reshape(*shape, *out[name].shape[1:]) for name in LAYERS if name in out}
+        assert scene.substrate is not None and heights is not None
+        hits = _substrate_hits(scene.substrate, heights, o, d)
+    k = hits.idx
+    if hits.normal is None:  # a calibration view: the ray itself meets the pattern (the target)
+        xy, reaches = _to_local(pattern.frame, hits.point)[:, :2], np.ones(len(k), dtype=bool)
+    else:
+        refl = reflect(d[k], hits.normal)
+        lam = intersect_plane(hits.point, refl, pattern.frame)
+        reaches = ((refl @ pattern.frame.nz) < 0) & np.isfinite(lam) & (lam > 0)
+        xy = _to_local(pattern.frame, hits.point + np.where(reaches, lam, 0.0)[:, None] * refl)[:, :2]
+
+    def layer(values: NDArray[Any], where: NDArray[np.intp], fill: float = np.nan) -> NDArray[np.float32]:
+        out = np.full((n, *values.shape[1:]), fill, dtype=np.float32)
+        out[where] = values
+        return out
+
+    maps: dict[str, NDArray[Any]] = {"mask": layer(np.ones(len(k)), k, 0.0)}
+    if setup.scene == "deflectometry":
+        maps["roi"] = layer(hits.seen.astype(np.float64), k, 0.0)
+    maps["point"] = layer(hits.point, k)
+    if hits.local is not None and hits.normal is not None and hits.height is not None:
+        maps["surface_xy"] = layer(hits.local[:, :2], k)
+        maps["height"] = layer(hits.height, k)
+        maps["normal"] = layer(hits.normal, k)
+    maps["pattern_xy"] = layer(xy[reaches], k[reaches])
+    seen = reaches & hits.seen
+    ij, position = _markers(pattern, xy[seen])
+    found = position >= 0
+    maps["marker"] = layer(ij[found].astype(np.float64), k[seen][found])
+    maps["marker_id"] = layer(position[found].astype(np.float64), k[seen][found], -1.0)
+    out = {name: maps[name].reshape(*shape, *maps[name].shape[1:]) for name in LAYERS if name in maps}
+    for name in BOOL_LAYERS:
+        if name in out:
+            out[name] = out[name] > 0.5
+    for name, dtype in INTEGER_LAYERS.items():
+        out[name] = out[name].astype(dtype)
+    return out
 
 
-def _substrate_hits(
-    sub: Any, heights: HeightMap, o: NDArray[np.float64], d: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_], NDArray[np.float64], NDArray, NDArray]:
-    """Where each ray first meets the substrate: (point, on the substrate, in the ROI, normal, height, local point).
+def _target_hits(pattern: Any, o: NDArray[np.float64], d: NDArray[np.float64]) -> _Hits:
+    """Rays that meet the target plate from its emitting side (a calibration view)."""
+    from scopetwin.scenes.geometry import intersect_plane
+
+    lam = intersect_plane(o, d, pattern.frame)
+    ok = ((d @ pattern.frame.nz) < 0) & np.isfinite(lam) & (lam > 0)
+    p = o + np.where(ok, lam, 0.0)[:, None] * d
+    xy = _to_local(pattern.frame, p)
+    idx = np.flatnonzero(ok & (np.abs(xy[:, 0]) <= 0.5 * pattern.size_x) & (np.abs(xy[:, 1]) <= 0.5 * pattern.size_y))
+    return _Hits(idx, p[idx], np.ones(len(idx), dtype=bool))
+
+
+def _mirror_hits(setup: Setup, o: NDArray[np.float64], d: NDArray[np.float64]) -> _Hits:
+    """Rays that meet the flat mirror z = 0 from above (seed §2.7.2)."""
+    from scopetwin.scenes.geometry import Frame, intersect_plane
+
+    assert setup.mirror is not None
+    lam = intersect_plane(o, d, Frame.identity())
+    ok = np.isfinite(lam) & (lam > 0) & (d[:, 2] < 0)
+    p = o + np.where(ok, lam, 0.0)[:, None] * d
+    sx, sy = setup.mirror.size
+    idx = np.flatnonzero(ok & (np.abs(p[:, 0]) <= 0.5 * sx) & (np.abs(p[:, 1]) <= 0.5 * sy))
+    k = len(idx)
+    normal = np.tile([0.0, 0.0, 1.0], (k, 1))
+    return _Hits(idx, p[idx], np.ones(k, dtype=bool), p[idx], normal, np.zeros(k))
+
+
+def _substrate_hits(sub: Any, heights: HeightMap, o: NDArray[np.float64], d: NDArray[np.float64]) -> _Hits:
+    """Where rays first meet the substrate (seed §1.6.4); ``seen``: the point lies in the ROI.
 
     Only rays that can reach the substrate are traced: those whose base-plane hit lies within the substrate grown by
     the largest horizontal run of a ray over the surface's height range (the spline overshoots its nodes by less than
@@ -199,7 +239,6 @@ def _substrate_hits(
     """
     from scopetwin.sim.datasets._spline import FastSurface
 
-    n = len(o)
     lo, ld = _to_local(sub.frame, o), _vectors(sub.frame, d, inverse=True)
     with np.errstate(divide="ignore", invalid="ignore"):
         lam_plane = -lo[:, 2] / ld[:, 2]
@@ -213,25 +252,19 @@ def _substrate_hits(
         & (np.abs(base[:, 0]) <= 0.5 * sub.size_x + grow)
         & (np.abs(base[:, 1]) <= 0.5 * sub.size_y + grow)
     )
-    lam, ok, h_c, hx, hy = FastSurface(heights).intersect(lo[cand], ld[cand])
+    lam, ok, h, hx, hy = FastSurface(heights).intersect(lo[cand], ld[cand])
     ok &= lam > 0
-    local = np.full((n, 3), np.nan)
-    local[cand] = lo[cand] + np.where(ok, lam, 0.0)[:, None] * ld[cand]
-    hit = np.zeros(n, dtype=bool)
-    hit[cand] = ok
-    x, y = np.where(hit, local[:, 0], 0.0), np.where(hit, local[:, 1], 0.0)
-    mask = hit & sub.on_substrate(x, y)
-    roi = mask & sub.in_roi(x, y)
-    n_local = np.full((n, 3), np.nan)
-    n_local[cand] = np.stack([-hx, -hy, np.ones_like(hx)], axis=-1) / np.sqrt(1.0 + hx * hx + hy * hy)[:, None]
-    h = np.full(n, np.nan)
-    h[cand] = h_c
-    p = _to_global(sub.frame, np.where(hit[:, None], local, 0.0))
-    return p, mask, roi, _vectors(sub.frame, n_local, inverse=False), h, local
+    local = lo[cand] + np.where(ok, lam, 0.0)[:, None] * ld[cand]
+    on = ok & sub.on_substrate(local[:, 0], local[:, 1])
+    local, h, hx, hy = local[on], h[on], hx[on], hy[on]
+    n_local = np.stack([-hx, -hy, np.ones_like(hx)], axis=-1) / np.sqrt(1.0 + hx * hx + hy * hy)[:, None]
+    roi = sub.in_roi(local[:, 0], local[:, 1])
+    normal = _vectors(sub.frame, n_local, inverse=False)
+    return _Hits(cand[on], _to_global(sub.frame, local), roi, local, normal, h)
 
 
-def _markers(pattern: Any, xy: NDArray[np.float64], valid: NDArray[np.bool_]) -> tuple[NDArray, NDArray]:
-    """(i, j) (NaN where none) and list position (-1 where none) of the marker whose spot each point is in.
+def _markers(pattern: Any, xy: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(i, j) and list position (-1: none) of the marker whose spot each pattern point is in.
 
     The same rule as the rendered grey value (:meth:`scopetwin.scenes.pattern.MarkerPattern.grey_local`): the
     nearest marker cell, strictly inside its disc, on the plate.
@@ -240,12 +273,9 @@ def _markers(pattern: Any, xy: NDArray[np.float64], valid: NDArray[np.bool_]) ->
     rel = xy - pattern.centers_local(ij)
     inside = np.hypot(rel[:, 0], rel[:, 1]) < pattern.radii(ij)
     on_plate = (np.abs(xy[:, 0]) <= 0.5 * pattern.size_x) & (np.abs(xy[:, 1]) <= 0.5 * pattern.size_y)
-    hit = valid & inside & on_plate
-    first_i = int(pattern.indices()[0, 0])
-    first_j = int(pattern.indices()[0, 1])
+    first_i, first_j = (int(v) for v in pattern.indices()[0])
     position = (ij[:, 1] - first_j) * pattern.n_x + (ij[:, 0] - first_i)  # indices() runs i fastest
-    marker = np.where(hit[:, None], ij.astype(np.float64), np.nan)
-    return marker, np.where(hit, position, -1).astype(np.float64)
+    return ij, np.where(inside & on_plate, position, -1)
 
 
 def cmu_object_maps(channels: dict[str, Any], height: int, width: int) -> dict[str, NDArray[np.float64]]:

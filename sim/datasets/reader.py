@@ -176,8 +176,7 @@ class Sample:
             if path.is_file():
                 return read_maps(path)
             if self.kind in ("deflectometry", "calibration"):
-                maps = part1_maps(self.setup, self.heights)
-                return {k: _as_stored(k, v) for k, v in maps.items()}
+                return part1_maps(self.setup, self.heights)
             if self.kind == "cmu":
                 r0, c0, h, w = self.truth["window"]
                 return {k: v.astype(np.float32) for k, v in cmu_object_maps(self.truth["channels"], h, w).items()}
@@ -237,17 +236,6 @@ class Sample:
                     raise DatasetReadError(f"sample {self.index} has no map {name!r} (it has {', '.join(maps)})")
                 out[name] = maps[name]
         return out
-
-
-def _as_stored(name: str, arr: NDArray[Any]) -> NDArray[Any]:
-    """A computed map as :func:`~scopetwin.sim.datasets.maps.read_maps` returns the stored one."""
-    from scopetwin.sim.datasets.maps import BOOL_LAYERS, INTEGER_LAYERS
-
-    if name in BOOL_LAYERS:
-        return arr > 0.5
-    if name in INTEGER_LAYERS:
-        return arr.astype(INTEGER_LAYERS[name])
-    return arr.astype(np.float32)
 
 
 class Dataset(Sequence[Sample]):

@@ -362,3 +362,27 @@ def test_the_fast_spline_is_the_height_maps_own_spline():
     lam_ref, ok_ref = Substrate(hm).intersect(o, d)
     lam, ok, *_ = fast.intersect(o, d)
     assert ok.all() and ok_ref.all() and np.abs(lam - lam_ref).max() < 1e-8
+
+
+@pytest.mark.parametrize("preset", ["thesis-2.8.3-mirror", "thesis-1.10-deflectometry"])
+def test_maps_agree_with_the_renderers_own_trace(preset):
+    """The maps' vectorised trace against the analytic renderer's (scenes.analytic.AnalyticScene.pattern_hits: fitpack
+    spline, its own secant) on every pixel centre: the same pixels reach the pattern, at the same points."""
+    from scopetwin.scenes.analytic import AnalyticScene
+    from scopetwin.sim.datasets.maps import part1_maps
+    from scopetwin.sim.surfaces import surface_for
+
+    setup = scopetwin.load_setup(preset, {"camera": {"pixels": [170, 128], "pixel_pitch": 0.0372}})
+    heights = surface_for(setup)
+    maps = part1_maps(setup, heights)
+    cam = setup.camera_model
+    o, d = cam.rays(cam.pixel_centers().reshape(-1, 2))
+    xy, ok = AnalyticScene(setup, heights).pattern_hits(o, d)  # ok: reaches the pattern through the ROI / mirror
+    seen = maps["mask"].ravel() & np.isfinite(maps["pattern_xy"].reshape(-1, 2)).all(axis=1)
+    if "roi" in maps:
+        seen &= maps["roi"].ravel()
+    assert ok.sum() > 1000 and np.array_equal(seen, ok)
+    assert np.abs(maps["pattern_xy"].reshape(-1, 2)[ok] - xy[ok]).max() < 1e-5
+    if preset.endswith("mirror"):
+        m = maps["mask"]
+        assert np.abs(maps["point"][m][:, 2]).max() < 1e-9 and (maps["normal"][m] == [0, 0, 1]).all()
