@@ -53,7 +53,12 @@ class StudyContext:
         return results
 
     def dataset(self, config: dict[str, Any], name: str) -> Path:
-        """Generate a dataset (a config dict as in ``examples/datasets``) under ``out/name`` on the same client."""
+        """Generate a dataset (a config dict as in ``examples/datasets``) under ``out/name`` on the same client.
+
+        The studies read images and truth.json only, so their datasets leave out the per-pixel maps unless the
+        config asks for them (``[dataset] maps``).
+        """
+        config = {**config, "dataset": {"maps": False, **config.get("dataset", {})}}
         plan = Plan.build(config_from_dict(config, f"study dataset {name}"))
         root = self.out / name
         generate(
