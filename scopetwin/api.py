@@ -385,8 +385,11 @@ def open_dataset(path: str | Path) -> Dataset:
     Returns
     -------
     Dataset
-        ``len(ds)``, ``ds[i]``, ``ds[a:b]``, iteration; each sample has ``.image``, ``.truth``, ``.setup``, ``.meta``
-        read from its files when first asked for. A ``torch.utils.data.DataLoader`` takes it as a map-style dataset.
+        ``len(ds)``, ``ds[i]``, ``ds[a:b]``, iteration; each sample has ``.image``, ``.maps`` (the per-pixel truth of
+        ``maps.exr``: ``mask``, ``point``, ``surface_xy``, ``height``, ``normal``, ``pattern_xy``, ``marker`` ... per
+        kind), ``.camera`` (OpenCV's ``K``, ``dist``, ``R``, ``t``), ``.truth``, ``.setup``, ``.meta``, each read from
+        its files when first asked for. A ``torch.utils.data.DataLoader`` takes it as a map-style dataset
+        (``ds.arrays(...)`` gives items it can batch). docs/contract.md, "Datasets", lists every file and channel.
 
     Examples
     --------

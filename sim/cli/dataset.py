@@ -170,7 +170,7 @@ def cmd_export(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def register(subparsers: Any) -> None:
-    """Add ``dataset generate | resume | verify`` to the ``scopetwin`` parser."""
+    """Add ``dataset generate | resume | verify | show | export`` to the ``scopetwin`` parser."""
     top = subparsers.add_parser(
         "dataset",
         help="synthetic datasets with exact truth (local or on a Dask cluster)",
@@ -181,7 +181,13 @@ def register(subparsers: Any) -> None:
         ),
     )
     sub = top.add_subparsers(dest="dataset_command", required=True)
+    _register_generate(sub)
+    _register_resume_verify(sub)
+    _register_show_export(sub)
 
+
+def _register_generate(sub: Any) -> None:
+    """``dataset generate``."""
     h = "render a dataset described by a config TOML"
     p = sub.add_parser(
         "generate",
@@ -207,6 +213,9 @@ def register(subparsers: Any) -> None:
     _common(p)
     p.set_defaults(func=cmd_generate, outputs=[("out", "dir", "keep"), ("json", "file")])
 
+
+def _register_resume_verify(sub: Any) -> None:
+    """``dataset resume`` and ``dataset verify``."""
     h = "finish an interrupted dataset without redoing finished samples"
     p = sub.add_parser(
         "resume",
@@ -229,6 +238,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--json", metavar="PATH", help="write {complete, missing, corrupt, duplicates, ...} here")
     p.set_defaults(func=cmd_verify, exit_code=lambda result: 0 if result["ok"] else 1)
 
+
+def _register_show_export(sub: Any) -> None:
+    """``dataset show`` and ``dataset export``."""
     h = "draw a contact sheet of the samples with their truth overlaid (substrate outline, heights, marker ids)"
     p = sub.add_parser(
         "show",
