@@ -61,6 +61,7 @@ def _three_ways(m: scopetwin.Measurement, tmp_path: Path) -> list[np.ndarray]:
     return [cli, front, results["ideal"]["result"].heightmap().z.astype(np.float32)]
 
 
+@pytest.mark.slow
 def test_run_reconstruct_and_the_front_door_agree(tmp_path):
     m = scopetwin.render(PRESET, spp=4, seed=3)
     cli, front, run = _three_ways(m, tmp_path)

@@ -134,17 +134,21 @@ def test_fresh_core_loads_the_rendered_rigs(name, tmp_path):
         core.unloadAllDevices()
 
 
-def _qt_offscreen():
-    os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+def _qt_offscreen(monkeypatch: pytest.MonkeyPatch):
+    # set for this test only: pymmcore-widgets' import sets PYMM_SIGNALS_BACKEND=qt in os.environ, which every later
+    # subprocess of the session would inherit (and warn about, with no Qt application there)
+    monkeypatch.setenv("QT_QPA_PLATFORM", os.environ.get("QT_QPA_PLATFORM", "offscreen"))
+    monkeypatch.setenv("PYMM_SIGNALS_BACKEND", "qt")
     qtwidgets = pytest.importorskip("qtpy.QtWidgets", reason="no Qt binding (PyQt6 / PySide6) installed")
     pytest.importorskip("pymmcore_widgets", reason="pymmcore-widgets is not installed")
     return qtwidgets.QApplication.instance() or qtwidgets.QApplication([])
 
 
-def test_pymmcore_widgets_open_the_configuration():
+@pytest.mark.slow
+def test_pymmcore_widgets_open_the_configuration(monkeypatch):
     """Qt offscreen: pymmcore-widgets' own 'load configuration' widget, the channel, exposure and property widgets, a
     snap. (The stage widget fetches its icons from the internet, out of reach here.)"""
-    app = _qt_offscreen()
+    app = _qt_offscreen(monkeypatch)
     from pymmcore_widgets import ChannelWidget, ConfigurationWidget, ExposureWidget, PropertyBrowser
 
     core = UniMMCore()

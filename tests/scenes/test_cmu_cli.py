@@ -20,6 +20,7 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     return ap.parse_args(["optics", "cmu", *argv])
 
 
+@pytest.mark.slow
 def test_json_contract(tmp_path) -> None:
     out = tmp_path / "cmu.json"
     assert main(["optics", "cmu", "--json", str(out)]) == 0

@@ -103,6 +103,7 @@ def _path_counts(spec) -> tuple[int, int]:
     return n_refl, 2 + n_refl + 2 * (len(steps) - n_refl)
 
 
+@pytest.mark.slow
 def test_transmitted_bowed_plates_land_rays_like_the_exact_tracer(mc, setup, bowed) -> None:
     """Every channel transmits through bowed splitters. Rays of the exact float64 tracer (refraction at both faces
     of each 1 mm plate), reversed at the refocused image plane and traced back through the Mitsuba scene, land on
@@ -128,6 +129,7 @@ def test_transmitted_bowed_plates_land_rays_like_the_exact_tracer(mc, setup, bow
             assert np.hypot(*thin_px.mean(axis=0)) > 0.2, (ch, x0, thin_px.mean(axis=0))
 
 
+@pytest.mark.slow
 def test_transmitted_plates_shift_the_beam_at_the_objective_aperture(mc, setup, bowed) -> None:
     """The plates' lateral shift (0.33 mm per 1 mm plate at 45°) is modelled: the exact tracer's rays of the field
     centre through the rim of the objective's 10 mm aperture (radius 0.98 of it) come back through it in Mitsuba,

@@ -227,6 +227,7 @@ def test_grin_image_just_past_the_bound_sees_light_and_has_a_preview(tmp_path, c
 
 
 # -- previews of optics cmu --out -------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_cmu_out_writes_a_png_preview_per_image(tmp_path, capsys, monkeypatch):
     import scopetwin.sim.cli.optics as optics
 

@@ -93,6 +93,7 @@ def _files(root: Path, index: int) -> dict[str, bytes]:
     return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
 
 
+@pytest.mark.slow
 def test_determinism_truth_verify_and_resume(tmp_path):
     from scopetwin.scenes.io import read_heightmap, read_image
 

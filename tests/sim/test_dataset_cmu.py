@@ -121,6 +121,7 @@ def _files(root: Path, index: int) -> dict[str, bytes]:
     return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
 
 
+@pytest.mark.slow
 def test_determinism_and_truth(tmp_path):
     from scopetwin.calib.channels import measure_channel
     from scopetwin.scenes.io import read_heightmap, read_image

@@ -8,6 +8,7 @@ import pytest
 from scopetwin.sim.cli import main
 
 
+@pytest.mark.slow
 def test_run_reconstructs_the_default_substrate(tmp_path, capsys):
     out = tmp_path / "report"
     code = main(["run", "--out", str(out), "--spp", "4", "--quiet", "--json", str(tmp_path / "run.json")])

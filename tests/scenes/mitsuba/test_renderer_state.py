@@ -107,6 +107,7 @@ def test_renderers_reselect_their_variant_when_interleaved(mono_variant, spectra
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow
 def test_cmu_scene_builds_do_not_grow_memory(spectral_variant):
     """Build and render the CMU scene 20 times: Dr.Jit storage and Python allocations stay flat (< 5 MB).
 
