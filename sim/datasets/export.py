@@ -122,15 +122,18 @@ def export(
     writer = _write_zarr if to == "zarr" else _write_hdf5
     if to not in ("zarr", "hdf5"):
         raise DatasetError(f"--to must be zarr or hdf5, not {to!r}")
-    tmp = out.parent / f".{out.name}.export-{os.getpid()}"
+    import shutil
+    import tempfile
+
+    # written inside a fresh private folder (0700, made here) beside OUT and renamed into place: no link planted at a
+    # predictable temporary name can be written through
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.export-", dir=out.parent))
     try:
+        tmp = stage / out.name
         writer(tmp, dataset, layout, params, attrs, progress)
         os.replace(tmp, out)
     finally:
-        if tmp.exists():
-            import shutil
-
-            shutil.rmtree(tmp, ignore_errors=True) if tmp.is_dir() else tmp.unlink()
+        shutil.rmtree(stage, ignore_errors=True)
     variables = {k: [n, *shape] for k, (shape, _, _, _) in layout.items()}
     variables |= {k: list(v.shape) for k, v in params.items()}
     return {"out": str(out), "to": to, "samples": n, "variables": variables}

@@ -22,6 +22,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import IO, Any
 
+from scopetwin.scenes.io import open_append
 from scopetwin.sim.datasets.config import SAMPLE_PACKAGES, DatasetError
 from scopetwin.sim.datasets.lock import DatasetBusy, DatasetLock, holder
 from scopetwin.sim.datasets.plan import Plan
@@ -420,7 +421,8 @@ def _generate_locked(
     written = 0
     tag = hashlib.sha256(json.dumps(plan_json, sort_keys=True).encode()).hexdigest()[:12]
     with contextlib.ExitStack() as stack:  # unwinds in reverse: tasks, bar, client, then the folder's clean-up
-        fh = stack.enter_context(open(root / MANIFEST, "a"))
+        # never through a link planted at the manifest's path (scenes.io.open_append refuses one)
+        fh = stack.enter_context(open_append(root / MANIFEST))
 
         def record(rec: dict[str, Any]) -> None:
             _append(fh, _manifest_line(rec))
