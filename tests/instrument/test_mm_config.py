@@ -139,6 +139,13 @@ def _qt_offscreen(monkeypatch: pytest.MonkeyPatch):
     # subprocess of the session would inherit (and warn about, with no Qt application there)
     monkeypatch.setenv("QT_QPA_PLATFORM", os.environ.get("QT_QPA_PLATFORM", "offscreen"))
     monkeypatch.setenv("PYMM_SIGNALS_BACKEND", "qt")
+    iconify = pytest.importorskip("superqt.iconify", reason="superqt is not installed")
+
+    def offline(*key: object, **kw: object) -> str:
+        raise OSError("icons are not fetched in tests (no network here)")
+
+    # the widgets draw icons that superqt would download from a public server: never try, use its text fallback
+    monkeypatch.setattr(iconify, "svg_path", offline)
     qtwidgets = pytest.importorskip("qtpy.QtWidgets", reason="no Qt binding (PyQt6 / PySide6) installed")
     pytest.importorskip("pymmcore_widgets", reason="pymmcore-widgets is not installed")
     return qtwidgets.QApplication.instance() or qtwidgets.QApplication([])
