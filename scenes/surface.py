@@ -43,6 +43,7 @@ def secant_intersection(
     lam1: ArrayLike | None = None,
     tol: float = 1e-10,
     max_iter: int = 60,
+    residual: Callable[..., Array] | None = None,
 ) -> tuple[Array, NDArray[np.bool_]]:
     """Ray parameters where rays meet the surface z = h(x, y), by the secant iteration (seed §1.6.4, eq. 1.6).
 
@@ -67,6 +68,10 @@ def secant_intersection(
         Convergence threshold on ``|f|``, mm.
     max_iter : int
         Largest number of secant steps.
+    residual : callable, optional
+        ``residual(lam, idx)`` -> f at ``lam`` for the rays ``idx`` (all rays where None), in place of the one formed
+        from ``surface.height``: for an evaluator that keeps per-ray state between steps (the dataset maps' cell
+        cache, :mod:`scopetwin.sim.datasets._spline`). The iteration is this one either way.
 
     Returns
     -------
@@ -81,10 +86,12 @@ def secant_intersection(
     d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     n = len(o)
 
-    def f(lam: Array, idx: NDArray[np.intp] | None = None) -> Array:
+    def from_height(lam: Array, idx: NDArray[np.intp] | None = None) -> Array:
         oo, dd = (o, d) if idx is None else (o[idx], d[idx])
         p = oo + lam[:, None] * dd
         return np.asarray(height(p[:, 0], p[:, 1]), dtype=np.float64) - p[:, 2]
+
+    f = residual if residual is not None else from_height
 
     lam_prev = np.array(lam0, dtype=np.float64).reshape(n)
     f_prev = f(np.where(np.isfinite(lam_prev), lam_prev, 0.0))

@@ -16,7 +16,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import BSpline, RectBivariateSpline
 
-from scopetwin.scenes.surface import HeightMap
+from scopetwin.scenes.surface import HeightMap, secant_intersection
 
 F64 = NDArray[np.float64]
 
@@ -146,32 +146,20 @@ class FastSurface:
             return self.evaluate(at[0], at[1], qx, qy)[0] - qz
 
         every = np.arange(n)
-        f_prev = f(every, lam_prev)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lam_cur = lam_prev + f_prev / d[:, 2]
-        active = finite & np.isfinite(lam_cur)
-        f_cur = np.full(n, np.nan)
-        a = np.flatnonzero(active)
-        f_cur[a] = f(a, lam_cur[a])
-        converged = np.zeros(n, dtype=bool)
-        for _ in range(max_iter):
-            done = active & (np.abs(f_cur) < tol)
-            converged |= done
-            active &= ~done
-            if not active.any():
-                break
-            a = np.flatnonzero(active)
-            den = f_cur[a] - f_prev[a]
-            ok = den != 0
-            with np.errstate(invalid="ignore", over="ignore"):
-                new = np.where(ok, (lam_prev[a] * f_cur[a] - lam_cur[a] * f_prev[a]) / np.where(ok, den, 1.0), np.nan)
-            lam_prev[a], f_prev[a] = lam_cur[a], f_cur[a]
-            lam_cur[a] = new
-            good = np.isfinite(new)
-            active[a[~good]] = False
-            ag = a[good]
-            f_cur[ag] = f(ag, lam_cur[ag])
-        converged |= active & (np.abs(f_cur) < tol)
+
+        def residual(lam: F64, idx: NDArray[np.intp] | None = None) -> F64:
+            return f(every if idx is None else idx, lam)
+
+        start = np.where(finite, lam_prev, np.nan)  # a ray parallel to the base plane is not traced
+        lam_cur, converged = secant_intersection(  # the one secant iteration, with this evaluator's cell cache
+            self,
+            o,
+            d,
+            start,
+            tol=tol,
+            max_iter=max_iter,
+            residual=residual,
+        )
         lam = np.where(converged, lam_cur, np.nan)
         q = o + np.where(converged, lam_cur, 0.0)[:, None] * d
         k = np.flatnonzero(converged)
