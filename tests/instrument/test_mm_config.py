@@ -134,48 +134,68 @@ def test_fresh_core_loads_the_rendered_rigs(name, tmp_path):
         core.unloadAllDevices()
 
 
-def _qt_offscreen(monkeypatch: pytest.MonkeyPatch):
-    # set for this test only: pymmcore-widgets' import sets PYMM_SIGNALS_BACKEND=qt in os.environ, which every later
-    # subprocess of the session would inherit (and warn about, with no Qt application there)
-    monkeypatch.setenv("QT_QPA_PLATFORM", os.environ.get("QT_QPA_PLATFORM", "offscreen"))
-    monkeypatch.setenv("PYMM_SIGNALS_BACKEND", "qt")
-    iconify = pytest.importorskip("superqt.iconify", reason="superqt is not installed")
+_WIDGETS_SCRIPT = """
+import os, sys
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+os.environ["PYMM_SIGNALS_BACKEND"] = "qt"
+import superqt.iconify as iconify
 
-    def offline(*key: object, **kw: object) -> str:
-        raise OSError("icons are not fetched in tests (no network here)")
+def offline(*key, **kw):
+    raise OSError("icons are not fetched in tests (no network here)")
 
-    # the widgets draw icons that superqt would download from a public server: never try, use its text fallback
-    monkeypatch.setattr(iconify, "svg_path", offline)
-    qtwidgets = pytest.importorskip("qtpy.QtWidgets", reason="no Qt binding (PyQt6 / PySide6) installed")
-    pytest.importorskip("pymmcore_widgets", reason="pymmcore-widgets is not installed")
-    return qtwidgets.QApplication.instance() or qtwidgets.QApplication([])
+# the widgets draw icons that superqt would download from a public server: never try, use its text fallback
+iconify.svg_path = offline
+from qtpy.QtWidgets import QApplication
+from pymmcore_plus.experimental.unicore import UniMMCore
+from pymmcore_widgets import ChannelWidget, ConfigurationWidget, ExposureWidget, PropertyBrowser
+
+app = QApplication.instance() or QApplication([])
+core = UniMMCore()
+loader = ConfigurationWidget(mmcore=core)
+loader.cfg_LineEdit.setText(sys.argv[1])
+loader.load_cfg_Button.click()
+app.processEvents()
+assert core.getCameraDevice() == "Camera" and "Light" in core.getLoadedDevices()
+channel = ChannelWidget(mmcore=core)
+channel.channel_wdg._combo.setCurrentText("halogen")  # as a user picks the preset
+app.processEvents()
+assert core.getCurrentConfig("Channel") == "halogen" and core.getProperty("Light", "Lamp") == "halogen"
+exposure = ExposureWidget(mmcore=core)
+exposure.spinBox.setValue(25.0)
+assert abs(core.getExposure() - 25.0) < 1e-9
+browser = PropertyBrowser(mmcore=core)
+core.snapImage()
+assert core.getImage().shape == (128, 128)
+print("widgets ok", flush=True)
+# the widgets go first: a widget still listening would react to the unload (ChannelWidget re-selects its group)
+for widget in (loader, channel, exposure, browser):
+    widget.close()
+    widget.deleteLater()
+app.processEvents()
+core.unloadAllDevices()
+app.processEvents()
+print("unloaded", flush=True)
+# pymmcore-plus's core, still referenced by the widgets' connections, is destroyed only at interpreter exit, after Qt's
+# signaller, and its C++ destructor then aborts (with PYMM_SIGNALS_BACKEND=qt; a plain core exits cleanly): leave here
+os._exit(0)
+"""
 
 
 @pytest.mark.slow
-def test_pymmcore_widgets_open_the_configuration(monkeypatch):
-    """Qt offscreen: pymmcore-widgets' own 'load configuration' widget, the channel, exposure and property widgets, a
-    snap. (The stage widget fetches its icons from the internet, out of reach here.)"""
-    app = _qt_offscreen(monkeypatch)
-    from pymmcore_widgets import ChannelWidget, ConfigurationWidget, ExposureWidget, PropertyBrowser
-
-    core = UniMMCore()
-    try:
-        loader = ConfigurationWidget(mmcore=core)
-        loader.cfg_LineEdit.setText(str(ROOT / "rigs" / "emulated-hardware.cfg"))
-        loader.load_cfg_Button.click()
-        app.processEvents()
-        assert core.getCameraDevice() == "Camera" and "Light" in core.getLoadedDevices()
-        channel = ChannelWidget(mmcore=core)
-        channel.channel_wdg._combo.setCurrentText("halogen")  # as a user picks the preset
-        app.processEvents()
-        assert core.getCurrentConfig("Channel") == "halogen" and core.getProperty("Light", "Lamp") == "halogen"
-        exposure = ExposureWidget(mmcore=core)
-        exposure.spinBox.setValue(25.0)
-        assert core.getExposure() == pytest.approx(25.0)
-        browser = PropertyBrowser(mmcore=core)
-        core.snapImage()
-        assert core.getImage().shape == (128, 128)
-        for widget in (loader, channel, exposure, browser):
-            widget.close()
-    finally:
-        core.unloadAllDevices()
+def test_pymmcore_widgets_open_the_configuration(tmp_path):
+    """Qt offscreen, in a process of its own (Qt's objects and pymmcore-plus's signal threads never share the test
+    session's process): pymmcore-widgets' own 'load configuration' widget, the channel, exposure and property widgets,
+    a snap. (The stage widget fetches its icons from the internet, out of reach here.)"""
+    for module in ("superqt.iconify", "qtpy.QtWidgets", "pymmcore_widgets"):
+        pytest.importorskip(module, reason=f"{module} (optional extra) is not installed")
+    env = dict(os.environ, QT_QPA_PLATFORM=os.environ.get("QT_QPA_PLATFORM", "offscreen"))
+    done = subprocess.run(
+        [sys.executable, "-c", _WIDGETS_SCRIPT, str(ROOT / "rigs" / "emulated-hardware.cfg")],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.split() == ["widgets", "ok", "unloaded"]
