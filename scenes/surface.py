@@ -81,18 +81,10 @@ def secant_intersection(
         Where ``|f(lam)|`` < ``tol`` was reached. Whether the hit is in front of the camera (lam > 0) or on
         the substrate is for the caller to decide.
     """
-    height = surface.height if hasattr(surface, "height") else surface
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     n = len(o)
-
-    def from_height(lam: Array, idx: NDArray[np.intp] | None = None) -> Array:
-        oo, dd = (o, d) if idx is None else (o[idx], d[idx])
-        p = oo + lam[:, None] * dd
-        return np.asarray(height(p[:, 0], p[:, 1]), dtype=np.float64) - p[:, 2]
-
-    f = residual if residual is not None else from_height
-
+    f = residual if residual is not None else _height_residual(surface, o, d)
     lam_prev = np.array(lam0, dtype=np.float64).reshape(n)
     f_prev = f(np.where(np.isfinite(lam_prev), lam_prev, 0.0))
     if lam1 is None:
@@ -109,19 +101,38 @@ def secant_intersection(
         active &= ~done
         if not active.any():
             break
-        a = np.flatnonzero(active)
-        den = f_cur[a] - f_prev[a]
-        ok = den != 0
-        with np.errstate(invalid="ignore", over="ignore"):
-            new = np.where(ok, (lam_prev[a] * f_cur[a] - lam_cur[a] * f_prev[a]) / np.where(ok, den, 1.0), np.nan)
-        lam_prev[a], f_prev[a] = lam_cur[a], f_cur[a]
-        lam_cur[a] = new
-        good = np.isfinite(new)
-        active[a[~good]] = False
-        ag = a[good]
-        f_cur[ag] = f(lam_cur[ag], ag)
+        _secant_step(f, lam_prev, f_prev, lam_cur, f_cur, active)
     converged |= active & (np.abs(f_cur) < tol)
     return lam_cur, converged
+
+
+def _height_residual(surface: HeightModel | HeightFunction, o: Array, d: Array) -> Callable[..., Array]:
+    """f(lam, idx) = h(x, y) - z at the points o + lam d of the rays ``idx`` (all rays where None)."""
+    height = surface.height if hasattr(surface, "height") else surface
+
+    def from_height(lam: Array, idx: NDArray[np.intp] | None = None) -> Array:
+        oo, dd = (o, d) if idx is None else (o[idx], d[idx])
+        p = oo + lam[:, None] * dd
+        return np.asarray(height(p[:, 0], p[:, 1]), dtype=np.float64) - p[:, 2]
+
+    return from_height
+
+
+def _secant_step(
+    f: Callable[..., Array], lam_prev: Array, f_prev: Array, lam_cur: Array, f_cur: Array, active: NDArray[np.bool_]
+) -> None:
+    """One secant step (eq. 1.6) of the ``active`` rays, in place; a ray whose step is undefined stops."""
+    a = np.flatnonzero(active)
+    den = f_cur[a] - f_prev[a]
+    ok = den != 0
+    with np.errstate(invalid="ignore", over="ignore"):
+        new = np.where(ok, (lam_prev[a] * f_cur[a] - lam_cur[a] * f_prev[a]) / np.where(ok, den, 1.0), np.nan)
+    lam_prev[a], f_prev[a] = lam_cur[a], f_cur[a]
+    lam_cur[a] = new
+    good = np.isfinite(new)
+    active[a[~good]] = False
+    ag = a[good]
+    f_cur[ag] = f(lam_cur[ag], ag)
 
 
 @dataclass(frozen=True)
