@@ -21,12 +21,14 @@ parameters (§2.3). This package's namespace is that public API.
 
 Image distance b: ``lens="thin-lens"`` derives b = g f/(g - f) from the focal length as the seed does (§2.5.2);
 ``lens="free"`` estimates b as a parameter (it is determined only when the target is seen obliquely: a face-on view
-fixes b/g alone); ``lens="fixed"`` keeps an a-priori b; ``lens="auto"`` keeps the a-priori b where the prior has
-one (the image distance the camera's description states, :meth:`Prior.from_camera`) and the thin-lens b where it
-has none, and
-estimates b freely instead when the view is oblique enough and the data reject that b (issue 14 item 4: the
-thin-lens b assumes the target in focus, which costs ~10 µm of r_c along the axis when the target lies 0.1 mm
-off the focus plane; a free b scatters by 6-23 µm at realistic sensor noise).
+fixes b/g alone); ``lens="fixed"`` keeps an a-priori b; ``lens="auto"`` holds b at a candidate: the a-priori b
+where the prior has one (the image distance the camera's description states, :meth:`Prior.from_camera`) and the
+thin-lens relation b = f (m + 1) with the measured magnification agrees with it, else that thin-lens b; it
+estimates b freely instead when the view is oblique enough and the data, at their own noise, reject the candidate
+(issue 14 item 4: the thin-lens b assumes the target in focus, which costs ~10 µm of r_c along the axis when the
+target lies 0.1 mm off the focus plane; a free b scatters by 6-23 µm at realistic sensor noise), and a kept
+candidate's uncertainty (the focal length's tolerance, given the data) enters the reported ones (issue 27 item 1,
+:mod:`scopetwin.calib.oneshot.lens_choice`).
 
 All coordinates of the calibration are those of the TARGET (its local frame: markers at (x, y, 0), seed §2.2).
 Pixel coordinates are continuous (x_px, y_px) = (column, row) as in :mod:`scopetwin.scenes.camera`. Lengths in mm,
@@ -38,6 +40,7 @@ from scopetwin.calib.oneshot.bias_correction import calibrate_bias_corrected
 from scopetwin.calib.oneshot.calibration import calibrate
 from scopetwin.calib.oneshot.camera_parameters import (
     AUTO_FREE_TILT,
+    FOCAL_LENGTH_TOLERANCE,
     LENS_MODES,
     MAX_SIGMA_B,
     MIN_MARKERS,
@@ -55,6 +58,7 @@ from scopetwin.calib.oneshot.refinement import Calibration, refine
 
 __all__ = [
     "AUTO_FREE_TILT",
+    "FOCAL_LENGTH_TOLERANCE",
     "LENS_MODES",
     "MAX_SIGMA_B",
     "MIN_MARKERS",

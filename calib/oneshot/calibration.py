@@ -29,9 +29,17 @@ from scopetwin.calib.oneshot.camera_parameters import (
     format_vector,
     tilt_phi,
 )
+from scopetwin.calib.oneshot.lens_choice import (
+    CONSISTENCY_Z,
+    Candidate,
+    agreement,
+    choose_lens,
+    thin_lens_candidate,
+)
 from scopetwin.calib.oneshot.linear import LinearResult, linear_approximation
-from scopetwin.calib.oneshot.refinement import Calibration, refine
+from scopetwin.calib.oneshot.refinement import Calibration, refine, with_image_distance_uncertainty
 from scopetwin.scenes.camera import Camera
+from scopetwin.scenes.geometry import Array
 
 
 def _start_of(camera: Camera, linear: LinearResult) -> LinearResult:
@@ -128,7 +136,9 @@ def calibrate(
         A-priori values (seed §2.1).
     lens : {"auto", "thin-lens", "free", "fixed"}
         How the image distance b is obtained (module docstring). ``"auto"``: the a-priori b (``b``, else
-        ``prior.image_distance``), else the thin-lens b; for an oblique view a free b where the data reject it.
+        ``prior.image_distance``) where the thin-lens relation with the measured magnification agrees with it
+        (seed §2.4.2), else the thin-lens b; for an oblique view a free b where the data reject that; the
+        uncertainty of a kept b enters the reported ones (:mod:`scopetwin.calib.oneshot.lens_choice`).
     distortion : bool
         Refine r_cs, c0, c2 too (seed §2.5.1, §2.8.5).
     b : float, optional
@@ -161,8 +171,8 @@ def calibrate(
     cal = _mirror_pose(run(lin, mode), lin, prior, lambda start: run(start, mode), notes)
     if lens == "free":
         _check_free_b(cal, tilt)
-    if lens == "auto" and not distortion and tilt >= AUTO_FREE_TILT:
-        cal = _choose_lens(cal, run(cal, "free"))
+    if lens == "auto" and not distortion:
+        cal = _auto_lens(cal, run, xy, px, prior, tilt, notes)
     if cal.residual_rms_px > residual_warn_px:
         notes.append(
             f"the residual is large ({cal.residual_rms_px:.3g} px rms): check the marker indexing and the "
@@ -173,34 +183,48 @@ def calibrate(
     return with_notes(cal, lin, notes)
 
 
-def _choose_lens(kept: Calibration, free: Calibration, z_limit: float = 5.0) -> Calibration:
-    """The a-priori (or thin-lens) b, or a free b (issue 4 item 5, issue 14 item 4): free only where the data reject it.
+def _auto_lens(
+    cal: Calibration,
+    run: Callable[[LinearResult | Calibration, str], Calibration],
+    xy: Array,
+    px: Array,
+    prior: Prior,
+    tilt: float,
+    notes: list[str],
+) -> Calibration:
+    """``lens="auto"`` without distortion: the candidate b, the data's test of it, its uncertainty (issue 27 item 1).
 
-    A free b costs a lot of precision: b and g are strongly correlated, and one view of a plane fixes b only
-    through perspective (for the seed's §2.8.1 angular view sigma_b = 0.7-2.8 µm at 0.004-0.013 px centroid
-    noise, which is 6-23 µm of r_c along the viewing axis). So the b of ``kept`` (the a-priori image
-    distance, or the seed's thin-lens b when the prior has none) is kept unless it lies more than ``z_limit``
-    standard deviations of the free estimate away from it, or the free b is not determined (``sigma_b_prior``
-    above :data:`MAX_SIGMA_B`). The thin-lens b assumes the target in focus: for the seed's b = 28 mm, f = 25 mm
-    camera 233.24 mm from the target (focused at 233.33 mm) it is 1.23 µm long, 10 µm of r_c along the axis.
-    The limit is 5, not 3: on rendered noisy views the free b's reported sigma is ~1.6 times too small (the
-    centroid errors are not independent), and a 3-sigma test switched one draw in eight to a free b 6 µm off
-    (52 µm of r_c) although the a-priori b was exact.
+    The candidate is the thin-lens b of seed §2.4.2 with the measured magnification, or the a-priori b of ``cal``
+    (a fixed-b fit) where it agrees with that; a view tilted by at least :data:`AUTO_FREE_TILT` also gets a free
+    b, which replaces the candidate where the data reject it; a kept candidate's uncertainty given the data is
+    propagated into the reported standard deviations (:mod:`scopetwin.calib.oneshot.lens_choice`).
     """
-    sb = free.sigma["b"]
-    determined = free.sigma_b_prior is not None and free.sigma_b_prior <= MAX_SIGMA_B
-    z = abs(free.camera.b - kept.camera.b) / sb if sb > 0 else float("inf")
-    use_free = determined and z > z_limit
-    test: dict[str, float | str] = {
-        "candidate": "thin-lens" if kept.lens == "thin-lens" else "a-priori",
-        "b_candidate": kept.camera.b,
-        "b_free": free.camera.b,
-        "sigma_b_free": sb,
-        "z": z,
-        "z_limit": z_limit,
-        "chosen": "free" if use_free else kept.lens,
-    }
-    return replace(free if use_free else kept, lens_test=test)
+    cand = thin_lens_candidate(cal, prior)
+    if cal.lens == "fixed":
+        stated = Candidate("a-priori", cal.camera.b, prior.image_distance_uncertainty(cal.camera.b))
+        z = agreement(stated, cand)
+        if z <= CONSISTENCY_Z:
+            cand = stated
+        else:
+            m = cand.b / prior.focal_length - 1.0
+            notes.append(
+                f"the a-priori image distance b = {stated.b:.5g} mm disagrees with the thin-lens b = f (m + 1) = "
+                f"{cand.b:.5g} +- {cand.sigma:.2g} mm of the measured magnification m = {m:.5g} and f = "
+                f"{prior.focal_length:.5g} mm (seed §2.4.2; {z:.3g} standard deviations): the thin-lens b is the "
+                "candidate instead"
+            )
+            cal = run(cal, "thin-lens")
+            cand = thin_lens_candidate(cal, prior)
+    free = None
+    if tilt >= AUTO_FREE_TILT:
+        try:
+            free = run(cal, "free")
+        except CalibrationError:
+            free = None
+    chosen, test = choose_lens(cal, free, cand)
+    if chosen is cal:
+        chosen = with_image_distance_uncertainty(cal, xy, px, prior, test["sigma_b_kept"])
+    return replace(chosen, lens_test=test)
 
 
 def with_notes(cal: Calibration, lin: LinearResult, notes: list[str]) -> Calibration:

@@ -27,8 +27,12 @@ MIN_MARKERS = 6
 AUTO_FREE_TILT = np.deg2rad(10.0)
 #: Centroid noise assumed when judging whether b is determined, px (the seed's worst case, 1/20 px, §2.8.2).
 PRIOR_NOISE_PX = 0.05
-#: A free b whose standard deviation at :data:`PRIOR_NOISE_PX` exceeds this (mm) is not determined.
+#: A free b whose standard deviation exceeds this (mm) is not determined: in the lens test of ``lens="auto"`` at the
+#: centroid noise the residuals show (the data's own precision), for ``lens="free"`` at :data:`PRIOR_NOISE_PX`.
 MAX_SIGMA_B = 0.05
+#: Default relative standard uncertainty of the a-priori focal length (lens tolerance and focus setting): the
+#: thin-lens b = f (m + 1) of seed §2.4.2 is uncertain by (m + 1) times it (issue 27 item 1).
+FOCAL_LENGTH_TOLERANCE = 0.01
 
 
 class CalibrationError(ScopetwinError, ValueError):
@@ -57,7 +61,13 @@ class Prior:
         Principal-point offset and distortion assumed by the linear step (and kept fixed by
         the refinement unless distortion is refined).
     image_distance : float or None
-        A-priori b, mm, for ``lens="fixed"``.
+        A-priori b, mm (``lens="fixed"``; the candidate of ``lens="auto"`` where the thin-lens relation agrees).
+    focal_length_tolerance : float
+        Relative standard uncertainty of ``focal_length`` (default :data:`FOCAL_LENGTH_TOLERANCE`): the
+        uncertainty of the thin-lens b of seed §2.4.2, which ``lens="auto"`` reports where it keeps that b.
+    image_distance_sigma : float or None
+        Standard uncertainty of ``image_distance``, mm. None (default): ``focal_length_tolerance`` times it (a
+        stated b is known no better than the lens data it comes from); 0 declares it exact (a simulated camera's).
     """
 
     focal_length: float
@@ -69,6 +79,8 @@ class Prior:
     c0: float = 1.0
     c2: float = 0.0
     image_distance: float | None = None
+    focal_length_tolerance: float = FOCAL_LENGTH_TOLERANCE
+    image_distance_sigma: float | None = None
 
     def __post_init__(self) -> None:
         if not self.focal_length > 0:
@@ -81,6 +93,11 @@ class Prior:
         object.__setattr__(self, "nz_estimate", tuple(float(v) for v in nz / np.linalg.norm(nz)))
         if self.image_distance is not None and not self.image_distance > 0:
             raise CalibrationError(f"image distance must be > 0 mm, got {self.image_distance}")
+        if not 0.0 <= self.focal_length_tolerance < 1.0:
+            raise CalibrationError(f"focal length tolerance must be in [0, 1), got {self.focal_length_tolerance}")
+        s_b = self.image_distance_sigma
+        if s_b is not None and not (np.isfinite(s_b) and s_b >= 0):
+            raise CalibrationError(f"image distance sigma must be finite and >= 0 mm, got {s_b}")
 
     @classmethod
     def from_camera(cls, camera: Camera, focal_length: float, plane: Frame | None = None, **changes) -> Prior:
@@ -99,6 +116,12 @@ class Prior:
         )
         kw.update(changes)
         return cls(**kw)
+
+    def image_distance_uncertainty(self, b: float) -> float:
+        """Standard uncertainty of a stated image distance ``b``, mm (``image_distance_sigma``, by default
+        ``focal_length_tolerance`` times ``b``)."""
+        s_b = self.image_distance_sigma
+        return float(s_b) if s_b is not None else self.focal_length_tolerance * float(b)
 
     def sensor_camera(self, b: float = 1.0, frame: Frame | None = None, **changes) -> Camera:
         """A :class:`~scopetwin.scenes.camera.Camera` with this prior's format (pose and b as given)."""

@@ -8,7 +8,7 @@ variance, gives the standard deviations of the parameters and of b, g, T_x, T_y,
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -58,6 +58,9 @@ class Calibration:
         Everything the calibration wants the user to know.
     nfev : int
         Function evaluations of the refinement.
+    lens_test : dict or None
+        How ``lens="auto"`` chose b (:func:`scopetwin.calib.oneshot.lens_choice.choose_lens`): the candidate, the
+        free b, z, and the b uncertainty propagated into ``sigma`` (``sigma_b_kept``).
     """
 
     camera: Camera
@@ -383,3 +386,36 @@ def refine(
     if distortion:
         model, p, res, jmat, nfev, s2 = _refit_distortion(prob, p, nfev, s2, max_nfev, notes)
     return _calibration(model, p, res, jmat, s2, start, notes, nfev)
+
+
+def with_image_distance_uncertainty(
+    cal: Calibration, xy: ArrayLike, px: ArrayLike, prior: Prior, sigma_b: float
+) -> Calibration:
+    """``cal`` (b held: fixed or thin-lens, no distortion) with a standard uncertainty ``sigma_b`` of its b added.
+
+    Issue 27 item 1: a b taken from outside the data (an a-priori or thin-lens b, seed §2.4.2) is uncertain
+    itself, and a shift db of it moves the whole pose: at the optimum, dp/db = -(J_p^T J_p)^-1 J_p^T J_b (J_p the
+    held-b Jacobian, J_b the column of a free b; for the thin-lens b the relation b = g f/(g - f) moves with
+    the pose). The reported standard deviations of the parameters and of N_z, T_x, T_y, b, g get |d/db| sigma_b
+    added in quadrature (first order; zero ``sigma_b`` returns ``cal`` unchanged).
+    """
+    if not sigma_b > 0:
+        return cal
+    if cal.lens not in ("fixed", "thin-lens") or cal.distortion:
+        raise CalibrationError(f"an image-distance uncertainty applies to a held b without distortion, not {cal.lens}")
+    xy, px = np.asarray(xy, dtype=np.float64), np.asarray(px, dtype=np.float64)
+    held = ReprojectionModel(xy, px, prior, cal.lens, False, cal.camera.b)
+    p = np.array([cal.parameters[name] for name in held.names])
+    free = ReprojectionModel(xy, px, prior, "free", False, 0.0)
+    q = np.append(p, cal.camera.b)
+    jb = free.residual_and_jacobian(q)[1][:, 6]
+    dp = -np.linalg.lstsq(held.residual_and_jacobian(p)[1], jb, rcond=None)[0]
+    dq = np.append(dp, 1.0 + held.frame_and_jac(p)[1][9, :6] @ dp)
+    dfr = free.frame_and_jac(q)[1] @ dq  # N_z, T_x, T_y, b, g per unit db
+    sig = dict(cal.sigma)
+    for i, name in enumerate(held.names):
+        sig[name] = float(np.hypot(sig[name], dp[i] * sigma_b))
+    for key, d in (("r_c", dp[0:3]), ("r_0", dp[3:5]), ("n_z", dfr[0:3]), ("t_x", dfr[3:6]), ("t_y", dfr[6:9])):
+        sig[key] = np.hypot(np.asarray(sig[key], dtype=np.float64), d * sigma_b)
+    sig["b"], sig["g"] = float(np.hypot(sig["b"], dfr[9] * sigma_b)), float(np.hypot(sig["g"], dfr[10] * sigma_b))
+    return replace(cal, sigma=sig)

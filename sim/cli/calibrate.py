@@ -30,7 +30,7 @@ from scopetwin.calib.oneshot.from_image import calibrate_image
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.geometry import Frame
 from scopetwin.scenes.setup import Setup
-from scopetwin.sim.cli.options import conventions, finite_vector, positive_float
+from scopetwin.sim.cli.options import conventions, finite_float, finite_vector, positive_float
 
 #: How the calibration's note about the mirror-ambiguous pose (calib.oneshot.calibration) starts.
 _AMBIGUOUS = "does not tell the two mirror-ambiguous poses"
@@ -83,7 +83,25 @@ def _setup(arg: str | None, header: Setup | None, image: str, what: str) -> Setu
     return header
 
 
-def _prior(setup: Setup, plane: Frame, args: argparse.Namespace) -> Prior:
+def _own_camera(setup: Setup, header: Setup | None) -> bool:
+    """Whether the image's header carries the camera of ``setup`` (the image was rendered with it)."""
+    if header is None:
+        return False
+    a, b = setup.camera_model, header.camera_model
+    same_pose = np.allclose(a.frame.origin, b.frame.origin, atol=1e-9) and np.allclose(
+        a.frame.rotation, b.frame.rotation, atol=1e-12
+    )
+    return bool(same_pose and abs(a.b - b.b) <= 1e-9 * a.b)
+
+
+def _prior(setup: Setup, plane: Frame, args: argparse.Namespace, header: Setup | None = None) -> Prior:
+    """The a-priori values of ``setup``'s camera with the command line's changes.
+
+    Its image distance is an a-priori b only for the image's own camera (the header's) or given by
+    ``--image-distance``: for another image (``--target`` naming a setup the image was not rendered with) a setup's
+    b belongs to its own distance, and ``--lens auto`` takes the thin-lens b of the measured magnification
+    instead (issue 27 item 1, seed §2.4.2); ``--lens fixed`` still holds the setup's b.
+    """
     cam = setup.camera_model
     f = args.focal_length if args.focal_length is not None else setup.camera.focal_length
     changes: dict[str, Any] = {}
@@ -93,6 +111,10 @@ def _prior(setup: Setup, plane: Frame, args: argparse.Namespace) -> Prior:
         changes["nz_estimate"] = tuple(args.nz_estimate)
     if getattr(args, "image_distance", None) is not None:
         changes["image_distance"] = args.image_distance
+    elif args.lens == "auto" and not _own_camera(setup, header):
+        changes["image_distance"] = None
+    if getattr(args, "focal_length_tolerance", None) is not None:
+        changes["focal_length_tolerance"] = args.focal_length_tolerance
     return Prior.from_camera(cam, f, plane=plane, **changes)
 
 
@@ -104,7 +126,7 @@ def cmd_calibrate(args: argparse.Namespace) -> dict[str, Any]:
     if setup.scene != "target":
         raise CalibrationError(f"setup {setup.name} is a {setup.scene} scene, not a calibration target")
     plane = setup.marker_pattern.frame
-    prior = _prior(setup, plane, args)
+    prior = _prior(setup, plane, args, header)
     cal, found = calibrate_image(  # the one path from an image to a calibration (also scopetwin.calibrate)
         image,
         setup,
@@ -247,7 +269,18 @@ def register(subparsers: Any) -> None:
         metavar="X,Y,Z",
         help="coarse sensor normal in target coordinates (default: the setup camera's)",
     )
-    p.add_argument("--image-distance", type=positive_float(), metavar="B", help="a-priori b for --lens fixed, mm")
+    p.add_argument(
+        "--image-distance",
+        type=positive_float(),
+        metavar="B",
+        help="a-priori b, mm: held by --lens fixed, the candidate of --lens auto (default: the image's own camera's)",
+    )
+    p.add_argument(
+        "--focal-length-tolerance",
+        type=finite_float(0.0, 0.5),
+        metavar="T",
+        help="relative standard uncertainty of the focal length (default 0.01): the thin-lens b's uncertainty",
+    )
     _common(p)
 
     h = "calibrate the deflectometry setup from a substrate-target image and a mirror image (seed §2.7)"
