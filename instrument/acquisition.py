@@ -2,6 +2,8 @@
 
 * :func:`deflectometry_capture` — pattern light on, exposure chosen for ~70 % of
   the ADC range (seed §1.11: a well-exposed, unsaturated marker image), one frame.
+* :func:`two_position_capture` — the deflectometry frame with the pattern at two positions along its normal, moved
+  by a stage (seed §1.3: the second image resolves the height-normal ambiguity), the same exposure for both.
 * :func:`calibration_capture` — frames of a calibration target (seed §2.2) at a chosen exposure.
 * :func:`simultaneous_capture` — the four channels exposed together on the
   global trigger, each light on for exactly its camera's exposure (seed §4.3.2).
@@ -253,6 +255,65 @@ def deflectometry_capture(
         )
 
 
+def two_position_capture(
+    rig: Rig,
+    out_dir: str | Path,
+    stage: str,
+    shift_mm: float,
+    *,
+    camera: str | None = None,
+    light: str | None = None,
+    exposure_s: float | None = None,
+    target_fraction: float = 0.7,
+) -> tuple[list[Path], list[float]]:
+    """The deflectometry frame at the pattern stage's position and ``shift_mm`` further (seed §1.3), one exposure.
+
+    Pattern light on, exposure chosen at the first position (or ``exposure_s``), frame ``deflectometry_1``; the
+    stage moved by ``shift_mm`` (checked against its travel before anything is switched on), frame
+    ``deflectometry_2``; the stage back at its first position, the light off. Each manifest entry records the stage's
+    read-back position; their difference is the shift :mod:`scopetwin.recon.two_positions` takes.
+
+    Returns
+    -------
+    paths : list of Path
+        The two frames.
+    positions_mm : list of float
+        The stage's read-back position at each.
+    """
+    cam, lamp, axis = rig.camera(camera), rig.light(light), rig.stage(stage)
+    start = axis.position_mm
+    axis.travel.check(start + shift_mm, f"stage {axis.name!r} second position ({start} mm + {shift_mm} mm)")
+    writer = FrameWriter(
+        out_dir,
+        {"routine": "two-position deflectometry", "rig": rig.name, "camera": cam.name, "pattern_stage": axis.name},
+        display_range=_display_range(cam),
+    )
+    paths, positions = [], []
+    with _run(writer, rig):
+        lamp.switch_on(lamp.current_range.high if lamp.current_ma == 0 else None)
+        if exposure_s is None:
+            choose_exposure(cam, target_fraction)
+        else:
+            cam.set_exposure_s(exposure_s)
+        for k, target in enumerate((start, start + shift_mm), start=1):
+            axis.move_absolute(target)
+            positions.append(axis.position_mm)
+            frame = cam.grab()
+            if not lamp.is_on:
+                raise InstrumentError(f"light {lamp.name!r} went off during the acquisition (position {k})")
+            paths.append(
+                writer.write(
+                    f"deflectometry_{k}",
+                    frame,
+                    exposure_s=cam.exposure_s,
+                    pattern_stage_mm=positions[-1],
+                    signal_dn=signal_dn(frame, cam.black_level_dn),
+                )
+            )
+        axis.move_absolute(start)
+    return paths, positions
+
+
 def calibration_capture(
     rig: Rig,
     out_dir: str | Path,
@@ -470,5 +531,6 @@ __all__ = [
     "signal_dn",
     "simultaneous_capture",
     "tile_scan",
+    "two_position_capture",
     "write_preview",
 ]

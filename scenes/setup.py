@@ -281,6 +281,23 @@ class MirrorSpec(_Model):
     size: tuple[Positive, Positive] = Field((60.0, 80.0), description="(x, y) extent, mm")
 
 
+class PatternStageSpec(_Model):
+    """A stage that moves the pattern along its normal N_z to a second known position (seed §1.3: a second
+    measurement resolves the height-normal ambiguity; :mod:`scopetwin.scenes.pattern_stage`).
+
+    The first position is the pattern's pose above; the second lies ``shift_mm`` from it along N_z (positive towards
+    the substrate in the §1.10 setup, whose N_z faces it).
+    """
+
+    shift_mm: float = Field(ge=-500.0, le=500.0, description="second position's distance along the pattern's N_z, mm")
+
+    @model_validator(mode="after")
+    def _check(self) -> PatternStageSpec:
+        if self.shift_mm == 0:
+            raise ValueError("shift_mm must not be 0 (the second position must differ from the first)")
+        return self
+
+
 class RenderSpec(_Model):
     """Rendering options."""
 
@@ -346,11 +363,14 @@ class Setup(_Model):
     render: RenderSpec = RenderSpec()
     sensor: NoiseModelSpec = NoiseModelSpec()
     calibration: CalibrationSpec | None = None
+    pattern_stage: PatternStageSpec | None = None
 
     @model_validator(mode="after")
     def _check(self) -> Setup:
         if self.scene == "deflectometry" and self.substrate is None:
             raise ValueError("a deflectometry setup needs a [substrate] table")
+        if self.pattern_stage is not None and self.scene != "deflectometry":
+            raise ValueError("a [pattern_stage] needs a deflectometry setup")
         if self.scene == "mirror" and self.mirror is None:
             raise ValueError("a mirror setup needs a [mirror] table")
         return self

@@ -97,6 +97,9 @@ class Measurement:
         Samples per pixel and the seed of the render and the sensor noise.
     seconds : float
         Wall time of the render and the sensor model.
+    second : Measurement or None
+        The second image of a pattern stage (``render(..., pattern_shift_mm=...)``): the same scene with the pattern
+        moved along its normal, its own setup and truth, rendered with seed + 1 (seed §1.3).
     """
 
     image: NDArray[np.float32]
@@ -106,6 +109,7 @@ class Measurement:
     spp: int
     seed: int
     seconds: float
+    second: Measurement | None = None
 
 
 def render(
@@ -116,6 +120,7 @@ def render(
     seed: int | None = None,
     renderer: Literal["mitsuba", "analytic"] = "mitsuba",
     extrapolate: bool = False,
+    pattern_shift_mm: float | None = None,
 ) -> Measurement:
     """Render one setup as its camera would see it, with its exact truth (``scopetwin render``).
 
@@ -139,11 +144,14 @@ def render(
         Accept a height map (EXR or :class:`~scopetwin.scenes.surface.HeightMap`) smaller than the substrate; it
         continues with its edge values. Without it the map must cover the substrate; heights must lie within
         ±10 mm either way (:func:`scopetwin.scenes.io.check_surface`).
+    pattern_shift_mm : float, optional
+        Also render the second image of a pattern stage, the pattern moved this far along its normal N_z (mm), as
+        ``.second`` (seed §1.3); without it, where the setup has a ``[pattern_stage]`` table, its ``shift_mm``.
 
     Returns
     -------
     Measurement
-        ``.image`` and its truth (``.heights``, ``.truth``).
+        ``.image`` and its truth (``.heights``, ``.truth``); ``.second`` with a second pattern position.
 
     Raises
     ------
@@ -164,7 +172,13 @@ def render(
     n = int(spp if spp is not None else s.render.spp)
     sd = int(seed if seed is not None else s.render.seed)
     image, seconds = render_measurement(s, heights, n, sd, noise, renderer)
-    return Measurement(image, s, heights, _truth(s, heights), n, sd, seconds)
+    second = None
+    if pattern_shift_mm is not None or s.pattern_stage is not None:
+        from scopetwin.sim.measurement import render_second_position
+
+        moved, image2, seconds2 = render_second_position(s, heights, n, sd, noise, renderer, pattern_shift_mm)
+        second = Measurement(image2, moved, heights, _truth(moved, heights), n, (sd + 1) % 2**32, seconds2)
+    return Measurement(image, s, heights, _truth(s, heights), n, sd, seconds, second)
 
 
 def _surface(
@@ -207,6 +221,7 @@ def reconstruct(
     method: Literal["centroid", "inverse"] = "centroid",
     *,
     policy: ReconstructionPolicy | None = None,
+    second: tuple[NDArray[Any], float | None] | NDArray[Any] | None = None,
 ) -> Reconstruction:
     """The substrate's heights from one deflectometry image (``scopetwin reconstruct``, seed §1.4-§1.8).
 
@@ -225,6 +240,11 @@ def reconstruct(
         (slower; started from the centroid method's surface).
     policy : ReconstructionPolicy, optional
         The fallbacks and their thresholds (default: :data:`scopetwin.recon.policy.DEFAULT_POLICY`).
+    second : (ndarray, float or None) or ndarray, optional
+        A second image with the pattern moved along its normal by a stage, and the shift in mm (None or the image
+        alone: the setup's ``[pattern_stage]`` shift): the absolute height from both images, combined with the frame
+        criterion's (:mod:`scopetwin.recon.two_positions`, seed §1.3; centroid method only). ``.result.estimate``
+        then holds the frame criterion's, the two positions' and the combined height.
 
     Returns
     -------
@@ -243,10 +263,23 @@ def reconstruct(
     >>> m = scopetwin.render("thesis-1.10-deflectometry", spp=4, seed=1)  # doctest: +SKIP
     >>> r = scopetwin.reconstruct(m.image, m.setup)  # doctest: +SKIP
     >>> float(r.height_at(0.0, 0.0)), r.uncertainty.absolute_um  # doctest: +SKIP
+    >>> m2 = scopetwin.render("thesis-1.10-deflectometry", spp=4, seed=1, pattern_shift_mm=30.0)  # doctest: +SKIP
+    >>> r2 = scopetwin.reconstruct(m2.image, m2.setup, second=(m2.second.image, 30.0))  # doctest: +SKIP
+    >>> r2.result.estimate.height_um, r2.uncertainty.absolute_um  # doctest: +SKIP
     """
     from scopetwin.recon.policy import DEFAULT_POLICY
     from scopetwin.recon.strategy import reconstruct as _reconstruct
 
+    if second is not None:
+        from scopetwin.recon.errors import ReconstructionError
+        from scopetwin.recon.two_positions import reconstruct_pair
+
+        if method != "centroid":
+            raise ReconstructionError("a second pattern position takes the centroid method")
+        image2, shift = second if isinstance(second, tuple) else (second, None)
+        return reconstruct_pair(
+            np.asarray(image), np.asarray(image2), load_setup(setup), shift, policy=policy or DEFAULT_POLICY
+        )
     return _reconstruct(np.asarray(image), load_setup(setup), method, policy=policy or DEFAULT_POLICY)
 
 

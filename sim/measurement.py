@@ -384,6 +384,35 @@ def render_measurement(
     return image, time.perf_counter() - t0
 
 
+def render_second_position(
+    setup: Setup,
+    heights: HeightMap | None,
+    spp: int,
+    seed: int,
+    noise: bool,
+    renderer: str = "mitsuba",
+    shift_mm: float | None = None,
+) -> tuple[Setup, NDArray[np.float32], float]:
+    """The second image of a pattern stage (seed §1.3): the same scene with the pattern moved ``shift_mm`` along its
+    normal N_z (default: the setup's ``[pattern_stage]``), rendered as :func:`render_measurement` renders the first,
+    with seed ``seed + 1`` (its own sampler and sensor noise).
+
+    Returns
+    -------
+    moved : Setup
+        The setup of the second image (:func:`scopetwin.scenes.pattern_stage.shift_pattern`).
+    image : ndarray
+        The image (row, col).
+    seconds : float
+        Wall time.
+    """
+    from scopetwin.scenes.pattern_stage import shift_pattern, stage_shift
+
+    moved = shift_pattern(setup, stage_shift(setup, shift_mm))
+    image, seconds = render_measurement(moved, heights, spp, (seed + 1) % 2**32, noise, renderer)
+    return moved, image, seconds
+
+
 def apply_sensor(setup: Setup, image: NDArray[Any], seed: int) -> NDArray[Any]:
     """The setup's EMVA 1288 sensor model applied to a rendered irradiance image (seed §1.11 camera class).
 

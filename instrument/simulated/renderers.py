@@ -5,7 +5,8 @@
 * :class:`WidefieldRenderer` — the microscope tile of :mod:`scopetwin.scenes.mitsuba.widefield`
   (bent fluorescent sample, 10x / 0.45 thin lens, focus from the focus drive).
 * :class:`DeflectometryRenderer` — a Part I setup rendered by
-  :func:`scopetwin.scenes.mitsuba.render.render_setup` (cached: the world only scales it by the pattern light).
+  :func:`scopetwin.scenes.mitsuba.render.render_setup` (cached: the world only scales it by the pattern light); with
+  a ``pattern_stage`` the pattern sits where that stage puts it, moved along its normal (one render per position).
 
 :func:`make_renderer` builds one from a rig file's ``renderer`` table.
 """
@@ -137,6 +138,9 @@ class DeflectometryRenderer:
         Render quality and seed.
     lights : sequence of str
         Lights that illuminate the pattern.
+    pattern_stage : str, optional
+        A stage that moves the pattern along its normal N_z: its position (mm) is the pattern's shift from the
+        setup's pose (:func:`scopetwin.scenes.pattern_stage.shift_pattern`, seed §1.3); None: the pattern stays.
     """
 
     def __init__(
@@ -148,6 +152,7 @@ class DeflectometryRenderer:
         spp: int = 4,
         seed: int = 0,
         lights: Sequence[str] | None = None,
+        pattern_stage: str | None = None,
     ) -> None:
         from scopetwin.scenes.setup import load_setup
 
@@ -155,7 +160,8 @@ class DeflectometryRenderer:
         self.heights = heights if heights is not None else self._bow(bow_um)
         self.spp, self.seed = int(spp), int(seed)
         self.lights = None if lights is None else list(lights)
-        self._image: NDArray[np.float32] | None = None
+        self.pattern_stage = pattern_stage
+        self._images: dict[float, NDArray[np.float32]] = {}
 
     def _bow(self, bow_um: float) -> Any:
         from scopetwin.scenes.surface import HeightMap
@@ -175,16 +181,20 @@ class DeflectometryRenderer:
         )
 
     def __call__(self, state: WorldState) -> NDArray[np.float32]:
-        if self._image is None:
+        shift = 0.0 if self.pattern_stage is None else round(float(state.stage_mm.get(self.pattern_stage, 0.0)), 6)
+        image = self._images.get(shift)
+        if image is None:
             from scopetwin.scenes.mitsuba.render import render_setup
+            from scopetwin.scenes.pattern_stage import shift_pattern
 
-            self._image = render_setup(self.setup, heights=self.heights, spp=self.spp, seed=self.seed)
-        if self._image.shape != tuple(state.sensor_shape):
+            setup = self.setup if shift == 0.0 else shift_pattern(self.setup, shift)
+            image = self._images[shift] = render_setup(setup, heights=self.heights, spp=self.spp, seed=self.seed)
+        if image.shape != tuple(state.sensor_shape):
             raise RigError(
-                f"deflectometry render {self._image.shape} differs from camera sensor "
+                f"deflectometry render {image.shape} differs from camera sensor "
                 f"{tuple(state.sensor_shape)}: set the camera's sensor_shape to the setup's pixels"
             )
-        return self._image * np.float32(light_sum(state, self.lights))
+        return image * np.float32(light_sum(state, self.lights))
 
 
 def make_renderer(spec: dict[str, Any], *, camera: str) -> Any:

@@ -18,7 +18,7 @@ from typing import Any
 from scopetwin.recon.config import ReconstructionConfig
 from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
 from scopetwin.scenes.errors import ScopetwinError
-from scopetwin.sim.cli.options import conventions
+from scopetwin.sim.cli.options import conventions, finite_float
 
 
 def _config(args: argparse.Namespace) -> ReconstructionConfig:
@@ -59,6 +59,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         raise ScopetwinError(
             f"{args.image} is {image.shape[1]} x {image.shape[0]} px but the setup's camera has {cam.nx} x {cam.ny}"
         )
+    if args.second is not None:
+        return _cmd_two_positions(args, setup, image, out, t0)
     if args.method == "inverse":
         return _cmd_inverse(args, setup, image, out, t0)
     history_path = out.with_name(out.name + ".history.json")
@@ -92,6 +94,50 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         "start_height_um": result.history[-1].start_height_um,
         **extra,
         "history": result.history_dicts(),
+    }
+
+
+def _cmd_two_positions(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0: float) -> dict[str, Any]:
+    """``--second IMAGE2 [--pattern-shift MM]`` (:mod:`scopetwin.recon.two_positions`): the absolute height from a
+    second image with the pattern moved along its normal, combined with the frame criterion's."""
+    from scopetwin.recon.two_positions import reconstruct_pair
+    from scopetwin.scenes.io import read_image, write_heightmap
+    from scopetwin.scenes.pattern_stage import stage_shift
+
+    if args.method != "centroid":
+        raise ScopetwinError("--second takes the centroid method (the inverse fit uses one image)")
+    shift = stage_shift(setup, args.pattern_shift)
+    second, _ = read_image(args.second)
+    if second.shape != image.shape:
+        raise ScopetwinError(
+            f"{args.second} is {second.shape[1]} x {second.shape[0]} px but {args.image} is "
+            f"{image.shape[1]} x {image.shape[0]}"
+        )
+    done = reconstruct_pair(image, second, setup, shift, _config(args), _policy(args))
+    result, est = done.result, done.result.estimate
+    write_heightmap(
+        out,
+        result.heightmap(),
+        result.std_heightmap(),
+        scopetwin_reconstruction=f"two pattern positions shift_mm={shift:g} height_um={est.height_um:.4g}",
+    )
+    seconds = time.perf_counter() - t0
+    print(
+        f"reconstructed from two pattern positions ({shift:+g} mm): {est.markers[0]} + {est.markers[1]} markers, "
+        f"absolute height {est.height_um:+.3f} µm, u(absolute) = {est.std_um:.3f} µm (frame criterion "
+        f"{est.frame_um:+.3f} µm, two positions {est.pair_um:+.3f} ± {est.pair_std_um:.3f} µm), "
+        f"{seconds:.2f} s -> {out}"
+    )
+    summary = result.summary()
+    return {
+        "heights": str(out),
+        "outer_iterations": summary.pop("outer_iterations"),
+        "inner_iterations": summary.pop("inner_iterations"),
+        "delta_h_max_um": summary.pop("delta_h_max_um"),
+        "seconds": seconds,
+        "markers": len(done.markers.ij),
+        "uncertainty": {"absolute_um": done.uncertainty.absolute_um, "shape_um": done.uncertainty.shape_um},
+        **{k: v for k, v in summary.items() if k not in ("seconds", "uncertainty")},
     }
 
 
@@ -185,6 +231,19 @@ def register(subparsers: Any) -> None:
         action="store_true",
         help="inverse: also fit camera and pattern pose, within 3 sigma of the setup's calibration (one image of an "
         "unknown surface hardly determines them: measured, the poses run to those bounds; benchmarks/refine_setup.py)",
+    )
+    p.add_argument(
+        "--second",
+        metavar="IMAGE2",
+        help="a second image with the pattern moved along its normal by a stage (render --pattern-shift writes it as "
+        "shifted_image.exr): the absolute height from both images, combined with the frame criterion's (seed §1.3)",
+    )
+    p.add_argument(
+        "--pattern-shift",
+        type=finite_float(-500.0, 500.0),
+        metavar="MM",
+        help="with --second: the pattern's shift along its normal between the images, mm (default: the setup's "
+        "[pattern_stage] shift_mm)",
     )
     p.add_argument(
         "--posterior",

@@ -14,8 +14,9 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.limits import check_render
-from scopetwin.sim.cli.options import SEED, SPP, conventions
+from scopetwin.sim.cli.options import SEED, SPP, conventions, finite_float
 from scopetwin.sim.measurement import StagedOutput, load_measurement, render_measurement, write_measurement
 
 log = logging.getLogger(__name__)
@@ -44,6 +45,7 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
             setup, heights, setup.render.spp, setup.render.seed, setup.render.noise, args.renderer
         )
         names = write_measurement(stage, "", setup, heights, image, setup.render.spp, setup.render.seed, args.renderer)
+        second = _second_position(args, setup, heights, stage)
         moved = stage.commit()
     except BaseException:
         stage.discard()
@@ -54,8 +56,36 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
         "spp": setup.render.spp,
         "seconds": seconds,
     }
+    if second is not None:
+        shift, names2, seconds2 = second
+        result.update(
+            shifted_image=str(moved[names2["image"]]),
+            shifted_truth=str(moved[names2["truth"]]),
+            pattern_shift_mm=shift,
+            seconds=seconds + seconds2,
+        )
     print(f"rendered {setup.name} ({setup.scene}) at {setup.render.spp} spp in {seconds:.2f} s -> {args.out}")
     return result
+
+
+def _second_position(
+    args: argparse.Namespace, setup: Any, heights: Any, stage: StagedOutput
+) -> tuple[float, dict[str, str], float] | None:
+    """The second image of a pattern stage (``--pattern-shift`` or the setup's ``[pattern_stage]``), staged as
+    ``shifted_*``; None when neither asks for it."""
+    if args.pattern_shift is None and setup.pattern_stage is None:
+        return None
+    from scopetwin.scenes.pattern_stage import stage_shift
+    from scopetwin.sim.measurement import render_second_position
+
+    if setup.scene != "deflectometry":
+        raise ScopetwinError(f"--pattern-shift applies to deflectometry setups; {setup.name} is a {setup.scene} scene")
+    shift = stage_shift(setup, args.pattern_shift)
+    spp, seed = setup.render.spp, setup.render.seed
+    log.info("rendering the second pattern position, %+g mm along the pattern's normal", shift)
+    moved, image, seconds = render_second_position(setup, heights, spp, seed, setup.render.noise, args.renderer, shift)
+    names = write_measurement(stage, "shifted_", moved, heights, image, spp, (seed + 1) % 2**32, args.renderer)
+    return shift, names, seconds
 
 
 def cmd_presets(args: argparse.Namespace) -> dict[str, Any]:
@@ -78,7 +108,7 @@ def register(subparsers: Any) -> None:
         description=help_,
         **conventions(
             "scopetwin render thesis-1.10-deflectometry --out r1 --spp 16",
-            "scopetwin render thesis-2.8.1-angular --out t1 --spp 64 --no-noise --json t1.json",
+            "scopetwin render thesis-1.10-deflectometry --out r2 --spp 16 --pattern-shift 30 --json r2.json",
         ),
     )
     p.set_defaults(func=cmd_render, outputs=[("out", "dir"), ("json", "file")], estimate="render")
@@ -104,6 +134,13 @@ def register(subparsers: Any) -> None:
         choices=("mitsuba", "analytic"),
         default="mitsuba",
         help="Mitsuba (default) or the float64 analytic reference (slow)",
+    )
+    p.add_argument(
+        "--pattern-shift",
+        type=finite_float(-500.0, 500.0),
+        metavar="MM",
+        help="also render the second image of a pattern stage, the pattern moved MM along its normal, as "
+        "shifted_image.exr (default: the setup's [pattern_stage] shift_mm, where it has one)",
     )
 
     help_ = "list the setup presets"

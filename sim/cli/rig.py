@@ -231,13 +231,20 @@ def cmd_acquire(args: argparse.Namespace) -> dict[str, Any]:
     """Acquire frames with a light on; each frame is on disk (and in the manifest) as soon as it is grabbed."""
     from scopetwin.instrument.acquisition import PREVIEW_NAME, calibration_capture, dark_frames
 
+    if (args.pattern_stage is None) != (args.pattern_shift is None):
+        raise RigError("--pattern-stage and --pattern-shift go together (the stage and how far it moves, mm)")
+    extra: dict[str, Any] = {}
     with _kept(lambda: _frames_kept(args.out)), open_rig(args.rig) as rig:
         cam = rig.camera(args.camera)
         if args.exposure_s is not None:
             cam.limits.exposure_s.check(args.exposure_s, f"--exposure-s of camera {cam.name!r}")
-        paths = calibration_capture(
-            rig, args.out, n_frames=args.frames, camera=args.camera, light=args.light, exposure_s=args.exposure_s
-        )
+        if args.pattern_stage is not None:
+            paths, positions = _two_positions(rig, args)
+            extra = {"pattern_stage_mm": positions, "pattern_shift_mm": positions[1] - positions[0]}
+        else:
+            paths = calibration_capture(
+                rig, args.out, n_frames=args.frames, camera=args.camera, light=args.light, exposure_s=args.exposure_s
+            )
         exposure = cam.exposure_s
         black, saturation = cam.black_level_dn, cam.saturation_dn
         lamp = rig.light(args.light)
@@ -266,7 +273,24 @@ def cmd_acquire(args: argparse.Namespace) -> dict[str, Any]:
         "preview": str(Path(args.out) / PREVIEW_NAME),
         "signal_dn": signals,
         "dark": dark,
+        **extra,
     }
+
+
+def _two_positions(rig: Rig, args: argparse.Namespace) -> tuple[list[Path], list[float]]:
+    """``acquire --pattern-stage NAME --pattern-shift MM``: one frame at the stage's position, one ``MM`` further
+    (:func:`scopetwin.instrument.acquisition.two_position_capture`, seed §1.3)."""
+    from scopetwin.instrument.acquisition import two_position_capture
+
+    return two_position_capture(
+        rig,
+        args.out,
+        args.pattern_stage,
+        args.pattern_shift,
+        camera=args.camera,
+        light=args.light,
+        exposure_s=args.exposure_s,
+    )
 
 
 def _strip_ome_suffix(name: str) -> str:
@@ -515,6 +539,13 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--light", help="light name (default: the first)")
     p.add_argument("--exposure-s", type=positive_float(), help="exposure time (default: automatic, ~70%% of the range)")
     p.add_argument("--frames", type=positive_int(MAX_FRAMES), default=1, help="number of frames (>= 1)")
+    p.add_argument(
+        "--pattern-stage",
+        metavar="NAME",
+        help="a stage that moves the pattern along its normal: one frame here and one --pattern-shift further "
+        "(deflectometry_1.exr, deflectometry_2.exr; seed §1.3), for reconstruct --second",
+    )
+    p.add_argument("--pattern-shift", type=finite_float(-500.0, 500.0), metavar="MM", help="with --pattern-stage, mm")
     _add_mda_commands(add)
     p = add(
         "serve",

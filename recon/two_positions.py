@@ -1,0 +1,498 @@
+"""Two pattern positions: the absolute height from a second image with the pattern moved along its normal (seed §1.3).
+
+One image leaves the height-normal ambiguity of seed §1.3: for any start height the nested iteration of §1.4 finds a
+self-consistent surface, and the seed picks one with the holding frame (§1.4, eqs. 1.3-1.4), extrapolating the
+surface 1-4.5 mm under the frame. A second image with the pattern moved by a known distance along its normal N_z
+(:mod:`scopetwin.scenes.pattern_stage`) measures the height directly: a wrong start height biases the traced
+gradients of a marker by an amount that depends on the pattern's distance — ~ -9 µrad per µm of height in y at the
+§1.10 pattern position, ~ -11.6 µrad/µm with the pattern 20 mm closer — so only at the true height do the gradients
+of both images belong to one surface. Stereo deflectometry (two cameras, which seed §1.3 names) uses the same
+principle with a second viewpoint; here one camera and a stage do.
+
+The method (beyond the seed):
+
+1. image 1 alone through :func:`scopetwin.recon.strategy.solve` — the frame-criterion height ``h_frame`` with its
+   posterior uncertainty, the basis scale, the rejected markers;
+2. for a start height H, the **joint surface**: the inner loop of §1.4 with the gradients of both images' markers,
+   each traced to its own pattern position (bias-corrected through its own setup), fitted by one shifted-basis
+   surface (§1.8) whose ROI mean is H (eq. 1.5); the residual vector r(H) of all marker gradients against it;
+3. the height ``h_pair`` minimising |r(H)|^2: Gauss-Newton in H with the derivative dr/dH of the refitted residual
+   (two joint surfaces a micrometre apart; r is linear in H to far below the noise), its standard uncertainty
+   sigma_r / |dr/dH| with sigma_r^2 = |r|^2 / (m - p), and a spatial block jackknife of the same estimator (the
+   residuals of neighbouring markers are correlated where the surface has structure the basis cannot follow:
+   glass's micro-waviness);
+4. combined with the frame criterion by inverse-variance weighting, the uncertainty scaled by the Birge ratio where
+   the two disagree beyond their uncertainties; where they disagree by more than ``disagree_sigmas`` the frame
+   criterion's a-priori assumption (the substrate lies on the holding frame at the calibrated height) failed and the
+   two positions are taken alone. The final surface is the joint surface at that height.
+
+What limits it: the part of the surface the basis does not follow. Without it (smooth surfaces) the two positions
+give the absolute height to a few 10 nm from the markers' centroid noise; glass's 20-100 nm micro-waviness at 1-8 mm
+gives every centroid 100-350 µrad of gradient that no smooth surface fits, sampled at points 0.4-1.3 mm apart in the
+two images, and the height then follows to micrometres (``sim/studies/second_measurement.py`` measures both).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scopetwin.recon.config import ReconstructionConfig
+from scopetwin.recon.errors import ReconstructionError, TooFewMarkersError
+from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
+from scopetwin.recon.reconstruct import (
+    MarkerObservations,
+    ReconstructionResult,
+    Reconstructor,
+    centroid_bias_step,
+    single_thread_blas,
+)
+from scopetwin.recon.shifted_basis import SBFSurface, ShiftedBasis, fit_gradients
+from scopetwin.recon.substrate import Substrate2D
+from scopetwin.scenes.geometry import Array
+from scopetwin.scenes.pattern_stage import shift_pattern, stage_shift
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap
+
+if TYPE_CHECKING:
+    from scopetwin.recon.strategy import Reconstruction
+
+
+@dataclass(frozen=True)
+class TwoPositionConfig:
+    """Parameters of the two-position height (module docstring).
+
+    Attributes
+    ----------
+    step_um : float
+        Start-height step of the derivative dr/dH, µm.
+    max_steps : int
+        Most Gauss-Newton steps on the start height.
+    tol_um : float
+        A step below this ends the search, µm.
+    blocks : (int, int)
+        Spatial blocks (x, y) of the jackknife over the substrate.
+    combine : bool
+        Combine with the frame criterion's height (inverse-variance weights); False: the two positions alone.
+    disagree_sigmas : float
+        Where the two heights differ by more than this many combined standard uncertainties, the frame criterion is
+        not combined: its a-priori assumption (the substrate lies on the holding frame at the calibrated height)
+        is what failed, not the measurement (a bow that does not touch the frame, dirt under it, a wrong frame
+        height). The result notes it.
+    min_markers : int
+        Fewest markers of the second image whose rays meet the ROI.
+    """
+
+    step_um: float = 1.0
+    max_steps: int = 6
+    tol_um: float = 1e-4
+    blocks: tuple[int, int] = (3, 8)
+    combine: bool = True
+    disagree_sigmas: float = 3.0
+    min_markers: int = 20
+
+
+@dataclass(frozen=True)
+class PatternView:
+    """One image of the pattern at one position: the iteration's pieces for that position's setup (its pattern,
+    its bias step) and the image's indexed markers."""
+
+    reconstructor: Reconstructor
+    markers: MarkerObservations
+
+
+@dataclass
+class JointRun:
+    """The joint surface for one start height: the surface, the gradient residuals (n_markers, 2) of every view's
+    markers stacked (NaN where a ray missed the ROI), the markers' substrate positions (NaN likewise), iterations."""
+
+    height: float
+    surface: SBFSurface
+    residual: Array
+    xy: Array
+    iterations: int
+
+
+@dataclass(frozen=True)
+class HeightEstimate:
+    """The absolute height (ROI mean) from the frame criterion, from the two positions, and combined; µm.
+
+    ``pair_std_um`` is the larger of the Gauss-Newton and the block-jackknife standard uncertainty; ``agreement``
+    is (pair - frame) / sqrt(u_pair^2 + u_frame^2); ``std_um`` includes the Birge-ratio scaling where |agreement|
+    > 1.
+    """
+
+    frame_um: float
+    frame_std_um: float | None
+    pair_um: float
+    pair_std_um: float
+    gauss_newton_std_um: float
+    jackknife_std_um: float
+    height_um: float
+    std_um: float
+    agreement: float | None
+    residual_urad: float
+    markers: tuple[int, int]
+    steps: int
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready."""
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
+
+
+@dataclass
+class TwoPositionResult:
+    """The surface from two images of the pattern at two positions, with the image-1 reconstruction it started from.
+
+    ``surface`` is the joint surface at the combined height; ``shape_std_um`` is the single image's (its start
+    height's part was the frame criterion's, so it is an upper bound).
+    """
+
+    surface: SBFSurface
+    substrate: Substrate2D
+    single: ReconstructionResult
+    estimate: HeightEstimate
+    shift_mm: float
+    seconds: float
+    strategy: list[str] = field(default_factory=list)
+
+    @property
+    def absolute_std_um(self) -> float:
+        return self.estimate.std_um
+
+    @property
+    def shape_std_um(self) -> float | None:
+        u = self.single.uncertainty
+        return None if u is None else u.shape_um
+
+    def height_at(self, x_mm: Any, y_mm: Any) -> NDArray[np.float64]:
+        """Heights at substrate coordinates (x, y), mm (vectorised)."""
+        return np.asarray(self.surface.height(np.asarray(x_mm, float), np.asarray(y_mm, float)), dtype=np.float64)
+
+    def heightmap(self, nx: int = 128, ny: int = 288) -> HeightMap:
+        """The surface on a node grid over the whole substrate (docs/contract.md, "Height maps")."""
+        return self.surface.heightmap(self.substrate.x_range, self.substrate.y_range, nx, ny)
+
+    def std_heightmap(self, nx: int = 128, ny: int = 288) -> HeightMap | None:
+        """Per-node standard uncertainty, mm: the single image's with its absolute part replaced by the combined."""
+        single = self.single.std_heightmap(nx, ny)
+        u = self.single.uncertainty
+        if single is None or u is None:
+            return None
+        shape2 = np.clip(single.z**2 - (u.absolute_um * 1e-3) ** 2, 0.0, None)
+        z = np.sqrt(shape2 + (self.estimate.std_um * 1e-3) ** 2)
+        return HeightMap(z, single.x_min, single.x_max, single.y_min, single.y_max)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready: the single image's summary, the start height replaced, and the two positions' estimate."""
+        out = self.single.summary()
+        out.update(
+            start_height_um=self.estimate.height_um,
+            seconds=self.seconds,
+            strategy=list(self.strategy),
+            two_positions={"shift_mm": self.shift_mm, **self.estimate.summary()},
+        )
+        return out
+
+
+# -- the joint surface -----------------------------------------------------------------------------------------------
+def joint_surface(
+    views: list[PatternView], basis: ShiftedBasis, height: float, initial: SBFSurface, cfg: ReconstructionConfig
+) -> JointRun:
+    """The inner loop of seed §1.4 on the markers of every view at once, for start height ``height`` (mm).
+
+    Each view's markers are traced through the current surface to their own pattern position; one shifted-basis fit
+    (§1.8) of all their gradients; the offset so that the ROI mean is ``height`` (eq. 1.5); until the RMS height
+    change over the ROI is below ``cfg.inner_tol_um``.
+    """
+    sub = views[0].reconstructor.sub
+    roi = basis.values(*sub.roi_grid(cfg.grid_step))
+    surface = SBFSurface(basis, initial.coef, height - float(np.mean(roi @ initial.coef)))
+    prev = roi @ surface.coef + surface.offset
+    iterations = 0
+    for iterations in range(1, cfg.inner_max + 1):  # noqa: B007 - the count is returned
+        traced = [v.reconstructor.traced_gradients(surface, v.markers) for v in views]
+        xy = np.concatenate([t[0] for t in traced])
+        hx = np.concatenate([t[1] for t in traced])
+        hy = np.concatenate([t[2] for t in traced])
+        coef, _ = fit_gradients(basis, xy[:, 0], xy[:, 1], hx, hy, cfg.regularization, method=cfg.method)
+        surface = SBFSurface(basis, coef, height - float(np.mean(roi @ coef)))
+        now = roi @ coef + surface.offset
+        change_um = float(np.sqrt(np.mean((now - prev) ** 2))) * 1e3
+        prev = now
+        if change_um < cfg.inner_tol_um:
+            break
+    residual, points = _residuals(views, traced, surface)
+    return JointRun(height, surface, residual, points, iterations)
+
+
+def _residuals(views: list[PatternView], traced: list[Any], surface: SBFSurface) -> tuple[Array, Array]:
+    """Model minus traced gradient of every marker of every view, (n, 2), and its substrate position; NaN where the
+    marker's ray missed the ROI."""
+    res, pts = [], []
+    for view, (xy, hx, hy, ok) in zip(views, traced, strict=True):
+        r = np.full((len(view.markers.ij), 2), np.nan)
+        p = np.full((len(view.markers.ij), 2), np.nan)
+        gx, gy = surface.gradient(xy[:, 0], xy[:, 1])
+        r[ok] = np.stack([gx - hx, gy - hy], axis=1)
+        p[ok] = xy
+        res.append(r)
+        pts.append(p)
+    return np.concatenate(res), np.concatenate(pts)
+
+
+# -- the start height -----------------------------------------------------------------------------------------------
+def pair_height(
+    views: list[PatternView], basis: ShiftedBasis, start: SBFSurface, h0: float, tp: TwoPositionConfig
+) -> tuple[JointRun, Array, int]:
+    """The start height whose joint surface explains every view best (Gauss-Newton on |r(H)|^2, from ``h0``).
+
+    Returns the joint run at that height, the derivative dr/dH (per residual component, 1/mm; NaN where a marker
+    was lost at either height) and the number of steps.
+    """
+    cfg = views[0].reconstructor.config
+    d = tp.step_um * 1e-3
+    run = joint_surface(views, basis, h0, start, cfg)
+    steps = 0
+    while True:  # the derivative taken again where the steps moved the height beyond the step it was taken over
+        at = run.height
+        ahead = joint_surface(views, basis, at + d, run.surface, cfg)
+        jac = (ahead.residual - run.residual) / d
+        for _ in range(tp.max_steps):
+            ok = np.isfinite(jac) & np.isfinite(run.residual)
+            jj = float(np.sum(jac[ok] ** 2))
+            if jj <= 0:
+                raise ReconstructionError("the two pattern positions do not constrain the height (dr/dH = 0)")
+            step = -float(np.sum(jac[ok] * run.residual[ok])) / jj
+            run = joint_surface(views, basis, run.height + step, run.surface, cfg)
+            steps += 1
+            if abs(step) * 1e3 < tp.tol_um:
+                break
+        if abs(run.height - at) <= d or steps >= 3 * tp.max_steps:
+            return run, jac, steps
+
+
+def pair_uncertainty(
+    run: JointRun, jac: Array, n_terms: int, blocks: tuple[int, int], sub: Substrate2D
+) -> tuple[float, float, float]:
+    """Standard uncertainties of the two-position height, mm: Gauss-Newton, block jackknife; and the residual RMS.
+
+    Gauss-Newton: sigma_r / |dr/dH| with sigma_r^2 = |r|^2 / (m - p) (m residual components, p basis terms). The
+    jackknife leaves out one spatial block of markers at a time ((nx, ny) blocks over the substrate) and takes the
+    linearised estimate's spread, (B - 1)/B sum (dH_b - mean)^2: residuals correlated within a block count as one.
+    """
+    ok = np.isfinite(jac) & np.isfinite(run.residual)
+    r, j = run.residual[ok], jac[ok]
+    m = r.size
+    jj = float(np.sum(j**2))
+    sigma_r2 = float(np.sum(r**2)) / max(m - n_terms, 1)
+    gauss_newton = float(np.sqrt(sigma_r2 / jj))
+    nx, ny = blocks
+    x = np.broadcast_to(run.xy[:, :1], run.residual.shape)[ok]
+    y = np.broadcast_to(run.xy[:, 1:], run.residual.shape)[ok]
+    bx = np.clip(((x - sub.x_range[0]) / sub.size_x * nx).astype(int), 0, nx - 1)
+    by = np.clip(((y - sub.y_range[0]) / sub.size_y * ny).astype(int), 0, ny - 1)
+    label = bx * ny + by
+    moves = []
+    for b in np.unique(label):
+        inside = label == b
+        rest = float(np.sum(j[~inside] ** 2))
+        if rest > 0:
+            moves.append(float(np.sum(j[inside] * r[inside])) / rest)
+    k = len(moves)
+    jackknife = float(np.sqrt((k - 1) / k * np.sum((np.array(moves) - np.mean(moves)) ** 2))) if k > 1 else np.inf
+    return gauss_newton, jackknife, float(np.sqrt(np.mean(r**2)))
+
+
+def combine(
+    frame: float,
+    frame_std: float | None,
+    pair: float,
+    pair_std: float,
+    use_frame: bool = True,
+    disagree_sigmas: float = 3.0,
+) -> tuple[float, float, float | None]:
+    """The height from the frame criterion's and the two positions': their inverse-variance mean and its standard
+    uncertainty (scaled by the Birge ratio |z| where they disagree beyond their uncertainties, 1 < |z|), and z =
+    (pair - frame) / sqrt(u_frame^2 + u_pair^2). Where |z| > ``disagree_sigmas`` (or without a frame uncertainty, or
+    ``use_frame`` False) the two positions alone: the frame criterion's assumption failed, the measurement did not.
+    """
+    if not use_frame or frame_std is None or not np.isfinite(frame_std) or frame_std <= 0:
+        return pair, pair_std, None
+    z = (pair - frame) / float(np.hypot(frame_std, pair_std))
+    if abs(z) > disagree_sigmas:
+        return pair, pair_std, z
+    w_f, w_p = 1.0 / frame_std**2, 1.0 / pair_std**2
+    mean = (w_f * frame + w_p * pair) / (w_f + w_p)
+    return mean, float(1.0 / np.sqrt(w_f + w_p)) * max(1.0, abs(z)), z
+
+
+# -- one image's result and a second image -> the two-position result -----------------------------------------------
+def solve_two_positions(
+    first: PatternView,
+    single: ReconstructionResult,
+    second: PatternView,
+    shift_mm: float,
+    tp: TwoPositionConfig = TwoPositionConfig(),
+) -> TwoPositionResult:
+    """The two-position height and surface from image 1's reconstruction and a second image's markers.
+
+    Parameters
+    ----------
+    first : PatternView
+        Image 1's iteration pieces (its basis is the one ``single`` ended with) and markers (rejected ones removed).
+    single : ReconstructionResult
+        Image 1 reconstructed alone (:func:`scopetwin.recon.strategy.solve`): the frame criterion's height.
+    second : PatternView
+        The pieces for the setup with the pattern moved (:func:`scopetwin.scenes.pattern_stage.shift_pattern`) and
+        the second image's markers.
+    shift_mm : float
+        The pattern's shift along N_z, mm (reported).
+    tp : TwoPositionConfig
+        Steps, tolerances, jackknife blocks, whether to combine with the frame criterion.
+    """
+    t0 = time.perf_counter()
+    rec = first.reconstructor
+    basis = single.surface.basis
+    for view in (first, second):
+        if view.reconstructor.basis is not basis:
+            view.reconstructor.use_basis(basis)
+    with single_thread_blas():
+        _check_second(second, single.surface, tp)
+        h_frame = rec.roi_mean(single.surface.coef) + single.surface.offset
+        views = [first, second]
+        run, jac, steps = pair_height(views, basis, single.surface, h_frame, tp)
+        gn, jk, resid = pair_uncertainty(run, jac, basis.n_terms, tp.blocks, rec.sub)
+        u = single.uncertainty
+        frame_std = None if u is None else u.absolute_um * 1e-3
+        pair_std = max(gn, jk)
+        h, h_std, z = combine(h_frame, frame_std, run.height, pair_std, tp.combine, tp.disagree_sigmas)
+        final = joint_surface(views, basis, h, run.surface, rec.config) if h != run.height else run
+    n1, n2 = (int(np.sum(np.isfinite(v))) for v in np.split(run.residual[:, 0], [len(first.markers.ij)]))
+    est = HeightEstimate(
+        h_frame * 1e3,
+        None if frame_std is None else frame_std * 1e3,
+        run.height * 1e3,
+        pair_std * 1e3,
+        gn * 1e3,
+        jk * 1e3,
+        h * 1e3,
+        h_std * 1e3,
+        z,
+        resid * 1e6,
+        (n1, n2),
+        steps,
+    )
+    path = [
+        *single.strategy,
+        f"second pattern position ({shift_mm:+g} mm along N_z): {n2} markers, height "
+        f"{est.pair_um - est.frame_um:+.3g} µm from the frame criterion's, u = {est.pair_std_um:.3g} µm",
+    ]
+    if z is not None and abs(z) > tp.disagree_sigmas:
+        path.append(
+            f"the frame criterion disagrees by {z:+.3g} combined standard uncertainties (beyond "
+            f"{tp.disagree_sigmas:g}): the substrate does not lie on the holding frame as the setup says; the two "
+            "positions' height taken alone"
+        )
+    elif z is not None:
+        path.append(f"combined with the frame criterion (z = {z:+.2f}): u = {est.std_um:.3g} µm")
+    seconds = single.seconds + time.perf_counter() - t0
+    return TwoPositionResult(final.surface, rec.sub, single, est, float(shift_mm), seconds, path)
+
+
+def _check_second(second: PatternView, surface: SBFSurface, tp: TwoPositionConfig) -> None:
+    """The second image's markers must meet the ROI through image 1's surface: enough of them."""
+    _, _, _, ok = second.reconstructor.traced_gradients(surface, second.markers)
+    if int(ok.sum()) < tp.min_markers:
+        raise TooFewMarkersError(
+            f"only {int(ok.sum())} markers of the second image meet the substrate's region of interest (at least "
+            f"{tp.min_markers} are needed): is the pattern shift right, and was the image taken with it?"
+        )
+
+
+def view_for(
+    setup: Setup, markers: MarkerObservations, config: ReconstructionConfig | None, bias: bool, frame_z: float = 0.0
+) -> PatternView:
+    """The iteration's pieces for one pattern position's setup (with its own centroid-bias step where ``bias``)."""
+    step = centroid_bias_step(setup) if bias else None
+    return PatternView(Reconstructor.from_setup(setup, config, step, frame_z), markers)
+
+
+def reconstruct_markers_pair(
+    setup: Setup,
+    markers: MarkerObservations,
+    second_markers: MarkerObservations,
+    shift_mm: float | None = None,
+    config: ReconstructionConfig | None = None,
+    policy: ReconstructionPolicy = DEFAULT_POLICY,
+    tp: TwoPositionConfig = TwoPositionConfig(),
+    bias: bool = False,
+) -> TwoPositionResult:
+    """The substrate from indexed markers of two images, the pattern at its setup position and moved by ``shift_mm``
+    along N_z (default: the setup's ``[pattern_stage]``). Exact marker images need no bias step (``bias``)."""
+    from scopetwin.recon.strategy import solve
+
+    shift = stage_shift(setup, shift_mm)
+    first = view_for(setup, markers, config, bias)
+    single = solve(first.reconstructor, markers, policy)
+    kept = _without(markers, single.rejected)
+    second = view_for(shift_pattern(setup, shift), second_markers, config, bias)
+    return solve_two_positions(PatternView(first.reconstructor, kept), single, second, shift, tp)
+
+
+def _without(markers: MarkerObservations, rejected: NDArray[np.int64]) -> MarkerObservations:
+    """``markers`` without the indices in ``rejected``."""
+    if len(rejected) == 0:
+        return markers
+    drop = (markers.ij[:, None, :] == rejected[None, :, :]).all(axis=2).any(axis=1)
+    return MarkerObservations(markers.ij[~drop], markers.px[~drop])
+
+
+def reconstruct_pair(
+    image: NDArray[Any],
+    second_image: NDArray[Any],
+    setup: Setup,
+    shift_mm: float | None = None,
+    config: ReconstructionConfig | None = None,
+    policy: ReconstructionPolicy = DEFAULT_POLICY,
+    tp: TwoPositionConfig = TwoPositionConfig(),
+) -> Reconstruction:
+    """The substrate from two deflectometry images, the pattern at its setup position and moved by ``shift_mm`` along
+    its normal (default: the setup's ``[pattern_stage]``), seed §1.3-§1.8.
+
+    Image 1 goes through the one strategy (:func:`scopetwin.recon.strategy.reconstruct_image`, every fallback of
+    ``policy``); the second image's markers are found with the moved setup and image 1's surface, wrongly indexed
+    ones rejected as in image 1 (``policy.outlier_factor``); then :func:`solve_two_positions`.
+
+    Returns
+    -------
+    Reconstruction
+        ``method = "centroid"``, ``result`` a :class:`TwoPositionResult`, ``markers`` image 1's, the uncertainty's
+        absolute part the combined height's.
+    """
+    from scopetwin.recon.markers import find_markers_for
+    from scopetwin.recon.strategy import Reconstruction, StandardUncertainty, reconstruct_image
+
+    shift = stage_shift(setup, shift_mm)
+    moved = shift_pattern(setup, shift)
+    done = reconstruct_image(image, setup, config, policy)
+    single = done.result
+    found = find_markers_for(second_image, moved, single.heightmap(64, 128), lattice_below=policy.lattice_below)
+    second = view_for(moved, MarkerObservations(found.ij, found.centroids), config, policy.bias_step)
+    second.reconstructor.use_basis(done.reconstructor.basis)
+    if policy.outlier_factor > 0:
+        drop = second.reconstructor.index_outliers(
+            second.markers, single.surface, policy.outlier_factor, policy.outlier_max_fraction
+        )
+        second = PatternView(
+            second.reconstructor, MarkerObservations(second.markers.ij[~drop], second.markers.px[~drop])
+        )
+    first_markers = _without(MarkerObservations(done.markers.ij, done.markers.centroids), single.rejected)
+    first = PatternView(done.reconstructor, first_markers)
+    result = solve_two_positions(first, single, second, shift, tp)
+    unc = StandardUncertainty(result.absolute_std_um, result.shape_std_um)
+    return Reconstruction("centroid", result, done.markers, unc, result.strategy)
