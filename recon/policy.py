@@ -67,6 +67,12 @@ class ReconstructionPolicy:
         posterior's Delta h_max (frame maxima from the data, :mod:`scopetwin.recon.posterior`) lies within
         ``consistency_um`` plus this many of its standard deviations: on surfaces with medium-scale content the
         fitted surface's extrapolation is microns off while the data are consistent.
+    posterior_shape_factor : float
+        Where the fitted surface's height contrasts lie further from the posterior mean (RMS over the ROI) than this
+        many times the posterior's own spread, the shape is taken from the posterior: the fit plus the posterior
+        mean of the heights it missed (:class:`scopetwin.recon.posterior.ResidualCorrection`). Glass-like
+        substrates (waviness at 5-80 mm, tens of nm at 1-8 mm) leave a Gaussian basis hundreds of µrad of residual
+        gradients that the evidence's two-scale prior explains. 0 turns it off.
     slope_range : (float, float)
         The criterion's slope in the start height (dF/dH, ~1 for the ``level`` criterion, ~0.5 for ``delta``) is
         trusted only inside this range; outside it (two start heights too close, a noisy pair) 1 is used.
@@ -91,6 +97,7 @@ class ReconstructionPolicy:
     outlier_factor: float = 10.0
     outlier_max_fraction: float = 0.05
     posterior_consistency_sigmas: float = 3.0
+    posterior_shape_factor: float = 2.0
     slope_range: tuple[float, float] = (0.2, 5.0)
     inverse_starts: tuple[InverseStartKind, ...] = (
         "centroid",

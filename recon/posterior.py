@@ -36,6 +36,8 @@ from scopetwin.scenes.geometry import Array
 TILT_STD = 1e-2
 #: Floor of the gradient noise standard deviation (rad), keeping the kernel matrix well conditioned.
 NOISE_FLOOR = 2e-8
+#: Relative change of the negative log evidence at which the hyperparameter search stops (L-BFGS-B's ``ftol``).
+FTOL = 2.2e-9
 
 
 class PosteriorError(ScopetwinError, ValueError):
@@ -273,7 +275,7 @@ def fit_hyper(
             jac=True,
             method="L-BFGS-B",
             bounds=bounds,
-            options={"maxiter": 80},
+            options={"maxiter": 80, "ftol": FTOL},
         )
         if best is None or res.fun < best[0]:
             best = (float(res.fun), res.x)
@@ -433,7 +435,9 @@ def frame_posterior(
 def _sqrt_psd(c: Array) -> Array:
     """A matrix R with R R^T = c for a (numerically) positive semi-definite c: Cholesky with jitter, else eigh."""
     scale = max(float(np.mean(np.diag(c))), 1e-300)
-    for jitter in (1e-12, 1e-10, 1e-8):
+    # a jitter of 1e-6 of the mean variance adds 1e-3 of the mean standard deviation: far below the draws' own
+    # Monte-Carlo noise, and it keeps the dense frame grids (smooth, numerically rank-deficient) off eigh, ~30x slower
+    for jitter in (1e-12, 1e-10, 1e-8, 1e-6):
         try:
             return np.asarray(np.linalg.cholesky(c + jitter * scale * np.eye(len(c))))
         except np.linalg.LinAlgError:
@@ -453,3 +457,74 @@ def frame_points(
     f1 = np.stack([a.ravel() for a in np.meshgrid(fx, -fy)], axis=-1)
     f2 = np.stack([a.ravel() for a in np.meshgrid(fx, fy)], axis=-1)
     return f1, f2
+
+
+#: Points per chunk when a correction is evaluated (a chunk x observations kernel block stays ~ tens of MB).
+_CORRECTION_CHUNK = 2048
+
+
+@dataclass(frozen=True)
+class ResidualCorrection:
+    """The posterior mean of the heights the basis fit misses, from the gradients it leaves (fit + kriging of the
+    residuals): added to a fitted surface where the fit disagrees with the Gaussian process beyond the process's own
+    spread (:attr:`scopetwin.recon.policy.ReconstructionPolicy.posterior_shape_factor`). Zero mean over the ROI grid,
+    so the absolute height (the ROI mean) is the fit's.
+
+    Attributes
+    ----------
+    xy : ndarray, (n, 2)
+        Observation positions, mm.
+    alpha : ndarray, (2n,)
+        K^-1 times the residual gradients [e_x; e_y].
+    hyper : Hyper
+        The prior (by evidence on the traced gradients).
+    roi_mean : float
+        The posterior mean's ROI mean, mm (subtracted).
+    """
+
+    xy: Array
+    alpha: Array
+    hyper: Hyper
+    roi_mean: float
+
+    def height(self, x: Array, y: Array) -> Array:
+        """The correction at (x, y), mm (any shape)."""
+        xa, ya = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        p = np.stack([xa.ravel(), ya.ravel()], axis=-1)
+        out = np.empty(len(p))
+        for s in range(0, len(p), _CORRECTION_CHUNK):
+            out[s : s + _CORRECTION_CHUNK] = (
+                height_gradient_kernel(p[s : s + _CORRECTION_CHUNK], self.xy, self.hyper) @ self.alpha
+            )
+        return (out - self.roi_mean).reshape(xa.shape)
+
+    def gradient(self, x: Array, y: Array) -> tuple[Array, Array]:
+        """d correction / dx and / dy at (x, y) (any shape)."""
+        xa, ya = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        p = np.stack([xa.ravel(), ya.ravel()], axis=-1)
+        gx, gy = np.empty(len(p)), np.empty(len(p))
+        n = len(self.xy)
+        ax, ay = self.alpha[:n], self.alpha[n:]
+        for s in range(0, len(p), _CORRECTION_CHUNK):
+            sl = slice(s, s + _CORRECTION_CHUNK)
+            gx[sl], gy[sl] = TILT_STD**2 * np.sum(ax), TILT_STD**2 * np.sum(ay)
+            for amp, length in (
+                (self.hyper.smooth_amp, self.hyper.smooth_len),
+                (self.hyper.broad_amp, self.hyper.broad_len),
+            ):
+                e, dx, dy = _se_parts(p[sl], self.xy, amp, length)
+                il2, il4 = 1.0 / length**2, 1.0 / length**4
+                cross = -e * dx * dy * il4
+                gx[sl] += (e * (il2 - dx * dx * il4)) @ ax + cross @ ay
+                gy[sl] += cross @ ax + (e * (il2 - dy * dy * il4)) @ ay
+        return gx.reshape(xa.shape), gy.reshape(xa.shape)
+
+
+def residual_correction(
+    xy: Array, ex: Array, ey: Array, hyper: Hyper, roi_axes: tuple[Array, Array]
+) -> ResidualCorrection:
+    """The Gaussian process conditioned on the residual gradients (ex, ey) at ``xy``, as a height correction with
+    zero mean over the tensor grid ``roi_axes`` (the reconstruction's ROI grid)."""
+    gp = GradientGP(xy, ex, ey, hyper)
+    k_gm, _, _ = _roi_functional(gp, np.zeros((0, 2)), roi_axes)
+    return ResidualCorrection(gp.xy, gp.alpha, hyper, float(k_gm @ gp.alpha))

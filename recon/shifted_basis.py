@@ -28,7 +28,7 @@ Options beyond the seed:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import scipy.linalg as sla
@@ -226,11 +226,14 @@ class ShiftedBasis:
 
 @dataclass(frozen=True)
 class SBFSurface:
-    """A height function f(r) = sum_k c_k Psi(r - r_k) + offset (seed §1.8, bias B of eq. 1.5)."""
+    """A height function f(r) = sum_k c_k Psi(r - r_k) + offset (seed §1.8, bias B of eq. 1.5), plus an optional
+    ``correction`` (an object with ``height(x, y)`` and ``gradient(x, y)``: the posterior mean of what the basis
+    missed, :class:`scopetwin.recon.posterior.ResidualCorrection`) that the nested iteration never sees."""
 
     basis: ShiftedBasis
     coef: Array
     offset: float = 0.0
+    correction: Any = None
 
     def __post_init__(self) -> None:
         c = np.asarray(self.coef, dtype=np.float64).ravel()
@@ -246,7 +249,7 @@ class SBFSurface:
 
     def shifted(self, offset: float) -> SBFSurface:
         """The same shape with another offset."""
-        return SBFSurface(self.basis, self.coef, offset)
+        return SBFSurface(self.basis, self.coef, offset, self.correction)
 
     def _eval(self, x: ArrayLike, y: ArrayLike) -> tuple[Array, Array, Array, tuple[int, ...]]:
         xa, ya = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
@@ -260,12 +263,16 @@ class SBFSurface:
     def height(self, x: ArrayLike, y: ArrayLike) -> Array:
         """f(x, y), mm, evaluated without integration."""
         h, _, _, shape = self._eval(x, y)
-        return (h + self.offset).reshape(shape)
+        out = (h + self.offset).reshape(shape)
+        return out if self.correction is None else out + self.correction.height(x, y)
 
     def gradient(self, x: ArrayLike, y: ArrayLike) -> tuple[Array, Array]:
         """(f_x, f_y), dimensionless."""
         _, gx, gy, shape = self._eval(x, y)
-        return gx.reshape(shape), gy.reshape(shape)
+        if self.correction is None:
+            return gx.reshape(shape), gy.reshape(shape)
+        cx, cy = self.correction.gradient(x, y)
+        return gx.reshape(shape) + cx, gy.reshape(shape) + cy
 
     def heightmap(
         self, x_range: tuple[float, float], y_range: tuple[float, float], nx: int = 128, ny: int = 256

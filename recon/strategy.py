@@ -237,6 +237,8 @@ def _accept(search: _Search, result: ReconstructionResult, history_path: str | P
             search.path.append(
                 f"posterior ({cfg.posterior}): start height moved {post.uncertainty.correction_um:+.3g} µm"
             )
+            if post.shape_note:
+                search.path.append(post.shape_note)
         if other <= cfg.consistency_um:
             return result
         if post is not None:

@@ -99,6 +99,7 @@ class Posterior:
     surface: SBFSurface
     uncertainty: Uncertainty
     delta: tuple[float, float]
+    shape_note: str = ""
 
 
 @dataclass
@@ -110,6 +111,7 @@ class _Reading:
     hyper: Hyper
     err: float
     spread: float
+    data: tuple[Array, Array, Array]
 
 
 def criterion_slope(history: list[Any], policy: ReconstructionPolicy = DEFAULT_POLICY) -> float:
@@ -130,7 +132,8 @@ def _read(it: Iteration, surf: SBFSurface, markers: Any, hyper: Hyper | None) ->
     xy, hx, hy, _ = it.traced_gradients(surf, markers)
     try:
         hyper = hyper or fit_hyper(xy, hx, hy, max_points=cfg.evidence_points)
-        gp = GradientGP(*posterior_subset(xy, hx, hy, cfg.posterior_points), hyper)
+        data = posterior_subset(xy, hx, hy, cfg.posterior_points)
+        gp = GradientGP(*data, hyper)
         post = frame_posterior(gp, sub.x_range, sub.y_range, sub.roi_length, (np.unique(rx), np.unique(ry)))
     except PosteriorError:
         return None
@@ -139,8 +142,8 @@ def _read(it: Iteration, surf: SBFSurface, markers: Any, hyper: Hyper | None) ->
     m2 = float(np.max(surf.height(post.frame2[:, 0], post.frame2[:, 1])))
     h = it.roi_mean(surf.coef) + surf.offset
     if cfg.criterion == "level":
-        return _Reading(post, hyper, (0.5 * (m1 + m2) - h) - post.d_mean, post.d_std)
-    return _Reading(post, hyper, (m1 - m2) - post.delta_mean, post.delta_std)
+        return _Reading(post, hyper, (0.5 * (m1 + m2) - h) - post.d_mean, post.d_std, data)
+    return _Reading(post, hyper, (m1 - m2) - post.delta_mean, post.delta_std, data)
 
 
 def _newton_start_height(
@@ -200,15 +203,46 @@ def posterior(
     u_abs = reading.spread / abs(slope) if correcting else float(np.hypot(reading.err, reading.spread)) / abs(slope)
     h_final = it.roi_mean(surf.coef) + surf.offset
     nxx, nyy = np.meshgrid(post.node_x, post.node_y)
-    dev2 = (surf.height(nxx, nyy) - h_final - post.contrast_mean) ** 2
-    # the traced gradients depend on the start height: an error dH of it bends the shape by sens * dH
+    # the traced gradients depend on the start height: an error dH of it bends the shape by sens * dH (that of the
+    # fit: the nested iteration never sees a posterior correction)
     sens = start_height_sensitivity(it, surf, markers, nxx, nyy)
+    surf, note = _shape_from_posterior(it, surf, reading, h_final, policy)
+    dev2 = (surf.height(nxx, nyy) - h_final - post.contrast_mean) ** 2
     shape_var = post.contrast_std**2 + dev2 + (sens * u_abs) ** 2
     u_shape = float(np.sqrt(np.mean(shape_var[post.roi])))
     node = np.sqrt((u_abs * (1.0 + sens)) ** 2 + post.contrast_std**2 + dev2)
     std_map = HeightMap(node, post.node_x[0], post.node_x[-1], post.node_y[0], post.node_y[-1])
     u = Uncertainty(u_abs * 1e3, u_shape * 1e3, std_map, (h_final - h0) * 1e3, slope, reading.hyper.as_dict())
-    return Posterior(surf, u, (post.delta_mean, post.delta_std))
+    return Posterior(surf, u, (post.delta_mean, post.delta_std), note)
+
+
+def _shape_from_posterior(
+    it: Iteration, surf: SBFSurface, reading: _Reading, h: float, policy: ReconstructionPolicy
+) -> tuple[SBFSurface, str]:
+    """The fitted surface plus the posterior mean of what it missed, where the fit's contrasts lie further from the
+    posterior mean than ``policy.posterior_shape_factor`` times the posterior's spread (RMS over the ROI); else the
+    fit unchanged. Returns the surface and a line for the strategy path ("" when unchanged)."""
+    post = reading.post
+    if policy.posterior_shape_factor <= 0:
+        return surf, ""
+    nxx, nyy = np.meshgrid(post.node_x, post.node_y)
+    off = float(np.sqrt(np.mean(((surf.height(nxx, nyy) - h - post.contrast_mean) ** 2)[post.roi])))
+    spread = float(np.sqrt(np.mean(post.contrast_std[post.roi] ** 2)))
+    if off <= policy.posterior_shape_factor * spread:
+        return surf, ""
+    from dataclasses import replace
+
+    from scopetwin.recon.posterior import PosteriorError, residual_correction
+
+    xy, hx, hy = reading.data
+    gx, gy = surf.gradient(xy[:, 0], xy[:, 1])
+    rx, ry = it.sub.roi_grid(it.config.grid_step)
+    try:
+        corr = residual_correction(xy, hx - gx, hy - gy, reading.hyper, (np.unique(rx), np.unique(ry)))
+    except PosteriorError:
+        return surf, ""
+    note = f"shape from the posterior mean: the fit was {off * 1e3:.3g} µm RMS from it (spread {spread * 1e3:.3g} µm)"
+    return replace(surf, correction=corr), note
 
 
 def start_height_sensitivity(

@@ -218,7 +218,9 @@ class SurfaceSpec(_Model):
     far beyond what deflectometry images resolve). Both are levelled on the frame and scaled to ``range_um`` like
     §1.9. ``broadband_rms_nm`` adds a flat-spectrum part of that RMS at wavelengths between
     ``broadband_min_wavelength_mm`` and ``broadband_wavelength_mm`` (kinds ``random`` and ``psd``), the nm-level
-    short-wavelength content real glass has.
+    short-wavelength content real glass has. ``bow_um`` adds a paraboloidal bow of that sagitta (centre above the
+    corners for a positive value) after the scaling, then the surface is levelled on the frame again: ``range_um`` is
+    then the waviness's range, not the whole surface's (kinds ``random`` and ``psd``).
     """
 
     kind: Literal["random", "psd", "plane", "sphere", "saddle", "cylinder", "file"] = "random"
@@ -237,6 +239,7 @@ class SurfaceSpec(_Model):
     broadband_rms_nm: float = Field(0.0, ge=0, le=1000, description="RMS of the broadband part, nm")
     broadband_wavelength_mm: Positive = Field(4.0, description="longest wavelength of the broadband part, mm")
     broadband_min_wavelength_mm: Positive = Field(0.5, description="shortest wavelength of the broadband part, mm")
+    bow_um: float = Field(0.0, ge=-1.0e3, le=1.0e3, description="sagitta of a paraboloidal bow (centre - corners), µm")
 
     @model_validator(mode="after")
     def _check(self) -> SurfaceSpec:
@@ -249,6 +252,8 @@ class SurfaceSpec(_Model):
             )
         if self.broadband_rms_nm > 0 and self.kind not in ("random", "psd"):
             raise ValueError(f"broadband_rms_nm needs surface kind 'random' or 'psd', not {self.kind!r}")
+        if self.bow_um != 0 and self.kind not in ("random", "psd"):
+            raise ValueError(f"bow_um needs surface kind 'random' or 'psd', not {self.kind!r}")
         return self
 
 

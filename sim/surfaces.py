@@ -182,7 +182,8 @@ def scale_to_range(z: Array, range_mm: float) -> Array:
 
 
 def _finish(z: Array, xx: Array, yy: Array, spec: SurfaceSpec, substrate: SubstrateSpec) -> HeightMap:
-    """Level on the frame, scale to range (§1.9, Fig. 1.9 c-d); add the broadband part, level and scale again.
+    """Level on the frame, scale to range (§1.9, Fig. 1.9 c-d); add the broadband part, level and scale again;
+    add the bow and level once more.
 
     The second scaling differs from 1 by the broadband part's share of the range (~1e-4 for nm-level content), so
     the range is exact and the broadband RMS is the requested one to that relative precision.
@@ -193,7 +194,16 @@ def _finish(z: Array, xx: Array, yy: Array, spec: SurfaceSpec, substrate: Substr
         band = (spec.broadband_min_wavelength_mm, spec.broadband_wavelength_mm)
         z = z + broadband_noise(z.shape, (dy, dx), spec.broadband_rms_nm * 1e-6, band, spec.seed)
         z = scale_to_range(level_on_frame(z, yy, substrate.roi_length, xx), spec.range_um * 1e-3)
+    if spec.bow_um != 0:
+        z = level_on_frame(z + bow(xx, yy, spec.bow_um * 1e-3), yy, substrate.roi_length, xx)
     return HeightMap(z, xx[0, 0], xx[0, -1], yy[0, 0], yy[-1, 0])
+
+
+def bow(x: Array, y: Array, sagitta: float) -> Array:
+    """A paraboloidal bow on the grid ``x``, ``y`` (mm): ``sagitta`` (mm) at the centre above the corners, zero at
+    the corners (a substrate bent like a shallow dome for a positive sagitta, a bowl for a negative one)."""
+    r2 = float(np.max(x**2 + y**2))
+    return np.asarray(sagitta * (1.0 - (x**2 + y**2) / r2))
 
 
 def random_surface(spec: SurfaceSpec, substrate: SubstrateSpec) -> HeightMap:
