@@ -7,6 +7,10 @@ which surface a ray meets next. A per-shape table (gathered by shape id) says wh
 is: its plane z, the indices on both sides, and whether a GRIN rod layer lies beyond it. When a
 ray enters a rod, the Sharma-Kumar-Ghatak Runge-Kutta-Nystrom integrator (:func:`rkn_rod_dr`, a
 ``dr.while_loop``) carries it to the other face, integrating the optical path; the wall absorbs.
+Rays that all start on the object or the image plane (a sequential trace: images, forward traces) meet the planes
+in an order known before tracing (:meth:`GrinScene.planes_per_event`); with ``sequential=True`` (images) each plane
+is then intersected directly, the same hit Mitsuba's intersection finds, without the query (issue 26: the queries
+were 80-85 % of an image's time).
 
 Precision: ``"float32"`` runs the whole path in single precision (fast, for images);
 ``"float64"`` keeps the ray state in ``Float64`` and takes from Mitsuba's float32 intersection
@@ -24,6 +28,7 @@ variant: every builder and renderer takes ``variant``, default ``choose("mono")`
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Any, Literal
@@ -42,6 +47,7 @@ from scopetwin.scenes.limits import check_render
 from scopetwin.scenes.mitsuba.variant import mitsuba, register_plugin, render_complete, resolve
 
 Precision = Literal["float32", "float64"]
+Sampler = Literal["independent", "multijitter"]
 
 # The mitsuba module, no variant set: its variant-dependent names (mi.Float, mi.Sensor, ...) are looked
 # up when a function runs, after that function has set its variant (no variant is set at import).
@@ -298,6 +304,13 @@ def _shape_tables(
     return tab, itab, kinds
 
 
+def _plane_shape_ids(scene: Any, count: int) -> list[int]:
+    """The shape id of each of the ``count`` planes ``plane_{k:02d}`` of the loaded scene."""
+    ids = np.asarray(dr.reinterpret_array(mi.UInt32, scene.shapes_dr()), dtype=np.int64)
+    by_name = {shape.id(): int(sid) for sid, shape in zip(ids, scene.shapes(), strict=True)}
+    return [by_name[f"plane_{k:02d}"] for k in range(count)]
+
+
 @dataclass
 class _Rays:
     """The state of the rays of :meth:`GrinScene.trace`: position, T, index, OPL, fate (Dr.Jit arrays)."""
@@ -343,12 +356,8 @@ class _Rays:
         )
 
 
-def _to_next_plane(scene: Any, rays: _Rays, tab: dict[str, Any], F: type, eps: float) -> tuple[Any, Any, Any]:
-    """Move the running rays to the next plane (hit point recomputed from its z); returns hit, its kind, shape id.
-
-    Rays that meet nothing or a rod wall are absorbed.
-    """
-    run = rays.alive & ~rays.done
+def _embree_hit(scene: Any, rays: _Rays, run: Any, eps: float) -> tuple[Any, Any]:
+    """Shape id and validity of the next surface the running rays ``run`` meet, from Mitsuba's ray intersection."""
     inv_n = 1.0 / rays.n_cur
     dx, dy, dz = rays.tx * inv_n, rays.ty * inv_n, rays.tz * inv_n
     o = mi.Point3f(mi.Float(rays.px + eps * dx), mi.Float(rays.py + eps * dy), mi.Float(rays.pz + eps * dz))
@@ -356,12 +365,49 @@ def _to_next_plane(scene: Any, rays: _Rays, tab: dict[str, Any], F: type, eps: f
     # only the shape id is needed (the hit point is recomputed from the plane's z): the preliminary
     # intersection skips the per-shape surface-interaction call
     si = scene.ray_intersect_preliminary(ray, coherent=True, active=run)
-    sid = dr.reinterpret_array(mi.UInt32, si.shape)
-    valid = run & si.is_valid()
-    kind = dr.gather(mi.Int32, tab["kind"], sid, valid)
+    return dr.reinterpret_array(mi.UInt32, si.shape), run & si.is_valid()
+
+
+def _known_plane_hit(rays: _Rays, run: Any, plane: dict[str, Any]) -> tuple[Any, Any]:
+    """Shape id and validity when the plane met next is known (a sequential trace, :meth:`GrinScene.known_planes`).
+
+    ``plane``: its row of :attr:`GrinScene.planes` with its shape id ``sid`` and the half side ``half`` of its
+    square. A ray meets it where it crosses z inside the square and ahead of it — what Mitsuba's intersection
+    finds too: no other surface lies between consecutive planes outside the rods, whose walls span only the rod
+    layers that the RKN jump crosses —, so no intersection query is needed.
+    """
+    half = plane["half"]
+    s = (plane["z"] - rays.pz) / rays.tz
+    hx = rays.px + s * rays.tx
+    hy = rays.py + s * rays.ty
+    valid = run & (s > 0) & (dr.abs(hx) <= half) & (dr.abs(hy) <= half)
+    return dr.full(mi.UInt32, plane["sid"], dr.width(rays.px)), valid
+
+
+def _lookup(tab: dict[str, Any], key: str, T: type, sid: Any, mask: Any, plane: dict[str, Any] | None) -> Any:
+    """Column ``key`` of the shape table at the shape ids ``sid`` (0 outside ``mask``), or the known plane's value.
+
+    Callers use the result only inside ``mask``.
+    """
+    return dr.gather(T, tab[key], sid, mask) if plane is None else T(plane[key])
+
+
+def _to_next_plane(
+    scene: Any, rays: _Rays, tab: dict[str, Any], F: type, eps: float, plane: dict[str, Any] | None = None
+) -> tuple[Any, Any, Any]:
+    """Move the running rays to the next plane (hit point recomputed from its z); returns hit, its kind, shape id.
+
+    ``plane``: the plane met next when it is known (:func:`_known_plane_hit`), else Mitsuba's ray intersection
+    finds it (:func:`_embree_hit`). Rays that meet nothing or a rod wall are absorbed.
+    """
+    run = rays.alive & ~rays.done
+    sid, valid = _embree_hit(scene, rays, run, eps) if plane is None else _known_plane_hit(rays, run, plane)
+    inv_n = 1.0 / rays.n_cur
+    dx, dy, dz = rays.tx * inv_n, rays.ty * inv_n, rays.tz * inv_n
+    kind = _lookup(tab, "kind", mi.Int32, sid, valid, plane)
     rays.alive &= ~run | (valid & (kind != KIND_WALL))
     hit = run & rays.alive
-    zp = dr.gather(F, tab["z"], sid, hit)
+    zp = _lookup(tab, "z", F, sid, hit, plane)
     s = (zp - rays.pz) / dz
     rays.px = dr.select(hit, rays.px + s * dx, rays.px)
     rays.py = dr.select(hit, rays.py + s * dy, rays.py)
@@ -416,6 +462,9 @@ class GrinScene:
             scene["integrator"] = integrator
         self.scene = mi.load_dict(scene)
         self._tab_np, self._itab_np, self._kind_np = _shape_tables(self.scene, planes)
+        self.half = half
+        #: the shape id of each plane (the scene's plane_{k:02d})
+        self._plane_sid = _plane_shape_ids(self.scene, len(planes))
         self.stop_z = stack.stop_z
         self.stop_radius = stack.stop_radius
         self.z_image = planes[-1]["z"]
@@ -441,30 +490,55 @@ class GrinScene:
         iy = dr.clip(dr.round((y - y0) / arr.pitch), 0, arr.ny - 1)
         return x0 + ix * arr.pitch, y0 + iy * arr.pitch
 
-    def rods_per_event(self, start: Literal["object", "image"] | None) -> list[list[int]]:
-        """Rods a ray can enter at each event of a sequential trace.
+    def planes_per_event(self, start: Literal["object", "image"] | None) -> list[int]:
+        """The plane (index into :attr:`planes`) met at each event of a sequential trace, -1 past the last plane.
 
         Rays run monotonically in z and meet every plane once, except the far faces of the rods (the RKN
         jump), so for rays that all start on the object plane (``"object"``, going +z) or on the image plane
-        (``"image"``, going -z) the plane met at event k, and hence the one rod that can be entered there, is
-        known before tracing: one RKN loop per rod in the kernel instead of one per rod and event. ``None``:
-        every rod at every event (rays starting anywhere).
+        (``"image"``, going -z) the plane met at event k is known before tracing. ``None`` (rays starting
+        anywhere): -1 at every event.
         """
         events = len(self.planes) - 1 - len(self.rods)
         if start is None:
-            return [list(range(len(self.rods)))] * events
+            return [-1] * events
         step = 1 if start == "object" else -1
         plane = 0 if start == "object" else len(self.planes) - 1
-        out: list[list[int]] = []
+        out: list[int] = []
         for _ in range(events):
             plane += step
             if not 0 <= plane < len(self.planes):
-                out.append([])
+                out.append(-1)
                 continue
-            j = self.planes[plane]["rod_plus" if step > 0 else "rod_minus"]
-            out.append([j] if j >= 0 else [])
-            plane += step if j >= 0 else 0
+            out.append(plane)
+            plane += step if self.planes[plane]["rod_plus" if step > 0 else "rod_minus"] >= 0 else 0
         return out
+
+    def rods_per_event(self, start: Literal["object", "image"] | None) -> list[list[int]]:
+        """Rods a ray can enter at each event of a sequential trace (:meth:`planes_per_event`).
+
+        For ``start`` ``"object"`` or ``"image"`` the plane met at event k, and hence the one rod that can be
+        entered there, is known: one RKN loop per rod in the kernel instead of one per rod and event. ``None``:
+        every rod at every event (rays starting anywhere).
+        """
+        if start is None:
+            return [list(range(len(self.rods)))] * len(self.planes_per_event(None))
+        side = "rod_plus" if start == "object" else "rod_minus"
+        out: list[list[int]] = []
+        for plane in self.planes_per_event(start):
+            j = self.planes[plane][side] if plane >= 0 else -1
+            out.append([j] if j >= 0 else [])
+        return out
+
+    def known_planes(self, start: Literal["object", "image"] | None) -> list[dict[str, Any] | None]:
+        """Per event of a sequential trace, the plane met (None: not known): its row of :attr:`planes` with its
+        shape id ``sid`` and the half side ``half`` of its square.
+
+        What :func:`_known_plane_hit` takes instead of asking Mitsuba's ray intersection.
+        """
+        return [
+            None if k < 0 else self.planes[k] | {"sid": self._plane_sid[k], "half": self.half}
+            for k in self.planes_per_event(start)
+        ]
 
     def trace(
         self,
@@ -476,12 +550,15 @@ class GrinScene:
         max_events: int | None = None,
         eval_each: bool = False,
         start: Literal["object", "image"] | None = None,
+        sequential: bool = False,
     ) -> dict[str, Any]:
         """Trace rays from positions ``p`` with optical direction cosines ``t`` (|t| = n_start) until they meet the
         object or the image plane.
 
         ``start``: all rays start on the object plane going +z (``"object"``) or on the image plane going
         -z (``"image"``); lets the kernel hold one RKN loop per rod (:meth:`rods_per_event`).
+        ``sequential`` (with ``start``): the plane met at each event is known (:meth:`known_planes`), so it is
+        intersected directly instead of through Mitsuba's ray intersection (the same hits; the images' path).
 
         Returns a dict with ``x, y, z`` (hit point on the terminal plane), ``tx, ty, tz``, ``opl``,
         ``alive`` (reached a terminal plane unabsorbed) and ``kind`` (KIND_OBJECT / KIND_IMAGE).
@@ -495,8 +572,10 @@ class GrinScene:
         plan = self.rods_per_event(start)
         events = max_events or len(plan)
         plan = (plan + [list(range(len(self.rods)))] * events)[:events]
+        known = self.known_planes(start if sequential else None)
+        known = (known + [None] * events)[:events]
         for event in range(events):
-            self._event(rays, tab, F, eps, stop_r2, plan[event])
+            self._event(rays, tab, F, eps, stop_r2, plan[event], known[event])
             if eval_each:
                 dr.eval(*rays.arrays())
         rays.alive &= rays.done
@@ -514,18 +593,26 @@ class GrinScene:
         }
 
     def _event(
-        self, rays: _Rays, tab: dict[str, Any], F: type, eps: float, stop_r2: float | None, rods: list[int]
+        self,
+        rays: _Rays,
+        tab: dict[str, Any],
+        F: type,
+        eps: float,
+        stop_r2: float | None,
+        rods: list[int],
+        plane: dict[str, Any] | None = None,
     ) -> None:
-        """One event of the trace: running rays move to the next plane and end there, cross it, or enter a rod."""
-        hit, kind, sid = _to_next_plane(self.scene, rays, tab, F, eps)
+        """One event of the trace: running rays move to the next plane and end there, cross it, or enter a rod.
+
+        ``plane``: the plane met, when known (:meth:`known_planes`).
+        """
+        hit, kind, sid = _to_next_plane(self.scene, rays, tab, F, eps, plane)
         up = rays.tz > 0
-        n_next = dr.select(up, dr.gather(F, tab["n_plus"], sid, hit), dr.gather(F, tab["n_minus"], sid, hit))
-        rod_next = dr.select(
-            up, dr.gather(mi.Int32, tab["rod_plus"], sid, hit), dr.gather(mi.Int32, tab["rod_minus"], sid, hit)
-        )
-        rod_prev = dr.select(
-            up, dr.gather(mi.Int32, tab["rod_minus"], sid, hit), dr.gather(mi.Int32, tab["rod_plus"], sid, hit)
-        )
+        n_plus, n_minus = (_lookup(tab, k, F, sid, hit, plane) for k in ("n_plus", "n_minus"))
+        rod_plus, rod_minus = (_lookup(tab, k, mi.Int32, sid, hit, plane) for k in ("rod_plus", "rod_minus"))
+        n_next = dr.select(up, n_plus, n_minus)
+        rod_next = dr.select(up, rod_plus, rod_minus)
+        rod_prev = dr.select(up, rod_minus, rod_plus)
         term = hit & ((kind == KIND_OBJECT) | (kind == KIND_IMAGE))
         rays.done |= term
         rays.term_kind = dr.select(term, kind, rays.term_kind)
@@ -604,6 +691,8 @@ def _integrator_class(mi: Any) -> type:
         def __init__(self, props: mi.Properties) -> None:
             super().__init__(props)
             self.precision = props.get("precision", "float32")
+            #: the planes met are known (a sequential trace from the image plane): no Mitsuba ray intersection
+            self.sequential = bool(props.get("sequential", True))
             #: (GrinScene, Target) of the render in progress, set by :func:`render_image` for the call only
             self.context: tuple[GrinScene, Target] | None = None
 
@@ -625,6 +714,7 @@ def _integrator_class(mi: Any) -> type:
                 self.precision,
                 active=active,
                 start="image",
+                sequential=self.sequential,
             )
             ok = res["alive"] & (res["kind"] == KIND_OBJECT)
             x, y = mi.Float(res["x"]), mi.Float(res["y"])
@@ -636,7 +726,7 @@ def _integrator_class(mi: Any) -> type:
             return []
 
         def to_string(self) -> str:
-            return f"GrinIntegrator[precision={self.precision}]"
+            return f"GrinIntegrator[precision={self.precision}, sequential={self.sequential}]"
 
     return GrinIntegrator
 
@@ -753,39 +843,19 @@ def trace_forward(
     return out | {"alive": ok}
 
 
-def render_image(
+def _pupil_sensor(
     setup: GrinSetup,
     stack: Stack,
-    target: Target,
-    spp: int = 16,
-    width: int | None = None,
-    height: int | None = None,
-    precision: Precision = "float32",
-    step_mm: float = 0.9,
-    center: tuple[float, float] | None = None,
-    seed: int = 0,
-    variant: str | None = None,
-) -> np.ndarray:
-    """Image of ``target`` through the objective array onto the camera (irradiance, float32, row 0 at the top).
-
-    Uses the registered ``scopetwin_grin`` integrator and ``scopetwin_grin_pupil`` sensor with ``mi.render``.
-    ``step_mm``: RKN step for images; 0.9 mm gives the 4-step minimum in both §8.3.2 rods, whose image-plane ray
-    positions differ from 0.01 mm steps by 0.018 µm RMS, 0.035 µm max (float32: the same), 1/60 of a 2.2 µm
-    pixel; 0.17 % of the rays at NA 0.45 change fate at the rod wall (the wall is tested at the step points).
-    ``center``: the point of the image plane (mm) at the middle of the sensor; default the array's centre
-    (the whole demonstrator image, Fig. 8.16); pass an objective's axis for a one-objective window.
-    ``variant``: the Mitsuba variant (default ``choose("mono")``, resolved now). A size or ``spp`` below 1, or a
-    render beyond the memory or time limit, is a :class:`scopetwin.scenes.limits.LimitError` before anything is
-    allocated.
-    """
-    width = setup.camera.width_px if width is None else int(width)
-    height = setup.camera.height_px if height is None else int(height)
-    check_render(width, height, int(spp), f"GRIN image of {setup.name or setup.section}", "grin")
-    variant = resolve(variant, "mono")
+    size: tuple[int, int],
+    center: tuple[float, float] | None,
+    sampler: dict[str, Any],
+) -> dict[str, Any]:
+    """The ``scopetwin_grin_pupil`` sensor dictionary of :func:`render_image`: a film of ``size`` = (width, height)
+    pixels centred on ``center``, the last rod's exit face as the pupil, and the ``sampler`` dictionary."""
     arr = setup.array
     last_rod = [layer for layer in stack.layers if layer.rod is not None][-1]
     assert last_rod.rod is not None
-    sensor = {
+    return {
         "type": "scopetwin_grin_pupil",
         "z": stack.layers[-1].z1,
         "z_pupil": last_rod.z1,
@@ -800,15 +870,62 @@ def render_image(
         "cy": (center or (0.0, 0.0))[1],
         "film": {
             "type": "hdrfilm",
-            "width": width,
-            "height": height,
+            "width": size[0],
+            "height": size[1],
             "rfilter": {"type": "box"},
             "pixel_format": "luminance",
             "component_format": "float32",
         },
-        "sampler": {"type": "independent", "sample_count": spp, "seed": seed},
+        "sampler": sampler,
     }
-    integrator = {"type": "scopetwin_grin", "precision": precision}
+
+
+def render_image(
+    setup: GrinSetup,
+    stack: Stack,
+    target: Target,
+    spp: int = 16,
+    width: int | None = None,
+    height: int | None = None,
+    precision: Precision = "float32",
+    step_mm: float = 0.9,
+    center: tuple[float, float] | None = None,
+    seed: int = 0,
+    variant: str | None = None,
+    sequential: bool = True,
+    sampler: Sampler = "independent",
+) -> np.ndarray:
+    """Image of ``target`` through the objective array onto the camera (irradiance, float32, row 0 at the top).
+
+    Uses the registered ``scopetwin_grin`` integrator and ``scopetwin_grin_pupil`` sensor with ``mi.render``.
+    ``step_mm``: RKN step for images; 0.9 mm gives the 4-step minimum in both §8.3.2 rods, whose image-plane ray
+    positions differ from 0.01 mm steps by 0.018 µm RMS, 0.035 µm max (float32: the same), 1/60 of a 2.2 µm
+    pixel; 0.17 % of the rays at NA 0.45 change fate at the rod wall (the wall is tested at the step points).
+    ``center``: the point of the image plane (mm) at the middle of the sensor; default the array's centre
+    (the whole demonstrator image, Fig. 8.16); pass an objective's axis for a one-objective window.
+    ``variant``: the Mitsuba variant (default ``choose("mono")``, resolved now). A size or ``spp`` below 1, or a
+    render beyond the memory or time limit, is a :class:`scopetwin.scenes.limits.LimitError` before anything is
+    allocated.
+    ``sequential``: every path meets the planes in a known order, so they are intersected directly
+    (:meth:`GrinScene.known_planes`); False asks Mitsuba's ray intersection at every plane (the same image, bit
+    for bit, 5-7x slower: the intersection queries were 80-85 % of the render, issue 26).
+    ``sampler``: Mitsuba's sampler of the pixel and pupil samples. ``"independent"``; ``"multijitter"``
+    (correlated multi-jittered: stratified pixel and pupil samples, the same image with less noise — on a
+    348 x 260 window of the §8.3.2 grid image 25 spp have 7 % less per-pixel noise than 64 independent ones and
+    36 spp 30 % less, ``benchmarks/grin_speed.py``) takes only the counts Mitsuba does not round
+    (:func:`sampler_counts_exact`), others are a :class:`ScopetwinError`.
+    """
+    width = setup.camera.width_px if width is None else int(width)
+    height = setup.camera.height_px if height is None else int(height)
+    check_render(width, height, int(spp), f"GRIN image of {setup.name or setup.section}", "grin")
+    if not sampler_counts_exact(sampler, int(spp)):
+        ok = [n for n in range(max(1, spp - 16), spp + 17) if sampler_counts_exact(sampler, n)]
+        raise ScopetwinError(f"the {sampler} sampler rounds {spp} spp up; take one of {ok}")
+    variant = resolve(variant, "mono")
+    sensor = _pupil_sensor(
+        setup, stack, (width, height), center, {"type": sampler, "sample_count": int(spp), "seed": seed}
+    )
+    integrator = {"type": "scopetwin_grin", "precision": precision, "sequential": bool(sequential)}
     gs = GrinScene(setup, stack, step_mm, sensor=sensor, integrator=integrator, variant=variant)
     integ = gs.scene.integrator()
     integ.context = (gs, target)  # for this render only: the integrator must not keep the scene alive
@@ -818,6 +935,21 @@ def render_image(
     finally:
         integ.context = None
     return out
+
+
+def sampler_counts_exact(sampler: Sampler, spp: int) -> bool:
+    """Whether Mitsuba's ``sampler`` draws exactly ``spp`` samples per pixel (it rounds some counts up).
+
+    ``multijitter`` lays the samples on an a x b grid with b = floor(sqrt(spp)) and a = ceil(spp / b) (Mitsuba
+    3.9's ``MultijitterSampler::set_sample_count``; tests/scenes/test_grin_mitsuba.py checks the rule against the
+    installed Mitsuba): exact when b divides ``spp`` (1-4, 6, 8, 9, 12, 15, 16, 20, 24, 25, 30, 35, 36, 42, ...).
+    """
+    if sampler == "independent":
+        return spp >= 1
+    if sampler == "multijitter":
+        b = math.isqrt(spp) if spp >= 1 else 1
+        return spp >= 1 and spp % b == 0
+    raise ScopetwinError(f"sampler must be 'independent' or 'multijitter', got {sampler!r}")
 
 
 def illuminate(

@@ -187,3 +187,84 @@ def test_interleaved_rkn_equals_plain(dtype, mono_variant):
         np.testing.assert_array_equal(np.asarray(out[5]), alive)
         for a, b in zip(out[:5], plain[:5], strict=True):
             np.testing.assert_array_equal(np.asarray(a)[alive], np.asarray(b)[alive])
+
+
+def _rays_over_the_array(s, st, start, n, rng):
+    """Rays over the whole array: from the image plane aimed at and around the last rods' exit faces, or from the
+    object plane inside and around the rods' fields (some miss the rods: they meet the holders or walls)."""
+    axes = np.array(s.array.axes())
+    k = rng.integers(len(axes), size=n)
+    ax, ay = axes[k, 0], axes[k, 1]
+    rods = [layer for layer in st.layers if layer.rod is not None]
+    r, phi = 1.3 * rods[-1].rod.radius * np.sqrt(rng.uniform(0, 1, n)), rng.uniform(0, 2 * np.pi, n)
+    if start == "image":
+        u, v = ax + rng.uniform(-0.4, 0.4, n), ay + rng.uniform(-0.4, 0.4, n)
+        d = np.stack([ax + r * np.cos(phi) - u, ay + r * np.sin(phi) - v, np.full(n, rods[-1].z1 - st.layers[-1].z1)])
+        d /= np.linalg.norm(d, axis=0)
+        return (u, v, np.full(n, st.layers[-1].z1)), tuple(d), 1.0
+    n0 = st.layers[0].index
+    tx, ty = 0.5 * r / rods[-1].rod.radius * np.cos(phi), 0.5 * r / rods[-1].rod.radius * np.sin(phi)
+    x, y = ax + rng.uniform(-0.3, 0.3, n), ay + rng.uniform(-0.3, 0.3, n)
+    return (x, y, np.zeros(n)), (tx, ty, np.sqrt(n0 * n0 - tx * tx - ty * ty)), n0
+
+
+@pytest.mark.parametrize("start", ["image", "object"])
+def test_sequential_trace_equals_mitsuba_intersections(realized, mono_variant, start):
+    """Issue 26: intersecting the planes a sequential trace meets in their known order (no Mitsuba ray
+    intersection) gives the very same rays as asking Mitsuba's intersection at every plane, fates included."""
+    s, st = realized
+    gs = grin.GrinScene(s, st, 0.9, variant=mono_variant)
+    p, t, n_start = _rays_over_the_array(s, st, start, 20000, np.random.default_rng(7))
+    for precision in ("float32", "float64"):
+        a = gs.trace(p, t, n_start, precision, start=start)
+        b = gs.trace(p, t, n_start, precision, start=start, sequential=True)
+        alive = np.asarray(a["alive"])
+        assert 0.2 < alive.mean() < 0.95  # both fates occur
+        for key in a:
+            np.testing.assert_array_equal(np.asarray(b[key]), np.asarray(a[key]), err_msg=f"{precision} {key}")
+
+
+def test_sequential_image_equals_mitsuba_intersections(mono_variant):
+    """The image of the whole array (every objective, rays missing the rods) is bit for bit the same with the planes
+    intersected in their known order as with Mitsuba's ray intersection (issue 26: the ~5x faster path)."""
+    s = load_grin_setup("thesis-8.3.2-grin-realized", {"camera": {"pixel_um": 20.0}})
+    st = s.stack(image_distance=11.4)
+    kw = {"spp": 4, "width": 80, "height": 60, "variant": mono_variant}
+    fast = grin.render_image(s, st, target("grid-25"), sequential=True, **kw)
+    slow = grin.render_image(s, st, target("grid-25"), sequential=False, **kw)
+    assert fast.mean() > 0 and (fast == 0).mean() > 0.05  # light and dark (between the objectives' images)
+    np.testing.assert_array_equal(fast, slow)
+
+
+def test_multijitter_counts_are_those_mitsuba_keeps(mi_mono):
+    """``sampler_counts_exact`` is the installed Mitsuba's rule; a rounded count is refused before rendering."""
+    from scopetwin.scenes.errors import ScopetwinError
+
+    for spp in range(1, 130):
+        kept = mi_mono.load_dict({"type": "multijitter", "sample_count": spp}).sample_count() == spp
+        assert grin.sampler_counts_exact("multijitter", spp) == kept, spp
+    s = load_grin_setup("thesis-8.3.2-grin-realized")
+    with pytest.raises(ScopetwinError, match="rounds 32 spp up"):
+        grin.render_image(
+            s, s.stack(image_distance=11.4), target("grid-25"), spp=32, width=8, height=8, sampler="multijitter"
+        )
+
+
+def test_multijitter_at_25_spp_is_less_noisy_than_64_independent(realized, mono_variant):
+    """Issue 26, fewer paths for the same noise: stratified pixel and pupil samples (Mitsuba's multi-jittered
+    sampler) at 25 spp give at most the per-pixel noise of 64 independent samples, around the same mean.
+
+    The noise of each is the RMS difference of two renders with different seeds / sqrt 2 (no reference needed);
+    ``benchmarks/grin_speed.py`` prints it on a larger window (348 x 260: ratio 0.93; 96 x 96: 0.80)."""
+    s, st = realized
+    kw = {"width": 96, "height": 96, "center": s.array.axes()[0], "variant": mono_variant}
+    noise, mean = {}, {}
+    for sampler, spp in (("independent", 64), ("multijitter", 25)):
+        a, b = (grin.render_image(s, st, target("grid-25"), spp=spp, seed=sd, sampler=sampler, **kw) for sd in (3, 4))
+        noise[sampler] = np.sqrt(np.mean((a.astype(np.float64) - b) ** 2) / 2)
+        mean[sampler] = 0.5 * (a.mean() + b.mean())
+    assert noise["independent"] > 0
+    assert noise["multijitter"] <= noise["independent"]
+    # the same image: the means agree within 5 standard errors of the pixel noise
+    se = np.hypot(noise["independent"], noise["multijitter"]) / np.sqrt(2 * 96 * 96)
+    assert abs(mean["multijitter"] - mean["independent"]) < 5 * se
