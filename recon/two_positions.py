@@ -85,6 +85,10 @@ class TwoPositionConfig:
         height). The result notes it.
     min_markers : int
         Fewest markers of the second image whose rays meet the ROI.
+    settle_um : float
+        The joint surface at the height found must settle: its last RMS height change over the ROI at most this, µm
+        (else no surface explains both images — a wrong shift, or centroids the bias step cannot model — and the
+        height is refused rather than reported).
     """
 
     step_um: float = 1.0
@@ -94,6 +98,7 @@ class TwoPositionConfig:
     combine: bool = True
     disagree_sigmas: float = 3.0
     min_markers: int = 20
+    settle_um: float = 0.01
 
 
 @dataclass(frozen=True)
@@ -108,25 +113,28 @@ class PatternView:
 @dataclass
 class JointRun:
     """The joint surface for one start height: the surface, the gradient residuals (n_markers, 2) of every view's
-    markers stacked (NaN where a ray missed the ROI), the markers' substrate positions (NaN likewise), iterations."""
+    markers stacked (NaN where a ray missed the ROI), the markers' substrate positions (NaN likewise), iterations and
+    the last RMS height change over the ROI (µm)."""
 
     height: float
     surface: SBFSurface
     residual: Array
     xy: Array
     iterations: int
+    change_um: float
 
 
 @dataclass(frozen=True)
 class HeightEstimate:
     """The absolute height (ROI mean) from the frame criterion, from the two positions, and combined; µm.
 
-    ``pair_std_um`` is the larger of the Gauss-Newton and the block-jackknife standard uncertainty; ``agreement``
-    is (pair - frame) / sqrt(u_pair^2 + u_frame^2); ``std_um`` includes the Birge-ratio scaling where |agreement|
-    > 1.
+    ``frame_um`` is None where image 1 alone could not be reconstructed (the two positions then start from a coarse
+    fit of its markers). ``pair_std_um`` is the larger of the Gauss-Newton and the block-jackknife standard
+    uncertainty; ``agreement`` is (pair - frame) / sqrt(u_pair^2 + u_frame^2); ``std_um`` includes the Birge-ratio
+    scaling where 1 < |agreement| <= ``disagree_sigmas``.
     """
 
-    frame_um: float
+    frame_um: float | None
     frame_std_um: float | None
     pair_um: float
     pair_std_um: float
@@ -148,13 +156,14 @@ class HeightEstimate:
 class TwoPositionResult:
     """The surface from two images of the pattern at two positions, with the image-1 reconstruction it started from.
 
-    ``surface`` is the joint surface at the combined height; ``shape_std_um`` is the single image's (its start
-    height's part was the frame criterion's, so it is an upper bound).
+    ``surface`` is the joint surface at the height found; ``single`` is image 1 reconstructed alone (None where that
+    failed: ``strategy`` says why). ``shape_std_um`` is the single image's (its start height's part was the frame
+    criterion's, so it is an upper bound; None without it).
     """
 
     surface: SBFSurface
     substrate: Substrate2D
-    single: ReconstructionResult
+    single: ReconstructionResult | None
     estimate: HeightEstimate
     shift_mm: float
     seconds: float
@@ -166,7 +175,7 @@ class TwoPositionResult:
 
     @property
     def shape_std_um(self) -> float | None:
-        u = self.single.uncertainty
+        u = None if self.single is None else self.single.uncertainty
         return None if u is None else u.shape_um
 
     def height_at(self, x_mm: Any, y_mm: Any) -> NDArray[np.float64]:
@@ -178,9 +187,10 @@ class TwoPositionResult:
         return self.surface.heightmap(self.substrate.x_range, self.substrate.y_range, nx, ny)
 
     def std_heightmap(self, nx: int = 128, ny: int = 288) -> HeightMap | None:
-        """Per-node standard uncertainty, mm: the single image's with its absolute part replaced by the combined."""
-        single = self.single.std_heightmap(nx, ny)
-        u = self.single.uncertainty
+        """Per-node standard uncertainty, mm: the single image's with its absolute part replaced by the two
+        positions' (None without the single image's)."""
+        u = None if self.single is None else self.single.uncertainty
+        single = None if self.single is None else self.single.std_heightmap(nx, ny)
         if single is None or u is None:
             return None
         shape2 = np.clip(single.z**2 - (u.absolute_um * 1e-3) ** 2, 0.0, None)
@@ -188,11 +198,17 @@ class TwoPositionResult:
         return HeightMap(z, single.x_min, single.x_max, single.y_min, single.y_max)
 
     def summary(self) -> dict[str, Any]:
-        """JSON-ready: the single image's summary, the start height replaced, and the two positions' estimate."""
-        out = self.single.summary()
+        """JSON-ready: the single image's summary (where it was reconstructed), the start height replaced, and the
+        two positions' estimate."""
+        if self.single is not None:
+            out = self.single.summary()
+        else:
+            out = {"outer_iterations": 0, "inner_iterations": 0, "delta_h_max_um": None, "converged": False}
         out.update(
             start_height_um=self.estimate.height_um,
             seconds=self.seconds,
+            sigma_mm=list(self.surface.basis.sigma),
+            basis_functions=self.surface.basis.n_basis,
             strategy=list(self.strategy),
             two_positions={"shift_mm": self.shift_mm, **self.estimate.summary()},
         )
@@ -213,7 +229,7 @@ def joint_surface(
     roi = basis.values(*sub.roi_grid(cfg.grid_step))
     surface = SBFSurface(basis, initial.coef, height - float(np.mean(roi @ initial.coef)))
     prev = roi @ surface.coef + surface.offset
-    iterations = 0
+    iterations, change_um = 0, float("inf")
     for iterations in range(1, cfg.inner_max + 1):  # noqa: B007 - the count is returned
         traced = [v.reconstructor.traced_gradients(surface, v.markers) for v in views]
         xy = np.concatenate([t[0] for t in traced])
@@ -227,7 +243,7 @@ def joint_surface(
         if change_um < cfg.inner_tol_um:
             break
     residual, points = _residuals(views, traced, surface)
-    return JointRun(height, surface, residual, points, iterations)
+    return JointRun(height, surface, residual, points, iterations, change_um)
 
 
 def _residuals(views: list[PatternView], traced: list[Any], surface: SBFSurface) -> tuple[Array, Array]:
@@ -273,7 +289,14 @@ def pair_height(
             if abs(step) * 1e3 < tp.tol_um:
                 break
         if abs(run.height - at) <= d or steps >= 3 * tp.max_steps:
-            return run, jac, steps
+            break
+    if not run.change_um <= tp.settle_um:
+        raise ReconstructionError(
+            f"the joint surface of both images did not settle at the height found (last change {run.change_um:.3g} "
+            f"µm > {tp.settle_um:g} µm after {run.iterations} iterations): no smooth surface explains the markers of "
+            "both pattern positions (is the shift right? are the centroids biased beyond the bias step's model?)"
+        )
+    return run, jac, steps
 
 
 def pair_uncertainty(
@@ -334,19 +357,22 @@ def combine(
 # -- one image's result and a second image -> the two-position result -----------------------------------------------
 def solve_two_positions(
     first: PatternView,
-    single: ReconstructionResult,
+    single: ReconstructionResult | None,
     second: PatternView,
     shift_mm: float,
     tp: TwoPositionConfig = TwoPositionConfig(),
+    start: SBFSurface | None = None,
+    notes: tuple[str, ...] = (),
 ) -> TwoPositionResult:
     """The two-position height and surface from image 1's reconstruction and a second image's markers.
 
     Parameters
     ----------
     first : PatternView
-        Image 1's iteration pieces (its basis is the one ``single`` ended with) and markers (rejected ones removed).
-    single : ReconstructionResult
-        Image 1 reconstructed alone (:func:`scopetwin.recon.strategy.solve`): the frame criterion's height.
+        Image 1's iteration pieces and markers (rejected ones removed).
+    single : ReconstructionResult or None
+        Image 1 reconstructed alone (:func:`scopetwin.recon.strategy.solve`): the frame criterion's height, the start
+        surface and its basis. None: no frame criterion, the search starts from ``start``.
     second : PatternView
         The pieces for the setup with the pattern moved (:func:`scopetwin.scenes.pattern_stage.shift_pattern`) and
         the second image's markers.
@@ -354,30 +380,37 @@ def solve_two_positions(
         The pattern's shift along N_z, mm (reported).
     tp : TwoPositionConfig
         Steps, tolerances, jackknife blocks, whether to combine with the frame criterion.
+    start : SBFSurface, optional
+        The start surface where there is no ``single`` (a coarse fit of image 1's markers).
+    notes : tuple of str
+        Lines put before the path's own (what failed on the way).
     """
     t0 = time.perf_counter()
     rec = first.reconstructor
-    basis = single.surface.basis
+    begin = single.surface if single is not None else start
+    if begin is None:
+        raise ReconstructionError("the two-position search needs image 1's reconstruction or a start surface")
+    basis = begin.basis
     for view in (first, second):
         if view.reconstructor.basis is not basis:
             view.reconstructor.use_basis(basis)
     with single_thread_blas():
-        _check_second(second, single.surface, tp)
-        h_frame = rec.roi_mean(single.surface.coef) + single.surface.offset
+        _check_second(second, begin, tp)
+        h_start = rec.roi_mean(begin.coef) + begin.offset
         views = [first, second]
-        run, jac, steps = pair_height(views, basis, single.surface, h_frame, tp)
+        run, jac, steps = pair_height(views, basis, begin, h_start, tp)
         gn, jk, resid = pair_uncertainty(run, jac, basis.n_terms, tp.blocks, rec.sub)
-        u = single.uncertainty
+        u = None if single is None else single.uncertainty
         frame_std = None if u is None else u.absolute_um * 1e-3
-        pair_std = max(gn, jk)
-        h, h_std, z = combine(h_frame, frame_std, run.height, pair_std, tp.combine, tp.disagree_sigmas)
+        h, h_std, z = combine(h_start, frame_std, run.height, max(gn, jk), tp.combine, tp.disagree_sigmas)
         final = joint_surface(views, basis, h, run.surface, rec.config) if h != run.height else run
     n1, n2 = (int(np.sum(np.isfinite(v))) for v in np.split(run.residual[:, 0], [len(first.markers.ij)]))
+    frame = None if single is None else h_start * 1e3
     est = HeightEstimate(
-        h_frame * 1e3,
+        frame,
         None if frame_std is None else frame_std * 1e3,
         run.height * 1e3,
-        pair_std * 1e3,
+        max(gn, jk) * 1e3,
         gn * 1e3,
         jk * 1e3,
         h * 1e3,
@@ -387,11 +420,23 @@ def solve_two_positions(
         (n1, n2),
         steps,
     )
+    path = [*notes, *(single.strategy if single is not None else []), *_path(est, shift_mm, tp)]
+    seconds = (single.seconds if single is not None else 0.0) + time.perf_counter() - t0
+    return TwoPositionResult(final.surface, rec.sub, single, est, float(shift_mm), seconds, path)
+
+
+def _path(est: HeightEstimate, shift_mm: float, tp: TwoPositionConfig) -> list[str]:
+    """The strategy's lines of the two positions: the height found, and how the frame criterion entered."""
+    where = (
+        f"height {est.pair_um - est.frame_um:+.3g} µm from the frame criterion's"
+        if est.frame_um is not None
+        else f"height {est.pair_um:+.4g} µm"
+    )
     path = [
-        *single.strategy,
-        f"second pattern position ({shift_mm:+g} mm along N_z): {n2} markers, height "
-        f"{est.pair_um - est.frame_um:+.3g} µm from the frame criterion's, u = {est.pair_std_um:.3g} µm",
+        f"second pattern position ({shift_mm:+g} mm along N_z): {est.markers[1]} markers, {where}, "
+        f"u = {est.pair_std_um:.3g} µm"
     ]
+    z = est.agreement
     if z is not None and abs(z) > tp.disagree_sigmas:
         path.append(
             f"the frame criterion disagrees by {z:+.3g} combined standard uncertainties (beyond "
@@ -400,8 +445,7 @@ def solve_two_positions(
         )
     elif z is not None:
         path.append(f"combined with the frame criterion (z = {z:+.2f}): u = {est.std_um:.3g} µm")
-    seconds = single.seconds + time.perf_counter() - t0
-    return TwoPositionResult(final.surface, rec.sub, single, est, float(shift_mm), seconds, path)
+    return path
 
 
 def _check_second(second: PatternView, surface: SBFSurface, tp: TwoPositionConfig) -> None:
@@ -466,33 +510,71 @@ def reconstruct_pair(
 
     Image 1 goes through the one strategy (:func:`scopetwin.recon.strategy.reconstruct_image`, every fallback of
     ``policy``); the second image's markers are found with the moved setup and image 1's surface, wrongly indexed
-    ones rejected as in image 1 (``policy.outlier_factor``); then :func:`solve_two_positions`.
+    ones rejected as in image 1 (``policy.outlier_factor``); then :func:`solve_two_positions`. Where image 1 alone
+    cannot be reconstructed (the frame criterion's loop does not converge, too few markers near a frame region), the
+    two positions need no frame: they start from a coarse fit of image 1's markers
+    (:meth:`scopetwin.recon.reconstruct.Reconstructor.coarse_surface`) without the frame criterion, and the path
+    says what failed.
 
     Returns
     -------
     Reconstruction
         ``method = "centroid"``, ``result`` a :class:`TwoPositionResult`, ``markers`` image 1's, the uncertainty's
-        absolute part the combined height's.
+        absolute part the two positions' (combined with the frame criterion's).
     """
     from scopetwin.recon.markers import find_markers_for
-    from scopetwin.recon.strategy import Reconstruction, StandardUncertainty, reconstruct_image
+    from scopetwin.recon.strategy import Reconstruction, StandardUncertainty
 
     shift = stage_shift(setup, shift_mm)
     moved = shift_pattern(setup, shift)
-    done = reconstruct_image(image, setup, config, policy)
-    single = done.result
-    found = find_markers_for(second_image, moved, single.heightmap(64, 128), lattice_below=policy.lattice_below)
-    second = view_for(moved, MarkerObservations(found.ij, found.centroids), config, policy.bias_step)
-    second.reconstructor.use_basis(done.reconstructor.basis)
-    if policy.outlier_factor > 0:
-        drop = second.reconstructor.index_outliers(
-            second.markers, single.surface, policy.outlier_factor, policy.outlier_max_fraction
-        )
-        second = PatternView(
-            second.reconstructor, MarkerObservations(second.markers.ij[~drop], second.markers.px[~drop])
-        )
-    first_markers = _without(MarkerObservations(done.markers.ij, done.markers.centroids), single.rejected)
-    first = PatternView(done.reconstructor, first_markers)
-    result = solve_two_positions(first, single, second, shift, tp)
+    first, single, surface, markers, notes = _first_image(image, setup, config, policy)
+    found2 = find_markers_for(second_image, moved, _heights(surface, first), lattice_below=policy.lattice_below)
+    bias = policy.bias_step and first.reconstructor.bias is not None  # both images alike
+    second = view_for(moved, MarkerObservations(found2.ij, found2.centroids), config, bias)
+    second = _without_outliers(second, surface, policy)
+    result = solve_two_positions(first, single, second, shift, tp, surface, notes)
     unc = StandardUncertainty(result.absolute_std_um, result.shape_std_um)
-    return Reconstruction("centroid", result, done.markers, unc, result.strategy)
+    return Reconstruction("centroid", result, markers, unc, result.strategy)
+
+
+def _first_image(
+    image: NDArray[Any], setup: Setup, config: ReconstructionConfig | None, policy: ReconstructionPolicy
+) -> tuple[PatternView, ReconstructionResult | None, SBFSurface, Any, tuple[str, ...]]:
+    """Image 1 through the one strategy: its view (rejected markers removed), result, surface, markers; where the
+    strategy fails, its view and a coarse fit of its markers, and a note saying what failed."""
+    from scopetwin.recon.markers import find_markers_for
+    from scopetwin.recon.strategy import reconstruct_image
+    from scopetwin.scenes.errors import ScopetwinError
+
+    try:
+        done = reconstruct_image(image, setup, config, policy)
+    except ScopetwinError as exc:
+        found = find_markers_for(image, setup, lattice_below=policy.lattice_below)
+        rec = Reconstructor.from_setup(setup, config)
+        obs = MarkerObservations(found.ij, found.centroids)
+        start = rec.coarse_surface(obs, policy.coarse_iterations, policy.coarse_min_hit)
+        note = (
+            f"image 1 alone: {type(exc).__name__}: {exc}; the two positions start from a coarse fit of its markers, "
+            "without the bias step"
+        )
+        return PatternView(rec, obs), None, start, found, (note,)
+    obs = _without(MarkerObservations(done.markers.ij, done.markers.centroids), done.result.rejected)
+    return PatternView(done.reconstructor, obs), done.result, done.result.surface, done.markers, ()
+
+
+def _heights(surface: SBFSurface, view: PatternView) -> HeightMap:
+    """A surface on a coarse node grid over the substrate (where the second image's markers are looked for)."""
+    sub = view.reconstructor.sub
+    return surface.heightmap(sub.x_range, sub.y_range, 64, 128)
+
+
+def _without_outliers(view: PatternView, surface: SBFSurface, policy: ReconstructionPolicy) -> PatternView:
+    """The second image's markers without those whose gradients no smooth surface explains (wrongly indexed:
+    :meth:`scopetwin.recon.reconstruct.Reconstructor.index_outliers`, ``policy.outlier_factor``)."""
+    rec = view.reconstructor
+    if policy.outlier_factor <= 0:
+        return view
+    if rec.basis is not surface.basis:
+        rec.use_basis(surface.basis)
+    drop = rec.index_outliers(view.markers, surface, policy.outlier_factor, policy.outlier_max_fraction)
+    return PatternView(rec, MarkerObservations(view.markers.ij[~drop], view.markers.px[~drop]))

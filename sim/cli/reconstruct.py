@@ -125,8 +125,8 @@ def _cmd_two_positions(args: argparse.Namespace, setup: Any, image: Any, out: Pa
     print(
         f"reconstructed from two pattern positions ({shift:+g} mm): {est.markers[0]} + {est.markers[1]} markers, "
         f"absolute height {est.height_um:+.3f} µm, u(absolute) = {est.std_um:.3f} µm (frame criterion "
-        f"{est.frame_um:+.3f} µm, two positions {est.pair_um:+.3f} ± {est.pair_std_um:.3f} µm), "
-        f"{seconds:.2f} s -> {out}"
+        f"{'failed' if est.frame_um is None else f'{est.frame_um:+.3f} µm'}, two positions {est.pair_um:+.3f} ± "
+        f"{est.pair_std_um:.3f} µm), {seconds:.2f} s -> {out}"
     )
     summary = result.summary()
     return {
