@@ -253,9 +253,9 @@ def fit_hyper(
 
     All five (log) parameters are optimised with analytic gradients (L-BFGS-B) within bounds (smooth length
     3-60 mm, broadband length 0.25-3 mm, broadband amplitude 0.01-300 nm, noise 0.02-100 µrad), from one start
-    per smooth length in ``smooth_starts``; the best evidence wins. One start by default: a second from 25 mm reached
-    the same evidence (within 0.003 nats) on a §1.9 surface and a glass-like one, at twice the cost. At most ``max_points`` observations (an even
-    subsample) enter the evidence, for speed.
+    per smooth length in ``smooth_starts``; the best evidence wins. One start by default: a second from 25 mm
+    reached the same evidence (within 0.003 nats) on a §1.9 surface and a glass-like one, at twice the cost. At most
+    ``max_points`` observations (an even subsample) enter the evidence, for speed.
     """
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     gx, gy = np.ravel(gx), np.ravel(gy)
