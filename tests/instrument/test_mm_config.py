@@ -146,6 +146,7 @@ def offline(*key, **kw):
 
 # the widgets draw icons that superqt would download from a public server: never try, use its text fallback
 iconify.svg_path = offline
+from qtpy.QtCore import QEvent
 from qtpy.QtWidgets import QApplication
 from pymmcore_plus.experimental.unicore import UniMMCore
 from pymmcore_widgets import ChannelWidget, ConfigurationWidget, ExposureWidget, PropertyBrowser
@@ -172,6 +173,8 @@ print("widgets ok", flush=True)
 for widget in (loader, channel, exposure, browser):
     widget.close()
     widget.deleteLater()
+# deleted now (processEvents leaves deferred deletions to a running event loop): their connections go with them
+app.sendPostedEvents(None, QEvent.Type.DeferredDelete)
 app.processEvents()
 core.unloadAllDevices()
 app.processEvents()
