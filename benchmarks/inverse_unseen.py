@@ -34,7 +34,7 @@ import json
 import pickle
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -137,14 +137,15 @@ def run_case(case: UnseenCase, save: Path | None = None) -> dict[str, Any]:
     t0 = time.perf_counter()
     try:
         rec = scopetwin.reconstruct(image, setup, method="inverse")
-    except ScopetwinError as exc:
-        row["error"] = f"{type(exc).__name__}: {exc}"
+    except Exception as exc:  # every row reported: a crash (not a ScopetwinError) is a figure too
+        kind = "" if isinstance(exc, ScopetwinError) else "uncaught "
+        row["error"] = f"{kind}{type(exc).__name__}: {exc}"
         return row
     finally:
         strategy.inverse_start = original
         row["total_s"] = time.perf_counter() - t0
         if save is not None:
-            _save(save / f"{case.name}.pkl", (case, setup, truth, image, starts[-1:]))
+            _save(save / f"{case.name}.pkl", (asdict(case), setup, truth, image, starts[-1:]))
     if starts and starts[-1].surface is not None:
         e0 = roi_errors(starts[-1].surface.height, truth, sub)
         row |= {"start_shape_um": e0["roi_shape_um"], "start_abs_um": e0["roi_absolute_um"]}

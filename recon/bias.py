@@ -240,7 +240,10 @@ def _fit_local_map(
     a = _design(q)  # (n, k, 10)
     aw = a * use[..., None]
     awt = aw.transpose(0, 2, 1)  # batched products by matmul (einsum's unoptimised loops are ~5x slower here)
-    coef = np.linalg.solve(awt @ a, awt @ px)
+    try:
+        coef = np.linalg.solve(awt @ a, awt @ px)
+    except np.linalg.LinAlgError as exc:  # too few rays reach the pattern around a marker (near a caustic)
+        raise BiasError("the model's map around a marker could not be fitted (singular normal equations)") from exc
     res = np.sum((a @ coef - px) ** 2, axis=-1)
     fit_rms = np.sqrt(np.sum(res * use, axis=1) / use.sum(axis=1))
     return coef, fit_rms, reaches
