@@ -15,7 +15,16 @@ from typing import Any
 
 from scopetwin.sim.datasets.runner import dask_client, init_worker
 from scopetwin.sim.measurement import StagedOutput
-from scopetwin.sim.studies import angle, coverage, inverse, noise, setup_placement, surface, thesis
+from scopetwin.sim.studies import (
+    angle,
+    coverage,
+    inverse,
+    noise,
+    second_measurement,
+    setup_placement,
+    surface,
+    thesis,
+)
 from scopetwin.sim.studies.context import StudyContext, StudyError, StudyResult
 from scopetwin.sim.studies.tables import jsonable, table_json, table_markdown
 
@@ -28,6 +37,7 @@ STUDIES: dict[str, Callable[[StudyContext], StudyResult]] = {
     "inverse": inverse.inverse,
     "coverage": coverage.coverage,
     "setup": setup_placement.setup_placement,
+    "second-measurement": second_measurement.second_measurement,
 }
 
 
