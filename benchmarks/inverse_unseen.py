@@ -156,6 +156,7 @@ def run_case(case: UnseenCase, save: Path | None = None) -> dict[str, Any]:
     row["untilted_um"] = untilted_shape_um(rec.height_at, truth, sub)
     row |= {"u_abs_um": rec.uncertainty.absolute_um, "u_shape_um": rec.uncertainty.shape_um}
     row["chi2"] = [h.chi2 for h in rec.result.history]
+    row |= {k: rec.result.extras.get(k) for k in ("surface", "span_terms")}
     return row
 
 
@@ -193,6 +194,7 @@ def print_row(r: dict[str, Any]) -> None:
     print(
         f"      start {r['start']}: shape {_fmt(r.get('start_shape_um'), '.4f')} µm (flat"
         f" {_fmt(r.get('start_untilted_um'), '.4f')}), absolute {_fmt(r.get('start_abs_um'), '+.4f')} µm;"
+        f" fit in the {r.get('surface')} ({_fmt(r.get('span_terms'), 'd')} terms);"
         f" chi2/px per step {', '.join(f'{c:.3g}' for c in r['chi2'])}"
     )
     print("      path: " + " -> ".join(r["strategy"]), flush=True)
