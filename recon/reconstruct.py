@@ -296,12 +296,6 @@ class Reconstructor:
         """Mean over the ROI's evaluation grid of the basis part with coefficients ``coef``, mm."""
         return float(np.mean(self._roi_values @ coef))
 
-    def mean_height(self, surface: SBFSurface) -> float:
-        """Mean height of ``surface`` over the ROI's evaluation grid, mm (its start height, for the inner loop's)."""
-        if surface.basis is self.basis:
-            return surface.offset + self.roi_mean(surface.coef)
-        return float(np.mean(surface.height(*self.sub.roi_grid(self.config.grid_step))))
-
     def frame_maxima(self, surface: SBFSurface) -> tuple[float, float]:
         """max over frame region 1 and region 2 of the surface, mm (eq. 1.3)."""
         return (
@@ -337,7 +331,7 @@ class Reconstructor:
     def trace(self, surface: SBFSurface, px: Array, targets: Array) -> tuple[Array, Array, Array, NDArray]:
         """Marker rays through ``surface``: points (x, y) and gradients of those that meet the ROI, and the mask."""
         o, d = self._rays(px)
-        lam, ok = intersect_surface(surface, o, d, self.sub.frame, start_z=self.mean_height(surface))
+        lam, ok = intersect_surface(surface, o, d, self.sub.frame)
         hit = o + np.where(ok, lam, 0.0)[:, None] * d
         local = self.sub.frame.to_local(hit)
         ok &= (np.abs(local[:, 0]) <= 0.5 * self.sub.size_x) & (np.abs(local[:, 1]) < 0.5 * self.sub.roi_length)

@@ -58,25 +58,12 @@ class Substrate2D:
 
 
 def intersect_surface(
-    surface: SBFSurface,
-    origins: Array,
-    dirs: Array,
-    frame: Frame | None = None,
-    tol: float = 1e-10,
-    max_iter: int = 30,
-    start_z: float | None = None,
+    surface: SBFSurface, origins: Array, dirs: Array, frame: Frame | None = None, tol: float = 1e-10, max_iter: int = 30
 ) -> tuple[Array, NDArray[np.bool_]]:
     """Ray parameters where rays meet a fitted surface z = f(x, y) (secant iteration of seed §1.6.4, eq. 1.6).
 
     :func:`scopetwin.scenes.surface.secant_intersection`, started at the rays' intersections with the plane
-    z = ``start_z`` and with the plane z = f there, which is close to the root for a nearly flat substrate whose
-    mean height is ``start_z``. Pass the surface's mean height over the data (the inner loop's start height): the
-    ``offset`` (the default) is that height only where the basis part averages to zero. A basis too coarse for the
-    surface (12 mm Gaussians on glass with 53 µm of waviness rolled off at 1.4 mm, issue 27 item 2) fits it with
-    basis and plane terms of tens of mm that cancel over the data to microns: an offset 23 mm below the surface and
-    a plane tilted by 0.4, whose sum plunges by millimetres a few mm beyond the substrate. Started from the plane
-    z = offset, the grazing rays near the far end converged on that crossing instead of the substrate's, and the
-    inner loop lost frame region 2's markers.
+    z = offset and with the plane z = f there, which is close to the root for a nearly flat substrate.
 
     Parameters
     ----------
@@ -88,8 +75,6 @@ def intersect_surface(
         The substrate's base plane (None: the rays are given in it).
     tol, max_iter : float, int
         Convergence threshold on ``|f|``, mm, and largest number of secant steps.
-    start_z : float, optional
-        Height of the plane the iteration starts on, mm, in the coordinates of ``frame`` (None: ``surface.offset``).
 
     Returns
     -------
@@ -101,7 +86,7 @@ def intersect_surface(
     o = frame.to_local(origins) if frame is not None else np.asarray(origins, dtype=np.float64)
     d = frame.vectors_to_local(dirs) if frame is not None else np.asarray(dirs, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
-        lam0 = ((surface.offset if start_z is None else start_z) - o[:, 2]) / d[:, 2]
+        lam0 = (surface.offset - o[:, 2]) / d[:, 2]
     lam, converged = secant_intersection(surface, o, d, lam0, tol=tol, max_iter=max_iter)
     return lam, converged & (lam > 0)
 
