@@ -274,9 +274,9 @@ def _lower_inverse(low: Array) -> Array:
     return np.tril(inv)
 
 
-def _even_subsample(n: int, k: int) -> Array:
+def _even_subsample(n: int, k: int) -> NDArray[np.intp]:
     """Indices of an even subsample of k of n observations (all of them where n <= k)."""
-    return np.arange(n) if n <= k else np.linspace(0, n - 1, k).round().astype(int)
+    return np.arange(n) if n <= k else np.linspace(0, n - 1, k).round().astype(np.intp)
 
 
 def _max_evidence(pairs: _Pairs, g: Array, starts: list[Array], bounds: list[tuple[float, float]]) -> Array:
