@@ -11,13 +11,17 @@ STAMP  := $(VENV)/.installed-stamp
 run: setup
 	$(VENV)/bin/scopetwin run
 
+# pytest-xdist: two worker processes, each test file on one worker (module fixtures and the Mitsuba variant stay
+# per process); the suite is half waiting on subprocesses and serial ports, half numpy on one BLAS thread
+XDIST  := -n 2 --dist loadfile
+
 # the default before each commit (<= 5 min on 2 cores): everything but the tests marked slow
 test: setup
-	$(PY) -m pytest -m "not slow"
+	$(PY) -m pytest $(XDIST) -m "not slow"
 
 # everything (<= 15 min on 2 cores): what .ci/run runs
 test-all: setup
-	$(PY) -m pytest
+	$(PY) -m pytest $(XDIST)
 
 setup: $(STAMP) llvm
 
