@@ -51,7 +51,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -70,6 +70,9 @@ from scopetwin.scenes.geometry import Array
 from scopetwin.scenes.pattern import MarkerPattern
 from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
+
+if TYPE_CHECKING:
+    from scopetwin.recon.posterior import Hyper
 
 #: A centroid-bias step: (current surface, marker indices (n, 2), measured image positions (n, 2) px)
 #: -> corrected image positions of the marker centres (n, 2) px.
@@ -253,6 +256,14 @@ class Reconstructor:
         Basis, thresholds, criterion, search.
     bias : BiasStep, optional
         Centroid-bias correction applied in every inner iteration (None: use the positions as measured).
+
+    Attributes
+    ----------
+    evidence_start : Hyper or None
+        The one start of the posterior step's evidence maximisation (a warm start: the prior of an earlier frame of
+        the same setup, :attr:`scopetwin.recon.uncertainty.Uncertainty.hyper` through
+        :meth:`scopetwin.recon.posterior.Hyper.from_dict`); None (default): two cold starts. Set by the caller, never
+        by a solve, so that a frame's result does not depend on the frames before it unless asked.
     """
 
     def __init__(
@@ -271,6 +282,7 @@ class Reconstructor:
         check_substrate_visible(camera, substrate)
         self.sigma_scores: dict[float, float] = {}
         self.last: SBFSurface | None = None
+        self.evidence_start: Hyper | None = None
         self.use_basis(self.config.make_basis(substrate))
 
     def use_basis(self, basis: ShiftedBasis) -> None:

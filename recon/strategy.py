@@ -58,6 +58,7 @@ from scopetwin.scenes.setup import Setup
 if TYPE_CHECKING:
     from scopetwin.recon.inverse import InverseConfig, InverseResult
     from scopetwin.recon.markers import Markers
+    from scopetwin.recon.posterior import Hyper
     from scopetwin.recon.shifted_basis import SBFSurface
 
 Method = Literal["centroid", "inverse"]
@@ -324,6 +325,7 @@ def reconstruct_image(
     config: ReconstructionConfig | None = None,
     policy: ReconstructionPolicy = DEFAULT_POLICY,
     history_path: str | Path | None = None,
+    evidence_start: Hyper | None = None,
 ) -> ImageReconstruction:
     """Markers of a deflectometry image and the surface they give (seed §1.4-§1.8), with every fallback of ``policy``.
 
@@ -332,7 +334,7 @@ def reconstruct_image(
     60 µm surfaces), each candidate is taken as the reference in turn (``resolve_tied_reference``): with a wrong one
     every index is a few pitches off, the traced slopes are milliradians off and no start height lays such a surface
     on the holding frame. The one candidate whose markers reconstruct is kept; if none or several do, the tie is
-    reported.
+    reported. ``evidence_start``: the posterior's warm start (:attr:`Reconstructor.evidence_start`).
     """
     from scopetwin.recon.markers import ReferenceTieError, find_markers_for
 
@@ -341,6 +343,7 @@ def reconstruct_image(
     def attempt(reference: int | None, path: str | Path | None) -> ImageReconstruction:
         found = find_markers_for(image, setup, reference=reference, lattice_below=policy.lattice_below)
         rec = Reconstructor.from_setup(setup, config, bias)
+        rec.evidence_start = evidence_start
         result = solve(rec, MarkerObservations(found.ij, found.centroids), policy, path)
         return ImageReconstruction(found, result, rec)
 
@@ -532,6 +535,15 @@ class Reconstruction:
         """The surface on a node grid over the whole substrate (:class:`scopetwin.scenes.surface.HeightMap`, mm)."""
         return self.result.heightmap(nx, ny)
 
+    @property
+    def prior(self) -> Hyper | None:
+        """The Gaussian-process prior the centroid method's posterior chose by evidence (None without one): the warm
+        start of the next frame of the same setup (``evidence_start``)."""
+        from scopetwin.recon.posterior import Hyper
+
+        u = getattr(self.result, "uncertainty", None)
+        return Hyper.from_dict(u.hyper) if self.method == "centroid" and u is not None else None
+
     def summary(self) -> dict[str, Any]:
         """JSON-ready: the method's own summary, the uncertainty and the strategy's path."""
         return {
@@ -552,15 +564,17 @@ def reconstruct(
     inverse_config: InverseConfig | None = None,
     policy: ReconstructionPolicy = DEFAULT_POLICY,
     history_path: str | Path | None = None,
+    evidence_start: Hyper | None = None,
 ) -> Reconstruction:
     """The surface of one deflectometry image by either method, with every fallback of ``policy``.
 
-    ``method="centroid"``: :func:`reconstruct_image`. ``method="inverse"``: the inverse fit
-    (:func:`scopetwin.recon.inverse.reconstruct_inverse`) from :func:`inverse_start`, holding the start's height
-    unless it starts from a plane (``inverse_config``'s other settings are kept).
+    ``method="centroid"``: :func:`reconstruct_image` (``evidence_start``: its posterior's warm start).
+    ``method="inverse"``: the inverse fit (:func:`scopetwin.recon.inverse.reconstruct_inverse`) from
+    :func:`inverse_start`, holding the start's height unless it starts from a plane (``inverse_config``'s other
+    settings are kept).
     """
     if method == "centroid":
-        done = reconstruct_image(image, setup, config, policy, history_path)
+        done = reconstruct_image(image, setup, config, policy, history_path, evidence_start)
         u = done.result.uncertainty
         unc = StandardUncertainty(u.absolute_um, u.shape_um) if u is not None else StandardUncertainty(None, None)
         return Reconstruction("centroid", done.result, done.markers, unc, done.result.strategy)

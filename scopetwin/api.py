@@ -222,6 +222,7 @@ def reconstruct(
     *,
     policy: ReconstructionPolicy | None = None,
     second: tuple[NDArray[Any], float | None] | NDArray[Any] | None = None,
+    previous: Reconstruction | None = None,
 ) -> Reconstruction:
     """The substrate's heights from one deflectometry image (``scopetwin reconstruct``, seed §1.4-§1.8).
 
@@ -245,6 +246,11 @@ def reconstruct(
         alone: the setup's ``[pattern_stage]`` shift): the absolute height from both images, combined with the frame
         criterion's (:mod:`scopetwin.recon.two_positions`, seed §1.3; centroid method only). ``.result.estimate``
         then holds the frame criterion's, the two positions' and the combined height.
+    previous : Reconstruction, optional
+        The reconstruction of an earlier frame of the same setup (a rig's live loop): the uncertainty's prior is
+        chosen by evidence from that frame's prior (one warm start, ~5x fewer evaluations) instead of two cold
+        starts. The result then depends on the earlier frame within the evidence's own flatness (measured: 0.4
+        nats); leave it out where each frame must stand alone (accuracy studies).
 
     Returns
     -------
@@ -266,6 +272,7 @@ def reconstruct(
     >>> m2 = scopetwin.render("thesis-1.10-deflectometry", spp=4, seed=1, pattern_shift_mm=30.0)  # doctest: +SKIP
     >>> r2 = scopetwin.reconstruct(m2.image, m2.setup, second=(m2.second.image, 30.0))  # doctest: +SKIP
     >>> r2.result.estimate.height_um, r2.uncertainty.absolute_um  # doctest: +SKIP
+    >>> r3 = scopetwin.reconstruct(m.image, m.setup, previous=r)  # the next frame of a live loop  # doctest: +SKIP
     """
     from scopetwin.recon.policy import DEFAULT_POLICY
     from scopetwin.recon.strategy import reconstruct as _reconstruct
@@ -280,7 +287,10 @@ def reconstruct(
         return reconstruct_pair(
             np.asarray(image), np.asarray(image2), load_setup(setup), shift, policy=policy or DEFAULT_POLICY
         )
-    return _reconstruct(np.asarray(image), load_setup(setup), method, policy=policy or DEFAULT_POLICY)
+    start = previous.prior if previous is not None else None
+    return _reconstruct(
+        np.asarray(image), load_setup(setup), method, policy=policy or DEFAULT_POLICY, evidence_start=start
+    )
 
 
 def calibrate(

@@ -370,16 +370,21 @@ def _detect_and_reconstruct(
 
     Returns the markers found with the ideal setup, their observations and per setup name ``{"result", "seconds",
     "errors"}`` (:func:`roi_errors` against the truth ``heights``); a history that is not accepted goes to
-    ``out/<name>-history.json``.
+    ``out/<name>-history.json``. The same image's later reconstructions start their posterior's evidence
+    maximisation from the first one's prior (``evidence_start``, one start instead of two cold ones).
     """
+    from scopetwin.recon.posterior import Hyper
     from scopetwin.recon.reconstruct import MarkerObservations
     from scopetwin.recon.strategy import reconstruct_image
 
     results: dict[str, Any] = {}
     found: Markers | None = None
+    prior: Hyper | None = None
     for name, s in setups.items():
         t0 = time.perf_counter()
-        markers, res, _ = reconstruct_image(image, s, history_path=out / f"{name}-history.json")
+        markers, res, _ = reconstruct_image(image, s, history_path=out / f"{name}-history.json", evidence_start=prior)
+        if prior is None and res.uncertainty is not None:
+            prior = Hyper.from_dict(res.uncertainty.hyper)
         found = markers if found is None or name == "ideal" else found
         results[name] = {
             "result": res,

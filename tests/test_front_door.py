@@ -80,3 +80,17 @@ def test_they_agree_where_the_reference_marker_is_tied(tmp_path):
         find_markers_for(m.image, m.setup)
     cli, front, run = _three_ways(m, tmp_path)
     assert np.array_equal(cli, front.astype(np.float32)) and np.array_equal(cli, run)
+
+
+def test_the_next_frame_of_a_live_loop_starts_from_the_previous_prior():
+    """``previous=``: the next frame's posterior starts from the earlier frame's prior (one evidence start instead of
+    two) and gives the surface and uncertainty the cold start gives, within a fifth of that uncertainty."""
+    first, second = (scopetwin.render(PRESET, spp=4, seed=s) for s in (1, 2))
+    r1 = scopetwin.reconstruct(first.image, first.setup)
+    assert r1.prior is not None and r1.prior.smooth_len > 0
+    cold = scopetwin.reconstruct(second.image, second.setup)
+    warm = scopetwin.reconstruct(second.image, second.setup, previous=r1)
+    u = cold.uncertainty.absolute_um
+    assert abs(warm.uncertainty.absolute_um - u) <= 0.1 * u
+    x, y = np.meshgrid(np.linspace(-10, 10, 21), np.linspace(-15, 15, 31))
+    assert float(np.max(np.abs(warm.height_at(x, y) - cold.height_at(x, y)))) * 1e3 <= 0.2 * u + 0.01
