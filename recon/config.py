@@ -65,6 +65,9 @@ class ReconstructionConfig:
         their posterior mean (a Newton step on the start height, criterion ``level`` only); ``"off"``: neither.
     evidence_points : int
         Gradient observations (an even subsample) entering the evidence maximisation.
+    evidence_coarse_points : int
+        The evidence's starts run on an even subsample of this many of them, the best refined on all (coarse to
+        fine, :func:`scopetwin.recon.posterior.fit_hyper`; 0: every start on all, three times the time).
     posterior_iterations : int
         Most Newton steps on the start height with the posterior frame criterion (``posterior = "correct"``).
     posterior_settle : float
@@ -109,6 +112,7 @@ class ReconstructionConfig:
     consistency_um: float = 10.0
     posterior: Literal["correct", "report", "off"] = "correct"
     evidence_points: int = 250
+    evidence_coarse_points: int = 100
     posterior_points: int = 800
     posterior_iterations: int = 4
     posterior_settle: float = 1.0

@@ -40,6 +40,8 @@ NOISE_FLOOR = 2e-8
 #: 1e-6 of |log evidence| ~ 3000-6000 is a few thousandths of a nat; measured on a §1.9 surface and a glass-like one,
 #: it halves the evaluations (115 -> 58, 60 -> 57) with the hyperparameters within 1 %.
 FTOL = 1e-6
+#: Most L-BFGS-B iterations per start of the hyperparameter search.
+MAXITER = 80
 
 
 class PosteriorError(ScopetwinError, ValueError):
@@ -302,7 +304,7 @@ def _max_evidence(pairs: _Pairs, g: Array, starts: list[Array], bounds: list[tup
             jac=True,
             method="L-BFGS-B",
             bounds=bounds,
-            options={"maxiter": 80, "ftol": FTOL},
+            options={"maxiter": MAXITER, "ftol": FTOL},
         )
         if best is None or res.fun < best[0]:
             best = (float(res.fun), res.x)
@@ -317,6 +319,7 @@ def fit_hyper(
     max_points: int = 250,
     smooth_starts: tuple[float, ...] = (10.0, 25.0),
     start: Hyper | None = None,
+    coarse_points: int = 0,
 ) -> Hyper:
     """Hyperparameters of maximum evidence (type-II maximum likelihood) for the gradient data.
 
@@ -326,12 +329,19 @@ def fit_hyper(
     with sensor noise (ABC, 9 mm, 25 µm, 1 nm broadband; tests/recon/test_accuracy_rendered.py) the start from 10 mm
     alone ends at a local optimum with 0.5 µrad of gradient noise where the data have 3 µrad, and the shape error
     grows from 0.008 to 0.034 µm. At most ``max_points`` observations (an even subsample) enter the evidence, for
-    speed. (A coarse-to-fine search, the starts on 100 of them and the best refined on all, cost a third as many
-    full-size evaluations but twice in twelve PSD surfaces ended 1-7 nats short: 100 even points lie 2.5 mm apart,
-    where the broadband part and the noise cannot be told apart.)
+    speed.
+
+    ``coarse_points`` (>= 10): coarse to fine — the starts run on an even subsample of that many observations and
+    the best is refined on all ``max_points``. The evidence is flat along the noise and broadband directions, and
+    L-BFGS-B at :data:`FTOL` stops short of its maximum whichever way it starts (on glass-like surfaces by 1-7 nats,
+    the noise of f_y 4-6 µrad where the maximum has 20-30). Measured against the maximum itself (``ftol`` 1e-12,
+    400 iterations) on 17 surfaces none of this was chosen on (six PSD, seven glass-like, four §1.9; exact marker
+    images with 0.005-0.01 px of centroid noise; ``benchmarks/evidence_search.py``): the absolute height within
+    0.36 u of the maximum's (two starts on all points: 0.41 u), the shape uncertainty within 0.92-1.01 of the
+    maximum's (two starts on all: 0.92-1.68, a PSD surface's 68 % too large), for 0.30 of the time.
 
     ``start``: the one start instead of ``smooth_starts`` (warm start: the prior of an earlier frame of the same
-    setup; :attr:`scopetwin.recon.config.ReconstructionConfig.evidence_start`). Measured on nine 16 spp §1.10 renders
+    setup; :attr:`scopetwin.recon.reconstruct.Reconstructor.evidence_start`). Measured on nine 16 spp §1.10 renders
     with sensor noise (three surface kinds), started from the prior of another frame of the same kind: 11-18
     evaluations instead of 58-76, the evidence within 0.36 nats of the two cold starts' (-0.26 to +0.36).
     """
@@ -357,6 +367,9 @@ def fit_hyper(
         starts = [np.clip(np.log(warm), lo, hi)]
     else:
         starts = [np.clip(np.log([g_rms * ln, ln, 1e-6, 1.0, 3e-7, 3e-7]), lo, hi) for ln in smooth_starts]
+        if 10 <= coarse_points < len(xy):
+            sub = _even_subsample(len(xy), coarse_points)
+            starts = [_max_evidence(_Pairs.of(xy[sub]), np.concatenate([gx[sub], gy[sub]]), starts, bounds)]
     return Hyper(*np.exp(_max_evidence(_Pairs.of(xy), g, starts, bounds)))
 
 

@@ -132,7 +132,9 @@ def _read(it: Iteration, surf: SBFSurface, markers: Any, hyper: Hyper | None) ->
     rx, ry = sub.roi_grid(cfg.grid_step)
     xy, hx, hy, _ = it.traced_gradients(surf, markers)
     try:
-        hyper = hyper or fit_hyper(xy, hx, hy, max_points=cfg.evidence_points, start=it.evidence_start)
+        hyper = hyper or fit_hyper(
+            xy, hx, hy, cfg.evidence_points, start=it.evidence_start, coarse_points=cfg.evidence_coarse_points
+        )
         data = posterior_subset(xy, hx, hy, cfg.posterior_points)
         gp = GradientGP(*data, hyper)
         post = frame_posterior(gp, sub.x_range, sub.y_range, sub.roi_length, (np.unique(rx), np.unique(ry)))
