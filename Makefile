@@ -13,7 +13,7 @@ run: setup
 
 # pytest-xdist: two worker processes that take tests as they go and steal from each other at the end (module
 # fixtures and the Mitsuba variant stay per process). One file per worker (loadfile) left the heaviest files — two
-# inverse fits of 2-3 min each in one file — to one worker at the end: the whole suite 1178 s, against 976 s so
+# inverse fits of 2-3 min each in one file — to one worker at the end: the whole suite 1178 s, against 976 s this way
 XDIST  := -n 2 --dist worksteal
 
 # the default before each commit (<= 5 min on 2 cores): everything but the tests marked slow
