@@ -337,8 +337,8 @@ def fit_hyper(
     the noise of f_y 4-6 µrad where the maximum has 20-30). Measured against the maximum itself (``ftol`` 1e-12,
     400 iterations) on 17 surfaces none of this was chosen on (six PSD, seven glass-like, four §1.9; exact marker
     images with 0.005-0.01 px of centroid noise; ``benchmarks/evidence_search.py``): the absolute height within
-    0.36 u of the maximum's (two starts on all points: 0.41 u), the shape uncertainty within 0.92-1.01 of the
-    maximum's (two starts on all: 0.92-1.68, a PSD surface's 68 % too large), for 0.30 of the time.
+    0.36 u of the maximum's (two starts on all points: 0.48 u), the shape uncertainty 0.92-1.07 of the maximum's
+    (two starts on all: 0.71-1.07), in a third of the time (7.3 s for the 17 against 22.3 s).
 
     ``start``: the one start instead of ``smooth_starts`` (warm start: the prior of an earlier frame of the same
     setup; :attr:`scopetwin.recon.reconstruct.Reconstructor.evidence_start`). Measured on nine 16 spp §1.10 renders
