@@ -82,6 +82,7 @@ def test_they_agree_where_the_reference_marker_is_tied(tmp_path):
     assert np.array_equal(cli, front.astype(np.float32)) and np.array_equal(cli, run)
 
 
+@pytest.mark.slow
 def test_the_next_frame_of_a_live_loop_starts_from_the_previous_prior():
     """``previous=``: the next frame's posterior starts from the earlier frame's prior (one evidence start instead of
     two) and gives the surface and uncertainty the cold start gives, within a fifth of that uncertainty."""
