@@ -247,10 +247,12 @@ def reconstruct(
         criterion's (:mod:`scopetwin.recon.two_positions`, seed §1.3; centroid method only). ``.result.estimate``
         then holds the frame criterion's, the two positions' and the combined height.
     previous : Reconstruction, optional
-        The reconstruction of an earlier frame of the same setup (a rig's live loop): the uncertainty's prior is
-        chosen by evidence from that frame's prior (one warm start, ~5x fewer evaluations) instead of two cold
-        starts. The result then depends on the earlier frame within the evidence's own flatness (measured: 0.4
-        nats); leave it out where each frame must stand alone (accuracy studies).
+        The centroid reconstruction of an earlier frame of the same setup (a rig's live loop; one image, centroid
+        method): the uncertainty's prior is searched by evidence from that frame's prior, one start on all points,
+        instead of two coarse-to-fine starts (the §1.10 frame: 0.92 s instead of 1.21 s, ``make bench`` row 1). The
+        result then depends on the earlier frame within the evidence's own flatness (both land within half a
+        standard uncertainty of the evidence's maximum: tests/recon/test_warm_evidence.py); leave it out where each
+        frame must stand alone (accuracy studies).
 
     Returns
     -------
@@ -277,6 +279,10 @@ def reconstruct(
     from scopetwin.recon.policy import DEFAULT_POLICY
     from scopetwin.recon.strategy import reconstruct as _reconstruct
 
+    if previous is not None and (second is not None or method != "centroid"):
+        from scopetwin.recon.errors import ReconstructionError
+
+        raise ReconstructionError("previous= takes one image and the centroid method (no second=, no inverse)")
     if second is not None:
         from scopetwin.recon.errors import ReconstructionError
         from scopetwin.recon.two_positions import reconstruct_pair

@@ -94,3 +94,14 @@ def test_the_warm_start_lands_where_the_cold_one_does(frames, monkeypatch) -> No
         assert abs(e["roi_absolute_um"] - e_best["roi_absolute_um"]) <= 0.5 * u, (e, e_best, u)
         assert abs(e["roi_shape_um"] - e_best["roi_shape_um"]) <= 0.2 * best.uncertainty.shape_um
         assert abs(e["roi_absolute_um"]) <= 3 * res.uncertainty.absolute_um
+
+
+def test_previous_with_a_second_image_or_the_inverse_method_is_one_clear_error() -> None:
+    import scopetwin
+    from scopetwin.recon.errors import ReconstructionError
+
+    dummy = object()
+    image = np.zeros((4, 4))
+    for kwargs in ({"second": image}, {"method": "inverse"}):
+        with pytest.raises(ReconstructionError, match="previous= takes one image"):
+            scopetwin.reconstruct(image, "thesis-1.10-deflectometry", previous=dummy, **kwargs)  # type: ignore[arg-type]
