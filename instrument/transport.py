@@ -105,6 +105,10 @@ class Link:
         self._poll_s = 0.02
         #: Why the last exchange failed (the port gone, no answer, garbage); ``None`` while the device answers.
         self.lost: str | None = None
+        #: Whether the last exchange was cut short after its request may have gone out (a signal, a timeout): its
+        #: answer may still arrive, after the next request's input was dropped. Drivers whose replies name their
+        #: request (the FPGA board's packets) skip such a stale answer once.
+        self.cut = False
         try:
             transport.timeout = self._poll_s
         except _CONFIG_ERRORS as exc:
@@ -122,19 +126,22 @@ class Link:
 
         An :class:`~scopetwin.instrument.errors.InstrumentError` inside marks the link :attr:`lost` with its message,
         except an error code the device reported (:class:`~scopetwin.instrument.errors.ControllerError`) or a value
-        refused before sending (:class:`~scopetwin.instrument.errors.OutOfRangeError`): the device answered. A complete
-        exchange clears the mark.
+        refused before sending (:class:`~scopetwin.instrument.errors.OutOfRangeError`): the device answered. Any other
+        exception (a timeout, a signal's) also marks it :attr:`cut`. A complete exchange clears both marks.
         """
         with self.lock:
             try:
                 yield
             except (ControllerError, OutOfRangeError):
-                self.lost = None
+                self.lost, self.cut = None, False
                 raise
             except InstrumentError as exc:
-                self.lost = str(exc)
+                self.lost, self.cut = str(exc), True
                 raise
-            self.lost = None
+            except BaseException:  # a signal's exception between the request and its answer
+                self.cut = True
+                raise
+            self.lost, self.cut = None, False
 
     def write(self, data: bytes) -> None:
         """Send ``data`` (after dropping stale input)."""

@@ -215,6 +215,16 @@ def _truth(setup: Setup, heights: HeightMap | None) -> MarkerTruth | None:
     return marker_truth(setup, heights)
 
 
+def _check_reconstruct_options(method: str, second: object, previous: Reconstruction | None) -> None:
+    """One clear error for options :func:`reconstruct` cannot combine (before any work starts)."""
+    from scopetwin.recon.errors import ReconstructionError
+
+    if previous is not None and (second is not None or method != "centroid"):
+        raise ReconstructionError("previous= takes one image and the centroid method (no second=, no inverse)")
+    if second is not None and method != "centroid":
+        raise ReconstructionError("a second pattern position takes the centroid method")
+
+
 def reconstruct(
     image: NDArray[Any],
     setup: Setup | str | Path,
@@ -279,16 +289,10 @@ def reconstruct(
     from scopetwin.recon.policy import DEFAULT_POLICY
     from scopetwin.recon.strategy import reconstruct as _reconstruct
 
-    if previous is not None and (second is not None or method != "centroid"):
-        from scopetwin.recon.errors import ReconstructionError
-
-        raise ReconstructionError("previous= takes one image and the centroid method (no second=, no inverse)")
+    _check_reconstruct_options(method, second, previous)
     if second is not None:
-        from scopetwin.recon.errors import ReconstructionError
         from scopetwin.recon.two_positions import reconstruct_pair
 
-        if method != "centroid":
-            raise ReconstructionError("a second pattern position takes the centroid method")
         image2, shift = second if isinstance(second, tuple) else (second, None)
         return reconstruct_pair(
             np.asarray(image), np.asarray(image2), load_setup(setup), shift, policy=policy or DEFAULT_POLICY

@@ -175,14 +175,12 @@ class FpgaBoard:
 
     def _exchange(self, packet: Packet, expect: int) -> bytes:
         with self.link.exchange():
+            stale = self.link.cut  # the previous exchange was cut short: its answer may come before this one's
             self.link.write(packet.encode())
             deadline = time.monotonic() + self.link.timeout_s
-            header = self.link.read_exact(3, deadline)
-            opcode, address, length = header
-            if opcode not in VALID_OPCODES:
-                raise ProtocolError(f"{self.name}: reply with unknown opcode 0x{opcode:02X}")
-            payload = self.link.read_exact(length, deadline) if length else b""
-            reply = decode_packet(header + payload)
+            reply = self._read_reply(deadline)
+            if stale and (reply.opcode, reply.address) != (expect, packet.address):
+                reply = self._read_reply(deadline)  # that was the answer of the request cut short: skip it once
             if reply.opcode == ERROR:
                 code = reply.payload[0] if reply.payload else 0
                 raise ControllerError(
@@ -196,6 +194,15 @@ class FpgaBoard:
                     f"got 0x{reply.opcode:02X}/0x{reply.address:02X}"
                 )
             return reply.payload
+
+    def _read_reply(self, deadline: float) -> Packet:
+        """One reply packet (Table 4.2 layout) before ``deadline``."""
+        header = self.link.read_exact(3, deadline)
+        opcode, _, length = header
+        if opcode not in VALID_OPCODES:
+            raise ProtocolError(f"{self.name}: reply with unknown opcode 0x{opcode:02X}")
+        payload = self.link.read_exact(length, deadline) if length else b""
+        return decode_packet(header + payload)
 
     def write(self, address: int, payload: bytes) -> None:
         """Write a register and wait for the acknowledgement."""
