@@ -152,12 +152,16 @@ class SpotPrediction:
         RMS residual of the local cubic map fit, px (a check on the prediction).
     reaches : ndarray of bool, (n,)
         All traced rays around the marker reached it (False: the spot is not imaged whole in the model).
+    predicted : ndarray of bool, (n,)
+        The model's map around the marker could be built (False: its rays meet the model nowhere near, or the map
+        is singular there, as at a caustic; its centroid and centre are then the guess, its correction 0).
     """
 
     centroid: Array
     center: Array
     fit_rms: Array
     reaches: NDArray[np.bool_]
+    predicted: NDArray[np.bool_]
 
     @property
     def correction(self) -> Array:
@@ -217,8 +221,9 @@ def _start(model: Model, ij: NDArray) -> Array:
 
 def _fit_local_map(
     model: Model, x0: Array, c_loc: Array, radius: Array, grid: Array
-) -> tuple[Array, Array, NDArray[np.bool_]]:
-    """Cubic map P(q) (n, 10, 2) fitted to rays traced over each marker's spot around ``x0``, its RMS, and reach.
+) -> tuple[Array, Array, NDArray[np.bool_], NDArray[np.bool_]]:
+    """Cubic map P(q) (n, 10, 2) fitted to rays traced over each marker's spot around ``x0``, its RMS, reach, and
+    where it could be fitted (elsewhere the map is NaN: :func:`predict_spots` keeps the guess there).
 
     ``grid`` holds the unit-radius pattern offsets the fit points are aimed at (through the local Jacobian at
     ``x0``); q is the pattern offset from the marker centre ``c_loc`` in marker radii.
@@ -227,12 +232,12 @@ def _fit_local_map(
     # local Jacobian d(pattern)/d(pixel) at x0, to place the fit points over the spot
     y3, _ = _trace(model, x0[:, None, :] + unit[None])
     jac = np.stack([y3[:, 1] - y3[:, 0], y3[:, 2] - y3[:, 0]], axis=-1)  # (n, 2 pattern, 2 pixel)
-    det = np.linalg.det(jac)
-    if not np.all(np.isfinite(det)) or np.any(np.abs(det) < 1e-300):
-        raise BiasError("the model's map from pixels to the pattern is singular at a marker")
-    inv = np.linalg.inv(jac)
+    with np.errstate(invalid="ignore"):
+        det = np.linalg.det(jac)
+    fitted = np.isfinite(det) & (np.abs(det) > 1e-300)  # a ray that does not converge: NaN
+    inv = np.linalg.inv(np.where(fitted[:, None, None], jac, np.eye(2)))
     target = c_loc[:, None, :] + radius[:, None, None] * grid[None]
-    px = x0[:, None, :] + (target - y3[:, None, 0]) @ inv.transpose(0, 2, 1)
+    px = x0[:, None, :] + (target - np.where(fitted[:, None], y3[:, 0], c_loc)[:, None]) @ inv.transpose(0, 2, 1)
     y, ok = _trace(model, px)
     q = (y - c_loc[:, None, :]) / radius[:, None, None]
     reaches = np.all(ok | (np.hypot(q[..., 0], q[..., 1]) > 1.0), axis=1)
@@ -240,13 +245,28 @@ def _fit_local_map(
     a = _design(q)  # (n, k, 10)
     aw = a * use[..., None]
     awt = aw.transpose(0, 2, 1)  # batched products by matmul (einsum's unoptimised loops are ~5x slower here)
-    try:
-        coef = np.linalg.solve(awt @ a, awt @ px)
-    except np.linalg.LinAlgError as exc:  # too few rays reach the pattern around a marker (near a caustic)
-        raise BiasError("the model's map around a marker could not be fitted (singular normal equations)") from exc
+    coef = _solve_each(awt @ a, awt @ px, fitted)
+    fitted &= np.all(np.isfinite(coef), axis=(1, 2))
     res = np.sum((a @ coef - px) ** 2, axis=-1)
     fit_rms = np.sqrt(np.sum(res * use, axis=1) / use.sum(axis=1))
-    return coef, fit_rms, reaches
+    return coef, fit_rms, reaches, fitted
+
+
+def _solve_each(lhs: Array, rhs: Array, fitted: NDArray[np.bool_]) -> Array:
+    """The normal equations of each marker where ``fitted`` (at once; one by one where one of them is singular,
+    too few rays reaching the pattern near a caustic); NaN elsewhere."""
+    coef = np.full(rhs.shape[:1] + lhs.shape[-1:] + rhs.shape[-1:], np.nan)
+    k = np.flatnonzero(fitted)
+    with np.errstate(invalid="ignore", over="ignore"):
+        try:
+            coef[k] = np.linalg.solve(lhs[k], rhs[k])
+        except np.linalg.LinAlgError:
+            for i in k:
+                try:
+                    coef[i] = np.linalg.solve(lhs[i], rhs[i])
+                except np.linalg.LinAlgError:
+                    pass
+    return coef
 
 
 def _map_first_moment(coef: Array, n_r: int, n_theta: int) -> Array:
@@ -271,6 +291,7 @@ def predict_spots(
     passes: int = 2,
     n_r: int = 8,
     n_theta: int = 24,
+    max_unpredicted: float = 0.05,
 ) -> SpotPrediction:
     """Predict the spot centroid and the image of the centre of markers ``ij`` from a model (module docstring).
 
@@ -292,11 +313,16 @@ def predict_spots(
         Re-centre the fit on the predicted centre image this often.
     n_r, n_theta : int
         Quadrature nodes along the radius and around.
+    max_unpredicted : float
+        The largest fraction of the markers whose map cannot be built (a ray of the model that does not converge, a
+        singular map near a caustic): those keep the guess as centroid and centre (no correction; ``predicted``
+        False). One marker's ray should not decide a whole reconstruction.
 
     Raises
     ------
     BiasError
-        The model does not image a marker (rays miss the pattern, singular map).
+        The model does not image more than ``max_unpredicted`` of the markers (rays miss the pattern, singular
+        maps), or a marker has no start position.
     """
     ij = np.asarray(ij, dtype=np.int64).reshape(-1, 2)
     n = len(ij)
@@ -308,15 +334,20 @@ def predict_spots(
         raise BiasError("the model does not image every requested marker (no start position)")
     g = np.linspace(-span, span, n_fit)
     grid = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)  # unit-radius pattern offsets
-    fit_rms = np.zeros(n)
-    reaches = np.zeros(n, dtype=bool)
+    guess = x0.copy()
     for _ in range(max(1, passes)):
-        coef, fit_rms, reaches = _fit_local_map(model, x0, c_loc, radius, grid)
-        x0 = coef[:, 0, :].copy()  # P(y_c): the monomial 1 is the only one not vanishing at q = 0
-    if not np.all(np.isfinite(coef)):
-        raise BiasError("the model's map around a marker could not be fitted")
-    centroid = _map_first_moment(coef, n_r, n_theta)
-    return SpotPrediction(centroid=centroid, center=coef[:, 0, :].copy(), fit_rms=fit_rms, reaches=reaches)
+        coef, fit_rms, reaches, fitted = _fit_local_map(model, x0, c_loc, radius, grid)
+        x0 = np.where(fitted[:, None], coef[:, 0, :], x0)  # P(y_c): the monomial 1 is the only one not vanishing at 0
+    missing = n - int(fitted.sum())
+    if missing > max_unpredicted * n:
+        raise BiasError(
+            f"the model's map around {missing} of {n} markers could not be fitted (rays that miss the pattern or a "
+            f"singular map; at most {max_unpredicted:.0%} may be left uncorrected)"
+        )
+    centroid, center = guess.copy(), guess.copy()
+    centroid[fitted] = _map_first_moment(coef[fitted], n_r, n_theta)
+    center[fitted] = coef[fitted, 0, :]
+    return SpotPrediction(centroid=centroid, center=center, fit_rms=fit_rms, reaches=reaches, predicted=fitted)
 
 
 def correct_centroids(centroids: ArrayLike, ij: ArrayLike, model: Model, **kwargs) -> tuple[Array, SpotPrediction]:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -22,6 +22,9 @@ from scipy.interpolate import RectBivariateSpline
 
 from scopetwin.scenes.errors import GeometryError
 from scopetwin.scenes.geometry import Array, Frame, intersect_plane, normalize
+
+if TYPE_CHECKING:
+    from scopetwin.scenes.bicubic import BicubicCells
 
 #: A surface given by a function: heights h(x, y), mm, of local base-plane points (vectorised).
 HeightFunction = Callable[[Array, Array], Array]
@@ -71,7 +74,7 @@ def secant_intersection(
     residual : callable, optional
         ``residual(lam, idx)`` -> f at ``lam`` for the rays ``idx`` (all rays where None), in place of the one formed
         from ``surface.height``: for an evaluator that keeps per-ray state between steps (the dataset maps' cell
-        cache, :mod:`scopetwin.sim.datasets._spline`). The iteration is this one either way.
+        cache, :meth:`scopetwin.scenes.bicubic.BicubicCells.intersect`). The iteration is this one either way.
 
     Returns
     -------
@@ -160,6 +163,7 @@ class HeightMap:
     y_min: float
     y_max: float
     _spline: RectBivariateSpline = field(init=False, repr=False, compare=False)
+    _cells: list[BicubicCells] = field(init=False, repr=False, compare=False, default_factory=list)
 
     def __post_init__(self) -> None:
         z = np.asarray(self.z, dtype=np.float64)
@@ -215,6 +219,20 @@ class HeightMap:
         hx = np.where(inside_x, self._spline.ev(yc, xc, dy=1), 0.0)
         hy = np.where(inside_y, self._spline.ev(yc, xc, dx=1), 0.0)
         return hx, hy
+
+    @property
+    def spline(self) -> RectBivariateSpline:
+        """The interpolating bicubic spline itself (scipy's ``RectBivariateSpline``; its first axis is y)."""
+        return self._spline
+
+    def cells(self) -> BicubicCells:
+        """The spline as one bicubic polynomial per knot cell (:mod:`scopetwin.scenes.bicubic`), for evaluating it
+        at many points and tracing rays through it; built on the first call (a few ms per 10^4 nodes) and kept."""
+        if not self._cells:
+            from scopetwin.scenes.bicubic import BicubicCells
+
+            self._cells.append(BicubicCells(self))
+        return self._cells[0]
 
     def normals(self, x: ArrayLike, y: ArrayLike) -> Array:
         """Unit normals (-h_x, -h_y, 1)/sqrt(1 + h_x^2 + h_y^2) in the base-plane frame (seed eq. 1.2)."""
@@ -288,26 +306,39 @@ class Substrate:
             Where ``|f(lambda)| < tol`` was reached. Whether the hit lies on the substrate or in
             the ROI is for the caller to decide (:meth:`in_roi`).
         """
+        lam, converged, _ = self._intersect(origins, directions, tol, max_iter)
+        return lam, converged
+
+    def _intersect(
+        self, origins: ArrayLike, directions: ArrayLike, tol: float = 1e-10, max_iter: int = 60
+    ) -> tuple[Array, NDArray[np.bool_], Array | None]:
+        """:meth:`intersect`, and the local unit normals at the hits where the height map's cells give them."""
         o = self.frame.to_local(origins)
         d = self.frame.vectors_to_local(directions)
         o, d = np.broadcast_arrays(o, d)
         shape = o.shape[:-1]
         o = o.reshape(-1, 3)
         d = d.reshape(-1, 3)
-        lam, converged = secant_intersection(
-            self.heights, o, d, np.zeros(len(o)), intersect_plane(o, d, Frame.identity()), tol, max_iter
-        )
-        return np.where(converged, lam, np.nan).reshape(shape), converged.reshape(shape)
+        lam0, lam1 = np.zeros(len(o)), intersect_plane(o, d, Frame.identity())
+        if not isinstance(self.heights, HeightMap):
+            lam, converged = secant_intersection(self.heights, o, d, lam0, lam1, tol, max_iter)
+            return np.where(converged, lam, np.nan).reshape(shape), converged.reshape(shape), None
+        lam, converged, _, hx, hy = self.heights.cells().intersect(o, d, lam0, lam1, tol, max_iter)
+        n_local = np.stack([-hx, -hy, np.ones_like(hx)], axis=-1) / np.sqrt(1.0 + hx * hx + hy * hy)[:, None]
+        return lam.reshape(shape), converged.reshape(shape), n_local.reshape(*shape, 3)
 
     def points_and_normals(self, origins: ArrayLike, directions: ArrayLike) -> tuple[Array, Array, NDArray]:
         """Global hit points and unit normals of rays on the surface; mask of hits inside the ROI."""
-        lam, ok = self.intersect(origins, directions)
+        lam, ok, n_hit = self._intersect(origins, directions)
         lam = np.where(ok, lam, 0.0)
         o = np.asarray(origins, dtype=np.float64)
         d = np.asarray(directions, dtype=np.float64)
         p = o + lam[..., None] * d
         local = self.frame.to_local(p)
-        n_local = self.heights.normals(local[..., 0], local[..., 1])
+        if n_hit is None:
+            n_local = self.heights.normals(local[..., 0], local[..., 1])
+        else:  # the normal at the hit itself (a ray that missed: the base plane's, as the spline's there)
+            n_local = np.where(ok[..., None], n_hit, np.array([0.0, 0.0, 1.0]))
         n = self.frame.vectors_to_global(n_local)
         mask = ok & self.in_roi(local[..., 0], local[..., 1])
         return p, n, mask

@@ -235,10 +235,9 @@ def _substrate_hits(sub: Any, heights: HeightMap, o: NDArray[np.float64], d: NDA
     Only rays that can reach the substrate are traced: those whose base-plane hit lies within the substrate grown by
     the largest horizontal run of a ray over the surface's height range (the spline overshoots its nodes by less than
     their range, so twice the largest node height bounds it). The secant iteration is the renderer's
-    (:meth:`scopetwin.scenes.surface.Substrate.intersect`), on the same spline (:mod:`._spline`).
+    (:meth:`scopetwin.scenes.surface.Substrate.intersect`), on the same spline (:meth:`HeightMap.cells`), started on the
+    base plane.
     """
-    from scopetwin.sim.datasets._spline import FastSurface
-
     lo, ld = _to_local(sub.frame, o), _vectors(sub.frame, d, inverse=True)
     with np.errstate(divide="ignore", invalid="ignore"):
         lam_plane = -lo[:, 2] / ld[:, 2]
@@ -252,7 +251,7 @@ def _substrate_hits(sub: Any, heights: HeightMap, o: NDArray[np.float64], d: NDA
         & (np.abs(base[:, 0]) <= 0.5 * sub.size_x + grow)
         & (np.abs(base[:, 1]) <= 0.5 * sub.size_y + grow)
     )
-    lam, ok, h, hx, hy = FastSurface(heights).intersect(lo[cand], ld[cand])
+    lam, ok, h, hx, hy = heights.cells().intersect(lo[cand], ld[cand])
     ok &= lam > 0
     local = lo[cand] + np.where(ok, lam, 0.0)[:, None] * ld[cand]
     on = ok & sub.on_substrate(local[:, 0], local[:, 1])

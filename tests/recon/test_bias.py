@@ -122,3 +122,39 @@ def test_pixel_sampled_and_continuous_evaluations_of_the_bias_agree():
         continuous = pred.centroid - pred.center
         assert np.abs(sampled - continuous).max() < 1e-3
         assert (np.linalg.norm(continuous, axis=1).max() > 0.01) == expect_bias
+
+
+class _Blind:
+    """A plane-target model whose rays near the centres of the given markers do not converge (NaN, as a secant
+    that runs out of steps near a caustic)."""
+
+    def __init__(self, inner: PlaneTarget, blind_xy: np.ndarray, within_mm: float) -> None:
+        self.inner, self.blind_xy, self.within_mm = inner, blind_xy, within_mm
+        self.camera, self.pattern = inner.camera, inner.pattern
+
+    def pattern_hits(self, o, d):
+        xy, ok = self.inner.pattern_hits(o, d)
+        near = np.min(np.linalg.norm(xy[:, None, :] - self.blind_xy[None], axis=-1), axis=1) < self.within_mm
+        return np.where(near[:, None], np.nan, xy), ok & ~near
+
+
+def test_one_marker_the_model_cannot_image_keeps_its_centroid_and_the_others_are_predicted():
+    """A ray that does not converge near one marker leaves that marker uncorrected (``predicted`` False, its guess
+    as centroid and centre) instead of ending the whole prediction; beyond ``max_unpredicted`` it is an error."""
+    setup = target_at(40.0)
+    plane = PlaneTarget(setup.camera_model, setup.marker_pattern)
+    truth = marker_truth(setup)
+    ij, guess = truth.ij[:40], truth.center_px[:40] + 0.3
+    full = predict_spots(plane, ij, guess_px=guess)
+    blind = _Blind(plane, setup.marker_pattern.centers_local(ij[[7]]), 0.2)
+    part = predict_spots(blind, ij, guess_px=guess)
+    assert full.predicted.all() and part.predicted.sum() == 39 and not part.predicted[7]
+    np.testing.assert_array_equal(part.centroid[7], guess[7])
+    np.testing.assert_array_equal(part.center[7], guess[7])
+    others = np.arange(40) != 7
+    np.testing.assert_allclose(part.center[others], full.center[others], atol=1e-9)
+    np.testing.assert_allclose(part.centroid[others], full.centroid[others], atol=1e-9)
+    three = _Blind(plane, setup.marker_pattern.centers_local(ij[[3, 7, 20]]), 0.2)
+    with pytest.raises(BiasError, match="3 of 40 markers"):
+        predict_spots(three, ij, guess_px=guess)  # 7.5 % > 5 %
+    assert predict_spots(three, ij, guess_px=guess, max_unpredicted=0.1).predicted.sum() == 37

@@ -336,34 +336,6 @@ def test_a_newer_format_names_the_version_it_needs(deflectometry, tmp_path):
         _ = scopetwin.open_dataset(newer)[0].maps
 
 
-def test_the_fast_spline_is_the_height_maps_own_spline():
-    """The maps evaluate the surface with sim.datasets._spline: the same spline as HeightMap, to rounding, outside
-    the extents included (constant continuation, zero gradient)."""
-    from scopetwin.scenes.surface import HeightMap
-    from scopetwin.sim.datasets._spline import FastSurface
-
-    rng = np.random.default_rng(5)
-    z = np.cumsum(rng.normal(0, 1e-3, (40, 24)), axis=0)
-    hm = HeightMap(z, -12.6, 12.6, -28.5, 28.5)
-    fast = FastSurface(hm)
-    x = np.concatenate([rng.uniform(-14, 14, 5000), [-12.6, 12.6, 0.0, 0.0, 13.0]])
-    y = np.concatenate([rng.uniform(-30, 30, 5000), [0.0, 0.0, -28.5, 28.5, 29.0]])
-    h, hx, hy = fast.height_and_gradient(x, y)
-    gx, gy = hm.gradient(x, y)
-    scale = np.abs(z).max()
-    assert np.abs(h - hm.height(x, y)).max() < 1e-12 * scale
-    assert np.abs(hx - gx).max() < 1e-10 * scale and np.abs(hy - gy).max() < 1e-10 * scale
-    # the secant hits of straight rays agree with the renderer's own (Substrate.intersect on fitpack)
-    from scopetwin.scenes.surface import Substrate
-
-    o = np.column_stack([rng.uniform(-10, 10, 200), rng.uniform(-25, 25, 200), np.full(200, 50.0)])
-    d = np.column_stack([rng.normal(0, 0.2, 200), rng.normal(0, 0.2, 200), -np.ones(200)])
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    lam_ref, ok_ref = Substrate(hm).intersect(o, d)
-    lam, ok, *_ = fast.intersect(o, d)
-    assert ok.all() and ok_ref.all() and np.abs(lam - lam_ref).max() < 1e-8
-
-
 @pytest.mark.parametrize("preset", ["thesis-2.8.3-mirror", "thesis-1.10-deflectometry"])
 def test_maps_agree_with_the_renderers_own_trace(preset):
     """The maps' vectorised trace against the analytic renderer's (scenes.analytic.AnalyticScene.pattern_hits: fitpack

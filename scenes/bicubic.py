@@ -1,15 +1,19 @@
-"""A vectorised evaluator of a height map's bicubic spline: h and its gradient for millions of points.
+"""A vectorised evaluator of a height map's bicubic spline, and the ray intersection that uses it (seed §1.6.4).
 
 :class:`scopetwin.scenes.surface.HeightMap` evaluates its interpolating spline (scipy's ``RectBivariateSpline``,
-fitpack) point by point; the per-pixel maps (:mod:`scopetwin.sim.datasets.maps`) evaluate it at every pixel of every
-secant step. This module evaluates *the same spline* — the knots and coefficients of a ``RectBivariateSpline``
-fitted to the same nodes (seed §1.6.4: the "array with cubic interpolation") — converted once into one bicubic
-polynomial per knot cell (the B-splines' Taylor coefficients at each cell's left knot), so that a point costs a cell
-look-up and a 4 x 4 Horner step. Values agree with :meth:`HeightMap.height` / :meth:`HeightMap.gradient` to rounding
-(about 1e-16 mm for heights of 0.1 mm), including the constant continuation outside the extents.
+fitpack) point by point. Ray tracing through a height map evaluates it at every ray of every secant step: the
+substrate's intersection (:meth:`scopetwin.scenes.surface.Substrate.intersect`: the centroid-bias model, the marker
+truth) and the per-pixel maps (:mod:`scopetwin.sim.datasets.maps`). This module evaluates *the same spline* — the
+knots and coefficients of the height map's ``RectBivariateSpline`` — converted once into one bicubic polynomial per
+knot cell (the B-splines' Taylor coefficients at each cell's left knot), so that a point costs a cell look-up and a
+4 x 4 Horner step, and a ray that stays in its cell between two secant steps costs no look-up at all. Values agree
+with :meth:`HeightMap.height` / :meth:`HeightMap.gradient` to rounding (about 1e-16 mm for heights of 0.1 mm),
+including the constant continuation outside the extents. Get one from :meth:`HeightMap.cells` (built once per map).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
@@ -38,18 +42,24 @@ def _cell_basis(t: F64) -> tuple[F64, F64]:
     return left, m
 
 
-class FastSurface:
-    """h(x, y) and (dh/dx, dh/dy) of a :class:`HeightMap`'s spline, vectorised (module docstring)."""
+class BicubicCells:
+    """h(x, y) and (dh/dx, dh/dy) of a :class:`HeightMap`'s spline, vectorised (module docstring).
+
+    Parameters
+    ----------
+    heights : HeightMap
+        The map; its own fitted spline (``RectBivariateSpline``) is converted, not fitted again.
+    """
 
     def __init__(self, heights: HeightMap) -> None:
-        spline = RectBivariateSpline(heights.y_nodes, heights.x_nodes, heights.z, kx=3, ky=3, s=0)
+        spline: RectBivariateSpline = heights.spline
         ty, tx, c = spline.tck  # the first axis is y
         self.x_left, mx = _cell_basis(np.asarray(tx, dtype=np.float64))
         self.y_left, my = _cell_basis(np.asarray(ty, dtype=np.float64))
         coef = np.asarray(c, dtype=np.float64).reshape(len(ty) - 4, len(tx) - 4)
         windows = sliding_window_view(coef, (4, 4))  # (cells y, cells x, 4, 4)
         # the bicubic polynomial of each cell: A[cy, cx, p, q] multiplies sy^p sx^q
-        self.poly = np.einsum("yrp,yxrs,xsq->yxpq", my, windows, mx, optimize=True).reshape(-1, 16)
+        self.poly = ((my.transpose(0, 2, 1)[:, None] @ windows) @ mx[None]).reshape(-1, 16)
         self.n_cx = len(self.x_left)
         self.x_right = np.asarray(tx, dtype=np.float64)[4 : 4 + self.n_cx]  # t[l + 1] of cell l = 3 + k
         self.y_right = np.asarray(ty, dtype=np.float64)[4 : 4 + len(self.y_left)]
@@ -107,58 +117,47 @@ class FastSurface:
         return self._eval(x, y, True)
 
     def intersect(
-        self, origins: F64, directions: F64, tol: float = 1e-10, max_iter: int = 60
+        self,
+        origins: F64,
+        directions: F64,
+        lam0: F64 | None = None,
+        lam1: F64 | None = None,
+        tol: float = 1e-10,
+        max_iter: int = 60,
     ) -> tuple[F64, NDArray[np.bool_], F64, F64, F64]:
         """Where rays (local base-plane coordinates, (n, 3)) meet z = h(x, y), by the secant iteration of seed
         §1.6.4 (eq. 1.6), and the height and gradient there.
 
-        The iteration is that of :func:`scopetwin.scenes.surface.secant_intersection`, started at the base-plane
-        hit and one flat-surface Newton step from it; each ray keeps the polynomial of its cell while it stays in
-        it. A ray stops when ``|h - z|`` < ``tol`` mm.
+        The iteration is :func:`scopetwin.scenes.surface.secant_intersection`'s, with this evaluator as its residual:
+        each ray keeps the polynomial of its cell while it stays in it.
+
+        Parameters
+        ----------
+        origins, directions : ndarray, (n, 3)
+            The rays.
+        lam0, lam1 : ndarray, (n,), optional
+            The two start values of the ray parameter. Default: the base-plane hit and one flat-surface Newton step
+            from it (a ray parallel to the base plane is not traced). With ``lam0`` alone: the flat Newton step.
+        tol : float
+            A ray stops when ``|h - z|`` < ``tol`` mm.
+        max_iter : int
+            Largest number of secant steps.
 
         Returns
         -------
         lam, converged, h, hx, hy : ndarray, (n,)
             Ray parameter of the hit (NaN where it did not converge), the mask, and h, dh/dx, dh/dy there.
         """
-        o = np.asarray(origins, dtype=np.float64)
-        d = np.asarray(directions, dtype=np.float64)
+        o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
         n = len(o)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lam_prev = np.where(d[:, 2] != 0, -o[:, 2] / np.where(d[:, 2] != 0, d[:, 2], 1.0), np.nan)
-        finite = np.isfinite(lam_prev)
-        lam_prev = np.where(finite, lam_prev, 0.0)
-        p = o + lam_prev[:, None] * d
-        cells = self.locate(p[:, 0], p[:, 1])
-        polys = self.poly[cells]
-
-        def f(idx: NDArray[np.intp], lam: F64) -> F64:
-            whole = len(idx) == n  # every ray: no gathers
-            qx = (o[:, 0] if whole else o[idx, 0]) + lam * (d[:, 0] if whole else d[idx, 0])
-            qy = (o[:, 1] if whole else o[idx, 1]) + lam * (d[:, 1] if whole else d[idx, 1])
-            qz = (o[:, 2] if whole else o[idx, 2]) + lam * (d[:, 2] if whole else d[idx, 2])
-            moved = ~self.inside(cells if whole else cells[idx], qx, qy)
-            if moved.any():
-                k = idx[moved]
-                cells[k] = self.locate(qx[moved], qy[moved])
-                polys[k] = self.poly[cells[k]]
-            at = (cells, polys) if whole else (cells[idx], polys[idx])
-            return self.evaluate(at[0], at[1], qx, qy)[0] - qz
-
-        every = np.arange(n)
-
-        def residual(lam: F64, idx: NDArray[np.intp] | None = None) -> F64:
-            return f(every if idx is None else idx, lam)
-
-        start = np.where(finite, lam_prev, np.nan)  # a ray parallel to the base plane is not traced
+        if lam0 is None:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                plane = np.where(d[:, 2] != 0, -o[:, 2] / np.where(d[:, 2] != 0, d[:, 2], 1.0), np.nan)
+            lam0, lam1 = plane, None  # NaN where parallel: not traced
+        residual, cells = self._residual(o, d, np.asarray(lam0, dtype=np.float64).reshape(n))
         lam_cur, converged = secant_intersection(  # the one secant iteration, with this evaluator's cell cache
-            self,
-            o,
-            d,
-            start,
-            tol=tol,
-            max_iter=max_iter,
-            residual=residual,
+            self, o, d, lam0, lam1, tol=tol, max_iter=max_iter, residual=residual
         )
         lam = np.where(converged, lam_cur, np.nan)
         q = o + np.where(converged, lam_cur, 0.0)[:, None] * d
@@ -168,3 +167,30 @@ class FastSurface:
         cells[k[moved]] = self.locate(q[k[moved], 0], q[k[moved], 1])
         h[k], hx[k], hy[k] = self.evaluate(cells[k], self.poly[cells[k]], q[k, 0], q[k, 1], grad=True)
         return lam, converged, h, hx, hy
+
+    def _residual(
+        self, o: F64, d: F64, lam0: F64
+    ) -> tuple[Callable[[F64, NDArray[np.intp] | None], F64], NDArray[np.intp]]:
+        """f(lam, idx) = h - z along the rays ``idx`` (all where None), each ray's cell and polynomial kept between
+        calls (started at ``lam0``); also the cells, which the residual updates in place."""
+        n = len(o)
+        p = o + np.where(np.isfinite(lam0), lam0, 0.0)[:, None] * d
+        cells = self.locate(p[:, 0], p[:, 1])
+        polys = self.poly[cells]
+
+        def residual(lam: F64, idx: NDArray[np.intp] | None = None) -> F64:
+            whole = idx is None or len(idx) == n  # every ray: no gathers
+            oo, dd = (o, d) if whole else (o[idx], d[idx])
+            qx = oo[:, 0] + lam * dd[:, 0]
+            qy = oo[:, 1] + lam * dd[:, 1]
+            qz = oo[:, 2] + lam * dd[:, 2]
+            at = np.arange(n) if whole else np.asarray(idx)
+            moved = ~self.inside(cells if whole else cells[at], qx, qy)
+            if moved.any():
+                k = at[moved]
+                cells[k] = self.locate(qx[moved], qy[moved])
+                polys[k] = self.poly[cells[k]]
+            here = (cells, polys) if whole else (cells[at], polys[at])
+            return self.evaluate(here[0], here[1], qx, qy)[0] - qz
+
+        return residual, cells
