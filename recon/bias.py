@@ -392,6 +392,24 @@ def _window_groups(lo: NDArray, hi: NDArray, s: int, chunk: int) -> list[NDArray
     return groups
 
 
+def _target_hits(camera: Camera, px: Array) -> tuple[Array, NDArray[np.bool_]]:
+    """:func:`plane_hits` of the target plane z = 0 (the target's own coordinates) for the pinhole rays through
+    pixels ``px`` (n, 2), without forming the rays: with d = -b N_z + u T_x + v T_y (the undistorted sensor point,
+    seed §1.6.2) and the centre c, the hit is c + (-c_z / d_z) d (the same point as the unit ray's, to rounding);
+    it is reached where d_z < 0 and the hit lies ahead (c_z > 0)."""
+    uv = camera.undistort(camera.pixel_to_sensor(px))
+    f, c = camera.frame, camera.center
+    u, v = uv[:, 0], uv[:, 1]
+    dz = u * f.tx[2] + v * f.ty[2] - camera.b * f.nz[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = -c[2] / dz
+    ok = (dz < 0) & np.isfinite(lam) & (lam > 0)
+    lam = np.where(ok, lam, 0.0)
+    x = c[0] + lam * (u * f.tx[0] + v * f.ty[0] - camera.b * f.nz[0])
+    y = c[1] + lam * (u * f.tx[1] + v * f.ty[1] - camera.b * f.nz[1])
+    return np.stack([x, y], axis=-1), ok
+
+
 def _group_centroids(
     camera: Camera,
     xy: Array,
@@ -405,15 +423,13 @@ def _group_centroids(
 ) -> Array:
     """Thresholded centroids (m, 2) of one group of markers (centres ``xy``, mm) in pixel windows from ``lo``."""
     m, ss = len(xy), len(off)
-    target_plane = Frame.identity()  # the target's own coordinates: markers at (x, y, 0)
     size = (hi - lo).max(axis=0)
     cols = np.arange(size[0])
     rows = np.arange(size[1])
     cc, rr = np.meshgrid(cols, rows)  # (H, W)
     base = np.stack([cc, rr], -1).reshape(-1, 2).astype(np.float64)  # (P, 2) pixel corners
     pix = lo[:, None, None, :] + base[None, :, None, :] + off[None, None, :, :]  # (m, P, S, 2)
-    o, d = camera.rays(pix.reshape(-1, 2))
-    hit, reaches = plane_hits(target_plane, o, d)
+    hit, reaches = _target_hits(camera, pix.reshape(-1, 2))
     hit = hit.reshape(m, -1, 2) - xy[:, None, :]
     r = np.hypot(hit[..., 0], hit[..., 1]) / radii[:, None]
     grey = radiance * np.clip(1.0 - r, 0.0, 1.0)
