@@ -12,6 +12,6 @@ Modules by the seed's sections:
 * :mod:`scopetwin.recon.shifted_basis` — height reconstruction with shifted basis functions (§1.8);
 * :mod:`scopetwin.recon.frame_criterion` — the frame criterion of the outer loop (§1.4, eqs. 1.3-1.4);
 * :mod:`scopetwin.recon.reconstruct` — the nested start-height iteration (§1.4); rays meet the surface by
-  :func:`scopetwin.scenes.surface.secant_intersection` (§1.6.4);
+  :func:`scopetwin.scenes.secant.secant_intersection` (§1.6.4);
 * :mod:`scopetwin.recon.focusmap` — focus maps from the reconstructed surface (§1.1: removing the focus search).
 """

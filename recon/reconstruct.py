@@ -3,7 +3,7 @@
 Inner loop (self-consistent surface for a start height H, §1.4 and Fig. 1.4): start
 with the plane z = H (or the previous outer run's surface moved to H); trace every
 marker's camera ray to the current surface (secant iteration, §1.6.4,
-:func:`scopetwin.scenes.surface.secant_intersection`), form the
+:func:`scopetwin.scenes.secant.secant_intersection`), form the
 normal from the camera ray and the ray to the marker centre (§1.7.1), turn it into a
 gradient (§1.7.3), fit the shifted basis functions (§1.8) and set the bias so that the
 surface's mean height over the region of interest is H (eq. 1.5). Stop when the RMS

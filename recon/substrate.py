@@ -11,8 +11,8 @@ from scopetwin.recon.errors import ReconstructionError, SubstrateNotVisibleError
 from scopetwin.recon.shifted_basis import SBFSurface
 from scopetwin.scenes.camera import Camera
 from scopetwin.scenes.geometry import Array, Frame
+from scopetwin.scenes.secant import secant_intersection
 from scopetwin.scenes.setup import Setup
-from scopetwin.scenes.surface import secant_intersection
 
 
 @dataclass(frozen=True)
@@ -62,7 +62,7 @@ def intersect_surface(
 ) -> tuple[Array, NDArray[np.bool_]]:
     """Ray parameters where rays meet a fitted surface z = f(x, y) (secant iteration of seed §1.6.4, eq. 1.6).
 
-    :func:`scopetwin.scenes.surface.secant_intersection`, started at the rays' intersections with the plane
+    :func:`scopetwin.scenes.secant.secant_intersection`, started at the rays' intersections with the plane
     z = offset and with the plane z = f there, which is close to the root for a nearly flat substrate.
 
     Parameters

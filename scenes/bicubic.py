@@ -20,7 +20,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import BSpline, RectBivariateSpline
 
-from scopetwin.scenes.surface import HeightMap, secant_intersection
+from scopetwin.scenes.secant import secant_intersection
 
 F64 = NDArray[np.float64]
 
@@ -47,12 +47,14 @@ class BicubicCells:
 
     Parameters
     ----------
-    heights : HeightMap
-        The map; its own fitted spline (``RectBivariateSpline``) is converted, not fitted again.
+    spline : RectBivariateSpline
+        A height map's own fitted spline (:attr:`HeightMap.spline`, its first axis y), converted, not fitted again.
+    bounds : (float, float, float, float)
+        The map's extents (x_min, x_max, y_min, y_max), mm: outside them the surface continues with the value at the
+        nearest edge point.
     """
 
-    def __init__(self, heights: HeightMap) -> None:
-        spline: RectBivariateSpline = heights.spline
+    def __init__(self, spline: RectBivariateSpline, bounds: tuple[float, float, float, float]) -> None:
         ty, tx, c = spline.tck  # the first axis is y
         self.x_left, mx = _cell_basis(np.asarray(tx, dtype=np.float64))
         self.y_left, my = _cell_basis(np.asarray(ty, dtype=np.float64))
@@ -63,7 +65,7 @@ class BicubicCells:
         self.n_cx = len(self.x_left)
         self.x_right = np.asarray(tx, dtype=np.float64)[4 : 4 + self.n_cx]  # t[l + 1] of cell l = 3 + k
         self.y_right = np.asarray(ty, dtype=np.float64)[4 : 4 + len(self.y_left)]
-        self.bounds = (heights.x_min, heights.x_max, heights.y_min, heights.y_max)
+        self.bounds = bounds
 
     def locate(self, x: F64, y: F64) -> NDArray[np.intp]:
         """The cell (a flat index) of each point (points outside the extents: the nearest edge cell)."""
@@ -128,7 +130,7 @@ class BicubicCells:
         """Where rays (local base-plane coordinates, (n, 3)) meet z = h(x, y), by the secant iteration of seed
         §1.6.4 (eq. 1.6), and the height and gradient there.
 
-        The iteration is :func:`scopetwin.scenes.surface.secant_intersection`'s, with this evaluator as its residual:
+        The iteration is :func:`scopetwin.scenes.secant.secant_intersection`'s, with this evaluator as its residual:
         each ray keeps the polynomial of its cell while it stays in it.
 
         Parameters

@@ -211,11 +211,12 @@ def test_misindexed_markers_are_an_error_not_a_tilted_map(tilt, tmp_path: Path) 
 
 
 def test_one_secant_intersection_for_height_maps_fitted_surfaces_and_functions() -> None:
-    """scopetwin.scenes.surface.secant_intersection (seed §1.6.4) serves the truth tracer and the reconstruction
+    """scopetwin.scenes.secant.secant_intersection (seed §1.6.4) serves the truth tracer and the reconstruction
     alike."""
     from scopetwin.recon.shifted_basis import SBFSurface
     from scopetwin.recon.substrate import Substrate2D, intersect_surface
-    from scopetwin.scenes.surface import Substrate, secant_intersection
+    from scopetwin.scenes.secant import secant_intersection
+    from scopetwin.scenes.surface import Substrate
 
     sub = SETUP.substrate
     basis = ReconstructionConfig.realtime().make_basis(Substrate2D.from_setup(SETUP))

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from scopetwin.scenes.geometry import Frame, intersect_plane
-from scopetwin.scenes.surface import HeightMap, Substrate, secant_intersection
+from scopetwin.scenes.secant import secant_intersection
+from scopetwin.scenes.surface import HeightMap, Substrate
 
 
 @pytest.fixture
