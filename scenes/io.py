@@ -22,7 +22,7 @@ import stat
 import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 import OpenEXR
@@ -30,7 +30,9 @@ from numpy.typing import NDArray
 
 from scopetwin.scenes.errors import FileFormatError, ScopetwinError
 from scopetwin.scenes.inputs import check_input_file, native_output_captured
-from scopetwin.scenes.surface import HeightMap
+
+if TYPE_CHECKING:
+    from scopetwin.scenes.surface import HeightMap
 
 EXTENT_KEYS = ("x_min_mm", "x_max_mm", "y_min_mm", "y_max_mm")
 #: The largest absolute height a substrate's surface may have, mm (bows are µm to a few mm; seed §1.9).
@@ -208,6 +210,8 @@ def write_heightmap(path: str | Path, heights: HeightMap, std: HeightMap | None 
 
 def read_heightmap_std(path: str | Path) -> HeightMap | None:
     """The ``Z_std`` channel of a height-map EXR (per-node standard uncertainty, mm), or None when it has none."""
+    from scopetwin.scenes.surface import HeightMap  # scipy's splines, loaded where a height map is made
+
     hm = read_heightmap(path)
     try:
         data, _ = _read_exr(path, "Z_std")
@@ -235,6 +239,7 @@ def read_heightmap(path: str | Path) -> HeightMap:
     if not all(np.isfinite(ext)):
         raise FileFormatError(f"{path}: height-map extents must be finite, got {', '.join(f'{e:g}' for e in ext)}")
     from scopetwin.scenes.errors import GeometryError
+    from scopetwin.scenes.surface import HeightMap  # scipy's splines, loaded where a height map is made
 
     try:
         return HeightMap(data.astype(np.float64), *ext)
