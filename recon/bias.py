@@ -53,6 +53,7 @@ figures of ``scopetwin run`` and ``scopetwin study thesis`` do not change.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -67,6 +68,8 @@ from scopetwin.scenes.geometry import Array, Frame, intersect_plane
 from scopetwin.scenes.pattern import MarkerPattern
 from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
+
+log = logging.getLogger(__name__)
 
 
 class BiasError(ScopetwinError, ValueError):
@@ -344,6 +347,8 @@ def predict_spots(
             f"the model's map around {missing} of {n} markers could not be fitted (rays that miss the pattern or a "
             f"singular map; at most {max_unpredicted:.0%} may be left uncorrected)"
         )
+    if missing:
+        log.debug("bias model: %d of %d markers left uncorrected (their map could not be built)", missing, n)
     centroid, center = guess.copy(), guess.copy()
     centroid[fitted] = _map_first_moment(coef[fitted], n_r, n_theta)
     center[fitted] = coef[fitted, 0, :]
