@@ -268,7 +268,7 @@ def _solve_each(lhs: Array, rhs: Array, fitted: NDArray[np.bool_]) -> Array:
                 try:
                     coef[i] = np.linalg.solve(lhs[i], rhs[i])
                 except np.linalg.LinAlgError:
-                    pass
+                    continue  # stays NaN: predict_spots leaves this marker uncorrected
     return coef
 
 

@@ -158,3 +158,38 @@ def test_one_marker_the_model_cannot_image_keeps_its_centroid_and_the_others_are
     with pytest.raises(BiasError, match="3 of 40 markers"):
         predict_spots(three, ij, guess_px=guess)  # 7.5 % > 5 %
     assert predict_spots(three, ij, guess_px=guess, max_unpredicted=0.1).predicted.sum() == 37
+
+
+def test_the_target_hits_shortcut_is_the_camera_rays_on_the_plane():
+    """recon.bias._target_hits writes the pinhole ray (Camera.rays) and the plane hit (plane_hits) component-wise for
+    the millions of supersampled pixels of the calibration's bias model: it must be those two, to rounding,
+    including the rays that miss the target's front (a camera looking past the plane's edge, views from behind)."""
+    from scopetwin.recon.bias import _target_hits, plane_hits
+    from scopetwin.scenes.geometry import Frame
+
+    rng = np.random.default_rng(11)
+    for alpha in (90.0, 30.0, 5.0):
+        cam = target_at(alpha).camera_model
+        px = rng.uniform(-200, [cam.nx + 200, cam.ny + 200], (5000, 2))
+        xy, ok = _target_hits(cam, px)
+        xy_ref, ok_ref = plane_hits(Frame.identity(), *cam.rays(px))
+        assert (ok == ok_ref).all() and ok.any()
+        np.testing.assert_allclose(xy[ok], xy_ref[ok], rtol=0, atol=1e-9)
+    assert not ok.all()  # at 5 degrees the top of the image looks past the plane: the misses agree too
+
+
+def test_one_singular_marker_map_leaves_only_that_marker_unfitted():
+    """recon.bias._solve_each: the batched normal equations with one singular system (too few rays near a caustic)
+    solve the others one by one, as the batch would, and leave the singular one NaN."""
+    from scopetwin.recon.bias import _solve_each
+
+    rng = np.random.default_rng(3)
+    a = rng.standard_normal((6, 40, 10))
+    lhs = a.transpose(0, 2, 1) @ a
+    rhs = rng.standard_normal((6, 10, 2))
+    lhs[4] = 0.0
+    fitted = np.array([True, True, False, True, True, True])
+    coef = _solve_each(lhs, rhs, fitted)
+    for i in (0, 1, 3, 5):
+        np.testing.assert_allclose(coef[i], np.linalg.solve(lhs[i], rhs[i]), rtol=1e-12)
+    assert np.isnan(coef[[2, 4]]).all()
