@@ -199,6 +199,7 @@ def test_cramer_rao_bound_scales_with_the_noise(case):
     assert four == pytest.approx(2 * one, rel=1e-6)
 
 
+@pytest.mark.slow  # 19 s; the default suite keeps the free-spline recovery above (make test <= 5 min)
 def test_fit_in_a_basis_span_recovers_a_surface_of_that_basis(case):
     """surface="start-basis": the fit keeps to the span of the start's shifted basis and returns to a known member."""
     from scopetwin.recon.shifted_basis import ShiftedBasis

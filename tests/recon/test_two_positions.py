@@ -89,6 +89,7 @@ def test_combine_weights_by_inverse_variance_and_takes_the_measurement_where_the
     assert combine(0.0, 1.0, 5.0, 0.2, use_frame=False) == (5.0, 0.2, None)
 
 
+@pytest.mark.slow  # 18 s; combine()'s arithmetic above stays in the default suite (make test <= 5 min)
 def test_two_positions_recover_the_absolute_height_where_the_frame_criterion_misses_it():
     """Exact marker images (the project's own ray model, sim.truth) at the pattern's two positions plus 0.01 px of
     centroid noise: the frame criterion misses the absolute height by ~2 µm; the two positions find it within 0.1 µm,

@@ -70,6 +70,7 @@ def _solve_counting(setup, obs, start, monkeypatch, converged=False):
     return res, len(calls)
 
 
+@pytest.mark.slow  # 8 s, two full solves (make test <= 5 min)
 def test_the_warm_start_lands_where_the_cold_one_does(frames, monkeypatch) -> None:
     """Both fits stop short of the evidence's maximum somewhere along its flat directions (noise, broadband part); the
     warm one must stop as near to it as the cold one: the absolute height within half a standard uncertainty of
