@@ -5,7 +5,8 @@
    (the two calibration images of §2.7) and the measurement image of the bent substrate (§1.10);
 3. calibration of the setup from the two calibration images (``calib``, §2.7);
 4. marker detection (``recon.markers``) and reconstruction (``recon.reconstruct``, §1.4) with the
-   calibrated and with the ideal setup, centroid-bias correction on;
+   calibrated and with the ideal setup, centroid-bias correction on, and the reconstruction from the exact marker
+   images (the method's own floor); steps 3 and 4 on two threads (:func:`_calibrate_and_reconstruct`);
 5. comparison with the truth over the region of interest — absolute height (ROI mean error), shape
    (RMS after removing the ROI mean), RMS and maximum — beside the seed's §1.10 / Table 2.7 figures;
 6. a report folder: ``report.md``, EXR height and error maps, PNG plots, the focus map, ``summary.json``.
@@ -17,8 +18,11 @@ from __future__ import annotations
 
 import json
 import logging
+import queue
+import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -32,6 +36,7 @@ from scopetwin.scenes.surface import HeightMap
 if TYPE_CHECKING:
     from scopetwin.recon.focusmap import FocusMap
     from scopetwin.recon.markers import Markers
+    from scopetwin.recon.posterior import Hyper
     from scopetwin.recon.reconstruct import MarkerObservations, ReconstructionResult
     from scopetwin.recon.substrate import Substrate2D
 
@@ -261,12 +266,106 @@ class _Steps:
         self.bar = tqdm(total=7, desc="scopetwin run", unit="step", disable=not progress)
         self.t = time.perf_counter()
 
+    def record(self, name: str, seconds: float) -> None:
+        """Step ``name`` took ``seconds`` (run beside others): record it, advance the bar."""
+        self.timings[name] = seconds
+        self.bar.update(1)
+        self.bar.set_postfix_str(name)
+        self.t = time.perf_counter()
+
     def tick(self, name: str) -> None:
         """Step ``name`` is done: record its time, advance the bar."""
         self.timings[name] = time.perf_counter() - self.t
         self.bar.update(1)
         self.bar.set_postfix_str(name)
         self.t = time.perf_counter()
+
+
+class _Worker:
+    """One daemon thread that runs the calls given to :meth:`submit` in order, each result a :class:`Future`.
+
+    A daemon, so that an interrupted run ends at once (the caller discards its staging folder) instead of waiting
+    for the call under way; :meth:`stop` cancels the calls not yet started.
+    """
+
+    def __init__(self) -> None:
+        self._calls: queue.SimpleQueue[tuple[Future[Any], Callable[..., Any], tuple[Any, ...]] | None] = (
+            queue.SimpleQueue()
+        )
+        self._stopped = threading.Event()
+        threading.Thread(target=self._work, name="scopetwin-run", daemon=True).start()
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future[Any]:
+        """``fn(*args)`` after the calls submitted before it."""
+        fut: Future[Any] = Future()
+        self._calls.put((fut, fn, args))
+        return fut
+
+    def stop(self) -> None:
+        """The thread ends after the call under way; the calls not yet started are cancelled."""
+        self._stopped.set()
+        self._calls.put_nowait(None)
+
+    def _work(self) -> None:
+        while (item := self._calls.get()) is not None:
+            fut, fn, args = item
+            if self._stopped.is_set():
+                fut.cancel()
+                continue
+            if not fut.set_running_or_notify_cancel():
+                continue
+            try:
+                fut.set_result(fn(*args))
+            except BaseException as exc:  # handed to the caller through the future
+                fut.set_exception(exc)
+
+
+def _calibrate_and_reconstruct(
+    image: NDArray[Any],
+    setup: Setup,
+    target: tuple[Setup, NDArray[Any]],
+    mirror: tuple[Setup, NDArray[Any]],
+    heights: HeightMap,
+    out: Path,
+    steps: _Steps,
+) -> tuple[Setup | None, str, Markers, dict[str, Any], tuple[ReconstructionResult, dict[str, float]]]:
+    """Steps 3-5 on two threads: the calibration and the reconstruction with the calibrated setup here, the
+    reconstruction with the ideal setup and the truth reference beside them (:class:`_Worker`).
+
+    The work is numpy and LAPACK on one BLAS thread each (:func:`run_pipeline`), which release the interpreter lock, so
+    the two chains share the two cores of a small machine. The results are those of the steps run one after the
+    other: the calibrated reconstruction waits for the ideal one's prior as its evidence start
+    (:func:`_detect_and_reconstruct`). ``steps`` records each step's own seconds (they overlap).
+
+    Returns the calibrated setup (None where the calibration failed), the report's calibration note, the markers
+    found with the ideal setup, the results per setup name and the truth reference with its errors.
+    """
+    from scopetwin.recon.posterior import Hyper
+    from scopetwin.recon.substrate import Substrate2D
+
+    sub = Substrate2D.from_setup(setup)
+    worker = _Worker()
+    try:
+        ideal = worker.submit(_timed, _reconstruct_one, image, "ideal", setup, out, heights, sub, None)
+        truth = worker.submit(_timed, _truth_reference, setup, heights, sub)
+        (calibrated, note), t_cal = _timed(_calibrate, target[0], mirror[0], target[1], mirror[1], out)
+        steps.record("calibrate", t_cal)
+        (found, r_ideal), t_ideal = ideal.result()
+        res = r_ideal["result"]
+        prior = Hyper.from_dict(res.uncertainty.hyper) if res.uncertainty is not None else None
+        (_, r_cal), t_rec = _timed(_reconstruct_one, image, "calibrated", calibrated or setup, out, heights, sub, prior)
+        steps.record("detect + reconstruct", t_ideal + t_rec)
+        exact, t_truth = truth.result()
+        steps.record("truth reference", t_truth)
+    finally:
+        worker.stop()
+    return calibrated, note, found, {"ideal": r_ideal, "calibrated": r_cal}, exact
+
+
+def _timed(fn: Callable[..., Any], *args: Any) -> tuple[Any, float]:
+    """``fn(*args)`` and its seconds."""
+    t0 = time.perf_counter()
+    return fn(*args), time.perf_counter() - t0
 
 
 def _run(
@@ -277,6 +376,7 @@ def _run(
     setup_name: str | None,
     surface_file: str | Path | None,
 ) -> dict[str, Any]:
+    from scopetwin.recon.reconstruct import MarkerObservations
     from scopetwin.recon.substrate import Substrate2D
 
     out = Path(out_dir)
@@ -292,13 +392,10 @@ def _run(
     steps.tick("render calibration images")
     image = render_with_noise(setup, heights, r_spp, r_seed)
     steps.tick("render measurement")
-    calibrated, calibration_note = _calibrate(target_setup, mirror_setup, img_target, img_mirror, out)
-    steps.tick("calibrate")
-    setups = {"ideal": setup, "calibrated": calibrated if calibrated is not None else setup}
-    found, obs, results = _detect_and_reconstruct(image, setups, out, heights, sub)
-    steps.tick("detect + reconstruct")
-    res_exact, exact_err = _truth_reference(setup, heights, sub)
-    steps.tick("truth reference")
+    calibrated, calibration_note, found, results, (res_exact, exact_err) = _calibrate_and_reconstruct(
+        image, setup, (target_setup, img_target), (mirror_setup, img_mirror), heights, out, steps
+    )
+    obs = MarkerObservations(found.ij, found.centroids)
     images = {
         "measurement.exr": (image, setup),
         "calib-target.exr": (img_target, target_setup),
@@ -375,24 +472,31 @@ def _detect_and_reconstruct(
     """
     from scopetwin.recon.posterior import Hyper
     from scopetwin.recon.reconstruct import MarkerObservations
-    from scopetwin.recon.strategy import reconstruct_image
 
     results: dict[str, Any] = {}
     found: Markers | None = None
     prior: Hyper | None = None
     for name, s in setups.items():
-        t0 = time.perf_counter()
-        markers, res, _ = reconstruct_image(image, s, history_path=out / f"{name}-history.json", evidence_start=prior)
+        markers, results[name] = _reconstruct_one(image, name, s, out, heights, sub, prior)
+        res = results[name]["result"]
         if prior is None and res.uncertainty is not None:
             prior = Hyper.from_dict(res.uncertainty.hyper)
         found = markers if found is None or name == "ideal" else found
-        results[name] = {
-            "result": res,
-            "seconds": time.perf_counter() - t0,
-            "errors": roi_errors(res.surface.height, heights, sub),
-        }
     assert found is not None
     return found, MarkerObservations(found.ij, found.centroids), results
+
+
+def _reconstruct_one(
+    image: NDArray[Any], name: str, setup: Setup, out: Path, heights: HeightMap, sub: Substrate2D, prior: Hyper | None
+) -> tuple[Markers, dict[str, Any]]:
+    """The image reconstructed with one setup (:func:`scopetwin.recon.strategy.reconstruct_image`): the markers found
+    and ``{"result", "seconds", "errors"}``; a history that is not accepted goes to ``out/<name>-history.json``."""
+    from scopetwin.recon.strategy import reconstruct_image
+
+    t0 = time.perf_counter()
+    markers, res, _ = reconstruct_image(image, setup, history_path=out / f"{name}-history.json", evidence_start=prior)
+    seconds = time.perf_counter() - t0
+    return markers, {"result": res, "seconds": seconds, "errors": roi_errors(res.surface.height, heights, sub)}
 
 
 def _truth_reference(
@@ -595,5 +699,6 @@ def _report(s: dict[str, Any]) -> str:
         "",
     ]
     lines += [f"- {k}: {v:.2f}" for k, v in s["timings_s"].items()]
+    lines += ["", "(calibrate, detect + reconstruct and truth reference run on two threads: their seconds overlap.)"]
     lines += ["", f"Total {s['seconds']:.1f} s.", "", "Files: " + ", ".join(s["files"]), ""]
     return "\n".join(lines)

@@ -95,3 +95,86 @@ def test_run_measures_a_users_surface_with_a_users_setup(tmp_path, capsys):
     rec = summary["reconstructions"]["ideal"]
     assert abs(rec["roi_absolute_um"]) <= 3 * rec["uncertainty"]["absolute_um"] + 0.01
     assert rec["roi_shape_um"] < 0.1
+
+
+def test_the_worker_runs_its_calls_in_order_and_hands_back_their_errors():
+    """The run's second thread (sim.pipeline._Worker): calls in the order given, results and exceptions through the
+    futures, a daemon (an interrupted run does not wait for it)."""
+    import threading
+    import time
+
+    from scopetwin.sim.pipeline import _Worker
+
+    seen: list[str] = []
+
+    def call(name: str, delay: float) -> str:
+        time.sleep(delay)
+        seen.append(name)
+        return name.upper()
+
+    def fail() -> None:
+        raise ValueError("no such marker")
+
+    worker = _Worker()
+    first, broken, last = worker.submit(call, "a", 0.05), worker.submit(fail), worker.submit(call, "b", 0.0)
+    assert last.result(timeout=5) == "B" and first.result(timeout=5) == "A"
+    assert seen == ["a", "b"]
+    with pytest.raises(ValueError, match="no such marker"):
+        broken.result(timeout=5)
+    assert all(t.daemon for t in threading.enumerate() if t.name == "scopetwin-run")
+    worker.stop()
+
+
+def test_a_stopped_worker_cancels_the_calls_it_has_not_started():
+    import threading
+
+    from scopetwin.sim.pipeline import _Worker
+
+    gate = threading.Event()
+    worker = _Worker()
+    running = worker.submit(gate.wait, 5)
+    queued = worker.submit(lambda: "never")
+    for _ in range(250):
+        if running.running():
+            break
+        threading.Event().wait(0.02)
+    worker.stop()
+    gate.set()
+    assert running.result(timeout=5) is True
+    for _ in range(100):
+        if queued.cancelled():
+            break
+        threading.Event().wait(0.02)
+    assert queued.cancelled()
+
+
+@pytest.mark.slow
+def test_the_two_threads_give_what_the_steps_give_one_after_the_other(tmp_path):
+    """``_calibrate_and_reconstruct`` (calibration and calibrated reconstruction beside the ideal reconstruction and
+    the truth reference) returns exactly what the steps return run one after the other."""
+    from scopetwin.recon.reconstruct import single_thread_blas
+    from scopetwin.recon.substrate import Substrate2D
+    from scopetwin.sim import pipeline as p
+
+    setup, target, mirror, heights = p._surface_and_setups(4, 3, None, None)
+    sub = Substrate2D.from_setup(setup)
+    img_t = p.render_with_noise(target, None, 4, 1)
+    img_m = p.render_with_noise(mirror, None, 4, 2)
+    image = p.render_with_noise(setup, heights, 4, 0)
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    with single_thread_blas():
+        cal, note, found, results, (exact, exact_err) = p._calibrate_and_reconstruct(
+            image, setup, (target, img_t), (mirror, img_m), heights, tmp_path / "a", p._Steps(False)
+        )
+        cal1, note1 = p._calibrate(target, mirror, img_t, img_m, tmp_path / "b")
+        found1, _, results1 = p._detect_and_reconstruct(
+            image, {"ideal": setup, "calibrated": cal1 or setup}, tmp_path / "b", heights, sub
+        )
+        exact1, exact_err1 = p._truth_reference(setup, heights, sub)
+    assert note == note1 and cal is not None and cal1 is not None and cal.to_json() == cal1.to_json()
+    assert np.array_equal(found.ij, found1.ij) and np.array_equal(found.centroids, found1.centroids)
+    for name in ("ideal", "calibrated"):
+        assert results[name]["errors"] == results1[name]["errors"], name
+        assert np.array_equal(results[name]["result"].surface.coef, results1[name]["result"].surface.coef), name
+    assert exact_err == exact_err1 and np.array_equal(exact.surface.coef, exact1.surface.coef)
