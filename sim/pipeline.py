@@ -633,6 +633,9 @@ def _calibration_deviation(setup: Setup, calibrated: Setup) -> dict[str, Any]:
     }
 
 
+_OVERLAP = "(calibrate, detect + reconstruct and truth reference run on two threads: their seconds overlap.)"
+
+
 def _report(s: dict[str, Any]) -> str:
     rec = s["reconstructions"]
     ex = s["exact_markers"]
@@ -710,7 +713,6 @@ def _report(s: dict[str, Any]) -> str:
         "## Timings (s)",
         "",
     ]
-    lines += [f"- {k}: {v:.2f}" for k, v in s["timings_s"].items()]
-    lines += ["", "(calibrate, detect + reconstruct and truth reference run on two threads: their seconds overlap.)"]
+    lines += [f"- {k}: {v:.2f}" for k, v in s["timings_s"].items()] + ["", _OVERLAP]
     lines += ["", f"Total {s['seconds']:.1f} s.", "", "Files: " + ", ".join(s["files"]), ""]
     return "\n".join(lines)
