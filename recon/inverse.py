@@ -416,6 +416,17 @@ class _Trial:
 
 
 @dataclass
+class _Information:
+    """The Fisher information of a fit's pixels (:meth:`InverseReconstructor._information`): ``fisher`` J^T W J of
+    the coefficients (k x k, J scaled by the photometric gain where the image is in its own units), ``cross`` J^T W V
+    (k x 2) and ``photometric`` V^T W V (2 x 2) with V = d(alpha v + beta)/d(alpha, beta) = [v, 1] per pixel."""
+
+    fisher: sp.csc_matrix
+    cross: Array
+    photometric: Array
+
+
+@dataclass
 class _HeightSearch:
     """The start-height search's end: the start height, criterion, frame maxima, heights tried, converged."""
 
@@ -722,7 +733,13 @@ class InverseReconstructor:
         self.history.append(InverseStep(index, lev.b, h * 1e3, chi2, step_um, pixels, time.perf_counter() - self._t0))
 
     def shape_std_um(
-        self, surf: SplineSurface, var: Any = None, sub: int = 3, probes: int = 32, level: _Level | None = None
+        self,
+        surf: SplineSurface,
+        var: Any = None,
+        sub: int = 3,
+        probes: int = 32,
+        level: _Level | None = None,
+        fisher: sp.csc_matrix | None = None,
     ) -> float:
         """Standard deviation of the ROI shape (RMS over the ROI, mean removed) from the Fisher information, µm.
 
@@ -734,9 +751,11 @@ class InverseReconstructor:
         in the image's units (DN for a camera), the Jacobian then scaled by the photometric gain alpha of the
         loss. ``level``: the fit's own full-resolution level to reuse (with the fit's variances), instead of
         building a second ray model. Where the fit keeps to a basis's span (``surface="start-basis"``) the
-        covariance is that of the span's coordinates and the trace exact.
+        covariance is that of the span's coordinates and the trace exact. ``fisher``: J^T W J already formed
+        (:meth:`_fisher` on the same ``var``, ``sub`` and ``level``).
         """
-        fisher = self._fisher(surf, var, sub, level)
+        if fisher is None:
+            fisher = self._fisher(surf, var, sub, level)
         d = surf.smoothness()
         dtd = d.T @ d
         lam = self.config.smoothness * float(fisher.diagonal().mean()) / float(dtd.diagonal().mean())
@@ -765,15 +784,71 @@ class InverseReconstructor:
             acc += float(v @ x)
         return float(np.sqrt(max(acc, 0.0) / probes / design.shape[0])) * 1e3
 
-    def start_height_term_um(self, lev: _Level, surf: SplineSurface, h: float, absolute_std_um: float) -> float:
+    def start_height_term_um(
+        self,
+        lev: _Level,
+        surf: SplineSurface,
+        h: float,
+        absolute_std_um: float,
+        information: _Information | None = None,
+    ) -> float:
         """The start height's uncertainty carried into the shape, µm (RMS over the ROI).
 
         The rays are traced through a surface at the start height H, so an error of H tilts and bends the fitted
         shape (seed §1.4; the centroid method's
-        :meth:`scopetwin.recon.reconstruct.Reconstructor._start_height_sensitivity`):
-        one more Gauss-Newton pass at H + 0.2 µm from the fitted surface gives d(contrast)/dH per ROI point by a
-        finite difference; the term is sqrt(mean((d contrast/dH * u_abs)^2)).
+        :meth:`scopetwin.recon.reconstruct.Reconstructor._start_height_sensitivity`). The fit's response dc/dH at
+        its solution is that of its Gauss-Newton normal equations to the held mean ROI height, the photometric gain
+        and offset (alpha, beta) answering with the coefficients: the KKT system
+        [[F + lambda D^T D, C, m], [C^T, B, 0], [m^T, 0, 0]] [dc; d(alpha, beta); nu] = [0; 0; 1], with the Fisher
+        information F at the fit, C and B its blocks with the photometric parameters (``information``,
+        :meth:`_information` on ``lev``), the thin-plate weight lambda and the ROI mean row m as the fit sets them.
+        The term is sqrt(mean((d contrast/dH * u_abs)^2)) over the ROI, contrast = height minus its ROI mean. With
+        ``refine_setup`` the pose answers too: one more Gauss-Newton pass at H + 0.2 µm from the fit, by finite
+        difference (:meth:`_start_height_term_fd`).
         """
+        if self.config.refine_setup:
+            return self._start_height_term_fd(lev, surf, h, absolute_std_um)
+        if information is None:
+            information = self._information(surf, None, lev.model.sub, lev)
+        xs, ys = self.sub.roi_grid(0.5)
+        sens = np.asarray(surf.design(xs, ys) @ self._height_response(surf, information)).ravel()
+        return float(np.sqrt(np.mean(((sens - sens.mean()) * absolute_std_um) ** 2)))
+
+    def _height_response(self, surf: SplineSurface, information: _Information) -> Array:
+        """dc/dH: the coefficients' first-order response to the mean ROI height the fit holds (its KKT system at
+        ``surf``, undamped, :meth:`start_height_term_um`; equilibrated by its diagonal, which leaves dc unchanged)."""
+        fisher, cross = information.fisher, information.cross
+        d = surf.smoothness()
+        dtd = (d.T @ d).tocsr()
+        lam = self.config.smoothness * float(fisher.diagonal().mean()) / max(float(dtd.diagonal().mean()), 1e-300)
+        xs, ys = self.sub.roi_grid(max(surf.dx, 0.5))
+        m_row = np.asarray(surf.design(xs, ys).mean(axis=0)).ravel()
+        a = (fisher + lam * dtd).tocsr()
+        if self._span is not None:  # the span's coordinates, as the fit's normal equations
+            a, m_row = sp.csr_matrix(self._span.T @ (a @ self._span)), self._span.T @ m_row
+            cross = self._span.T @ cross
+        k = len(m_row)
+        diag = np.concatenate([a.diagonal(), np.diag(information.photometric)])
+        scale = 1.0 / np.sqrt(np.maximum(np.abs(diag), 1e-300))
+        scale[np.abs(diag) < 1e-300 * max(float(np.abs(diag).max()), 1.0)] = 1.0
+        s_c, s_p = scale[:k], scale[k:]
+        c_s = sp.csr_matrix(s_c[:, None] * cross * s_p[None, :])
+        m_s = (s_c * m_row)[:, None]
+        kkt = sp.bmat(
+            [
+                [sp.diags(s_c) @ a @ sp.diags(s_c), c_s, m_s],
+                [c_s.T, sp.csr_matrix(s_p[:, None] * information.photometric * s_p[None, :]), None],
+                [m_s.T, None, None],
+            ],
+            format="csc",
+        )
+        rhs = np.zeros(k + 3)
+        rhs[-1] = 1.0
+        dc = s_c * spla.spsolve(kkt, rhs)[:k]
+        return dc if self._span is None else self._span @ dc
+
+    def _start_height_term_fd(self, lev: _Level, surf: SplineSurface, h: float, absolute_std_um: float) -> float:
+        """:meth:`start_height_term_um` by one more Gauss-Newton pass at H + 0.2 µm (the pose re-fitted with it)."""
         dh = 2e-4  # mm
         n = len(self.history)
         try:
@@ -787,6 +862,10 @@ class InverseReconstructor:
 
     def _fisher(self, surf: SplineSurface, var: Any, sub: int, level: _Level | None) -> sp.csc_matrix:
         """J^T W J of the full-resolution render at ``surf`` (:meth:`shape_std_um` on ``var`` and ``level``)."""
+        return self._information(surf, var, sub, level).fisher
+
+    def _information(self, surf: SplineSurface, var: Any, sub: int, level: _Level | None) -> _Information:
+        """:meth:`_fisher` with the photometric parameters' blocks beside it (one linearisation)."""
         if level is not None and var is None and level.b == 1 and level.model.sub == sub:
             lev = level
         else:
@@ -802,7 +881,11 @@ class InverseReconstructor:
         w = 1.0 / lev.var[ok]
         if var is None:  # the image's own units (DN for a camera): the render scaled by the photometric gain
             jac = jac * self._photometric(vals[ok], lev.data[ok], w)[0]
-        return (jac.T.multiply(w[None, :]) @ jac).tocsc()
+        jtw = jac.T.multiply(w[None, :]).tocsr()
+        photometric = np.stack([vals[ok], np.ones(int(ok.sum()))], axis=1)  # d(alpha v + beta)/d(alpha, beta)
+        return _Information(
+            (jtw @ jac).tocsc(), np.asarray(jtw @ photometric), photometric.T @ (w[:, None] * photometric)
+        )
 
     def shape_bayes_bound_um(
         self, surf: SplineSurface, prior: Array, var: Any = None, sub: int = 3, untilted: bool = False
@@ -928,11 +1011,14 @@ class InverseReconstructor:
         # shape uncertainty: the Fisher information at the fit, scaled by the reduced chi^2 (the residuals' own
         # variance where the pixel variances are only known up to a factor, as for a noise-free render)
         chi2 = self.history[-1].chi2 if self.history else 1.0
-        shape_std = self.shape_std_um(surf, None, sub_rays, level=fine) * float(np.sqrt(max(chi2, 0.0)))
+        info = self._information(surf, None, sub_rays, fine)  # one linearisation for both terms
+        shape_std = self.shape_std_um(surf, None, sub_rays, level=fine, fisher=info.fisher) * float(
+            np.sqrt(max(chi2, 0.0))
+        )
         span_terms = None if self._span is None else int(self._span.shape[1])
         height_term = None
         if absolute_std_um is not None and not search:
-            height_term = self.start_height_term_um(fine, surf, h, float(absolute_std_um))
+            height_term = self.start_height_term_um(fine, surf, h, float(absolute_std_um), information=info)
             shape_std = float(np.hypot(shape_std, height_term))
         return InverseResult(
             surf,
