@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from scopetwin.scenes.errors import ScopetwinError
-from scopetwin.scenes.geometry import Array, Frame, normalize
+from scopetwin.scenes.geometry import Array, Frame, normalize, row_norms
 
 
 class GradientError(ScopetwinError, ValueError):
@@ -51,12 +51,12 @@ def normals_from_rays(hit_points: ArrayLike, camera_dirs: ArrayLike, pattern_poi
     r_i = np.asarray(hit_points, dtype=np.float64)
     s_c = normalize(camera_dirs)
     to_p = np.asarray(pattern_points, dtype=np.float64) - r_i
-    dist = np.linalg.norm(to_p, axis=-1, keepdims=True)
+    dist = row_norms(to_p, keepdims=True)
     if np.any(dist == 0):
         raise GradientError("a pattern point coincides with its surface point: no reflected ray")
     s_p = to_p / dist
     bis = s_p - s_c
-    norm = np.linalg.norm(bis, axis=-1, keepdims=True)
+    norm = row_norms(bis, keepdims=True)
     if np.any(norm < 1e-12):
         raise GradientError("reflected and incoming rays are parallel (grazing incidence): no normal defined")
     return bis / norm

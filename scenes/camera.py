@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scopetwin.scenes.errors import GeometryError
-from scopetwin.scenes.geometry import Array, Frame, normalize
+from scopetwin.scenes.geometry import Array, Frame, normalize, row_norms
 
 
 @dataclass(frozen=True)
@@ -284,7 +284,7 @@ class Camera:
     def distort(self, uv: ArrayLike) -> Array:
         """Ideal sensor coordinates -> distorted, r_dist = (c0 + c2*|r|) r (seed §2.5.1)."""
         r = np.asarray(uv, dtype=np.float64)
-        rho = np.linalg.norm(r, axis=-1, keepdims=True)
+        rho = row_norms(r, keepdims=True)
         return (self.c0 + self.c2 * rho) * r
 
     def undistort(self, uv_dist: ArrayLike) -> Array:
@@ -294,7 +294,7 @@ class Camera:
         root ``rho = 2|r_d| / (c0 + sqrt(c0^2 + 4 c2 |r_d|))``; then r = r_d/(c0 + c2 rho).
         """
         rd = np.asarray(uv_dist, dtype=np.float64)
-        s = np.linalg.norm(rd, axis=-1, keepdims=True)
+        s = row_norms(rd, keepdims=True)
         disc = self.c0**2 + 4.0 * self.c2 * s
         if np.any(disc < 0):
             raise GeometryError("distortion is not invertible here: c0^2 + 4*c2*|r| < 0 (c2 too negative)")

@@ -129,10 +129,27 @@ class Frame:
         }
 
 
+def row_norms(v: ArrayLike, keepdims: bool = False) -> Array:
+    """Euclidean norms along the last axis: ``np.linalg.norm(v, axis=-1)`` to the bit, 3-4x faster on (n, 2) and
+    (n, 3) arrays.
+
+    The squares are summed left to right, as numpy's reduction sums so few terms (up to 7; more go to
+    ``np.linalg.norm`` itself, whose reduction then pairs them), without its strided reduction along a short axis.
+    """
+    a = np.asarray(v, dtype=np.float64)
+    if a.ndim == 0 or a.shape[-1] > 7 or a.shape[-1] == 0:
+        return np.asarray(np.linalg.norm(a, axis=-1, keepdims=keepdims))
+    s = a[..., 0] * a[..., 0]
+    for k in range(1, a.shape[-1]):
+        s += a[..., k] * a[..., k]
+    r = np.sqrt(s)
+    return r[..., None] if keepdims else r
+
+
 def normalize(v: ArrayLike) -> Array:
     """Unit vectors along the last axis."""
     a = np.asarray(v, dtype=np.float64)
-    return a / np.linalg.norm(a, axis=-1, keepdims=True)
+    return a / row_norms(a, keepdims=True)
 
 
 def intersect_plane(origins: ArrayLike, directions: ArrayLike, frame: Frame) -> Array:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from scopetwin.scenes.errors import GeometryError
-from scopetwin.scenes.geometry import Frame, intersect_plane, normalize, reflect, refract
+from scopetwin.scenes.geometry import Frame, intersect_plane, normalize, reflect, refract, row_norms
 
 
 def test_thesis_four_digit_axes_become_exactly_orthonormal():
@@ -69,3 +69,14 @@ def test_refraction_obeys_snell_and_total_internal_reflection(rng):
     np.testing.assert_allclose(1.0 * np.sin(theta), 1.5 * sin_t, atol=1e-14)
     _, tir2 = refract(np.array([[np.sin(1.0), 0, -np.cos(1.0)]]), n, 1.5, 1.0)
     assert tir2.all()
+
+
+@pytest.mark.parametrize("shape", [(1000, 2), (1000, 3), (40, 50, 3), (200, 7), (200, 9), (5, 1)])
+def test_row_norms_are_numpys_to_the_bit(shape):
+    """row_norms replaces np.linalg.norm(axis=-1) on the hot paths (camera distortion, unit rays): same bits, so that
+    no result anywhere moves at rounding level."""
+    rng = np.random.default_rng(sum(shape))
+    v = rng.standard_normal(shape) * rng.uniform(1e-6, 1e6, size=shape[:-1] + (1,))
+    assert np.array_equal(row_norms(v), np.linalg.norm(v, axis=-1))
+    assert np.array_equal(row_norms(v, keepdims=True), np.linalg.norm(v, axis=-1, keepdims=True))
+    assert np.array_equal(normalize(v), v / np.linalg.norm(v, axis=-1, keepdims=True))
