@@ -106,7 +106,6 @@ def _plots(
     names.append("height.png")
 
     fig = Figure(figsize=(4.5 * len(results), 6), layout="constrained")
-
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, len(results), squeeze=False)
     roi = np.abs(yy) < 0.5 * sub.roi_length
@@ -119,7 +118,6 @@ def _plots(
     names.append("error.png")
 
     fig = Figure(figsize=(10, 7.5), layout="constrained")
-
     FigureCanvasAgg(fig)
     ax = fig.subplots()
     ax.imshow(image, cmap="gray", vmax=float(np.percentile(image, 99.9)))
@@ -132,7 +130,6 @@ def _plots(
     names.append("markers.png")
 
     fig = Figure(figsize=(11, 4), layout="constrained")
-
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, 2)
     for name, r in results.items():
