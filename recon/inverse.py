@@ -830,7 +830,6 @@ class InverseReconstructor:
         k = len(m_row)
         diag = np.concatenate([a.diagonal(), np.diag(information.photometric)])
         scale = 1.0 / np.sqrt(np.maximum(np.abs(diag), 1e-300))
-        scale[np.abs(diag) < 1e-300 * max(float(np.abs(diag).max()), 1.0)] = 1.0
         s_c, s_p = scale[:k], scale[k:]
         c_s = sp.csr_matrix(s_c[:, None] * cross * s_p[None, :])
         m_s = (s_c * m_row)[:, None]
