@@ -574,8 +574,7 @@ class InverseReconstructor:
         cfg = self.config
         d = surf.smoothness()
         dtd = (d.T @ d).tocsr()
-        xs, ys = self.sub.roi_grid(max(surf.dx, 0.5))
-        mean_row = np.asarray(surf.design(xs, ys).mean(axis=0)).ravel()
+        mean_row = self._mean_row(surf)
         lam = None
         mu = 1e-3
         c = surf.coef.ravel().copy()
@@ -599,6 +598,15 @@ class InverseReconstructor:
                 break
         return surf
 
+    def _mean_row(self, surf: SplineSurface) -> Array:
+        """The row m of the mean ROI height the fit holds: m @ c is the mean of ``surf`` over the ROI's grid."""
+        xs, ys = self.sub.roi_grid(max(surf.dx, 0.5))
+        return np.asarray(surf.design(xs, ys).mean(axis=0)).ravel()
+
+    def _prior_weight(self, info: sp.spmatrix, dtd: sp.spmatrix) -> float:
+        """The thin-plate prior's weight lambda: ``smoothness`` relative to the mean diagonals of J^T W J and D^T D."""
+        return self.config.smoothness * float(info.diagonal().mean()) / max(float(dtd.diagonal().mean()), 1e-300)
+
     def _normal_equations(
         self, lev: _Level, surf: SplineSurface, c: Array, dtd: sp.csr_matrix, mean_row: Array, lam: float | None
     ) -> _NormalEquations:
@@ -608,7 +616,6 @@ class InverseReconstructor:
         of J^T W J). Where the fit keeps to a span, the equations are in the span's coordinates; with
         ``refine_setup`` the pose blocks are added (:meth:`_pose_blocks`).
         """
-        cfg = self.config
         vals, ok, jac, jpose = self._linearise(lev, surf)
         assert jac is not None
         data, wgt = lev.data[ok], 1.0 / lev.var[ok]
@@ -618,7 +625,7 @@ class InverseReconstructor:
         jtw = ja.T.multiply(wgt[None, :]).tocsr()
         jtj = (jtw @ ja).tocsr()
         if lam is None:
-            lam = cfg.smoothness * float(jtj.diagonal().mean()) / max(float(dtd.diagonal().mean()), 1e-300)
+            lam = self._prior_weight(jtj, dtd)
         g = jtw @ r - lam * (dtd @ c)
         a = (jtj + lam * dtd).tocsr()
         m_row = mean_row
@@ -758,7 +765,7 @@ class InverseReconstructor:
             fisher = self._fisher(surf, var, sub, level)
         d = surf.smoothness()
         dtd = d.T @ d
-        lam = self.config.smoothness * float(fisher.diagonal().mean()) / float(dtd.diagonal().mean())
+        lam = self._prior_weight(fisher, dtd)
         xs, ys = self.sub.roi_grid(0.5)
         design = surf.design(xs, ys)
         m = np.asarray(design.mean(axis=0)).ravel()
@@ -820,9 +827,8 @@ class InverseReconstructor:
         fisher, cross = information.fisher, information.cross
         d = surf.smoothness()
         dtd = (d.T @ d).tocsr()
-        lam = self.config.smoothness * float(fisher.diagonal().mean()) / max(float(dtd.diagonal().mean()), 1e-300)
-        xs, ys = self.sub.roi_grid(max(surf.dx, 0.5))
-        m_row = np.asarray(surf.design(xs, ys).mean(axis=0)).ravel()
+        lam = self._prior_weight(fisher, dtd)
+        m_row = self._mean_row(surf)
         a = (fisher + lam * dtd).tocsr()
         if self._span is not None:  # the span's coordinates, as the fit's normal equations
             a, m_row = sp.csr_matrix(self._span.T @ (a @ self._span)), self._span.T @ m_row
