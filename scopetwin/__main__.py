@@ -2,6 +2,6 @@
 
 import sys
 
-from scopetwin.sim.cli import main
+from scopetwin.sim.cli import console_main
 
-sys.exit(main())
+sys.exit(console_main())

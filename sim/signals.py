@@ -19,7 +19,9 @@ prints no worker tracebacks.
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
+import sys
 import threading
 from collections.abc import Iterator, Sequence
 from types import FrameType
@@ -99,6 +101,33 @@ def terminate_on_signals(signals: Sequence[int] = TERMINATING) -> Iterator[None]
             signal.signal(s, handler)
 
 
+#: Seconds an interrupted command's process may take to end after its one line (the interpreter joining threads and
+#: running exit hooks, e.g. a library closing a cluster again) before :func:`exit_within` ends it at once.
+EXIT_GRACE_S = 10.0
+
+
+def exit_within(status: int, seconds: float = EXIT_GRACE_S) -> threading.Timer:
+    """End this process with ``status`` if it is still running ``seconds`` from now (a daemon timer).
+
+    For the command line's entry point after an interruption: the command's own clean-up (lights off, samples listed,
+    staged outputs removed) has run and its line is printed; what remains is the interpreter's shutdown, which
+    waits for every non-daemon thread and exit hook a library left behind. A batch system that sent SIGTERM waits a
+    grace period and then kills; so the process ends within ``seconds`` with ``status``, stdout and stderr flushed.
+    Never called by the library (it would end a host process such as a test runner).
+    """
+
+    def _end() -> None:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(status)
+
+    timer = threading.Timer(seconds, _end)
+    timer.daemon = True
+    timer.start()
+    return timer
+
+
 def ignore_interrupts_in_worker() -> None:
     """In a worker process: ignore SIGINT and SIGHUP (the client stops its workers; SIGTERM still ends one)."""
     if _in_main_thread():
@@ -113,6 +142,7 @@ def dask_setup(worker: Any = None) -> None:
 
 
 __all__ = [
+    "EXIT_GRACE_S",
     "INTERRUPTING",
     "TERMINATING",
     "Terminated",
@@ -120,6 +150,7 @@ __all__ = [
     "deferred_signals",
     "describe",
     "exit_status",
+    "exit_within",
     "ignore_interrupts_in_worker",
     "interrupt_signal",
     "signal_name",

@@ -39,7 +39,8 @@ Around every command :func:`main` applies the two policies of issue 15:
   a failed write (a full disk) is one line, exit 2, and what the command created is removed;
 * **signals** (:mod:`scopetwin.sim.signals`): SIGTERM and SIGHUP raise :class:`~scopetwin.sim.signals.Terminated`, a
   ``KeyboardInterrupt``, so every command cleans up as after Ctrl-C; the command ends with one line
-  ``scopetwin: interrupted by SIGTERM`` and exit status 128 + n (130 for Ctrl-C, 143 for SIGTERM, 129 for SIGHUP).
+  ``scopetwin: interrupted by SIGTERM`` and exit status 128 + n (130 for Ctrl-C, 143 for SIGTERM, 129 for SIGHUP);
+  the program (:func:`console_main`) then ends within :data:`~scopetwin.sim.signals.EXIT_GRACE_S` seconds.
 """
 
 from __future__ import annotations
@@ -118,6 +119,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("-v/--verbose and -q/--quiet exclude each other")
     with log_to_stderr(level, args.quiet):
         return _run(args)
+
+
+def console_main() -> int:
+    """The ``scopetwin`` program (console script, ``python -m scopetwin``): :func:`main`, and after an interruption
+    (status 128 + n) the process ends within :data:`~scopetwin.sim.signals.EXIT_GRACE_S` seconds whatever a
+    library left running (:func:`~scopetwin.sim.signals.exit_within`)."""
+    status = main()
+    if status >= 128:
+        signals.exit_within(status)
+    return status
 
 
 def _run(args: argparse.Namespace) -> int:

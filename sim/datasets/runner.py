@@ -168,13 +168,20 @@ def _start_resource_tracker(resource_tracker: Any) -> None:
         signal.signal(hup, previous)
 
 
+#: Seconds each close (the client's, then the local cluster's) may take after an interruption. A signal to the whole
+#: process group ends the worker processes at the moment the client stops, and a nanny may be restarting one then:
+#: the close must not wait on it without bound (the samples on disk are listed after it either way).
+INTERRUPTED_CLOSE_S = 15.0
+
+
 def _close_quietly(*closables: Any, interrupted: bool) -> None:
-    """Close a client and its cluster; after an interruption without distributed's logs or a second error."""
+    """Close a client and its cluster; after an interruption without distributed's logs or a second error, each
+    within :data:`INTERRUPTED_CLOSE_S`."""
     ctx = _quiet_distributed() if interrupted else contextlib.nullcontext()
     with ctx:
         for obj in closables:
             try:
-                obj.close()
+                obj.close(timeout=INTERRUPTED_CLOSE_S) if interrupted else obj.close()
             except Exception:  # noqa: BLE001 - already failing or interrupted: closing must not add an error
                 if not interrupted:
                     raise
@@ -359,7 +366,7 @@ def run_tasks(
 
     ``client`` None runs in this process, in order. Errors are yielded, not raised, so one bad
     task does not lose the others' results. When the caller stops early (an interruption, or
-    ``close()`` on the iterator), the tasks still queued are cancelled, and ``on_abandon(position,
+    ``close()`` on the iterator), the tasks still queued are given up (released), and ``on_abandon(position,
     result)`` is called for each task that had already finished but was not yet yielded (within a
     few seconds; the others are left to the caller's own recovery).
     """
@@ -396,7 +403,13 @@ def run_tasks(
 
 
 def _abandon(futures: Sequence[Any], seen: set[int], on_abandon: Callable[[int, Any], None] | None) -> None:
-    """Cancel the unfinished futures; hand the finished, unseen ones' results to ``on_abandon`` (3 s at most)."""
+    """Give up the unfinished futures; hand the finished, unseen ones' results to ``on_abandon`` (3 s at most).
+
+    An unfinished future is released, not cancelled: the release is a message to the scheduler and never waits (a
+    cancel is a round trip that may wait without bound on a scheduler whose workers were just ended by the same
+    signal), and the scheduler drops a task no client wants, queued or running, as a cancel would; a task another
+    client also wants keeps running for that client.
+    """
     import time
 
     from scopetwin.sim.signals import deferred_signals
@@ -406,7 +419,7 @@ def _abandon(futures: Sequence[Any], seen: set[int], on_abandon: Callable[[int, 
         for k, f in enumerate(futures):
             if k not in seen and f.status != "finished":
                 with contextlib.suppress(Exception):
-                    f.cancel()
+                    f.release()
         deadline = time.monotonic() + 3.0
         for k, f in done:
             left = deadline - time.monotonic()
@@ -420,4 +433,4 @@ def _abandon(futures: Sequence[Any], seen: set[int], on_abandon: Callable[[int, 
                 on_abandon(k, value)
         for _, f in done:
             with contextlib.suppress(Exception):
-                f.cancel()
+                f.release()

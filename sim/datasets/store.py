@@ -330,6 +330,17 @@ def _finish_folder(root: Path, listed: set[int], fh: IO[str], state: dict[str, A
         state["removed_temporary_at_end"], state["kept_temporary_at_end"] = removed, kept
 
 
+def task_keys(plan_json: dict[str, Any], root: Path, indices: Sequence[int]) -> list[str]:
+    """The Dask keys of samples ``indices``: one per sample of this plan *and* this folder.
+
+    A scheduler runs one task per key and hands its result to every client that asks for the key; so a second run of
+    the same plan into another folder on a shared scheduler must get keys of its own, or it would be handed the first
+    run's samples, written into the first run's folder.
+    """
+    tag = hashlib.sha256(json.dumps([plan_json, str(root.resolve())], sort_keys=True).encode()).hexdigest()[:12]
+    return [f"scopetwin-sample-{tag}-{i:06d}" for i in indices]
+
+
 def generate(
     plan: Plan,
     out: str | Path,
@@ -419,7 +430,6 @@ def _generate_locked(
     t0 = time.perf_counter()
     failures: dict[int, str] = {}
     written = 0
-    tag = hashlib.sha256(json.dumps(plan_json, sort_keys=True).encode()).hexdigest()[:12]
     with contextlib.ExitStack() as stack:  # unwinds in reverse: tasks, bar, client, then the folder's clean-up
         # never through a link planted at the manifest's path (scenes.io.open_append refuses one)
         fh = stack.enter_context(open_append(root / MANIFEST))
@@ -442,7 +452,7 @@ def _generate_locked(
             )
         )
         args = [(plan_json, i, str(root.resolve()), threads) for i in todo]
-        keys = [f"scopetwin-sample-{tag}-{i:06d}" for i in todo]
+        keys = task_keys(plan_json, root, todo)
         tasks = run_tasks(generate_sample, args, client, keys, on_abandon=lambda k, rec: record(rec))
         stack.callback(tasks.close)  # first on the way out: cancel what is queued, list what has finished
         for k, rec, err in tasks:

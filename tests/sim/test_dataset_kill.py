@@ -6,6 +6,7 @@ test starts is killed by its id at the end.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
@@ -30,7 +31,7 @@ COUNT = 8
 
 
 def _start(cfg: Path, out: Path) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONFAULTHANDLER": "1"}  # SIGABRT prints every thread's stack
     return subprocess.Popen(
         [
             sys.executable,
@@ -51,6 +52,26 @@ def _start(cfg: Path, out: Path) -> subprocess.Popen:
         stderr=subprocess.STDOUT,
         start_new_session=True,
     )
+
+
+def _communicate(proc: subprocess.Popen, timeout: float) -> str:
+    """The output of a signalled run; if it has not ended within ``timeout``, fail with where each of its threads
+    waits (faulthandler's dump on SIGABRT) and its process tree."""
+    try:
+        return proc.communicate(timeout=timeout)[0].decode()
+    except subprocess.TimeoutExpired:
+        tree = []
+        for child in psutil.Process(proc.pid).children(recursive=True):
+            with contextlib.suppress(psutil.Error):
+                tree.append(f"{child.pid} {child.status()} {' '.join(child.cmdline())[:160]}")
+        os.kill(proc.pid, signal.SIGABRT)
+        try:
+            dump = proc.communicate(timeout=20)[0].decode()
+        except subprocess.TimeoutExpired:
+            dump = "(no dump within 20 s)"
+        raise AssertionError(
+            f"still running {timeout} s after the signal; children:\n" + "\n".join(tree) + "\n" + dump[-12000:]
+        ) from None
 
 
 def _finished(out: Path) -> int:
@@ -151,7 +172,7 @@ def test_signal_stops_cleanly_with_every_sample_listed(tmp_path, sig, group):
         time.sleep(random.Random(int(sig)).uniform(0.0, 0.5))
         assert proc.poll() is None, "the generator finished before it could be signalled: make the set larger"
         (os.killpg if group else os.kill)(proc.pid, sig)
-        output = proc.communicate(timeout=60)[0].decode()
+        output = _communicate(proc, 60)
         _wait(
             lambda: not any(p.is_running() and p.status() != psutil.STATUS_ZOMBIE for p in family),
             60,
@@ -183,7 +204,7 @@ def test_signal_while_the_cluster_starts_is_one_line_and_leaves_no_folder(tmp_pa
         _wait(lambda: len(_workers(proc)) >= 1 or proc.poll() is not None, 120, "a starting worker")
         family = list(psutil.Process(proc.pid).children(recursive=True))
         os.killpg(proc.pid, sig)
-        output = proc.communicate(timeout=60)[0].decode()
+        output = _communicate(proc, 60)
     finally:
         _cleanup(proc, family)
     assert proc.returncode == 128 + sig, output

@@ -151,3 +151,35 @@ def test_sigterm_during_a_render_leaves_no_output(tmp_path, monkeypatch, capsys)
     code = main(["render", str(setup), "--out", str(tmp_path / "o"), "--renderer", "analytic", "--spp", "1"])
     assert code == 143 and capsys.readouterr().err == "scopetwin: interrupted by SIGTERM\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["small.toml"]
+
+
+def test_an_interrupted_program_ends_within_its_grace_even_if_a_thread_never_finishes():
+    """``exit_within``: after the one line, a non-daemon thread a library left blocked (the interpreter would join it
+    for ever) does not keep the process alive past the grace; the status and what was printed survive."""
+    code = textwrap.dedent(
+        """
+        import sys, threading
+        from scopetwin.sim import signals
+        threading.Thread(target=threading.Event().wait).start()  # non-daemon, never ends
+        print("scopetwin: interrupted by SIGTERM", file=sys.stderr)
+        print("listed", flush=False)
+        signals.exit_within(143, 0.5)
+        """
+    )
+    t0 = time.monotonic()
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=60, cwd=ROOT)
+    assert proc.returncode == 143 and proc.stdout == b"listed\n"
+    assert proc.stderr == b"scopetwin: interrupted by SIGTERM\n"
+    assert time.monotonic() - t0 < 30
+
+
+def test_the_program_arms_the_grace_only_after_an_interruption(monkeypatch):
+    """``console_main`` arms :func:`signals.exit_within` for 128 + n only; ``main`` (used in-process) never does."""
+    import scopetwin.sim.cli as cli
+
+    armed: list[int] = []
+    monkeypatch.setattr(signals, "exit_within", lambda status, *a: armed.append(status))
+    for status in (0, 2, 143):
+        monkeypatch.setattr(cli, "main", lambda status=status: status)
+        assert cli.console_main() == status
+    assert armed == [143]
