@@ -34,7 +34,7 @@ def test_the_wheel_holds_one_top_level_package(wheel):
     assert "scopetwin/scenes/presets/thesis-1.10-deflectometry.toml" in names  # the presets travel with it
     assert "scopetwin/sim/datasets/schemas/truth.schema.json" in names  # and the datasets' JSON Schemas
     entry = next(n for n in names if n.endswith("entry_points.txt"))
-    assert "scopetwin = scopetwin.sim.cli:main" in zipfile.ZipFile(wheel).read(entry).decode()
+    assert "scopetwin = scopetwin.sim.cli:console_main" in zipfile.ZipFile(wheel).read(entry).decode()
 
 
 def test_the_wheel_imports_from_its_own_files(wheel, tmp_path):
