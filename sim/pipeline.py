@@ -88,8 +88,9 @@ def _plots(
     names = []
     ext = [-0.5 * sub.size_x, 0.5 * sub.size_x, -0.5 * sub.size_y, 0.5 * sub.size_y]
     xx, yy = np.meshgrid(np.linspace(ext[0], ext[1], 126), np.linspace(ext[2], ext[3], 286))
-    fig = Figure(figsize=(4 + 4 * len(results), 6), layout="constrained")
+    fig = Figure(figsize=(4 + 4 * len(results), 6))  # fixed margins: a layout engine would double the drawing time
     FigureCanvasAgg(fig)
+    fig.subplots_adjust(left=0.05, right=0.97, top=0.94, bottom=0.08, wspace=0.3)
     axes = fig.subplots(1, 1 + len(results))
     im = axes[0].imshow(truth.height(xx, yy) * 1e3, origin="lower", extent=ext, cmap="viridis")
     axes[0].set_title("truth height, µm")
@@ -105,8 +106,9 @@ def _plots(
     fig.savefig(out / "height.png", dpi=90)
     names.append("height.png")
 
-    fig = Figure(figsize=(4.5 * len(results), 6), layout="constrained")
+    fig = Figure(figsize=(4.5 * len(results), 6))
     FigureCanvasAgg(fig)
+    fig.subplots_adjust(left=0.08, right=0.95, top=0.94, bottom=0.05, wspace=0.35)
     axes = fig.subplots(1, len(results), squeeze=False)
     roi = np.abs(yy) < 0.5 * sub.roi_length
     for ax, (name, r) in zip(axes[0], results.items(), strict=True):
@@ -117,8 +119,9 @@ def _plots(
     fig.savefig(out / "error.png", dpi=90)
     names.append("error.png")
 
-    fig = Figure(figsize=(10, 7.5), layout="constrained")
+    fig = Figure(figsize=(10, 7.5))
     FigureCanvasAgg(fig)
+    fig.subplots_adjust(left=0.06, right=0.98, top=0.95, bottom=0.05)
     ax = fig.subplots()
     ax.imshow(image, cmap="gray", vmax=float(np.percentile(image, 99.9)))
     ax.plot(found.centroids[:, 0] - 0.5, found.centroids[:, 1] - 0.5, "r+", ms=4, mew=0.6)
@@ -129,8 +132,9 @@ def _plots(
     fig.savefig(out / "markers.png", dpi=80)
     names.append("markers.png")
 
-    fig = Figure(figsize=(11, 4), layout="constrained")
+    fig = Figure(figsize=(11, 4))
     FigureCanvasAgg(fig)
+    fig.subplots_adjust(left=0.07, right=0.98, top=0.95, bottom=0.13, wspace=0.25)
     axes = fig.subplots(1, 2)
     for name, r in results.items():
         hist = r["result"].history
