@@ -9,6 +9,7 @@ the builders and renderers, or asks for ``mi_mono`` / ``mi_spectral`` (the ``mit
 from __future__ import annotations
 
 import gc
+import signal
 import sys
 from typing import Any, Literal
 
@@ -80,3 +81,11 @@ def _jit_cleanup():
             dr.flush_malloc_cache()
         except Exception:  # pragma: no cover - older drjit
             pass
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The signal tests send Ctrl-C as a terminal does; a suite started as a background job of a script (``cmd &``)
+    inherits SIGINT ignored, and every process it starts would keep it ignored (as Python and the shell must). So the
+    suite's own processes take Python's SIGINT handler: the processes they start get the default action back."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
