@@ -170,8 +170,10 @@ def _start_resource_tracker(resource_tracker: Any) -> None:
 
 #: Seconds each close (the client's, then the local cluster's) may take after an interruption. A signal to the whole
 #: process group ends the worker processes at the moment the client stops, and a nanny may be restarting one then:
-#: the close must not wait on it without bound (the samples on disk are listed after it either way).
-INTERRUPTED_CLOSE_S = 15.0
+#: the close must not wait on it without bound (the samples on disk are listed after it either way). Two closes, the
+#: 3 s hand-over of finished results and the program's 10 s exit grace stay under the 30 s a batch system (SLURM's
+#: KillWait, Kubernetes' grace period) waits between SIGTERM and SIGKILL.
+INTERRUPTED_CLOSE_S = 8.0
 
 
 def _close_quietly(*closables: Any, interrupted: bool) -> None:
