@@ -20,6 +20,7 @@ Nothing records a value that was asked for: positions and exposures are the ones
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -279,9 +280,14 @@ class OmeOutput:
                     _complete_zarr(metadata, self)
                 else:
                     _complete_tiff(metadata, self)
+                    # a run stopped before a position's first plane leaves that position's file without a page:
+                    # no metadata to complete there, and the empty file goes
+                    metadata = {p: m for p, m in metadata.items() if p in self.reported.first}
                 stream.update_metadata(metadata)
                 if self.kind == "zarr":
                     _version_plate(self.path)
+            if self.kind != "zarr":  # one OME-TIFF per position
+                _remove_pageless(self.files())
         return self.files()
 
     def files(self) -> list[str]:
@@ -290,6 +296,27 @@ class OmeOutput:
             return [str(self.path)]
         folder = self.path.parent / _stem(self.path.name)
         return sorted(str(p) for p in folder.glob("*.ome.tif*")) if folder.is_dir() else []
+
+
+def _remove_pageless(paths: list[str]) -> None:
+    """Remove the TIFF files among ``paths`` that hold no image (positions an interrupted run never reached)."""
+    import logging
+
+    import tifffile
+
+    quiet = logging.getLogger("tifffile")
+    for path in paths:
+        level = quiet.level
+        quiet.setLevel(logging.ERROR)  # its "contains no pages" warning is the finding here
+        try:
+            with tifffile.TiffFile(path) as tif:
+                empty = len(tif.pages) == 0
+        except (OSError, ValueError, IndexError, tifffile.TiffFileError):
+            empty = os.path.getsize(path) <= 16  # a header alone (or less): nothing was written
+        finally:
+            quiet.setLevel(level)
+        if empty:
+            os.remove(path)
 
 
 def _stem(name: str) -> str:

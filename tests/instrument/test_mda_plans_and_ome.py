@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -287,3 +288,25 @@ def test_a_plan_of_2_63_loops_is_sized_not_overflowed():
     limits = PlanLimits(None, None, None, Range(0.0, 1.0, "ms"), frame_shape=(8, 8), pixel_size_um=1.0)
     size = plan_size(useq.MDASequence(time_plan={"interval": 1.0, "loops": 2**63 - 1}), limits)
     assert size.sizes["t"] == 2**63 - 1 and size.seconds == pytest.approx(float(2**63 - 2))
+
+
+def test_an_ome_tiff_run_stopped_before_a_position_keeps_the_positions_it_reached(tmp_path):
+    """SIGTERM after the first position's planes (CI found it: ``tiffcomment`` on the second position's file, which had
+    no page, raised IndexError during the clean-up): the file of the position reached is complete and read back with
+    its OME-XML; the pageless file of the position never reached is gone."""
+    import tifffile
+
+    from scopetwin.instrument.ome import AcquisitionInfo, ChannelInfo, Layout, OmeOutput
+
+    layout = Layout(axes=("p", "c", "z"), sizes={"p": 2, "c": 1, "z": 2}, positions=((0, 0), (1, 0)), names=("a", "b"))
+    info = AcquisitionInfo(shape=(8, 6), dtype="uint16", bit_depth=12, pixel_size_um=0.5, channels=(ChannelInfo("BF"),))
+    out = OmeOutput(tmp_path / "x.ome.tif", layout, info)
+    for z in range(2):
+        plane = np.full((8, 6), 100 + z, np.uint16)
+        out.append(plane, {"p": 0, "c": 0, "z": z}, {"exposure_ms": 5.0, "x_um": 1.0, "y_um": 2.0, "z_um": float(z)})
+    files = out.close()
+    assert len(files) == 1 and Path(files[0]).exists(), files
+    with tifffile.TiffFile(files[0]) as tif:
+        assert len(tif.pages) == 2 and tif.ome_metadata and 'SignificantBits="12"' in tif.ome_metadata
+        assert tif.asarray().max() == 101
+    assert sorted(p.name for p in Path(files[0]).parent.iterdir()) == [Path(files[0]).name]
