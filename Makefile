@@ -20,7 +20,7 @@ XDIST  := -n 2 --dist worksteal
 test: setup
 	$(PY) -m pytest $(XDIST) -m "not slow"
 
-# everything (13-14.5 min on 2 cores, measured; the goal is 15): what .ci/run runs
+# everything (12-14.5 min on 2 cores, measured; the goal is 15): what .ci/run runs
 test-all: setup
 	$(PY) -m pytest $(XDIST)
 
