@@ -312,7 +312,7 @@ def _remove_pageless(paths: list[str]) -> None:
             with tifffile.TiffFile(path) as tif:
                 empty = len(tif.pages) == 0
         except (OSError, ValueError, IndexError, tifffile.TiffFileError):
-            empty = os.path.getsize(path) <= 16  # a header alone (or less): nothing was written
+            empty = os.path.getsize(path) <= 16  # a (Big)TIFF header alone, or less: nothing was written
         finally:
             quiet.setLevel(level)
         if empty:

@@ -454,7 +454,7 @@ def _generate_locked(
         args = [(plan_json, i, str(root.resolve()), threads) for i in todo]
         keys = task_keys(plan_json, root, todo)
         tasks = run_tasks(generate_sample, args, client, keys, on_abandon=lambda k, rec: record(rec))
-        stack.callback(tasks.close)  # first on the way out: cancel what is queued, list what has finished
+        stack.callback(tasks.close)  # first on the way out: give up what is queued, list what has finished
         for k, rec, err in tasks:
             if err is not None:
                 failures[todo[k]] = failure_text(err)
