@@ -37,8 +37,8 @@ from scopetwin.recon.strategy import solve  # noqa: E402
 from scopetwin.recon.substrate import Substrate2D  # noqa: E402
 from scopetwin.scenes.errors import ScopetwinError  # noqa: E402
 from scopetwin.scenes.setup import load_setup  # noqa: E402
+from scopetwin.sim.families import glass_spec  # noqa: E402
 from scopetwin.sim.pipeline import roi_errors  # noqa: E402
-from scopetwin.sim.studies.coverage import glass_spec  # noqa: E402
 from scopetwin.sim.surfaces import surface_for  # noqa: E402
 from scopetwin.sim.truth import marker_truth  # noqa: E402
 

@@ -207,6 +207,16 @@ class PatternSpec(FrameSpec):
         )
 
 
+class FeatureSpec(_Model):
+    """A local feature of a substrate: a rotationally symmetric Gaussian of full width at half maximum ``width_mm``
+    centred at (``x``, ``y``) on the substrate, ``height_um`` high (negative: a dimple)."""
+
+    x: Coord = Field(description="centre x on the substrate, mm")
+    y: Coord = Field(description="centre y on the substrate, mm")
+    width_mm: Positive = Field(le=100.0, description="full width at half maximum, mm")
+    height_um: float = Field(ge=-1.0e3, le=1.0e3, description="height at the centre (negative: a dimple), µm")
+
+
 class SurfaceSpec(_Model):
     """How the substrate's height map is made (by :mod:`scopetwin.sim.surfaces`) or where it is read from.
 
@@ -220,7 +230,11 @@ class SurfaceSpec(_Model):
     ``broadband_min_wavelength_mm`` and ``broadband_wavelength_mm`` (kinds ``random`` and ``psd``), the nm-level
     short-wavelength content real glass has. ``bow_um`` adds a paraboloidal bow of that sagitta (centre above the
     corners for a positive value) after the scaling, then the surface is levelled on the frame again: ``range_um`` is
-    then the waviness's range, not the whole surface's (kinds ``random`` and ``psd``).
+    then the waviness's range, not the whole surface's (kinds ``random`` and ``psd``). A cut sheet's edges roll off:
+    ``edge_rolloff_um`` lowers the heights within ``edge_rolloff_mm`` of each of the four edges by
+    depth x (1 - d / width)^3 at distance d from the edge (slope 3 x depth / width at the edge; the two bands add up
+    at the corners); ``features`` adds local dimples and bumps (:class:`FeatureSpec`). Bow, roll-off and features are
+    added after the scaling and the surface is levelled on the frame once more (kinds ``random`` and ``psd``).
     """
 
     kind: Literal["random", "psd", "plane", "sphere", "saddle", "cylinder", "file"] = "random"
@@ -240,6 +254,11 @@ class SurfaceSpec(_Model):
     broadband_wavelength_mm: Positive = Field(4.0, description="longest wavelength of the broadband part, mm")
     broadband_min_wavelength_mm: Positive = Field(0.5, description="shortest wavelength of the broadband part, mm")
     bow_um: float = Field(0.0, ge=-1.0e3, le=1.0e3, description="sagitta of a paraboloidal bow (centre - corners), µm")
+    edge_rolloff_um: float = Field(
+        0.0, ge=-1.0e3, le=1.0e3, description="drop of the heights at each cut edge (negative: the edges rise), µm"
+    )
+    edge_rolloff_mm: Positive = Field(3.0, le=100.0, description="width of the band each edge rolls off over, mm")
+    features: tuple[FeatureSpec, ...] = Field((), max_length=256, description="local dimples and bumps")
 
     @model_validator(mode="after")
     def _check(self) -> SurfaceSpec:
@@ -252,8 +271,13 @@ class SurfaceSpec(_Model):
             )
         if self.broadband_rms_nm > 0 and self.kind not in ("random", "psd"):
             raise ValueError(f"broadband_rms_nm needs surface kind 'random' or 'psd', not {self.kind!r}")
-        if self.bow_um != 0 and self.kind not in ("random", "psd"):
-            raise ValueError(f"bow_um needs surface kind 'random' or 'psd', not {self.kind!r}")
+        for name, used in (
+            ("bow_um", self.bow_um != 0),
+            ("edge_rolloff_um", self.edge_rolloff_um != 0),
+            ("features", bool(self.features)),
+        ):
+            if used and self.kind not in ("random", "psd"):
+                raise ValueError(f"{name} needs surface kind 'random' or 'psd', not {self.kind!r}")
         return self
 
 

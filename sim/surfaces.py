@@ -22,7 +22,7 @@ from scipy.interpolate import RectBivariateSpline
 from scipy.optimize import brentq
 
 from scopetwin.scenes.errors import GeometryError, SetupError
-from scopetwin.scenes.setup import Setup, SubstrateSpec, SurfaceSpec
+from scopetwin.scenes.setup import FeatureSpec, Setup, SubstrateSpec, SurfaceSpec
 from scopetwin.scenes.surface import HeightMap
 
 Array = NDArray[np.float64]
@@ -183,7 +183,7 @@ def scale_to_range(z: Array, range_mm: float) -> Array:
 
 def _finish(z: Array, xx: Array, yy: Array, spec: SurfaceSpec, substrate: SubstrateSpec) -> HeightMap:
     """Level on the frame, scale to range (§1.9, Fig. 1.9 c-d); add the broadband part, level and scale again;
-    add the bow and level once more.
+    add the bow, the edge roll-off and the local features and level once more.
 
     The second scaling differs from 1 by the broadband part's share of the range (~1e-4 for nm-level content), so
     the range is exact and the broadband RMS is the requested one to that relative precision.
@@ -194,9 +194,36 @@ def _finish(z: Array, xx: Array, yy: Array, spec: SurfaceSpec, substrate: Substr
         band = (spec.broadband_min_wavelength_mm, spec.broadband_wavelength_mm)
         z = z + broadband_noise(z.shape, (dy, dx), spec.broadband_rms_nm * 1e-6, band, spec.seed)
         z = scale_to_range(level_on_frame(z, yy, substrate.roi_length, xx), spec.range_um * 1e-3)
-    if spec.bow_um != 0:
-        z = level_on_frame(z + bow(xx, yy, spec.bow_um * 1e-3), yy, substrate.roi_length, xx)
+    extra = bow(xx, yy, spec.bow_um * 1e-3) if spec.bow_um != 0 else 0.0
+    if spec.edge_rolloff_um != 0:
+        extra = extra - edge_rolloff(xx, yy, spec.edge_rolloff_um * 1e-3, spec.edge_rolloff_mm)
+    if spec.features:
+        extra = extra + local_features(xx, yy, spec.features)
+    if spec.bow_um != 0 or spec.edge_rolloff_um != 0 or spec.features:
+        z = level_on_frame(z + extra, yy, substrate.roi_length, xx)
     return HeightMap(z, xx[0, 0], xx[0, -1], yy[0, 0], yy[-1, 0])
+
+
+def edge_rolloff(x: Array, y: Array, depth: float, width: float) -> Array:
+    """How far a cut sheet's edges roll off, mm: ``depth`` x (1 - d / ``width``)^3 within ``width`` (mm) of each edge
+    of the grid ``x``, ``y`` (d: the distance from that edge), the bands along x and along y added (a corner rolls off
+    twice). Its slope at an edge is 3 ``depth`` / ``width``; it is twice continuously differentiable inside."""
+
+    def band(d: Array) -> Array:
+        return np.asarray(np.clip(1.0 - d / width, 0.0, None) ** 3)
+
+    dx = np.minimum(x - x.min(), x.max() - x)
+    dy = np.minimum(y - y.min(), y.max() - y)
+    return np.asarray(depth * (band(dx) + band(dy)))
+
+
+def local_features(x: Array, y: Array, features: Sequence[FeatureSpec]) -> Array:
+    """Local dimples and bumps on the grid ``x``, ``y``, mm: Gaussians of full width at half maximum ``width_mm``."""
+    z = np.zeros(np.shape(x))
+    for f in features:
+        s2 = (f.width_mm / (2.0 * np.sqrt(2.0 * np.log(2.0)))) ** 2
+        z += f.height_um * 1e-3 * np.exp(-((x - f.x) ** 2 + (y - f.y) ** 2) / (2.0 * s2))
+    return z
 
 
 def bow(x: Array, y: Array, sagitta: float) -> Array:

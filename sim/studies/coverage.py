@@ -18,59 +18,12 @@ from typing import Any
 
 import numpy as np
 
+from scopetwin.sim.families import family_spec
 from scopetwin.sim.studies.context import StudyContext, StudyResult, error_text, failed
 from scopetwin.sim.studies.tables import Table, jsonable
 
 #: The families: surface-spec fields per family; ranges are drawn per surface.
 FAMILIES = ("gauss", "gauss+broadband", "abc+broadband", "power+broadband", "glass")
-
-
-def glass_spec(seed: int) -> dict[str, Any]:
-    """One surface of the glass-like family (issue 27), like float glass: power-law waviness (f^-3 to f^-4, flat
-    below f = 1/40 to 1/80 mm, rolled off by a Gaussian of 1-3 mm so the waviness lies at 8-80 mm), 14-60 µm of it,
-    a paraboloidal bow of up to +-20 µm, 20-100 nm RMS of flat-spectrum micro-waviness at 1-8 mm. Its parameters are
-    drawn from ``seed`` alone (fixed before any tuning of the reconstruction)."""
-    rng = np.random.default_rng([seed, 2727])
-    return {
-        "kind": "psd",
-        "spectrum": "power",
-        "seed": int(seed),
-        "psd_exponent": float(rng.uniform(3.0, 4.0)),
-        "correlation_length": float(rng.uniform(40.0, 80.0)),
-        "psd_rolloff_mm": float(rng.uniform(1.0, 3.0)),
-        "range_um": float(rng.uniform(14.0, 60.0)),
-        "bow_um": float(rng.uniform(-20.0, 20.0)),
-        "broadband_rms_nm": float(rng.uniform(20.0, 100.0)),
-        "broadband_wavelength_mm": 8.0,
-        "broadband_min_wavelength_mm": 1.0,
-    }
-
-
-def family_spec(family: str, seed: int) -> dict[str, Any]:
-    """The ``substrate.surface`` table of one surface of a family (parameters drawn from ``seed``)."""
-    if family == "glass":
-        return glass_spec(seed)
-    rng = np.random.default_rng([seed, 1414])
-    spec: dict[str, Any] = {
-        "seed": int(seed),
-        "correlation_length": float(rng.uniform(8.0, 20.0)),
-        "range_um": float(rng.uniform(20.0, 60.0)),
-    }
-    bb = float(rng.uniform(1.0, 5.0))
-    if family == "gauss":
-        spec["kind"] = "random"
-    elif family == "gauss+broadband":
-        spec.update(kind="random", broadband_rms_nm=bb)
-    elif family in ("abc+broadband", "power+broadband"):
-        spec.update(
-            kind="psd",
-            spectrum="abc" if family.startswith("abc") else "power",
-            psd_exponent=float(rng.choice([3.0, 4.0])),
-            broadband_rms_nm=bb,
-        )
-    else:
-        raise ValueError(f"unknown surface family {family!r} (known: {', '.join(FAMILIES)})")
-    return spec
 
 
 def coverage_task(

@@ -4,7 +4,7 @@ item 3; seed §1.3).
 One image leaves the height-normal ambiguity of seed §1.3; the frame criterion (§1.4) resolves it by extrapolating the
 surface 1-4.5 mm under the holding frame. A stage that moves the pattern along its normal gives a second image whose
 markers reach the same surface from a known second position (:mod:`scopetwin.recon.two_positions`). Each surface of
-the glass-like family (:func:`scopetwin.sim.studies.coverage.glass_spec`: power-law waviness at 8-80 mm, a bow up to
+the glass-like family (:func:`scopetwin.sim.families.glass_spec`: power-law waviness at 8-80 mm, a bow up to
 ±20 µm, 20-100 nm of micro-waviness at 1-8 mm) is rendered with Mitsuba at both pattern positions (16 spp, EMVA 1288
 sensor noise) and reconstructed by the default strategy: from image 1 alone (the frame criterion), from the two
 positions alone, and from both combined. The same surfaces without their micro-waviness form a second family: the
@@ -36,7 +36,7 @@ PRESET = "thesis-1.10-deflectometry"
 
 def surface_spec(family: str, seed: int) -> dict[str, Any]:
     """The ``substrate.surface`` table of one surface of a family (glass-like, drawn from ``seed``)."""
-    from scopetwin.sim.studies.coverage import glass_spec
+    from scopetwin.sim.families import glass_spec
 
     spec = glass_spec(seed)
     if family == "glass without micro-waviness":

@@ -1,6 +1,6 @@
 """Accuracy and uncertainty on glass-like substrates (issue 27, item 2): surfaces the reconstruction was not tuned on.
 
-The family (:func:`scopetwin.sim.studies.coverage.glass_spec`) is like float glass: power-law waviness at 8-80 mm,
+The family (:func:`scopetwin.sim.families.glass_spec`) is like float glass: power-law waviness at 8-80 mm,
 14-60 µm of it, a bow of up to +-20 µm, 20-100 nm RMS of micro-waviness at 1-8 mm (slopes 1.8-10 mrad). Its seeds
 are derived from a hash, fixed before anything was tuned on them. Each surface is reconstructed from the exact images
 of its marker centres (:func:`scopetwin.sim.truth.marker_truth`) plus Gaussian centroid noise, as the coverage study
@@ -24,8 +24,8 @@ from scopetwin.recon.strategy import solve
 from scopetwin.recon.substrate import Substrate2D
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.setup import load_setup
+from scopetwin.sim.families import glass_spec
 from scopetwin.sim.pipeline import roi_errors
-from scopetwin.sim.studies.coverage import glass_spec
 from scopetwin.sim.surfaces import surface_for
 from scopetwin.sim.truth import marker_truth
 

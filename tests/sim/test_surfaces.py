@@ -137,3 +137,60 @@ def test_surface_spec_rejects_bad_broadband_band():
         SurfaceSpec(kind="psd", broadband_min_wavelength_mm=5.0, broadband_wavelength_mm=4.0)
     with pytest.raises(ValidationError, match="broadband_rms_nm needs"):
         SurfaceSpec(kind="sphere", broadband_rms_nm=1.0)
+
+
+def test_edge_rolloff_drops_the_edges_by_its_depth_with_its_slope():
+    """A cut sheet's edge roll-off: ``depth`` at each edge, 3 x depth / width slope there, nothing inside."""
+    from scopetwin.sim.surfaces import edge_rolloff
+
+    x, y = np.meshgrid(np.linspace(-12.6, 12.6, 2521), np.linspace(-28.5, 28.5, 11))
+    r = edge_rolloff(x, y, 0.01, 4.0)
+    mid = 5  # y = 0: only the bands along x
+    assert r[mid, 0] == pytest.approx(0.01) and r[mid, -1] == pytest.approx(0.01)
+    assert r[mid, 1260] == 0.0 and r[mid, 400] == 0.0
+    slope = (r[mid, 0] - r[mid, 1]) / (x[mid, 1] - x[mid, 0])
+    assert slope == pytest.approx(3 * 0.01 / 4.0, rel=5e-3)  # one-sided difference of a cubic
+    assert r[0, 0] == pytest.approx(0.02)  # a corner rolls off twice
+
+
+def test_local_feature_has_its_depth_and_width():
+    from scopetwin.scenes.setup import FeatureSpec
+    from scopetwin.sim.surfaces import local_features
+
+    x, y = np.meshgrid(np.linspace(-6, 6, 1201), np.array([1.0]))
+    z = local_features(x, y, [FeatureSpec(x=0.0, y=1.0, width_mm=3.0, height_um=-2.0)])[0]
+    assert z.min() == pytest.approx(-0.002)
+    half = x[0][z <= -0.001]
+    assert half.max() - half.min() == pytest.approx(3.0, abs=0.02)
+
+
+def test_cut_sheet_surface_has_its_features_after_levelling():
+    """Roll-off and features ride on the waviness; the frame maxima are zero again afterwards."""
+    from scopetwin.sim.families import dimple_spec
+
+    sub = SubstrateSpec()
+    base = dimple_spec(depth_um=0.0)
+    base.pop("features")
+    plain = make_surface(SurfaceSpec(**base, grid=(128, 256)), sub)
+    dimpled = make_surface(SurfaceSpec(**dimple_spec(), grid=(128, 256)), sub)
+    d = dimpled.z - plain.z
+    m1, m2 = _frame_maxima(dimpled)
+    assert abs(m1) < 1e-12 and abs(m2) < 1e-12
+    at = dimpled.height(np.array([2.0]), np.array([5.0])) - plain.height(np.array([2.0]), np.array([5.0]))
+    far = np.median(d)
+    assert float(at[0] - far) == pytest.approx(-0.002, abs=5e-5)
+    with pytest.raises(ValueError, match="edge_rolloff_um needs surface kind"):
+        SurfaceSpec(kind="sphere", edge_rolloff_um=5.0)
+
+
+@pytest.mark.parametrize("family", ["gauss", "glass", "cut", "steep", "features"])
+def test_families_are_fixed_by_their_seed_and_valid(family):
+    from scopetwin.sim.families import family_spec
+
+    a, b = family_spec(family, 11), family_spec(family, 11)
+    assert a == b and a != family_spec(family, 12)
+    spec = SurfaceSpec(**a, grid=(64, 128))
+    hm = make_surface(spec, SubstrateSpec(surface=spec))
+    assert np.isfinite(hm.z).all()
+    with pytest.raises(ValueError, match="unknown surface family"):
+        family_spec("bogus", 1)
