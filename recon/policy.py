@@ -54,7 +54,8 @@ class ReconstructionPolicy:
         converge because it cannot fit the data (its residual above ``fit_ratio`` times the best).
     keep_first_scale : bool
         Where the re-chosen (finer) scale's extrapolation throws the start height so far that the rays miss the
-        substrate, keep the first scale's converged result instead of failing.
+        substrate, or its start-height search does not converge, keep the first scale's converged result instead of
+        failing (on bent glass a finer scale's frame maxima can swing by tens to thousands of µm between runs).
     outlier_factor : float
         After convergence, markers whose gradient residual exceeds this many times the median residual are rejected
         one at a time (worst first, refitting in between) and the surface is found again without them: a wrongly

@@ -15,7 +15,7 @@ The order, for one image:
 2. the start-height search with the default basis scale; where its rays lose the substrate, the scale chosen on the
    flat start and the search again (``rescale_from_flat_start``);
 3. the scale chosen on the data traced through that surface and the search again (``rechoose_scale``), keeping the
-   first scale's result where the finer one loses the substrate (``keep_first_scale``);
+   first scale's result where the finer one loses the substrate or does not converge (``keep_first_scale``);
 4. wrongly indexed markers rejected and the search again (``outlier_factor``);
 5. the posterior: uncertainty and start height; the frame condition not searched on checked, by the posterior where
    the extrapolation disagrees (``posterior_consistency_sigmas``);
@@ -174,7 +174,8 @@ def _first_search(search: _Search) -> LoopOutcome:
 
 def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
     """The basis scale chosen on the data traced through the search's surface, and the search again with it
-    (``rechoose_scale``); the first scale's result kept where the finer one loses the substrate (``keep_first_scale``).
+    (``rechoose_scale``); the first scale's converged result kept where the finer one loses the substrate or does not
+    converge (``keep_first_scale``).
     """
     rec, policy, cfg = search.rec, search.policy, search.rec.config
     if not (policy.rechoose_scale and search.surfaces and cfg.sigma_candidates and cfg.counts is None):
@@ -190,10 +191,10 @@ def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
     search.path.append(f"basis scale chosen on the data: {current:g} -> {best:g} mm")
     h_found = search.history[-1].start_height_um * 1e-3
     again = search.loop(h_found, None if out.converged else cfg.outer_max, fresh=True)
-    if again.status != "lost":
-        return again
-    assert again.failure is not None
-    if not (first[2].converged and policy.keep_first_scale):
+    if again.converged or not (first[2].converged and policy.keep_first_scale):
+        if again.status != "lost":
+            return again
+        assert again.failure is not None
         raise search.fail(again.failure)
     rec.use_basis(first[0])
     del search.history[first[1] :]
@@ -203,20 +204,29 @@ def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
 
 
 def _reject_outliers(search: _Search, out: LoopOutcome) -> LoopOutcome:
-    """Wrongly indexed markers rejected after convergence and the search again without them (``outlier_factor``)."""
+    """Wrongly indexed markers rejected after convergence and the search again without them (``outlier_factor``).
+
+    Where the search without them does not converge or loses the substrate, the converged result with every marker is
+    kept (on bent glass with local features the markers on a feature look like mis-indexed ones to a smooth fit, and
+    the fit without them can extrapolate onto the frame far worse)."""
     rec, policy = search.rec, search.policy
     if not (out.converged and policy.outlier_factor > 0 and rec.last is not None):
         return out
     drop = rec.index_outliers(search.markers, rec.last, policy.outlier_factor, policy.outlier_max_fraction)
     if not drop.any():
         return out
+    before = (search.markers, len(search.history), rec.last)
     search.rejected = search.markers.ij[drop]
     search.markers = MarkerObservations(search.markers.ij[~drop], search.markers.px[~drop])
     search.path.append(f"{int(drop.sum())} wrongly indexed marker(s) rejected")
     again = search.loop(search.history[-1].start_height_um * 1e-3, rec.config.outer_max, fresh=True)
-    if again.failure is not None:
-        raise search.fail(again.failure)
-    return again
+    if again.converged:
+        return again
+    search.markers, rec.last = before[0], before[2]
+    del search.history[before[1] :]
+    search.rejected = np.zeros((0, 2), dtype=np.int64)
+    search.path.append("kept the result with every marker: the search without the rejected ones did not converge")
+    return out
 
 
 def _accept(search: _Search, result: ReconstructionResult, history_path: str | Path | None) -> ReconstructionResult:
