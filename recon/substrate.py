@@ -58,20 +58,12 @@ class Substrate2D:
 
 
 def intersect_surface(
-    surface: SBFSurface,
-    origins: Array,
-    dirs: Array,
-    frame: Frame | None = None,
-    tol: float = 1e-10,
-    max_iter: int = 30,
-    max_height_change: float = 2.0,
+    surface: SBFSurface, origins: Array, dirs: Array, frame: Frame | None = None, tol: float = 1e-10, max_iter: int = 30
 ) -> tuple[Array, NDArray[np.bool_]]:
     """Ray parameters where rays meet a fitted surface z = f(x, y) (secant iteration of seed §1.6.4, eq. 1.6).
 
-    :func:`scopetwin.scenes.secant.secant_intersection`, started at the rays' intersections with the plane through
-    the surface's height at the substrate's centre and with the plane z = f there, which is close to the root for a
-    nearly flat substrate. A root more than ``max_height_change`` (mm) above or below that plane is not taken: a
-    fitted surface continued far beyond the substrate can meet the ray again there.
+    :func:`scopetwin.scenes.secant.secant_intersection`, started at the rays' intersections with the plane
+    z = offset and with the plane z = f there, which is close to the root for a nearly flat substrate.
 
     Parameters
     ----------
@@ -83,26 +75,20 @@ def intersect_surface(
         The substrate's base plane (None: the rays are given in it).
     tol, max_iter : float, int
         Convergence threshold on ``|f|``, mm, and largest number of secant steps.
-    max_height_change : float
-        Largest height of a root above or below the start plane, mm.
 
     Returns
     -------
     lam : ndarray, (n,)
         Ray parameters (meaningful where ``ok``).
     ok : ndarray of bool, (n,)
-        Converged, in front of the ray origin (lam > 0) and within ``max_height_change`` of the start plane.
+        Converged, and in front of the ray origin (lam > 0).
     """
     o = frame.to_local(origins) if frame is not None else np.asarray(origins, dtype=np.float64)
     d = frame.vectors_to_local(dirs) if frame is not None else np.asarray(dirs, dtype=np.float64)
-    z0 = float(np.asarray(surface.height(np.zeros(1), np.zeros(1))).ravel()[0])
     with np.errstate(divide="ignore", invalid="ignore"):
-        lam0 = (z0 - o[:, 2]) / d[:, 2]
+        lam0 = (surface.offset - o[:, 2]) / d[:, 2]
     lam, converged = secant_intersection(surface, o, d, lam0, tol=tol, max_iter=max_iter)
-    # a root far along the ray from the plane at the surface's height is a fit's continuation far off the substrate
-    # (an ill-posed fit can turn back there), never the substrate the ray sees
-    near = np.abs((lam - lam0) * d[:, 2]) <= max_height_change
-    return lam, converged & (lam > 0) & near
+    return lam, converged & (lam > 0)
 
 
 def check_substrate_visible(camera: Camera, sub: Substrate2D) -> None:
