@@ -204,29 +204,20 @@ def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
 
 
 def _reject_outliers(search: _Search, out: LoopOutcome) -> LoopOutcome:
-    """Wrongly indexed markers rejected after convergence and the search again without them (``outlier_factor``).
-
-    Where the search without them does not converge or loses the substrate, the converged result with every marker is
-    kept (on bent glass with local features the markers on a feature look like mis-indexed ones to a smooth fit, and
-    the fit without them can extrapolate onto the frame far worse)."""
+    """Wrongly indexed markers rejected after convergence and the search again without them (``outlier_factor``)."""
     rec, policy = search.rec, search.policy
     if not (out.converged and policy.outlier_factor > 0 and rec.last is not None):
         return out
     drop = rec.index_outliers(search.markers, rec.last, policy.outlier_factor, policy.outlier_max_fraction)
     if not drop.any():
         return out
-    before = (search.markers, len(search.history), rec.last)
     search.rejected = search.markers.ij[drop]
     search.markers = MarkerObservations(search.markers.ij[~drop], search.markers.px[~drop])
     search.path.append(f"{int(drop.sum())} wrongly indexed marker(s) rejected")
     again = search.loop(search.history[-1].start_height_um * 1e-3, rec.config.outer_max, fresh=True)
-    if again.converged:
-        return again
-    search.markers, rec.last = before[0], before[2]
-    del search.history[before[1] :]
-    search.rejected = np.zeros((0, 2), dtype=np.int64)
-    search.path.append("kept the result with every marker: the search without the rejected ones did not converge")
-    return out
+    if again.failure is not None:
+        raise search.fail(again.failure)
+    return again
 
 
 def _accept(search: _Search, result: ReconstructionResult, history_path: str | Path | None) -> ReconstructionResult:

@@ -28,11 +28,12 @@ THESIS_KIND = ("gauss", "gauss+broadband", "abc+broadband", "power+broadband")
 HARD = ("glass", "cut", "steep", "features")
 
 
-def glass_spec(seed: int) -> dict[str, Any]:
-    """One glass-like surface, like float glass: power-law waviness (f^-3 to f^-4, flat below f = 1/40 to 1/80 mm,
-    rolled off by a Gaussian of 1-3 mm so the waviness lies at 8-80 mm), 14-60 µm of it, a paraboloidal bow of up to
-    +-20 µm, 20-100 nm RMS of flat-spectrum micro-waviness at 1-8 mm."""
-    rng = np.random.default_rng([seed, 2727])
+def _glass(
+    rng: np.random.Generator, seed: int, range_um: tuple[float, float], bow_um: float, micro_nm: tuple[float, float]
+) -> dict[str, Any]:
+    """Glass-like waviness drawn from ``rng``: power law f^-3 to f^-4, flat below f = 1/40 to 1/80 mm, rolled off by a
+    Gaussian of 1-3 mm (so the waviness lies at 8-80 mm), ``range_um``, a bow within +-``bow_um``, micro-waviness of
+    ``micro_nm`` RMS at 1-8 mm."""
     return {
         "kind": "psd",
         "spectrum": "power",
@@ -40,12 +41,18 @@ def glass_spec(seed: int) -> dict[str, Any]:
         "psd_exponent": float(rng.uniform(3.0, 4.0)),
         "correlation_length": float(rng.uniform(40.0, 80.0)),
         "psd_rolloff_mm": float(rng.uniform(1.0, 3.0)),
-        "range_um": float(rng.uniform(14.0, 60.0)),
-        "bow_um": float(rng.uniform(-20.0, 20.0)),
-        "broadband_rms_nm": float(rng.uniform(20.0, 100.0)),
+        "range_um": float(rng.uniform(*range_um)),
+        "bow_um": float(rng.uniform(-bow_um, bow_um)),
+        "broadband_rms_nm": float(rng.uniform(*micro_nm)),
         "broadband_wavelength_mm": 8.0,
         "broadband_min_wavelength_mm": 1.0,
     }
+
+
+def glass_spec(seed: int) -> dict[str, Any]:
+    """One glass-like surface, like float glass: power-law waviness at 8-80 mm, 14-60 µm of it, a paraboloidal bow of
+    up to +-20 µm, 20-100 nm RMS of flat-spectrum micro-waviness at 1-8 mm."""
+    return _glass(np.random.default_rng([seed, 2727]), seed, (14.0, 60.0), 20.0, (20.0, 100.0))
 
 
 def _features(rng: np.random.Generator, count: int) -> list[dict[str, float]]:
@@ -73,17 +80,7 @@ def cut_spec(seed: int) -> dict[str, Any]:
     slope = float(rng.uniform(6e-3, 16e-3))
     sign = -1.0 if rng.random() < 0.25 else 1.0
     return {
-        "kind": "psd",
-        "spectrum": "power",
-        "seed": int(seed),
-        "psd_exponent": float(rng.uniform(3.0, 4.0)),
-        "correlation_length": float(rng.uniform(40.0, 80.0)),
-        "psd_rolloff_mm": float(rng.uniform(1.0, 3.0)),
-        "range_um": float(rng.uniform(20.0, 45.0)),
-        "bow_um": float(rng.uniform(-15.0, 15.0)),
-        "broadband_rms_nm": float(rng.uniform(5.0, 40.0)),
-        "broadband_wavelength_mm": 8.0,
-        "broadband_min_wavelength_mm": 1.0,
+        **_glass(rng, seed, (20.0, 45.0), 15.0, (5.0, 40.0)),
         "edge_rolloff_mm": width,
         "edge_rolloff_um": sign * slope * width / 3.0 * 1e3,
         "features": _features(rng, int(rng.integers(0, 4))),
