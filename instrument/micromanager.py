@@ -28,7 +28,11 @@ What a Micro-Manager user expects is set up as Micro-Manager would:
 - the pixel size is the camera's ``pixel_size_um`` over its ``magnification`` (both from the rig TOML), as
   the pixel-size preset ``scopetwin``;
 - the camera's read-only ``BitDepth`` property is the camera's ADC depth (12 for the seed's camera), not
-  the 16 bits of its buffer; :class:`RigCore` reports it as the image bit depth.
+  the 16 bits of its buffer, and ``getImageBitDepth()`` reports it: on a :class:`RigCore`, and on a plain
+  ``UniMMCore`` that loaded the camera from a configuration file (:func:`report_bit_depth`; UniMMCore itself
+  gives the buffer's 16);
+- the pixel-size preset's lines are ``#py`` lines like the devices': a plain ``CMMCorePlus`` loads the file
+  without the Python devices and without their pixel size.
 
 A device whose rig call fails records the fault in its session (:attr:`RigSession.faults`):
 pymmcore-plus's MDA engine logs a failed move and goes on, so :func:`run_mda` checks the faults after
@@ -40,7 +44,9 @@ reported; it is the library function behind ``scopetwin rig RIG mda``.
 from __future__ import annotations
 
 import atexit
+import sys
 import threading
+import weakref
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -393,6 +399,7 @@ class RigCamera(_RigBound, _SimpleCamera):
         self.register_property(
             BIT_DEPTH_PROPERTY, getter=lambda dev: dev._device().bit_depth, is_read_only=True, property_type=int
         )
+        report_bit_depth(_calling_core())  # the core loading it from a configuration reports the ADC depth
 
     def initialize(self) -> None:
         self.camera = self._bind(lambda rig: rig.camera(self._name()))
@@ -516,6 +523,51 @@ class RigCore(_UniMMCore):
         return camera_bit_depth(self) or int(super().getImageBitDepth())
 
 
+def rig_camera_bit_depth(core: Any) -> int | None:
+    """The ADC depth of the core's current camera when that is a :class:`RigCamera`, else ``None``."""
+    camera = core.getCameraDevice()
+    if camera and core.isPyDevice(camera) and core.getDeviceLibrary(camera) == MODULE:
+        return int(core.getProperty(camera, BIT_DEPTH_PROPERTY))
+    return None
+
+
+def _calling_core(frames: int = 32) -> Any | None:
+    """The ``UniMMCore`` whose method is running further up this thread's stack (a configuration's ``#py pyDevice``
+    line runs ``UniMMCore.loadDevice``, which makes the device), or ``None``."""
+    frame = sys._getframe(1)
+    for _ in range(frames):
+        owner = frame.f_locals.get("self")
+        if isinstance(owner, _UniMMCore):
+            return owner
+        if frame.f_back is None:
+            break
+        frame = frame.f_back
+    return None
+
+
+def report_bit_depth(core: Any) -> None:
+    """Make ``core.getImageBitDepth()`` report a :class:`RigCamera`'s ADC depth while one is the current camera.
+
+    UniMMCore takes a Python camera's bit depth from its buffer's dtype (16 for ``uint16``) and gives a camera no way
+    to state its own, and its class (a SWIG type) cannot be changed: the method is replaced on this core only. Every
+    other camera keeps UniMMCore's answer. :class:`RigCore` needs none of this.
+    """
+    if core is None or isinstance(core, RigCore) or "getImageBitDepth" in vars(core):
+        return
+    owner = weakref.ref(core)
+    buffer_depth = type(core).getImageBitDepth
+
+    def getImageBitDepth() -> int:  # noqa: N802 - MMCore's name
+        this = owner()
+        if this is None:  # pragma: no cover - the core is being collected
+            return 0
+        depth = rig_camera_bit_depth(this)
+        return depth if depth is not None else int(buffer_depth(this))
+
+    getImageBitDepth.__doc__ = buffer_depth.__doc__
+    core.getImageBitDepth = getImageBitDepth
+
+
 def camera_bit_depth(core: Any) -> int | None:
     """The current camera's ``BitDepth`` property (a :class:`RigCamera`'s ADC depth), or ``None`` without one."""
     camera = core.getCameraDevice()
@@ -599,10 +651,12 @@ def config_text(
         lines += [f"#py ConfigGroup,{CHANNEL_GROUP},{n},{LIGHT_LABEL},{LAMP_PROPERTY},{n}" for n in _light_names(rig)]
         lines += [f"#py Property,{LIGHT_LABEL},{LAMP_PROPERTY},{rig.light(light).name}"]
         lines += [f"#py Property,Core,ChannelGroup,{CHANNEL_GROUP}"]
-    # the pixel-size preset matches the C++ core's camera, empty while the camera is a Python device
+    # The pixel-size preset calibrates the Python camera, so its lines are '#py' lines too: a plain CMMCorePlus, which
+    # loads none of the Python devices, skips them (its parser also refuses the preset's empty value). In UniMMCore the
+    # preset is matched by the C++ core, whose Core-Camera property stays empty while the camera is a Python device.
     lines += [
-        f"ConfigPixelSize,{PIXEL_SIZE_PRESET},Core,Camera,",
-        f"PixelSize_um,{PIXEL_SIZE_PRESET},{cam.limits.sample_pixel_um!r}",
+        f"#py ConfigPixelSize,{PIXEL_SIZE_PRESET},Core,Camera,",
+        f"#py PixelSize_um,{PIXEL_SIZE_PRESET},{cam.limits.sample_pixel_um!r}",
     ]
     roles = {"Camera": CAMERA_LABEL, "XYStage": XY_LABEL, "Focus": FOCUS_LABEL, "Shutter": LIGHT_LABEL}
     labels = {label for label, _, _ in devices}

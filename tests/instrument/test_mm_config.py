@@ -51,16 +51,61 @@ def test_a_plain_unimmcore_loads_the_file_in_a_fresh_process(tmp_path):
         "core.loadSystemConfiguration(sys.argv[1])\n"
         "core.setConfig('Channel', 'uv'); core.snapImage(); lit = core.getImage().mean()\n"
         "core.setConfig('Channel', 'deep_red'); core.snapImage()\n"
-        "print(core.getLoadedDevices(), core.getPixelSizeUm(), core.getProperty('Camera', 'BitDepth'), lit)\n"
+        "bits = (core.getProperty('Camera', 'BitDepth'), core.getImageBitDepth())\n"
+        "print(core.getLoadedDevices(), core.getPixelSizeUm(), *bits, lit)\n"
     )
     cfg = ROOT / "rigs" / "emulated-hardware.cfg"
     done = subprocess.run(
         [sys.executable, "-c", code, str(cfg)], cwd=tmp_path, capture_output=True, text=True, timeout=120
     )
     assert done.returncode == 0, done.stderr[-2000:]
-    devices, pixel, bits, lit = done.stdout.strip().rsplit(" ", 3)
+    devices, pixel, bits, image_bits, lit = done.stdout.strip().rsplit(" ", 4)
     assert "'Camera', 'XY', 'Z', 'Light'" in devices and float(pixel) == pytest.approx(6.45)
     assert int(bits) == 12 and float(lit) > 200  # the rig file was found from another folder (the checkout)
+    assert int(image_bits) == 12  # the camera's ADC depth, not its uint16 buffer's 16 (widgets scale by it)
+
+
+_PLAIN_CORE = """
+import sys
+from pymmcore_plus import CMMCorePlus
+for cfg in sys.argv[1:]:
+    core = CMMCorePlus()
+    core.loadSystemConfiguration(cfg)
+    print(cfg, list(core.getLoadedDevices()), core.getCameraDevice() or "-", core.getAvailablePixelSizeConfigs())
+"""
+
+
+def test_a_plain_cmmcoreplus_loads_the_files_without_the_python_devices(tmp_path):
+    """pymmcore-plus's C++-only core skips every '#py' line (devices, presets, the pixel size of the Python camera)
+    and loads the rest; in a process of its own, as ``mmcore run --config`` would."""
+    written = tmp_path / "rig.cfg"
+    assert main(["rig", str(ROOT / "rigs" / "emulated-hardware.toml"), "mm-config", "--out", str(written)]) == 0
+    files = [written, *(ROOT / "rigs" / f"{name}.cfg" for name in SHIPPED)]
+    done = subprocess.run(
+        [sys.executable, "-c", _PLAIN_CORE, *map(str, files)], cwd=tmp_path, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = done.stdout.strip().splitlines()
+    assert len(lines) == len(files)
+    for line in lines:
+        assert line.endswith(" ['Core'] - ()"), line  # the Core device alone, no camera, no pixel-size preset
+
+
+def test_a_unimmcore_has_the_pixel_size_preset_and_the_bit_depth(tmp_path):
+    written = tmp_path / "rig.cfg"
+    assert main(["rig", str(ROOT / "rigs" / "emulated-hardware.toml"), "mm-config", "--out", str(written)]) == 0
+    text = written.read_text()
+    assert "\n#py ConfigPixelSize,scopetwin,Core,Camera,\n#py PixelSize_um,scopetwin,6.45\n" in text
+    core = UniMMCore()
+    core.loadSystemConfiguration(str(written))
+    try:
+        assert core.getAvailablePixelSizeConfigs() == ("scopetwin",)
+        assert core.getCurrentPixelSizeConfig() == "scopetwin" and core.getPixelSizeUm() == pytest.approx(6.45)
+        assert core.getImageBitDepth() == 12 and core.getBytesPerPixel() == 2
+        core.snapImage()
+        assert int(core.getImage().max()) <= 4095
+    finally:
+        core.unloadAllDevices()
 
 
 def _mda_through_pymmcore_plus(core, out):
