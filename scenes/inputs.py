@@ -282,7 +282,8 @@ def parse_json(text: str, kind: str, where: str, finite: bool = False) -> Any:
     InputError
         Nested deeper than :data:`MAX_DEPTH`, not valid JSON, or (``finite``) a ``NaN``/``Infinity``.
     """
-    if bracket_depth(text, comments="", quotes='"') > MAX_DEPTH:
+    brackets = text.count("[") + text.count("{")  # fewer brackets than the limit cannot nest deeper: no scan
+    if brackets > MAX_DEPTH and bracket_depth(text, comments="", quotes='"') > MAX_DEPTH:
         raise _too_deep(kind, where)
     try:
         data = json.loads(text)

@@ -30,6 +30,8 @@ from numpy.typing import NDArray
 
 from scopetwin.scenes.errors import FileFormatError, ScopetwinError
 from scopetwin.scenes.inputs import check_input_file, native_output_captured
+from scopetwin.scenes.limits import FLOATS_PER_PIXEL
+from scopetwin.scenes.safe_read import check_exr_header
 
 if TYPE_CHECKING:
     from scopetwin.scenes.surface import HeightMap
@@ -39,6 +41,9 @@ EXTENT_KEYS = ("x_min_mm", "x_max_mm", "y_min_mm", "y_max_mm")
 MAX_HEIGHT_MM = 10.0
 #: How far (relative to the substrate's size) a height map's extent may fall short of the substrate's edge.
 COVER_TOLERANCE = 1e-6
+#: 4-byte numbers per node of a height map read from a file: as for a setup's generated surface grid
+#: (``scopetwin.scenes.setup.SURFACE_FLOATS_PER_NODE``), so a file holds no grid a setup could not have.
+HEIGHTMAP_FLOATS_PER_NODE = 24
 _UMASK = os.umask(0o022)
 os.umask(_UMASK)
 _RESERVED = {
@@ -141,9 +146,16 @@ def _write_exr(
             raise exr_write_error(path, exc) from None
 
 
-def _read_exr(path: str | Path, channel: str) -> tuple[NDArray[np.float32], dict[str, Any]]:
+def _read_exr(
+    path: str | Path,
+    channel: str,
+    shape: tuple[int, int] | None = None,
+    floats_per_pixel: int = FLOATS_PER_PIXEL,
+) -> tuple[NDArray[np.float32], dict[str, Any]]:
     p = Path(path)
-    check_input_file(p, "EXR")  # a regular file under the size limit: a FIFO or /dev/zero is one line (issue 25)
+    check_input_file(p, "EXR")  # a regular file under the size limit: a FIFO or /dev/zero is one line
+    # the declared size checked from the header (against ``shape`` and this machine's memory) before any decoding
+    check_exr_header(p, "EXR file", shape, floats_per_pixel)
     failed: Exception | None = None
     with native_output_captured() as said:  # OpenEXR prints its own "Warning: ..." lines on a truncated file
         try:
@@ -179,15 +191,20 @@ def write_image(
     _write_exr(path, "Y", image, extra)
 
 
-def read_image(path: str | Path) -> tuple[NDArray[np.float32], dict[str, Any]]:
+def read_image(path: str | Path, shape: tuple[int, int] | None = None) -> tuple[NDArray[np.float32], dict[str, Any]]:
     """Read a camera image (channel ``Y``) and its header attributes.
+
+    The size the header declares is checked before any pixel is decoded: it must be ``shape`` (rows, cols) when
+    given (the camera the image is for) and fit in this machine's memory as a camera image
+    (:func:`scopetwin.scenes.safe_read.check_exr_header`).
 
     Raises
     ------
     FileFormatError
-        Missing or unreadable file, no ``Y`` channel, or non-finite pixels.
+        Missing or unreadable file, a declared size other than ``shape`` or too large, no ``Y`` channel, or
+        non-finite pixels.
     """
-    data, attrs = _read_exr(path, "Y")
+    data, attrs = _read_exr(path, "Y", shape)
     if not np.all(np.isfinite(data)):
         raise FileFormatError(f"{path}: image channel Y contains NaN or infinite values")
     return data, attrs
@@ -214,7 +231,7 @@ def read_heightmap_std(path: str | Path) -> HeightMap | None:
 
     hm = read_heightmap(path)
     try:
-        data, _ = _read_exr(path, "Z_std")
+        data, _ = _read_exr(path, "Z_std", hm.z.shape, HEIGHTMAP_FLOATS_PER_NODE)
     except FileFormatError:
         return None
     return HeightMap(data.astype(np.float64), hm.x_min, hm.x_max, hm.y_min, hm.y_max)
@@ -223,12 +240,15 @@ def read_heightmap_std(path: str | Path) -> HeightMap | None:
 def read_heightmap(path: str | Path) -> HeightMap:
     """Read a height-map EXR (channel ``Z``, extents ``x_min_mm`` ... ``y_max_mm``).
 
+    The grid the header declares must fit in this machine's memory as a setup's surface grid would
+    (:data:`HEIGHTMAP_FLOATS_PER_NODE`), checked before any node is decoded.
+
     Raises
     ------
     FileFormatError
-        Missing/unreadable file, missing channel or extent attribute, or invalid heights.
+        Missing/unreadable file, a declared grid too large, missing channel or extent attribute, or invalid heights.
     """
-    data, attrs = _read_exr(path, "Z")
+    data, attrs = _read_exr(path, "Z", floats_per_pixel=HEIGHTMAP_FLOATS_PER_NODE)
     missing = [k for k in EXTENT_KEYS if k not in attrs]
     if missing:
         raise FileFormatError(f"{path}: height map lacks the header attribute(s) {', '.join(missing)}")
