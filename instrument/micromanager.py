@@ -59,6 +59,7 @@ from scopetwin.instrument.devices import CameraDevice, FocusDrive, LightSource, 
 from scopetwin.instrument.errors import InstrumentError, RigError
 from scopetwin.instrument.interrupts import deferred_signals
 from scopetwin.instrument.mdaplan import check_plan, load_sequence
+from scopetwin.instrument.ome import POSITION_DECIMALS
 from scopetwin.instrument.rig import Rig, load_rig
 
 try:
@@ -465,7 +466,9 @@ class RigXYStage(_RigBound, _XYStage):
 
     def get_position_um(self) -> tuple[float, float]:
         sx, sy = self._axes()
-        return self._call("read position", lambda: (sx.position_mm * 1e3, sy.position_mm * 1e3))
+        x_um, y_um = self._call("read position", lambda: (sx.position_mm * 1e3, sy.position_mm * 1e3))
+        # 75100.0, not the 75100.00000000001 of 75.1 mm in µm
+        return round(x_um, POSITION_DECIMALS), round(y_um, POSITION_DECIMALS)
 
     def set_origin_x(self) -> None:
         raise NotImplementedError("scopetwin stages keep their hardware origin")

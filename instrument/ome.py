@@ -6,9 +6,10 @@ streams (the writers pymmcore-plus uses), then completes the metadata its reader
 
 - OME-TIFF: ``SignificantBits`` (the camera's bit depth), the channels' colours (from each light's emission band,
   else its wavelength, else white) and excitation / emission wavelengths, an ``Instrument`` with the ``Objective``
-  (magnification, NA) and the camera as ``Detector``, every plane's position and exposure as the devices reported
-  them. Several positions give one file each in a folder (ome-writers' layout) or, with ``single_file``, one
-  multi-series file (one OME ``Image`` per position, written here with tifffile: ome-writers does not write one).
+  (magnification, NA) and the camera as ``Detector``, every plane's position (in µm, with its unit, rounded to the
+  pm: :func:`position_um`) and exposure as the devices reported them. Several positions give one file each in a
+  folder (ome-writers' layout) or, with ``single_file``, one multi-series file (one OME ``Image`` per position,
+  written here with tifffile: ome-writers does not write one).
 - OME-Zarr (NGFF 0.5): for several positions an NGFF plate at the root (one well per position in row ``A``) that
   ome-zarr-py's Reader and napari-ome-zarr open at the root; each image with scales in µm, a translation from the
   stage and focus as they reported at its first plane, display windows from the bit depth, channel colours; the
@@ -53,6 +54,15 @@ def wavelength_color(nm: float | None) -> str:
     ]
     rgb = next(f(wl) for top, f in bands if wl < top or top == math.inf)
     return "".join(f"{round(255 * max(0.0, min(1.0, c))):02X}" for c in rgb)
+
+
+#: Decimals a position in µm keeps (1 pm): below any stage's step, above the noise of a mm <-> µm conversion.
+POSITION_DECIMALS = 6
+
+
+def position_um(value: float | None) -> float | None:
+    """A reported position in µm rounded to :data:`POSITION_DECIMALS` (75100.00000000001 -> 75100.0), or ``None``."""
+    return None if value is None else round(float(value), POSITION_DECIMALS)
 
 
 @dataclass(frozen=True)
@@ -247,7 +257,8 @@ class OmeOutput:
         """One plane: its event index (``{"t": 0, "p": 1, "c": 0, "z": 2}``) and what the devices reported (``x_um``,
         ``y_um``, ``z_um``, ``exposure_ms``, ``elapsed_s``)."""
         position = self.layout.position_index(index)
-        where = (reported.get("x_um"), reported.get("y_um"), reported.get("z_um"))
+        x, y, z = (position_um(reported.get(f"{axis}_um")) for axis in "xyz")
+        where = (x, y, z)
         self.reported.first.setdefault(position, where)
         meta = {"exposure_time": float(reported["exposure_ms"]) * 1e-3}
         if reported.get("elapsed_s") is not None:

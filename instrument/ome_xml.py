@@ -25,12 +25,15 @@ def instrument(info: Any) -> Any:
 
 
 def complete_image(image: Any, info: Any) -> None:
-    """Bit depth, instrument references, channel colours and exact wavelengths of one OME ``Image``."""
+    """Bit depth, instrument references, the planes' position units, channel colours and exact wavelengths of one
+    OME ``Image``."""
     from ome_types import model
 
     image.instrument_ref = model.InstrumentRef(id=INSTRUMENT_ID)
     image.objective_settings = model.ObjectiveSettings(id=OBJECTIVE_ID)
     image.pixels.significant_bits = info.bit_depth
+    for plane in image.pixels.planes:  # stage and focus positions in µm (OME's default unit is the reference frame)
+        plane.position_x_unit = plane.position_y_unit = plane.position_z_unit = model.UnitsLength.MICROMETER
     by_name = {c.name: c for c in info.channels}
     for channel in image.pixels.channels:
         known = by_name.get(channel.name or "")

@@ -65,7 +65,8 @@ magnification = 10.0
 numerical_aperture = 0.45
 renderer = { kind = "texture", lights = ["uv"] }
 """
-POSITIONS = [(10000.0, 10000.0, 100.0), (10250.0, 10050.0, 120.0)]
+# 75.1 mm and 10.2 mm in µm are 75100.00000000001 and 10200.000000000002 in floating point: the files say 75100.0
+POSITIONS = [(10000.0, 10000.0, 100.0), (75100.0, 10200.0, 120.0)]
 SEQUENCE = {
     "stage_positions": [{"x": x, "y": y, "z": z} for x, y, z in POSITIONS],
     "channels": [{"config": "uv", "exposure": 10.0}, {"config": "deep_red", "exposure": 20.0}],
@@ -158,7 +159,7 @@ def test_the_record_is_what_the_devices_reported(rig_path, monkeypatch):
         monkeypatch.setattr(type(stage), "_do_get_position", lambda self: real(self) - 0.0005)
         result = run_mda(rig, SEQUENCE)
     xs = sorted({f["x_um"] for f in result["frames"]})
-    assert xs == pytest.approx([9999.5, 10249.5])
+    assert xs == [POSITIONS[0][0] - 0.5, POSITIONS[1][0] - 0.5]  # exactly: 0.5 um short, no conversion noise
     assert {f["channel"] for f in result["frames"]} == {"uv", "deep_red"}
     assert [f["exposure_ms"] for f in result["frames"][:6]] == [10.0] * 3 + [20.0] * 3
     assert result["estimate"]["planes"] == result["planes"] == 12
@@ -253,6 +254,9 @@ def _check_ome_image(image, frames):
         assert (plane.position_x, plane.position_y, plane.position_z) == pytest.approx(
             (frame["x_um"], frame["y_um"], frame["z_um"])
         )
+        assert (plane.position_x, plane.position_y) in {xyz[:2] for xyz in POSITIONS}  # exact: no conversion noise
+        units = {plane.position_x_unit.value, plane.position_y_unit.value, plane.position_z_unit.value}
+        assert units == {"µm"}
         assert plane.exposure_time == pytest.approx(frame["exposure_ms"] * 1e-3)
 
 
@@ -281,6 +285,39 @@ def test_ome_tiff_read_by_tifffile_and_ome_types(rig_path, tmp_path, single_file
         for array in arrays[: len(images)]:
             assert array.shape == (2, 3, 32, 40) and array[0].mean() > 200 > array[1].mean()  # C, Z, Y, X
     assert seen == 2
+
+
+@pytest.mark.parametrize("single_file", [False, True])
+def test_ome_tiff_positions_carry_their_unit_and_no_float_noise(tmp_path, single_file):
+    """The OME-XML as tifffile reads it: every plane's PositionX/Y/Z with its unit µm, values rounded to the pm."""
+    import xml.etree.ElementTree as ET
+
+    import tifffile
+
+    from scopetwin.instrument.ome import AcquisitionInfo, ChannelInfo, Layout, OmeOutput
+
+    layout = Layout(axes=("p", "c", "z"), sizes={"p": 2, "c": 1, "z": 1}, positions=((0, 0), (1, 0)), names=("a", "b"))
+    info = AcquisitionInfo(shape=(8, 6), dtype="uint16", bit_depth=12, pixel_size_um=0.5, channels=(ChannelInfo("BF"),))
+    out = OmeOutput(tmp_path / "x.ome.tif", layout, info, single_file=single_file)
+    noisy = [(75100 * 1e-3 * 1e3, 10200 * 1e-3 * 1e3, 120.1), (1.0, 2.0, 3.0)]  # um -> mm -> um, as stages do
+    assert noisy[0][:2] == (75100.00000000001, 10200.000000000002)
+    for p, (x, y, z) in enumerate(noisy):
+        reported = {"exposure_ms": 5.0, "x_um": x, "y_um": y, "z_um": z}
+        out.append(np.full((8, 6), 100, np.uint16), {"p": p, "c": 0, "z": 0}, reported)
+    files = out.close()
+    assert len(files) == (1 if single_file else 2)
+    planes = []
+    for path in files:
+        with tifffile.TiffFile(path) as tif:
+            root = ET.fromstring(tif.ome_metadata)
+        planes += [el.attrib for el in root.iter() if el.tag.endswith("}Plane")]
+    assert len(planes) == 2
+    for attrib in planes:
+        assert attrib["PositionXUnit"] == attrib["PositionYUnit"] == attrib["PositionZUnit"] == "µm", attrib
+    assert sorted((a["PositionX"], a["PositionY"], a["PositionZ"]) for a in planes) == [
+        ("1.0", "2.0", "3.0"),
+        ("75100.0", "10200.0", "120.1"),
+    ]
 
 
 def test_a_plan_of_2_63_loops_is_sized_not_overflowed():
