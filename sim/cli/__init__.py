@@ -19,10 +19,10 @@ One module per command group, each with a ``register(subparsers)`` that adds its
 :mod:`scopetwin.sim.cli.logs` writes the log on stderr.
 
 Every command function takes the parsed arguments and returns its result as a JSON-ready dict; :func:`main`
-writes it to ``--json PATH`` when given. A command whose result decides the exit status (``dataset verify``:
-1 when the dataset is incomplete) sets ``exit_code`` (a function of the result) beside ``func`` in its parser's
-defaults. Bad input gives one line ``scopetwin: error: ...`` on stderr and exit code 2, and leaves no partial
-output behind.
+writes it to ``--json PATH`` when given (``--json -``: to standard output, :mod:`scopetwin.sim.cli.outputs`). A
+command whose result decides the exit status (``dataset verify``: 1 when the dataset is incomplete) sets
+``exit_code`` (a function of the result) beside ``func`` in its parser's defaults. Bad input gives one line
+``scopetwin: error: ...`` on stderr and exit code 2, and leaves no partial output behind.
 
 Every parser of the tree (commands and their sub-commands) shares the conventions of issue 22
 (:func:`scopetwin.sim.cli.options.conventions`): ``-v``/``--verbose`` (repeatable) and ``-q``/``--quiet``, before or
@@ -113,7 +113,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     write; 3 a device stopped answering; 128 + n after signal n: 130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)."""
     words = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(words)
-    args = parser.parse_args(words)
+    args, unknown = parser.parse_known_args(words)
+    if unknown:  # argparse's error, from the parser of every command (the one built for argv knows its group only)
+        parser = build_parser()
+        args = parser.parse_args(words)
     level = verbosity(args)
     if level and args.quiet:
         parser.error("-v/--verbose and -q/--quiet exclude each other")

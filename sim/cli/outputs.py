@@ -11,7 +11,11 @@ created nothing:
 * an existing file where a folder is needed, or a folder where a file is needed;
 * a path under a file, or where nothing can be created (read-only file system, no permission, ``/proc``);
 * less free space than the estimate (at least :data:`MIN_FREE_BYTES` for every output);
-* two outputs naming the same path (``--json`` equal to ``--out``).
+* two outputs naming the same path (``--json`` equal to ``--out``);
+* ``--json`` in a folder that does not exist (it is not created: a mistyped folder is one line, not a new tree).
+
+``--json -`` writes the result to standard output instead of a file; what the command prints otherwise goes to
+standard error then, so that standard output holds the JSON alone (``scopetwin presets --json - | jq``).
 
 :class:`OutputTransaction` then runs the command with its staged commits deferred (:func:`scopetwin.sim.measurement.
 deferred_commits`): the ``--json`` result is written to a temporary file beside its destination first, then the
@@ -28,6 +32,7 @@ import json
 import logging
 import os
 import shutil
+import sys
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -40,6 +45,8 @@ log = logging.getLogger(__name__)
 
 #: Free space every output needs at the least (a JSON file, a report).
 MIN_FREE_BYTES = 1 << 20
+#: ``--json STDOUT``: the result on standard output.
+STDOUT = "-"
 Kind = Literal["dir", "file", "path"]
 
 
@@ -60,6 +67,11 @@ class Output:
     def option(self) -> str:
         """How the user wrote it: ``--json`` for ``json``, ``OUT`` for a positional ``out``."""
         return self.attr.upper() if self.positional else f"--{self.attr.replace('_', '-')}"
+
+
+def json_to_stdout(args: argparse.Namespace) -> bool:
+    """Whether the command's ``--json`` is :data:`STDOUT` (``-``)."""
+    return str(getattr(args, "json", None)) == STDOUT
 
 
 def declared_outputs(args: argparse.Namespace) -> list[Output]:
@@ -174,13 +186,15 @@ def check_outputs(args: argparse.Namespace) -> list[tuple[Output, Path, bool]]:
     named: dict[str, Output] = {}
     for out in declared_outputs(args):
         value = getattr(args, out.attr, None)
-        if value is None:
+        if value is None or (out.attr == "json" and str(value) == STDOUT):
             continue
         same = named.setdefault(os.path.realpath(os.path.abspath(str(value))), out) if str(value) else out
         if same is not out:  # e.g. --json equal to --out: refused before any work, not found after it
             raise OutputError(f"{same.option} and {out.option} both name {value}: give each output its own path")
         need = max(MIN_FREE_BYTES, int(sizes.get(out.attr, 0)))
         path = check_output_path(value, out.kind, out.option, need)
+        if out.attr == "json" and not path.absolute().parent.is_dir():
+            raise OutputError(f"{out.option} {value}: the folder {path.absolute().parent} does not exist")
         log.debug("%s %s: writable, %s free space needed", out.option, path, human_bytes(need))
         checked.append((out, path, path.exists() or path.is_symlink()))
     return checked
@@ -223,32 +237,41 @@ class OutputTransaction:
         self._stack = contextlib.ExitStack()
         self._pending: list[Any] = []
         self._done = False
+        self._stdout: Any = sys.stdout
 
     def __enter__(self) -> OutputTransaction:
         from scopetwin.sim.measurement import deferred_commits
 
+        self._stdout = sys.stdout
+        if json_to_stdout(self.args):  # standard output holds the JSON alone: the command's own lines go to stderr
+            self._stack.enter_context(contextlib.redirect_stdout(sys.stderr))
         self._pending = self._stack.enter_context(deferred_commits())
         return self
 
     def finish(self, result: Any) -> None:
-        """Write ``--json`` to a temporary file, move the deferred staged folders into place, rename the JSON."""
+        """Write ``--json`` to a temporary file, move the deferred staged folders into place, rename the JSON (``--json
+        -``: print it once the folders are in place)."""
         from scopetwin.scenes.io import atomic_path
         from scopetwin.sim.signals import deferred_signals
 
         json_path = getattr(self.args, "json", None)
+        text = None
+        if json_path:
+            try:
+                text = json.dumps(result, indent=2) + "\n"
+            except TypeError as exc:  # a command returned something JSON cannot hold: a bug, said plainly
+                raise OutputError(f"--json {json_path}: the result is not JSON ({exc})") from None
         with deferred_signals():  # a signal now waits until the result is in place
             with contextlib.ExitStack() as stack:
-                if json_path:
-                    tmp = stack.enter_context(atomic_path(json_path))
-                    try:
-                        text = json.dumps(result, indent=2) + "\n"
-                    except TypeError as exc:  # a command returned something JSON cannot hold: a bug, said plainly
-                        raise OutputError(f"--json {json_path}: the result is not JSON ({exc})") from None
-                    tmp.write_text(text)
+                if text is not None and not json_to_stdout(self.args):
+                    stack.enter_context(atomic_path(str(json_path))).write_text(text)
                     log.info("wrote the result to --json %s", json_path)
                 for stage in list(self._pending):
                     stage.commit_now()
                     self._pending.remove(stage)
+            if text is not None and json_to_stdout(self.args):  # once the results are in place
+                self._stdout.write(text)
+                self._stdout.flush()
             self._done = True
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: Any) -> None:

@@ -256,3 +256,16 @@ def test_the_print_finder_finds_prints(tmp_path):
     sample = tmp_path / "m.py"
     sample.write_text("import traceback\nprint('x')\ntraceback.print_exc()\nlog.info('fine')\n")
     assert len(_prints(sample, tmp_path)) == 2
+
+
+def test_an_unknown_option_of_a_command_lists_every_command(capsys):
+    """The parser built for one command knows its own group only; argparse's error shows the whole command list."""
+    with pytest.raises(SystemExit) as stop:
+        main(["presets", "--bogus"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert "unrecognized arguments: --bogus" in err
+    usage = err.split("scopetwin: error:")[0]
+    commands = _subparsers(build_parser())
+    assert commands is not None and len(commands.choices) >= 12
+    assert all(name in usage for name in commands.choices), usage

@@ -231,3 +231,33 @@ def test_the_check_names_the_path_and_creates_nothing(tmp_path):
         check_output_path("", "file", "--json")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]
     shutil.rmtree(tmp_path / "f", ignore_errors=True)
+
+
+def test_json_dash_writes_the_result_to_stdout_alone(tmp_path, capsys, setup_file, monkeypatch):
+    """``--json -``: the JSON is all of standard output (the command's own lines go to stderr); no file named ``-``."""
+    import json
+
+    monkeypatch.chdir(tmp_path)
+    code, out, err = _run(capsys, "presets", "--json", "-")
+    assert code == 0
+    names = [p["name"] for p in json.loads(out)["presets"]]
+    assert "thesis-1.10-deflectometry" in names and "thesis-1.10-deflectometry" in err  # the table, on stderr
+    code, out, err = _run(
+        capsys, "render", setup_file, "--renderer", "analytic", "--out", tmp_path / "o", "--json", "-"
+    )
+    assert code == 0
+    assert Path(json.loads(out)["image"]).is_file()  # printed once the staged folder was in place
+    assert not (tmp_path / "-").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["in", "o"]
+
+
+def test_json_in_a_missing_folder_is_refused_before_the_work(tmp_path, capsys, setup_file):
+    missing = tmp_path / "missing" / "dir"
+    code, _, err = _run(capsys, "presets", "--json", missing / "x.json")
+    assert code == 2
+    _one_error_line(err, f"--json {missing / 'x.json'}: the folder {missing} does not exist")
+    code, _, err = _run(
+        capsys, "render", setup_file, "--renderer", "analytic", "--out", tmp_path / "o", "--json", missing / "r.json"
+    )
+    assert code == 2
+    _one_error_line(err, "does not exist")
+    _untouched(tmp_path)  # neither the folders of --json nor the render's --out
