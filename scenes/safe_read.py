@@ -194,8 +194,9 @@ def exr_header(path: str | Path, what: str) -> dict[str, Any]:
         except Exception as exc:  # OpenEXR raises bare RuntimeError/ValueError on corrupt files
             failed = exc
     if failed is not None or "dataWindow" not in header:
-        why = next(iter(said), str(failed) if failed is not None else "no dataWindow")
-        raise InputError(f"{what}: {path} is not a readable OpenEXR file ({why})")
+        told = next((line for line in said if "EXR_ERR" in line), said[0] if said else None)
+        why = (told or (str(failed) if failed is not None else "no data window")).removeprefix(f"{path}: ")
+        raise InputError(f"{path} is not a readable OpenEXR file (truncated or corrupt: {why})")
     return header
 
 

@@ -53,8 +53,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
     setup = load_setup(args.setup)
     if setup.scene != "deflectometry":
         raise ScopetwinError(f"setup {args.setup} is a {setup.scene!r} scene; reconstruct needs a deflectometry setup")
-    image, _ = read_image(args.image)
     cam = setup.camera_model
+    image, _ = read_image(args.image, (cam.ny, cam.nx))  # the header's size checked before decoding
     if image.shape != (cam.ny, cam.nx):
         raise ScopetwinError(
             f"{args.image} is {image.shape[1]} x {image.shape[0]} px but the setup's camera has {cam.nx} x {cam.ny}"
@@ -107,7 +107,7 @@ def _cmd_two_positions(args: argparse.Namespace, setup: Any, image: Any, out: Pa
     if args.method != "centroid":
         raise ScopetwinError("--second takes the centroid method (the inverse fit uses one image)")
     shift = stage_shift(setup, args.pattern_shift)
-    second, _ = read_image(args.second)
+    second, _ = read_image(args.second, image.shape)  # the header's size checked before decoding
     if second.shape != image.shape:
         raise ScopetwinError(
             f"{args.second} is {second.shape[1]} x {second.shape[0]} px but {args.image} is "

@@ -59,6 +59,9 @@ MAPS_FILE = "maps.exr"
 MAPS_FORMAT = "maps"
 MAPS_VERSION = 1
 FORMAT_ATTRIBUTE = "scopetwin_format"
+#: 4-byte numbers per pixel and channel while a ``maps.exr`` is read (the decoded channel, the stacked layer, its
+#: converted copy): the estimate its declared size is checked with before decoding.
+FLOATS_PER_MAP_CHANNEL = 3
 
 
 @dataclass(frozen=True)
@@ -399,16 +402,25 @@ def write_maps(path: Path, maps: dict[str, NDArray[Any]], **attrs: Any) -> None:
             raise exr_write_error(path, exc) from None
 
 
-def read_maps(path: Path) -> dict[str, NDArray[Any]]:
+def read_maps(path: Path, shape: tuple[int, int] | None = None) -> dict[str, NDArray[Any]]:
     """Read a ``maps.exr``: layer -> (rows, cols) or (rows, cols, k) arrays (flags as bool, ids as int32).
+
+    The file must be a regular file, and the size its header declares must be ``shape`` (rows, cols; the sample's
+    image) when given and fit in this machine's memory with every layer, all checked before a pixel is decoded
+    (:func:`scopetwin.scenes.safe_read.check_exr_header`).
 
     Raises
     ------
     FileFormatError
-        Unreadable file, or a format this reader does not know (the message names the version it needs).
+        Not a regular file, a declared size other than ``shape`` or too large, unreadable, or a format this reader
+        does not know (the message names the version it needs).
     """
     import OpenEXR
 
+    from scopetwin.scenes.safe_read import check_exr_header, exr_header
+
+    channels = len(exr_header(path, "maps file").get("channels", [])) or 1
+    check_exr_header(path, "maps file", shape, floats_per_pixel=FLOATS_PER_MAP_CHANNEL * channels)
     try:
         f = OpenEXR.File(str(path), separate_channels=True)
         channels = f.channels()

@@ -20,11 +20,19 @@ items that torch's default collate stacks into batches (dicts of arrays).
 Formats: this reader reads dataset formats 1 and 2 (``dataset.json`` ``"format"``). Format 1 samples have no
 ``maps.exr`` and no ``camera_opencv``: both are computed from the sample's setup and surface when asked for, with
 the same code the writer uses. A newer format is refused with a message naming the format it needs.
+
+Safety: a dataset may come from someone else, so every file is read through :mod:`scopetwin.scenes.safe_read`.
+The names a sample's files give (``sample.json``'s ``files``, ``truth.json``'s ``surface``) must stay inside the
+sample folder (no absolute path, no ``..``, no link leading out of it); each file must be a regular file under a
+size limit (a FIFO or ``/dev/zero`` is refused before it is opened); JSON nests at most
+:data:`scopetwin.scenes.inputs.MAX_DEPTH` levels; ``sample.json`` and ``truth.json`` of a newer format are
+refused; an image's or map's size is read from its EXR header and checked against the sample's camera before a pixel
+is decoded. A sample folder that is a symbolic link is not listed. Each refusal is one
+:class:`DatasetReadError`.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -35,6 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.safe_read import check_format, read_json_inside, resolve_inside
 from scopetwin.sim.datasets.store import CONFIG_FILE, SAMPLE_FILE, SAMPLES
 
 
@@ -129,12 +138,16 @@ class Sample:
     @cached_property
     def meta(self) -> dict[str, Any]:
         """The sample's ``sample.json``: its format, kind and files with their SHA-256 and sizes."""
-        return _read_json(self.folder / SAMPLE_FILE)
+        meta = _read_json(self.folder, SAMPLE_FILE)
+        _check_format(meta, self.folder / SAMPLE_FILE)
+        return meta
 
     @cached_property
     def truth(self) -> Truth:
         """The sample's ``truth.json`` (:class:`Truth`): parameters, setup, marker images, cameras, poses (per kind)."""
-        return Truth(_read_json(self.folder / "truth.json"))
+        truth = _read_json(self.folder, "truth.json")
+        _check_format(truth, self.folder / "truth.json")
+        return Truth(truth)
 
     @property
     def format(self) -> int:
@@ -152,10 +165,33 @@ class Sample:
         (``{"image_blue": ..., ...}``), float32 (rows, cols)."""
         from scopetwin.scenes.io import read_image
 
-        names = sorted(n for n in self.meta.get("files", {}) if n.startswith("image") and n.endswith(".exr"))
+        files = self.meta.get("files", {})
+        names = sorted(str(n) for n in files if str(n).startswith("image") and str(n).endswith(".exr"))
         if not names:
             raise DatasetReadError(f"{self.folder}: the sample lists no image file")
-        return {n.removesuffix(".exr"): read_image(self.folder / n)[0] for n in names}
+        shape = self.image_shape
+        try:
+            return {n.removesuffix(".exr"): read_image(self._file(n), shape)[0] for n in names}
+        except ScopetwinError as exc:
+            raise DatasetReadError(f"sample {self.index}: {exc}") from None
+
+    @cached_property
+    def image_shape(self) -> tuple[int, int] | None:
+        """(rows, cols) every image and map of the sample has: the camera's pixels of a Part I sample, the window of
+        a ``cmu`` sample; None where the truth does not say. Checked against each EXR's header before decoding."""
+        from scopetwin.sim.datasets.validate import sample_image_shape
+
+        try:
+            return sample_image_shape(self.truth, self.kind)
+        except ScopetwinError as exc:
+            raise DatasetReadError(f"sample {self.index}: {exc}") from None
+
+    def _file(self, name: object) -> Path:
+        """The path of the sample's file ``name`` (as a file of the sample names it), kept inside its folder."""
+        try:
+            return resolve_inside(self.folder, name, f"sample {self.index} file")
+        except ScopetwinError as exc:
+            raise DatasetReadError(str(exc)) from None
 
     @property
     def image(self) -> NDArray[np.float32]:
@@ -173,8 +209,8 @@ class Sample:
 
         path = self.folder / MAPS_FILE
         try:
-            if path.is_file():
-                return read_maps(path)
+            if path.is_file() or path.is_symlink():
+                return read_maps(self._file(MAPS_FILE), self.image_shape)
             if self.kind in ("deflectometry", "calibration"):
                 return part1_maps(self.setup, self.heights)
             if self.kind == "cmu":
@@ -192,7 +228,11 @@ class Sample:
             return None
         from scopetwin.scenes.io import read_heightmap
 
-        return read_heightmap(self.folder / str(name))
+        path = self._file(name)
+        try:
+            return read_heightmap(path)
+        except ScopetwinError as exc:
+            raise DatasetReadError(f"sample {self.index}: {exc}") from None
 
     @cached_property
     def camera(self) -> Any:
@@ -220,9 +260,18 @@ class Sample:
         data = self.truth.get("setup_json")
         if data is None or self.kind in ("grin", "cmu"):
             return data if data is not None else self.truth.get("setup")
+        from scopetwin.scenes.inputs import parse_json
         from scopetwin.scenes.setup import setup_from_dict
 
-        return setup_from_dict(data if isinstance(data, dict) else json.loads(data), str(self.folder))
+        try:
+            body = data if isinstance(data, dict) else parse_json(str(data), "truth.json", "setup_json")
+            if not isinstance(body, dict):
+                raise DatasetReadError(f"sample {self.index}: truth.json setup_json is not a JSON object")
+            return setup_from_dict(body, str(self.folder))
+        except DatasetReadError:
+            raise
+        except ScopetwinError as exc:
+            raise DatasetReadError(f"sample {self.index}: {exc}") from None
 
     def arrays(self, names: Sequence[str] = ("image",)) -> dict[str, NDArray[Any]]:
         """Named arrays of the sample: ``image`` (or ``image_<channel>``) and any map layer, as one dict."""
@@ -337,9 +386,9 @@ def open_dataset(path: str | Path) -> Dataset:
     root = Path(path)
     if not root.is_dir():
         raise DatasetReadError(f"{root} is not a folder")
-    if not (root / CONFIG_FILE).is_file():
+    if not (root / CONFIG_FILE).exists():
         raise DatasetReadError(f"{root} is not a dataset folder (no {CONFIG_FILE})")
-    config = _read_json(root / CONFIG_FILE)
+    config = _read_json(root, CONFIG_FILE)
     fmt = config.get("format")
     if fmt not in READABLE_FORMATS:
         newer = isinstance(fmt, int) and fmt > FORMAT_VERSION
@@ -348,23 +397,33 @@ def open_dataset(path: str | Path) -> Dataset:
             f"{', '.join(map(str, READABLE_FORMATS))}" + ("; install a newer scopetwin to read it" if newer else "")
         )
     samples = root / SAMPLES
-    indices = (
-        sorted(
-            int(p.name) for p in samples.iterdir() if p.is_dir() and p.name.isdigit() and (p / SAMPLE_FILE).is_file()
-        )
-        if samples.is_dir()
-        else []
-    )
+    listed = samples.is_dir() and not samples.is_symlink()
+    indices = sorted(int(p.name) for p in samples.iterdir() if _finished(p)) if listed else []
     return Dataset(root, config, indices)
 
 
-def _read_json(path: Path) -> dict[str, Any]:
+def _finished(folder: Path) -> bool:
+    """Whether ``folder`` is a finished sample folder: a real folder (not a link) named by digits with its
+    ``sample.json`` in place."""
+    return folder.name.isdigit() and not folder.is_symlink() and folder.is_dir() and (folder / SAMPLE_FILE).exists()
+
+
+def _read_json(folder: Path, name: str) -> dict[str, Any]:
+    """The JSON object in ``folder / name``, read through :func:`scopetwin.scenes.safe_read.read_json_inside`."""
+    path = folder / name
+    if not (path.exists() or path.is_symlink()):
+        raise DatasetReadError(f"{path} is missing")
     try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise DatasetReadError(f"{path} is missing") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DatasetReadError(f"{path} cannot be read: {exc}") from None
-    if not isinstance(data, dict):
-        raise DatasetReadError(f"{path} does not hold a JSON object")
-    return data
+        return read_json_inside(folder, name, name)
+    except ScopetwinError as exc:
+        raise DatasetReadError(str(exc)) from None
+
+
+def _check_format(data: dict[str, Any], path: Path) -> None:
+    """Refuse a sample file of a format this scopetwin does not read (1 where the file names none)."""
+    from scopetwin.sim.datasets.plan import READABLE_FORMATS
+
+    try:
+        check_format(data.get("format", 1), READABLE_FORMATS, str(path))
+    except ScopetwinError as exc:
+        raise DatasetReadError(str(exc)) from None

@@ -6,6 +6,12 @@ renamed into place when complete (:class:`scopetwin.sim.measurement.StagedOutput
 folders,
 re-lists finished samples the manifest lost (a killed client) and renders only what is missing; ``verify`` checks
 every sample against the manifest and its own hashes.
+
+A dataset folder may come from someone else, so ``verify`` and ``resume`` read its files through
+:mod:`scopetwin.scenes.safe_read`: a sample's files must be regular files inside its folder (a name with ``..``, an
+absolute name, a link out of the folder, a FIFO or a device make the sample corrupt, with the reason, and nothing
+is opened through them), JSON files are read under a size limit with bounded nesting, and a sample folder that is a
+symbolic link is corrupt (``resume`` removes the link, never what it points to).
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import logging
 import os
 import shutil
 import socket
@@ -22,7 +29,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import IO, Any
 
+from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.inputs import InputError, parse_json, read_text_input
 from scopetwin.scenes.io import open_append
+from scopetwin.scenes.safe_read import check_format, check_regular, read_json_inside, resolve_inside
 from scopetwin.sim.datasets.config import SAMPLE_PACKAGES, DatasetError
 from scopetwin.sim.datasets.lock import DatasetBusy, DatasetLock, holder
 from scopetwin.sim.datasets.plan import Plan
@@ -34,6 +44,12 @@ MANIFEST = "manifest.jsonl"
 SAMPLES = "samples"
 TMP_PREFIX = ".tmp-"
 SAMPLE_FILE = "sample.json"
+#: Largest manifest read, bytes (a line is about 600 bytes: over a million samples).
+MANIFEST_LIMIT = 1024 * 2**20
+#: Largest file of a sample whose hash is checked, bytes (the EXR limit of :data:`scopetwin.scenes.inputs.LIMITS`).
+SAMPLE_FILE_LIMIT = 4096 * 2**20
+
+log = logging.getLogger(__name__)
 
 
 def sha256_file(path: Path) -> str:
@@ -101,7 +117,7 @@ def generate_sample(plan_json: dict[str, Any], index: int, root: str, threads: i
             status = "written" if stage.rename() else "exists"
     else:
         status = "exists"
-    body = json.loads((final / SAMPLE_FILE).read_text())
+    body = read_sample_json(final)
     return {**body, "status": status, "seconds": time.perf_counter() - t0, **worker_identity()}
 
 
@@ -118,39 +134,91 @@ def worker_identity() -> dict[str, Any]:
 
 
 # -- the dataset folder: manifest, recovery, generation, verification -------------------------------
+def read_sample_json(folder: Path) -> dict[str, Any]:
+    """A sample folder's ``sample.json`` read safely (:func:`scopetwin.scenes.safe_read.read_json_inside`) and of a
+    format this scopetwin reads.
+
+    Raises
+    ------
+    InputError
+        Not a regular file inside ``folder``, too large, nested too deep, not a JSON object, or a newer format.
+    """
+    from scopetwin.sim.datasets.plan import READABLE_FORMATS
+
+    body = read_json_inside(folder, SAMPLE_FILE, SAMPLE_FILE)
+    check_format(body.get("format", 1), READABLE_FORMATS, f"{folder / SAMPLE_FILE}")
+    return body
+
+
 def _read_manifest(root: Path) -> tuple[list[dict[str, Any]], int]:
-    """Parsed manifest lines and the number of unreadable ones (a line cut by a kill)."""
+    """Parsed manifest lines and the number of unreadable ones (a line cut by a kill, a line nested too deep).
+
+    A manifest that cannot be read safely (a link out of the folder, a FIFO, a device, over
+    :data:`MANIFEST_LIMIT`) counts as one unreadable line and is logged: recovery rewrites it from the samples.
+    """
     path = root / MANIFEST
-    if not path.exists():
+    if not (path.exists() or path.is_symlink()):
         return [], 0
+    try:
+        real = resolve_inside(root, MANIFEST, MANIFEST)
+        check_regular(real, MANIFEST, MANIFEST_LIMIT)
+        text = read_text_input(real, MANIFEST, MANIFEST_LIMIT)
+    except InputError as exc:
+        log.warning("%s is not read: %s", path, exc)
+        return [], 1
     rows, bad = [], 0
-    for line in path.read_text().splitlines():
+    for line in text.splitlines():
         if not line.strip():
             continue
         try:
-            row = json.loads(line)
+            row = parse_json(line, MANIFEST, "line")
             int(row["index"])
             rows.append(row)
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+        except (InputError, KeyError, TypeError, ValueError):
             bad += 1
     return rows, bad
 
 
+def _files_problem(files: Any) -> str | None:
+    """Why ``sample.json``'s ``files`` is not a table of file names with their sizes and hashes, or None."""
+    if not isinstance(files, dict):
+        return f"{SAMPLE_FILE}: files is not a table"
+    for name, meta in files.items():
+        ok = isinstance(meta, dict) and isinstance(meta.get("sha256"), str)
+        size = meta.get("bytes") if isinstance(meta, dict) else None
+        if not ok or isinstance(size, bool) or not isinstance(size, int):
+            return f"{SAMPLE_FILE}: files.{name} lacks its size (bytes) or hash (sha256)"
+    return None
+
+
 def _check_sample(folder: Path, expected: dict[str, Any] | None = None) -> str | None:
-    """None if the folder's files match its sample.json (and ``expected`` hashes); else the reason."""
+    """None if the folder's files match its sample.json (and ``expected`` hashes); else the reason.
+
+    Nothing is opened that is not a regular file inside ``folder``: a sample folder that is a link, a file name that
+    leaves the folder, a link out of it, a FIFO or a device is the reason.
+    """
+    if folder.is_symlink():
+        return f"the sample folder is a symbolic link to {os.path.realpath(folder)}"
     try:
-        body = json.loads((folder / SAMPLE_FILE).read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        return f"{SAMPLE_FILE} unreadable ({exc.__class__.__name__})"
+        body = read_sample_json(folder)
+    except ScopetwinError as exc:
+        return f"{SAMPLE_FILE} unreadable: {exc}"
     files = body.get("files", {})
+    reason = _files_problem(files)
+    if reason is not None:
+        return reason
     if expected is not None and expected != files:
         return "hashes differ from the manifest"
     present = {f.name for f in folder.iterdir() if f.name != SAMPLE_FILE}
     if present != set(files):
         return f"files differ from {SAMPLE_FILE}: {sorted(present ^ set(files))}"
     for name, meta in files.items():
-        p = folder / name
-        if p.stat().st_size != meta["bytes"] or sha256_file(p) != meta["sha256"]:
+        try:
+            p = resolve_inside(folder, name, name)
+            size = check_regular(p, name, SAMPLE_FILE_LIMIT)
+        except ScopetwinError as exc:
+            return str(exc)
+        if size != meta["bytes"] or sha256_file(p) != meta["sha256"]:
             return f"{name} does not match its hash"
     return None
 
@@ -231,11 +299,15 @@ def recover(root: Path) -> dict[str, Any]:
     for idx, folder in sorted(folders.items()):
         reason = _check_sample(folder)
         if reason is not None:
-            shutil.rmtree(folder, ignore_errors=True)
+            log.warning("sample %d is corrupt and is redone: %s", idx, reason)
+            if folder.is_symlink():
+                folder.unlink()  # the link, never what it points to
+            else:
+                shutil.rmtree(folder, ignore_errors=True)
             corrupt.append(idx)
             continue
         row = listed.get(idx)
-        body = json.loads((folder / SAMPLE_FILE).read_text())
+        body = read_sample_json(folder)
         if row is None or row.get("files") != body["files"]:
             row = _manifest_line({**body, "status": "recovered"})
             relisted.append(idx)
@@ -265,7 +337,7 @@ def _list_from_disk(root: Path, listed: set[int], fh: IO[str]) -> list[int]:
         if not (p.is_dir() and p.name.isdigit()) or int(p.name) in listed:
             continue
         if _check_sample(p) is None:
-            body = json.loads((p / SAMPLE_FILE).read_text())
+            body = read_sample_json(p)
             _append(fh, _manifest_line({**body, "status": "recovered"}))
             listed.add(int(p.name))
             found.append(int(p.name))
@@ -277,8 +349,8 @@ def _write_plan(root: Path, plan: Plan) -> None:
 
     path = root / CONFIG_FILE
     new = plan.to_json()
-    if path.exists():
-        old = json.loads(path.read_text())
+    if path.exists() or path.is_symlink():
+        old = read_config(root)
         if old.get("format") != new["format"]:
             Plan.from_json(old, str(path)).check_writable(str(root))
         if old != json.loads(json.dumps(new)):
@@ -483,15 +555,29 @@ def _generate_locked(
     return result
 
 
-def load_plan(root: str | Path) -> Plan:
-    """The plan stored in a dataset folder."""
+def read_config(root: str | Path) -> dict[str, Any]:
+    """A dataset folder's ``dataset.json``, read safely (a regular file inside the folder, bounded size and depth).
+
+    Raises
+    ------
+    DatasetError
+        The folder has no ``dataset.json``.
+    InputError
+        It is a link out of the folder, a FIFO or a device, too large, nested too deep, or not a JSON object.
+    """
     path = Path(root) / CONFIG_FILE
-    if not path.is_file():
+    if not (path.exists() or path.is_symlink()):
         raise DatasetError(f"{root} is not a dataset folder (no {CONFIG_FILE})")
+    return read_json_inside(root, CONFIG_FILE, CONFIG_FILE)
+
+
+def load_plan(root: str | Path) -> Plan:
+    """The plan stored in a dataset folder (:func:`read_config`; a format this scopetwin reads)."""
+    data = read_config(root)
     try:
-        return Plan.from_json(json.loads(path.read_text()))
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{path} is not valid JSON: {exc}") from None
+        return Plan.from_json(data, str(Path(root) / CONFIG_FILE))
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise DatasetError(f"{Path(root) / CONFIG_FILE} lacks what a dataset plan holds ({exc!r})") from None
 
 
 def verify(root: str | Path) -> dict[str, Any]:
@@ -508,14 +594,16 @@ def verify(root: str | Path) -> dict[str, Any]:
 
     root = Path(root)
     plan = load_plan(root)
-    config_errors = schema_errors(json.loads((root / CONFIG_FILE).read_text()), "dataset") if plan.format >= 2 else []
+    config_errors = schema_errors(read_config(root), "dataset") if plan.format >= 2 else []
     count = plan.config.dataset.count
     rows, bad = _read_manifest(root)
     by_index: dict[int, list[dict[str, Any]]] = {}
     for row in rows:
         by_index.setdefault(int(row["index"]), []).append(row)
     samples = root / SAMPLES
-    entries = list(samples.iterdir()) if samples.is_dir() else []
+    if samples.is_symlink():
+        config_errors.append(f"{SAMPLES} is a symbolic link to {os.path.realpath(samples)}; nothing in it is read")
+    entries = list(samples.iterdir()) if samples.is_dir() and not samples.is_symlink() else []
     temporary = sorted(p.name for p in entries if p.name.startswith("."))
     folders = {p.name: p for p in entries if p.is_dir() and not p.name.startswith(".")}
     duplicates = sorted(i for i, r in by_index.items() if len(r) > 1)

@@ -6,6 +6,11 @@ version (their ``$id`` ends in it). :func:`check_sample` validates one finished 
 values — every number finite and in range, every image finite and carrying signal, the maps consistent — which is
 what ``scopetwin dataset verify`` runs on every sample. :func:`check_image` is the check every sample writer runs on
 a render before it is written (a black or non-finite render is refused, never listed).
+
+The files are read through :mod:`scopetwin.scenes.safe_read`: names kept inside the sample folder, regular files
+only, JSON of bounded depth, ``sample.json`` and ``truth.json`` of a format this scopetwin reads, and every image's
+and map's size checked from its EXR header against the sample's camera before it is decoded. A file that fails one
+of these checks makes the sample invalid, with the reason.
 """
 
 from __future__ import annotations
@@ -19,6 +24,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.inputs import parse_json
+from scopetwin.scenes.safe_read import check_format, read_json_inside, resolve_inside
 
 #: The schema files and the format version each validates.
 SCHEMAS = {"dataset": 2, "sample": 2, "truth": 2, "exr": 1}
@@ -78,6 +85,35 @@ def schema_errors(data: Any, name: str) -> list[str]:
         where = "/".join(str(p) for p in err.absolute_path) or "(top level)"
         out.append(f"{where}: {err.message}")
     return out
+
+
+def sample_image_shape(truth: dict[str, Any], kind: str) -> tuple[int, int] | None:
+    """(rows, cols) of a sample's images and maps as its truth gives them: the camera's pixels of a Part I sample
+    (``setup_json`` ``camera.pixels``), the window of a ``cmu`` sample; None where the truth does not say.
+
+    Raises
+    ------
+    ScopetwinError
+        The truth gives a size that is not two positive integers.
+    """
+    try:
+        if kind in ("deflectometry", "calibration") and truth.get("setup_json") is not None:
+            setup = truth["setup_json"]
+            if isinstance(setup, str):
+                setup = parse_json(setup, "truth.json", "setup_json")
+            nx, ny = setup["camera"]["pixels"]
+            rows, cols = ny, nx
+        elif kind == "cmu" and "window" in truth:
+            _, _, rows, cols = truth["window"]
+        else:
+            return None
+        if isinstance(rows, bool) or isinstance(cols, bool) or not (isinstance(rows, int) and isinstance(cols, int)):
+            raise TypeError("not integers")
+        if min(rows, cols) < 1:
+            raise ValueError("not positive")
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ScopetwinError(f"truth.json does not give the image size as two positive integers ({exc})") from None
+    return rows, cols
 
 
 def _exr_header(path: Path) -> dict[str, Any]:
@@ -171,25 +207,40 @@ def check_sample(folder: Path, fmt: int) -> list[str]:
     """
     from scopetwin.scenes.io import read_heightmap, read_image
     from scopetwin.sim.datasets.maps import MAPS_FILE, read_maps
+    from scopetwin.sim.datasets.plan import READABLE_FORMATS
 
     problems: list[str] = []
-    body = json.loads((folder / "sample.json").read_text())
-    index = int(body.get("index", -1))
+    try:
+        body = read_json_inside(folder, "sample.json", "sample.json")
+        check_format(body.get("format", 1), READABLE_FORMATS, "sample.json")
+        index = int(body.get("index", -1))
+    except (ScopetwinError, TypeError, ValueError) as exc:
+        return [f"sample.json: {exc}"]
     kind = str(body.get("kind", ""))
     try:
-        truth = json.loads((folder / "truth.json").read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        return [f"truth.json cannot be read ({exc.__class__.__name__})"]
+        truth = read_json_inside(folder, "truth.json", "truth.json")
+        check_format(truth.get("format", 1), READABLE_FORMATS, "truth.json")
+        image_shape = sample_image_shape(truth, kind)
+    except ScopetwinError as exc:
+        return [f"truth.json: {exc}"]
     if fmt >= 2:
         problems += [f"sample.json: {e}" for e in schema_errors(body, "sample")]
         problems += [f"truth.json: {e}" for e in schema_errors(truth, "truth")]
     problems += _truth_problems(truth, index)
+    surface = truth.get("surface")
+    if surface is not None:
+        try:
+            resolve_inside(folder, surface, "truth.json surface")
+            if surface not in body.get("files", {}):
+                problems.append(f"truth.json: surface {surface!r} is not a file of the sample")
+        except ScopetwinError as exc:
+            problems.append(str(exc))
     shape: tuple[int, ...] | None = None
     for name in sorted(body.get("files", {})):
-        path = folder / name
         if not name.endswith(".exr"):
             continue
         try:
+            path = resolve_inside(folder, name, name)
             if fmt >= 2:
                 desc = exr_description(path, kind)
                 problems += [f"{name}: {e}" for e in schema_errors(desc, "exr")]
@@ -197,7 +248,7 @@ def check_sample(folder: Path, fmt: int) -> list[str]:
                 if listed is not None and listed != desc["format"]:
                     problems.append(f"{name}: sample.json lists format {listed}, the file is {desc['format']}")
             if name.startswith("image"):
-                img, _ = read_image(path)
+                img, _ = read_image(path, image_shape)
                 reason = image_problem(img)
                 if reason is not None:
                     problems.append(f"{name} {reason}")
@@ -205,7 +256,7 @@ def check_sample(folder: Path, fmt: int) -> list[str]:
             elif name.startswith(("surface", "height_")):
                 read_heightmap(path)  # refuses non-finite heights, bad extents
             elif name == MAPS_FILE:
-                maps = read_maps(path)
+                maps = read_maps(path, image_shape)
                 if kind in ("deflectometry", "calibration") and shape is not None:
                     problems += _maps_problems(maps, shape)
                 else:  # object coordinates: NaN beyond the objective's field is legitimate, infinities are not

@@ -327,3 +327,32 @@ def test_the_reworded_note_still_matches_the_calibration():
     from scopetwin.sim.cli.calibrate import _AMBIGUOUS
 
     assert _AMBIGUOUS in inspect.getsource(calibration)
+
+
+@pytest.mark.parametrize("second", [False, True])
+def test_reconstruct_checks_an_exr_header_before_decoding(tmp_path, capsys, second):
+    """An image whose EXR header declares 20000 x 20000 px (a few hundred bytes on disk) is refused from the header:
+    one line, exit 2, before a pixel is decoded; as the first image and as the second."""
+    import struct
+
+    from scopetwin.scenes.setup import load_setup
+
+    big = tmp_path / "big.exr"
+    write_image(big, np.ones((4, 6), np.float32))
+    data = bytearray(big.read_bytes())
+    at = data.index(b"dataWindow\x00box2i\x00") + len(b"dataWindow\x00box2i\x00") + 4
+    data[at : at + 16] = struct.pack("<4i", 0, 0, 19999, 19999)
+    big.write_bytes(bytes(data))
+    nx, ny = load_setup("thesis-1.10-deflectometry").camera.pixels
+    first = big
+    extra: list[object] = []
+    if second:
+        first = tmp_path / "first.exr"
+        write_image(first, np.ones((ny, nx), np.float32))
+        extra = ["--second", big, "--pattern-shift", "1.0"]
+    code, _, err = _run(
+        capsys, "reconstruct", first, "--setup", "thesis-1.10-deflectometry", "--out", tmp_path / "h.exr", *extra
+    )
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert f"declares 20000 x 20000 px, but {nx} x {ny} px are expected; nothing was decoded" in err
+    assert not (tmp_path / "h.exr").exists()
