@@ -47,7 +47,7 @@ import atexit
 import sys
 import threading
 import weakref
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -639,10 +639,18 @@ def config_text(
     stages ``stage_x`` / ``stage_y`` the XY stage ``XY`` (left out when the rig lacks them), the focus drive (default:
     the first) ``Z``, every light a preset of ``Channel`` on the shutter ``Light``, every rig shutter a shutter of its
     own name. ``light`` is selected at start (default: the first).
+
+    Raises
+    ------
+    RigError
+        A device name or the rig path that a ``.cfg`` field cannot hold (:func:`config_field_problem`: a line
+        break, a comma, a NUL, white space at either end), before any line is made.
     """
     cam = rig.camera(camera)
     focus_name = rig.focus(focus).name if focus is not None or rig.of_kind("focus") else None
     rig_path = config_rig_path(rig.path)
+    # every name that becomes a field of a line (labels, property values, presets), checked before any line is made
+    check_config_fields([("rig path", rig_path), *((f"{d.kind} name", d.name) for d in rig.devices.values())])
     devices = _devices(rig, cam.name, (stage_x, stage_y), focus_name)
     lines = [*_header(rig, cam, rig_path), "", "Property,Core,Initialize,0"]
     lines += [f"#py pyDevice,{label},{MODULE},{cls}" for label, cls, _ in devices]
@@ -666,6 +674,39 @@ def config_text(
     lines += [f"#py Property,Core,{role},{label}" for role, label in roles.items() if label in labels]
     lines += ["Property,Core,AutoShutter,1", ""]
     return "\n".join(lines)
+
+
+def config_field_problem(value: str) -> str | None:
+    """Why ``value`` cannot be one field of a Micro-Manager ``.cfg`` line, or None.
+
+    The format has no quoting: a comma ends the field, a line break ends the line (and a name holding one could
+    write lines of its own, such as ``#py pyDevice,...``), a NUL or another control character ends or corrupts the
+    line, and Micro-Manager refuses a file whose name begins or ends with white space.
+    """
+    if not value:
+        return "is empty"
+    bad = sorted({c for c in value if not c.isprintable() and c != " "})
+    if bad:
+        return f"holds the control character(s) {', '.join(repr(c) for c in bad)} (line breaks, NUL)"
+    if "," in value:
+        return "holds a comma (the .cfg field separator)"
+    if value != value.strip():
+        return "begins or ends with white space"
+    return None
+
+
+def check_config_fields(fields: Iterable[tuple[str, str]]) -> None:
+    """Refuse any ``(what, value)`` of ``fields`` that a ``.cfg`` line cannot hold (:func:`config_field_problem`).
+
+    Raises
+    ------
+    RigError
+        One line naming the first such field, its value and the reason; nothing is written.
+    """
+    for what, value in fields:
+        problem = config_field_problem(value)
+        if problem is not None:
+            raise RigError(f"{what} {value!r} {problem}: a Micro-Manager configuration cannot hold it; rename it")
 
 
 def _light_names(rig: Rig) -> list[str]:

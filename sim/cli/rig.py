@@ -388,7 +388,11 @@ def cmd_mm_config(args: argparse.Namespace) -> dict[str, Any]:
         text = config_text(rig, camera=args.camera, focus=args.focus, light=args.light)
     finally:
         rig.close()
-    out.write_text(text)
+    from scopetwin.scenes.io import write_text_atomic
+
+    # a temporary file beside --out moved into place: never half-written, and a link at --out is replaced by the
+    # file, never written through
+    write_text_atomic(out, text)
     lines = [line for line in text.splitlines() if line and not line.startswith("# ")]
     devices = [line.split(",")[1] for line in lines if line.startswith("#py pyDevice,")]
     presets = [line.split(",")[2] for line in lines if line.startswith("#py ConfigGroup,")]
