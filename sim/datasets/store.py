@@ -35,7 +35,7 @@ from scopetwin.scenes.io import open_append
 from scopetwin.scenes.safe_read import check_format, check_regular, read_json_inside, resolve_inside
 from scopetwin.sim.datasets.config import SAMPLE_PACKAGES, DatasetError
 from scopetwin.sim.datasets.lock import DatasetBusy, DatasetLock, holder
-from scopetwin.sim.datasets.plan import Plan
+from scopetwin.sim.datasets.plan import READABLE_FORMATS, Plan
 from scopetwin.sim.datasets.runner import check_scheduler, dask_client, failure_text, init_worker, run_tasks
 from scopetwin.sim.measurement import StagedOutput, remove_stale_stage, versions
 
@@ -143,8 +143,6 @@ def read_sample_json(folder: Path) -> dict[str, Any]:
     InputError
         Not a regular file inside ``folder``, too large, nested too deep, not a JSON object, or a newer format.
     """
-    from scopetwin.sim.datasets.plan import READABLE_FORMATS
-
     body = read_json_inside(folder, SAMPLE_FILE, SAMPLE_FILE)
     check_format(body.get("format", 1), READABLE_FORMATS, f"{folder / SAMPLE_FILE}")
     return body
@@ -617,7 +615,7 @@ def verify(root: str | Path) -> dict[str, Any]:
             continue
         listed = by_index.get(i)
         reason = _check_sample(folder, listed[0]["files"] if listed else None)
-        problems = check_sample(folder, plan.format) if reason is None else []
+        problems = check_sample(folder, plan.format, READABLE_FORMATS) if reason is None else []
         if reason is not None:
             corrupt.append({"index": i, "reason": reason})
         elif problems:

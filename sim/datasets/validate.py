@@ -16,6 +16,7 @@ of these checks makes the sample invalid, with the reason.
 from __future__ import annotations
 
 import json
+from collections.abc import Collection
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -198,28 +199,28 @@ def _maps_problems(maps: dict[str, NDArray[Any]], shape: tuple[int, ...]) -> lis
     return out
 
 
-def check_sample(folder: Path, fmt: int) -> list[str]:
+def check_sample(folder: Path, fmt: int, readable: Collection[int]) -> list[str]:
     """Every way a finished sample (its hashes already checked) breaks its format's schemas or holds values that
     cannot be true; empty when it is valid.
 
     Format 2 samples are validated against the schemas (``sample``, ``truth``, ``exr``) and their values checked;
-    format 1 samples (written before the schemas) have their values checked only.
+    format 1 samples (written before the schemas) have their values checked only. ``sample.json`` and
+    ``truth.json`` must be of a format in ``readable`` (the formats this scopetwin reads).
     """
     from scopetwin.scenes.io import read_heightmap, read_image
     from scopetwin.sim.datasets.maps import MAPS_FILE, read_maps
-    from scopetwin.sim.datasets.plan import READABLE_FORMATS
 
     problems: list[str] = []
     try:
         body = read_json_inside(folder, "sample.json", "sample.json")
-        check_format(body.get("format", 1), READABLE_FORMATS, "sample.json")
+        check_format(body.get("format", 1), readable, "sample.json")
         index = int(body.get("index", -1))
     except (ScopetwinError, TypeError, ValueError) as exc:
         return [f"sample.json: {exc}"]
     kind = str(body.get("kind", ""))
     try:
         truth = read_json_inside(folder, "truth.json", "truth.json")
-        check_format(truth.get("format", 1), READABLE_FORMATS, "truth.json")
+        check_format(truth.get("format", 1), readable, "truth.json")
         image_shape = sample_image_shape(truth, kind)
     except ScopetwinError as exc:
         return [f"truth.json: {exc}"]
