@@ -441,8 +441,9 @@ def open_dataset(path: str | Path) -> Dataset:
         ``len(ds)``, ``ds[i]``, ``ds[a:b]``, iteration; each sample has ``.image``, ``.maps`` (the per-pixel truth of
         ``maps.exr``: ``mask``, ``point``, ``surface_xy``, ``height``, ``normal``, ``pattern_xy``, ``marker`` ... per
         kind), ``.camera`` (OpenCV's ``K``, ``dist``, ``R``, ``t``), ``.truth``, ``.setup``, ``.meta``, each read from
-        its files when first asked for. A ``torch.utils.data.DataLoader`` takes it as a map-style dataset
-        (``ds.arrays(...)`` gives items it can batch). docs/contract.md, "Datasets", lists every file and channel.
+        its files when first asked for. A ``torch.utils.data.DataLoader`` batches ``ds.arrays("image", ...,
+        camera=True, markers=True)``: the samples as plain dicts of numpy arrays, with the camera and the marker
+        truth (docs/contract.md, "Batches for PyTorch"). docs/contract.md, "Datasets", lists every file and channel.
 
     Examples
     --------

@@ -14,8 +14,16 @@ only its folder listing, and reading a sample costs what reading its files costs
 * ``.truth``: ``truth.json`` as a :class:`Truth` (a dict with typed accessors), ``.setup``, ``.meta``.
 
 A ``torch.utils.data.DataLoader`` accepts a :class:`Dataset` as a map-style dataset (``__len__`` and
-``__getitem__``; it pickles for worker processes) without scopetwin importing torch; :meth:`Dataset.arrays` gives
-items that torch's default collate stacks into batches (dicts of arrays).
+``__getitem__``; it pickles for worker processes) without scopetwin importing torch. Its items are :class:`Sample`
+objects, which torch's default collate cannot batch: :meth:`Dataset.arrays` gives the same samples as plain dicts
+of numpy arrays, numbers and strings, which it can (``DataLoader(ds.arrays("image", "height", camera=True,
+markers=True), batch_size=8)``):
+
+* ``index`` (int) and ``kind`` (str), always; then the named images and map layers;
+* ``camera=True``: ``K`` (3, 3) px, ``dist`` (5,), ``R`` (3, 3), ``t`` (3,) mm, OpenCV's camera (``.camera``);
+* ``markers=True``: ``marker_ij`` int64 (n, 2), ``marker_px`` float64 (n, 2) (col, row) px of the thesis's
+  convention (NaN where none), ``marker_visible`` bool (n,) (``.truth.markers``); one row per pattern marker, so
+  samples of one pattern stack into a batch.
 
 Formats: this reader reads dataset formats 1 and 2 (``dataset.json`` ``"format"``). Format 1 samples have no
 ``maps.exr`` and no ``camera_opencv``: both are computed from the sample's setup and surface when asked for, with
@@ -273,9 +281,14 @@ class Sample:
         except ScopetwinError as exc:
             raise DatasetReadError(f"sample {self.index}: {exc}") from None
 
-    def arrays(self, names: Sequence[str] = ("image",)) -> dict[str, NDArray[Any]]:
-        """Named arrays of the sample: ``image`` (or ``image_<channel>``) and any map layer, as one dict."""
-        out: dict[str, NDArray[Any]] = {}
+    def arrays(
+        self, names: Sequence[str] = ("image",), *, camera: bool = False, markers: bool = False
+    ) -> dict[str, Any]:
+        """The sample as one plain dict that torch's default collate batches (module docstring): ``index``,
+        ``kind``, the named images (``image`` or ``image_<channel>``) and map layers; with ``camera`` the OpenCV
+        camera's ``K``, ``dist``, ``R``, ``t``; with ``markers`` the marker truth ``marker_ij``, ``marker_px``,
+        ``marker_visible``. Values are numpy arrays, ints and strings only."""
+        out: dict[str, Any] = {"index": self.index, "kind": self.kind}
         for name in names:
             if name.startswith("image"):
                 out[name] = self.image if name == "image" else self.images[name]
@@ -284,6 +297,17 @@ class Sample:
                 if name not in maps:
                     raise DatasetReadError(f"sample {self.index} has no map {name!r} (it has {', '.join(maps)})")
                 out[name] = maps[name]
+        if camera:
+            cam = self.camera
+            out |= {
+                "K": np.asarray(cam.K, dtype=np.float64),
+                "dist": np.asarray(cam.dist, dtype=np.float64),
+                "R": np.asarray(cam.R, dtype=np.float64),
+                "t": np.asarray(cam.t, dtype=np.float64),
+            }
+        if markers:
+            table = self.truth.markers
+            out |= {"marker_ij": table.ij, "marker_px": table.center_px, "marker_visible": table.visible}
         return out
 
 
@@ -336,35 +360,40 @@ class Dataset(Sequence[Sample]):
         """The dataset's format version (``dataset.json`` ``"format"``)."""
         return int(self.config.get("format", 1))
 
-    def arrays(self, *names: str) -> ArrayView:
-        """A view whose items are dicts of named arrays (default ``image``; any map layer, e.g. ``"height"``,
-        ``"mask"``): what torch's default collate stacks into a batch."""
-        return ArrayView(self, names or ("image",))
+    def arrays(self, *names: str, camera: bool = False, markers: bool = False) -> ArrayView:
+        """A view whose items are plain dicts (:meth:`Sample.arrays`): ``index``, ``kind``, the named images and
+        map layers (default ``image``; e.g. ``"height"``, ``"mask"``), with ``camera`` the OpenCV camera (``K``,
+        ``dist``, ``R``, ``t``), with ``markers`` the marker truth (``marker_ij``, ``marker_px``,
+        ``marker_visible``): what torch's default collate stacks into a batch, e.g.
+        ``DataLoader(ds.arrays("image", "height", camera=True), batch_size=8)``."""
+        return ArrayView(self, names or ("image",), camera=camera, markers=markers)
 
     def __repr__(self) -> str:
         return f"Dataset({str(self.root)!r}, kind={self.kind!r}, format={self.format}, samples={len(self)})"
 
 
-class ArrayView(Sequence[dict[str, NDArray[Any]]]):
-    """The samples of a :class:`Dataset` as dicts of named arrays (:meth:`Sample.arrays`), a map-style dataset."""
+class ArrayView(Sequence[dict[str, Any]]):
+    """The samples of a :class:`Dataset` as plain dicts (:meth:`Sample.arrays`), a map-style dataset."""
 
-    def __init__(self, dataset: Dataset, names: Sequence[str]) -> None:
+    def __init__(self, dataset: Dataset, names: Sequence[str], *, camera: bool = False, markers: bool = False) -> None:
         self.dataset = dataset
         self.names = tuple(names)
+        self.camera = camera
+        self.markers = markers
 
     def __len__(self) -> int:
         return len(self.dataset)
 
     @overload
-    def __getitem__(self, i: int) -> dict[str, NDArray[Any]]: ...
+    def __getitem__(self, i: int) -> dict[str, Any]: ...
 
     @overload
     def __getitem__(self, i: slice) -> ArrayView: ...
 
-    def __getitem__(self, i: int | slice) -> dict[str, NDArray[Any]] | ArrayView:
+    def __getitem__(self, i: int | slice) -> dict[str, Any] | ArrayView:
         if isinstance(i, slice):
-            return ArrayView(self.dataset[i], self.names)
-        return self.dataset[i].arrays(self.names)
+            return ArrayView(self.dataset[i], self.names, camera=self.camera, markers=self.markers)
+        return self.dataset[i].arrays(self.names, camera=self.camera, markers=self.markers)
 
 
 def open_dataset(path: str | Path) -> Dataset:

@@ -73,3 +73,42 @@ def test_a_dataloader_takes_it_as_a_map_style_dataset(tiny):
     torch = pytest.importorskip("torch")
     loader = torch.utils.data.DataLoader(ds, batch_size=2, collate_fn=lambda s: [x.image for x in s])
     assert [len(b) for b in loader] == [2, 1]
+
+
+def _collatable(value: object) -> bool:
+    """What torch's default collate batches: numpy arrays of numbers or bools, numbers, strings."""
+    if isinstance(value, np.ndarray):
+        return value.dtype.kind in "biuf"
+    return isinstance(value, int | float | str) and not isinstance(value, bool)
+
+
+def test_arrays_gives_plain_dicts_with_the_camera_and_the_marker_truth(tiny):
+    ds = scopetwin.open_dataset(tiny)
+    view = ds.arrays("image", "height", "mask", camera=True, markers=True)
+    assert len(view) == 3 and len(view[1:]) == 2 and view[1:].camera and view[1:].markers
+    for k, item in enumerate(view):
+        assert type(item) is dict and all(_collatable(v) for v in item.values()), item
+        sample = ds[k]
+        assert item["index"] == k and item["kind"] == "deflectometry"
+        assert np.array_equal(item["image"], sample.image) and item["mask"].dtype == bool
+        assert np.array_equal(item["height"], sample.maps["height"], equal_nan=True)
+        for name in ("K", "dist", "R", "t"):
+            assert np.array_equal(item[name], getattr(sample.camera, name)) and item[name].dtype == np.float64
+        assert item["K"].shape == (3, 3) and item["dist"].shape == (5,) and item["t"].shape == (3,)
+        table = sample.truth.markers
+        assert np.array_equal(item["marker_ij"], table.ij) and item["marker_ij"].dtype == np.int64
+        assert np.array_equal(item["marker_px"], table.center_px, equal_nan=True)
+        assert np.array_equal(item["marker_visible"], table.visible) and item["marker_visible"].dtype == bool
+        assert item["marker_ij"].shape[0] == item["marker_px"].shape[0] == item["marker_visible"].shape[0] > 0
+    plain = ds.arrays()[0]
+    assert set(plain) == {"index", "kind", "image"}  # the camera and the markers only when asked for
+
+
+def test_a_dataloader_batches_the_plain_dicts(tiny):
+    torch = pytest.importorskip("torch")
+    ds = scopetwin.open_dataset(tiny)
+    loader = torch.utils.data.DataLoader(ds.arrays("image", "height", camera=True, markers=True), batch_size=2)
+    first, second = list(loader)
+    assert tuple(first["image"].shape) == (2, *ds[0].image.shape) and first["kind"] == ["deflectometry"] * 2
+    assert tuple(first["K"].shape) == (2, 3, 3) and first["index"].tolist() == [0, 1]
+    assert first["marker_ij"].shape[0] == 2 and tuple(second["t"].shape) == (1, 3)
