@@ -160,11 +160,12 @@ def cmd_export(args: argparse.Namespace) -> dict[str, Any]:
     """Stack every sample's image and maps into one zarr store or HDF5 file; returns the export summary."""
     from tqdm import tqdm
 
-    from scopetwin.sim.datasets.export import export
+    from scopetwin.sim.datasets.export import plan_export, write_export
 
     ds = _open(args.dir)
+    plan = plan_export(ds, args.out, args.to, args.only)  # every refusal before the progress bar starts
     with tqdm(total=len(ds), unit="sample", desc="export", disable=args.quiet) as bar:
-        result = export(ds, args.out, args.to, args.only, progress=bar.update)
+        result = write_export(plan, progress=bar.update)
     print(f"{result['samples']} sample(s), {len(result['variables'])} variable(s) -> {result['out']} ({args.to})")
     return result
 

@@ -101,6 +101,73 @@ def test_export_stacks_every_sample_as_named_arrays(small, tmp_path, to):
     assert scopetwin_main(["dataset", "export", str(small), "--to", to, str(out)]) == 2  # never overwritten
 
 
+def _read_back(out: Path, to: str) -> tuple[dict[str, np.ndarray], dict[str, dict[str, object]]]:
+    """Every array and its attributes of an export, read with zarr or h5py themselves."""
+    if to == "zarr":
+        import zarr
+
+        group = zarr.open_group(str(out), mode="r")
+        names = [name for name, _ in group.arrays()]
+        return {n: group[n][...] for n in names}, {n: dict(group[n].attrs) for n in names}
+    h5py = pytest.importorskip("h5py")
+    with h5py.File(out, "r") as f:
+        return {n: f[n][...] for n in f}, {n: {k: _text(v) for k, v in f[n].attrs.items()} for n in f}
+
+
+def _text(value: object) -> object:
+    return value.decode() if isinstance(value, bytes) else value
+
+
+@pytest.mark.parametrize("to", ["zarr", "hdf5"])
+def test_export_carries_the_camera_the_marker_truth_and_units(small, tmp_path, to):
+    pytest.importorskip("zarr" if to == "zarr" else "h5py")
+    out = tmp_path / ("ds.zarr" if to == "zarr" else "ds.h5")
+    assert scopetwin_main(["dataset", "export", str(small), "--to", to, str(out), "-q"]) == 0
+    values, attrs = _read_back(out, to)
+    ds = scopetwin.open_dataset(small)
+    for k, sample in enumerate(ds):
+        for name in ("K", "dist", "R", "t"):
+            assert np.array_equal(values[name][k], getattr(sample.camera, name))
+        table = sample.truth.markers
+        n = len(table.ij)
+        assert np.array_equal(values["marker_ij"][k, :n], table.ij)
+        assert np.array_equal(values["marker_px"][k, :n], table.center_px, equal_nan=True)
+        assert np.array_equal(values["marker_visible"][k, :n].astype(bool), table.visible)
+        assert (values["marker_ij"][k, n:] == -1).all() and not values["marker_visible"][k, n:].any()
+    units = {name: a.get("units") for name, a in attrs.items()}
+    assert units["K"] == "px" and units["t"] == "mm" and units["dist"] == "1" and units["R"] == "1"
+    assert units["marker_px"] == "px" and units["marker_ij"] is None and units["marker_visible"] is None
+    assert units["height"] == "mm" and units["point"] == "mm" and units["normal"] == "1" and units["mask"] is None
+    assert units["surface_range_um"] == "um" and units["x"] == "px" and units["image"] is None
+    assert all(isinstance(a.get("description"), str) for a in attrs.values())
+
+
+def test_export_with_xarray_names_the_camera_and_marker_dimensions(small, tmp_path):
+    xr = pytest.importorskip("xarray")
+    out = tmp_path / "ds.h5"
+    assert scopetwin_main(["dataset", "export", str(small), "--to", "hdf5", str(out), "-q", "--only", "K", "t"]) == 0
+    with xr.open_dataset(out, engine="h5netcdf") as x:
+        assert x["K"].dims == ("sample", "cam_row", "cam_col") and x["t"].dims == ("sample", "xyz")
+        assert x["K"].attrs["units"] == "px" and "image" not in x
+    out = tmp_path / "ds.zarr"
+    assert scopetwin_main(["dataset", "export", str(small), "--to", "zarr", str(out), "-q"]) == 0
+    x = xr.open_zarr(out)
+    assert x["marker_px"].dims == ("sample", "markers", "xy") and x["marker_ij"].dims[-1] == "ij"
+    assert x["marker"].dims == ("sample", "y", "x", "ij") and x["height"].attrs["units"] == "mm"
+
+
+def test_export_refuses_before_the_progress_bar_starts(small, tmp_path, capsys):
+    out = tmp_path / "taken.zarr"
+    out.mkdir()
+    assert scopetwin_main(["dataset", "export", str(small), "--to", "zarr", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "already exists" in err and "export:" not in err and "sample/s" not in err  # no tqdm bar drawn
+    fresh = tmp_path / "fresh.zarr"
+    assert scopetwin_main(["dataset", "export", str(small), "--to", "zarr", str(fresh), "--only", "nothing"]) == 2
+    err = capsys.readouterr().err
+    assert "no variable 'nothing'" in err and "export:" not in err and not fresh.exists()
+
+
 TINY_CMU = """
 [dataset]
 kind = "cmu"
