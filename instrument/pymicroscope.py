@@ -19,16 +19,32 @@ owner can read; :func:`read_key_file` reads one the user gives. Lights and stage
 frames as numpy arrays, which only pickle carries (``serializer="pickle"`` serves every device with pickle, as
 python-microscope's own device server does). :func:`connect` is python-microscope's client with the key
 (and, for a camera, its data listener keyed too).
+
+Replays: Pyro's HMAC covers a message, not the moment it is sent, so a recorded message would verify again. Each
+connection therefore signs with a key of its own after the handshake: the client sends a fresh nonce in its (keyed)
+connect message, the server answers with one of its own, and both sign everything after that with
+HMAC(key, both nonces) (``SessionProxy`` and ``KeyedDaemon``). A recorded call played back on a new connection
+meets a new server nonce and fails its HMAC before anything in it is read; clients that do not speak this handshake
+(Pyro's plain proxy with the key) are refused. Before a connection has signed its handshake it has
+:data:`HANDSHAKE_TIMEOUT_S` seconds in all to do so and may send at most :data:`MAX_HANDSHAKE_BYTES`; after it, a
+message may be at most :data:`MAX_REQUEST_BYTES` (a camera's listener: a frame). A message declaring more is refused
+from its header, before its body is read. What the key does not protect: anyone on the machine can still open
+connections and keep the server's workers busy for up to :data:`HANDSHAKE_TIMEOUT_S` each (:func:`connect` retries
+for :data:`CONNECT_RETRY_S`), and the messages are not encrypted (127.0.0.1 only).
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import hmac
 import os
 import secrets
+import socket
 import stat
 import tempfile
 import threading
+import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -50,6 +66,18 @@ MAX_KEY_FILE_BYTES = 4096
 KEY_FILE_NAME = "hmac.key"
 #: ``serve_devices(serializer=...)``: "auto" (serpent for lights and stages, pickle for cameras) or "pickle".
 SERIALIZERS = ("auto", "pickle")
+#: Seconds a new connection has, in all, to send its signed connect message; then it is closed.
+HANDSHAKE_TIMEOUT_S = 3.0
+#: The largest connect message a daemon reads (the client's nonce, the object's name and Pyro's framing).
+MAX_HANDSHAKE_BYTES = 64 * 1024
+#: The largest request a served device reads (a call and its arguments: settings, positions, a listener's URI).
+MAX_REQUEST_BYTES = 1024 * 1024
+#: Seconds :func:`connect` keeps trying while the server turns connections away (its workers all busy).
+CONNECT_RETRY_S = 2 * HANDSHAKE_TIMEOUT_S
+#: Random bytes of each side's nonce.
+NONCE_BYTES = 16
+#: Mixed into each connection's key (with both nonces), so that it is used for nothing else.
+SESSION_LABEL = b"scopetwin pyro session v1"
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 
 
@@ -456,30 +484,206 @@ def _key(key: bytes | str | os.PathLike[str]) -> bytes:
 
 
 # -- Pyro with the key -------------------------------------------------------------------------------------------
-def _keyed_proxy(uri: Any, key: bytes, serializer: str) -> Any:
-    """A Pyro proxy of ``uri`` that signs its messages with ``key`` and speaks ``serializer``."""
-    import Pyro4
+def _session_key(key: bytes, client_nonce: str, server_nonce: str) -> bytes:
+    """The key one connection signs with after its handshake: HMAC-SHA256 of both nonces under the shared key."""
+    text = SESSION_LABEL + b"|" + client_nonce.encode("ascii") + b"|" + server_nonce.encode("ascii")
+    return hmac.new(key, text, hashlib.sha256).digest()
 
-    proxy = Pyro4.Proxy(uri)
+
+def _nonce_of(data: Any) -> str | None:
+    """The nonce in a handshake's data (``{"nonce": hex digits}``), or None when there is none."""
+    nonce = data.get("nonce") if isinstance(data, dict) else None
+    if isinstance(nonce, str) and len(nonce) == 2 * NONCE_BYTES and all(c in "0123456789abcdef" for c in nonce):
+        return nonce
+    return None
+
+
+_SESSION_CLASSES: dict[str, type] = {}
+
+
+def _session_classes() -> dict[str, type]:
+    """The Pyro proxy and daemon that sign each connection with its own key (built once; Pyro4 imported here)."""
+    if _SESSION_CLASSES:
+        return _SESSION_CLASSES
+    import Pyro4
+    import Pyro4.errors  # type: ignore[import-untyped]
+    import Pyro4.util  # type: ignore[import-untyped]
+
+    class SessionProxy(Pyro4.core.Proxy):  # Pyro4 is untyped: a subclass of Any
+        """A Pyro proxy that sends a fresh nonce in each connect message and signs the rest of that connection with
+        the session key (:func:`_session_key`); the connect message itself is signed with the shared key."""
+
+        @property
+        def _pyroHmacKey(self) -> bytes | None:  # noqa: N802 - Pyro4's name
+            conn = self.__dict__.get("_pyroConnection")
+            key = getattr(conn, "scopetwin_session_key", None) or self.__dict__.get("_Proxy__pyroHmacKey")
+            return key if isinstance(key, bytes) else None
+
+        @_pyroHmacKey.setter
+        def _pyroHmacKey(self, value: bytes | str | None) -> None:  # noqa: N802
+            self.__dict__["_Proxy__pyroHmacKey"] = value.encode("utf-8") if isinstance(value, str) else value
+
+        @property
+        def _pyroHandshake(self) -> dict[str, str]:  # noqa: N802 - read once per connect message
+            nonce = secrets.token_hex(NONCE_BYTES)
+            self.__dict__["scopetwin_nonce"] = nonce
+            return {"nonce": nonce}
+
+        @_pyroHandshake.setter
+        def _pyroHandshake(self, value: Any) -> None:  # noqa: N802 - a copied or unpickled proxy makes its own
+            pass
+
+        def _pyroValidateHandshake(self, response: Any) -> None:  # noqa: N802 - Pyro4's name
+            server_nonce = _nonce_of(response)
+            base = self.__dict__.get("_Proxy__pyroHmacKey")
+            if server_nonce is None or not base:
+                raise Pyro4.errors.SecurityError("no session nonce from the server: not a scopetwin device server")
+            session = _session_key(base, self.__dict__["scopetwin_nonce"], server_nonce)
+            self._pyroConnection.scopetwin_session_key = session
+
+        def __reduce__(self) -> tuple[Any, ...]:  # pickled by its state (the class is built at run time)
+            return _session_proxy_from_state, (self.__getstate__(),)
+
+    class Bounded:
+        """A Pyro connection that refuses, from the message's header, a read larger than ``limit`` bytes."""
+
+        def __init__(self, conn: Any, limit: int) -> None:
+            self._conn = conn
+            self._limit = limit
+
+        def recv(self, size: int) -> bytes:
+            if size > self._limit:
+                self._conn.close()
+                raise Pyro4.errors.SecurityError(f"a message part of {size} bytes refused: at most {self._limit}")
+            return bytes(self._conn.recv(size))
+
+        def __getattr__(self, name: str) -> Any:
+            return getattr(self._conn, name)
+
+    class KeyedDaemon(Pyro4.Daemon):  # Pyro4 is untyped: a subclass of Any
+        """A Pyro daemon whose connections each sign with a session key after a handshake signed with the shared
+        key and finished within :data:`HANDSHAKE_TIMEOUT_S`; messages are bounded before they are read."""
+
+        def __init__(self, *args: Any, max_message_bytes: int = MAX_REQUEST_BYTES, **kwargs: Any) -> None:
+            self._session = threading.local()  # a connection lives in one worker thread: handshake and requests
+            self._max_message_bytes = int(max_message_bytes)
+            self.scopetwin_serializers: tuple[str, ...] = ("serpent",)
+            super().__init__(*args, **kwargs)
+
+        @property
+        def _pyroHmacKey(self) -> bytes | None:  # noqa: N802 - Pyro4's name
+            key = getattr(self._session, "key", None) or self.__dict__.get("_Daemon__pyroHmacKey")
+            return key if isinstance(key, bytes) else None
+
+        @_pyroHmacKey.setter
+        def _pyroHmacKey(self, value: bytes | str | None) -> None:  # noqa: N802
+            self.__dict__["_Daemon__pyroHmacKey"] = value.encode("utf-8") if isinstance(value, str) else value
+
+        def proxyFor(self, objectOrId: Any, nat: bool = True) -> Any:  # noqa: N802,N803 - Pyro4's names
+            plain = super().proxyFor(objectOrId, nat)
+            proxy = SessionProxy(plain._pyroUri)
+            proxy._pyroHmacKey = self.__dict__.get("_Daemon__pyroHmacKey")  # the shared key, not this connection's
+            proxy._pyroSerializer = self.scopetwin_serializers[0]
+            return proxy
+
+        def _handshake(self, conn: Any, denied_reason: str | None = None) -> bool:
+            self._session.key = None
+            self._session.pending = None
+            if denied_reason:  # all workers busy: close at once rather than wait for this client in the accept loop
+                return False
+            watchdog = threading.Timer(HANDSHAKE_TIMEOUT_S, _shut, args=(conn,))
+            watchdog.daemon = True
+            watchdog.start()
+            try:
+                conn.timeout = HANDSHAKE_TIMEOUT_S
+                ok = bool(super()._handshake(Bounded(conn, MAX_HANDSHAKE_BYTES)))
+            except Exception:  # a dropped, too slow or too large client: its caller closes it, nothing to report
+                ok = False
+            finally:
+                watchdog.cancel()
+            if ok and self._session.pending:
+                self._session.key = self._session.pending
+                conn.timeout = None  # a keyed client may hold its connection as long as it likes
+                return True
+            return False
+
+        def validateHandshake(self, conn: Any, data: Any) -> Any:  # noqa: N802 - Pyro4's name
+            client_nonce = _nonce_of(data)
+            if client_nonce is None:
+                raise Pyro4.errors.SecurityError("this server needs a session nonce: connect with scopetwin's client")
+            server_nonce = secrets.token_hex(NONCE_BYTES)
+            self._session.pending = _session_key(self.__dict__["_Daemon__pyroHmacKey"], client_nonce, server_nonce)
+            return {"nonce": server_nonce}
+
+        def handleRequest(self, conn: Any) -> Any:  # noqa: N802 - Pyro4's name
+            if not getattr(self._session, "key", None):  # no handshake on this worker: nothing is served
+                raise Pyro4.errors.SecurityError("no session")
+            return super().handleRequest(Bounded(conn, self._max_message_bytes))
+
+    Pyro4.util.SerializerBase.register_dict_to_class(
+        "Pyro4.core.SessionProxy", lambda _, d: _session_proxy_from_dict_state(d["state"])
+    )
+    _SESSION_CLASSES.update(proxy=SessionProxy, daemon=KeyedDaemon)
+    return _SESSION_CLASSES
+
+
+def _shut(conn: Any) -> None:
+    """Wake a read that still waits for a handshake (a shut socket returns at once)."""
+    with contextlib.suppress(OSError, AttributeError):
+        conn.sock.shutdown(socket.SHUT_RDWR)
+
+
+def _session_proxy_from_state(state: tuple[Any, ...]) -> Any:
+    """A ``SessionProxy`` from a pickled proxy's state."""
+    cls: Any = _session_classes()["proxy"]
+    proxy = cls.__new__(cls)
+    proxy.__setstate__(state)
+    return proxy
+
+
+def _session_proxy_from_dict_state(state: Any) -> Any:
+    """A ``SessionProxy`` from its serpent form (as Pyro's own proxy: URI, metadata, key)."""
+    cls: Any = _session_classes()["proxy"]
+    proxy = cls.__new__(cls)
+    proxy.__setstate_from_dict__(state)
+    return proxy
+
+
+def __getattr__(name: str) -> Any:
+    """``SessionProxy`` and ``KeyedDaemon``, built when first asked for (Pyro4 is imported then)."""
+    if name in ("SessionProxy", "KeyedDaemon"):
+        return _session_classes()["proxy" if name == "SessionProxy" else "daemon"]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _keyed_proxy(uri: Any, key: bytes, serializer: str) -> Any:
+    """A Pyro proxy of ``uri`` that signs its connect message with ``key`` and the rest of each connection with that
+    connection's session key, speaking ``serializer``."""
+    proxy = _session_classes()["proxy"](uri)
     proxy._pyroHmacKey = key
     proxy._pyroSerializer = serializer
     return proxy
 
 
-def _keyed_daemon(key: bytes, serializers: tuple[str, ...], host: str = LOCALHOST, port: int = 0) -> Any:
-    """A Pyro daemon that refuses every message without ``key``'s HMAC (checked before deserialising) and accepts
-    only ``serializers``; the proxies it hands out (a stage's axes) carry the key and the serializer."""
-    import Pyro4
-    import Pyro4.util  # type: ignore[import-untyped]
+def _keyed_daemon(
+    key: bytes,
+    serializers: tuple[str, ...],
+    host: str = LOCALHOST,
+    port: int = 0,
+    *,
+    max_message_bytes: int = MAX_REQUEST_BYTES,
+) -> Any:
+    """A Pyro daemon that refuses every message without ``key``'s HMAC (checked before deserialising; after the
+    handshake, the connection's session key), accepts only ``serializers`` and messages of at most
+    ``max_message_bytes``; the proxies it hands out (a stage's axes) carry the key and the serializer."""
+    import Pyro4.util
+    from Pyro4.socketserver.threadpoolserver import SocketServer_Threadpool  # type: ignore[import-untyped]
 
-    class KeyedDaemon(Pyro4.Daemon):  # Pyro4 is untyped: a subclass of Any
-        def proxyFor(self, objectOrId: Any, nat: bool = True) -> Any:  # noqa: N802,N803 - Pyro4's names
-            proxy = super().proxyFor(objectOrId, nat)
-            proxy._pyroHmacKey = self._pyroHmacKey
-            proxy._pyroSerializer = serializers[0]
-            return proxy
-
-    daemon = KeyedDaemon(host=host, port=port)
+    daemon = _session_classes()["daemon"](host=host, port=port, max_message_bytes=max_message_bytes)
+    if not isinstance(daemon.transportServer, SocketServer_Threadpool):  # the session key is kept per worker thread
+        daemon.shutdown()
+        raise RigError("the device server needs Pyro's thread pool server (PYRO_SERVERTYPE=thread)")
+    daemon.scopetwin_serializers = tuple(serializers)
     daemon._pyroHmacKey = key  # set before its request loop runs: no message is read without it
     # Pyro4 reads the accepted serializers from its global config once, here per daemon (its private set)
     daemon._Daemon__serializer_ids = {Pyro4.util.get_serializer(name).serializer_id for name in serializers}
@@ -615,7 +819,9 @@ def _client_classes() -> dict[str, type]:
         def __init__(self, url: str, key: bytes) -> None:
             super().__init__(url, key)
             self._buffer: queue.Queue[Any] = queue.Queue()
-            self._listener = _keyed_daemon(key, ("pickle",))
+            width, height = self.get_sensor_shape()  # a frame's message: its uint16 pixels (twice over) and framing
+            limit = 4 * int(width) * int(height) + MAX_REQUEST_BYTES
+            self._listener = _keyed_daemon(key, ("pickle",), max_message_bytes=limit)
             threading.Thread(target=self._listener.requestLoop, daemon=True, name="pyro-listener").start()
             self._client_uri = self._listener.register(self)
 
@@ -632,21 +838,32 @@ def _client_classes() -> dict[str, type]:
 
 
 def _negotiated_proxy(url: str, key: bytes) -> Any:
-    """A keyed proxy of ``url``, connected: serpent first, pickle when the server serves this device with pickle."""
-    import Pyro4.errors  # type: ignore[import-untyped]
+    """A keyed proxy of ``url``, connected: serpent first, pickle when the server serves this device with pickle.
+
+    A connection closed before the handshake's answer (the server's workers all busy, e.g. with connections that
+    never sign) is tried again for :data:`CONNECT_RETRY_S` seconds."""
+    import Pyro4.errors
 
     _register_microscope_types()
-    for wire in ("serpent", "pickle"):
-        proxy = _keyed_proxy(url, key, wire)
+    deadline = time.monotonic() + CONNECT_RETRY_S
+    wires = ["serpent", "pickle"]
+    while True:
+        proxy = _keyed_proxy(url, key, wires[0])
         try:
             proxy._pyroGetMetadata()
+        except Pyro4.errors.ConnectionClosedError:
+            proxy._pyroRelease()
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+            continue
         except Pyro4.errors.CommunicationError as exc:
             proxy._pyroRelease()
-            if wire == "serpent" and "serializer that is not accepted" in str(exc):
+            if wires[0] == "serpent" and "serializer that is not accepted" in str(exc):
+                wires.pop(0)
                 continue
             raise
         return proxy
-    raise AssertionError("unreachable")  # pragma: no cover
 
 
 def connect(uri: str, key: bytes | str | os.PathLike[str], *, data: bool = False) -> Any:
