@@ -45,7 +45,7 @@ lint: setup
 docs: setup
 	$(VENV)/bin/sphinx-build -W --keep-going -b html docs build/docs
 
-# issue 26's speed table, each row beside a reference timed in the same run (README, "Benchmarks")
+# the speed table, each row beside a reference timed in the same run (README, "Benchmarks")
 bench: setup
 	$(PY) benchmarks/speed_table.py
 

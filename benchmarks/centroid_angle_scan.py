@@ -16,7 +16,7 @@ peaks, ``--captures`` noisy frames per angle give the centroid scatter, printed 
 Cramér-Rao bound of the same spots (Poisson shot noise + dark noise + quantisation, from the
 noise-free render's pixel values and their gradient).
 
-Target (issue 3): corrected RMS <= 0.01 px at every angle, noise-free; the seed reports 1/40-1/20 px.
+Target: corrected RMS <= 0.01 px at every angle, noise-free; the seed reports 1/40-1/20 px.
 
 Usage::
 

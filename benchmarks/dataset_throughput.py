@@ -1,4 +1,4 @@
-"""Dataset throughput (issue 9): deflectometry samples per minute with 1 and 2 local Dask workers, and the
+"""Dataset throughput: deflectometry samples per minute with 1 and 2 local Dask workers, and the
 parallel efficiency rate(2) / (2 rate(1)).
 
 Uses the first example config (``examples/datasets/01-deflectometry-small.toml``: the §1.10 setup at half the

@@ -1,4 +1,4 @@
-"""What the per-pixel truth maps cost, and what reading a dataset costs (issue 23).
+"""What the per-pixel truth maps cost, and what reading a dataset costs.
 
 1. Samples per minute on one core (in this process, one Dr.Jit thread) of ``examples/datasets/01-deflectometry-
    small.toml`` with and without the truth maps (``[dataset] maps``), in one run: the two configs alternate sample

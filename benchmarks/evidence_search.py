@@ -1,4 +1,4 @@
-"""The posterior's evidence search against the evidence's maximum itself (issue 26: speed not bought with accuracy).
+"""The posterior's evidence search against the evidence's maximum itself (speed not bought with accuracy).
 
 Run: ``.venv/bin/python benchmarks/evidence_search.py [--only psd]`` (about 4 minutes on 2 cores).
 

@@ -1,4 +1,4 @@
-"""GRIN speed benchmark (issues 7 and 26): rays/s through a rod (Dr.Jit float32/64, numpy float64) and image time.
+"""GRIN speed benchmark: rays/s through a rod (Dr.Jit float32/64, numpy float64) and image time.
 
 Run: ``PYTHONPATH=. python benchmarks/grin_speed.py [--rays N] [--spp 64] [--repeat 5] [--noise-spp 25]``. Prints
 figures; asserts nothing. The rod is the §8.3.2 first rod (L = 3.58 mm, GrinTech profile, 36 RKN steps of 0.1 mm);
@@ -11,10 +11,10 @@ RKN step has operations, in 8 independent chains, i.e. throughput-bound): the ra
 with the load than the rates. For the image, a breakdown at ``--spp`` / 8 scaled to ``--spp``: the render as
 :func:`render_image` does it (the planes met in a known order, intersected directly), the same without the rods' RKN
 loops (straight lines instead: pupil sensor, sampler, film and the interface logic), and the render that asks
-Mitsuba's ray intersection at every plane (``sequential=False``, the path before issue 26: the same image, bit for
+Mitsuba's ray intersection at every plane (``sequential=False``, the slower general path: the same image, bit for
 bit). Then the image itself at ``--spp``, each followed by the reference kernel.
 
-Noise (issue 26: fewer paths for the same noise): on a ``--noise-width`` x ``--noise-height`` window at the
+Noise (fewer paths for the same noise): on a ``--noise-width`` x ``--noise-height`` window at the
 objective's centre, the per-pixel noise of the independent sampler at ``--spp`` and of the multi-jittered one at
 ``--noise-spp``, each from two renders with different seeds (RMS of their difference / sqrt 2: needs no
 reference image), and the time of the whole image at ``--noise-spp`` multi-jittered.
@@ -213,7 +213,7 @@ def breakdown(args: argparse.Namespace, im: _Image) -> None:
     print(
         f"breakdown at {spp_b} spp scaled to {args.spp}: full {part['full']:.2f} s, without the RKN loops "
         f"{part['no RKN']:.2f} s (sampling, pupil sensor, interface logic, film), RKN share "
-        f"{part['full'] - part['no RKN']:.2f} s; with Mitsuba's ray intersection at every plane (before issue 26, "
+        f"{part['full'] - part['no RKN']:.2f} s; with Mitsuba's ray intersection at every plane (the general path, "
         f"the same image) {part['Mitsuba intersections']:.2f} s, x{part['Mitsuba intersections'] / part['full']:.1f}"
     )
 

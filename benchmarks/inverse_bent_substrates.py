@@ -1,4 +1,4 @@
-"""Inverse rendering on strongly bent substrates, surface by surface (issue 16: <= 0.05 µm at 3 mm / 60 µm).
+"""Inverse rendering on strongly bent substrates, surface by surface (goal: <= 0.05 µm at 3 mm / 60 µm).
 
 For each seed of a surface family (default: the §1.9 Gaussian family at 3 mm correlation and 60 µm range, where the
 markers' spots are distorted 3-5x and the seed's flood indexing stopped on some surfaces), the §1.10 measurement

@@ -1,4 +1,4 @@
-"""Inverse rendering vs the centroid method: shape and absolute error against Gauss-Newton steps and time (issue 16).
+"""Inverse rendering vs the centroid method: shape and absolute error against Gauss-Newton steps and time.
 
 For each case (a §1.9 surface) the §1.10 measurement is rendered with Mitsuba, reconstructed by the centroid
 method and by inverse rendering started from it (``sim.studies.inverse.inverse_task``, the task of

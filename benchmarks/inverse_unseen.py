@@ -1,4 +1,4 @@
-"""Inverse rendering on surfaces it was not tuned on (issue 27 item 5): families of seeds fixed by a hash.
+"""Inverse rendering on surfaces it was not tuned on: families of seeds fixed by a hash.
 
 The inverse study's surfaces (``sim/studies/inverse.py``: seed 2 and 3 at 20 / 12 / 5 mm with 40 µm and 3 mm with
 60 µm; ``benchmarks/inverse_bent_substrates.py``: seeds 1-8 at 3 mm / 60 µm) are those its thresholds were tuned
@@ -9,7 +9,7 @@ preset (:func:`family`):
   correlation length and range from ``sha256(b"scopetwin inverse unseen <k>")``: the seed from the digest's bytes
   0-3, the correlation length from bytes 4-7 within quarter k of [3, 8] mm, the range from bytes 8-11 within quarter
   ``PERMUTATION[k]`` of [20, 60] µm (a Latin hypercube: every quarter of both intervals is met once);
-* ``issue`` (added after the hypercube met its goals, before any change to the fit): the issue's two kinds of
+* ``issue`` (added after the hypercube met its goals, before any change to the fit): the two kinds of
   surface, j = 0 .. 3 alternately 5 mm / 40 µm and 3 mm / 60 µm, the seed from bytes 0-3 of
   ``sha256(b"scopetwin inverse unseen issue <j>")``.
 
@@ -19,8 +19,8 @@ and its errors, the inverse fit's absolute and shape error (std of the ROI error
 best-fit plane removed, the reported uncertainties, seconds, the strategy path, and the goals beside them.
 
 Goals: shape <= 0.02 µm where the surface is no steeper than 5 mm / 40 µm (range / correlation <= 8 µm/mm),
-<= 0.05 µm beyond (issue 16's goal at 3 mm / 60 µm); absolute within 1 µm (a quarter of the 10x / 0.45 depth of
-field, issue 27 item 2) and within twice its reported uncertainty.
+<= 0.05 µm beyond (the inverse fit's goal at 3 mm / 60 µm); absolute within 1 µm (a quarter of the 10x / 0.45 depth of
+field) and within twice its reported uncertainty.
 
 Run: ``nice -n 10 .venv/bin/python benchmarks/inverse_unseen.py [--family hypercube|issue|all] [--only h0,i1]
 [--json PATH] [--save DIR]`` (5-8 minutes per surface on 2 loaded cores).
@@ -45,12 +45,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 PREFIX = b"scopetwin inverse unseen "
 #: range quarter of hypercube surface k (correlation quarter k): each quarter of [3, 8] mm and [20, 60] µm met once
 PERMUTATION = (2, 0, 3, 1)
-#: (correlation mm, range µm) of the issue family, alternately
+#: (correlation mm, range µm) of the unseen family, alternately
 ISSUE_CASES = ((5.0, 40.0), (3.0, 60.0))
 CORR_MM = (3.0, 8.0)
 RANGE_UM = (20.0, 60.0)
 SPP = 16
-#: shape goals, µm: surfaces no steeper than 5 mm / 40 µm, and steeper ones (issue 27 item 5, issue 16)
+#: shape goals, µm: surfaces no steeper than 5 mm / 40 µm, and steeper ones
 GOAL_GENTLE_UM, GOAL_STEEP_UM, STEEP_UM_PER_MM = 0.02, 0.05, 8.0
 GOAL_ABS_UM = 1.0
 
@@ -83,7 +83,7 @@ def unseen_case(k: int) -> UnseenCase:
 
 
 def issue_case(j: int) -> UnseenCase:
-    """Surface j of the issue family (module docstring)."""
+    """Surface j of the unseen family (module docstring)."""
     digest = hashlib.sha256(PREFIX + b"issue " + str(j).encode()).digest()
     corr, rng = ISSUE_CASES[j % len(ISSUE_CASES)]
     return UnseenCase(f"i{j}", int.from_bytes(digest[:4], "little"), corr, rng)

@@ -1,4 +1,4 @@
-"""Speed of marker detection + indexing on full 1360x1024 frames (issue 3 target: <= 20 ms per frame).
+"""Speed of marker detection + indexing on full 1360x1024 frames (target: <= 20 ms per frame).
 
 Renders the §1.10 deflectometry setup (Mitsuba, 16 spp) and the §2.8.1 angular calibration view, adds
 EMVA sensor noise, and times :func:`scopetwin.recon.markers.find_markers` (centroid search, filtering, grid

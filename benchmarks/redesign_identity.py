@@ -16,10 +16,9 @@ exactly.  Usage::
     python benchmarks/redesign_identity.py --check ... --quick                          # renders only (~1 min)
 
 The recorded file holds figures of this machine's Mitsuba/LLVM build; re-record it when those versions change or a
-change of behaviour is intended (last: issue 26's coarse-to-fine evidence search, which moved the run / thesis figures
-by nanometres — the record had already drifted by 243 figures since issue 14's truth-levelling fix, through later
-sessions' reconstruction changes, before this one; the redesign itself had been checked identical against the first
-record).
+change of behaviour is intended (last: the posterior's coarse-to-fine evidence search, which moved the run / thesis
+figures by nanometres — the record had already drifted by 243 figures since the truth-levelling fix, through later
+reconstruction changes; the redesign itself had been checked identical against the first record).
 """
 
 from __future__ import annotations

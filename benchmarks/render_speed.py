@@ -4,7 +4,7 @@ Renders the seed's §1.10 setup (1360 x 1024 px, 33 x 33 markers, 25.2 x 57 mm s
 with a smooth 40 µm bow, warm (kernels compiled, scene loaded), and prints seconds per
 frame and camera rays per second at several spp; then times :func:`scopetwin.scenes.analytic.render`
 on a window of the image, extrapolates to a full frame per ray, and prints the ratio.
-Targets (issue 2): <= 0.5 s per frame at 16 spp on 2 cores, >= 50x the numpy reference.
+Targets: <= 0.5 s per frame at 16 spp on 2 cores, >= 50x the numpy reference.
 Prints figures only; nothing here passes or fails.
 
 Usage: ``PYTHONPATH=. python benchmarks/render_speed.py [--spp 4 16 64] [--repeats 3] [--window 96]``

@@ -1,4 +1,4 @@
-"""The speed table of issue 26: every path beside a reference workload timed in the same run.
+"""The speed table: every path with a speed goal, beside a reference workload timed in the same run.
 
 Run: ``.venv/bin/python benchmarks/speed_table.py [--full] [--rows 1 2 9] [--json PATH]`` (``make bench``,
 ``make bench-full``); ``--calibrate`` records the reference on a quiet machine in ``benchmarks/speed_reference.json``;
@@ -16,13 +16,13 @@ script times a fixed, deterministic numpy workload — the *reference*: Cholesky
 * ``quiet est.``: ``seconds x (reference on a quiet machine / reference now)``, the quiet reference read from
   ``benchmarks/speed_reference.json`` (``--calibrate`` writes it: the minimum wall time of 30 reference runs, or
   their minimum CPU time where the machine was busy throughout; "—" without it),
-* ``goal`` and ``1st round``: the issue's goal and its figure at the end of the first round (:data:`TABLE`),
+* ``goal`` and ``1st round``: the row's goal and the figure first measured for it (:data:`TABLE`),
 * ``status``: the quiet estimate (the seconds where there is none) against the goal.
 
 The reference is single-threaded numpy while some rows use both cores (Mitsuba, Dr.Jit), so the estimate is a
 correction for the load, not an exact one. Nothing here passes or fails.
 
-Rows (issue 26's table; ``*``: only with ``--full``):
+Rows (``*``: only with ``--full``):
 
 1. ``recon.strategy.solve`` with the default :class:`ReconstructionConfig` (uncertainty included) on the markers of
    the §1.10 frame (``thesis-1.10-deflectometry``, its §1.9 surface, 16 spp, EMVA sensor noise, render seed 1; the
@@ -67,12 +67,12 @@ ROOT = Path(__file__).resolve().parent.parent
 REFERENCE_FILE = Path(__file__).resolve().parent / "speed_reference.json"
 SCOPETWIN = [sys.executable, "-m", "scopetwin"]
 
-#: The glass-like surface of row 5 (``[substrate.surface]`` of the §1.10 preset), like float glass (issue 27: power-law
+#: The glass-like surface of row 5 (``[substrate.surface]`` of the §1.10 preset), like float glass (power-law
 #: waviness at 8-80 mm, a bow, 20-100 nm of micro-waviness at 1-8 mm, PV 14-60 µm, slopes 2.5-8 mrad): a power law
 #: f^-4 flat below f = 1/40 mm — on the 57 mm substrate its longest wavelengths make the bow —, a 3 mm Gaussian
 #: roll-off, 30 µm PV, 30 nm RMS of flat-spectrum micro-waviness at 1-8 mm. Seeds 1-3 give maximum slopes of 3.0, 2.9
 #: and 2.8 mrad. (A rougher choice — f^-3 flat below 1/80 mm, 2 mm roll-off, 50 nm, slopes 3.0-4.7 mrad — made seed 1's
-#: start-height loop fail to converge after 223 s on a busy machine: an accuracy question for issue 27, not a speed
+#: start-height loop fail to converge after 223 s on a busy machine: an accuracy question, not a speed
 #: row.)
 GLASS: dict[str, Any] = {
     "kind": "psd",
@@ -90,8 +90,8 @@ GLASS_SEEDS = (1, 2, 3)
 
 @dataclass(frozen=True)
 class Goal:
-    """One row of issue 26's table as plain numbers, seconds: the goal (``<=``), the first round's figure
-    (a range as (low, high), None where the issue has none) and the figure the issue was filed with."""
+    """One row of the speed table as plain numbers, seconds: the goal (``<=``), the first round's figure
+    (a range as (low, high), None where there is none) and the figure before the speed work."""
 
     path: str
     goal_s: float | None
@@ -465,7 +465,7 @@ def row_grin(ctx: Context) -> Measured:
         )
 
     times = repeat_min(one, min_runs=1, max_runs=3, budget_s=8.0)
-    # issue 26: 25 multi-jittered spp have at most the noise of 64 independent ones (benchmarks/grin_speed.py)
+    # 25 multi-jittered spp have at most the noise of 64 independent ones (benchmarks/grin_speed.py)
     grin.render_image(
         setup, stack, tgt, spp=1, width=64, height=48, center=centre, variant=variant, sampler="multijitter"
     )
@@ -659,7 +659,7 @@ def main() -> None:
             print_row(row, quiet)
         return
     print(
-        f"speed table (issue 26): {os.cpu_count()} CPUs, load average {load:.2f}; reference = {REFERENCE_ROUNDS} x "
+        f"speed table: {os.cpu_count()} CPUs, load average {load:.2f}; reference = {REFERENCE_ROUNDS} x "
         f"(Cholesky, product) of a seeded {REFERENCE_N}^2 SPD matrix on one BLAS thread, timed before and "
         f"after each row; quiet reference "
         + (

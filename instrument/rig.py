@@ -128,7 +128,7 @@ def _take(table: dict[str, Any], key: str, kind: type, device: str, default: Any
     return value
 
 
-#: Largest magnitude of any number in a rig file (issue 25: every number finite and in a physical range; the
+#: Largest magnitude of any number in a rig file (every number finite and in a physical range; the
 #: device classes check their own limits, travel and current ranges, within it).
 MAX_NUMBER = 1.0e12
 #: Longest timeout of one exchange with a device, seconds.

@@ -1,4 +1,4 @@
-"""Inverse rendering: the substrate's surface fitted to the whole image through a differentiable render (issue 16).
+"""Inverse rendering: the substrate's surface fitted to the whole image through a differentiable render.
 
 The centroid method (:mod:`scopetwin.recon.reconstruct`, seed §1.4-§1.8) needs every marker's image to be a compact spot
 whose centroid follows the image of its centre. Here instead the image itself is the data: the surface (a

@@ -1,4 +1,4 @@
-"""The inverse fit's surface: a uniform cubic B-spline over the substrate's base plane (issue 16).
+"""The inverse fit's surface: a uniform cubic B-spline over the substrate's base plane.
 
 Fine enough for 3 mm correlation lengths; its values and slopes at any point are 16 coefficients times the basis
 (:meth:`SplineSurface.basis_rows`), so the inverse fit's Jacobian is sparse. :meth:`SplineSurface.span` writes the

@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scopetwin.scenes.camera import PixelGrid
 
 PositiveInt = Annotated[int, Field(gt=0)]
-Positive = Annotated[float, Field(gt=0, ge=1e-9, le=1e9)]  # finite and in a physical range (issue 25)
+Positive = Annotated[float, Field(gt=0, ge=1e-9, le=1e9)]  # finite and in a physical range
 
 
 class CameraGridSpec(BaseModel):

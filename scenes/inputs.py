@@ -1,4 +1,4 @@
-"""Input files read safely: regular files under a size limit, parsed with a bounded nesting depth (issue 25).
+"""Input files read safely: regular files under a size limit, parsed with a bounded nesting depth.
 
 Every file scopetwin reads as input — a setup or rig TOML, a dataset configuration, an MDA sequence, an EXR image or
 height map — goes through here first, so that none can hang, recurse or exhaust the machine:

@@ -1,4 +1,4 @@
-"""Limits from estimates: image sizes and render work checked before anything is allocated (issue 15).
+"""Limits from estimates: image sizes and render work checked before anything is allocated.
 
 A request that cannot finish — a 100000 x 100000 px camera, ``spp = 1e9`` — is refused up front with one
 :class:`LimitError` that gives the estimate and the limit, instead of a ``MemoryError`` or a render that runs for

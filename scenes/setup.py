@@ -35,7 +35,7 @@ from scopetwin.scenes.pattern import MarkerPattern
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
 
-#: Every number of a setup is finite and in a physical range, checked when the setup is loaded (issue 25): a
+#: Every number of a setup is finite and in a physical range, checked when the setup is loaded: a
 #: coordinate within 1 km of the origin, a positive quantity between 1e-9 and 1e9 of its unit (mm, µm, nm, s,
 #: electrons); fields with a narrower physical range say so (a pixel pitch of 0.1 µm to 1 mm, a focal length of
 #: 0.1 mm to 10 m, an f-number of 0.5 or more, a tilt within one turn).

@@ -118,7 +118,7 @@ def broadband_noise(
 ) -> Array:
     """Flat-spectrum content at wavelengths in ``band_mm`` = (shortest, longest), mm, with RMS exactly ``rms_mm``.
 
-    The nm-level short-wavelength part of real glass surfaces (issue 14): it is what an exactly band-limited
+    The nm-level short-wavelength part of real glass surfaces: it is what an exactly band-limited
     test surface lacks, and what limits the extrapolation into the frame regions.
     """
     if rms_mm <= 0:
@@ -288,7 +288,7 @@ def make_surface(spec: SurfaceSpec, substrate: SubstrateSpec) -> HeightMap:
     if spec.kind == "file":
         from scopetwin.scenes.io import check_surface, read_heightmap
 
-        # it must cover the substrate, heights in a physical range (issue 25 item 5)
+        # it must cover the substrate, heights in a physical range
         return check_surface(read_heightmap(spec.path), substrate.size, f"surface file {spec.path}")  # type: ignore[arg-type]
     if spec.kind == "random":
         return random_surface(spec, substrate)

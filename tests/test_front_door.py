@@ -1,4 +1,4 @@
-"""The Python front door (issue 22): the README's example as written, and one image giving the same heights through
+"""The Python front door: the README's example as written, and one image giving the same heights through
 ``scopetwin reconstruct``, ``scopetwin run``'s reconstruction step and ``scopetwin.reconstruct`` — also where the
 reference marker is tied and the strategy decides it."""
 

@@ -1,4 +1,4 @@
-"""The front door's calibration and rig entries (issue 22): the same answers as the command line on one image."""
+"""The front door's calibration and rig entries: the same answers as the command line on one image."""
 
 from __future__ import annotations
 

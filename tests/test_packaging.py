@@ -1,4 +1,4 @@
-"""One installed package (issue 22): the wheel holds ``scopetwin/`` and its metadata only, and its modules import
+"""One installed package: the wheel holds ``scopetwin/`` and its metadata only, and its modules import
 from the wheel's files — not from the repository's folders."""
 
 from __future__ import annotations

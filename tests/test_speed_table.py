@@ -1,4 +1,4 @@
-"""benchmarks/speed_table.py (issue 26): its table holds every row of the issue, the reference is deterministic, the
+"""benchmarks/speed_table.py: its table holds every row with a speed goal, the reference is deterministic, the
 quiet-machine estimate is seconds x quiet reference / reference now, and --calibrate writes the record it reads."""
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ def test_every_row_of_the_issue_has_a_measurement(st: ModuleType) -> None:
     assert list(st.TABLE) == [str(k) for k in range(1, 12)]
     assert set(st.ROWS) == set(st.TABLE)
     assert {k for k, g in st.TABLE.items() if g.full_only} == {"7", "8", "11"}
-    # the issue's goals, seconds
+    # the rows' goals, seconds
     goals = {k: g.goal_s for k, g in st.TABLE.items()}
     assert goals == {
         "1": 0.150,

@@ -1,7 +1,7 @@
-"""The repository stands alone: it cites its own documentation, never notes kept outside it (issue 22, item 5).
+"""The repository stands alone: it cites its own documentation, never notes kept outside it.
 
-* No tracked file refers to the steering's design note, to its rendering notes, or to paths outside the
-  repository (the folder beside it, the seed's text file): the project's own pages in ``docs/`` say all of it.
+* No tracked file refers to notes kept outside the repository (design or rendering notes, the folder beside it,
+  the thesis's text file): the project's own pages in ``docs/`` say all of it.
 * ``docs/contract.md`` has every section that code and users cite by name, and every section of
   ``docs/contract.md`` or ``docs/rendering.md`` that a tracked file cites by its quoted name exists.
 """

@@ -25,10 +25,10 @@ fixes b/g alone); ``lens="fixed"`` keeps an a-priori b; ``lens="auto"`` holds b 
 where the prior has one (the image distance the camera's description states, :meth:`Prior.from_camera`) and the
 thin-lens relation b = f (m + 1) with the measured magnification agrees with it, else that thin-lens b; it
 estimates b freely instead when the view is oblique enough and the data, at their own noise, reject the candidate
-(issue 14 item 4: the thin-lens b assumes the target in focus, which costs ~10 µm of r_c along the axis when the
+(the thin-lens b assumes the target in focus, which costs ~10 µm of r_c along the axis when the
 target lies 0.1 mm off the focus plane; a free b scatters by 6-23 µm at realistic sensor noise), and a kept
-candidate's uncertainty (the focal length's tolerance, given the data) enters the reported ones (issue 27 item 1,
-:mod:`scopetwin.calib.oneshot.lens_choice`).
+candidate's uncertainty (the focal length's tolerance, given the data) enters the reported ones
+(:mod:`scopetwin.calib.oneshot.lens_choice`).
 
 All coordinates of the calibration are those of the TARGET (its local frame: markers at (x, y, 0), seed §2.2).
 Pixel coordinates are continuous (x_px, y_px) = (column, row) as in :mod:`scopetwin.scenes.camera`. Lengths in mm,

@@ -36,7 +36,7 @@ def calibrate_bias_corrected(
     tol_px: float = 1e-5,
     max_iter: int = 10,
 ) -> tuple[Calibration, Array, int]:
-    """Alternate calibration and centroid-bias correction until the parameters stop changing (issue 4, item 3).
+    """Alternate calibration and centroid-bias correction until the parameters stop changing.
 
     Parameters
     ----------

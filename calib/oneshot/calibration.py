@@ -192,7 +192,7 @@ def _auto_lens(
     tilt: float,
     notes: list[str],
 ) -> Calibration:
-    """``lens="auto"`` without distortion: the candidate b, the data's test of it, its uncertainty (issue 27 item 1).
+    """``lens="auto"`` without distortion: the candidate b, the data's test of it, its uncertainty.
 
     The candidate is the thin-lens b of seed §2.4.2 with the measured magnification, or the a-priori b of ``cal``
     (a fixed-b fit) where it agrees with that; a view tilted by at least :data:`AUTO_FREE_TILT` also gets a free

@@ -21,7 +21,7 @@ from scopetwin.scenes.geometry import Array, Frame
 LensMode = Literal["auto", "thin-lens", "free", "fixed"]
 LENS_MODES: tuple[str, ...] = ("auto", "thin-lens", "free", "fixed")
 
-#: Smallest marker count accepted (issue 4: "fewer than 6 markers" is an error).
+#: Smallest marker count accepted (fewer is an error).
 MIN_MARKERS = 6
 #: ``lens="auto"`` estimates b freely when the optical axis is tilted at least this much against the target normal.
 AUTO_FREE_TILT = np.deg2rad(10.0)
@@ -31,7 +31,7 @@ PRIOR_NOISE_PX = 0.05
 #: centroid noise the residuals show (the data's own precision), for ``lens="free"`` at :data:`PRIOR_NOISE_PX`.
 MAX_SIGMA_B = 0.05
 #: Default relative standard uncertainty of the a-priori focal length (lens tolerance and focus setting): the
-#: thin-lens b = f (m + 1) of seed §2.4.2 is uncertain by (m + 1) times it (issue 27 item 1).
+#: thin-lens b = f (m + 1) of seed §2.4.2 is uncertain by (m + 1) times it.
 FOCAL_LENGTH_TOLERANCE = 0.01
 
 

@@ -1,4 +1,4 @@
-"""How ``lens="auto"`` obtains the image distance b: a candidate, the data's test of it, its uncertainty (issue 27).
+"""How ``lens="auto"`` obtains the image distance b: a candidate, the data's test of it, its uncertainty.
 
 One view of a plane fixes b only through perspective, and b and g are strongly correlated, so a free b costs a lot
 of precision (for the seed's §2.8.1 angular view sigma_b = 0.7-2.8 µm at 0.004-0.013 px centroid noise, which is
@@ -9,7 +9,7 @@ of precision (for the seed's §2.8.1 angular view sigma_b = 0.7-2.8 µm at 0.004
    tolerance (:attr:`~scopetwin.calib.oneshot.camera_parameters.Prior.focal_length_tolerance`) and f times the
    magnification's standard deviation. An a-priori b (the camera's stated image distance) is the candidate instead
    where it agrees with that thin-lens b within :data:`CONSISTENCY_Z` combined standard deviations; a preset's b
-   for a view at another distance does not (issue 27 item 1: a target seen from 242 mm with the 233 mm preset's
+   for a view at another distance does not (a target seen from 242 mm with the 233 mm preset's
    b = 28 mm put the camera centre 1.0 mm off).
 2. The test (:func:`choose_lens`): for a view tilted by at least ``AUTO_FREE_TILT``, b is also estimated freely;
    its standard deviation at the centroid noise the residuals show (the data's own precision) decides whether the

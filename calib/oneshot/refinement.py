@@ -147,7 +147,7 @@ class Calibration:
         }
 
 
-#: A-priori standard deviations of the distortion parameters that one view may not determine (issue 14 item 6):
+#: A-priori standard deviations of the distortion parameters that one view may not determine:
 #: the principal-point offset r_cs (mm; 0.25 mm is ~54 px of the seed's 4.65 µm pixels) and c0 (which only
 #: scales the image, like b). They enter the refinement as pseudo-observations at the prior's values.
 DISTORTION_PRIOR_SIGMA = {"x_cs": 0.25, "y_cs": 0.25, "c0": 0.01}

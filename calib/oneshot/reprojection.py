@@ -67,8 +67,8 @@ class ReprojectionModel:
         Pseudo-observations of estimated parameters at their a-priori values (``prior.r_cs``, ``prior.c0``):
         ``{name: w}`` appends the residual ``w * (p[name] - a-priori value)`` (px) after the 2n marker
         residuals. One view of a plane fixes a homography (8 numbers) and cannot separate r_cs from the pose, nor
-        c0 from the distance along the axis, when there is no distortion to show where the optical axis is
-        (issue 14 item 6); the pseudo-observations keep those directions at the a-priori values instead of
+        c0 from the distance along the axis, when there is no distortion to show where the optical axis is;
+        the pseudo-observations keep those directions at the a-priori values instead of
         letting the optimiser wander along them.
 
     Attributes

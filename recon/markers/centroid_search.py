@@ -141,7 +141,7 @@ def background_level(image: NDArray[np.float32], stride: int = 7) -> tuple[float
     of the samples within 3.5 sigma, three times. A standard deviation, not a MAD: on an integer
     (ADC) image of ~2 DN dark noise the MAD of integers reads 1 DN, so sigma came out 1.48 DN for a true
     2.2 DN, the 6-sigma threshold sat at 4 sigma and a low exposure filled the image with noise blobs that
-    ate into the marker windows (issue 14 item 4).
+    ate into the marker windows.
     """
     sub = image[stride // 2 :: stride, stride // 2 :: stride].ravel().astype(np.float64)
     med = float(np.median(sub))
@@ -188,7 +188,7 @@ def _drop_fragments(labels: NDArray, n: int, fraction: float) -> tuple[NDArray, 
 
     At a low exposure photon noise breaks isolated pixels off a spot's faint rim. As separate components
     their grown windows took rim pixels from the spot beside them (the window image is a dilation, which
-    keeps the larger label), and the spot's centroid moved by up to 1 px (issue 14 item 4: 2 % of the full
+    keeps the larger label), and the spot's centroid moved by up to 1 px (at 2 % of the full
     well). Without their labels those pixels fall in the spot's own window and count for it.
     """
     areas = np.bincount(labels.ravel(), minlength=n)[1:]

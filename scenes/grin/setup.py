@@ -42,7 +42,7 @@ from scopetwin.scenes.grin.profiles import (
 )
 from scopetwin.scenes.limits import check_image_size
 
-Positive = Annotated[float, Field(gt=0, ge=1e-9, le=1e9)]  # finite and in a physical range (issue 25)
+Positive = Annotated[float, Field(gt=0, ge=1e-9, le=1e9)]  # finite and in a physical range
 #: Most RKN steps through one rod: 0.01 mm steps (float64 position error ~0.005 nm, docs/rendering.md) through a
 #: 40 mm rod are 4000; beyond 1e5 a trace only costs time.
 MAX_RKN_STEPS = 100_000
@@ -510,7 +510,7 @@ def check_image_window(
     magnification: float,
     reach_mm: float,
 ) -> None:
-    """Refuse an image window that misses the image of every objective (it would render all black, issue 15).
+    """Refuse an image window that misses the image of every objective (it would render all black).
 
     Parameters
     ----------

@@ -9,7 +9,7 @@ ray enters a rod, the Sharma-Kumar-Ghatak Runge-Kutta-Nystrom integrator (:func:
 ``dr.while_loop``) carries it to the other face, integrating the optical path; the wall absorbs.
 Rays that all start on the object or the image plane (a sequential trace: images, forward traces) meet the planes
 in an order known before tracing (:meth:`GrinScene.planes_per_event`); with ``sequential=True`` (images) each plane
-is then intersected directly, the same hit Mitsuba's intersection finds, without the query (issue 26: the queries
+is then intersected directly, the same hit Mitsuba's intersection finds, without the query (the queries
 were 80-85 % of an image's time).
 
 Precision: ``"float32"`` runs the whole path in single precision (fast, for images);
@@ -908,7 +908,7 @@ def render_image(
     allocated.
     ``sequential``: every path meets the planes in a known order, so they are intersected directly
     (:meth:`GrinScene.known_planes`); False asks Mitsuba's ray intersection at every plane (the same image, bit
-    for bit, 5-7x slower: the intersection queries were 80-85 % of the render, issue 26).
+    for bit, 5-7x slower: the intersection queries were 80-85 % of the render).
     ``sampler``: Mitsuba's sampler of the pixel and pupil samples. ``"independent"``; ``"multijitter"``
     (correlated multi-jittered: stratified pixel and pupil samples, the same image with less noise — on a
     348 x 260 window of the §8.3.2 grid image 25 spp have 7 % less per-pixel noise than 64 independent ones and

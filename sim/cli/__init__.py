@@ -24,14 +24,14 @@ command whose result decides the exit status (``dataset verify``: 1 when the dat
 ``exit_code`` (a function of the result) beside ``func`` in its parser's defaults. Bad input gives one line
 ``scopetwin: error: ...`` on stderr and exit code 2, and leaves no partial output behind.
 
-Every parser of the tree (commands and their sub-commands) shares the conventions of issue 22
+Every parser of the tree (commands and their sub-commands) shares the same conventions
 (:func:`scopetwin.sim.cli.options.conventions`): ``-v``/``--verbose`` (repeatable) and ``-q``/``--quiet``, before or
 after the command words; a help text ending in ``examples:``. :func:`main` sets the ``scopetwin`` logger's level from
 them for the command (:mod:`scopetwin.sim.cli.logs`: warnings by default, ``-v`` notes, ``-vv`` debugging, ``-q``
 errors only, and no progress bars); the library logs through it and never prints, the commands print their results
 on stdout.
 
-Around every command :func:`main` applies the two policies of issue 15:
+Around every command :func:`main` applies two policies:
 
 * **outputs** (:mod:`scopetwin.sim.cli.outputs`): the paths a command declares (``set_defaults(outputs=[("out", "dir"),
   ("json", "file")])``, sized by an optional ``estimate``) are checked before it runs — writable, a folder where a

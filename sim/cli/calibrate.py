@@ -100,7 +100,7 @@ def _prior(setup: Setup, plane: Frame, args: argparse.Namespace, header: Setup |
     Its image distance is an a-priori b only for the image's own camera (the header's) or given by
     ``--image-distance``: for another image (``--target`` naming a setup the image was not rendered with) a setup's
     b belongs to its own distance, and ``--lens auto`` takes the thin-lens b of the measured magnification
-    instead (issue 27 item 1, seed §2.4.2); ``--lens fixed`` still holds the setup's b.
+    instead (seed §2.4.2); ``--lens fixed`` still holds the setup's b.
     """
     cam = setup.camera_model
     f = args.focal_length if args.focal_length is not None else setup.camera.focal_length

@@ -1,4 +1,4 @@
-"""Log messages of the command line (issue 22): the ``scopetwin`` logger on stderr, at the level ``-v``/``-q`` set.
+"""Log messages of the command line: the ``scopetwin`` logger on stderr, at the level ``-v``/``-q`` set.
 
 Library modules log through module loggers (``logging.getLogger(__name__)``, all under ``scopetwin.``) and never
 print; :func:`scopetwin.sim.cli.main` puts one handler on the ``scopetwin`` logger for the duration of a command:

@@ -1,4 +1,4 @@
-"""``scopetwin markers IMAGE.exr --pattern SETUP [--json PATH] [--overlay PNG]`` (issue 3, docs/contract.md).
+"""``scopetwin markers IMAGE.exr --pattern SETUP [--json PATH] [--overlay PNG]`` (docs/contract.md).
 
 Finds, filters and indexes the markers of a camera image (:func:`scopetwin.recon.markers.find_markers_for`) with
 the pattern, camera and reflecting region of a setup (preset name or TOML path). The result is the

@@ -1,5 +1,5 @@
-"""Argparse ``type=`` functions for the numeric options: finite, positive, in range (issue 15); the options and
-help layout every command shares (issue 22: :func:`conventions`).
+"""Argparse ``type=`` functions for the numeric options: finite, positive, in range; the options and
+help layout every command shares (:func:`conventions`).
 
 Each factory returns a converter that argparse calls with the option's text; a value that is not a number, not
 finite, or out of range raises :class:`argparse.ArgumentTypeError`, which argparse prints as one line naming the
@@ -137,7 +137,7 @@ def add_cluster_options(p: argparse.ArgumentParser) -> None:
     )
 
 
-# -- what every (sub)command shares (issue 22) --------------------------------------------------------------------
+# -- what every (sub)command shares --------------------------------------------------------------------
 #: Attribute holding the top level's ``-v`` count; a sub-command level counts in ``verbose.N`` (see common_options).
 VERBOSE = "verbose"
 _LEVELS = itertools.count(1)
@@ -201,7 +201,7 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
 
 
 def conventions(*examples: str, note: str | None = None) -> dict[str, Any]:
-    """Keyword arguments of ``add_parser`` that every parser of the command tree takes (issue 22).
+    """Keyword arguments of ``add_parser`` that every parser of the command tree takes.
 
     ``-v``/``-q`` (:func:`common_options`), the :class:`HelpFormatter`, and an epilog ending in ``examples:`` and
     the command lines given, one per line, indented (each one that works with the shipped presets, rigs and

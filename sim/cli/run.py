@@ -1,4 +1,4 @@
-"""``scopetwin run``: the main job on the embedded default (issue 5; the library is :mod:`scopetwin.sim.pipeline`)."""
+"""``scopetwin run``: the main job on the embedded default (the library is :mod:`scopetwin.sim.pipeline`)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from scopetwin.sim.measurement import StagedOutput
 
 
 def cmd_run(args: argparse.Namespace) -> dict[str, Any]:
-    """The main job on the embedded default (issue 5): simulate, render, calibrate, reconstruct, compare.
+    """The main job on the embedded default: simulate, render, calibrate, reconstruct, compare.
 
     Generates a §1.9 surface, renders the two calibration images and the measurement image (noise on)
     with Mitsuba, calibrates the setup, reconstructs with the calibrated and with the ideal setup,

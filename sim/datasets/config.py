@@ -503,7 +503,7 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
         if not sep or not all(parts):
             raise DatasetError(f"--set {item!r}: give key=value with a dotted key, e.g. --set dataset.spp=4")
         try:
-            value = parse_toml(f"v = {text.strip()}", "--set value", repr(item))["v"]  # bounded depth (issue 25)
+            value = parse_toml(f"v = {text.strip()}", "--set value", repr(item))["v"]  # bounded depth
         except tomllib.TOMLDecodeError:
             if not text.strip() or any(c in text for c in "[]{}\"'="):
                 raise DatasetError(f"--set {item!r}: {text.strip()!r} is not a TOML value") from None
@@ -523,7 +523,8 @@ def load_config(path: str | Path, count: int | None = None, overrides: list[str]
     items, :func:`apply_overrides`)."""
     p = Path(path)
     try:
-        data = parse_toml(read_text_input(p, "dataset configuration"), "dataset configuration", str(p))  # issue 25
+        # bounded size and nesting depth
+        data = parse_toml(read_text_input(p, "dataset configuration"), "dataset configuration", str(p))
     except OSError as exc:
         raise DatasetError(f"cannot read dataset config {p}: {exc.strerror}") from None
     except tomllib.TOMLDecodeError as exc:

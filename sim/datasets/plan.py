@@ -32,7 +32,7 @@ def _capability(kind: str) -> None:
         if importlib.util.find_spec("scopetwin.scenes.mitsuba.cmu") is None:
             raise DatasetError(
                 "sample kind 'cmu' needs the four-channel microscope renderer "
-                "(scenes.mitsuba.cmu, issue 8), which this installation does not have"
+                "(scenes.mitsuba.cmu), which this installation does not have"
             )
 
 

@@ -1,4 +1,4 @@
-"""Accuracy studies against rendered truth, run on Dask like the datasets (issue 9, docs/contract.md, "Scale").
+"""Accuracy studies against rendered truth, run on Dask like the datasets (docs/contract.md, "Scale").
 
 A study is a function of a :class:`~scopetwin.sim.studies.context.StudyContext` that fans its work out as
 independent tasks (on the same Dask client the datasets use, or in this process), tabulates the errors

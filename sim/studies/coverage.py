@@ -1,4 +1,4 @@
-"""The ``coverage`` study: is the reconstruction's uncertainty calibrated? (issue 14, item 2).
+"""The ``coverage`` study: is the reconstruction's uncertainty calibrated?
 
 Surfaces of mixed families — the seed's §1.9 generator (exactly band-limited), the same with nm-level broadband
 content, and PSD surfaces (K-correlation / ABC and power law with roll-off) with broadband content; 8-20 mm

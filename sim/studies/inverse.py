@@ -1,4 +1,4 @@
-"""The ``inverse`` study: inverse rendering beside the centroid method and the pixels' Cramér-Rao bound (issue 16).
+"""The ``inverse`` study: inverse rendering beside the centroid method and the pixels' Cramér-Rao bound.
 
 For §1.9 surfaces at 3-20 mm correlation (the Gaussian family, and the PSD family of :mod:`scopetwin.sim.surfaces` when
 it
@@ -34,7 +34,7 @@ INVERSE_MODULES = {
     "scopetwin.recon.inverse": "inverse rendering",
 }
 
-#: (correlation length mm, range µm) of the study's surfaces: the seed's kind and the two of the issue.
+#: (correlation length mm, range µm) of the study's surfaces: the seed's kind and two steeper kinds.
 CASES = ((20.0, 40.0), (12.0, 40.0), (5.0, 40.0), (3.0, 60.0))
 
 
@@ -260,7 +260,7 @@ def inverse(ctx: StudyContext, spp: int = 16, seed: int = 2) -> StudyResult:
         notes += [f"{r['correlation_mm']} mm: {r[k]}" for k in ("centroid_error", "inverse_error") if k in r]
     return StudyResult(
         "Study: inverse rendering",
-        "The surface fitted to the whole image through a differentiable render (issue 16), beside the centroid "
+        "The surface fitted to the whole image through a differentiable render, beside the centroid "
         "method and the Cramér-Rao bound of the pixels.",
         [_inverse_table(cells, spp)],
         [],

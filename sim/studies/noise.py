@@ -4,7 +4,7 @@ A few clean renders of the angular calibration view are captured many times by t
 (:func:`~scopetwin.sim.studies.tasks.calibration_view_task` with a fill). The noise draws separate the calibration's
 bias
 (the length of the mean error vector of the camera centre) from its scatter (the RMS of the error vectors about
-their mean), issue 14 item 4. The bias is known only to its standard error, scatter / sqrt(draws), and the
+their mean). The bias is known only to its standard error, scatter / sqrt(draws), and the
 length of a mean vector reads about one standard error even where the true bias is 0; the scatter grows
 ~1/sqrt(fill) and more at the low fills (8 µm at 2 % of the full well, 1.6 µm at 20 %), so the low fills get more
 draws (:data:`DRAW_WEIGHTS`): 64 at 2 % bring the standard error to ~1 µm.
@@ -59,7 +59,7 @@ def floor_removed(bias: float | None, scatter: float | None, n: int) -> float | 
 
 
 def failure_notes(rows: list[Any], good: list[dict[str, Any]]) -> list[str]:
-    """One line per distinct failure: 'fill F: message (k of n draws)' (issue 14 item 5: each listed once)."""
+    """One line per distinct failure: 'fill F: message (k of n draws)' (each listed once)."""
     notes = [f"sample failed: {m} ({k}x)" for m, k in Counter(error_text(r) for r in rows if failed(r)).items()]
     per_fill: dict[float, list[dict[str, Any]]] = {}
     for r in good:
@@ -109,7 +109,7 @@ def _bias_table(groups: dict[float, list[dict[str, Any]]]) -> tuple[Table, _Bias
         note="bias = |mean of the camera-centre error vectors| over the draws; scatter = RMS of the vectors about "
         "their mean (3-D); the bias is known to about its standard error, scatter / sqrt(draws), and reads about "
         "one standard error where the true bias is 0; 'less its noise floor' = sqrt(max(bias^2 - SE^2, 0)). "
-        "Target (issue 14): bias <= 2 µm.",
+        "Target: bias <= 2 µm.",
     )
     return table, stats, se
 

@@ -1,5 +1,5 @@
-"""The ``second-measurement`` study: the absolute height from two pattern positions beside the single image (issue 27,
-item 3; seed §1.3).
+"""The ``second-measurement`` study: the absolute height from two pattern positions beside the single image
+(seed §1.3).
 
 One image leaves the height-normal ambiguity of seed §1.3; the frame criterion (§1.4) resolves it by extrapolating the
 surface 1-4.5 mm under the holding frame. A stage that moves the pattern along its normal gives a second image whose

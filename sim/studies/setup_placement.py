@@ -1,4 +1,4 @@
-"""The ``setup`` study: which setup brings data close enough to the frame regions? (issue 14, item 3).
+"""The ``setup`` study: which setup brings data close enough to the frame regions?
 
 The start height of seed §1.4 rests on the surface's maxima over the frame regions (|y| >= 24 mm on the §1.10
 substrate), where there are no data; with the seed's pattern the last whole markers reach |y| ~ 22.3-23.4 mm and

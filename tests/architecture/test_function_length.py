@@ -1,4 +1,4 @@
-"""No library function over 80 lines (issue 22, item 4): small functions of one job each.
+"""No library function over 80 lines: small functions of one job each.
 
 Counted from the ``def`` line to the last line, docstring included (``ast``: end_lineno - lineno + 1). Declarative
 tables are data, not functions, and live at module level; a parser declaration with one ``add_argument`` per option

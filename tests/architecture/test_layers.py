@@ -25,7 +25,7 @@ FORBIDDEN = {
     "scopetwin.sim": set(),
 }
 RENDERERS = {"mitsuba", "drjit"}
-#: The one reconstruction module that renders (issue 16, ARCHITECTURE.md): it fits the surface to the image through
+#: The one reconstruction module that renders (ARCHITECTURE.md): it fits the surface to the image through
 #: a differentiable render, so it may import the renderer (Mitsuba, Dr.Jit, scenes.mitsuba) -- lazily, inside its
 #: functions only, so that importing it (and ``import recon``) loads no renderer.
 RENDERING_RECON = ROOT / "recon" / "inverse.py"
@@ -132,7 +132,7 @@ def test_importing_the_world_model_does_not_load_mitsuba():
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
 
 
-# -- import circles and import-time renderer state (issue 12) -------------------------------------------------------
+# -- import circles and import-time renderer state -------------------------------------------------------
 
 
 def _module_name(path: Path) -> str:
@@ -242,7 +242,7 @@ def test_no_variant_switch_at_import():
     assert out.stdout.strip() == "None", f"a module set the Mitsuba variant {out.stdout.strip()!r} at import"
 
 
-# -- one package (issue 22): the layers install and import only as scopetwin.<layer> ---------------------------------
+# -- one package: the layers install and import only as scopetwin.<layer> ---------------------------------
 
 BARE = {pkg.removeprefix("scopetwin.") for pkg in PACKAGES}
 

@@ -1,4 +1,4 @@
-"""Every scopetwin module imports on Windows (issue 22): checked here, on POSIX, in a subprocess without POSIX.
+"""Every scopetwin module imports on Windows: checked here, on POSIX, in a subprocess without POSIX.
 
 The subprocess takes away what Windows lacks before it imports anything of ours: a :data:`sys.meta_path` finder
 refuses the POSIX-only modules (``fcntl``, ``termios``, ``tty``, ``pty``, ``resource``, ``grp``, ``pwd``, pyserial's

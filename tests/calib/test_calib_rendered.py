@@ -1,4 +1,4 @@
-"""One-shot calibration of rendered views with the sensor model on, and ``--distortion`` on rendered views (issue 14).
+"""One-shot calibration of rendered views with the sensor model on, and ``--distortion`` on rendered views.
 
 Item 4: the §2.8.3 substrate view, rendered once and captured by the EMVA 1288 sensor at three exposures; the
 camera centre must come out within 2 µm (it was 10 µm off: the seed's thin-lens b assumes the target in focus).
@@ -88,7 +88,7 @@ def test_noisy_angular_view_at_2_percent_fill_has_no_camera_centre_bias():
 
     One render of the §2.8.1 angular view, 16 noise draws: the mean camera-centre error (the bias) within 2 µm
     plus twice its standard error. The scatter there is ~8 µm (64 draws: bias 0.7 +- 1.0 µm), so 16 draws
-    bound the bias to ~6 µm: enough to catch the 10 µm bias of the noisy path that issue 14 found.
+    bound the bias to ~6 µm: enough to catch the 10 µm bias of the noisy path that an a-priori b in focus gave.
     """
     from scopetwin.scenes.mitsuba.render import render_setup
 

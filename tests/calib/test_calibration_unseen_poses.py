@@ -1,4 +1,4 @@
-"""One-shot calibration at poses and distances the presets lack (issue 27 item 1): camera centre within its u.
+"""One-shot calibration at poses and distances the presets lack: camera centre within its u.
 
 The presets put the camera 233 mm from the target with f = 25 mm and b = 28 mm. Here a family of 24 views is drawn
 from a seed fixed before anything was tuned (:data:`FAMILY_SEED`, a hash of a sentence): object distance 150-400 mm,
@@ -14,9 +14,9 @@ camera did not take).
 Coverage when this test was written (72 axis errors per noise level, the same with and without the preset's b):
 noise-free, all within 1.34 u, 92 % within 1 u (19 views estimate b freely and recover exact data to round-off; the 5
 below 10 deg keep the thin-lens b with its focal-length uncertainty); 0.005 px, all within 1.82 u, 67 % within 1 u;
-0.03 px, all within 1.82 u, 60 % within 1 u (9 views keep the thin-lens b). The code before issue 27 left 33, 29
-and 25 of the 72 beyond 3 u (up to 6000 u): the thin-lens b of a lens 1.5 % off its nominal f was reported exact,
-and a wrong a-priori b was kept (the issue: 1.0 mm off, u 5 µm).
+0.03 px, all within 1.82 u, 60 % within 1 u (9 views keep the thin-lens b). With the a-priori b always kept, the
+calibration left 33, 29 and 25 of the 72 beyond 3 u (up to 6000 u): the thin-lens b of a lens 1.5 % off its nominal
+f was reported exact, and a wrong a-priori b was kept (1.0 mm off, u 5 µm).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from scopetwin.calib.oneshot.refinement import with_image_distance_uncertainty
 from scopetwin.scenes.camera import Camera
 from scopetwin.scenes.setup import load_setup
 
-#: int(sha256(b"scopetwin issue 27 item 1: unseen calibration poses").hexdigest()[:8], 16), fixed before tuning.
+#: The family's seed: 8 hex digits of a SHA-256 of a fixed text, chosen before the calibration was tuned.
 FAMILY_SEED = 1102511442
 N_VIEWS = 24
 NX, NY, PITCH = 1360, 1024, 0.00465  # the presets' sensor
@@ -139,7 +139,7 @@ def test_family_camera_centre_within_its_reported_u(views, noise_px, stated_b):
 
 
 def _issue_view(noise_px: float = 0.0):
-    """The issue's case: a view 242 mm away, tilted 11 deg, f = 25 mm; the prior of the 233 mm preset (b = 28 mm)."""
+    """The failing case: a view 242 mm away, tilted 11 deg, f = 25 mm; the 233 mm preset's prior (b = 28 mm)."""
     v = make_view(242.0, 25.0, 0.0, 11.0, np.deg2rad(20.0), 0.05, (1.5, -2.0), 0.0, 0.0, pitch=4.0)
     prior = Prior.from_camera(load_setup("thesis-2.8.1-angular").camera_model, 25.0)  # its b and N_z estimate
     px = v.px + np.random.default_rng(5).normal(0.0, noise_px, v.px.shape)
@@ -202,7 +202,7 @@ def test_propagated_b_uncertainty_is_the_pose_s_response_to_b(views):
 @pytest.mark.slow
 @pytest.mark.mitsuba
 def test_rendered_view_at_a_pose_no_preset_has(tmp_path):
-    """The issue's failure rendered (Mitsuba, 16 spp): the target 242 mm away, tilted 11 deg, f = 25 mm.
+    """That failure rendered (Mitsuba, 16 spp): the target 242 mm away, tilted 11 deg, f = 25 mm.
 
     Through the API with the 233 mm preset as the target setup (its b = 28 mm as the a-priori b): before, r_c 1.04 mm
     off with u 4.7 µm (lens test z = 625, kept); now the data reject b = 28 mm. Through the command line with

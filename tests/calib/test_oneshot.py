@@ -89,7 +89,7 @@ def test_distortion_and_offset_recovered_better_than_table_2_8():
     s, xy, px, prior = exact_case("thesis-2.8.5-distortion")
     truth = s.camera_model
     cal = calibrate(xy, px, prior, lens="thin-lens", distortion=True)  # the seed's variant: c0 absorbs the b error
-    # the a-priori r_cs = 0, c0 = 1 (issue 14 item 6) hold only directions the data leave open; here the data
+    # the a-priori r_cs = 0, c0 = 1 hold only directions the data leave open; here the data
     # determine every parameter, so exact data are recovered to round-off
     assert np.abs(np.subtract(cal.camera.r_cs, truth.r_cs)).max() < 1e-9  # Table 2.8: 7.94 µm
     assert abs(cal.camera.c0 - truth.c0) < 2.47e-4  # Table 2.8

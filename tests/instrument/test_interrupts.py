@@ -82,7 +82,7 @@ def test_sigterm_between_frame_and_manifest_keeps_them_together(tmp_path, monkey
     assert (tmp_path / "preview.png").is_file()
 
 
-# --- the one deferred_signals (issue 22): what the command line's clean-ups need as well -----------------------------
+# --- the one deferred_signals: what the command line's clean-ups need as well -----------------------------
 
 
 def test_the_command_line_uses_this_one_implementation():

@@ -1,4 +1,4 @@
-"""The six PSD surfaces with nm-level broadband content shared by the accuracy tests (issue 14)."""
+"""The six PSD surfaces with nm-level broadband content shared by the accuracy tests."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Accuracy and uncertainty on glass-like substrates (issue 27, item 2): surfaces the reconstruction was not tuned on.
+"""Accuracy and uncertainty on glass-like substrates: surfaces the reconstruction was not tuned on.
 
 The family (:func:`scopetwin.sim.families.glass_spec`) is like float glass: power-law waviness at 8-80 mm,
 14-60 µm of it, a bow of up to +-20 µm, 20-100 nm RMS of micro-waviness at 1-8 mm (slopes 1.8-10 mrad). Its seeds
@@ -50,7 +50,7 @@ def _reconstruct(seed: int) -> tuple[dict[str, float], float, float, list[str]]:
 
 
 def test_glass_family_is_what_it_says() -> None:
-    """The family's surfaces lie in the issue's ranges: PV 14-80 µm (waviness 14-60 plus the bow), bow within 20 µm."""
+    """The family's surfaces lie in float glass's: PV 14-80 µm (waviness 14-60 plus the bow), bow within 20 µm."""
     for seed in GLASS_SEEDS:
         spec = glass_spec(seed)
         assert 14.0 <= spec["range_um"] <= 60.0 and abs(spec["bow_um"]) <= 20.0
@@ -65,7 +65,7 @@ def test_glass_family_converges_and_its_uncertainty_covers_the_error() -> None:
     """Measured (0.005 px): 7 of 8 reconstructed; |absolute| 0.12-1.92 µm (3 of 7 within 1 µm), 6 of 7 within 2 u and
     all within 3 u; shape 0.18-0.58 µm, all within 2 u_shape. Seed 385162244 (53 µm, roll-off 1.4 mm) fails: the
     12 mm basis's inner loop cycles from the flat start and its extrapolation throws the rays near frame region 2 off
-    the substrate — issue 27's goal "no loop that fails where the markers cover the ROI" is not met on it."""
+    the substrate — the goal "no loop that fails where the markers cover the ROI" is not met on it."""
     rows, failed = [], []
     for seed in GLASS_SEEDS:
         try:
@@ -79,7 +79,7 @@ def test_glass_family_converges_and_its_uncertainty_covers_the_error() -> None:
     ua = np.array([r[2] for r in rows])
     us = np.array([r[3] for r in rows])
     table = [(r[0], *np.round([x, y, s_, t], 3)) for r, x, y, s_, t in zip(rows, a, ua, sh, us, strict=True)]
-    # coverage: the issue's 90-98 % at 2 u (at most one outside), nothing beyond 3 u
+    # coverage: the goal's 90-98 % at 2 u (at most one outside), nothing beyond 3 u
     assert np.sum(a <= 2 * ua) >= len(rows) - 1, table
     assert np.sum(sh <= 2 * us) >= len(rows) - 1, table
     assert np.all(a <= 3 * ua) and np.all(sh <= 3 * us), table

@@ -1,4 +1,4 @@
-"""Accuracy and uncertainty on rendered PSD surfaces with broadband content, with and without sensor noise (issue 14).
+"""Accuracy and uncertainty on rendered PSD surfaces with broadband content, with and without sensor noise.
 
 Six surfaces of the PSD family (K-correlation and power-law spectra with roll-off, 1-4 nm RMS of broadband
 content at 0.5-4 mm wavelengths; not the §1.9 generator the reconstruction's defaults were chosen on) are rendered

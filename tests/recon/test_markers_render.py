@@ -1,4 +1,4 @@
-"""Marker identification on rendered images of the seed's setups, checked against sim.truth (issue 3 acceptance)."""
+"""Marker identification on rendered images of the seed's setups, checked against sim.truth."""
 
 from __future__ import annotations
 

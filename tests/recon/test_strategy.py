@@ -1,5 +1,5 @@
 """The one reconstruction strategy (recon.strategy) and its policy (recon.policy): every fallback named, taken in
-order, recorded in the result, and one error naming every path when all failed (issue 22, item 3)."""
+order, recorded in the result, and one error naming every path when all failed."""
 
 from __future__ import annotations
 

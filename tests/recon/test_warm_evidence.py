@@ -1,4 +1,4 @@
-"""The posterior's warm start (issue 26): the prior of one frame as the one start of the next frame's evidence
+"""The posterior's warm start: the prior of one frame as the one start of the next frame's evidence
 maximisation (:attr:`scopetwin.recon.reconstruct.Reconstructor.evidence_start`).
 
 Truth from elsewhere: two frames of the §1.10 setup's own surface, the exact images of the marker centres

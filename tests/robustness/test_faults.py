@@ -717,6 +717,6 @@ def test_row(row: Row, tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> Non
 def test_tally() -> None:
     """The last test: how many rows ran and how many held (every one must)."""
     tried, held = len(RESULTS), sum(RESULTS.values())
-    print(f"\nissue 25 bad inputs and faults: tried {tried} / held {held}")
+    print(f"\nbad inputs and faults: tried {tried} / held {held}")
     failed = sorted(k for k, ok in RESULTS.items() if not ok)
     assert held == tried, f"failed: {failed}"

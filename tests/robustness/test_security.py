@@ -1,4 +1,4 @@
-"""Attacks and faults, one row per case (issue 25: "Security" 1-3, "Nothing written that is not true" 5-7).
+"""Attacks and faults, one row per case (security, and nothing written that is not true).
 
 Each row performs the attack or the fault and asserts that it fails: a client without the device server's key (or
 with a wrong one) sends a pickle that would create a marker file, and the file is not created; a plain or foreign
@@ -725,7 +725,7 @@ def test_case(
 
 
 def test_tried_and_held(capsys: pytest.CaptureFixture[str]) -> None:
-    """The tally of the rows that ran in this session (a row that failed is tried, not held)."""
+    """The tally of the rows that ran in this test run (a row that failed is tried, not held)."""
     tried, held = len(RESULTS), sum(RESULTS.values())
     with capsys.disabled():
         print(f"\nsecurity and faults: tried {tried} / held {held}")

@@ -1,4 +1,4 @@
-"""Exactness of the GRIN integrators against closed-form rays (issue 7 acceptance), numpy and Dr.Jit float64."""
+"""Exactness of the GRIN integrators against closed-form rays, numpy and Dr.Jit float64."""
 
 from __future__ import annotations
 

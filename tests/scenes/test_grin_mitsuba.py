@@ -1,4 +1,4 @@
-"""The Dr.Jit/Mitsuba GRIN tracer against the numpy float64 reference; images and illumination (issue 7)."""
+"""The Dr.Jit/Mitsuba GRIN tracer against the numpy float64 reference; images and illumination."""
 
 from __future__ import annotations
 
@@ -226,7 +226,7 @@ def test_sequential_trace_equals_mitsuba_intersections(realized, mono_variant, s
 
 def test_sequential_image_equals_mitsuba_intersections(mono_variant):
     """The image of the whole array (every objective, rays missing the rods) is bit for bit the same with the planes
-    intersected in their known order as with Mitsuba's ray intersection (issue 26: the ~5x faster path)."""
+    intersected in their known order as with Mitsuba's ray intersection (the ~5x faster path)."""
     s = load_grin_setup("thesis-8.3.2-grin-realized", {"camera": {"pixel_um": 20.0}})
     st = s.stack(image_distance=11.4)
     kw = {"spp": 4, "width": 80, "height": 60, "variant": mono_variant}

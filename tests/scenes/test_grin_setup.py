@@ -1,4 +1,4 @@
-"""GRIN presets, overrides and bad input (issue 7)."""
+"""GRIN presets, overrides and bad input."""
 
 from __future__ import annotations
 

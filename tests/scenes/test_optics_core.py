@@ -1,4 +1,4 @@
-"""The one optics core (issue 12): pixel grid, camera description, RKN step, spot metrics, objective model."""
+"""The one optics core: pixel grid, camera description, RKN step, spot metrics, objective model."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The photon budget of the four channels (scenes.cmu.photon_budget, issue 28).
+"""The photon budget of the four channels (scenes.cmu.photon_budget).
 
 Conversions against numbers worked by hand (written literally), the budget's internal consistency, and its channel
 ratios against the thesis's exposures (80 / 4000 / 9800 / 6000 ms, §5.2.3) within a stated factor.

@@ -1,4 +1,4 @@
-"""Limits from estimates and validated numbers (issue 15, items 4-6): refused before any work, one line naming the
+"""Limits from estimates and validated numbers: refused before any work, one line naming the
 option or key and the estimate, exit 2, nothing written; GRIN windows between the lenses; previews; overlays."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Outputs checked before the work and written last (issue 15): every failure is one line, exit 2, nothing written."""
+"""Outputs checked before the work and written last: every failure is one line, exit 2, nothing written."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Property test (issue 15, item 7): the command line and the TOML loaders under generated arguments and files.
+"""Property test: the command line and the TOML loaders under generated arguments and files.
 
 Whatever the arguments — numbers that are zero, negative, huge, ``inf``, ``nan`` or not numbers at all; paths that do
 not exist, are folders, hold garbage or hold a tiny valid image; TOML files with keys replaced by such values — a

@@ -1,4 +1,4 @@
-"""``optics cmu --budget`` (sim.cmu_budget, issue 28): the tables, the JSON and the plot, the option checks, and cell
+"""``optics cmu --budget`` (sim.cmu_budget): the tables, the JSON and the plot, the option checks, and cell
 images rendered at the budget's photon counts whose mean electrons are the budget's."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""scopetwin.sim.datasets: config validation before work, per-sample determinism, truth, verify and resume (issue 9)."""
+"""scopetwin.sim.datasets: config validation before work, per-sample determinism, truth, verify and resume."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Datasets under concurrency and after interruptions (issue 15): the folder lock, live temporaries, traceability.
+"""Datasets under concurrency and after interruptions: the folder lock, live temporaries, traceability.
 
 One run at a time holds a dataset folder (a second is refused with one line naming the holder); a temporary sample
 folder that a live process writes is never removed; the manifest names the worker process that made each sample;

@@ -1,4 +1,4 @@
-"""Kill tests (issue 9): SIGKILL the generating process, or one Dask worker, at a random moment; resume; verify.
+"""Kill tests: SIGKILL the generating process, or one Dask worker, at a random moment; resume; verify.
 
 Real subprocesses on a real 2-worker LocalCluster; every wait is bounded and every process this
 test starts is killed by its id at the end.
@@ -187,7 +187,7 @@ def test_signal_stops_cleanly_with_every_sample_listed(tmp_path, sig, group):
     assert rep["in_use_by"] is None and rep["complete"] >= 2  # (all of them when the last ones were in flight)
     rows = [json.loads(line) for line in (out / MANIFEST).read_text().splitlines()]
     made = [r for r in rows if r["status"] == "written"]
-    # the embedded cluster's workers speak TLS (issue 25: no other local user can submit work to them)
+    # the embedded cluster's workers speak TLS (no other local user can submit work to them)
     assert made and all(r["pid"] not in (proc.pid, None) and r["worker"].startswith("tls://") for r in made)
     generate_in_process(load_plan(out), out, workers=0, progress=False)  # `dataset resume`
     assert verify(out)["ok"]

@@ -1,4 +1,4 @@
-"""No link followed by the dataset writers (issue 25 item 3): the manifest and an export are never written through a
+"""No link followed by the dataset writers: the manifest and an export are never written through a
 symbolic link planted at their paths."""
 
 from __future__ import annotations

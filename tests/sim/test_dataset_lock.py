@@ -1,4 +1,4 @@
-"""The dataset folder lock through ``filelock`` (issue 22): one holder, released when it dies, never through a link.
+"""The dataset folder lock through ``filelock``: one holder, released when it dies, never through a link.
 
 The lock is taken with :func:`filelock.lock_descriptor` (``flock`` on POSIX, ``LockFileEx`` on Windows); a symbolic
 link (or a FIFO) planted at ``DIR/.scopetwin.lock`` is refused rather than followed, whether it is there before the

@@ -1,4 +1,4 @@
-"""scopetwin.open_dataset: a generated dataset read back lazily as a sequence, without private code (issue 22)."""
+"""scopetwin.open_dataset: a generated dataset read back lazily as a sequence, without private code."""
 
 from __future__ import annotations
 

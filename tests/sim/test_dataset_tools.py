@@ -1,4 +1,4 @@
-"""The dataset tools of issue 23: ``generate --set``, ``show`` (a contact sheet), ``export --to zarr | hdf5`` (one
+"""The dataset tools: ``generate --set``, ``show`` (a contact sheet), ``export --to zarr | hdf5`` (one
 array with named dimensions that xarray opens), the reader on the four-channel and GRIN kinds."""
 
 from __future__ import annotations

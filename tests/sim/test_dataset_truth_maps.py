@@ -1,4 +1,4 @@
-"""Per-pixel truth, OpenCV cameras, schemas and value checks of a dataset (issue 23; issue 25 item 4).
+"""Per-pixel truth, OpenCV cameras, schemas and value checks of a dataset.
 
 Acceptance: ``cv2.projectPoints`` of each pixel's ``point`` with the sample's ``K, dist, R, t`` lands on the pixel
 centre within 0.01 px; ``height`` equals the sample's true surface at ``surface_xy`` within 1e-6 mm; ``pattern_xy``
@@ -228,7 +228,7 @@ def test_verify_validates_schemas_and_values(deflectometry, tmp_path):
     assert "surface_range_um" in reasons[1] and "physical range" in reasons[1] and "camera_opencv" in reasons[1]
 
 
-# -- issue 25, item 4: varied values checked like fixed ones, before any work; no untrue render is listed --------
+# -- varied values checked like fixed ones, before any work; no untrue render is listed --------
 def _cfg(**vary) -> dict:
     return {
         "dataset": {"kind": "deflectometry", "setup": "thesis-1.10-deflectometry", "count": 3, "master_seed": 1},

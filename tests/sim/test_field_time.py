@@ -1,4 +1,4 @@
-"""Time per field and per slide (sim.field_time, issue 28): the terms worked by hand, each term's source, and the
+"""Time per field and per slide (sim.field_time): the terms worked by hand, each term's source, and the
 stages' velocities the same as the simulated unit's rig file."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The second-measurement study (issue 27 item 3): registered, its families, and its table's figures from the rows
+"""The second-measurement study: registered, its families, and its table's figures from the rows
 (the renders themselves run in ``scopetwin study second-measurement``; the method is tested in
 tests/recon/test_two_positions*.py)."""
 

@@ -1,5 +1,4 @@
-"""scopetwin.sim.signals: SIGTERM and SIGHUP end a command like Ctrl-C — one line, exit 128 + n, nothing half-written
-(issue 15).
+"""scopetwin.sim.signals: SIGTERM and SIGHUP end a command like Ctrl-C — one line, exit 128 + n, nothing half-written.
 
 The subprocess tests run a command that waits inside a study (registered by a small driver script) and signal it
 there; the dataset generator under signals is in ``test_dataset_kill.py``.

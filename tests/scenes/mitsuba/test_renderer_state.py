@@ -1,4 +1,4 @@
-"""Renderers without hidden state (issue 12): explicit variants, no module-global tables, no order dependence.
+"""Renderers without hidden state: explicit variants, no module-global tables, no order dependence.
 
 The four-channel unit renders in ``llvm_ad_spectral``, the Part I scenes and the GRIN objectives in
 ``llvm_ad_mono`` (``cuda_*`` with a GPU). Importing a renderer sets no variant; each builder and renderer sets
