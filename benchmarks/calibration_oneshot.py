@@ -1,6 +1,6 @@
-"""One-shot calibration on exact synthetic marker positions (seed §2.8.1, §2.8.2, §2.8.5) and its speed.
+"""One-shot calibration on exact synthetic marker positions (thesis §2.8.1, §2.8.2, §2.8.5) and its speed.
 
-Prints our deviations beside the seed's Tables 2.2, 2.3, 2.4 and 2.8, OpenCV's solvePnP (ITERATIVE, SQPNP
+Prints our deviations beside the thesis's Tables 2.2, 2.3, 2.4 and 2.8, OpenCV's solvePnP (ITERATIVE, SQPNP
 with the true intrinsics) as the peer, and the time of one calibration (linear + non-linear) for 24-1000
 markers. Run: ``PYTHONPATH=. python benchmarks/calibration_oneshot.py``.
 """

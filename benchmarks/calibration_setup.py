@@ -1,8 +1,8 @@
-"""Setup calibration (seed §2.7, §2.8.3) from Mitsuba renders: deviations beside the seed's Tables 2.5 and 2.6.
+"""Setup calibration (thesis §2.7, §2.8.3) from Mitsuba renders: deviations beside the thesis's Tables 2.5 and 2.6.
 
 Renders the substrate-target and mirror scenes, finds and indexes the markers (recon.markers, through
 :func:`scopetwin.calib.setup_calibration.calibrate_setup_from_images`), calibrates camera and pattern in several
-variants (the seed's per-view thin-lens b; shared b; with and without the
+variants (the thesis's per-view thin-lens b; shared b; with and without the
 centroid-bias correction), and compares OpenCV's solvePnP on the same detected centroids.
 Run: ``PYTHONPATH=. python benchmarks/calibration_setup.py [--spp 64]``.
 """

@@ -1,4 +1,4 @@
-"""Accuracy of the centroid search against the viewing angle (seed §2.8.2), raw and bias-corrected.
+"""Accuracy of the centroid search against the viewing angle (thesis §2.8.2), raw and bias-corrected.
 
 The camera stays d = 233.24 mm from the centre of the calibration target of the §2.8.1 presets
 (11 x 9 markers, 4 mm pitch, r = 1 mm) and looks at it from alpha = 90° (perpendicular) down to
@@ -16,7 +16,7 @@ peaks, ``--captures`` noisy frames per angle give the centroid scatter, printed 
 Cramér-Rao bound of the same spots (Poisson shot noise + dark noise + quantisation, from the
 noise-free render's pixel values and their gradient).
 
-Target: corrected RMS <= 0.01 px at every angle, noise-free; the seed reports 1/40-1/20 px.
+Target: corrected RMS <= 0.01 px at every angle, noise-free; the thesis reports 1/40-1/20 px.
 
 Usage::
 

@@ -1,8 +1,8 @@
-"""Benchmark: the four-channel unit (seed ch. 5) - analyses, full-frame spectral renders, Siemens-star tables.
+"""Benchmark: the four-channel unit (thesis ch. 5) - analyses, full-frame spectral renders, Siemens-star tables.
 
 Run: PYTHONPATH=. python benchmarks/cmu_channels.py [--spp 16] [--out /tmp/cmu]
-Prints ours beside the seed (§5.1.2, Tables 5.1-5.4), render times and the 4x4 crosstalk, and a sensitivity of
-the 45° spot to the two readings the seed leaves open (the bow's range definition, the beam diameter).
+Prints ours beside the thesis (§5.1.2, Tables 5.1-5.4), render times and the 4x4 crosstalk, and a sensitivity of
+the 45° spot to the two readings the thesis leaves open (the bow's range definition, the beam diameter).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 parallel efficiency rate(2) / (2 rate(1)).
 
 Uses the first example config (``examples/datasets/01-deflectometry-small.toml``: the §1.10 setup at half the
-seed's sensor resolution, noise on) unless ``--config`` names another. Each worker is warmed up first (imports,
+thesis's sensor resolution, noise on) unless ``--config`` names another. Each worker is warmed up first (imports,
 Dr.Jit kernel compilation) on a throw-away sample, so the figures are steady-state rates; the cluster start-up time
 is printed separately. Target: efficiency >= 85 %.
 

@@ -1,10 +1,10 @@
 """Inverse rendering on strongly bent substrates, surface by surface (goal: <= 0.05 µm at 3 mm / 60 µm).
 
 For each seed of a surface family (default: the §1.9 Gaussian family at 3 mm correlation and 60 µm range, where the
-markers' spots are distorted 3-5x and the seed's flood indexing stopped on some surfaces), the §1.10 measurement
+markers' spots are distorted 3-5x and the thesis's flood indexing stopped on some surfaces), the §1.10 measurement
 is rendered with Mitsuba, with and without the EMVA 1288 sensor model, reconstructed by the centroid method and by
 inverse rendering from it (``sim.studies.inverse.inverse_task``, the task of ``scopetwin study inverse``, without
-its bounds). Printed per image: which indexing numbered the markers (the flood of seed §1.5.4 or the topological
+its bounds). Printed per image: which indexing numbered the markers (the flood of thesis §1.5.4 or the topological
 ``index_lattice``) and how many, the shape error of both methods (std of the ROI error), the same with the error's
 best-fit plane removed (the tilt that an absolute-height error forces on every method), the absolute error, the
 inverse fit's shape uncertainty and its seconds; then how many images meet 0.05 µm.

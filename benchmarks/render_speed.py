@@ -1,6 +1,6 @@
 """Render speed of the §1.10 deflectometry frame: Mitsuba vs the float64 numpy analytic renderer.
 
-Renders the seed's §1.10 setup (1360 x 1024 px, 33 x 33 markers, 25.2 x 57 mm substrate)
+Renders the thesis's §1.10 setup (1360 x 1024 px, 33 x 33 markers, 25.2 x 57 mm substrate)
 with a smooth 40 µm bow, warm (kernels compiled, scene loaded), and prints seconds per
 frame and camera rays per second at several spp; then times :func:`scopetwin.scenes.analytic.render`
 on a window of the image, extrapolates to a full frame per ray, and prints the ratio.

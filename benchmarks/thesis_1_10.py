@@ -1,18 +1,18 @@
-"""Seed §1.10 and §2.8.4 (Table 2.7) reproduced side by side, then the improved reconstruction.
+"""Thesis §1.10 and §2.8.4 (Table 2.7) reproduced side by side, then the improved reconstruction.
 
 Run: ``PYTHONPATH=. python benchmarks/thesis_1_10.py [--quick] [--no-render]``
 
 Surfaces: the §1.9 generator (white noise, Gaussian low-pass of standard deviation ``corr``, levelled
-so both frame-region maxima are 0, scaled to a 40 µm range). The seed does not give its cut-off; the
-"seed's kind" here is corr = 12 mm (the preset; one or two undulations over the 57 mm substrate, as in
+so both frame-region maxima are 0, scaled to a 40 µm range). The thesis does not give its cut-off; the
+"thesis's kind" here is corr = 12 mm (the preset; one or two undulations over the 57 mm substrate, as in
 Fig. 1.10), "rougher" is 6 mm, "smoother" 18 mm. Height distributions 1 and 2 of §1.10 are taken as
-seeds 1 and 2 of the 12 mm family (the seed's own surfaces are not available).
+seeds 1 and 2 of the 12 mm family (the thesis's own surfaces are not available).
 
 Marker images are exact (:mod:`scopetwin.sim.truth`: every marker centre traced through the true surface), so
 the figures measure the reconstruction alone; the last part renders with Mitsuba and detects the
 markers to show what the centroid-bias correction buys.
 
-Errors over the ROI: RMS and max as in the seed, split into the *absolute height* (ROI mean error,
+Errors over the ROI: RMS and max as in the thesis, split into the *absolute height* (ROI mean error,
 which rests on the start-height loop and the extrapolation into the frame regions) and the *shape*
 (RMS after removing the ROI mean, which rests on the gradients).
 """
@@ -41,7 +41,7 @@ from scopetwin.sim.truth import marker_truth  # noqa: E402
 SETUP = load_setup("thesis-1.10-deflectometry")
 SUB = Substrate2D.from_setup(SETUP)
 
-# Seed Tables 2.5 / 2.6: deviations of the calibrated camera and pattern from the ideal ones (§2.8.3).
+# Thesis Tables 2.5 / 2.6: deviations of the calibrated camera and pattern from the ideal ones (§2.8.3).
 CAMERA_DEV = {
     "origin": (4.383e-3, 3.979e-3, -1.598e-2),
     "t_x": (-1.704e-10, 1.536e-5, -1.024e-5),
@@ -58,7 +58,7 @@ PATTERN_DEV = {
 
 
 def seed_calibrated_setup():
-    """The §1.10 setup with the seed's calibration deviations (Tables 2.5, 2.6) added: §2.8.4's 'calibration data'."""
+    """The §1.10 setup with the thesis's calibration deviations (Tables 2.5, 2.6) added: §2.8.4's 'calibration data'."""
     cam = SETUP.camera
     pat = SETUP.pattern
     over = {

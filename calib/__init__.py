@@ -1,6 +1,6 @@
 """calib: from camera images to setup parameters — one-shot camera and setup calibration (no Mitsuba).
 
-Modules by the seed's sections:
+Modules by the thesis's sections:
 
 * :mod:`scopetwin.calib.oneshot` — one-shot camera calibration (chapter 2): ``linear`` (§2.4, the linear approximation,
   :func:`scopetwin.calib.oneshot.linear_approximation`), ``reprojection`` and ``refinement`` (§2.5, the non-linear

@@ -1,4 +1,4 @@
-"""Channel registration from images of a Siemens star in a square frame (seed §5.2.2, Tables 5.1-5.4).
+"""Channel registration from images of a Siemens star in a square frame (thesis §5.2.2, Tables 5.1-5.4).
 
 Works on any monochrome image (rendered or a camera frame; numpy/scipy/OpenCV only):
 
@@ -11,7 +11,7 @@ Works on any monochrome image (rendered or a camera frame; numpy/scipy/OpenCV on
 3. **Offset and tilt** of a channel relative to the reference (NIR) channel: difference of the frame centres
    (px, and µm at the image plane) and of the frame angles (Tables 5.3, 5.4). Tilt is counter-clockwise positive
    as the image is displayed (row 0 at the top).
-4. **Resolution** delta_x = pi r_min / N_spokes (seed §5.2.2): around the star centre the image is sampled on
+4. **Resolution** delta_x = pi r_min / N_spokes (thesis §5.2.2): around the star centre the image is sampled on
    circles; the modulation of the N-th angular harmonic (the spokes' fundamental), relative to its value in the
    outer part of the star, is followed inward; r_min is the radius where it first drops below ``threshold``
    (default 0.1, our reading of "the spokes are still separated"). Spurious resolution inside r_min is ignored.
@@ -178,7 +178,7 @@ def measure_channel(
     threshold: float = 0.1,
     step_px: float = 0.25,
 ) -> ChannelMeasurement:
-    """Frame, magnification and Siemens-star resolution of one image (seed §5.2.2).
+    """Frame, magnification and Siemens-star resolution of one image (thesis §5.2.2).
 
     Parameters
     ----------

@@ -1,6 +1,6 @@
-"""Calibration of the whole deflectometry setup (seed §2.7).
+"""Calibration of the whole deflectometry setup (thesis §2.7).
 
-Three steps, as in the seed:
+Three steps, as in the thesis:
 
 1. §2.7.1 — the camera against a calibration target lying on the holding frame: the
    target defines the global frame, so this gives the global camera.
@@ -12,7 +12,7 @@ Three steps, as in the seed:
    global camera of step 1, then mirrored into the real pattern (negate the z components,
    then T_y as a whole, Fig. 2.8).
 
-Better than the seed: the camera is the same in both images, so by default the second
+Better than the thesis: the camera is the same in both images, so by default the second
 calibration keeps the first one's image distance b (and distortion, if refined) instead of
 deriving b anew from the thin-lens equation. This matters because the pattern is seen
 nearly face-on in the mirror, where b cannot be told from the distance.
@@ -61,13 +61,13 @@ BiasModel = Callable[[Camera], Array]
 
 
 def virtual_coordinates(pattern: MarkerPattern, ij: ArrayLike) -> Array:
-    """Local coordinates (x, -y) of markers ``ij`` on the virtual (mirrored) pattern, mm (seed §2.7.2)."""
+    """Local coordinates (x, -y) of markers ``ij`` on the virtual (mirrored) pattern, mm (thesis §2.7.2)."""
     xy = pattern.centers_local(np.asarray(ij))
     return xy * np.array([1.0, -1.0])
 
 
 def pattern_in_camera(camera_in_pattern: Frame) -> Frame:
-    """The pattern's frame expressed in the camera's frame (seed §2.7.2, first transformation).
+    """The pattern's frame expressed in the camera's frame (thesis §2.7.2, first transformation).
 
     ``camera_in_pattern`` is the camera frame (r_c, T_x, T_y, N_z) in pattern coordinates;
     the pattern origin in camera coordinates is (-r.T_x, -r.T_y, -r.N_z) and its axes are the
@@ -94,7 +94,7 @@ def compose(outer: Frame, inner: Frame) -> Frame:
 
 
 def real_pattern(camera_global: Frame, camera_in_virtual: Frame) -> tuple[Frame, Frame]:
-    """Virtual and real pattern in the global frame (seed §2.7.2, transfer and mirror).
+    """Virtual and real pattern in the global frame (thesis §2.7.2, transfer and mirror).
 
     Parameters
     ----------
@@ -110,7 +110,7 @@ def real_pattern(camera_global: Frame, camera_in_virtual: Frame) -> tuple[Frame,
 # -- the whole calibration ---------------------------------------------------------------------
 @dataclass(frozen=True)
 class SetupCalibration:
-    """Camera and pattern of the deflectometry setup in one global frame (seed §2.7).
+    """Camera and pattern of the deflectometry setup in one global frame (thesis §2.7).
 
     Attributes
     ----------
@@ -170,7 +170,7 @@ def calibrate_setup(
     substrate_bias: BiasModel | None = None,
     mirror_bias: BiasModel | None = None,
 ) -> SetupCalibration:
-    """Calibrate camera and pattern of the deflectometry setup from the two calibration images (seed §2.7).
+    """Calibrate camera and pattern of the deflectometry setup from the two calibration images (thesis §2.7).
 
     Parameters
     ----------
@@ -189,7 +189,7 @@ def calibrate_setup(
         As in :func:`scopetwin.calib.oneshot.calibrate` for the substrate view.
     share_intrinsics : bool
         Keep b (and r_cs, c0, c2) of the substrate view for the mirror view (default). False:
-        the seed's way, each view with its own thin-lens b.
+        the thesis's way, each view with its own thin-lens b.
     substrate_bias, mirror_bias : callable, optional
         Centroid-bias models (``camera -> (n, 2) px``, camera in the view's target coordinates);
         given, each view alternates calibration and bias correction
@@ -317,8 +317,8 @@ def _pose_std(sigma: dict[str, Any]) -> tuple[float, float]:
 def pose_uncertainties(result: SetupCalibration) -> dict[str, Any] | None:
     """The ``[calibration]`` table of a calibrated setup: standard deviations of the camera and pattern poses.
 
-    The camera's are the substrate view's (seed §2.7.1: camera against the target on the holding frame); the
-    pattern is placed through both views (its mirror image against the camera, seed §2.7.2), so its standard
+    The camera's are the substrate view's (thesis §2.7.1: camera against the target on the holding frame); the
+    pattern is placed through both views (its mirror image against the camera, thesis §2.7.2), so its standard
     deviations are those of the two calibrations in quadrature (first order). Components of the unit axes stand for
     the rotation angles (small angles). None where a calibration left one undetermined (infinite).
     """
@@ -359,7 +359,7 @@ def write_setup_toml(path: str | Path, nominal: Setup, result: SetupCalibration)
 # -- from the two calibration images ------------------------------------------------------------
 @dataclass(frozen=True)
 class CalibrationView:
-    """One calibration image as it entered the calibration (seed §2.7.1 or §2.7.2).
+    """One calibration image as it entered the calibration (thesis §2.7.1 or §2.7.2).
 
     Attributes
     ----------
@@ -383,7 +383,7 @@ class CalibrationView:
 
 @dataclass(frozen=True)
 class CalibratedSetup:
-    """The deflectometry setup calibrated from the two calibration images (seed §2.7).
+    """The deflectometry setup calibrated from the two calibration images (thesis §2.7).
 
     Attributes
     ----------
@@ -474,7 +474,7 @@ def calibrate_setup_from_images(
     comment: str = "deflectometry setup calibrated as in seed §2.7",
     image_names: tuple[str, str] = ("target image", "mirror image"),
 ) -> CalibratedSetup:
-    """Calibrate the deflectometry setup from its two calibration images, seed §2.7 (§2.8.3 on renders).
+    """Calibrate the deflectometry setup from its two calibration images, thesis §2.7 (§2.8.3 on renders).
 
     The target on the holding frame gives the global camera (§2.7.1; the target setup places the target in the
     global frame), the pattern seen in a flat mirror on the frame gives the pattern through its virtual image

@@ -1,14 +1,14 @@
 """Acquisition routines that take a rig and never ask which world is behind it.
 
 * :func:`deflectometry_capture` — pattern light on, exposure chosen for ~70 % of
-  the ADC range (seed §1.11: a well-exposed, unsaturated marker image), one frame.
+  the ADC range (thesis §1.11: a well-exposed, unsaturated marker image), one frame.
 * :func:`two_position_capture` — the deflectometry frame with the pattern at two positions along its normal, moved
-  by a stage (seed §1.3: the second image resolves the height-normal ambiguity), the same exposure for both.
-* :func:`calibration_capture` — frames of a calibration target (seed §2.2) at a chosen exposure.
+  by a stage (thesis §1.3: the second image resolves the height-normal ambiguity), the same exposure for both.
+* :func:`calibration_capture` — frames of a calibration target (thesis §2.2) at a chosen exposure.
 * :func:`simultaneous_capture` — the four channels exposed together on the
-  global trigger, each light on for exactly its camera's exposure (seed §4.3.2).
+  global trigger, each light on for exactly its camera's exposure (thesis §4.3.2).
 * :func:`tile_scan` — a stage grid, the focus set from a focus map at every tile
-  (no focus search, seed §1.1 / §6), each frame written as it arrives.
+  (no focus search, thesis §1.1 / §6), each frame written as it arrives.
 
 Every frame is written atomically (OpenEXR via :func:`scopetwin.scenes.io.write_image`)
 the moment it is grabbed, with a ``manifest.json`` rewritten atomically after
@@ -266,7 +266,7 @@ def two_position_capture(
     exposure_s: float | None = None,
     target_fraction: float = 0.7,
 ) -> tuple[list[Path], list[float]]:
-    """The deflectometry frame at the pattern stage's position and ``shift_mm`` further (seed §1.3), one exposure.
+    """The deflectometry frame at the pattern stage's position and ``shift_mm`` further (thesis §1.3), one exposure.
 
     Pattern light on, exposure chosen at the first position (or ``exposure_s``), frame ``deflectometry_1``; the
     stage moved by ``shift_mm`` (checked against its travel before anything is switched on), frame
@@ -379,7 +379,7 @@ def simultaneous_capture(
     exposure_s : float
         Exposure of every camera; each light is on for exactly this long.
     delay_s : float
-        Global trigger delay of cameras and lights (fine adjustment of synchrony, seed §4.3.2).
+        Global trigger delay of cameras and lights (fine adjustment of synchrony, thesis §4.3.2).
     """
     board = rig.trigger(trigger)
     cams = {c: rig.camera(c) for c in channels}

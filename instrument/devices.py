@@ -1,4 +1,4 @@
-"""Device protocols of the microscope's control surface (seed §4.3.2).
+"""Device protocols of the microscope's control surface (thesis §4.3.2).
 
 One abstract class per kind of device: :class:`CameraDevice`, :class:`Stage`,
 :class:`FocusDrive`, :class:`LightSource`, :class:`Shutter` and
@@ -181,7 +181,7 @@ class Device:
 
 # --------------------------------------------------------------------------------------------
 class Stage(Device):
-    """One linear axis of a lateral stage (seed §4.2.2: PI M-404.6PD, M-414.3PD on C-863).
+    """One linear axis of a lateral stage (thesis §4.2.2: PI M-404.6PD, M-414.3PD on C-863).
 
     Parameters
     ----------
@@ -228,7 +228,7 @@ class Stage(Device):
 
     @property
     def position_mm(self) -> float:
-        """Current position in mm (seed §4.3.2 'Information: Position')."""
+        """Current position in mm (thesis §4.3.2 'Information: Position')."""
         self._require()
         return self._read_position()
 
@@ -313,7 +313,7 @@ class Stage(Device):
 
 # --------------------------------------------------------------------------------------------
 class FocusDrive(Device):
-    """Objective positioner (seed §4.2.3: piezosystem jena MIPOS500, 0-400 µm closed loop).
+    """Objective positioner (thesis §4.2.3: piezosystem jena MIPOS500, 0-400 µm closed loop).
 
     Parameters
     ----------
@@ -399,7 +399,7 @@ class FocusDrive(Device):
 # --------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class LightConfig:
-    """Settings of one light source (seed §4.3.2 'Light sources', Table 4.2 fields).
+    """Settings of one light source (thesis §4.3.2 'Light sources', Table 4.2 fields).
 
     Attributes
     ----------
@@ -426,7 +426,7 @@ MAX_TIMER_S = (2**32 - 1) * 1e-6  # 32-bit µs counters of Table 4.2
 
 
 class LightSource(Device):
-    """A current-controlled LED or a shuttered halogen source (seed §4.1.1, §4.3.2).
+    """A current-controlled LED or a shuttered halogen source (thesis §4.1.1, §4.3.2).
 
     Parameters
     ----------
@@ -538,7 +538,7 @@ class LightSource(Device):
 
 # --------------------------------------------------------------------------------------------
 class Shutter(Device):
-    """Mechanical shutter of the halogen source (seed §4.1.1, driven by two TTL outputs, §4.3.1)."""
+    """Mechanical shutter of the halogen source (thesis §4.1.1, driven by two TTL outputs, §4.3.1)."""
 
     kind = "shutter"
     _maybe_open = False  # told to open and not acknowledged closed since
@@ -582,14 +582,14 @@ class Shutter(Device):
 
 # --------------------------------------------------------------------------------------------
 class TriggerController(Device):
-    """Global trigger and camera trigger lines of the FPGA board (seed §4.3.1, 'Global Trigger').
+    """Global trigger and camera trigger lines of the FPGA board (thesis §4.3.1, 'Global Trigger').
 
     Parameters
     ----------
     name : str
         Device name in the rig.
     n_camera_lines : int
-        Number of camera trigger outputs (four D-Sub connectors on the seed's board).
+        Number of camera trigger outputs (four D-Sub connectors on the thesis's board).
     """
 
     kind = "trigger"
@@ -646,16 +646,16 @@ class CameraLimits:
     Attributes
     ----------
     sensor_shape : tuple of int
-        ``(rows, cols)`` of the full sensor (1040 x 1392 for the scA1400-30gm, seed §4.1.4).
+        ``(rows, cols)`` of the full sensor (1040 x 1392 for the scA1400-30gm, thesis §4.1.4).
     pixel_size_um : float
         Pixel pitch in µm (6.45 for the ICX285AL).
     magnification : float
-        Magnification of the optics in front of the sensor (10 for the seed's 10x objective with its
+        Magnification of the optics in front of the sensor (10 for the thesis's 10x objective with its
         tube lens, §4.1.2): an image pixel covers ``pixel_size_um / magnification`` of the sample.
     exposure_s, gain_db, black_level_dn, fps : Range
         Allowed settings.
     bit_depths : tuple of int
-        ADC depths the camera can deliver (12 bit for the seed's camera).
+        ADC depths the camera can deliver (12 bit for the thesis's camera).
     binnings : tuple of int
         Allowed (square) binning factors.
     """
@@ -691,7 +691,7 @@ class Roi:
 
 
 class CameraDevice(Device):
-    """A monochrome camera device (seed §4.1.4, control surface of §4.3.2 'Cameras').
+    """A monochrome camera device (thesis §4.1.4, control surface of §4.3.2 'Cameras').
 
     The device that delivers frames; not to be confused with :class:`scopetwin.scenes.camera.Camera`, the
     thesis's pinhole camera *model* (§1.6.2) that calibration estimates.
@@ -868,7 +868,7 @@ class CameraDevice(Device):
     def set_trigger(
         self, trigger_type: TriggerType, trigger_mode: TriggerMode = TriggerMode.ONCE, delay_s: float = 0.0
     ) -> None:
-        """Choose what starts an exposure; ``delay_s`` is the global trigger delay (seed §4.3.2)."""
+        """Choose what starts an exposure; ``delay_s`` is the global trigger delay (thesis §4.3.2)."""
         if not isinstance(trigger_type, TriggerType) or not isinstance(trigger_mode, TriggerMode):
             raise OutOfRangeError(f"camera {self.name!r}: trigger must be a TriggerType and a TriggerMode")
         if trigger_mode is TriggerMode.BULB and trigger_type is TriggerType.SOFTWARE:

@@ -1,6 +1,6 @@
 """recon: from camera images to surfaces — markers, gradients, heights, focus maps (no Mitsuba).
 
-Modules by the seed's sections:
+Modules by the thesis's sections:
 
 * :mod:`scopetwin.recon.markers` — marker identification (§1.5, §2.6): ``centroid_search`` (§1.5.1), ``filtering``
   (§1.5.2),

@@ -1,6 +1,6 @@
 """Centroid bias: where a marker's spot centroid lies relative to the image of the marker's centre.
 
-A marker is a round spot on the pattern (grey value g = 1 - r/r_m, seed §1.6.3). Its image is the
+A marker is a round spot on the pattern (grey value g = 1 - r/r_m, thesis §1.6.3). Its image is the
 disk mapped through the optics: perspective on a tilted target (§2.8.2) and reflection in the bent
 substrate (§1.6.5) bend that map, so the grey-weighted centroid of the spot (§1.5.1) is not the
 image of the marker's centre. The difference — the bias — reaches 0.05-0.1 px on a calibration
@@ -45,7 +45,7 @@ Two evaluations of the one model
   calibration (:func:`scopetwin.calib.oneshot.calibrate_bias_corrected`).
 
 With threshold 0 both predict the whole-spot first moment; they differ by the pixel sampling of the
-second (its midpoint rule over the cone's kinks): on the seed's calibration presets (§2.8.1-§2.9.1,
+second (its midpoint rule over the cone's kinks): on the thesis's calibration presets (§2.8.1-§2.9.1,
 all markers in view) by 4e-5 px RMS face-on and 1e-4 to 2e-4 px RMS (at most 4.4e-4 px) on the oblique
 views, where the bias itself is 0.03-0.07 px RMS. Both are kept, each where it was used, so that the
 figures of ``scopetwin run`` and ``scopetwin study thesis`` do not change.
@@ -89,7 +89,7 @@ class Model(Protocol):
 
 @dataclass(frozen=True)
 class PlaneTarget:
-    """Camera looking directly at a plane target (a calibration pattern, seed §2.2, §2.8)."""
+    """Camera looking directly at a plane target (a calibration pattern, thesis §2.2, §2.8)."""
 
     camera: Camera
     pattern: MarkerPattern
@@ -400,7 +400,7 @@ def _window_groups(lo: NDArray, hi: NDArray, s: int, chunk: int) -> list[NDArray
 def _target_hits(camera: Camera, px: Array) -> tuple[Array, NDArray[np.bool_]]:
     """:func:`plane_hits` of the target plane z = 0 (the target's own coordinates) for the pinhole rays through
     pixels ``px`` (n, 2), without forming the rays: with d = -b N_z + u T_x + v T_y (the undistorted sensor point,
-    seed §1.6.2) and the centre c, the hit is c + (-c_z / d_z) d (the same point as the unit ray's, to rounding);
+    thesis §1.6.2) and the centre c, the hit is c + (-c_z / d_z) d (the same point as the unit ray's, to rounding);
     it is reached where d_z < 0 and the hit lies ahead (c_z > 0)."""
     uv = camera.undistort(camera.pixel_to_sensor(px))
     f, c = camera.frame, camera.center
@@ -457,9 +457,9 @@ def spot_centroids(
     supersample: int = 4,
     chunk: int = 2_000_000,
 ) -> Array:
-    """Predicted centroids of fading round markers on the target plane z = 0 (seed §1.5.1, §1.6.3).
+    """Predicted centroids of fading round markers on the target plane z = 0 (thesis §1.5.1, §1.6.3).
 
-    Each marker (grey value g = 1 - r/r_m, seed §1.6.3) is imaged through ``camera`` (pinhole,
+    Each marker (grey value g = 1 - r/r_m, thesis §1.6.3) is imaged through ``camera`` (pinhole,
     distortion; rays meet the target as in :class:`PlaneTarget`, :func:`plane_hits`) into a pixel
     window; pixels integrate their area (``supersample``^2 stratified points, box filter); the
     centroid is then taken as :func:`scopetwin.recon.markers.centroids` takes it: pixels above ``threshold``

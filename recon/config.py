@@ -23,7 +23,7 @@ class ReconstructionConfig:
     basis : {"gauss", "imq"}
         Basis function (§1.8).
     counts : (int, int) or None
-        Centre grid (n_x, n_y) spanning the substrate (the seed's layout); None: a
+        Centre grid (n_x, n_y) spanning the substrate (the thesis's layout); None: a
         ``covering`` grid of spacing ``spacing*sigma`` overhanging by ``margin*sigma``.
     sigma : (float, float)
         Scales sigma_x, sigma_y, mm (a covering grid uses sigma_x).
@@ -34,7 +34,7 @@ class ReconstructionConfig:
     fit_ratio : float
         A candidate scale fits the data when its gradient residual on all markers is at most this many times the
         smallest candidate residual (:func:`select_sigma`; the finest candidate fits the noise too, so a basis
-        that follows the surface lies within ~2-3 times of it: 2.7-5.2 against 1.4 µrad on the seed's surfaces,
+        that follows the surface lies within ~2-3 times of it: 2.7-5.2 against 1.4 µrad on the thesis's surfaces,
         while a 12 mm basis on a 3 mm correlated glass leaves 240 times).
     tilt : bool
         Add the unpenalised plane terms x, y.
@@ -49,7 +49,7 @@ class ReconstructionConfig:
     search : {"secant", "thesis"}
         Start-height update (module docstring).
     warm_start : bool
-        Start each inner loop from the previous surface moved to the new H (the seed starts from a plane).
+        Start each inner loop from the previous surface moved to the new H (the thesis starts from a plane).
     grid_step, frame_step : float
         Spacing of the evaluation grids over the ROI and over the frame regions, mm.
     min_markers : int
@@ -119,7 +119,7 @@ class ReconstructionConfig:
 
     @classmethod
     def thesis(cls, literal_axes: bool = True, **changes: Any) -> ReconstructionConfig:
-        """The seed's §1.10 reconstruction: 9x5 inverse multiquadrics, sigma_x = 4, sigma_y = 3, Delta h_max, eq. 1.4.
+        """The thesis's §1.10 reconstruction: 9x5 inverse multiquadrics, sigma_x = 4, sigma_y = 3, Delta h_max, eq. 1.4.
 
         ``literal_axes``: 9 centres and sigma 4 along x (the 25.2 mm side) as printed; False swaps
         them onto the long side (9 centres and sigma 4 along y), which fits the substrate's aspect.

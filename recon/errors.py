@@ -1,4 +1,4 @@
-"""The errors a reconstruction reports to its user (seed §1.4); the strategy raises them only when every path failed.
+"""The errors a reconstruction reports to its user (thesis §1.4); the strategy raises them only when every path failed.
 
 Inside the reconstruction a failed step is a value (:class:`scopetwin.recon.reconstruct.LoopOutcome`), which the
 strategy (:mod:`scopetwin.recon.strategy`) acts on; these classes are what a caller sees, each naming the paths tried.

@@ -1,8 +1,8 @@
 """Focus maps: from the reconstructed substrate heights to piezo focus positions per stage position.
 
-This is why Part I exists (seed §1.1): the bent cover glass deforms by 50-100 times the
+This is why Part I exists (thesis §1.1): the bent cover glass deforms by 50-100 times the
 depth of field, so without a map the microscope must search the focus at every position.
-With the height map h(x, y) of the substrate (seed §1.4), every field of view of the
+With the height map h(x, y) of the substrate (thesis §1.4), every field of view of the
 microscope gets its focus position in advance: focus = reference + sign * (h(x, y) - h_ref).
 
 Depth of field and field of view come from the one model of the objective,

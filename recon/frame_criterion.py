@@ -1,17 +1,17 @@
-"""The frame criterion of the outer loop: is the reconstructed surface lying on the holding frame? (seed §1.4).
+"""The frame criterion of the outer loop: is the reconstructed surface lying on the holding frame? (thesis §1.4).
 
-The substrate's ends lie on a holding frame (seed Fig. 1.3). A surface reconstructed with a wrong start height
+The substrate's ends lie on a holding frame (thesis Fig. 1.3). A surface reconstructed with a wrong start height
 shows a characteristic tilt, visible in the maxima of the surface over the two frame regions, where there are no
 data and the surface is extrapolated. The outer loop of the nested iteration (:mod:`scopetwin.recon.reconstruct`)
 searches the start height at which this criterion vanishes:
 
-* ``"delta"`` — the seed's Delta h_max = max_region1 - max_region2 (eq. 1.3);
+* ``"delta"`` — the thesis's Delta h_max = max_region1 - max_region2 (eq. 1.3);
 * ``"level"`` — both maxima at the frame position: (max_1 + max_2)/2 - z_frame. The start height moves the ROI
   almost as a pure offset but Delta h_max only at about half that rate, so an extrapolation error in the frame
   regions costs roughly twice as much absolute height with ``"delta"`` as with ``"level"``.
 
-:func:`frame_distance` is the seed's d_min of eq. 1.4: the frame maximum closest to the frame position, with its
-sign; the seed's start-height update is H_{i+1} = H_i - d_min. :func:`next_start_height` is the one root search
+:func:`frame_distance` is the thesis's d_min of eq. 1.4: the frame maximum closest to the frame position, with its
+sign; the thesis's start-height update is H_{i+1} = H_i - d_min. :func:`next_start_height` is the one root search
 on the criterion both reconstruction methods use (a secant kept inside the bracket once the root is bracketed).
 """
 
@@ -23,14 +23,14 @@ FrameCriterion = Literal["level", "delta"]
 
 
 def frame_criterion(max_1: float, max_2: float, frame_z: float, criterion: FrameCriterion = "level") -> float:
-    """The frame criterion of a reconstructed surface (seed §1.4, eq. 1.3); zero on the correct surface.
+    """The frame criterion of a reconstructed surface (thesis §1.4, eq. 1.3); zero on the correct surface.
 
     Parameters
     ----------
     max_1, max_2 : float
         Maxima of the surface over frame region 1 (y < 0) and region 2 (y > 0), mm.
     frame_z : float
-        z-position of the holding frame, mm (from the calibration of the setup, seed §2.7).
+        z-position of the holding frame, mm (from the calibration of the setup, thesis §2.7).
     criterion : {"level", "delta"}
         ``"delta"``: Delta h_max = max_1 - max_2 (eq. 1.3); ``"level"``: (max_1 + max_2)/2 - frame_z
         (module docstring).
@@ -53,7 +53,7 @@ def frame_criterion(max_1: float, max_2: float, frame_z: float, criterion: Frame
 
 
 def frame_distance(max_1: float, max_2: float, frame_z: float) -> float:
-    """d_min of seed eq. 1.4: the distance of the frame maximum closest to the frame position, with its sign, mm.
+    """d_min of thesis eq. 1.4: the distance of the frame maximum closest to the frame position, with its sign, mm.
 
     Parameters
     ----------
@@ -72,7 +72,7 @@ def frame_distance(max_1: float, max_2: float, frame_z: float) -> float:
 
 
 def next_start_height(values: list[tuple[float, float]], fallback: float) -> float:
-    """Next start height of the root search on the criterion F(H) (seed §1.4, beyond eq. 1.4).
+    """Next start height of the root search on the criterion F(H) (thesis §1.4, beyond eq. 1.4).
 
     Secant through the last two evaluations; once a sign change is known, the step is kept inside the tightest
     bracket (bisection when the secant leaves it). ``fallback`` (the thesis step of eq. 1.4, H - d_min, or H - F)

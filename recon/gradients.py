@@ -1,6 +1,6 @@
-"""Surface normals from camera and pattern rays, and their conversion to gradients (seed §1.2, §1.7).
+"""Surface normals from camera and pattern rays, and their conversion to gradients (thesis §1.2, §1.7).
 
-The geometry of one marker (seed §1.7.1): the camera ray with unit direction
+The geometry of one marker (thesis §1.7.1): the camera ray with unit direction
 ``s_c`` meets the surface at ``r_i``; the marker centre on the pattern is ``r_p``;
 the reflected ray runs along ``s_p = (r_p - r_i)/|r_p - r_i|``. The law of
 reflection makes the normal the bisector ``N = (s_p - s_c)/|s_p - s_c|``
@@ -25,7 +25,7 @@ class GradientError(ScopetwinError, ValueError):
 
 
 def normals_from_rays(hit_points: ArrayLike, camera_dirs: ArrayLike, pattern_points: ArrayLike) -> Array:
-    """Unit surface normals from camera rays and the pattern points they see (seed §1.7.1).
+    """Unit surface normals from camera rays and the pattern points they see (thesis §1.7.1).
 
     Parameters
     ----------
@@ -63,14 +63,14 @@ def normals_from_rays(hit_points: ArrayLike, camera_dirs: ArrayLike, pattern_poi
 
 
 def gradients_from_normals(normals: ArrayLike, frame: Frame | None = None) -> tuple[Array, Array]:
-    """Height gradients (h_x, h_y) from unit normals: h_x = -N_x/N_z, h_y = -N_y/N_z (seed §1.7.3).
+    """Height gradients (h_x, h_y) from unit normals: h_x = -N_x/N_z, h_y = -N_y/N_z (thesis §1.7.3).
 
     Parameters
     ----------
     normals : array_like, (..., 3)
         Surface normals in global coordinates.
     frame : Frame, optional
-        The substrate's base plane (seed §1.6.4); normals are rotated into it first.
+        The substrate's base plane (thesis §1.6.4); normals are rotated into it first.
         Default: the global frame (the substrate plane by definition, §1.10).
 
     Raises
@@ -88,7 +88,7 @@ def gradients_from_normals(normals: ArrayLike, frame: Frame | None = None) -> tu
 
 
 def normals_from_gradients(hx: ArrayLike, hy: ArrayLike, frame: Frame | None = None) -> Array:
-    """Unit normals N = (-h_x, -h_y, 1)/sqrt(h_x^2 + h_y^2 + 1) (seed §1.7.2), in global coordinates."""
+    """Unit normals N = (-h_x, -h_y, 1)/sqrt(h_x^2 + h_y^2 + 1) (thesis §1.7.2), in global coordinates."""
     gx = np.asarray(hx, dtype=np.float64)
     gy = np.asarray(hy, dtype=np.float64)
     n = normalize(np.stack([-gx, -gy, np.ones_like(gx + gy)], axis=-1))
@@ -98,7 +98,7 @@ def normals_from_gradients(hx: ArrayLike, hy: ArrayLike, frame: Frame | None = N
 def marker_gradients(
     hit_points: ArrayLike, camera_dirs: ArrayLike, pattern_points: ArrayLike, frame: Frame | None = None
 ) -> tuple[Array, Array, Array]:
-    """Base-plane position and gradients of each marker observation (seed §1.7.1 then §1.7.3).
+    """Base-plane position and gradients of each marker observation (thesis §1.7.1 then §1.7.3).
 
     Returns
     -------

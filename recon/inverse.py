@@ -1,9 +1,9 @@
 """Inverse rendering: the substrate's surface fitted to the whole image through a differentiable render.
 
-The centroid method (:mod:`scopetwin.recon.reconstruct`, seed §1.4-§1.8) needs every marker's image to be a compact spot
-whose centroid follows the image of its centre. Here instead the image itself is the data: the surface (a
+The centroid method (:mod:`scopetwin.recon.reconstruct`, thesis §1.4-§1.8) needs every marker's image to be a compact
+spot whose centroid follows the image of its centre. Here instead the image itself is the data: the surface (a
 uniform cubic B-spline over the base plane, fine enough for 3 mm correlation lengths) is fitted so that a render
-of the measurement — the seed's ray model of §1.6 written in Dr.Jit
+of the measurement — the thesis's ray model of §1.6 written in Dr.Jit
 (:mod:`scopetwin.scenes.mitsuba.deflectometry_ad`) — matches the camera image pixel by pixel, partial markers included.
 
 Loss (Gauss-Newton / Levenberg-Marquardt on the coefficients c)::
@@ -27,7 +27,7 @@ chosen from the data by :func:`scopetwin.recon.scale.select_sigma`): the prior t
 surface, fitted now to every pixel instead of to the markers' centroids. The free spline (every coefficient,
 thin-plate prior) is used from a plane start and where the height is searched.
 
-The absolute height is decided by the frame criterion (seed §1.4, eqs. 1.3-1.4,
+The absolute height is decided by the frame criterion (thesis §1.4, eqs. 1.3-1.4,
 :mod:`scopetwin.recon.frame_criterion`): the fit is constrained to a mean ROI height H; from a centroid start H is
 the centroid method's (found by the frame criterion on its Gaussian-process surface, the better extrapolation into
 the frame regions), and with ``absolute="frame"`` or from a plane H is searched (secant) until the fitted surface's
@@ -141,7 +141,7 @@ class InverseConfig:
     tol_um : float
         A level stops when the RMS coefficient step falls below this, µm.
     criterion : {"level", "delta"}
-        Frame criterion of the start-height search (seed §1.4).
+        Frame criterion of the start-height search (thesis §1.4).
     outer_max : int
         Largest number of start heights tried.
     outer_tol_um : float
@@ -802,7 +802,7 @@ class InverseReconstructor:
         """The start height's uncertainty carried into the shape, µm (RMS over the ROI).
 
         The rays are traced through a surface at the start height H, so an error of H tilts and bends the fitted
-        shape (seed §1.4; the centroid method's
+        shape (thesis §1.4; the centroid method's
         :meth:`scopetwin.recon.reconstruct.Reconstructor._start_height_sensitivity`). The fit's response dc/dH at
         its solution is that of its Gauss-Newton normal equations to the held mean ROI height, the photometric gain
         and offset (alpha, beta) answering with the coefficients: the KKT system
@@ -903,7 +903,7 @@ class InverseReconstructor:
         coefficients c = c_mean + X w have the information I + X^T F X in w; the bound is sqrt(tr(S C S^T) / m)
         with C its inverse and S the shape (mean removed; ``untilted``: best-fit plane removed) of the columns of
         X at the m ROI points. The mean ROI height is known in it (the prior conditioned on it, as the fit holds
-        it): without the frame criterion the pixels leave height and tilt nearly interchangeable (seed §1.4), and
+        it): without the frame criterion the pixels leave height and tilt nearly interchangeable (thesis §1.4), and
         a bound given more information still bounds every estimator, the centroid method's included, on the
         Bayesian mean-square error over the family (F taken at this surface instead of averaged over it).
         """
@@ -922,7 +922,7 @@ class InverseReconstructor:
         return _shape_rms_um(s_mat, np.linalg.inv(info))
 
     def frame_maxima(self, surf: SplineSurface) -> tuple[float, float]:
-        """Maxima of the surface over frame region 1 and 2, mm (seed eq. 1.3)."""
+        """Maxima of the surface over frame region 1 and 2, mm (thesis eq. 1.3)."""
         (ax, ay), (bx, by) = self._frame_pts
         return float(np.max(surf.height(ax, ay))), float(np.max(surf.height(bx, by)))
 
@@ -971,7 +971,7 @@ class InverseReconstructor:
     def _height_search(
         self, fine: _Level, surf: SplineSurface, h: float, index: int, search: bool
     ) -> tuple[SplineSurface, _HeightSearch]:
-        """The start-height search on the finest level (secant on the frame criterion, seed §1.4).
+        """The start-height search on the finest level (secant on the frame criterion, thesis §1.4).
 
         ``surf``: the fit at the first start height ``h``; without ``search`` only its criterion is evaluated.
         """
@@ -1052,7 +1052,7 @@ def pose_sigma_for(
     """The prior standard deviations of ``--refine-setup`` (:class:`InverseConfig` ``pose_sigma``) for a setup.
 
     A setup written by ``calibrate-setup`` carries its calibration's uncertainties (``[calibration]``: camera and
-    pattern, shift mm and rotation rad, seed §2.7); other setups get ``default`` (that of :class:`InverseConfig`).
+    pattern, shift mm and rotation rad, thesis §2.7); other setups get ``default`` (that of :class:`InverseConfig`).
     """
     cal = setup.calibration
     if cal is None:

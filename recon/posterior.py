@@ -1,6 +1,6 @@
 """The Bayesian reading of the gradient fit: a Gaussian-process prior, its evidence, and the posterior of the heights.
 
-The shifted-basis fit of seed §1.8 with a Gaussian basis and ridge damping is the posterior mean of a Gaussian
+The shifted-basis fit of thesis §1.8 with a Gaussian basis and ridge damping is the posterior mean of a Gaussian
 process (:mod:`scopetwin.recon.shifted_basis`). Read that way explicitly, the same gradient data give:
 
 * the **evidence** (marginal likelihood) of a prior, so its scales and amplitudes are chosen by the data instead of
@@ -9,7 +9,7 @@ process (:mod:`scopetwin.recon.shifted_basis`). Read that way explicitly, the sa
   exponential (SE) components — the smooth bow (long correlation) and the nm-level short-wavelength part real
   glass has (docs/rendering.md, "Absolute height") — plus unpenalised tilt terms;
 * the **posterior** of any linear functional of the heights, and by sampling of the frame criterion itself: the
-  start height of seed §1.4 rests on the surface's maxima over the frame regions, 1-6 mm beyond the last marker,
+  start height of thesis §1.4 rests on the surface's maxima over the frame regions, 1-6 mm beyond the last marker,
   where the posterior variance (chiefly the broadband part's, which no data constrain there) dominates the error.
 
 Gradient observations g = (f_x, f_y)(r_i) + noise. For k(d) = a^2 exp(-|d|^2 / (2 l^2)), d = r - r':
@@ -32,7 +32,7 @@ from scipy.optimize import minimize
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.geometry import Array
 
-#: Tilt prior standard deviation (rad): wide enough to be unpenalised for any substrate of the seed's kind.
+#: Tilt prior standard deviation (rad): wide enough to be unpenalised for any substrate of the thesis's kind.
 TILT_STD = 1e-2
 #: Floor of the gradient noise standard deviation (rad), keeping the kernel matrix well conditioned.
 NOISE_FLOOR = 2e-8
@@ -456,7 +456,7 @@ def frame_posterior(
     samples: int = 600,
     seed: int = 0,
 ) -> FramePosterior:
-    """The posterior of D (frame maxima relative to the ROI mean) and of the height contrasts (seed §1.4).
+    """The posterior of D (frame maxima relative to the ROI mean) and of the height contrasts (thesis §1.4).
 
     Parameters
     ----------

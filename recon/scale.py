@@ -1,4 +1,4 @@
-"""The basis scale chosen from the data (beyond the seed's fixed §1.8 scales): among the scales that fit, the one
+"""The basis scale chosen from the data (beyond the thesis's fixed §1.8 scales): among the scales that fit, the one
 that best extrapolates towards the holding frame (§1.4)."""
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ def select_sigma(
     glass — leaves hundreds of µrad and would otherwise win by extrapolating smoothly). Among those, for each end
     of the data along y the markers within ``config.holdout_band`` mm of the data's edge are held out, the basis
     is fitted to the rest, and the RMS gradient error on the held-out band is measured: the same extrapolation the
-    frame criterion relies on (seed §1.4). The scale with the smallest RMS over both ends wins. Returns
+    frame criterion relies on (thesis §1.4). The scale with the smallest RMS over both ends wins. Returns
     (sigma, {sigma: held-out score in µrad}, {sigma: residual of the fit to all gradients in µrad}).
     """
     scores: dict[float, float] = {}

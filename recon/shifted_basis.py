@@ -1,9 +1,9 @@
-"""Height reconstruction from gradient data with shifted basis functions (seed §1.8, [Brenner 2008]).
+"""Height reconstruction from gradient data with shifted basis functions (thesis §1.8, [Brenner 2008]).
 
 The height model is f(r) = sum_k c_k Psi(r - r_k, sigma) over B centres r_k; its
 gradient is f_j(r) = sum_k c_k Psi_j(r - r_k, sigma). Given gradient samples
 (r_i, y_i) the coefficients minimise Phi(c) = sum_i |f'(r_i) - y_i|^2 (§1.8).
-Instead of the normal equations M c = V printed in the seed, the stacked design
+Instead of the normal equations M c = V printed in the thesis, the stacked design
 matrix [Psi_x; Psi_y] is solved by least squares (same minimiser, the condition
 number is not squared); the normal equations are available for speed.
 Heights are then evaluated without explicit integration; the constant of
@@ -14,7 +14,7 @@ Basis functions (``q = (x/sigma_x)^2 + (y/sigma_y)^2``):
 * ``"imq"`` — the inverse multiquadric of §1.8, Psi = 1/sqrt(1 + q);
 * ``"gauss"`` — a Gaussian, Psi = exp(-q/2) (sigma is its standard deviation).
 
-Options beyond the seed:
+Options beyond the thesis:
 
 * ``tilt`` — two extra, unpenalised terms x and y (a plane), so that a tilt costs no
   coefficient energy;
@@ -48,7 +48,7 @@ class BasisError(ScopetwinError, ValueError):
 
 @dataclass(frozen=True)
 class ShiftedBasis:
-    """B shifted copies of one basis function, plus an optional plane (seed §1.8).
+    """B shifted copies of one basis function, plus an optional plane (thesis §1.8).
 
     Parameters
     ----------
@@ -57,7 +57,7 @@ class ShiftedBasis:
     sigma : (float, float)
         Scales (sigma_x, sigma_y), mm.
     kind : {"imq", "gauss"}
-        Inverse multiquadric (seed §1.8) or Gaussian.
+        Inverse multiquadric (thesis §1.8) or Gaussian.
     tilt : bool
         Append the unpenalised terms x and y.
     """
@@ -93,7 +93,7 @@ class ShiftedBasis:
         kind: BasisKind = "imq",
         tilt: bool = False,
     ) -> ShiftedBasis:
-        """Centres on a Cartesian grid of counts (n_x, n_y) spanning the ranges inclusive (seed §1.8)."""
+        """Centres on a Cartesian grid of counts (n_x, n_y) spanning the ranges inclusive (thesis §1.8)."""
         nx, ny = (int(n) for n in counts)
         if nx < 1 or ny < 1:
             raise BasisError(f"basis grid counts must be >= 1, got {counts}")
@@ -209,7 +209,7 @@ class ShiftedBasis:
         return self._with_plane(psi, xa, ya, None)
 
     def derivatives(self, x: ArrayLike, y: ArrayLike) -> tuple[Array, Array]:
-        """Design matrices of the gradient, (M, n_terms) each: Psi_x and Psi_y (seed §1.8)."""
+        """Design matrices of the gradient, (M, n_terms) each: Psi_x and Psi_y (thesis §1.8)."""
         xa = np.asarray(x, dtype=np.float64).ravel()
         ya = np.asarray(y, dtype=np.float64).ravel()
         sx, sy = self.sigma
@@ -226,7 +226,7 @@ class ShiftedBasis:
 
 @dataclass(frozen=True)
 class SBFSurface:
-    """A height function f(r) = sum_k c_k Psi(r - r_k) + offset (seed §1.8, bias B of eq. 1.5), plus an optional
+    """A height function f(r) = sum_k c_k Psi(r - r_k) + offset (thesis §1.8, bias B of eq. 1.5), plus an optional
     ``correction`` (an object with ``height(x, y)`` and ``gradient(x, y)``: the posterior mean of what the basis
     missed, :class:`scopetwin.recon.posterior.ResidualCorrection`) that the nested iteration never sees."""
 
@@ -349,7 +349,7 @@ def fit_gradients(
     weights: ArrayLike | None = None,
     method: Literal["lstsq", "normal"] = "lstsq",
 ) -> tuple[Array, float]:
-    """Least-squares coefficients of the gradient model f_j(r) = sum_k c_k Psi_j(r - r_k) (seed §1.8).
+    """Least-squares coefficients of the gradient model f_j(r) = sum_k c_k Psi_j(r - r_k) (thesis §1.8).
 
     Parameters
     ----------

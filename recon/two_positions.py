@@ -1,15 +1,15 @@
-"""Two pattern positions: the absolute height from a second image with the pattern moved along its normal (seed §1.3).
+"""Two pattern positions: the absolute height from a second image with the pattern moved along its normal (thesis §1.3).
 
-One image leaves the height-normal ambiguity of seed §1.3: for any start height the nested iteration of §1.4 finds a
-self-consistent surface, and the seed picks one with the holding frame (§1.4, eqs. 1.3-1.4), extrapolating the
+One image leaves the height-normal ambiguity of thesis §1.3: for any start height the nested iteration of §1.4 finds a
+self-consistent surface, and the thesis picks one with the holding frame (§1.4, eqs. 1.3-1.4), extrapolating the
 surface 1-4.5 mm under the frame. A second image with the pattern moved by a known distance along its normal N_z
 (:mod:`scopetwin.scenes.pattern_stage`) measures the height directly: a wrong start height biases the traced
 gradients of a marker by an amount that depends on the pattern's distance — ~ -9 µrad per µm of height in y at the
 §1.10 pattern position, ~ -11.6 µrad/µm with the pattern 20 mm closer — so only at the true height do the gradients
-of both images belong to one surface. Stereo deflectometry (two cameras, which seed §1.3 names) uses the same
+of both images belong to one surface. Stereo deflectometry (two cameras, which thesis §1.3 names) uses the same
 principle with a second viewpoint; here one camera and a stage do.
 
-The method (beyond the seed):
+The method (beyond the thesis):
 
 1. image 1 alone through :func:`scopetwin.recon.strategy.solve` — the frame-criterion height ``h_frame`` with its
    posterior uncertainty, the basis scale, the rejected markers;
@@ -234,7 +234,7 @@ class TwoPositionResult:
 def joint_surface(
     views: list[PatternView], basis: ShiftedBasis, height: float, initial: SBFSurface, cfg: ReconstructionConfig
 ) -> JointRun:
-    """The inner loop of seed §1.4 on the markers of every view at once, for start height ``height`` (mm).
+    """The inner loop of thesis §1.4 on the markers of every view at once, for start height ``height`` (mm).
 
     Each view's markers are traced through the current surface to their own pattern position; one shifted-basis fit
     (§1.8) of all their gradients; the offset so that the ROI mean is ``height`` (eq. 1.5); until the RMS height
@@ -592,7 +592,7 @@ def reconstruct_pair(
     tp: TwoPositionConfig = TwoPositionConfig(),
 ) -> Reconstruction:
     """The substrate from two deflectometry images, the pattern at its setup position and moved by ``shift_mm`` along
-    its normal (default: the setup's ``[pattern_stage]``), seed §1.3-§1.8.
+    its normal (default: the setup's ``[pattern_stage]``), thesis §1.3-§1.8.
 
     Image 1 goes through the one strategy (:func:`scopetwin.recon.strategy.reconstruct_image`, every fallback of
     ``policy``); the second image's markers are found with the moved setup and image 1's surface, wrongly indexed

@@ -1,4 +1,4 @@
-"""The uncertainty of a centroid reconstruction: the Gaussian-process reading of the fit (beyond the seed, §1.4).
+"""The uncertainty of a centroid reconstruction: the Gaussian-process reading of the fit (beyond the thesis, §1.4).
 
 After the nested iteration converged, the markers' gradients traced through its surface are read as observations of
 a Gaussian process (:mod:`scopetwin.recon.posterior`: prior by evidence). Its posterior of the frame criterion's
@@ -254,7 +254,7 @@ def start_height_sensitivity(
     """d(height contrast)/d(start height) at (xx, yy): how a start-height error bends the shape (dimensionless).
 
     The gradients are traced through a surface at the start height, so a wrong start height tilts and bends
-    them (seed §1.4: the start height is found by the frame criterion, not by the data); one more inner loop
+    them (thesis §1.4: the start height is found by the frame criterion, not by the data); one more inner loop
     at H + ``dh_mm`` from the converged surface gives the derivative by a finite difference.
     """
     h = it.roi_mean(surf.coef) + surf.offset

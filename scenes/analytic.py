@@ -1,4 +1,4 @@
-"""The analytic reference renderer of seed §1.6: numpy, float64, supersampled.
+"""The analytic reference renderer of thesis §1.6: numpy, float64, supersampled.
 
 It traces camera rays (§1.6.2) to the substrate (secant iteration, §1.6.4), a
 flat mirror or a target plane, reflects them (§1.6.5), intersects the pattern

@@ -1,4 +1,4 @@
-"""A vectorised evaluator of a height map's bicubic spline, and the ray intersection that uses it (seed §1.6.4).
+"""A vectorised evaluator of a height map's bicubic spline, and the ray intersection that uses it (thesis §1.6.4).
 
 :class:`scopetwin.scenes.surface.HeightMap` evaluates its interpolating spline (scipy's ``RectBivariateSpline``,
 fitpack) point by point. Ray tracing through a height map evaluates it at every ray of every secant step: the
@@ -127,7 +127,7 @@ class BicubicCells:
         tol: float = 1e-10,
         max_iter: int = 60,
     ) -> tuple[F64, NDArray[np.bool_], F64, F64, F64]:
-        """Where rays (local base-plane coordinates, (n, 3)) meet z = h(x, y), by the secant iteration of seed
+        """Where rays (local base-plane coordinates, (n, 3)) meet z = h(x, y), by the secant iteration of thesis
         §1.6.4 (eq. 1.6), and the height and gradient there.
 
         The iteration is :func:`scopetwin.scenes.secant.secant_intersection`'s, with this evaluator as its residual:

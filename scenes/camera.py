@@ -1,6 +1,6 @@
 """The camera model of the thesis — the ONE module that maps pixels, sensor points, rays and world points.
 
-Seed §1.6.2 (pinhole camera with the centre behind the sensor, upright image)
+Thesis §1.6.2 (pinhole camera with the centre behind the sensor, upright image)
 and §2.5.1-2.5.2 (principal-point offset r_cs, radial distortion
 r_dist = (c0 + c2*|r|)*r, the parameters (r_c, r_0, phi) of the non-linear
 optimisation). Every other module calls these functions.
@@ -94,7 +94,7 @@ class PixelGrid:
     pitch : float
         Pixel size (square pixels), mm.
     r_cs : tuple of float
-        (x_cs, y_cs): the grid centre relative to the optical-axis foot, mm (seed §2.5.1).
+        (x_cs, y_cs): the grid centre relative to the optical-axis foot, mm (thesis §2.5.1).
     """
 
     nx: int
@@ -205,7 +205,7 @@ class PixelGrid:
 
 @dataclass(frozen=True)
 class Camera:
-    """Pinhole camera of seed §1.6.2 / §2.5.2 with optional distortion and thin lens.
+    """Pinhole camera of thesis §1.6.2 / §2.5.2 with optional distortion and thin lens.
 
     Parameters
     ----------
@@ -256,7 +256,7 @@ class Camera:
         pitch: float,
         **kwargs,
     ) -> Camera:
-        """Camera from the optimisation parameters of seed §2.5.2.
+        """Camera from the optimisation parameters of thesis §2.5.2.
 
         ``N_z = (r_c - r_0)/|r_c - r_0|``, T_0x = e_y x N_z, T_0y = N_z x T_0x,
         T_x = cos(phi) T_0x + sin(phi) T_0y, T_y = cos(phi) T_0y - sin(phi) T_0x,
@@ -282,7 +282,7 @@ class Camera:
         return self.frame.origin
 
     def distort(self, uv: ArrayLike) -> Array:
-        """Ideal sensor coordinates -> distorted, r_dist = (c0 + c2*|r|) r (seed §2.5.1)."""
+        """Ideal sensor coordinates -> distorted, r_dist = (c0 + c2*|r|) r (thesis §2.5.1)."""
         r = np.asarray(uv, dtype=np.float64)
         rho = row_norms(r, keepdims=True)
         return (self.c0 + self.c2 * rho) * r
@@ -320,13 +320,13 @@ class Camera:
 
     # -- world mappings ----------------------------------------------------------------
     def sensor_points(self, uv_ideal: ArrayLike) -> Array:
-        """Global position r_s = r_c - b N_z + u T_x + v T_y of ideal sensor points (seed §1.6.2)."""
+        """Global position r_s = r_c - b N_z + u T_x + v T_y of ideal sensor points (thesis §1.6.2)."""
         q = np.asarray(uv_ideal, dtype=np.float64)
         f = self.frame
         return f.origin - self.b * f.nz + q[..., :1] * f.tx + q[..., 1:2] * f.ty
 
     def project_ideal(self, points: ArrayLike) -> Array:
-        """World points -> ideal sensor (u, v): m = b / (-D.N_z), u = m D.T_x, v = m D.T_y (seed §2.5.3)."""
+        """World points -> ideal sensor (u, v): m = b / (-D.N_z), u = m D.T_x, v = m D.T_y (thesis §2.5.3)."""
         d = self.frame.vectors_to_local(np.asarray(points, dtype=np.float64) - self.center)
         depth = -d[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -422,7 +422,7 @@ class Camera:
 
 
 def pose_axes(r_c: ArrayLike, r_0: ArrayLike, phi: float) -> tuple[Array, Array, Array, float]:
-    """N_z, T_x, T_y and g from (r_c, r_0, phi), seed §2.5.2.
+    """N_z, T_x, T_y and g from (r_c, r_0, phi), thesis §2.5.2.
 
     Raises :class:`GeometryError` when N_z is parallel to e_y (T_0x undefined).
     """
@@ -445,7 +445,7 @@ def pose_axes(r_c: ArrayLike, r_0: ArrayLike, phi: float) -> tuple[Array, Array,
 
 
 def pose_parameters(camera: Camera, plane: Frame | None = None) -> tuple[Array, Array, float]:
-    """Inverse of :meth:`Camera.from_pose`: (r_c, r_0, phi) of a camera (seed §2.5.1).
+    """Inverse of :meth:`Camera.from_pose`: (r_c, r_0, phi) of a camera (thesis §2.5.1).
 
     r_0 is where the optical axis meets the plane (default: z = 0), phi the sensor tilt
     measured from T_0x = e_y x N_z toward T_0y.

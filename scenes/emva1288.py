@@ -40,9 +40,9 @@ class EmvaSensor:
     black_level_dn : float
         Offset of the dark signal, DN.
     bit_depth : int
-        ADC resolution (12 for the seed's cameras, §1.11 and §4.1.4).
+        ADC resolution (12 for the thesis's cameras, §1.11 and §4.1.4).
 
-    The defaults describe a 12-bit CCD of the seed's class (Sony ICX205/ICX285 type:
+    The defaults describe a 12-bit CCD of the thesis's class (Sony ICX205/ICX285 type:
     full well ~ 18 ke-, dark noise ~ 10 e-); K is chosen so the full well just fills the ADC.
     """
 

@@ -1,4 +1,4 @@
-"""Frames, planes and ray optics of the thesis's ray model (seed §1.6.1, §1.6.3, §1.6.5).
+"""Frames, planes and ray optics of the thesis's ray model (thesis §1.6.1, §1.6.3, §1.6.5).
 
 All functions are vectorised over ray batches: points and directions are arrays
 of shape ``(..., 3)`` in millimetres (float64). Nothing here imports Mitsuba.
@@ -16,7 +16,7 @@ from scopetwin.scenes.errors import GeometryError
 Array = NDArray[np.float64]
 
 #: Tolerance (dimensionless) on ``|T|=1``, ``T_x.T_y=0`` and T_x x T_y = N_z when a frame is built.
-#: The seed prints its unit vectors with four digits (0.5145, 0.8575), so a
+#: The thesis prints its unit vectors with four digits (0.5145, 0.8575), so a
 #: looser check than machine precision is needed; the frame is then made exactly
 #: orthonormal (see :class:`Frame`).
 FRAME_TOLERANCE = 2e-3
@@ -33,13 +33,13 @@ def _vec3(value: ArrayLike, name: str) -> Array:
 
 @dataclass(frozen=True)
 class Frame:
-    """A local coordinate system: origin r_c and axes T_x, T_y, N_z (seed §1.6.1).
+    """A local coordinate system: origin r_c and axes T_x, T_y, N_z (thesis §1.6.1).
 
     The axes must be unit length, orthogonal and right-handed
     (T_x x T_y = N_z) to within :data:`FRAME_TOLERANCE`; otherwise a
     :class:`~scopetwin.scenes.errors.GeometryError` names the violated condition. Within
     the tolerance the axes are made exactly orthonormal, keeping N_z's direction
-    and T_x's projection onto the plane (so the seed's four-digit vectors give
+    and T_x's projection onto the plane (so the thesis's four-digit vectors give
     one unambiguous frame).
 
     Parameters
@@ -84,7 +84,7 @@ class Frame:
 
     @classmethod
     def identity(cls) -> Frame:
-        """The global frame: origin 0, axes e_x, e_y, e_z (the substrate plane, seed §1.10)."""
+        """The global frame: origin 0, axes e_x, e_y, e_z (the substrate plane, thesis §1.10)."""
         return cls(np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]))
 
     @property
@@ -93,12 +93,12 @@ class Frame:
         return self._matrix.copy()
 
     def to_local(self, points: ArrayLike) -> Array:
-        """Global points -> local coordinates (seed §1.6.1, "Global to Local")."""
+        """Global points -> local coordinates (thesis §1.6.1, "Global to Local")."""
         p = np.asarray(points, dtype=np.float64)
         return (p - self.origin) @ self._matrix.T
 
     def to_global(self, local: ArrayLike) -> Array:
-        """Local coordinates -> global points (seed §1.6.1, "Local to Global")."""
+        """Local coordinates -> global points (thesis §1.6.1, "Local to Global")."""
         q = np.asarray(local, dtype=np.float64)
         return self.origin + q @ self._matrix
 
@@ -111,7 +111,7 @@ class Frame:
         return np.asarray(vectors, dtype=np.float64) @ self._matrix
 
     def mirrored_z(self) -> Frame:
-        """The frame's image in the mirror z = 0, kept right-handed (seed §2.7.2, Fig. 2.8).
+        """The frame's image in the mirror z = 0, kept right-handed (thesis §2.7.2, Fig. 2.8).
 
         Every z component is negated; T_y is then negated as a whole so that the
         mirrored frame stays right-handed.
@@ -153,7 +153,7 @@ def normalize(v: ArrayLike) -> Array:
 
 
 def intersect_plane(origins: ArrayLike, directions: ArrayLike, frame: Frame) -> Array:
-    """Ray parameter lambda where r0 + lambda*rd meets the plane of ``frame`` (seed §1.6.3).
+    """Ray parameter lambda where r0 + lambda*rd meets the plane of ``frame`` (thesis §1.6.3).
 
     lambda = (r_c.N_z - r0.N_z) / (rd.N_z); rays parallel to the plane get ``inf``.
     """
@@ -167,7 +167,7 @@ def intersect_plane(origins: ArrayLike, directions: ArrayLike, frame: Frame) -> 
 
 
 def reflect(directions: ArrayLike, normals: ArrayLike) -> Array:
-    """Mirror reflection r_out = r_in - 2 (r_in.N) N (seed §1.6.5, eq. 1.7)."""
+    """Mirror reflection r_out = r_in - 2 (r_in.N) N (thesis §1.6.5, eq. 1.7)."""
     d = np.asarray(directions, dtype=np.float64)
     n = np.asarray(normals, dtype=np.float64)
     return d - 2.0 * np.sum(d * n, axis=-1, keepdims=True) * n

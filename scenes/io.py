@@ -37,7 +37,7 @@ if TYPE_CHECKING:
     from scopetwin.scenes.surface import HeightMap
 
 EXTENT_KEYS = ("x_min_mm", "x_max_mm", "y_min_mm", "y_max_mm")
-#: The largest absolute height a substrate's surface may have, mm (bows are µm to a few mm; seed §1.9).
+#: The largest absolute height a substrate's surface may have, mm (bows are µm to a few mm; thesis §1.9).
 MAX_HEIGHT_MM = 10.0
 #: How far (relative to the substrate's size) a height map's extent may fall short of the substrate's edge.
 COVER_TOLERANCE = 1e-6

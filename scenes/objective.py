@@ -1,4 +1,4 @@
-"""The microscope unit's objective: 10x / NA 0.45 in air, with its camera (seed §4.1.2, §4.1.4).
+"""The microscope unit's objective: 10x / NA 0.45 in air, with its camera (thesis §4.1.2, §4.1.4).
 
 The one model of that objective, used by the focus map (:mod:`scopetwin.recon.focusmap`: depth of field, field of view)
 and by the widefield renderer (:mod:`scopetwin.scenes.mitsuba.widefield`: the thin-lens aperture that gives the NA, the
@@ -25,7 +25,7 @@ from scopetwin.scenes.errors import SetupError
 
 @dataclass(frozen=True)
 class Objective:
-    """Microscope objective and camera (defaults: seed §4.1.2 / §4.1.4, 10x / NA 0.45, 6.45 µm pixels).
+    """Microscope objective and camera (defaults: thesis §4.1.2 / §4.1.4, 10x / NA 0.45, 6.45 µm pixels).
 
     Parameters
     ----------

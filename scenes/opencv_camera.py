@@ -5,7 +5,7 @@ y down, z forward), to x' = X/Z, y' = Y/Z, r^2 = x'^2 + y'^2, then
 x'' = x' (1 + k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x'y' + p2 (r^2 + 2 x'^2) (likewise y''), and to the pixel
 (fx x'' + cx, fy y'' + cy), **pixel centres at integer coordinates**.
 
-The thesis's camera (seed §1.6.2, §2.5.1; :mod:`scopetwin.scenes.camera`, docs/contract.md "Camera") looks along
+The thesis's camera (thesis §1.6.2, §2.5.1; :mod:`scopetwin.scenes.camera`, docs/contract.md "Camera") looks along
 -N_z with the column growing along T_x and the row against T_y, and the centre of pixel (row, col) at
 (col + 0.5, row + 0.5). So, exactly,
 
@@ -121,7 +121,7 @@ def opencv_camera(camera: Camera, max_points: int = 1 << 20) -> OpenCVCamera:
     Parameters
     ----------
     camera : Camera
-        The camera (seed §1.6.2, §2.5.1). A thin lens does not change the chief ray of a pixel, so it is ignored.
+        The camera (thesis §1.6.2, §2.5.1). A thin lens does not change the chief ray of a pixel, so it is ignored.
     max_points : int
         Most pixel centres the distortion fit and its error use (a regular subset of a larger image).
 

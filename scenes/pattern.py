@@ -1,8 +1,8 @@
-"""Marker patterns (seed §1.6.3 for the deflectometry pattern, §2.2 for the calibration target).
+"""Marker patterns (thesis §1.6.3 for the deflectometry pattern, §2.2 for the calibration target).
 
 A pattern is a plane (a :class:`~scopetwin.scenes.geometry.Frame`) carrying a Cartesian
 grid of round markers whose grey value fades linearly from 1 at the centre to
-0 at the rim, g = 1 - r/r_m (seed §1.6.3, "Marker Shape"). One marker, the
+0 at the rim, g = 1 - r/r_m (thesis §1.6.3, "Marker Shape"). One marker, the
 reference, is larger.
 
 Index conventions (docs/contract.md, "Marker indices")
@@ -12,9 +12,9 @@ Index conventions (docs/contract.md, "Marker indices")
 * ``layout="deflectometry"``: the reference marker is (0, 0). For an odd
   marker count the marker with index 0 sits at the pattern centre; for an even
   count the left edge of marker 0 is at the centre, i.e. its centre is at +pitch/2
-  (seed §1.6.3, "Marker Index").
+  (thesis §1.6.3, "Marker Index").
 * ``layout="calibration"``: the origin is the pattern centre and the reference
-  marker is the last one in -x and -y (seed §2.2); it has index (0, 0), so indices
+  marker is the last one in -x and -y (thesis §2.2); it has index (0, 0), so indices
   run 0..n-1.
 """
 
@@ -143,7 +143,7 @@ class MarkerPattern:
         return np.where(is_ref, self.ref_radius, self.radius)
 
     def nearest_index(self, local_xy: ArrayLike) -> NDArray[np.int64]:
-        """Index (i, j) of the marker cell containing local points (seed §1.6.3, "Marker Index")."""
+        """Index (i, j) of the marker cell containing local points (thesis §1.6.3, "Marker Index")."""
         p = np.asarray(local_xy, dtype=np.float64)
         out = []
         for axis, n, pitch in ((0, self.n_x, self.pitch_x), (1, self.n_y, self.pitch_y)):

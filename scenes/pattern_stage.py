@@ -1,8 +1,8 @@
-"""The pattern on a stage: the setup of a second image with the pattern moved along its normal (seed §1.3).
+"""The pattern on a stage: the setup of a second image with the pattern moved along its normal (thesis §1.3).
 
-One image of a reflected marker pattern leaves the height-normal ambiguity of seed §1.3: the camera ray of a marker
+One image of a reflected marker pattern leaves the height-normal ambiguity of thesis §1.3: the camera ray of a marker
 is known, the surface point on it is not, and every point on it has a normal that reflects the marker into the
-camera. The seed resolves it with a-priori knowledge (the holding frame, §1.4). A stage that moves the pattern along
+camera. The thesis resolves it with a-priori knowledge (the holding frame, §1.4). A stage that moves the pattern along
 its normal N_z by a known distance gives a second image of the same surface with every marker at a known second
 position; the surface whose traced gradients explain both images has one absolute height
 (:mod:`scopetwin.recon.two_positions`). The setup's ``[pattern_stage]`` table
@@ -23,7 +23,7 @@ from scopetwin.scenes.setup import Setup, setup_from_dict
 def shift_pattern(setup: Setup, shift_mm: float) -> Setup:
     """The same setup with the pattern moved by ``shift_mm`` along its normal N_z (mm; positive along N_z).
 
-    The setup of a second image taken with the pattern on a stage (seed §1.3). Everything else — camera, substrate,
+    The setup of a second image taken with the pattern on a stage (thesis §1.3). Everything else — camera, substrate,
     surface, render and sensor options — is unchanged; the ``[pattern_stage]`` table is dropped (the moved setup is
     one position, not a pair) and the name says where the pattern is.
 

@@ -1,4 +1,4 @@
-"""The secant iteration of seed §1.6.4 (eq. 1.6): where rays meet a surface z = h(x, y), vectorised over the rays.
+"""The secant iteration of thesis §1.6.4 (eq. 1.6): where rays meet a surface z = h(x, y), vectorised over the rays.
 
 The one iteration of the project: the substrate's height maps (:mod:`scopetwin.scenes.surface`, on the spline's
 cells of :mod:`scopetwin.scenes.bicubic`) and the reconstruction's fitted surfaces (:mod:`scopetwin.recon.substrate`)
@@ -37,7 +37,7 @@ def secant_intersection(
     max_iter: int = 60,
     residual: Callable[..., Array] | None = None,
 ) -> tuple[Array, NDArray[np.bool_]]:
-    """Ray parameters where rays meet the surface z = h(x, y), by the secant iteration (seed §1.6.4, eq. 1.6).
+    """Ray parameters where rays meet the surface z = h(x, y), by the secant iteration (thesis §1.6.4, eq. 1.6).
 
     The root of f(lambda) = h(x(lambda), y(lambda)) - z(lambda) along each ray is searched by
     lambda_{k+1} = (lambda_{k-1} f_k - lambda_k f_{k-1}) / (f_k - f_{k-1}), vectorised over the rays;

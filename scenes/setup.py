@@ -1,13 +1,13 @@
-"""Setup models: pydantic v2, loaded from TOML, with the seed's setups as presets.
+"""Setup models: pydantic v2, loaded from TOML, with the thesis's setups as presets.
 
-A setup describes one physical scene of Part I of the seed:
+A setup describes one physical scene of Part I of the thesis:
 
 * ``scene = "deflectometry"`` — camera, deflectometry pattern, bent substrate on a
-  holding frame (seed §1.10);
+  holding frame (thesis §1.10);
 * ``scene = "target"`` — camera and a calibration target lying in the substrate
-  plane z = 0 (seed §2.7.1, §2.8);
+  plane z = 0 (thesis §2.7.1, §2.8);
 * ``scene = "mirror"`` — camera, deflectometry pattern and a flat mirror on the
-  holding frame (seed §2.7.2, §2.8.3).
+  holding frame (thesis §2.7.2, §2.8.3).
 
 Presets live in ``scenes/presets/NAME.toml``; each names the section it comes
 from. A TOML file may say ``base = "PRESET"`` and override any field (tables
@@ -85,7 +85,7 @@ class FrameSpec(_Model):
 
 
 class CameraSpec(CameraGridSpec):
-    """Camera of seed §1.6.2 / §2.5.2: the pixel grid (:class:`scopetwin.scenes.camera_spec.CameraGridSpec`) and the
+    """Camera of thesis §1.6.2 / §2.5.2: the pixel grid (:class:`scopetwin.scenes.camera_spec.CameraGridSpec`) and the
     pose.
 
     Give the pose either as axes (``t_x``, ``t_y``, ``n_z`` and ``image_distance``)
@@ -139,7 +139,7 @@ class CameraSpec(CameraGridSpec):
         return self.pixels[0], self.pixels[1], self.pixel_pitch, self.r_cs
 
     def camera(self) -> Camera:
-        """The camera model of seed §1.6.2 / §2.5.2 (pose, :meth:`grid`, distortion, thin lens)."""
+        """The camera model of thesis §1.6.2 / §2.5.2 (pose, :meth:`grid`, distortion, thin lens)."""
         lens = None
         if self.f_number is not None:
             lens = ThinLens(self.focal_length, self.f_number, self.focus_distance)
@@ -169,7 +169,7 @@ class CameraSpec(CameraGridSpec):
 
 
 class PatternSpec(FrameSpec):
-    """A marker pattern (seed §1.6.3, §2.2)."""
+    """A marker pattern (thesis §1.6.3, §2.2)."""
 
     markers: tuple[PositiveInt, PositiveInt] = Field(description="(NM_x, NM_y)")
     pitch: Vec2 = Field(description="(P_x, P_y), mm")
@@ -220,7 +220,7 @@ class FeatureSpec(_Model):
 class SurfaceSpec(_Model):
     """How the substrate's height map is made (by :mod:`scopetwin.sim.surfaces`) or where it is read from.
 
-    ``random`` is the seed's §1.9 generator (Gaussian low-pass of scale ``correlation_length``); ``psd`` draws a
+    ``random`` is the thesis's §1.9 generator (Gaussian low-pass of scale ``correlation_length``); ``psd`` draws a
     Gaussian random surface from a power spectral density as glass flatness and waviness are specified: the
     K-correlation (ABC) model PSD(f) = A / (1 + (B f)^2)^(C/2) (``spectrum = "abc"``, B = ``correlation_length``,
     C = ``psd_exponent``) or a power law f^-C rolled off below f = 1/B (``spectrum = "power"``), times a Gaussian
@@ -287,7 +287,7 @@ SURFACE_FLOATS_PER_NODE = 24
 
 
 class SubstrateSpec(_Model):
-    """The bent substrate on its holding frame (seed §1.4, §1.10)."""
+    """The bent substrate on its holding frame (thesis §1.4, §1.10)."""
 
     size: Vec2 = Field((25.2, 57.0), description="(x, y) extent, mm")
     roi_length: Positive = Field(48.0, description="gap between the frame regions along y, mm")
@@ -305,13 +305,13 @@ class SubstrateSpec(_Model):
 
 
 class MirrorSpec(_Model):
-    """A flat mirror lying on the holding frame, in the plane z = 0 (seed §2.7.2)."""
+    """A flat mirror lying on the holding frame, in the plane z = 0 (thesis §2.7.2)."""
 
     size: tuple[Positive, Positive] = Field((60.0, 80.0), description="(x, y) extent, mm")
 
 
 class PatternStageSpec(_Model):
-    """A stage that moves the pattern along its normal N_z to a second known position (seed §1.3: a second
+    """A stage that moves the pattern along its normal N_z to a second known position (thesis §1.3: a second
     measurement resolves the height-normal ambiguity; :mod:`scopetwin.scenes.pattern_stage`).
 
     The first position is the pattern's pose above; the second lies ``shift_mm`` from it along N_z (positive towards
@@ -365,7 +365,7 @@ class NoiseModelSpec(_Model):
 
 
 class PoseUncertaintySpec(_Model):
-    """Standard deviations of a calibrated pose (seed §2.7): position (mm) and orientation (rad)."""
+    """Standard deviations of a calibrated pose (thesis §2.7): position (mm) and orientation (rad)."""
 
     shift_mm: float = Field(ge=0.0, le=MAX_COORD_MM, description="standard deviation of the position, mm")
     rotation_rad: float = Field(ge=0.0, le=TURN_RAD, description="standard deviation of the orientation, rad")

@@ -1,10 +1,10 @@
-"""Spot and aberration metrics shared by the GRIN objectives (seed ch. 7-8) and the microscope unit (ch. 5).
+"""Spot and aberration metrics shared by the GRIN objectives (thesis ch. 7-8) and the microscope unit (ch. 5).
 
 Both analyses trace a bundle of rays from one object point through a pupil sampled on a square grid clipped to
 the unit disk, and read the bundle on an image plane:
 
 * :func:`pupil_disk` -- the pupil sampling (Zemax's "rectangular" grid);
-* :func:`rms_radius` -- the RMS spot radius about the centroid of the surviving rays (seed §8.3, §5.1.2);
+* :func:`rms_radius` -- the RMS spot radius about the centroid of the surviving rays (thesis §8.3, §5.1.2);
 * :func:`airy_radius` -- the first dark ring of the diffraction-limited spot, 0.61 lambda / NA (= 1.22 lambda N).
 
 Each analysis keeps its own ray model (GRIN: :mod:`scopetwin.scenes.grin.rkn`; CMU: :mod:`scopetwin.scenes.cmu.trace`)

@@ -1,9 +1,9 @@
 """The substrate: a height map with bicubic interpolation, the secant intersection and the holding frame.
 
-Seed §1.6.4: the surface is a height distribution h(r_perp) over a base plane,
+Thesis §1.6.4: the surface is a height distribution h(r_perp) over a base plane,
 given "as an array with cubic interpolation" for simulation; rays meet it by
 the secant iteration of eq. 1.6 (:mod:`scopetwin.scenes.secant`). The substrate lies on a holding frame at both
-ends (seed §1.4, Fig. 1.3); only the gap between the frame regions — the region
+ends (thesis §1.4, Fig. 1.3); only the gap between the frame regions — the region
 of interest (ROI), 48 mm long in §1.10 — reflects into the camera.
 
 Height maps follow the file contract (docs/contract.md, "Height maps"): node (row k, column l) is at
@@ -42,7 +42,7 @@ class HeightMap:
     -----
     The interpolant is scipy's interpolating bicubic spline (``RectBivariateSpline``,
     kx = ky = 3, s = 0): C2-continuous, so h and its gradient are exact derivatives
-    of one function — the "array with cubic interpolation" of seed §1.6.4. Outside
+    of one function — the "array with cubic interpolation" of thesis §1.6.4. Outside
     the extents the surface continues with the value at the nearest edge point.
     """
 
@@ -124,7 +124,7 @@ class HeightMap:
         return self._cells[0]
 
     def normals(self, x: ArrayLike, y: ArrayLike) -> Array:
-        """Unit normals (-h_x, -h_y, 1)/sqrt(1 + h_x^2 + h_y^2) in the base-plane frame (seed eq. 1.2)."""
+        """Unit normals (-h_x, -h_y, 1)/sqrt(1 + h_x^2 + h_y^2) in the base-plane frame (thesis eq. 1.2)."""
         hx, hy = self.gradient(x, y)
         return normalize(np.stack([-hx, -hy, np.ones_like(hx)], axis=-1))
 
@@ -138,7 +138,7 @@ class HeightMap:
 
 @dataclass(frozen=True)
 class Substrate:
-    """A bent glass substrate lying on a holding frame (seed §1.4, §1.6.4, §1.10).
+    """A bent glass substrate lying on a holding frame (thesis §1.4, §1.6.4, §1.10).
 
     Parameters
     ----------
@@ -174,7 +174,7 @@ class Substrate:
         return (np.abs(x) <= 0.5 * self.size_x) & (np.abs(y) < 0.5 * self.roi_length)
 
     def frame_regions(self, x: ArrayLike, y: ArrayLike) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-        """Masks of frame region 1 (y < 0) and region 2 (y > 0) (seed eq. 1.3)."""
+        """Masks of frame region 1 (y < 0) and region 2 (y > 0) (thesis eq. 1.3)."""
         on = self.on_substrate(x, y)
         ya = np.asarray(y)
         return on & (ya <= -0.5 * self.roi_length), on & (ya >= 0.5 * self.roi_length)
@@ -182,7 +182,7 @@ class Substrate:
     def intersect(
         self, origins: ArrayLike, directions: ArrayLike, tol: float = 1e-10, max_iter: int = 60
     ) -> tuple[Array, NDArray[np.bool_]]:
-        """Ray parameters of the intersection with the surface by the secant iteration (seed §1.6.4, eq. 1.6).
+        """Ray parameters of the intersection with the surface by the secant iteration (thesis §1.6.4, eq. 1.6).
 
         :func:`secant_intersection` on f(lambda) = h(r_perp(lambda)) - z(lambda) in the base frame;
         lambda_0 = 0 (the ray origin), lambda_1 = the base-plane intersection; iterate until ``|f|`` < ``tol`` mm.

@@ -99,7 +99,7 @@ class Measurement:
         Wall time of the render and the sensor model.
     second : Measurement or None
         The second image of a pattern stage (``render(..., pattern_shift_mm=...)``): the same scene with the pattern
-        moved along its normal, its own setup and truth, rendered with seed + 1 (seed §1.3).
+        moved along its normal, its own setup and truth, rendered with seed + 1 (thesis §1.3).
     """
 
     image: NDArray[np.float32]
@@ -129,7 +129,7 @@ def render(
     setup : Setup, str or path
         A setup or what :func:`load_setup` takes.
     surface : HeightMap, path, ndarray or None
-        The substrate's heights (deflectometry): None for the setup's own surface (seed §1.9), a height-map EXR, a
+        The substrate's heights (deflectometry): None for the setup's own surface (thesis §1.9), a height-map EXR, a
         :class:`~scopetwin.scenes.surface.HeightMap`, or a 2-D array of heights in mm spanning the substrate (row 0
         at its -y end, column 0 at its -x end).
     spp : int, optional
@@ -146,7 +146,7 @@ def render(
         ±10 mm either way (:func:`scopetwin.scenes.io.check_surface`).
     pattern_shift_mm : float, optional
         Also render the second image of a pattern stage, the pattern moved this far along its normal N_z (mm), as
-        ``.second`` (seed §1.3); without it, where the setup has a ``[pattern_stage]`` table, its ``shift_mm``.
+        ``.second`` (thesis §1.3); without it, where the setup has a ``[pattern_stage]`` table, its ``shift_mm``.
 
     Returns
     -------
@@ -234,7 +234,7 @@ def reconstruct(
     second: tuple[NDArray[Any], float | None] | NDArray[Any] | None = None,
     previous: Reconstruction | None = None,
 ) -> Reconstruction:
-    """The substrate's heights from one deflectometry image (``scopetwin reconstruct``, seed §1.4-§1.8).
+    """The substrate's heights from one deflectometry image (``scopetwin reconstruct``, thesis §1.4-§1.8).
 
     One strategy for every entry point (:mod:`scopetwin.recon.strategy`): the markers found and indexed, the nested
     start-height iteration with the basis scale chosen from the data and the centroid bias corrected, every
@@ -254,7 +254,7 @@ def reconstruct(
     second : (ndarray, float or None) or ndarray, optional
         A second image with the pattern moved along its normal by a stage, and the shift in mm (None or the image
         alone: the setup's ``[pattern_stage]`` shift): the absolute height from both images, combined with the frame
-        criterion's (:mod:`scopetwin.recon.two_positions`, seed §1.3; centroid method only). ``.result.estimate``
+        criterion's (:mod:`scopetwin.recon.two_positions`, thesis §1.3; centroid method only). ``.result.estimate``
         then holds the frame criterion's, the two positions' and the combined height.
     previous : Reconstruction, optional
         The centroid reconstruction of an earlier frame of the same setup (a rig's live loop; one image, centroid
@@ -311,7 +311,7 @@ def calibrate(
     distortion: bool = False,
     bias_correction: bool = True,
 ) -> Calibration:
-    """One-shot camera calibration from one image of a calibration target (``scopetwin calibrate``, seed ch. 2).
+    """One-shot camera calibration from one image of a calibration target (``scopetwin calibrate``, thesis ch. 2).
 
     Parameters
     ----------
@@ -322,9 +322,9 @@ def calibrate(
     focal_length : float, optional
         A-priori focal length, mm (default: the setup camera's).
     distortion : bool
-        Fit the radial distortion too (seed §2.5.2).
+        Fit the radial distortion too (thesis §2.5.2).
     bias_correction : bool
-        Correct the markers' centroid bias (seed §2.8.2).
+        Correct the markers' centroid bias (thesis §2.8.2).
 
     Returns
     -------
@@ -360,7 +360,7 @@ def calibrate_setup(
     focal_length: float | None = None,
     bias_correction: bool = True,
 ) -> CalibratedSetup:
-    """Calibrate the deflectometry setup from its two calibration images (``scopetwin calibrate-setup``, seed §2.7).
+    """Calibrate the deflectometry setup from its two calibration images (``scopetwin calibrate-setup``, thesis §2.7).
 
     Parameters
     ----------
@@ -369,7 +369,7 @@ def calibrate_setup(
     mirror_image : ndarray
         The marker pattern seen in a flat mirror on the frame (§2.7.2).
     target, mirror : Setup, str or path
-        The two calibration scenes (default: the seed's §2.8.3 presets).
+        The two calibration scenes (default: the thesis's §2.8.3 presets).
     focal_length : float, optional
         A-priori focal length, mm.
     bias_correction : bool

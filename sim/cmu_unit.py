@@ -1,4 +1,4 @@
-"""The compact microscope unit (CMU, the seed's own name for the four-channel unit of ch. 3-5), analysed and rendered.
+"""The compact microscope unit (CMU, the thesis's own name for the four-channel unit of ch. 3-5), analysed and rendered.
 
 The analyses behind ``scopetwin optics cmu``, each returning JSON-ready dicts (the command prints them beside the
 seed): the §5.1.2 Zemax checks (:func:`section_5_1_2`), per channel the refocused image distance, magnification
@@ -180,7 +180,7 @@ def render_and_measure(
     spp : int
         Samples per pixel.
     stop : bool
-        The 4 mm aperture in front of every tube lens (seed §5.1.2).
+        The 4 mm aperture in front of every tube lens (thesis §5.1.2).
     cells : bool
         Also render the dummy cells.
     report : callable
@@ -206,7 +206,7 @@ def render_and_measure(
 
 
 def crosstalk() -> dict[str, Any]:
-    """The excitation and emission crosstalk of the four channels and the channel signal matrix (seed Part II)."""
+    """The excitation and emission crosstalk of the four channels and the channel signal matrix (thesis Part II)."""
     from scopetwin.scenes.cmu import spectra
 
     return {

@@ -1,5 +1,5 @@
-"""Pictures the commands write beside their numbers: the indexed-marker overlay (seed §1.5, §2.6) and the GRIN spot
-diagrams (seed §8.3). Each is written atomically; a path that cannot be written is a user error."""
+"""Pictures the commands write beside their numbers: the indexed-marker overlay (thesis §1.5, §2.6) and the GRIN spot
+diagrams (thesis §8.3). Each is written atomically; a path that cannot be written is a user error."""
 
 from __future__ import annotations
 
@@ -89,7 +89,7 @@ def write_overlay(path: str | Path, image: NDArray[Any], markers: Markers) -> No
 
 
 def write_spots(path: Path, setup: Any, stack: Any, image_distance: float, na: float) -> None:
-    """Spot diagrams of a GRIN objective (seed §8.3) at field 0, 0.7, 1 on the best-focus plane (PNG, atomic)."""
+    """Spot diagrams of a GRIN objective (thesis §8.3) at field 0, 0.7, 1 on the best-focus plane (PNG, atomic)."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -2,7 +2,7 @@
 
 A measurement is what ``scopetwin render`` writes and what every Part I dataset sample holds (docs/contract.md,
 "Images"): the camera image as OpenEXR (channel ``Y``; the setup and the provenance in the header), its truth
-JSON (the image of every marker centre, seed §1.5 / §2.6, and the height map of the surface), and an 8-bit
+JSON (the image of every marker centre, thesis §1.5 / §2.6, and the height map of the surface), and an 8-bit
 preview PNG.
 
 :class:`StagedOutput` is the one stage-then-rename helper of the package: every command and library function
@@ -357,7 +357,7 @@ def load_measurement(
 def render_measurement(
     setup: Setup, heights: HeightMap | None, spp: int, seed: int, noise: bool, renderer: str = "mitsuba"
 ) -> tuple[NDArray[np.float32], float]:
-    """Render one setup and, with ``noise``, apply the EMVA 1288 sensor model (seed §1.11 camera class).
+    """Render one setup and, with ``noise``, apply the EMVA 1288 sensor model (thesis §1.11 camera class).
 
     Without a fixed exposure the exposure fills the setup's fraction of the full well at the image peak.
     A render that is not finite or carries no signal is refused (:func:`check_rendered`).
@@ -393,7 +393,7 @@ def render_second_position(
     renderer: str = "mitsuba",
     shift_mm: float | None = None,
 ) -> tuple[Setup, NDArray[np.float32], float]:
-    """The second image of a pattern stage (seed §1.3): the same scene with the pattern moved ``shift_mm`` along its
+    """The second image of a pattern stage (thesis §1.3): the same scene with the pattern moved ``shift_mm`` along its
     normal N_z (default: the setup's ``[pattern_stage]``), rendered as :func:`render_measurement` renders the first,
     with seed ``seed + 1`` (its own sampler and sensor noise).
 
@@ -414,7 +414,7 @@ def render_second_position(
 
 
 def apply_sensor(setup: Setup, image: NDArray[Any], seed: int) -> NDArray[Any]:
-    """The setup's EMVA 1288 sensor model applied to a rendered irradiance image (seed §1.11 camera class).
+    """The setup's EMVA 1288 sensor model applied to a rendered irradiance image (thesis §1.11 camera class).
 
     The exposure is the setup's ``sensor.exposure_s`` or, without one, the exposure at which the image peak fills
     ``sensor.fill_fraction`` of the full well; ``seed`` seeds the photon and read noise.
@@ -446,7 +446,7 @@ def write_measurement(
 ) -> dict[str, str]:
     """Write image EXR, truth JSON (and height map), preview PNG into the staging folder; returns the file names.
 
-    The truth holds the image of every marker centre (:func:`scopetwin.sim.truth.marker_truth`, seed §1.5 / §2.6).
+    The truth holds the image of every marker centre (:func:`scopetwin.sim.truth.marker_truth`, thesis §1.5 / §2.6).
     """
     from scopetwin.scenes.io import write_heightmap, write_image
     from scopetwin.sim.truth import marker_truth

@@ -8,7 +8,7 @@
    calibrated and with the ideal setup, centroid-bias correction on, and the reconstruction from the exact marker
    images (the method's own floor); steps 3 and 4 on two threads (:func:`_calibrate_and_reconstruct`);
 5. comparison with the truth over the region of interest — absolute height (ROI mean error), shape
-   (RMS after removing the ROI mean), RMS and maximum — beside the seed's §1.10 / Table 2.7 figures;
+   (RMS after removing the ROI mean), RMS and maximum — beside the thesis's §1.10 / Table 2.7 figures;
 6. a report folder: ``report.md``, EXR height and error maps, PNG plots, the focus map, ``summary.json``.
 
 The caller stages ``out_dir`` atomically; this module only writes into it.
@@ -46,7 +46,7 @@ MEASUREMENT = "thesis-1.10-deflectometry"
 TARGET = "thesis-2.8.3-substrate"
 MIRROR = "thesis-2.8.3-mirror"
 
-#: The seed's figures (§1.10 height distribution 2, §2.8.4 Table 2.7), µm.
+#: The thesis's figures (§1.10 height distribution 2, §2.8.4 Table 2.7), µm.
 SEED = {"ideal": {"roi_rms_um": 0.091, "roi_max_um": 0.357}, "calibrated": {"roi_rms_um": 0.414, "roi_max_um": 1.162}}
 
 

@@ -1,4 +1,4 @@
-"""Scan-time models of the parallel microscope (seed §7.2-7.4) and the objective count of the demonstrator (§8.2.2).
+"""Scan-time models of the parallel microscope (thesis §7.2-7.4) and the objective count of the demonstrator (§8.2.2).
 
 All lengths in mm, times in s, velocities in mm/s.
 """
@@ -24,7 +24,7 @@ def _positive(**values: float) -> None:
 def classic_time(
     width: float, height: float, d_w: float, d_h: float, exposure_s: float, velocity: float
 ) -> dict[str, float]:
-    """Stop-and-go acquisition with one objective (seed §7.2): T_I, T_M and T = T_I + T_M.
+    """Stop-and-go acquisition with one objective (thesis §7.2): T_I, T_M and T = T_I + T_M.
 
     T_I = (W/d_w) τ_e (H/d_h), T_M = ((W/d_w) H + W) / v.
     """
@@ -35,7 +35,7 @@ def classic_time(
 
 
 def scan_time(width: float, height: float, w_fov: float, v_scan: float, n: int = 1) -> float:
-    """Line-scan time with N objectives side by side (seed §7.3): T_N = (1/N)(H/v)(W/w_FOV) + (1/N)(W/v)."""
+    """Line-scan time with N objectives side by side (thesis §7.3): T_N = (1/N)(H/v)(W/w_FOV) + (1/N)(W/v)."""
     _positive(width=width, height=height, w_fov=w_fov, v_scan=v_scan, n=n)
     return (height / v_scan * width / w_fov + width / v_scan) / n
 
@@ -47,7 +47,7 @@ def scan_time_parallel(d_l: float, w_fov: float, height: float, v_scan: float, n
 
 
 def scans_needed(d_l: float, w_fov: float) -> float:
-    """N_scans = D_L / w_FOV (seed §7.3)."""
+    """N_scans = D_L / w_FOV (thesis §7.3)."""
     _positive(d_l=d_l, w_fov=w_fov)
     return d_l / w_fov
 

@@ -1,13 +1,13 @@
-"""Simulated substrate surfaces (seed §1.9), PSD surfaces of real glass, and analytic test surfaces.
+"""Simulated substrate surfaces (thesis §1.9), PSD surfaces of real glass, and analytic test surfaces.
 
-Two random families: the seed's §1.9 generator (white noise, Gaussian low-pass: exactly band-limited) and
+Two random families: the thesis's §1.9 generator (white noise, Gaussian low-pass: exactly band-limited) and
 Gaussian random fields drawn from a power spectral density (:func:`psd_noise`) as glass flatness and waviness
 are specified — the K-correlation (ABC) model and a power law with roll-off. Either can carry an nm-level
 broadband part (:func:`broadband_noise`, flat spectrum over a band of short wavelengths), which decides how
 well the surface extrapolates into the frame regions (docs/rendering.md, "Absolute height").
 
 Every generated surface satisfies the a-priori knowledge the reconstruction
-relies on (seed §1.4, §1.9): the maxima of both holding-frame regions are 0
+relies on (thesis §1.4, §1.9): the maxima of both holding-frame regions are 0
 (the substrate touches the frame there), and the peak-to-valley range over
 the substrate is the requested one.
 """
@@ -36,7 +36,7 @@ def _grid(spec: SurfaceSpec, size: tuple[float, float]) -> tuple[Array, Array]:
 
 
 def lowpass_noise(shape: tuple[int, int], spacing: tuple[float, float], correlation_length: float, seed: int) -> Array:
-    """White noise in [0, 1] low-pass filtered in the Fourier domain (seed §1.9, Fig. 1.9 a-b).
+    """White noise in [0, 1] low-pass filtered in the Fourier domain (thesis §1.9, Fig. 1.9 a-b).
 
     The filter is Gaussian, ``exp(-2 pi^2 sigma^2 |f|^2)`` with sigma = ``correlation_length``
     (mm): the noise is smoothed by a Gaussian kernel of that standard deviation. The
@@ -143,7 +143,7 @@ def _edge_rows(z: Array, x: Array, y: Array, roi_length: float) -> tuple[Array, 
 
 
 def level_on_frame(z: Array, y: Array, roi_length: float, x: Array | None = None) -> Array:
-    """Tilt about the x axis and shift so both frame regions have maximum 0 (seed §1.9, Fig. 1.9 c).
+    """Tilt about the x axis and shift so both frame regions have maximum 0 (thesis §1.9, Fig. 1.9 c).
 
     Solves max_region1(z + a*y) = max_region2(z + a*y) for the tilt a (the difference is
     monotonic in a, so a bracketing root finder is exact), then subtracts the common maximum.
@@ -174,7 +174,7 @@ def level_on_frame(z: Array, y: Array, roi_length: float, x: Array | None = None
 
 
 def scale_to_range(z: Array, range_mm: float) -> Array:
-    """Scale heights so max - min = ``range_mm`` (seed §1.9, Fig. 1.9 d); zero stays zero."""
+    """Scale heights so max - min = ``range_mm`` (thesis §1.9, Fig. 1.9 d); zero stays zero."""
     ptp = float(np.ptp(z))
     if ptp == 0:
         return np.zeros_like(z)
@@ -234,7 +234,7 @@ def bow(x: Array, y: Array, sagitta: float) -> Array:
 
 
 def random_surface(spec: SurfaceSpec, substrate: SubstrateSpec) -> HeightMap:
-    """The seed's §1.9 generator: noise -> FFT low-pass -> level on the frame -> scale to range (+ broadband)."""
+    """The thesis's §1.9 generator: noise -> FFT low-pass -> level on the frame -> scale to range (+ broadband)."""
     xx, yy = _grid(spec, substrate.size)
     dy = yy[1, 0] - yy[0, 0]
     dx = xx[0, 1] - xx[0, 0]

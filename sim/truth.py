@@ -2,7 +2,7 @@
 
 The image of a marker centre is found by tracing it through the real optical
 path, not by projecting it: the sensor point whose camera ray, reflected by the
-substrate (or mirror), lands exactly on the marker centre (seed §1.6: camera
+substrate (or mirror), lands exactly on the marker centre (thesis §1.6: camera
 ray, secant surface intersection, reflection, pattern plane). It is solved per
 marker with a vectorised Newton iteration on the ideal sensor coordinates,
 started from the flat-mirror solution.

@@ -30,7 +30,7 @@ def test_calibrate_recovers_the_camera_and_agrees_with_the_cli(tmp_path):
     plane = m.setup.marker_pattern.frame
     true_c = m.setup.camera_model.center
     found_c = cal.to_global(plane).center
-    assert np.linalg.norm(found_c - true_c) < 0.05  # mm, from one noisy 4 spp view face-on (seed §2.8.1)
+    assert np.linalg.norm(found_c - true_c) < 0.05  # mm, from one noisy 4 spp view face-on (thesis §2.8.1)
     exr = tmp_path / "target.exr"
     write_image(exr, m.image, m.setup.to_json())
     _cli("calibrate", str(exr), "--target", "thesis-2.8.1-perpendicular", "--json", str(tmp_path / "c.json"))

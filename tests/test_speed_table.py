@@ -84,7 +84,7 @@ def test_calibrate_writes_the_record_the_table_reads(st: ModuleType, tmp_path: P
 def test_reference_workload_is_deterministic(st: ModuleType) -> None:
     a = st._spd().copy()
     st._SPD.clear()
-    assert np.array_equal(st._spd(), a)  # the same matrix from the seed, run after run
+    assert np.array_equal(st._spd(), a)  # the same matrix from the thesis, run after run
     assert a.shape == (600, 600) and np.array_equal(a, a.T)
     np.linalg.cholesky(a)  # SPD: the factorisation the reference times exists
     wall, cpu = st.reference()

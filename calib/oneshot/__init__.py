@@ -1,6 +1,6 @@
-"""One-shot camera calibration from ONE image of a planar marker target (seed chapter 2).
+"""One-shot camera calibration from ONE image of a planar marker target (thesis chapter 2).
 
-Two steps, as in the seed, each in a module named after its section:
+Two steps, as in the thesis, each in a module named after its section:
 
 1. :mod:`scopetwin.calib.oneshot.linear` — :func:`linear_approximation` (§2.4): the affine model u = A x + B y + C,
    v = D x + E y + F fitted by least squares, then principal point, magnification (complex square root,
@@ -19,7 +19,7 @@ calibration and the centroid-bias correction of :mod:`scopetwin.recon.bias` (:fu
 :mod:`scopetwin.calib.oneshot.camera_parameters` holds the a-priori values (:class:`Prior`, §2.1) and the derived camera
 parameters (§2.3). This package's namespace is that public API.
 
-Image distance b: ``lens="thin-lens"`` derives b = g f/(g - f) from the focal length as the seed does (§2.5.2);
+Image distance b: ``lens="thin-lens"`` derives b = g f/(g - f) from the focal length as the thesis does (§2.5.2);
 ``lens="free"`` estimates b as a parameter (it is determined only when the target is seen obliquely: a face-on view
 fixes b/g alone); ``lens="fixed"`` keeps an a-priori b; ``lens="auto"`` holds b at a candidate: the a-priori b
 where the prior has one (the image distance the camera's description states, :meth:`Prior.from_camera`) and the
@@ -30,7 +30,7 @@ target lies 0.1 mm off the focus plane; a free b scatters by 6-23 µm at realist
 candidate's uncertainty (the focal length's tolerance, given the data) enters the reported ones
 (:mod:`scopetwin.calib.oneshot.lens_choice`).
 
-All coordinates of the calibration are those of the TARGET (its local frame: markers at (x, y, 0), seed §2.2).
+All coordinates of the calibration are those of the TARGET (its local frame: markers at (x, y, 0), thesis §2.2).
 Pixel coordinates are continuous (x_px, y_px) = (column, row) as in :mod:`scopetwin.scenes.camera`. Lengths in mm,
 angles in
 rad.

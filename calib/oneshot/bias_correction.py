@@ -2,7 +2,8 @@
 
 :func:`calibrate_bias_corrected` alternates :func:`~scopetwin.calib.oneshot.calibration.calibrate` and a centroid-bias
 prediction until the parameters stop changing. The prediction is the centroid-bias model of :mod:`scopetwin.recon.bias`:
-:func:`scopetwin.recon.bias.spot_bias_model` for a planar target (the spot centroid as the pixels see it, seed §1.5.1).
+:func:`scopetwin.recon.bias.spot_bias_model` for a planar target (the spot centroid as the pixels see it,
+thesis §1.5.1).
 """
 
 from __future__ import annotations

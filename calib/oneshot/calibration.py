@@ -1,4 +1,4 @@
-"""One-shot calibration: linear approximation (seed §2.4) then non-linear refinement (§2.5).
+"""One-shot calibration: linear approximation (thesis §2.4) then non-linear refinement (§2.5).
 
 :func:`calibrate` runs :func:`~scopetwin.calib.oneshot.linear.linear_approximation` and
 :func:`~scopetwin.calib.oneshot.refinement.refine`, checks the mirror-ambiguous pose (the other sign s of §2.4.2) and
@@ -129,18 +129,18 @@ def calibrate(
     Parameters
     ----------
     xy : array_like (n, 2)
-        Marker centres in target coordinates, mm (seed §2.2).
+        Marker centres in target coordinates, mm (thesis §2.2).
     px : array_like (n, 2)
         Their images, continuous pixel coordinates (col, row).
     prior : Prior
-        A-priori values (seed §2.1).
+        A-priori values (thesis §2.1).
     lens : {"auto", "thin-lens", "free", "fixed"}
         How the image distance b is obtained (module docstring). ``"auto"``: the a-priori b (``b``, else
         ``prior.image_distance``) where the thin-lens relation with the measured magnification agrees with it
-        (seed §2.4.2), else the thin-lens b; for an oblique view a free b where the data reject that; the
+        (thesis §2.4.2), else the thin-lens b; for an oblique view a free b where the data reject that; the
         uncertainty of a kept b enters the reported ones (:mod:`scopetwin.calib.oneshot.lens_choice`).
     distortion : bool
-        Refine r_cs, c0, c2 too (seed §2.5.1, §2.8.5).
+        Refine r_cs, c0, c2 too (thesis §2.5.1, §2.8.5).
     b : float, optional
         A-priori b for ``lens="fixed"``.
     residual_warn_px : float
@@ -194,7 +194,7 @@ def _auto_lens(
 ) -> Calibration:
     """``lens="auto"`` without distortion: the candidate b, the data's test of it, its uncertainty.
 
-    The candidate is the thin-lens b of seed §2.4.2 with the measured magnification, or the a-priori b of ``cal``
+    The candidate is the thin-lens b of thesis §2.4.2 with the measured magnification, or the a-priori b of ``cal``
     (a fixed-b fit) where it agrees with that; a view tilted by at least :data:`AUTO_FREE_TILT` also gets a free
     b, which replaces the candidate where the data reject it; a kept candidate's uncertainty given the data is
     propagated into the reported standard deviations (:mod:`scopetwin.calib.oneshot.lens_choice`).

@@ -1,4 +1,4 @@
-"""What a one-shot calibration starts from and what it reports (seed §2.1, §2.3; tilt angle and axis point §2.4.2).
+"""What a one-shot calibration starts from and what it reports (thesis §2.1, §2.3; tilt angle and axis point §2.4.2).
 
 :class:`Prior` is the a-priori knowledge of §2.1 (pixel size, focal length, coarse N_z, sensor format); the camera
 parameters of §2.3 are derived with :func:`tilt_phi` (the tilt angle phi) and :func:`axis_point` (r_0 and g) and
@@ -25,13 +25,13 @@ LENS_MODES: tuple[str, ...] = ("auto", "thin-lens", "free", "fixed")
 MIN_MARKERS = 6
 #: ``lens="auto"`` estimates b freely when the optical axis is tilted at least this much against the target normal.
 AUTO_FREE_TILT = np.deg2rad(10.0)
-#: Centroid noise assumed when judging whether b is determined, px (the seed's worst case, 1/20 px, §2.8.2).
+#: Centroid noise assumed when judging whether b is determined, px (the thesis's worst case, 1/20 px, §2.8.2).
 PRIOR_NOISE_PX = 0.05
 #: A free b whose standard deviation exceeds this (mm) is not determined: in the lens test of ``lens="auto"`` at the
 #: centroid noise the residuals show (the data's own precision), for ``lens="free"`` at :data:`PRIOR_NOISE_PX`.
 MAX_SIGMA_B = 0.05
 #: Default relative standard uncertainty of the a-priori focal length (lens tolerance and focus setting): the
-#: thin-lens b = f (m + 1) of seed §2.4.2 is uncertain by (m + 1) times it.
+#: thin-lens b = f (m + 1) of thesis §2.4.2 is uncertain by (m + 1) times it.
 FOCAL_LENGTH_TOLERANCE = 0.01
 
 
@@ -45,7 +45,7 @@ class CalibrationWarning(UserWarning):
 
 @dataclass(frozen=True)
 class Prior:
-    """The a-priori knowledge of seed §2.1: pixel size, focal length, coarse N_z (plus sensor format).
+    """The a-priori knowledge of thesis §2.1: pixel size, focal length, coarse N_z (plus sensor format).
 
     Parameters
     ----------
@@ -64,7 +64,7 @@ class Prior:
         A-priori b, mm (``lens="fixed"``; the candidate of ``lens="auto"`` where the thin-lens relation agrees).
     focal_length_tolerance : float
         Relative standard uncertainty of ``focal_length`` (default :data:`FOCAL_LENGTH_TOLERANCE`): the
-        uncertainty of the thin-lens b of seed §2.4.2, which ``lens="auto"`` reports where it keeps that b.
+        uncertainty of the thin-lens b of thesis §2.4.2, which ``lens="auto"`` reports where it keeps that b.
     image_distance_sigma : float or None
         Standard uncertainty of ``image_distance``, mm. None (default): ``focal_length_tolerance`` times it (a
         stated b is known no better than the lens data it comes from); 0 declares it exact (a simulated camera's).
@@ -181,7 +181,7 @@ def unit_vector(v: Array) -> Array:
 
 
 def tilt_phi(frame: Frame) -> float:
-    """Tilt angle phi of the sensor (seed §2.4.2, "Tilt Angle"): mean of alpha and beta.
+    """Tilt angle phi of the sensor (thesis §2.4.2, "Tilt Angle"): mean of alpha and beta.
 
     T_0x = e_y x N_z, T_0y = N_z x T_0x; alpha = atan2(-T_y.T_0x, T_x.T_0x),
     beta = atan2(T_x.T_0y, T_y.T_0y); their mean is taken on the circle.
@@ -217,7 +217,7 @@ def axis_point(frame: Frame) -> tuple[Array, float]:
 
 
 def camera_dict(camera: Camera, r0: ArrayLike, phi: float, g: float) -> dict:
-    """Camera parameters under the contract's keys (seed Table 2.1 plus phi, r_cs, c0, c2)."""
+    """Camera parameters under the contract's keys (thesis Table 2.1 plus phi, r_cs, c0, c2)."""
     f = camera.frame
     return {
         "r_c": f.origin.tolist(),

@@ -1,4 +1,4 @@
-"""One-shot calibration from a camera image of a target (seed ch. 2): markers found and indexed (§2.6), their
+"""One-shot calibration from a camera image of a target (thesis ch. 2): markers found and indexed (§2.6), their
 centroid bias corrected (§2.8.2), the linear approximation and the refinement (§2.4-§2.5).
 
 The one path from an image to a :class:`~scopetwin.calib.oneshot.refinement.Calibration`: ``scopetwin calibrate``
@@ -23,7 +23,7 @@ MIN_MARKERS = 6
 
 
 def target_prior(setup: Setup, focal_length: float | None = None, **changes: Any) -> Prior:
-    """The a-priori camera values of a ``target`` scene (seed §2.1): format, pitch, focal length, N_z in the
+    """The a-priori camera values of a ``target`` scene (thesis §2.1): format, pitch, focal length, N_z in the
     target's coordinates; ``changes`` override fields (``pitch``, ``nz_estimate``, ``image_distance``)."""
     f = focal_length if focal_length is not None else setup.camera.focal_length
     return Prior.from_camera(setup.camera_model, f, plane=setup.marker_pattern.frame, **changes)
@@ -41,7 +41,7 @@ def calibrate_image(
     bias_correction: bool = True,
     name: str = "the image",
 ) -> tuple[Calibration, Any]:
-    """Calibrate the camera from one image of the target of ``setup`` (seed §2.4-§2.5, bias-corrected §2.8.2).
+    """Calibrate the camera from one image of the target of ``setup`` (thesis §2.4-§2.5, bias-corrected §2.8.2).
 
     Parameters
     ----------

@@ -1,10 +1,10 @@
 """How ``lens="auto"`` obtains the image distance b: a candidate, the data's test of it, its uncertainty.
 
 One view of a plane fixes b only through perspective, and b and g are strongly correlated, so a free b costs a lot
-of precision (for the seed's §2.8.1 angular view sigma_b = 0.7-2.8 µm at 0.004-0.013 px centroid noise, which is
+of precision (for the thesis's §2.8.1 angular view sigma_b = 0.7-2.8 µm at 0.004-0.013 px centroid noise, which is
 6-23 µm of r_c along the viewing axis). ``lens="auto"`` therefore holds b at a candidate unless the data reject it:
 
-1. The candidate (:func:`thin_lens_candidate`, :func:`stated_candidate`): the thin-lens b = f (m + 1) of seed
+1. The candidate (:func:`thin_lens_candidate`, :func:`stated_candidate`): the thin-lens b = f (m + 1) of thesis
    §2.4.2 with the magnification m = b/g the image measures, uncertain by (m + 1) times the focal length's
    tolerance (:attr:`~scopetwin.calib.oneshot.camera_parameters.Prior.focal_length_tolerance`) and f times the
    magnification's standard deviation. An a-priori b (the camera's stated image distance) is the candidate instead
@@ -51,7 +51,7 @@ class Candidate:
 
 
 def measured_magnification(cal: Calibration, focal_length: float) -> tuple[float, float]:
-    """The magnification m = b/g (seed §2.4.1) of a fit with b held, and its standard deviation (first order).
+    """The magnification m = b/g (thesis §2.4.1) of a fit with b held, and its standard deviation (first order).
 
     The image fixes the ratio b/g whatever b is held at: a wrong b moves g along with it.
     """
@@ -61,7 +61,7 @@ def measured_magnification(cal: Calibration, focal_length: float) -> tuple[float
 
 
 def thin_lens_candidate(cal: Calibration, prior: Prior) -> Candidate:
-    """The thin-lens b = f (m + 1) of seed §2.4.2 with the measured magnification, and its uncertainty."""
+    """The thin-lens b = f (m + 1) of thesis §2.4.2 with the measured magnification, and its uncertainty."""
     f = prior.focal_length
     m, sigma_m = measured_magnification(cal, f)
     sigma = float(np.hypot((m + 1.0) * prior.focal_length_tolerance * f, f * sigma_m))

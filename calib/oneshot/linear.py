@@ -1,4 +1,4 @@
-"""The linear approximation of the one-shot calibration (seed §2.4).
+"""The linear approximation of the one-shot calibration (thesis §2.4).
 
 :func:`linear_approximation`: the affine model u = A x + B y + C, v = D x + E y + F fitted by least squares
 (§2.4.1), then principal point, magnification (complex square root, eqs. 2.23-2.29, both equations), T_x, T_y, N_z
@@ -29,7 +29,7 @@ from scopetwin.scenes.geometry import Array, Frame
 
 @dataclass(frozen=True)
 class LinearResult:
-    """Result of the linear approximation of seed §2.4 (target coordinates).
+    """Result of the linear approximation of thesis §2.4 (target coordinates).
 
     Attributes
     ----------
@@ -84,7 +84,7 @@ def _linear_camera(coef: Array, m: float, s: int, b: float, prior: Prior) -> Cam
 
 
 def linear_approximation(xy: ArrayLike, px: ArrayLike, prior: Prior, b: float | None = None) -> LinearResult:
-    """Linear approximation of seed §2.4 from marker coordinates and their image points.
+    """Linear approximation of thesis §2.4 from marker coordinates and their image points.
 
     Parameters
     ----------

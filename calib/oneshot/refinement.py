@@ -1,4 +1,4 @@
-"""Non-linear refinement of the one-shot calibration and its covariance (seed §2.5.4).
+"""Non-linear refinement of the one-shot calibration and its covariance (thesis §2.5.4).
 
 :func:`refine` minimises the reprojection error of :class:`~scopetwin.calib.oneshot.reprojection.ReprojectionModel` with
 :func:`scipy.optimize.least_squares` (Levenberg-Marquardt, analytic Jacobian), starting from the linear
@@ -148,7 +148,7 @@ class Calibration:
 
 
 #: A-priori standard deviations of the distortion parameters that one view may not determine:
-#: the principal-point offset r_cs (mm; 0.25 mm is ~54 px of the seed's 4.65 µm pixels) and c0 (which only
+#: the principal-point offset r_cs (mm; 0.25 mm is ~54 px of the thesis's 4.65 µm pixels) and c0 (which only
 #: scales the image, like b). They enter the refinement as pseudo-observations at the prior's values.
 DISTORTION_PRIOR_SIGMA = {"x_cs": 0.25, "y_cs": 0.25, "c0": 0.01}
 
@@ -356,7 +356,7 @@ def refine(
     b: float | None = None,
     max_nfev: int = 200,
 ) -> Calibration:
-    """Non-linear refinement of seed §2.5 by Levenberg-Marquardt (``scipy.optimize.least_squares``).
+    """Non-linear refinement of thesis §2.5 by Levenberg-Marquardt (``scipy.optimize.least_squares``).
 
     Parameters
     ----------
@@ -369,7 +369,7 @@ def refine(
     lens : {"thin-lens", "free", "fixed"}
         How b is obtained (module docstring).
     distortion : bool
-        Also refine r_cs, c2 and (unless b is free) c0 (seed §2.5.1).
+        Also refine r_cs, c2 and (unless b is free) c0 (thesis §2.5.1).
     b : float, optional
         The image distance for ``lens="fixed"`` (default: ``prior.image_distance``).
     """
@@ -393,7 +393,7 @@ def with_image_distance_uncertainty(
 ) -> Calibration:
     """``cal`` (b held: fixed or thin-lens, no distortion) with a standard uncertainty ``sigma_b`` of its b added.
 
-    Issue 27 item 1: a b taken from outside the data (an a-priori or thin-lens b, seed §2.4.2) is uncertain
+    Issue 27 item 1: a b taken from outside the data (an a-priori or thin-lens b, thesis §2.4.2) is uncertain
     itself, and a shift db of it moves the whole pose: at the optimum, dp/db = -(J_p^T J_p)^-1 J_p^T J_b (J_p the
     held-b Jacobian, J_b the column of a free b; for the thin-lens b the relation b = g f/(g - f) moves with
     the pose). The reported standard deviations of the parameters and of N_z, T_x, T_y, b, g get |d/db| sigma_b

@@ -1,4 +1,4 @@
-"""The reprojection model of the non-linear optimisation (seed §2.5.1 parameters, §2.5.2 camera, §2.5.3 goal).
+"""The reprojection model of the non-linear optimisation (thesis §2.5.1 parameters, §2.5.2 camera, §2.5.3 goal).
 
 :class:`ReprojectionModel` maps the parameter vector p = (r_c, r_0, phi) [, b] [, r_cs, c0, c2] to the camera of
 §2.5.2 and evaluates the reprojection residuals of the goal function (§2.5.3) with an analytic Jacobian: the
@@ -23,7 +23,7 @@ _CSTEP = 1e-30
 
 
 def _frame_batch(q: NDArray, focal_length: float, lens: str, b_fixed: float) -> NDArray:
-    """Frame map of seed §2.5.2 for rows q = (x_c, y_c, z_c, x_0, y_0, phi, b); complex-step safe.
+    """Frame map of thesis §2.5.2 for rows q = (x_c, y_c, z_c, x_0, y_0, phi, b); complex-step safe.
 
     Returns rows (N_z, T_x, T_y, b, g) of length 11.
     """
@@ -48,7 +48,7 @@ def _frame_batch(q: NDArray, focal_length: float, lens: str, b_fixed: float) -> 
 
 @dataclass
 class ReprojectionModel:
-    """The reprojection model: parameter layout and residual / Jacobian (seed §2.5.1-§2.5.3).
+    """The reprojection model: parameter layout and residual / Jacobian (thesis §2.5.1-§2.5.3).
 
     Parameters
     ----------

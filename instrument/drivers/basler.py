@@ -1,4 +1,4 @@
-"""Basler GigE cameras through pypylon (seed §4.1.4: scA1400-30gm, 12 bit, 1392 x 1040, 6.45 µm).
+"""Basler GigE cameras through pypylon (thesis §4.1.4: scA1400-30gm, 12 bit, 1392 x 1040, 6.45 µm).
 
 Optional dependency: ``pip install scopetwin[hardware]`` (pypylon). The driver
 probes the feature names of both GenICam generations: ``ExposureTime`` (µs,
@@ -261,7 +261,7 @@ class BaslerCamera(CameraDevice):
         cam.Width.Value = cam.WidthMax.Value
         cam.Height.Value = cam.HeightMax.Value
         self._roi = Roi(0, 0, *self.limits.sensor_shape)
-        bits = 12 if 12 in self.limits.bit_depths else max(self.limits.bit_depths)  # the seed's ADC depth
+        bits = 12 if 12 in self.limits.bit_depths else max(self.limits.bit_depths)  # the thesis's ADC depth
         self._do_set_bit_depth(bits)
         self._bit_depth = bits
         self._exposure_s = float(exposure.Value) * exposure_scale_us * 1e-6

@@ -1,12 +1,12 @@
-"""Driver of the FPGA light/trigger board (seed §4.3.1) and its binary packets (Table 4.2).
+"""Driver of the FPGA light/trigger board (thesis §4.3.1) and its binary packets (Table 4.2).
 
 Every packet is ``opcode, address, length, payload[length]`` with multi-byte
-fields big-endian. The seed documents the write of a light-source
+fields big-endian. The thesis documents the write of a light-source
 configuration (Table 4.2): opcode 0x01, the light's address, length 12, then
 current index (16 bit), use-duration flag (8 bit), duration (32 bit), listen to
 global trigger (8 bit), global trigger delay (32 bit). The rest of the map
 below follows the same packet layout; it is this project's assumption about the
-board (the seed shows only Table 4.2), and the emulator implements the same map:
+board (the thesis shows only Table 4.2), and the emulator implements the same map:
 
 ========  ==========================  ===================================
 address   register                    payload

@@ -1,4 +1,4 @@
-"""piezosystem jena driver for the MIPOS500 objective positioner (seed §4.2.3, RS-232).
+"""piezosystem jena driver for the MIPOS500 objective positioner (thesis §4.2.3, RS-232).
 
 The controllers of the MIPOS500 speak related but different ASCII dialects; the
 rig's ``model`` key selects one (:data:`DIALECTS`). Every command ends in CR; set

@@ -1,4 +1,4 @@
-"""PI GCS driver for the lateral stages (seed §4.2.2: M-404.6PD / M-414.3PD on C-863 controllers).
+"""PI GCS driver for the lateral stages (thesis §4.2.2: M-404.6PD / M-414.3PD on C-863 controllers).
 
 The General Command Set is line based ASCII: a command is a mnemonic and
 arguments separated by spaces, terminated by LF; a query ends in ``?`` and is

@@ -1,4 +1,4 @@
-"""Emulator of the FPGA light/trigger board (seed §4.3.1, Table 4.2 packets) on a pseudo-terminal.
+"""Emulator of the FPGA light/trigger board (thesis §4.3.1, Table 4.2 packets) on a pseudo-terminal.
 
 Implements the register map of :mod:`scopetwin.instrument.drivers.fpga_board`. Lights
 switch on by their action register or by the global trigger (when listening,
@@ -8,7 +8,7 @@ ends (``use_duration``). Every switching and trigger pulse is recorded in
 ended up off and that cameras and lights were triggered together.
 
 The emulator shares the register *addresses* with the driver but not its
-encoders: it reads the Table 4.2 payload byte by byte as the seed's table lays
+encoders: it reads the Table 4.2 payload byte by byte as the thesis's table lays
 it out (:func:`read_light_config`), so a field swapped in the driver's struct
 cannot pass a round trip through the emulator.
 """
@@ -44,7 +44,7 @@ CAMERA_CONFIG_LENGTH = 5
 
 
 def read_light_config(payload: bytes) -> tuple[int, int, int, int, int]:
-    """The fields of a light configuration, read by the byte numbers of seed Table 4.2.
+    """The fields of a light configuration, read by the byte numbers of thesis Table 4.2.
 
     Parameters
     ----------

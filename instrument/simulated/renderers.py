@@ -140,7 +140,7 @@ class DeflectometryRenderer:
         Lights that illuminate the pattern.
     pattern_stage : str, optional
         A stage that moves the pattern along its normal N_z: its position (mm) is the pattern's shift from the
-        setup's pose (:func:`scopetwin.scenes.pattern_stage.shift_pattern`, seed §1.3); None: the pattern stays.
+        setup's pose (:func:`scopetwin.scenes.pattern_stage.shift_pattern`, thesis §1.3); None: the pattern stays.
     """
 
     def __init__(

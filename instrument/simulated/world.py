@@ -12,7 +12,7 @@ Light levels in the snapshot are relative radiant outputs (``current /
 max_current``), weighted by the fraction of the exposure the light was on: for
 a global trigger, a light listening with delay ``d_l`` and duration ``T_l``
 overlaps an exposure ``[d_c, d_c + t_exp]`` by ``|[d_l, d_l+T_l] ∩ [d_c, d_c+t_exp]|``
-(seed §4.3.2, 'Global Trigger'). A light behind a closed shutter contributes 0.
+(thesis §4.3.2, 'Global Trigger'). A light behind a closed shutter contributes 0.
 
 Devices outside the world (hardware drivers on in-process emulators, as in
 ``rigs/emulated-hardware.toml``) are seen through **probes**: callables that

@@ -1,6 +1,6 @@
-"""Marker identification in camera images (seed §1.5 for the deflectometry grid, §2.6 for the calibration grid).
+"""Marker identification in camera images (thesis §1.5 for the deflectometry grid, §2.6 for the calibration grid).
 
-Four steps, as in the seed, each a module named after its section:
+Four steps, as in the thesis, each a module named after its section:
 
 1. :mod:`scopetwin.recon.markers.centroid_search` — centroid search (§1.5.1): background level and noise from the image,
    threshold, connected components (OpenCV), grey-value-weighted centre of mass (:func:`centroids`, :class:`Spots`).

@@ -1,4 +1,4 @@
-"""Centroid search of marker identification (seed §1.5.1; the same search serves the calibration grid, §2.6).
+"""Centroid search of marker identification (thesis §1.5.1; the same search serves the calibration grid, §2.6).
 
 :func:`centroids` estimates the background level and noise from the image (:func:`background_level`), thresholds
 it, labels connected components (OpenCV) and takes the grey-value-weighted centre of mass of each spot
@@ -136,7 +136,7 @@ def background_level(image: NDArray[np.float32], stride: int = 7) -> tuple[float
     """Robust background level and noise of an image (for §1.5.1's threshold).
 
     The level is the median of a strided subsample (markers cover well under half of any of the
-    seed's images); the noise sigma starts from the scaled median absolute deviation of the samples below
+    thesis's images); the noise sigma starts from the scaled median absolute deviation of the samples below
     it (the dark side, which holds no marker light); then level and sigma are the mean and standard deviation
     of the samples within 3.5 sigma, three times. A standard deviation, not a MAD: on an integer
     (ADC) image of ~2 DN dark noise the MAD of integers reads 1 DN, so sigma came out 1.48 DN for a true
@@ -435,9 +435,9 @@ def centroids(
     noise_sigmas: float = 6.0,
     fragment_fraction: float = 0.03,
 ) -> Spots:
-    """Centroid search of seed §1.5.1: connected pixels above a threshold, grey-weighted centre of mass.
+    """Centroid search of thesis §1.5.1: connected pixels above a threshold, grey-weighted centre of mass.
 
-    r_s = (1/G) sum_i g_i r_i, G = sum_i g_i (seed §1.5.1), with g_i the grey value minus the
+    r_s = (1/G) sum_i g_i r_i, G = sum_i g_i (thesis §1.5.1), with g_i the grey value minus the
     background. Pixels above ``threshold`` define a spot (OpenCV connected components); the sum runs
     over the spot grown by ``grow`` pixels, so that the spot's faint rim below the threshold counts
     too and the centroid does not depend on the threshold (module docstring).

@@ -1,4 +1,4 @@
-"""Marker filtering and the reference marker (seed §1.5.2; reference marker §1.5.4, §2.6.1).
+"""Marker filtering and the reference marker (thesis §1.5.2; reference marker §1.5.4, §2.6.1).
 
 :func:`filter_spots` keeps a candidate spot when its area agrees with its neighbours' (:func:`local_area_ratio`),
 its rim ellipse stays inside the image and inside the :class:`Region` where markers are reflected whole
@@ -20,7 +20,7 @@ from scopetwin.recon.markers.centroid_search import Array, MarkerError, Spots
 def local_area_ratio(points: Array, areas: NDArray, reference: NDArray[np.bool_] | None = None, k: int = 8) -> Array:
     """Area of each spot divided by the median area of its ``k`` nearest reference spots (§1.5.2, made local).
 
-    A bowed substrate magnifies spots unevenly and perspective shrinks distant ones, so the seed's
+    A bowed substrate magnifies spots unevenly and perspective shrinks distant ones, so the thesis's
     comparison with the median area is made against the neighbourhood. ``reference`` selects the
     spots that may serve as neighbours (default all): fragments of partially reflected markers at
     the region's edge would otherwise make a whole marker beside them look large.
@@ -112,7 +112,7 @@ def find_reference(
 class Region:
     """The image of the region where markers are reflected whole: a closed polygon in pixel coordinates.
 
-    For the deflectometry setup it is the image of the substrate's region of interest (seed §1.6.4,
+    For the deflectometry setup it is the image of the substrate's region of interest (thesis §1.6.4,
     the gap between the holding-frame regions), for the mirror setup the mirror; a spot whose rim
     crosses its edge belongs to a partially reflected marker (§1.5.2). See :func:`region_for_setup`.
     """
@@ -224,7 +224,7 @@ def filter_spots(
     hint_spacings: float = 3.0,
     reference: int | None = None,
 ) -> Filtered:
-    """Marker filtering of seed §1.5.2 and the reference marker.
+    """Marker filtering of thesis §1.5.2 and the reference marker.
 
     A candidate is kept when
 

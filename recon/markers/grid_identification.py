@@ -1,4 +1,4 @@
-"""Grid identification: the image steps of the marker grid's axes (seed §1.5.3 deflectometry, §2.6.1 calibration).
+"""Grid identification: the image steps of the marker grid's axes (thesis §1.5.3 deflectometry, §2.6.1 calibration).
 
 :func:`fourier_axes` finds the two lattice steps of the deflectometry grid from the Fourier transform of the image
 around the reference marker (§1.5.3), and :func:`orient_axes` assigns them to the pattern's +T_x and +T_y with a hint;
@@ -99,7 +99,7 @@ def orient_axes(steps: Array, hint: Array) -> Array:
     """Assign two unordered, unsigned grid steps to the pattern's +T_x, +T_y (rows of ``hint``).
 
     Of the eight orderings and sign choices, the one most parallel to the hint (image directions of
-    +T_x and +T_y at the reference, e.g. from :func:`expected_axes` or the seed's "x-axis almost
+    +T_x and +T_y at the reference, e.g. from :func:`expected_axes` or the thesis's "x-axis almost
     (1, 0, 0)") is taken.
     """
     h = hint / np.linalg.norm(hint, axis=1, keepdims=True)
@@ -115,7 +115,7 @@ def orient_axes(steps: Array, hint: Array) -> Array:
 
 
 def reference_axes(points: Array, ref: int, mirrored: bool) -> Array:
-    """Grid axes of the calibration target from the reference marker's neighbours (seed §2.6.1).
+    """Grid axes of the calibration target from the reference marker's neighbours (thesis §2.6.1).
 
     The closest marker to the reference lies on one axis; the next closest at more than 45° to it
     on the other. Which is T_x follows from right-handedness: the camera is on the +N_z side of the

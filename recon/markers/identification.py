@@ -1,4 +1,4 @@
-"""Marker identification, all four steps (seed §1.5 for the deflectometry grid, §2.6 for the calibration grid).
+"""Marker identification, all four steps (thesis §1.5 for the deflectometry grid, §2.6 for the calibration grid).
 
 :func:`find_markers` runs centroid search (:mod:`scopetwin.recon.markers.centroid_search`, §1.5.1), filtering
 (:mod:`scopetwin.recon.markers.filtering`, §1.5.2), grid identification
@@ -52,7 +52,7 @@ class Markers:
     spots : Spots
         All candidates of the centroid search.
     indexing : {"flood", "lattice"}
-        Which indexing numbered them: the seed's flood (:func:`index_grid`) or, where it reached too few of the
+        Which indexing numbered them: the thesis's flood (:func:`index_grid`) or, where it reached too few of the
         kept spots, the topological one (:func:`index_lattice`).
     """
 
@@ -101,7 +101,7 @@ def find_markers(
     reference: int | None = None,
     lattice_below: float = DEFAULT_POLICY.lattice_below,
 ) -> Markers:
-    """Find, filter and index the markers of an image (seed §1.5 and §2.6).
+    """Find, filter and index the markers of an image (thesis §1.5 and §2.6).
 
     Parameters
     ----------
@@ -112,7 +112,7 @@ def find_markers(
         calibration target (reference at the -x/-y corner, axes from its neighbours, §2.6.1).
     hint : ndarray, (2, 2), optional
         Approximate image directions of the pattern's +T_x and +T_y (rows), e.g. from
-        :func:`expected_axes`. Default (seed §1.5.3): T_x along +col, T_y along -row in a direct view
+        :func:`expected_axes`. Default (thesis §1.5.3): T_x along +col, T_y along -row in a direct view
         and along +row in a mirror view.
     mirrored : bool, optional
         The pattern is seen in a mirror (deflectometry); default: ``layout == "deflectometry"``.
@@ -178,7 +178,7 @@ def expected_axes(setup: Setup) -> Array:
     """Image steps of the pattern's +T_x and +T_y at the reference marker, from the nominal setup.
 
     The reflecting element is taken as the flat plane z = 0 (the substrate's base plane, §1.10), so
-    this is the seed's coarse axis estimate made exact for an unbent substrate.
+    this is the thesis's coarse axis estimate made exact for an unbent substrate.
     """
     pat = setup.marker_pattern
     px = _seen_points(setup, pat.centers(np.array([[0, 0], [1, 0], [0, 1]])))
@@ -196,7 +196,7 @@ def region_for_setup(setup: Setup, heights: HeightMap | None = None, per_side: i
     Deflectometry: the substrate's region of interest (``|x| <= size_x/2``, ``|y| < roi_length/2``, §1.6.4);
     mirror: the mirror; calibration target: None (the markers lie on the target itself). The outline
     lies on the surface: points (x, y, h(x, y)) with ``heights`` (a current surface estimate or the
-    truth), else on the flat base plane z = 0, where the seed's 40 µm bow moves the outline's image by
+    truth), else on the flat base plane z = 0, where the thesis's 40 µm bow moves the outline's image by
     up to ~0.7 px. Each side is sampled with ``per_side`` points so lens distortion bends it correctly.
     """
     if setup.scene == "target":
@@ -275,7 +275,7 @@ def _grid_axes(image: NDArray, pts: Array, ref: int, layout: str, mirrored: bool
 def _index(
     centroids: Array, keep: NDArray[np.int64], reference: int, ref: int, axes: Array, lattice_below: float
 ) -> tuple[NDArray[np.int64], NDArray[np.bool_], str]:
-    """Indices of the kept spots (§1.5.4): the seed's flood (:func:`index_grid`), or where it numbers fewer than
+    """Indices of the kept spots (§1.5.4): the thesis's flood (:func:`index_grid`), or where it numbers fewer than
     ``lattice_below`` of them the grid's topology (:func:`index_lattice`) if that numbers more. Returns the indices,
     which were numbered, and which indexing won."""
     pts = centroids[keep]

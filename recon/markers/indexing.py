@@ -1,4 +1,4 @@
-"""Marker indexing: (i, j) of every marker by a flood from the reference marker (seed §1.5.4, and §2.6.1).
+"""Marker indexing: (i, j) of every marker by a flood from the reference marker (thesis §1.5.4, and §2.6.1).
 
 :func:`index_grid` floods the grid from the reference marker (0, 0) through the eight neighbours of each marker,
 with the neighbour steps re-estimated locally as it proceeds. Indices (i, j) count pitches along the pattern's own
@@ -224,13 +224,13 @@ def index_grid(
     gap: float = 0.3,
     axis_tol: float | None = 0.18,
 ) -> NDArray[np.int64]:
-    """Index spots relative to the reference marker by a flood over the eight neighbours (seed §1.5.4).
+    """Index spots relative to the reference marker by a flood over the eight neighbours (thesis §1.5.4).
 
     From each indexed marker the positions of its eight neighbours are predicted with the *local*
     grid steps (a_x, a_y), re-estimated at every marker from its already indexed axial neighbours, so
-    the flood follows a grid distorted by a bowed substrate or by perspective. The seed's search
+    the flood follows a grid distorted by a bowed substrate or by perspective. The thesis's search
     within r_s = sqrt((1.5 p_x)^2 + (1.5 p_y)^2) and its eight angle classes "with the tilt" become
-    the eight predicted positions; as in the seed, the closest candidate of each class is kept, and
+    the eight predicted positions; as in the thesis, the closest candidate of each class is kept, and
     only if it lies within ``tol`` times the shorter local step of the prediction. Claims on one spot
     from several markers go to the closest prediction. The whole frontier is processed at once.
 
@@ -429,7 +429,7 @@ def index_lattice(
     on: tuple[float, float] = (0.35, 2.9),
     off_tol: float = 0.4,
 ) -> NDArray[np.int64]:
-    """Index spots by the grid's topology: a flood over closed quadrilaterals of axial neighbours (seed §1.5.4).
+    """Index spots by the grid's topology: a flood over closed quadrilaterals of axial neighbours (thesis §1.5.4).
 
     :func:`index_grid` predicts each neighbour's position from the local grid steps; where a strongly bent
     substrate stretches the reflected grid on one side of a marker and squeezes it on the other (3 mm correlation,

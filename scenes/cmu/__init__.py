@@ -1,6 +1,6 @@
-"""The compact four-channel fluorescence microscope unit (seed ch. 3-5), numpy float64 world model.
+"""The compact four-channel fluorescence microscope unit (thesis ch. 3-5), numpy float64 world model.
 
-``cmu`` is the seed's own name for it: "one compact microscope unit (CMU)" (§3.4.1, Fig. 3.6-3.7; the
+``cmu`` is the thesis's own name for it: "one compact microscope unit (CMU)" (§3.4.1, Fig. 3.6-3.7; the
 implementation §4.1, Fig. 4.1(b)).
 
 Spectra of fluorophores, light sources, filters and dichroics (:mod:`~scopetwin.scenes.cmu.spectra`), the unit's layout

@@ -1,7 +1,7 @@
-"""Image-quality analyses of the microscope unit (seed §5.1.2): refocus, magnification, spots, astigmatism,
+"""Image-quality analyses of the microscope unit (thesis §5.1.2): refocus, magnification, spots, astigmatism,
 wavefront PSF/MTF and the 4 mm aperture stop.
 
-* **Refocus** (the seed's "adjusting the image distance"): the tube-lens-to-image distance b that minimises the
+* **Refocus** (the thesis's "adjusting the image distance"): the tube-lens-to-image distance b that minimises the
   RMS spot radius summed over the fields axis, 0.7 and 1.0 of the field's half diagonal (Zemax's default
   RMS-spot focus). After the tube lens rays are straight, so each spot's centred second moment is a quadratic in
   b and the minimum is closed form.
@@ -101,7 +101,7 @@ def perpendicular_optics(
 ) -> Optics:
     """§5.1.2 / Fig. 5.2: a mirror (perfect, or a splitter's map) perpendicular to the beam, ``distance`` behind
     the objective, and the tube lens ``distance`` after it on the reflected beam (a sequential model, like Zemax's).
-    The distance is not in the seed; 40 mm is the unit's element spacing (thesis-cmu)."""
+    The distance is not in the thesis; 40 mm is the unit's element spacing (thesis-cmu)."""
     f_o = setup.objective.focal_length
     obj = PerfectLens(
         axis_frame(np.array([0.0, 0.0, f_o]), np.array([0.0, 0.0, 1.0])), f_o, 0.5 * setup.objective.beam_diameter

@@ -1,4 +1,4 @@
-"""The compact microscope unit as a pydantic setup (seed §4.1, §5.1.2), loaded from ``thesis-cmu`` or a TOML file.
+"""The compact microscope unit as a pydantic setup (thesis §4.1, §5.1.2), loaded from ``thesis-cmu`` or a TOML file.
 
 Global frame: the object plane is z = 0, the objective's axis is +z, the objective (a perfect thin lens) sits at
 z = f_objective so that the object lies in its front focal plane and every object point leaves it as a plane wave
@@ -159,7 +159,7 @@ class CellsSpec(_Model):
 
 
 class CmuSetup(_Model):
-    """The whole unit (seed §4.1, §5.1.2, §5.2.2)."""
+    """The whole unit (thesis §4.1, §5.1.2, §5.2.2)."""
 
     name: str = ""
     kind: Literal["cmu"] = "cmu"

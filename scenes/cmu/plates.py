@@ -1,7 +1,7 @@
-"""Beam-splitter plates with height maps (seed §5.1.1, Fig. 5.1) and the glass they are made of.
+"""Beam-splitter plates with height maps (thesis §5.1.1, Fig. 5.1) and the glass they are made of.
 
-The measured maps of Fig. 5.1 are images in the seed; here a plate's coated surface is a *modelled* map: a
-spherical bow whose range (max - min over the whole 25.5 x 36 mm plate) is the seed's measured range (3.6, 9.4,
+The measured maps of Fig. 5.1 are images in the thesis; here a plate's coated surface is a *modelled* map: a
+spherical bow whose range (max - min over the whole 25.5 x 36 mm plate) is the thesis's measured range (3.6, 9.4,
 10.2 µm), plus a smooth residual (Gaussian-filtered white noise, correlation ~5 mm, given RMS, seeded). A
 measured or reconstructed map (the deflectometry part's output, a height-map EXR of docs/contract.md in plate-local mm)
 replaces the model when ``height_map`` is given.
@@ -34,7 +34,7 @@ def plate_heightmap(spec: ElementSpec, plate: PlateSpec) -> HeightMap:
     """Height map (plate-local mm) of the coated surface: bow + residual, or the EXR map named by the spec.
 
     The bow is concave toward the incident light (``spec.concave``): h = +r^2/(2R) - mean, so the plate acts as a
-    weak converging mirror, which makes the refocused images smaller (seed Table 5.1).
+    weak converging mirror, which makes the refocused images smaller (thesis Table 5.1).
     """
     if spec.height_map is not None:
         from scopetwin.scenes.io import read_heightmap

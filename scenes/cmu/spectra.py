@@ -1,16 +1,16 @@
-"""Spectral models of the compact microscope unit (seed ch. 3-4): fluorophores, light sources, filters, dichroics.
+"""Spectral models of the compact microscope unit (thesis ch. 3-4): fluorophores, light sources, filters, dichroics.
 
-Everything is a function of wavelength in nm on :data:`GRID_NM` (300-1000 nm, 0.5 nm steps). What the seed
+Everything is a function of wavelength in nm on :data:`GRID_NM` (300-1000 nm, 0.5 nm steps). What the thesis
 gives is used as given; what it does not give is a stated model with stated parameters:
 
-* **Fluorophores** (§3.3): excitation/emission peaks and quantum yields from the seed. Band shapes are
+* **Fluorophores** (§3.3): excitation/emission peaks and quantum yields from the thesis. Band shapes are
   Fraser-Suzuki (skewed log-normal) bands in wavenumber, the empirical shape of Siano & Metzler
   (J. Chem. Phys. 51, 1856, 1969) for absorption and fluorescence bands of dyes; the widths (FWHM in nm) and the
-  skew are *our estimates* of the published spectra's shapes (the seed's Figs. 3.1-3.5 are images), and the
+  skew are *our estimates* of the published spectra's shapes (the thesis's Figs. 3.1-3.5 are images), and the
   excitation band is normalised to a peak of 1 (relative absorption; no molar extinction is used).
-* **LEDs** (§4.1.1): peak and spectral half width from the seed, shape after Ohno's LED model
+* **LEDs** (§4.1.1): peak and spectral half width from the thesis, shape after Ohno's LED model
   (Opt. Eng. 44, 111302, 2005): S = (g + 2 g^5)/3 with g a Gaussian of that FWHM. Halogen bulb: a Planck
-  radiator at 3100 K (a 150 W halogen lamp's typical colour temperature; not in the seed) through the fibre.
+  radiator at 3100 K (a 150 W halogen lamp's typical colour temperature; not in the thesis) through the fibre.
 * **Band-pass filters** (§4.1.3): decoded from the name, ``HQ485/15X`` = centre 485 nm, FWHM 15 nm; flat top
   (transmission 0.90 for HQ/D, 0.93 for ET coatings) with logistic edges of 10-90 % width 1 % of the centre,
   blocking 1e-5 (OD 5) outside. These are models, not the Chroma curves.
@@ -20,7 +20,7 @@ gives is used as given; what it does not give is a stated model with stated para
   neighbouring excitation and emission bands of Table 3.1 (it "defines the usable excitation and emission
   bands"): T in [405, 478.5], [496.5, 555], [585, 655] and above 735 nm; reflection = the inverse curve.
 * **Camera** (§4.1.4, Sony ICX285AL): an approximate quantum-efficiency curve (peak ~0.62 near 500 nm;
-  our reading of the data-sheet's relative response, not in the seed).
+  our reading of the data-sheet's relative response, not in the thesis).
 """
 
 from __future__ import annotations
@@ -84,7 +84,7 @@ def fraser_suzuki(wl_nm: ArrayLike, peak_nm: float, fwhm_nm: float, skew: float)
 
 @dataclass(frozen=True)
 class Fluorophore:
-    """A fluorophore of seed §3.3: peaks and quantum yield from the seed, band widths our estimates."""
+    """A fluorophore of thesis §3.3: peaks and quantum yield from the thesis, band widths our estimates."""
 
     name: str
     excitation_nm: float
@@ -105,7 +105,7 @@ class Fluorophore:
         return np.interp(np.asarray(wl_nm, dtype=np.float64), GRID_NM, e, left=0.0, right=0.0)
 
 
-#: Seed §3.3 (peaks, quantum yields); widths estimated from the published spectra (not in the seed).
+#: Thesis §3.3 (peaks, quantum yields); widths estimated from the published spectra (not in the thesis).
 FLUOROPHORES: dict[str, Fluorophore] = {
     "DAPI": Fluorophore("DAPI", 358.0, 461.0, 0.92, 55.0, 95.0),
     "Hoechst 33258": Fluorophore("Hoechst 33258", 350.0, 460.0, 0.6, 55.0, 100.0),
@@ -146,7 +146,7 @@ def planck(wl_nm: ArrayLike, temperature_k: float) -> Array:
 
 @dataclass(frozen=True)
 class LightSource:
-    """An excitation source of seed §4.1.1."""
+    """An excitation source of thesis §4.1.1."""
 
     name: str
     kind: Literal["led", "halogen"]
@@ -216,7 +216,7 @@ MIRROR_REFLECTANCE = 0.95
 
 
 def camera_qe(wl_nm: ArrayLike = GRID_NM) -> Array:
-    """Approximate quantum efficiency of the Sony ICX285AL (Basler scA1400-30gm, seed §4.1.4)."""
+    """Approximate quantum efficiency of the Sony ICX285AL (Basler scA1400-30gm, thesis §4.1.4)."""
     pts = np.array(
         [
             [300, 0.05],

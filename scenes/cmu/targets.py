@@ -1,4 +1,4 @@
-"""Test objects of the unit (seed §5.1.2, §5.2.2): the Siemens star with its square frame, and dummy cells.
+"""Test objects of the unit (thesis §5.1.2, §5.2.2): the Siemens star with its square frame, and dummy cells.
 
 Both are written once against an array namespace (numpy, or Dr.Jit via :mod:`scopetwin.scenes.mitsuba.cmu`), so the
 renderer and the numpy reference evaluate the same function.

@@ -1,6 +1,6 @@
 """Sequential float64 ray tracer of the microscope unit (numpy): perfect thin lenses, bowed plates, stops.
 
-This is the analytic reference of the unit (the seed's Zemax model of §5.1.2: perfect lenses, the measured
+This is the analytic reference of the unit (the thesis's Zemax model of §5.1.2: perfect lenses, the measured
 splitter surfaces in reflection and transmission). Rays are arrays (N, 3); every element acts on the whole batch.
 
 Perfect lens (Zemax's "paraxial surface"): a ray meeting the lens plane at local (x, y) with slopes

@@ -1,4 +1,4 @@
-"""GRIN rod-lens objectives of the miniaturised parallel microscope (seed ch. 7-8), numpy float64 world model.
+"""GRIN rod-lens objectives of the miniaturised parallel microscope (thesis ch. 7-8), numpy float64 world model.
 
 Profiles n(r, λ) (:mod:`~scopetwin.scenes.grin.profiles`), glasses (:mod:`~scopetwin.scenes.grin.glass`), the layouts of
 §7.5.2, §8.3.1 and §8.3.2 as setups (:mod:`~scopetwin.scenes.grin.setup`), analytic paraxial ABCD results

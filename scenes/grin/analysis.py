@@ -1,7 +1,7 @@
-"""Deterministic ray-bundle analysis of a GRIN objective (seed §7.5.2, §8.3): paraxial data, NA, spots, Airy, OPD.
+"""Deterministic ray-bundle analysis of a GRIN objective (thesis §7.5.2, §8.3): paraxial data, NA, spots, Airy, OPD.
 
 Conventions (chosen to be close to what a Zemax spot diagram reports, and stated because the
-seed does not say how its figures were set up):
+thesis does not say how its figures were set up):
 
 * Object-space aperture: rays leave each object point with transverse optical direction cosines
   (T_x, T_y) = n sin θ (cos φ, sin φ) filling a disk of radius NA around the *chief ray*, the ray
@@ -15,7 +15,7 @@ seed does not say how its figures were set up):
 * Image plane ("best focus"): the distance from the last surface that minimises the sum of the
   squared RMS radii over the field points 0, 0.7 and 1 of the field radius (closed form: the
   RMS² of a fixed ray set is quadratic in the plane distance), i.e. an image-distance
-  optimisation for the RMS spot as in §8.3.2 -- with our layout, never with the seed's numbers.
+  optimisation for the RMS spot as in §8.3.2 -- with our layout, never with the thesis's numbers.
 * Airy radius: 0.61 λ / NA_image, NA_image the image-space sine of the on-axis marginal ray.
 
 The pupil sampling, the RMS spot radius and the Airy radius are those of :mod:`scopetwin.scenes.spots`, shared with the
@@ -207,7 +207,7 @@ class GrinReport:
 
 
 def analyse(setup: GrinSetup, samples: int = 48, stack: Stack | None = None) -> GrinReport:
-    """Paraxial data, NA, Airy radius, RMS spots on axis and at the field edge, OPD (seed §8.3 figures)."""
+    """Paraxial data, NA, Airy radius, RMS spots on axis and at the field edge, OPD (thesis §8.3 figures)."""
     st = setup.stack() if stack is None else stack
     stop = None
     if setup.aperture.na_object is not None:

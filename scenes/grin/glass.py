@@ -1,4 +1,4 @@
-"""Homogeneous glasses of the GRIN objective (seed §8.3: Schott AF32 substrates, B270 beam-splitter substitute).
+"""Homogeneous glasses of the GRIN objective (thesis §8.3: Schott AF32 substrates, B270 beam-splitter substitute).
 
 Each entry carries the catalogue's n_d (587.56 nm) and Abbe number ν_d, and the index at
 other wavelengths comes from a two-term Cauchy model through n_d and n_F - n_C = (n_d-1)/ν_d.
@@ -9,11 +9,11 @@ incidence (a 1e-3 index error moves the image by < 1 µm here).
 Sources of the numbers (manufacturer data sheets, values as quoted there):
 
 * AF32 -- SCHOTT AF 32 eco thin glass data sheet: n_d = 1.5099, ν_d = 65.7 (substrates of the
-  GRIN arrays, seed §8.3).
+  GRIN arrays, thesis §8.3).
 * B270 -- SCHOTT B 270 i "Superwite" data sheet: n_d = 1.5230, ν_d = 58.5 (substitute for the
-  beam-splitter polymer, seed §8.3).
+  beam-splitter polymer, thesis §8.3).
 * D263 -- SCHOTT D 263 M cover glass data sheet: n_d = 1.5230, ν_d = 55.0 (the 160 µm cover glass
-  of §7.5.2; the seed does not name its glass, D 263 is the usual cover-glass borosilicate).
+  of §7.5.2; the thesis does not name its glass, D 263 is the usual cover-glass borosilicate).
 
 The values are the catalogue figures as quoted above; check them against the current data sheets before relying
 on a result (the sensitivity of every result to them is printed by ``scopetwin optics grin --sensitivity``).

@@ -1,4 +1,4 @@
-"""The illumination path of seed §7.5.3 (Fig. 7.10, 7.11), unfolded at the 45° beam splitter.
+"""The illumination path of thesis §7.5.3 (Fig. 7.10, 7.11), unfolded at the 45° beam splitter.
 
 Unfolded, the excitation light runs along +z: the square Lambertian LED (0.5 mm, 488 nm, 1 mW) at
 z = 0; air (``led_distance``, 2.427 mm); the illumination GRIN rod (``rod_length``, 2.369 mm, the

@@ -1,4 +1,4 @@
-"""Analytic paraxial (ABCD) optics of GRIN rods and the layered objective (seed §7.5, §8.3).
+"""Analytic paraxial (ABCD) optics of GRIN rods and the layered objective (thesis §7.5, §8.3).
 
 Ray vectors are (y, n·u): height and reduced angle, so flat interfaces are the identity and
 every matrix has determinant 1. A rod with paraxial profile n ≈ n0 (1 - g² r² / 2) and length L:

@@ -1,4 +1,4 @@
-"""Radial gradient-index profiles n(r, lambda) and their derivatives (seed §7.5.1).
+"""Radial gradient-index profiles n(r, lambda) and their derivatives (thesis §7.5.1).
 
 A *monochromatic* profile (:class:`RadialProfile`) gives the index ``n`` and its
 derivative ``dn/d(r^2)`` as functions of ``r2 = x^2 + y^2`` (mm^2). Working in r^2
@@ -13,7 +13,7 @@ Mitsuba tracer, :mod:`scopetwin.scenes.mitsuba.grin`).
 Profiles
 --------
 * :class:`PolynomialProfile` -- the GrinTech Taylor form n = n0 + nr2 r² + nr4 r⁴ (+ nr6 r⁶)
-  of seed §7.5.1 (defaults n0 = 1.62893, nr2 = -0.077 mm⁻², nr4 = 0.00315 mm⁻⁴).
+  of thesis §7.5.1 (defaults n0 = 1.62893, nr2 = -0.077 mm⁻², nr4 = 0.00315 mm⁻⁴).
 * :class:`SechProfile` -- n = n0 sech(g r), the ideal profile the Taylor form approximates
   (§7.5.1); its meridional rays are exactly periodic with period 2π/g.
 * :class:`ParabolicN2Profile` -- n² = n0² (1 - g² r²), whose rays (skew ones included) are
@@ -120,7 +120,7 @@ class RadialProfile(ABC):
 
 @dataclass(frozen=True)
 class PolynomialProfile(RadialProfile):
-    """n = n0 + nr2 r² + nr4 r⁴ + nr6 r⁶ (seed §7.5.1, GrinTech's Taylor form; mm units)."""
+    """n = n0 + nr2 r² + nr4 r⁴ + nr6 r⁶ (thesis §7.5.1, GrinTech's Taylor form; mm units)."""
 
     n0_: float = 1.62893
     nr2: float = -0.077
@@ -140,7 +140,7 @@ class PolynomialProfile(RadialProfile):
 
 @dataclass(frozen=True)
 class SechProfile(RadialProfile):
-    """n = n0 sech(g r): meridional rays are periodic with period exactly 2π/g (seed §7.5.1)."""
+    """n = n0 sech(g r): meridional rays are periodic with period exactly 2π/g (thesis §7.5.1)."""
 
     n0_: float
     g_: float

@@ -1,4 +1,4 @@
-"""Vectorised numpy float64 reference ray tracer for GRIN objectives (seed §7.5, §8.3).
+"""Vectorised numpy float64 reference ray tracer for GRIN objectives (thesis §7.5, §8.3).
 
 Inside a radial GRIN rod the ray equation is integrated with the Sharma-Kumar-Ghatak
 Runge-Kutta-Nystrom scheme (Sharma, Kumar & Ghatak, Appl. Opt. 21, 984 (1982)):
@@ -39,7 +39,7 @@ Array = NDArray[np.float64]
 def rkn_step(
     x: Any, y: Any, tx: Any, ty: Any, opl: Any, n2: Any, k: Any, dt: Any, profile: RadialProfile, xp: Any = NP
 ) -> tuple[Any, Any, Any, Any, Any, Any, Any, Any]:
-    """One Sharma-Kumar-Ghatak Runge-Kutta-Nystrom step of a ray in a radial GRIN medium (seed §7.5.1 profiles).
+    """One Sharma-Kumar-Ghatak Runge-Kutta-Nystrom step of a ray in a radial GRIN medium (thesis §7.5.1 profiles).
 
     Integrates d²R/dt² = D(R) = ½∇n² with T = dR/dt over one step ``dt`` (Sharma, Kumar & Ghatak, Appl. Opt. 21,
     984 (1982)); D = 2 n dn/d(r²) (x, y) = k (x, y) comes from :meth:`RadialProfile.sharma`. The optical path
@@ -102,7 +102,7 @@ def rkn_rod(
     steps: int,
     radius: float = np.inf,
 ) -> tuple[Array, Array, Array, Array, Array, NDArray[np.bool_]]:
-    """Sharma-Kumar-Ghatak RKN through a rod of ``length`` (seed §7.5.1 profile), vectorised over rays.
+    """Sharma-Kumar-Ghatak RKN through a rod of ``length`` (thesis §7.5.1 profile), vectorised over rays.
 
     Parameters
     ----------
@@ -243,7 +243,7 @@ def trace_stack(
     axis : (float, float)
         Optical axis of this objective in the array (rod centres).
     stop_radius : float, optional
-        Clear radius of a stop on the back face of rod 1 (seed §8.3.1: "aperture behind the first
+        Clear radius of a stop on the back face of rod 1 (thesis §8.3.1: "aperture behind the first
         GRIN lens"); default: the stack's own ``stop_radius``.
     until_layer : int, optional
         Stop after this many layers (default: all but the final image gap).

@@ -1,7 +1,7 @@
-"""GRIN objective setups (seed §7.5.2, §8.2.2, §8.3.1, §8.3.2) as pydantic v2 models, and their layer stack.
+"""GRIN objective setups (thesis §7.5.2, §8.2.2, §8.3.1, §8.3.2) as pydantic v2 models, and their layer stack.
 
 The objective of the miniaturised parallel microscope is a stack of flat layers along z
-(seed §7.5.2, Fig. 7.6; §8.3): the object lies on a 160 µm cover glass; an air gap; the
+(thesis §7.5.2, Fig. 7.6; §8.3): the object lies on a 160 µm cover glass; an air gap; the
 first GRIN rod on a 500 µm AF32 substrate; the 2 mm beam-splitter layer (B270 stands in for
 the polymer, §8.3); the second substrate and GRIN rod; air; the image plane (the camera).
 
@@ -68,10 +68,10 @@ class _Model(BaseModel):
 
 # -- profiles -------------------------------------------------------------------------------
 class PolynomialSpec(_Model):
-    """GrinTech Taylor profile n = n0 + nr2 r² + nr4 r⁴ + nr6 r⁶ (seed §7.5.1) with its dispersion.
+    """GrinTech Taylor profile n = n0 + nr2 r² + nr4 r⁴ + nr6 r⁶ (thesis §7.5.1) with its dispersion.
 
     ``wavelength_ref_nm = None`` means the coefficients are taken as they are at the design
-    wavelength (the seed gives no wavelength for them). Otherwise they hold at
+    wavelength (the thesis gives no wavelength for them). Otherwise they hold at
     ``wavelength_ref_nm`` and :class:`~scopetwin.scenes.grin.profiles.GradientDispersion` with ``abbe_n0``
     and ``abbe_gradient`` moves them to the design wavelength. The two Abbe numbers are
     assumptions (no GrinTech dispersion data was available to this project): 35 for the
@@ -98,7 +98,7 @@ class PolynomialSpec(_Model):
 
 
 class SechSpec(_Model):
-    """n = n0 sech(g r) (seed §7.5.1: the ideal profile), no dispersion."""
+    """n = n0 sech(g r) (thesis §7.5.1: the ideal profile), no dispersion."""
 
     kind: Literal["sech"]
     n0: Annotated[float, Field(gt=1)]
@@ -150,7 +150,7 @@ class PlateSpec(_Model):
 
 
 class ObjectSpec(_Model):
-    """Object side: cover glass, object distance and field (seed §7.5.2: 160 µm, 0.8 mm, FOV 400 µm)."""
+    """Object side: cover glass, object distance and field (thesis §7.5.2: 160 µm, 0.8 mm, FOV 400 µm)."""
 
     distance: Positive = 0.8
     distance_includes_cover: bool = False
@@ -181,7 +181,7 @@ class ApertureSpec(_Model):
 
 
 class ArraySpec(_Model):
-    """Objectives on a square grid (seed §8.2.2): nx x ny axes at pitch d_L on a substrate of side length."""
+    """Objectives on a square grid (thesis §8.2.2): nx x ny axes at pitch d_L on a substrate of side length."""
 
     nx: Annotated[int, Field(ge=1, le=64)] = 1
     ny: Annotated[int, Field(ge=1, le=64)] = 1
@@ -196,7 +196,7 @@ class ArraySpec(_Model):
 
 
 class GrinCameraSpec(PixelGridSpec):
-    """The camera behind the objective (seed §8.4.3: AVT Guppy, 2.2 µm pixels; S_min = 4.28 mm, §8.2.2).
+    """The camera behind the objective (thesis §8.4.3: AVT Guppy, 2.2 µm pixels; S_min = 4.28 mm, §8.2.2).
 
     Numbers must be finite and one image must fit in this machine's memory
     (:func:`scopetwin.scenes.limits.check_image_size`).
@@ -215,11 +215,11 @@ class GrinCameraSpec(PixelGridSpec):
 
 
 class IlluminationSpec(_Model):
-    """Illumination path of seed §7.5.3 (unfolded at the beam splitter).
+    """Illumination path of thesis §7.5.3 (unfolded at the beam splitter).
 
     Square Lambertian LED (0.5 mm, 488 nm, 1 mW) at ``led_distance`` in front of an illumination
     GRIN rod of ``rod_length``; the light crosses half of the beam-splitter layer, is reflected at
-    the 45° splitter (``splitter_reflectance``, not given in the seed: an assumption), crosses
+    the 45° splitter (``splitter_reflectance``, not given in the thesis: an assumption), crosses
     the other half, the substrate and the object-side rod backwards, to the object plane.
     """
 
@@ -234,7 +234,7 @@ class IlluminationSpec(_Model):
 
 
 class SeedNumbers(_Model):
-    """The seed's Zemax figures for this design (for side-by-side printing only, never for tuning; nan: not given)."""
+    """The thesis's Zemax figures for this design (for side-by-side printing only, never for tuning; nan: not given)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=True)
 
@@ -249,7 +249,7 @@ class SeedNumbers(_Model):
 
 
 class GrinSetup(_Model):
-    """One GRIN objective design (seed §7.5.2 / §8.3.1 / §8.3.2) with its array, camera and seed figures."""
+    """One GRIN objective design (thesis §7.5.2 / §8.3.1 / §8.3.2) with its array, camera and thesis figures."""
 
     name: str = ""
     section: str
@@ -327,7 +327,7 @@ class Layer:
     """One slab z0 <= z <= z1 of the stack: homogeneous (``glass``) or a GRIN rod (``rod``, ``profile``).
 
     Outside a rod's radius a rod layer is ``glass`` (air: the holding structures are not modelled);
-    rays that meet the rod's wall are absorbed (seed §8.4.1: blackened SU-8 holders).
+    rays that meet the rod's wall are absorbed (thesis §8.4.1: blackened SU-8 holders).
     """
 
     name: str
@@ -478,7 +478,7 @@ def profile_override(setup: GrinSetup, toml_path: str | Path) -> GrinSetup:
 
 # -- image windows ----------------------------------------------------------------------------
 #: Margin of an objective's image disk over |m| x the target's reach: 5 % for aberrations and distortion at the
-#: field edge (the seed's RMS edge spots are a few µm), plus 4 pixels.
+#: field edge (the thesis's RMS edge spots are a few µm), plus 4 pixels.
 IMAGE_DISK_MARGIN = 0.05
 IMAGE_DISK_MARGIN_PX = 4
 
@@ -486,8 +486,8 @@ IMAGE_DISK_MARGIN_PX = 4
 def image_disks(setup: GrinSetup, magnification: float, reach_mm: float) -> list[tuple[float, float, float]]:
     """(x, y, radius) in mm on the image plane of each objective's image of the object disk of radius ``reach_mm``.
 
-    The objectives' axes are parallel (seed §8.2.2), so objective k images its field around its own axis (x_k,
-    y_k); the target is chrome outside its disk (seed §8.5), so outside these disks the image is black.
+    The objectives' axes are parallel (thesis §8.2.2), so objective k images its field around its own axis (x_k,
+    y_k); the target is chrome outside its disk (thesis §8.5), so outside these disks the image is black.
     """
     radius = abs(magnification) * reach_mm * (1 + IMAGE_DISK_MARGIN) + IMAGE_DISK_MARGIN_PX * setup.camera.pitch_mm
     return [(x, y, radius) for x, y in setup.array.axes()]

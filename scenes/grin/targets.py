@@ -1,9 +1,9 @@
-"""The chrome-mask test targets of the demonstrator (seed §8.5, Fig. 8.12-8.16).
+"""The chrome-mask test targets of the demonstrator (thesis §8.5, Fig. 8.12-8.16).
 
 Each pattern fills a disk of 400 µm diameter (the field of view) centred on an objective's
 optical axis; the four objectives of the demonstrator each see one copy (§8.5). Chrome
 (transmission 0) forms the features and everything outside the pattern disk; the glass between
-the features is clear (transmission 1). The seed does not say which polarity its masks have;
+the features is clear (transmission 1). The thesis does not say which polarity its masks have;
 this choice only inverts the images.
 
 * ``dots-25``  -- dots of 10 µm diameter on a 25 µm square grid (Fig. 8.12)

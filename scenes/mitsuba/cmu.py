@@ -1,4 +1,4 @@
-"""The compact microscope unit in Mitsuba's spectral variant (seed ch. 4-5): plugins and channel images.
+"""The compact microscope unit in Mitsuba's spectral variant (thesis ch. 4-5): plugins and channel images.
 
 Plugins (registered idempotently, per thread and variant, by :func:`register`; importing this module sets no
 variant: every builder and renderer takes ``variant``, default ``choose("spectral")``):

@@ -1,6 +1,6 @@
-"""The seed's deflectometry ray model in Dr.Jit, differentiable: the forward model of the inverse reconstruction.
+"""The thesis's deflectometry ray model in Dr.Jit, differentiable: the forward model of the inverse reconstruction.
 
-Seed §1.6: camera ray (§1.6.2) -> substrate z = h(x, y) (§1.6.4; here Newton's iteration on
+Thesis §1.6: camera ray (§1.6.2) -> substrate z = h(x, y) (§1.6.4; here Newton's iteration on
 f(lambda) = h(r(lambda)) - z(lambda) instead of the secant, a fixed number of steps, so that the chain is
 differentiable) -> mirror reflection (§1.6.5, eq. 1.7) -> pattern plane (§1.6.3) -> the marker grey value
 g = max(0, 1 - r/r_m) of the nearest marker, times the pattern radiance. It is :mod:`scopetwin.scenes.analytic` (the

@@ -1,4 +1,4 @@
-"""GRIN rod-lens objectives inside Mitsuba scenes (seed ch. 7-8): Dr.Jit RKN tracer, integrator, pupil sensor.
+"""GRIN rod-lens objectives inside Mitsuba scenes (thesis ch. 7-8): Dr.Jit RKN tracer, integrator, pupil sensor.
 
 Mitsuba has no gradient-index medium. Here every flat interface of the objective (cover glass,
 air gaps, rod faces, AF32 substrates, B270 beam-splitter layer, object plane, image plane) is a
@@ -130,7 +130,7 @@ def rkn_rod_dr(
     active: Any = True,
     interleave: int = 1,
 ) -> tuple[Any, Any, Any, Any, Any, Any]:
-    """Sharma-Kumar-Ghatak RKN through one rod in a ``dr.while_loop`` (seed §7.5.1 profile).
+    """Sharma-Kumar-Ghatak RKN through one rod in a ``dr.while_loop`` (thesis §7.5.1 profile).
 
     Same equations and arguments as :func:`scopetwin.scenes.grin.rkn.rkn_rod`, and the same step: the loop body calls
     :func:`scopetwin.scenes.grin.rkn.rkn_step` with the Dr.Jit namespace. The arrays are Dr.Jit arrays of any float type
@@ -686,7 +686,7 @@ def _integrator_class(mi: Any) -> type:
     """The integrator class of ``scopetwin_grin`` for the variant of ``mi`` (Mitsuba classes are per variant)."""
 
     class GrinIntegrator(mi.SamplingIntegrator):
-        """Integrator ``scopetwin_grin``: backward trace through the GRIN objective to the target (seed §8.5)."""
+        """Integrator ``scopetwin_grin``: backward trace through the GRIN objective to the target (thesis §8.5)."""
 
         def __init__(self, props: mi.Properties) -> None:
             super().__init__(props)

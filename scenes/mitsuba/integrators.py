@@ -1,4 +1,4 @@
-"""A one-bounce mirror integrator for the deflectometry scenes (seed §1.6.5).
+"""A one-bounce mirror integrator for the deflectometry scenes (thesis §1.6.5).
 
 The plugin ``scopetwin_mirror`` follows a camera ray to its first surface:
 

@@ -1,4 +1,4 @@
-"""Render the Part I setups with Mitsuba 3 (seed §1.10, §2.7, §2.8).
+"""Render the Part I setups with Mitsuba 3 (thesis §1.10, §2.7, §2.8).
 
 Images are linear irradiance, float32 (row, col): a white pattern texel seen directly
 or in a perfect mirror renders as the pattern radiance (1.0 by default); row 0 is the

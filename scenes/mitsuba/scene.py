@@ -1,4 +1,4 @@
-"""Scene dictionaries of the Part I setups (seed §1.10, §2.7, §2.8), Mitsuba style.
+"""Scene dictionaries of the Part I setups (thesis §1.10, §2.7, §2.8), Mitsuba style.
 
 * ``deflectometry``: thesis camera, marker pattern (area emitter with the pattern's grey
   values as radiance), bent substrate (mirroring ROI, black holding-frame regions);
@@ -45,7 +45,7 @@ def marker_texture(pattern: MarkerPattern, texel: float = TEXEL) -> NDArray[np.f
 
     The marker cell containing a texel is found per axis (nearest index along x depends on x
     only, along y on y only), so the 2-D work is one ``hypot`` per texel; the marker shape is
-    g = max(0, 1 - r/r_m) (seed §1.6.3), 0 off the plate. Row 0 / column 0 is the plate's
+    g = max(0, 1 - r/r_m) (thesis §1.6.3), 0 off the plate. Row 0 / column 0 is the plate's
     (-x, -y) corner.
     """
     nx = max(2, int(np.ceil(pattern.size_x / texel)))

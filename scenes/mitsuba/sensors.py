@@ -1,4 +1,4 @@
-"""The thesis camera as a Mitsuba sensor plugin (seed §1.6.2, §2.5.1-2.5.2).
+"""The thesis camera as a Mitsuba sensor plugin (thesis §1.6.2, §2.5.1-2.5.2).
 
 The plugin ``scopetwin_camera`` generates exactly the rays of
 :class:`scopetwin.scenes.camera.Camera`: a pixel position is mapped to distorted sensor
@@ -110,7 +110,7 @@ def _make_class(mi: Any) -> type:
     import drjit as dr
 
     class ThesisCamera(mi.Sensor):
-        """Pinhole / thin-lens camera with principal-point offset and radial distortion (seed §2.5)."""
+        """Pinhole / thin-lens camera with principal-point offset and radial distortion (thesis §2.5)."""
 
         def __init__(self, props: mi.Properties) -> None:
             super().__init__(props)

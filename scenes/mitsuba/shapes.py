@@ -1,4 +1,4 @@
-"""Mitsuba shapes of the substrate: heightfield meshes with analytic vertex normals (seed §1.6.4, §1.4).
+"""Mitsuba shapes of the substrate: heightfield meshes with analytic vertex normals (thesis §1.6.4, §1.4).
 
 The substrate's height map (:class:`scopetwin.scenes.surface.HeightMap`, a bicubic spline) is
 tessellated on a regular grid; vertex positions are (x, y, h(x, y)) and vertex normals
@@ -6,7 +6,7 @@ are the spline's exact normals (-h_x, -h_y, 1)/|...| (eq. 1.2), so Mitsuba inter
 exact normals across each triangle. 256 x 512 vertices over the 25.2 x 57 mm substrate
 give 0.11 µm position and 0.7 µrad normal error for the §1.10 surfaces (docs/rendering.md).
 
-Only the region of interest reflects (seed §1.4, Fig. 1.3). The holding-frame regions
+Only the region of interest reflects (thesis §1.4, Fig. 1.3). The holding-frame regions
 roi_length/2 <= |y| <= size_y/2 are separate, black meshes on the same surface: they occlude
 exactly the camera rays whose surface hit lies outside the ROI (the mask of
 :meth:`scopetwin.scenes.surface.Substrate.points_and_normals`), and, lying on the surface rather than
@@ -53,7 +53,7 @@ def grid_arrays(
     positions : (nx*ny, 3) float32
         (x, y, h) with vertex k = row*nx + col, row along y.
     normals : (nx*ny, 3) float32
-        Unit normals from the spline gradient (seed eq. 1.2).
+        Unit normals from the spline gradient (thesis eq. 1.2).
     faces : (2*(nx-1)*(ny-1), 3) uint32
         Triangles wound counter-clockwise seen from +z (geometric normal +z).
     """

@@ -1,10 +1,10 @@
-"""Widefield fluorescence tile of a bent substrate, seen through a thin-lens objective (seed §4.1.2, §6).
+"""Widefield fluorescence tile of a bent substrate, seen through a thin-lens objective (thesis §4.1.2, §6).
 
 The microscope unit images a fluorescent sample lying on a bent glass
 substrate through a 10x / NA 0.45 objective onto 6.45 µm camera pixels
-(seed §4.1.2, §4.1.4), so one pixel sees 0.645 µm of the object and the depth
+(thesis §4.1.2, §4.1.4), so one pixel sees 0.645 µm of the object and the depth
 of field is a few micrometres: a substrate that bows by tens of micrometres
-is sharp only where the focus follows it, which is what the seed's focus map
+is sharp only where the focus follows it, which is what the thesis's focus map
 (§1, §6) is for. This module renders one camera frame of that situation:
 
 * the sample is an emitting heightfield patch (Mitsuba ``area`` emitter with a
@@ -77,7 +77,7 @@ class BentSubstrate:
 
 @dataclass(frozen=True)
 class WidefieldOptics:
-    """Objective, camera and sample texture of the widefield tile (seed §4.1.2, §4.1.4 numbers).
+    """Objective, camera and sample texture of the widefield tile (thesis §4.1.2, §4.1.4 numbers).
 
     Attributes
     ----------

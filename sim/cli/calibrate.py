@@ -1,10 +1,10 @@
-"""``scopetwin calibrate`` and ``scopetwin calibrate-setup`` (docs/contract.md, "Command line"; seed ch. 2).
+"""``scopetwin calibrate`` and ``scopetwin calibrate-setup`` (docs/contract.md, "Command line"; thesis ch. 2).
 
 :func:`register` adds both sub-commands to the ``scopetwin`` parser; each sets ``func`` to a
 function that takes the parsed arguments and returns the JSON-ready result (the caller writes
 ``--json``). Bad input raises :class:`~scopetwin.scenes.errors.ScopetwinError` before anything is written.
 
-Markers are found and indexed with :func:`scopetwin.recon.markers.find_markers_for` (seed §1.5, §2.6;
+Markers are found and indexed with :func:`scopetwin.recon.markers.find_markers_for` (thesis §1.5, §2.6;
 whole-spot first-moment centroids). Their centroid bias (perspective makes a round marker's
 image asymmetric) is corrected by alternating calibration and the spot model
 :func:`scopetwin.recon.bias.spot_bias_model` until the parameters settle (``--no-bias-correction``
@@ -39,7 +39,7 @@ _AMBIGUOUS = "does not tell the two mirror-ambiguous poses"
 def _warnings(cal: Calibration, view: str, nz_estimate: Any, what_to_do: str) -> list[str]:
     """The calibration's notes as the lines to print, the mirror-ambiguity note said in plain words.
 
-    A planar target seen in perspective fits two camera poses nearly equally well (seed §2.4.2: the sign s of the
+    A planar target seen in perspective fits two camera poses nearly equally well (thesis §2.4.2: the sign s of the
     linear approximation); the a-priori sensor normal N_z picks one. When it lies midway, the calibration keeps
     the pose with the smaller residual, which is right whenever that residual is small.
     """
@@ -100,7 +100,7 @@ def _prior(setup: Setup, plane: Frame, args: argparse.Namespace, header: Setup |
     Its image distance is an a-priori b only for the image's own camera (the header's) or given by
     ``--image-distance``: for another image (``--target`` naming a setup the image was not rendered with) a setup's
     b belongs to its own distance, and ``--lens auto`` takes the thin-lens b of the measured magnification
-    instead (seed §2.4.2); ``--lens fixed`` still holds the setup's b.
+    instead (thesis §2.4.2); ``--lens fixed`` still holds the setup's b.
     """
     cam = setup.camera_model
     f = args.focal_length if args.focal_length is not None else setup.camera.focal_length
@@ -119,7 +119,7 @@ def _prior(setup: Setup, plane: Frame, args: argparse.Namespace, header: Setup |
 
 
 def cmd_calibrate(args: argparse.Namespace) -> dict[str, Any]:
-    """One-shot calibration from one image of the target of ``--target`` (seed §2.4-2.5)."""
+    """One-shot calibration from one image of the target of ``--target`` (thesis §2.4-2.5)."""
     t0 = time.perf_counter()
     image, header = _load_image(args.image)
     setup = _setup(args.target, header, args.image, "--target SETUP")
@@ -161,7 +161,7 @@ def cmd_calibrate(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_calibrate_setup(args: argparse.Namespace) -> dict[str, Any]:
-    """Calibration of the deflectometry setup from the substrate and mirror images (seed §2.7)."""
+    """Calibration of the deflectometry setup from the substrate and mirror images (thesis §2.7)."""
     from scopetwin.calib.setup_calibration import CALIBRATE_SETUP_COMMENT, calibrate_setup_from_images
     from scopetwin.scenes.io import write_text_atomic
 

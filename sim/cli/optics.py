@@ -1,11 +1,11 @@
-"""``scopetwin optics ...``: the four-channel unit (seed ch. 3-5), GRIN objectives (ch. 7-8), scan-time models.
+"""``scopetwin optics ...``: the four-channel unit (thesis ch. 3-5), GRIN objectives (ch. 7-8), scan-time models.
 
 ``register(subparsers)`` adds the ``optics`` command to an argparse sub-parser set:
 
 * ``optics cmu [--setup PRESET] [--splitter-maps NAME=EXR ...] [--stop] [--json PATH] [--out DIR] [--spp N]``
   -- the compact microscope unit (:mod:`scopetwin.sim.cmu_unit`): the §5.1.2 checks, per channel the refocused image
   distance, magnification (Table 5.1), RMS spots, astigmatism and wavefront PSF, the 4x4 excitation crosstalk,
-  printed beside the seed; with ``--out`` the Siemens star and the dummy cells rendered through each channel and
+  printed beside the thesis; with ``--out`` the Siemens star and the dummy cells rendered through each channel and
   measured (Tables 5.1-5.4).
 * ``optics cmu --budget [--snr S] [--raster COLUMNS ROWS] [--plot PNG] [--json PATH] [--out DIR [--spp N]
   [--window PX] [--density RHO|implied]]`` -- the photon budget per channel beside the thesis's exposures, the lasers
@@ -13,7 +13,7 @@
   ``--out`` the dummy cells at the budget's photon counts and the thesis's exposures.
 * ``optics grin PRESET [--json PATH] [--spots PNG] [--image TARGET --out EXR] [--profile TOML]
   [--sensitivity] [--spp N] [--width W --height H]`` -- paraxial data, NA, Airy radius, RMS spots,
-  printed beside the seed's Zemax figures; spot diagrams; an image of a §8.5 target with a PNG preview beside
+  printed beside the thesis's Zemax figures; spot diagrams; an image of a §8.5 target with a PNG preview beside
   it. Before the analysis the render is estimated (:func:`scopetwin.scenes.limits.check_render`); before anything is
   printed, a window that misses the image of every objective of an array is refused
   (:func:`scopetwin.scenes.grin.setup.check_image_window`: it would render black).
@@ -41,7 +41,7 @@ from scopetwin.sim.cli.options import SEED, SIDE_PX, SPP, conventions, finite_fl
 from scopetwin.sim.figures import write_spots
 from scopetwin.sim.measurement import write_preview
 
-#: Upper bound of the lengths ``optics scan`` takes (mm): 10 m, far beyond any substrate of the seed.
+#: Upper bound of the lengths ``optics scan`` takes (mm): 10 m, far beyond any substrate of the thesis.
 MAX_LENGTH_MM = 1.0e4
 #: Upper bound of the objective counts ``optics scan`` takes.
 MAX_OBJECTIVES = 100_000
@@ -137,7 +137,7 @@ def _comparison_rows(rep: Any) -> list[tuple[str, Any, Any]]:
 
 
 def print_report(rep: Any, setup: Any) -> None:
-    """Print ours beside the seed's Zemax figures, and the layout reading used."""
+    """Print ours beside the thesis's Zemax figures, and the layout reading used."""
     lay = setup.layout
     print(f"{setup.section} {setup.name}: {setup.description}")
     print(
@@ -354,7 +354,7 @@ def _maps(items: list[str]) -> dict[str, Any]:
 
 
 def _fmt_seed(v: Any, nd: int = 2) -> str:
-    """A seed figure: a number to ``nd`` decimals, or its text (e.g. "< 1")."""
+    """A thesis figure: a number to ``nd`` decimals, or its text (e.g. "< 1")."""
     return v if isinstance(v, str) else f"{v:.{nd}f}"
 
 

@@ -1,4 +1,4 @@
-"""``scopetwin reconstruct IMAGE.exr --setup SETUP --out heights.exr [--json PATH]`` (docs/contract.md, seed §1.4).
+"""``scopetwin reconstruct IMAGE.exr --setup SETUP --out heights.exr [--json PATH]`` (docs/contract.md, thesis §1.4).
 
 Detects and indexes the markers of a deflectometry image (:mod:`scopetwin.recon.markers`), runs the
 nested start-height iteration (:mod:`scopetwin.recon.reconstruct`) and writes the substrate's height map

@@ -279,7 +279,7 @@ def cmd_acquire(args: argparse.Namespace) -> dict[str, Any]:
 
 def _two_positions(rig: Rig, args: argparse.Namespace) -> tuple[list[Path], list[float]]:
     """``acquire --pattern-stage NAME --pattern-shift MM``: one frame at the stage's position, one ``MM`` further
-    (:func:`scopetwin.instrument.acquisition.two_position_capture`, seed §1.3)."""
+    (:func:`scopetwin.instrument.acquisition.two_position_capture`, thesis §1.3)."""
     from scopetwin.instrument.acquisition import two_position_capture
 
     return two_position_capture(

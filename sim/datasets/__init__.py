@@ -15,7 +15,7 @@ A dataset is described by a TOML config (``examples/datasets/*.toml``)::
     count = 8
     master_seed = 1
     spp = 16
-    noise = true                    # EMVA 1288 sensor model (seed §1.11 camera class)
+    noise = true                    # EMVA 1288 sensor model (thesis §1.11 camera class)
 
     [setup]                         # fixed overrides merged into the setup (any setup field)
     camera.pixels = [680, 512]
@@ -24,7 +24,7 @@ A dataset is described by a TOML config (``examples/datasets/*.toml``)::
     surface_range_um = { uniform = [20.0, 60.0] }
     camera_shift = { normal = [0.0, 0.2] }
 
-A ``cmu`` sample (seed Part II, §5.1-§5.2) is one image per channel of the four-channel unit
+A ``cmu`` sample (thesis Part II, §5.1-§5.2) is one image per channel of the four-channel unit
 (``scenes.mitsuba.cmu``), each camera at its own refocused image distance (plus ``channel_defocus``),
 offset and tilt; the splitters' modelled bows and residual seeds vary per sample; ``[cmu]`` picks the
 channels, a sensor window and the tube-lens stop (:class:`CmuSection`). Keys with a ``per`` group

@@ -1,4 +1,4 @@
-"""CMU samples (kind ``cmu``, seed Part II §5.1-§5.2): the four-channel unit of each sample and its writer.
+"""CMU samples (kind ``cmu``, thesis Part II §5.1-§5.2): the four-channel unit of each sample and its writer.
 
 A sample is one image per channel of the compact microscope unit (:mod:`scopetwin.scenes.mitsuba.cmu`), each camera at
 its
@@ -377,7 +377,7 @@ def _cmu_truth(
 
 
 def write_cmu(cfg: DatasetConfig, index: int, sample: CmuSample, stage: StagedOutput) -> dict[str, Any]:
-    """One channel set of the four-channel unit (seed §5.1.2, §5.2.2): an image per channel, the plates' maps, truth.
+    """One channel set of the four-channel unit (thesis §5.1.2, §5.2.2): an image per channel, the plates' maps, truth.
 
     Each camera sits at its channel's refocused image distance (the numpy tracer's RMS-spot focus, §5.1.2) plus
     the drawn defocus, with the drawn tilt and offset; the truth is the tracer's object->pixel map of that camera.

@@ -339,7 +339,7 @@ class GrinSection(_Model):
 
 
 class CmuSection(_Model):
-    """The ``[cmu]`` table: which channels, which part of the sensor, the tube-lens stop (seed §5.1.2)."""
+    """The ``[cmu]`` table: which channels, which part of the sensor, the tube-lens stop (thesis §5.1.2)."""
 
     channels: list[str] | None = Field(None, min_length=1, description="default: every channel of the setup")
     window: tuple[int, int, int, int] | None = Field(None, description="(row0, col0, height, width) of the sensor")

@@ -1,4 +1,4 @@
-"""GRIN samples (kind ``grin``, seed Part III §8.5): the objective array's setup and target, and the writer."""
+"""GRIN samples (kind ``grin``, thesis Part III §8.5): the objective array's setup and target, and the writer."""
 
 from __future__ import annotations
 
@@ -37,7 +37,8 @@ def grin_sample(base: dict[str, Any], index: int, params: dict[str, Any]) -> tup
 
 
 def write_grin(cfg: DatasetConfig, index: int, sample: tuple[Any, Any], stage: StagedOutput) -> dict[str, Any]:
-    """Render sample ``index`` (setup and target) at best focus (seed §8.3) into ``stage``; returns files and truth."""
+    """Render sample ``index`` (setup and target) at best focus (thesis §8.3) into ``stage``; returns files and
+    truth."""
     from scopetwin.scenes.grin.analysis import analyse
     from scopetwin.scenes.io import write_image
     from scopetwin.scenes.mitsuba.grin import render_image

@@ -1,7 +1,7 @@
 """Per-pixel truth aligned with the image: one multi-channel EXR per sample, ``maps.exr`` (format ``maps/1``).
 
 Every map is exact for the ray through each pixel's centre (continuous pixel coordinates (col + 0.5, row + 0.5),
-docs/contract.md "Camera"), traced with the project's own float64 ray model of seed §1.6 — the camera's chief ray
+docs/contract.md "Camera"), traced with the project's own float64 ray model of thesis §1.6 — the camera's chief ray
 (§1.6.2; a thin lens does not move it), the secant intersection with the substrate (§1.6.4, eq. 1.6), the
 reflection (§1.6.5) and the pattern plane (§1.6.3) — vectorised over all pixels with numpy; nothing is
 supersampled. It is the model :mod:`scopetwin.scenes.analytic` renders with and :mod:`scopetwin.sim.truth` finds the
@@ -218,7 +218,7 @@ def _target_hits(pattern: Any, o: NDArray[np.float64], d: NDArray[np.float64]) -
 
 
 def _mirror_hits(setup: Setup, o: NDArray[np.float64], d: NDArray[np.float64]) -> _Hits:
-    """Rays that meet the flat mirror z = 0 from above (seed §2.7.2)."""
+    """Rays that meet the flat mirror z = 0 from above (thesis §2.7.2)."""
     from scopetwin.scenes.geometry import Frame, intersect_plane
 
     assert setup.mirror is not None
@@ -233,7 +233,7 @@ def _mirror_hits(setup: Setup, o: NDArray[np.float64], d: NDArray[np.float64]) -
 
 
 def _substrate_hits(sub: Any, heights: HeightMap, o: NDArray[np.float64], d: NDArray[np.float64]) -> _Hits:
-    """Where rays first meet the substrate (seed §1.6.4); ``seen``: the point lies in the ROI.
+    """Where rays first meet the substrate (thesis §1.6.4); ``seen``: the point lies in the ROI.
 
     Only rays that can reach the substrate are traced: those whose base-plane hit lies within the substrate grown by
     the largest horizontal run of a ray over the surface's height range (the spline overshoots its nodes by less than
@@ -323,7 +323,7 @@ def grin_object_maps(
     setup: Any, stack: Any, width: int, height: int, centre: tuple[float, float], samples: int = 96
 ) -> dict[str, NDArray[np.float64]]:
     """``object_xy`` (rows, cols, 2), mm: the object-plane point (the array's x, y) whose chief ray — through the
-    centre of the objective's stop, traced by the RKN tracer of :mod:`scopetwin.scenes.grin.rkn` (seed §8.3) — meets
+    centre of the objective's stop, traced by the RKN tracer of :mod:`scopetwin.scenes.grin.rkn` (thesis §8.3) — meets
     the image plane at each pixel centre of a GRIN image rendered with ``stack`` (its image distance) and sensor
     centre ``centre`` (:func:`scopetwin.scenes.mitsuba.grin.render_image`). Each pixel belongs to the nearest
     objective, as the renderer's pupil sensor assigns it; an objective is rotationally symmetric about its axis, so

@@ -259,7 +259,7 @@ class Sample:
 
     @property
     def thesis_camera(self) -> Any:
-        """The sample's camera in the thesis's model (:class:`scopetwin.scenes.camera.Camera`, seed §1.6.2)."""
+        """The sample's camera in the thesis's model (:class:`scopetwin.scenes.camera.Camera`, thesis §1.6.2)."""
         return self.setup.camera_model
 
     @cached_property

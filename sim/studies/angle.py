@@ -1,4 +1,4 @@
-"""The ``angle`` study: centroid and calibration error against the viewing angle (seed §2.8.2 angle scan)."""
+"""The ``angle`` study: centroid and calibration error against the viewing angle (thesis §2.8.2 angle scan)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from scopetwin.sim.studies.tasks import CALIB_MODULES, calibration_dataset, cali
 
 
 def angle(ctx: StudyContext, spp: int = 16) -> StudyResult:
-    """Centroid and calibration error against the viewing angle (seed §2.8.2 angle scan), noise-free."""
+    """Centroid and calibration error against the viewing angle (thesis §2.8.2 angle scan), noise-free."""
     require("angle", CALIB_MODULES)
     angles = [90.0, 80.0, 70.0, 60.0, 50.0, 40.0, 30.0, 20.0, 10.0]
     cfg = calibration_dataset(

@@ -1,6 +1,6 @@
 """The ``coverage`` study: is the reconstruction's uncertainty calibrated?
 
-Surfaces of mixed families — the seed's §1.9 generator (exactly band-limited), the same with nm-level broadband
+Surfaces of mixed families — the thesis's §1.9 generator (exactly band-limited), the same with nm-level broadband
 content, and PSD surfaces (K-correlation / ABC and power law with roll-off) with broadband content; 8-20 mm
 correlation, 20-60 µm range — and a glass-like family (:func:`glass_spec`: power-law waviness, a bow, tens of nm of
 micro-waviness) are reconstructed from the **exact images of the marker centres**

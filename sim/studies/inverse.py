@@ -34,7 +34,7 @@ INVERSE_MODULES = {
     "scopetwin.recon.inverse": "inverse rendering",
 }
 
-#: (correlation length mm, range µm) of the study's surfaces: the seed's kind and two steeper kinds.
+#: (correlation length mm, range µm) of the study's surfaces: the thesis's kind and two steeper kinds.
 CASES = ((20.0, 40.0), (12.0, 40.0), (5.0, 40.0), (3.0, 60.0))
 
 

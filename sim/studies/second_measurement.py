@@ -1,7 +1,7 @@
 """The ``second-measurement`` study: the absolute height from two pattern positions beside the single image
-(seed §1.3).
+(thesis §1.3).
 
-One image leaves the height-normal ambiguity of seed §1.3; the frame criterion (§1.4) resolves it by extrapolating the
+One image leaves the height-normal ambiguity of thesis §1.3; the frame criterion (§1.4) resolves it by extrapolating the
 surface 1-4.5 mm under the holding frame. A stage that moves the pattern along its normal gives a second image whose
 markers reach the same surface from a known second position (:mod:`scopetwin.recon.two_positions`). Each surface of
 the glass-like family (:func:`scopetwin.sim.families.glass_spec`: power-law waviness at 8-80 mm, a bow up to

@@ -1,11 +1,11 @@
 """The ``setup`` study: which setup brings data close enough to the frame regions?
 
-The start height of seed §1.4 rests on the surface's maxima over the frame regions (|y| >= 24 mm on the §1.10
-substrate), where there are no data; with the seed's pattern the last whole markers reach |y| ~ 22.3-23.4 mm and
+The start height of thesis §1.4 rests on the surface's maxima over the frame regions (|y| >= 24 mm on the §1.10
+substrate), where there are no data; with the thesis's pattern the last whole markers reach |y| ~ 22.3-23.4 mm and
 the maxima lie up to 4.5 mm further out, at the substrate's ends. This study varies what a setup can change —
 the marker pitch (finer markers are imaged whole closer to the ROI edge) and the depth of the holding frame's
 support (how far the substrate overhangs the ROI, so how far the fit must extrapolate) — and reports, over
-surfaces of the seed's kind with nm-level broadband content, the worst absolute error and its uncertainty.
+surfaces of the thesis's kind with nm-level broadband content, the worst absolute error and its uncertainty.
 Inputs are exact marker-centre images (:func:`scopetwin.sim.truth.marker_truth`) plus centroid noise, as in the
 ``coverage`` study.
 """

@@ -111,7 +111,7 @@ def _broadband_table(ctx: StudyContext, spp: int) -> tuple[Table, list[str]]:
     )
 
 
-#: Basis densities of the second table: Gaussian grid spacings (in σ) and the seed's own basis.
+#: Basis densities of the second table: Gaussian grid spacings (in σ) and the thesis's own basis.
 DENSITIES = ["spacing=0.5", "spacing=0.7", "spacing=1.0", "spacing=1.5", "thesis"]
 
 
@@ -226,7 +226,7 @@ def _plot_surface_errors(
 
 
 def surface(ctx: StudyContext, spp: int = 16) -> StudyResult:
-    """Reconstruction error against correlation length and range, and against the basis density (seed §1.8).
+    """Reconstruction error against correlation length and range, and against the basis density (thesis §1.8).
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""Study tables (the seed's value | ours | their ratio), their markdown and JSON forms, and the study plots."""
+"""Study tables (the thesis's value | ours | their ratio), their markdown and JSON forms, and the study plots."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import numpy as np
 
 @dataclass
 class Row:
-    """One quantity: the seed's value, ours (scalars or vectors), and the unit they are printed in."""
+    """One quantity: the thesis's value, ours (scalars or vectors), and the unit they are printed in."""
 
     label: str
     seed: Any

@@ -70,8 +70,8 @@ def reconstruct(
     rs = recon_setup or setup
     cfg = None
     if config == "thesis":
-        # the seed's basis (9 x 5 inverse multiquadrics) and criterion (Delta h_max = 0, eq. 1.3), searched by a
-        # secant as ``reconstruct --thesis`` does: the seed's own update (eq. 1.4, H - d_min) has its fixed point
+        # the thesis's basis (9 x 5 inverse multiquadrics) and criterion (Delta h_max = 0, eq. 1.3), searched by a
+        # secant as ``reconstruct --thesis`` does: the thesis's own update (eq. 1.4, H - d_min) has its fixed point
         # where one frame maximum lies on the frame, not at Delta h_max = 0, and stalls (exact markers of surface
         # 1: +0.39 µm after 60 runs; the secant converges in 3)
         cfg = ReconstructionConfig.thesis(literal_axes=False, search="secant")

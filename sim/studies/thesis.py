@@ -1,7 +1,7 @@
-"""The ``thesis`` study: every table of Part I of the seed side by side (§1.10, Tables 2.2-2.8) and Part III's
+"""The ``thesis`` study: every table of Part I of the thesis side by side (§1.10, Tables 2.2-2.8) and Part III's
 §8.3 figures of the GRIN objectives.
 
-The tasks (``*_task``, :func:`oneshot_exact`) compute our figures; the seed's figures and each table's title, note and
+The tasks (``*_task``, :func:`oneshot_exact`) compute our figures; the thesis's figures and each table's title, note and
 rows are module-level data (``SEED_*``, :data:`TABLES`, ``ROWS_*``); one builder per table (:data:`BUILDERS`) turns
 the task results into the table, and :func:`thesis` runs the tasks and the builders.
 """
@@ -42,14 +42,14 @@ def _exact_case(name: str, camera: dict[str, Any] | None = None) -> tuple[Setup,
 
 
 def _residual_mm(camera: Camera, xy: NDArray[Any], px: NDArray[Any], pitch: float) -> tuple[float, float]:
-    """RMS and peak-to-valley of |model - measured| marker images, mm (seed Tables 2.2, 2.3)."""
+    """RMS and peak-to-valley of |model - measured| marker images, mm (thesis Tables 2.2, 2.3)."""
     res = camera.project(np.column_stack([xy, np.zeros(len(xy))])) - px
     r = np.linalg.norm(res, axis=1) * pitch
     return float(np.sqrt(np.mean(r**2))), float(np.ptp(r))
 
 
 def oneshot_exact() -> dict[str, Any]:
-    """Tables 2.2, 2.3, 2.4, 2.8: one-shot calibration on exact marker images (seed §2.8.1, §2.8.2, §2.8.5)."""
+    """Tables 2.2, 2.3, 2.4, 2.8: one-shot calibration on exact marker images (thesis §2.8.1, §2.8.2, §2.8.5)."""
     from scopetwin.calib.oneshot import calibrate
 
     quiet()
@@ -130,7 +130,7 @@ def measurement_task(
 
 
 def setup_calibration_task(spp: int) -> dict[str, Any]:
-    """Tables 2.5, 2.6 (seed §2.8.3): calibrate camera and pattern from rendered target and mirror images."""
+    """Tables 2.5, 2.6 (thesis §2.8.3): calibrate camera and pattern from rendered target and mirror images."""
     from scopetwin.calib.setup_calibration import calibrate_setup_from_images
     from scopetwin.scenes.mitsuba.render import render_setup
     from scopetwin.scenes.setup import load_setup
@@ -156,7 +156,7 @@ def setup_calibration_task(spp: int) -> dict[str, Any]:
 
 
 def grin_task(preset: str) -> dict[str, Any]:
-    """§8.3: the GRIN objective's paraxial and traced figures beside the seed's Zemax numbers."""
+    """§8.3: the GRIN objective's paraxial and traced figures beside the thesis's Zemax numbers."""
     from scopetwin.scenes.grin.analysis import analyse
     from scopetwin.scenes.grin.setup import load_grin_setup
 
@@ -177,7 +177,7 @@ def grin_task(preset: str) -> dict[str, Any]:
     }
 
 
-#: The seed's numbers (Part I), transcribed from the tables; vectors are (x, y, z).
+#: The thesis's numbers (Part I), transcribed from the tables; vectors are (x, y, z).
 SEED_110 = {
     1: {
         "outer": 14,
@@ -334,7 +334,7 @@ TABLES: dict[str, tuple[str, str]] = {
     ),
 }
 
-#: §1.10, per height distribution and reconstruction: (quantity, seed key, our key, unit).
+#: §1.10, per height distribution and reconstruction: (quantity, thesis key, our key, unit).
 ROWS_110 = (
     ("outer iterations", "outer", "outer_iterations", ""),
     ("Δh of the frame maxima", "delta_h_um", "delta_h_max_um", "µm"),
@@ -350,7 +350,7 @@ RECONSTRUCTIONS_110 = (
 )
 #: Tables 2.2, 2.3, after the frame rows of each step: (quantity, key, unit).
 ROWS_22 = (("Δb", "b", "mm"), ("RMS of the marker-centre comparison", "rms", "mm"), ("peak-to-valley", "pv", "mm"))
-#: Table 2.8, after the frame rows: (quantity, seed key, our key, unit, scale of ours or None).
+#: Table 2.8, after the frame rows: (quantity, thesis key, our key, unit, scale of ours or None).
 ROWS_28 = (
     ("Δr_cs", "r_cs_um", "r_cs", "µm", 1e3),
     ("Δc_0", "c0", "c0", "", None),
@@ -360,7 +360,7 @@ ROWS_28 = (
     ("RMS without offset and distortion", "rms_without", "rms_without", "mm", None),
     ("peak-to-valley without offset and distortion", "pv_without", "pv_without", "mm", None),
 )
-#: Table 2.5, after the camera's frame rows: (quantity, seed key, our key, unit); Δb is the camera's.
+#: Table 2.5, after the camera's frame rows: (quantity, thesis key, our key, unit); Δb is the camera's.
 ROWS_25 = (
     ("substrate-plane residual RMS", "substrate_rms_um", "substrate_rms_um", "µm"),
     ("substrate-plane residual peak-to-valley", "substrate_pv_um", "substrate_pv_um", "µm"),
@@ -370,7 +370,7 @@ ROWS_26 = (
     ("mirror residual RMS", "mirror_rms_um", "mirror_rms_um", "µm"),
     ("mirror residual peak-to-valley", "mirror_pv_um", "mirror_pv_um", "µm"),
 )
-#: Table 2.7: (label, result key, seed key), each with the ROI maximum and RMS.
+#: Table 2.7: (label, result key, thesis key), each with the ROI maximum and RMS.
 ROWS_27 = (("with ideal data", "hd2", "ideal"), ("with calibration data", "hd2_calibrated", "calibrated"))
 #: §8.3: the GRIN objectives (result keys) and their quantities (key, unit).
 GRIN_RESULTS = ("grin_831", "grin_832")
@@ -507,7 +507,7 @@ def _table_27(ok: Results, spp: int) -> Table | None:
 
 
 def _table_grin(ok: Results, spp: int) -> Table | None:
-    """Part III §8.3: the GRIN objectives beside the seed's Zemax figures."""
+    """Part III §8.3: the GRIN objectives beside the thesis's Zemax figures."""
     rows = []
     for key in GRIN_RESULTS:
         g = ok.get(key)
@@ -561,7 +561,7 @@ def _run_tasks(ctx: StudyContext, spp: int) -> dict[str, Any]:
 
 
 def thesis(ctx: StudyContext, spp: int = 16) -> StudyResult:
-    """Every Part I table of the seed side by side (module docstring)."""
+    """Every Part I table of the thesis side by side (module docstring)."""
     require("thesis", THESIS_MODULES)
     res = _run_tasks(ctx, spp)
     notes = [f"**{name} failed**: {error_text(r)}" for name, r in res.items() if failed(r)]

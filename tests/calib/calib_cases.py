@@ -1,4 +1,4 @@
-"""Shared cases of the calibration tests: the seed's §2.8 setups with exact marker images."""
+"""Shared cases of the calibration tests: the thesis's §2.8 setups with exact marker images."""
 
 from __future__ import annotations
 

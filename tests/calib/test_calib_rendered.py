@@ -1,7 +1,7 @@
 """One-shot calibration of rendered views with the sensor model on, and ``--distortion`` on rendered views.
 
 Item 4: the §2.8.3 substrate view, rendered once and captured by the EMVA 1288 sensor at three exposures; the
-camera centre must come out within 2 µm (it was 10 µm off: the seed's thin-lens b assumes the target in focus).
+camera centre must come out within 2 µm (it was 10 µm off: the thesis's thin-lens b assumes the target in focus).
 Item 6: distortion refined on a distortion-free view converges with c0 = 1, c2 = 0 within their uncertainty, and
 on the §2.8.5 preset recovers its c0, c2 within their uncertainty.
 """

@@ -7,7 +7,7 @@ uncertainty, :data:`~scopetwin.calib.oneshot.FOCAL_LENGTH_TOLERANCE`), the targe
 below ``AUTO_FREE_TILT``, where no free b is tried), any azimuth, sensor tilt +-0.3 rad, an 11 x 9 target whose
 pitch makes it fill 50-70 % of the image height, the N_z estimate 3 deg off. The marker images are the exact
 projections of :mod:`scopetwin.scenes.camera`, without and with Gaussian centroid noise (0.005 px: a rendered view at
-40 % of the full well; 0.03 px: a dim one). The prior is what seed §2.1 names: pixel size, focal length, a coarse
+40 % of the full well; 0.03 px: a dim one). The prior is what thesis §2.1 names: pixel size, focal length, a coarse
 N_z, and no image distance (what ``scopetwin calibrate --target PRESET`` now takes for an image that the preset's
 camera did not take).
 
@@ -41,7 +41,7 @@ ROUND_OFF_MM = 1e-9
 
 @dataclasses.dataclass(frozen=True)
 class View:
-    """A camera the presets lack, its exact marker images and the seed's a-priori values (§2.1)."""
+    """A camera the presets lack, its exact marker images and the thesis's a-priori values (§2.1)."""
 
     camera: Camera
     xy: np.ndarray
@@ -73,7 +73,7 @@ def make_view(
     pitch: float | None = None,
 ) -> View:
     """The camera ``g`` mm from the axis point ``r0``, its lens's f ``f_error`` (relative) off ``f_nominal``, the
-    target in focus (b = g f/(g - f), seed §2.5.2) filling ``fill`` of the image height (or of marker ``pitch``),
+    target in focus (b = g f/(g - f), thesis §2.5.2) filling ``fill`` of the image height (or of marker ``pitch``),
     and the prior with ``f_nominal`` and N_z ``est_deg`` off."""
     t = np.deg2rad(tilt_deg)
     nz = np.array([np.sin(t) * np.sin(azimuth), -np.sin(t) * np.cos(azimuth), np.cos(t)])

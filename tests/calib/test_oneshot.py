@@ -1,4 +1,4 @@
-"""One-shot calibration (seed §2.4-2.5, §2.8): known cameras are recovered from their marker images."""
+"""One-shot calibration (thesis §2.4-2.5, §2.8): known cameras are recovered from their marker images."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from scopetwin.calib.oneshot import (
 from scopetwin.recon.bias import spot_bias_model, spot_centroids
 from scopetwin.scenes.camera import Camera, pose_parameters
 
-ROUND_OFF_MM = 1e-9  # float64 round-off on ~200 mm (the seed's Tables 2.2/2.3 reach 1e-13 mm)
+ROUND_OFF_MM = 1e-9  # float64 round-off on ~200 mm (the thesis's Tables 2.2/2.3 reach 1e-13 mm)
 ROUND_OFF_AXIS = 1e-12
 
 
@@ -34,10 +34,10 @@ def assert_same_camera(cam: Camera, truth: Camera, tol_mm: float, tol_axis: floa
 
 def test_perpendicular_view_to_round_off(perpendicular):
     s, xy, px, prior = perpendicular
-    cal = calibrate(xy, px, prior, lens="fixed")  # face-on: b is known a priori (the seed's Δb = 0)
+    cal = calibrate(xy, px, prior, lens="fixed")  # face-on: b is known a priori (the thesis's Δb = 0)
     assert_same_camera(cal.camera, s.camera_model, ROUND_OFF_MM, ROUND_OFF_AXIS)
     assert cal.residual_rms_px < 1e-9
-    # the linear step of §2.4 is already close for a face-on view (seed Table 2.2: ~1e-5 mm)
+    # the linear step of §2.4 is already close for a face-on view (thesis Table 2.2: ~1e-5 mm)
     assert np.abs(cal.linear.camera.center - s.camera_model.center).max() < 1e-4
 
 
@@ -68,7 +68,7 @@ def test_angular_view_to_round_off_with_free_b(angular):
     r_c, r_0, phi = pose_parameters(s.camera_model)
     assert np.abs(cal.r_0 - r_0[:2]).max() < ROUND_OFF_MM
     assert abs(cal.phi - phi) < ROUND_OFF_AXIS
-    # the linear approximation alone is off by a fraction of a mm (seed Table 2.3: 0.44 mm in y)
+    # the linear approximation alone is off by a fraction of a mm (thesis Table 2.3: 0.44 mm in y)
     lin_err = np.abs(cal.linear.camera.center - s.camera_model.center)
     assert 0.1 < lin_err[1] < 2.0
     assert cal.linear.m_disagreement < 0.05
@@ -88,7 +88,7 @@ def test_linear_magnification_equations_agree_on_affine_data():
 def test_distortion_and_offset_recovered_better_than_table_2_8():
     s, xy, px, prior = exact_case("thesis-2.8.5-distortion")
     truth = s.camera_model
-    cal = calibrate(xy, px, prior, lens="thin-lens", distortion=True)  # the seed's variant: c0 absorbs the b error
+    cal = calibrate(xy, px, prior, lens="thin-lens", distortion=True)  # the thesis's variant: c0 absorbs the b error
     # the a-priori r_cs = 0, c0 = 1 hold only directions the data leave open; here the data
     # determine every parameter, so exact data are recovered to round-off
     assert np.abs(np.subtract(cal.camera.r_cs, truth.r_cs)).max() < 1e-9  # Table 2.8: 7.94 µm
@@ -112,7 +112,7 @@ def test_noise_experiment_uncertainty_matches_scatter(angular, rng):
         sig.append(cal.sigma["r_c"])
     rms = np.sqrt(np.mean(np.square(errs), axis=0))
     mean_sig = np.mean(sig, axis=0)
-    assert np.all(rms < 15e-3)  # seed Table 2.4: up to 6.9 µm in one draw
+    assert np.all(rms < 15e-3)  # thesis Table 2.4: up to 6.9 µm in one draw
     assert np.all((rms > 0.6 * mean_sig) & (rms < 1.6 * mean_sig))
     no_b = dataclasses.replace(prior, image_distance=None)
     cal = calibrate(xy, px + rng.normal(0.0, sigma_px, px.shape), no_b, lens="auto")

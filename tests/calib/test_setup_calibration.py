@@ -1,4 +1,4 @@
-"""Setup calibration (seed §2.7, §2.8.3): camera and pattern recovered in one global frame."""
+"""Setup calibration (thesis §2.7, §2.8.3): camera and pattern recovered in one global frame."""
 
 from __future__ import annotations
 
@@ -62,7 +62,7 @@ def test_exact_positions_recover_camera_and_pattern(setups):
 
 
 def test_per_view_thin_lens_misplaces_the_pattern(setups):
-    """The seed's way (a thin-lens b per view) fails when the camera focus does not fit the mirror distance."""
+    """The thesis's way (a thin-lens b per view) fails when the camera focus does not fit the mirror distance."""
     ss, sm = setups
     xs, ps_, xm, pm_ = exact_inputs(ss, sm)
     res = calibrate_setup(

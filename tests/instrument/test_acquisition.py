@@ -111,7 +111,7 @@ def test_simultaneous_capture_on_global_trigger(tmp_path):
 
 @pytest.mark.parametrize("light_delay_fraction", [0.0, 0.25, 0.5, 1.0])
 def test_global_trigger_delay_sets_the_dose(tmp_path, light_delay_fraction):
-    """A light that starts ``f`` of an exposure late (seed §4.3.2 trigger delay) gives ``1 - f`` of the signal."""
+    """A light that starts ``f`` of an exposure late (thesis §4.3.2 trigger delay) gives ``1 - f`` of the signal."""
     exposure = 0.01
     with open_rig(_four_channel_rig(tmp_path)) as rig:
         cam, led, board = rig["cam0"], rig.light("led0"), rig.trigger()

@@ -1,6 +1,6 @@
 """The Basler driver's GigE branches on a fake node map, and Mono12Packed unpacked bit-exact.
 
-The fake node map describes a scout scA1400-30gm (seed §4.1.4) as pylon presents a GigE camera of that
+The fake node map describes a scout scA1400-30gm (thesis §4.1.4) as pylon presents a GigE camera of that
 generation: ``ExposureTimeRaw`` in steps of ``ExposureTimeBaseAbs`` µs, ``GainRaw``, ``BlackLevelRaw``,
 ``AcquisitionFrameRateAbs``, pixel formats Mono8 / Mono12Packed / Mono16 (no Mono12), and the GigE
 transport features ``GevSCPSPacketSize`` and ``GevSCPD``.

@@ -2,7 +2,7 @@
 halogen on): the board's answer to the cut request arrives late, after the clean-up's "light off" went out, and
 must not be taken for the clean-up's answer.
 
-The board's bytes are written literally (seed Table 4.2 layout: opcode, address, length, payload; write 0x01, read
+The board's bytes are written literally (thesis Table 4.2 layout: opcode, address, length, payload; write 0x01, read
 0x02, their acknowledgements with bit 7 set; light 2's on/off register at 0x18 + 2 = 0x1A)."""
 
 from __future__ import annotations

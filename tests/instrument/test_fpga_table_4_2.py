@@ -1,4 +1,4 @@
-"""Seed Table 4.2 ('Machine instruction for the configuration of a light source'), checked against bytes
+"""Thesis Table 4.2 ('Machine instruction for the configuration of a light source'), checked against bytes
 worked out by hand from the table, not by any encoder of the project.
 
 The table: byte 0 = 0x01 (write), 1 = address of the light source, 2 = 12 (number of following bytes),

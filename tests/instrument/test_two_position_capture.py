@@ -1,4 +1,4 @@
-"""The pattern stage of a rig (instrument.acquisition.two_position_capture, seed §1.3): one frame at the stage's
+"""The pattern stage of a rig (instrument.acquisition.two_position_capture, thesis §1.3): one frame at the stage's
 position and one a known shift further, the same exposure, the positions read back into the manifest, the stage
 back where it started and the light off. The texture renderer (numpy) stands in for the pattern's image here; the
 Mitsuba rig is tested end to end in tests/recon/test_two_positions_rendered.py."""

@@ -1,4 +1,4 @@
-"""The frame criterion of the outer loop (seed §1.4, eqs. 1.3-1.4), public in recon and used by the reconstructor."""
+"""The frame criterion of the outer loop (thesis §1.4, eqs. 1.3-1.4), public in recon and used by the reconstructor."""
 
 from __future__ import annotations
 

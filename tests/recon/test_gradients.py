@@ -1,4 +1,4 @@
-"""Normals from rays (seed §1.7.1) and gradients (§1.7.2-1.7.3): recovered from constructed reflections."""
+"""Normals from rays (thesis §1.7.1) and gradients (§1.7.2-1.7.3): recovered from constructed reflections."""
 
 from __future__ import annotations
 

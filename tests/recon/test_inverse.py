@@ -115,7 +115,7 @@ def test_recovers_a_known_surface_from_its_own_render(case):
     fitted = rec.fit_level(lev, start, h, 8, 0)
     err = fitted.height(hx, hy) - truth.height(hx, hy)
     # the window sees a ~1 x 1.5 mm patch, where height and tilt trade against each other (the start-height
-    # ambiguity of seed §1.4, fixed here by the mean-height constraint over the whole ROI): its shape with mean and
+    # ambiguity of thesis §1.4, fixed here by the mean-height constraint over the whole ROI): its shape with mean and
     # tilt removed is recovered to 1 nm, from a 300 nm bump
     a = np.stack([np.ones_like(hx), hx, hy], axis=1)
     plane, *_ = np.linalg.lstsq(a, err, rcond=None)

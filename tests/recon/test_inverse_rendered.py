@@ -1,4 +1,4 @@
-"""Inverse rendering on a whole rendered image (recon/inverse.py): the §1.10 measurement of the seed's kind
+"""Inverse rendering on a whole rendered image (recon/inverse.py): the §1.10 measurement of the thesis's kind
 of surface, rendered with Mitsuba with the EMVA 1288 sensor noise on, reconstructed by the centroid method and then
 by inverse rendering from it (as ``scopetwin reconstruct --method inverse`` does); both compared with the truth.
 """
@@ -51,7 +51,7 @@ def test_inverse_fit_of_a_noisy_render_beats_the_centroid_method_and_covers_its_
 @pytest.mark.mitsuba
 @pytest.mark.slow
 def test_inverse_fit_of_a_surface_the_flood_could_not_index(mono_variant: str) -> None:
-    """3 mm correlation / 60 µm, surface seed 2, EMVA noise: the seed's flood indexed 1 marker and the inverse fit
+    """3 mm correlation / 60 µm, surface seed 2, EMVA noise: the thesis's flood indexed 1 marker and the inverse fit
     started from a plane (10-11 µm shape). The topological indexing numbers ~450 markers, the centroid method
     restarts with a basis scale that fits, and the inverse fit from it meets the goal of 0.05 µm."""
     from scopetwin.scenes.mitsuba.render import render_setup

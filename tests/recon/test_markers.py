@@ -1,4 +1,4 @@
-"""Marker identification on synthetic images and point sets with known answers (seed §1.5, §2.6)."""
+"""Marker identification on synthetic images and point sets with known answers (thesis §1.5, §2.6)."""
 
 from __future__ import annotations
 

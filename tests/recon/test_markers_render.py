@@ -1,4 +1,4 @@
-"""Marker identification on rendered images of the seed's setups, checked against sim.truth."""
+"""Marker identification on rendered images of the thesis's setups, checked against sim.truth."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Shifted basis functions (seed §1.8): fits of constructed gradient data recover the known heights."""
+"""Shifted basis functions (thesis §1.8): fits of constructed gradient data recover the known heights."""
 
 from __future__ import annotations
 

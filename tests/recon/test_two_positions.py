@@ -1,4 +1,4 @@
-"""Two pattern positions (recon.two_positions, scenes.pattern_stage; seed §1.3): the pattern moved
+"""Two pattern positions (recon.two_positions, scenes.pattern_stage; thesis §1.3): the pattern moved
 along its normal by a known distance resolves the height-normal ambiguity that one image leaves to the frame
 criterion."""
 

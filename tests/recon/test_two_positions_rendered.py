@@ -1,4 +1,4 @@
-"""Two pattern positions end to end (seed §1.3): rendered with Mitsuba through ``scopetwin render``
+"""Two pattern positions end to end (thesis §1.3): rendered with Mitsuba through ``scopetwin render``
 and acquired through the simulated rig's pattern stage, reconstructed through ``scopetwin reconstruct --second`` and
 the front door; errors against the true surface over the ROI."""
 

@@ -1,4 +1,4 @@
-"""The camera model (seed §1.6.2, §2.5.1-2.5.2): round trips and known geometry."""
+"""The camera model (thesis §1.6.2, §2.5.1-2.5.2): round trips and known geometry."""
 
 import numpy as np
 import pytest

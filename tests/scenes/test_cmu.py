@@ -1,4 +1,4 @@
-"""Truth tests of the microscope unit's numpy models (seed ch. 3-5): spectra, layout, plates, tracer, analyses."""
+"""Truth tests of the microscope unit's numpy models (thesis ch. 3-5): spectra, layout, plates, tracer, analyses."""
 
 from __future__ import annotations
 
@@ -101,7 +101,7 @@ def test_plate_bow_range_and_radius(setup) -> None:
 
 # -- tracer and analyses ---------------------------------------------------------------------------------
 def test_perfect_lenses_image_exactly(setup) -> None:
-    """Perfect mirror perpendicular: m = 10.00, zero spots, focus at f_tube (seed §5.1.2, Fig. 5.2a)."""
+    """Perfect mirror perpendicular: m = 10.00, zero spots, focus at f_tube (thesis §5.1.2, Fig. 5.2a)."""
     res = analyse(setup, perpendicular_optics(setup, None), n_pupil=21)
     assert res.magnification == pytest.approx(10.0, rel=1e-6)
     assert res.image_distance_mm == pytest.approx(164.5, abs=1e-6)

@@ -1,4 +1,4 @@
-"""The Mitsuba renders reproduce the analytic ray model of seed §1.6.
+"""The Mitsuba renders reproduce the analytic ray model of thesis §1.6.
 
 Both renderers image the same scene; the same grey-weighted centroid code
 measures every marker spot in both images; the centroids must agree. What is

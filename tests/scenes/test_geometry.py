@@ -1,4 +1,4 @@
-"""Frames and ray optics (seed §1.6.1, §1.6.5) against hand-computed truth."""
+"""Frames and ray optics (thesis §1.6.1, §1.6.5) against hand-computed truth."""
 
 import numpy as np
 import pytest

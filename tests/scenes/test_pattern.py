@@ -1,4 +1,4 @@
-"""Marker patterns (seed §1.6.3, §2.2): layouts, indices, grey values."""
+"""Marker patterns (thesis §1.6.3, §2.2): layouts, indices, grey values."""
 
 import numpy as np
 import pytest
@@ -25,7 +25,7 @@ def test_odd_deflectometry_pattern_has_reference_at_centre():
 def test_even_deflectometry_pattern_marker_zero_left_edge_at_centre():
     p = _p(4, 4, "deflectometry")
     np.testing.assert_allclose(p.centers_local([[0, 0], [-2, 1]]), [[0.75, 0.75], [-2.25, 2.25]])
-    # the cell of marker 0 starts at the centre (seed: IX = floor(x/ms_x))
+    # the cell of marker 0 starts at the centre (thesis: IX = floor(x/ms_x))
     assert tuple(p.nearest_index(np.array([0.01, 0.01]))) == (0, 0)
     assert tuple(p.nearest_index(np.array([-0.01, 1.6]))) == (-1, 1)
 

@@ -1,4 +1,4 @@
-"""Substrate model (seed §1.6.4): exact bicubic heights/gradients and the secant intersection."""
+"""Substrate model (thesis §1.6.4): exact bicubic heights/gradients and the secant intersection."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""scopetwin.sim.datasets, sample kind 'cmu' (seed Part II): config checks before work, per-sample determinism,
+"""scopetwin.sim.datasets, sample kind 'cmu' (thesis Part II): config checks before work, per-sample determinism,
 and truth: calib.channels recovers each camera's known magnification, frame centre and tilt from the images.
 
 The unit is the thesis-cmu preset with a 160 x 144 px sensor and a Siemens star scaled to a 0.075 mm frame

@@ -24,7 +24,7 @@ def test_run_reconstructs_the_default_substrate(tmp_path, capsys):
         "focusmap.csv",
     ):
         assert (out / name).is_file(), name
-    # 40 µm surface, noise on, 4 spp: both reconstructions well inside the seed's 0.414 µm ROI RMS
+    # 40 µm surface, noise on, 4 spp: both reconstructions well inside the thesis's 0.414 µm ROI RMS
     for which in ("ideal", "calibrated"):
         rec = summary["reconstructions"][which]
         assert rec["roi_rms_um"] < 0.1, (which, rec["roi_rms_um"])

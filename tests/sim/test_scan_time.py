@@ -1,4 +1,4 @@
-"""Scan-time models (seed §7.2-7.4) and the objective count (§8.2.2)."""
+"""Scan-time models (thesis §7.2-7.4) and the objective count (§8.2.2)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ def test_demonstrator_geometry_matches_seed():
     assert geo["n_max"] == 2
     assert geo["d_l_max_mm"] == pytest.approx(2.848, abs=5e-4)
     assert geo["n_at_d_l"] == 2
-    # The seed's d_L,max formula is not the inverse of its eq. 8.1: solving eq. 8.1 for d_L at N = 2 gives
+    # The thesis's d_L,max formula is not the inverse of its eq. 8.1: solving eq. 8.1 for d_L at N = 2 gives
     # (S - N m FOV)/(N + 1) + D_L = 2.283 mm, so eq. 8.1 already yields N = 1 at 2.848 mm (reported, not fixed).
     assert tp.objective_count(4.28, 2.0, 2.28, 4.29, 0.4) == 2
     assert tp.objective_count(4.28, 2.0, 2.848, 4.29, 0.4) == 1

@@ -1,4 +1,4 @@
-"""render_setup / render_window: geometry to 0.002 px, radiometry and determinism (seed §1.10, §2.8)."""
+"""render_setup / render_window: geometry to 0.002 px, radiometry and determinism (thesis §1.10, §2.8)."""
 
 from __future__ import annotations
 

@@ -80,7 +80,7 @@ def test_pattern_radiance_scales_the_raster():
 
 
 def test_reference_marker_appears_where_the_camera_projects_it():
-    """Calibration layout: the large reference marker (0, 0) sits at the -x/-y corner (seed §2.2)."""
+    """Calibration layout: the large reference marker (0, 0) sits at the -x/-y corner (thesis §2.2)."""
     from scipy import ndimage
 
     from scopetwin.scenes.mitsuba.render import render_window

@@ -1,4 +1,4 @@
-"""The Mitsuba sensor plugin generates the rays of scenes.camera to float32 precision (seed §1.6.2, §2.5)."""
+"""The Mitsuba sensor plugin generates the rays of scenes.camera to float32 precision (thesis §1.6.2, §2.5)."""
 
 from __future__ import annotations
 

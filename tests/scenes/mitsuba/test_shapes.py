@@ -1,4 +1,4 @@
-"""Heightfield meshes of the substrate: exact vertices and normals, ROI split (seed §1.6.4, §1.4)."""
+"""Heightfield meshes of the substrate: exact vertices and normals, ROI split (thesis §1.6.4, §1.4)."""
 
 from __future__ import annotations
 
