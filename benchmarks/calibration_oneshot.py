@@ -145,13 +145,13 @@ def speed() -> None:
 def main() -> None:
     table("§2.8.1 perpendicular view, Table 2.2", "thesis-2.8.1-perpendicular", "fixed", SEED_22)
     table(
-        "§2.8.1 perpendicular view, seed's thin-lens b (issue item 5)",
+        "§2.8.1 perpendicular view, the thesis's thin-lens b",
         "thesis-2.8.1-perpendicular",
         "thin-lens",
         SEED_22,
     )
     table("§2.8.1 angular view, Table 2.3", "thesis-2.8.1-angular", "auto", SEED_23)
-    table("§2.8.1 angular view, seed's thin-lens b (issue item 5)", "thesis-2.8.1-angular", "thin-lens", SEED_23)
+    table("§2.8.1 angular view, the thesis's thin-lens b", "thesis-2.8.1-angular", "thin-lens", SEED_23)
     noise_experiment()
     distortion_case()
     speed()

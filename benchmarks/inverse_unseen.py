@@ -5,7 +5,7 @@ The inverse study's surfaces (``sim/studies/inverse.py``: seed 2 and 3 at 20 / 1
 on. This benchmark draws its own, all of the §1.9 generator (``kind = "random"``) on the thesis-1.10-deflectometry
 preset (:func:`family`):
 
-* ``hypercube`` (fixed before the inverse fit was changed for this issue): surface k = 0 .. 3 takes its seed,
+* ``hypercube`` (fixed before the inverse fit was changed for the unseen surfaces): surface k = 0 .. 3 takes its seed,
   correlation length and range from ``sha256(b"scopetwin inverse unseen <k>")``: the seed from the digest's bytes
   0-3, the correlation length from bytes 4-7 within quarter k of [3, 8] mm, the range from bytes 8-11 within quarter
   ``PERMUTATION[k]`` of [20, 60] µm (a Latin hypercube: every quarter of both intervals is met once);
