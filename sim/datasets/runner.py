@@ -210,8 +210,66 @@ def _tls_configured() -> bool:
     return Security().get_connection_args("client").get("ssl_context") is not None
 
 
+#: Seconds to reach a ``--scheduler`` address and hear its first message before Dask's client is started on it.
+SCHEDULER_PROBE_S = 5.0
+#: The largest first message (Dask's handshake) a scheduler may announce; a larger length is not Dask's framing.
+MAX_HANDSHAKE_BYTES = 1 << 20
+
+
+def probe_scheduler(address: str, timeout: float | None = None) -> None:
+    """Check that ``tcp://`` or ``tls://`` ``address`` speaks like a Dask scheduler before a client is started on it.
+
+    A Dask server speaks first: on a new connection it sends its handshake, framed by an 8-byte little-endian
+    length. Something else at the address — a web server, which waits for a request, or a service that answers
+    with text — would leave Dask's client waiting without a limit or reading its text as a length (an allocation
+    of exbibytes); the probe reads those 8 bytes within ``timeout`` seconds (default :data:`SCHEDULER_PROBE_S`)
+    instead. Other schemes (``ws``, ``inproc``) are left to Dask.
+
+    Raises
+    ------
+    DatasetError
+        Nothing answers, nothing is said within ``timeout``, or what is said is not Dask's framing (one line).
+    """
+    import socket
+    import ssl
+    import struct
+
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    scheme, location = parse_address(address)
+    if scheme not in ("tcp", "tls"):
+        return
+    host, port = parse_host_port(location)
+    limit = SCHEDULER_PROBE_S if timeout is None else timeout
+    where = f"the Dask scheduler {address}"
+    try:
+        with socket.create_connection((host, port), timeout=limit) as raw:
+            sock: socket.socket = raw
+            if scheme == "tls":
+                from distributed.security import Security
+
+                ctx = Security().get_connection_args("client").get("ssl_context")
+                sock = ctx.wrap_socket(raw, server_hostname=host if ctx.check_hostname else None)
+            head = b""
+            while len(head) < 8:
+                chunk = sock.recv(8 - len(head))
+                if not chunk:
+                    raise DatasetError(f"{where} closed the connection without a word: not a Dask scheduler")
+                head += chunk
+    except TimeoutError:
+        raise DatasetError(f"{where} said nothing within {limit:g} s: not a Dask scheduler, or not answering") from None
+    except ssl.SSLError as exc:
+        raise DatasetError(f"cannot connect to {where}: TLS failed ({exc.reason or exc})") from None
+    except OSError as exc:
+        raise DatasetError(f"cannot connect to {where}: {exc.strerror or exc}") from None
+    (length,) = struct.unpack("<Q", head)
+    if not 0 < length <= MAX_HANDSHAKE_BYTES:
+        shown = head.decode("ascii", "replace") if head.isascii() else head.hex()
+        raise DatasetError(f"{where} does not speak Dask's protocol (it began with {shown!r}): not a Dask scheduler")
+
+
 def _connect(scheduler: str) -> Any:
-    """A client of the existing cluster at ``scheduler`` (its address checked first)."""
+    """A client of the existing cluster at ``scheduler`` (its address checked, and probed, first)."""
     from distributed import Client
 
     check_scheduler(scheduler)
@@ -221,9 +279,10 @@ def _connect(scheduler: str) -> Any:
             f"--scheduler {scheduler}: TLS needs a CA file and a client certificate and key in Dask's configuration "
             "(distributed.comm.tls.ca-file, .client.cert, .client.key; e.g. DASK_DISTRIBUTED__COMM__TLS__CA_FILE)"
         )
+    probe_scheduler(scheduler)
     try:
         client = Client(scheduler, timeout="30s")
-    except (OSError, TimeoutError, ValueError) as exc:
+    except (OSError, TimeoutError, ValueError, MemoryError) as exc:
         raise DatasetError(f"cannot connect to the Dask scheduler {scheduler}: {exc}") from None
     if scheme not in ("tls", "wss", "inproc"):
         log.warning(
@@ -248,6 +307,9 @@ def _start_local_cluster(workers: int | None) -> tuple[Any, Any]:
         _spawn_ignoring_interrupts(),
         dask.config.set(
             {
+                # no web pages (dashboard, task and worker info, JSON, metrics): they answer anyone without credentials
+                "distributed.scheduler.http.routes": [],
+                "distributed.worker.http.routes": [],
                 "distributed.worker.multiprocessing-method": "spawn",
                 "distributed.scheduler.allowed-failures": 5,
                 "distributed.worker.memory.terminate": False,
@@ -278,10 +340,14 @@ def _new_local_cluster(workers: int | None, shield: Any) -> tuple[Any, Any]:
             protocol="tls://",  # mutual TLS on credentials made for this cluster alone, held in memory
             security=Security.temporary(),
             dashboard_address=None,
-            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},  # its HTTP endpoint: any free local port
+            # Dask starts an HTTP server whatever the options: on a free local port, without routes, and stopped
+            # below, so that nothing answers on it
+            scheduler_kwargs={"dashboard_address": "127.0.0.1:0", "dashboard": False},
             silence_logs=logging.CRITICAL,  # a closing cluster logs errors (heartbeats) in every worker
         )
         client = Client(cluster)
+        client.run_on_scheduler(_stop_http_server)
+        client.run(_stop_http_server)
     except Exception:
         if cluster is not None:
             _close_quietly(cluster, interrupted=True)
@@ -292,13 +358,21 @@ def _new_local_cluster(workers: int | None, shield: Any) -> tuple[Any, Any]:
     return client, cluster
 
 
+def _stop_http_server(dask_scheduler: Any = None, dask_worker: Any = None) -> None:
+    """Stop listening on the HTTP port of the scheduler or worker this runs on (Dask always opens one)."""
+    server = getattr(dask_scheduler or dask_worker, "http_server", None)
+    if server is not None:
+        server.stop()
+
+
 @contextlib.contextmanager
 def dask_client(scheduler: str | None = None, workers: int | None = None) -> Iterator[Any]:
     """A Dask client: on ``scheduler`` (an existing cluster, unchanged) or on an embedded LocalCluster.
 
     The local cluster has ``workers`` worker processes (default: one per core) with one thread each,
     started with ``spawn`` (Mitsuba's plugin registry is per thread and does not survive ``fork``),
-    and listens on 127.0.0.1 only, without a dashboard, speaking TLS with credentials made for it alone
+    and listens on 127.0.0.1 only, without a dashboard or any other web page (no HTTP port stays open), speaking TLS
+    with credentials made for it alone
     (:meth:`~distributed.security.Security.temporary`): a client without them is refused. Its workers ignore
     SIGINT and SIGHUP (:func:`scopetwin.sim.signals.dask_setup`, a worker preload): the client handles an
     interruption, cancels its work and closes the cluster without distributed's logs, so Ctrl-C prints no worker
@@ -320,8 +394,9 @@ def dask_client(scheduler: str | None = None, workers: int | None = None) -> Ite
     Raises
     ------
     DatasetError
-        Dask is not installed, or the scheduler address is malformed or does not answer, or a ``tls://`` scheduler
-        has no credentials in Dask's configuration.
+        Dask is not installed, or the scheduler address is malformed, does not answer or is not a Dask scheduler
+        (:func:`probe_scheduler`, within :data:`SCHEDULER_PROBE_S`), or a ``tls://`` scheduler has no credentials in
+        Dask's configuration.
     """
     _require_distributed()
     if scheduler:
