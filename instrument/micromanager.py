@@ -996,12 +996,14 @@ def run_mda(
     Raises
     ------
     RigError
-        A plan out of the rig's limits (before anything moves).
+        A plan without events, or out of the rig's limits (before anything moves).
     InstrumentError
         A device that failed during the run, as it raised it: a failed move that pymmcore-plus's engine logged and
         went on from stops the run at the plane after it (that plane is neither written nor recorded).
     """
     seq = load_sequence(sequence)
+    if next(iter(seq), None) is None:  # useq's first event only: an empty plan has none
+        raise RigError("the MDA sequence has no events: nothing to acquire")
     core = core if core is not None else load_into_core(rig, camera=camera)
     limits = plan_limits(core, rig)
     size = check_plan(seq, limits)

@@ -272,7 +272,11 @@ class OmeOutput:
         self.planes += 1
 
     def close(self) -> list[str]:
-        """Close the files and complete their metadata; the files written."""
+        """Close the files and complete their metadata; the files written.
+
+        A run stopped before its first plane leaves nothing: the single file, the Zarr store, or the per-position
+        files and their folder are removed (they would hold no image). A run stopped before some position's first
+        plane removes that position's file, and the files kept refer to the files kept only."""
         if self._tiff is not None:
             self._tiff.close()
             self._tiff = None
@@ -282,6 +286,8 @@ class OmeOutput:
                 from scopetwin.instrument.ome_xml import single_file_ome
 
                 tifffile.tiffcomment(self.path, single_file_ome(self).to_xml().encode())
+            else:
+                self.path.unlink(missing_ok=True)  # a TIFF header without a page
         elif self._stream is not None:
             stream, self._stream = self._stream, None
             stream.close()
@@ -292,13 +298,22 @@ class OmeOutput:
                 else:
                     _complete_tiff(metadata, self)
                     # a run stopped before a position's first plane leaves that position's file without a page:
-                    # no metadata to complete there, and the empty file goes
+                    # no metadata to complete there, and the empty file goes (nor do the others refer to it)
                     metadata = {p: m for p, m in metadata.items() if p in self.reported.first}
+                    _remove_pageless(self.files())
+                    _drop_missing_references(metadata, {Path(f).name for f in self.files()})
                 stream.update_metadata(metadata)
                 if self.kind == "zarr":
                     _version_plate(self.path)
+            elif self.kind == "zarr":
+                import shutil
+
+                shutil.rmtree(self.path, ignore_errors=True)  # arrays declared, not one plane in them
             if self.kind != "zarr":  # one OME-TIFF per position
                 _remove_pageless(self.files())
+                folder = self.path.parent / _stem(self.path.name)
+                if not self.path.exists() and folder.is_dir() and not any(folder.iterdir()):
+                    folder.rmdir()  # an empty folder would block the rerun
         return self.files()
 
     def files(self) -> list[str]:
@@ -328,6 +343,18 @@ def _remove_pageless(paths: list[str]) -> None:
             quiet.setLevel(level)
         if empty:
             os.remove(path)
+
+
+def _drop_missing_references(metadata: dict[Any, Any], kept: set[str]) -> None:
+    """Each kept file's OME holds the images of every position's file (ome-writers' companion layout): the images
+    stored in files that are not ``kept`` are taken out, so that no reader looks for a removed file."""
+    for ome in metadata.values():
+        images = []
+        for image in ome.images:
+            names = {b.uuid.file_name for b in image.pixels.tiff_data_blocks if b.uuid is not None and b.uuid.file_name}
+            if names <= kept:
+                images.append(image)
+        ome.images = images
 
 
 def _stem(name: str) -> str:

@@ -103,10 +103,18 @@ def _frames_kept(out: str) -> str:
     return f"{n} frame(s) already taken kept in {out}, listed in {manifest}" if n else "no frame was taken"
 
 
-def _planes_kept(out: str) -> str:
-    """Where the planes acquired before a device stopped answering are (or that none was written)."""
+def _planes_kept(out: str, acquired: int | None = None, planned: int | None = None) -> str:
+    """Where the planes acquired before a device stopped answering are, and how many of the plan's (or that none
+    was written: the writer removes a file or store without a plane)."""
     files = _ome_files(Path(out))
-    return f"the planes acquired so far kept in {', '.join(files)}" if files else "no plane was written"
+    if not files:
+        return "no plane was written"
+    if acquired is None or planned is None:
+        return f"the planes acquired so far kept in {', '.join(files)}"
+    text = f"{acquired} of {planned} plane(s) kept in {', '.join(files)}"
+    if acquired < planned:
+        text += f" (the files declare the plan's sizes; the {planned - acquired} plane(s) never acquired are missing)"
+    return text
 
 
 def _position(rig: Rig, name: str) -> dict[str, Any]:
@@ -335,20 +343,23 @@ def cmd_mda(args: argparse.Namespace) -> dict[str, Any]:
             raise RigError(f"--out {args.out!r}: {str(path)!r} exists already; choose a new path")
     sequence = load_sequence(args.sequence)
     size = mda_size(args.rig, args.camera, sequence)  # closed form: a 1e8-loop plan is sized at once
-    if size.planes == 0:
-        raise RigError(f"MDA sequence {args.sequence!r} has no events")
+    if size.planes == 0 or next(iter(sequence), None) is None:  # useq's first event only: an empty plan has none
+        raise RigError(f"MDA sequence {args.sequence!r} has no events: nothing to acquire")
     log.info("plan: %d plane(s), %s, at least %.3g s", size.planes, human_bytes(size.bytes), size.seconds)
     from scopetwin.instrument.micromanager import run_mda  # pymmcore-plus is imported only now
 
     _quiet_pymmcore_plus()
     bars: list[Any] = []  # the progress bar starts with the first plane: a refused plan prints its one line only
+    acquired = [0]  # planes written, for the line after a device fault
 
     def progress(*_: Any) -> None:
+        acquired[0] += 1
         if not bars:
             bars.append(tqdm(total=size.planes, desc="mda", unit="plane", file=sys.stderr, disable=args.quiet))
         bars[0].update(1)
 
-    with _kept(lambda: _planes_kept(args.out)), _thread_errors_logged(), open_rig(args.rig) as rig:
+    kept = _kept(lambda: _planes_kept(args.out, acquired[0], size.planes))
+    with kept, _thread_errors_logged(), open_rig(args.rig) as rig:
         rig.camera(args.camera)  # a clear error for an unknown camera before the core loads
         try:
             result = run_mda(  # checked against the rig's limits before the first event: nothing written if refused
