@@ -31,6 +31,7 @@ temporary name and moved into place when complete.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from collections.abc import Callable, Sequence
@@ -286,11 +287,47 @@ def write_export(plan: ExportPlan, progress: Callable[[int], None] | None = None
     try:
         tmp = stage / out.name
         writer(tmp, plan, progress)
-        os.replace(tmp, out)
+        _move_into_place(tmp, out)
     finally:
-        shutil.rmtree(stage, ignore_errors=True)
+        shutil.rmtree(stage, ignore_errors=True)  # the stage only: never OUT, which may be someone else's
     variables = {k: [n, *v.shape] for k, v in (plan.per_sample | plan.stacked).items()}
     return {"out": str(out), "to": plan.to, "samples": n, "variables": variables}
+
+
+def _move_into_place(tmp: Path, out: Path) -> None:
+    """Move the finished export ``tmp`` to ``out`` only if nothing is at ``out``: a file by a hard link (which fails
+    if ``out`` exists), a folder (a Zarr store) by renaming it over an empty folder made here with ``mkdir``
+    (which fails if ``out`` exists). A target that another process created meanwhile is never replaced, and
+    nothing it put there is removed.
+
+    Raises
+    ------
+    DatasetError
+        ``out`` appeared while the export ran.
+    """
+    appeared = DatasetError(f"{out} appeared while the export ran; it was left as it is and the export not written")
+    if tmp.is_dir():
+        try:
+            os.mkdir(out, 0o700)
+        except FileExistsError:
+            raise appeared from None
+        try:
+            os.replace(tmp, out)  # over the empty folder made above
+        except OSError:
+            with contextlib.suppress(OSError):
+                os.rmdir(out)  # only if still empty: a file someone put there stays
+            raise appeared from None
+        return
+    try:
+        os.link(tmp, out)
+    except FileExistsError:
+        raise appeared from None
+    except OSError:  # a file system without hard links: claim the name first
+        try:
+            os.close(os.open(out, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o600))
+        except FileExistsError:
+            raise appeared from None
+        os.replace(tmp, out)
 
 
 def export(
