@@ -44,7 +44,7 @@ def load_sequence(sequence: Any) -> Any:
     except Exception as exc:  # noqa: BLE001 - pydantic's validation errors
         raise RigError(f"bad MDA sequence: {validation_line(exc)}") from None
     path = Path(sequence)
-    try:  # a regular file of at most 16 MiB nested at most 64 levels; one line for what useq refuses (issue 25)
+    try:  # a regular file of at most 16 MiB nested at most 64 levels; one line for what useq refuses
         return useq.MDASequence.model_validate(load_structured_input(path, "MDA sequence"))
     except InputError as exc:
         raise RigError(str(exc)) from None

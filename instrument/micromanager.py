@@ -27,7 +27,7 @@ What a Micro-Manager user expects is set up as Micro-Manager would:
   presets may carry the value as text (``"12.5"``), as Micro-Manager's config files do;
 - the pixel size is the camera's ``pixel_size_um`` over its ``magnification`` (both from the rig TOML), as
   the pixel-size preset ``scopetwin``;
-- the camera's read-only ``BitDepth`` property is the camera's ADC depth (12 for the seed's camera), not
+- the camera's read-only ``BitDepth`` property is the camera's ADC depth (12 for the thesis's camera), not
   the 16 bits of its buffer, and ``getImageBitDepth()`` reports it: on a :class:`RigCore`, and on a plain
   ``UniMMCore`` that loaded the camera from a configuration file (:func:`report_bit_depth`; UniMMCore itself
   gives the buffer's 16);
