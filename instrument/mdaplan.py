@@ -14,12 +14,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from scopetwin.instrument.devices import Range
 from scopetwin.instrument.errors import OutOfRangeError, RigError
 from scopetwin.scenes.inputs import InputError, load_structured_input, validation_line
+from scopetwin.shipped import find_input
 
 #: The grid plans sized and checked in closed form (their rows, columns and offsets follow from their fields).
 RECTANGULAR_GRIDS = ("GridRowsColumns", "GridWidthHeight", "GridFromEdges")
@@ -43,7 +43,7 @@ def load_sequence(sequence: Any) -> Any:
             return useq.MDASequence(**sequence)
     except Exception as exc:  # noqa: BLE001 - pydantic's validation errors
         raise RigError(f"bad MDA sequence: {validation_line(exc)}") from None
-    path = Path(sequence)
+    path = find_input(sequence)  # a documented examples/mda/... path reads the shipped sequence from any folder
     try:  # a regular file of at most 16 MiB nested at most 64 levels; one line for what useq refuses
         return useq.MDASequence.model_validate(load_structured_input(path, "MDA sequence"))
     except InputError as exc:

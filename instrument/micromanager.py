@@ -3,8 +3,9 @@
 Optional dependency: ``pip install scopetwin[mm]`` (pymmcore-plus, useq-schema).
 
 The device classes live at module level and are set up by their pre-initialisation properties, as
-Micro-Manager's own device adapters are: ``Rig`` (the rig TOML; a relative path is read from the current
-folder, then from the scopetwin checkout that holds ``rigs/``) and the device's name in the rig. So a
+Micro-Manager's own device adapters are: ``Rig`` (the rig TOML: an absolute path, or the bare name of a rig
+shipped with scopetwin, ``sim-cmu``, found in the installed package; any other relative path is read from the
+current folder) and the device's name in the rig. So a
 configuration file with ``#py`` lines (:func:`config_text`, ``scopetwin rig RIG mm-config --out X.cfg``)
 loads in a plain ``UniMMCore`` with nothing of scopetwin called first::
 
@@ -61,6 +62,7 @@ from scopetwin.instrument.interrupts import deferred_signals
 from scopetwin.instrument.mdaplan import check_plan, load_sequence
 from scopetwin.instrument.ome import POSITION_DECIMALS
 from scopetwin.instrument.rig import Rig, load_rig
+from scopetwin.shipped import find_rig, rig_names, shipped_rig_name
 
 try:
     from pymmcore_plus.experimental import unicore as _uc
@@ -94,9 +96,6 @@ BIT_DEPTH_PROPERTY = "BitDepth"
 RIG_PROPERTY = "Rig"
 DEVICE_PROPERTY = "Device"
 PIXEL_SIZE_PRESET = "scopetwin"
-#: The scopetwin checkout (``rigs/`` beside the layer folders): relative rig paths not found in the current
-#: folder are read from here.
-CHECKOUT = Path(__file__).resolve().parents[1]
 
 # pymmcore-plus's base classes (typed as Any: our devices keep Micro-Manager's method names and signatures)
 _SimpleCamera: Any = _uc.SimpleCameraDevice
@@ -153,13 +152,13 @@ def faults_of(rig: Rig) -> list[InstrumentError]:
 
 
 def resolve_rig_path(value: str | Path) -> Path:
-    """The rig file a ``Rig`` property names: absolute as it is; relative from the current folder, else the checkout."""
+    """The rig file a ``Rig`` property names: absolute as it is; relative from the current folder, else the shipped
+    rig it names (:func:`scopetwin.shipped.find_rig`: ``sim-cmu``, ``rigs/sim-cmu.toml``)."""
     path = Path(value).expanduser()
-    candidates = [path] if path.is_absolute() else [Path.cwd() / path, CHECKOUT / path]
-    for candidate in candidates:
-        if candidate.is_file():
-            return candidate.resolve()
-    where = "" if path.is_absolute() else f" (looked in {Path.cwd()} and {CHECKOUT})"
+    candidate = find_rig(path)  # a relative path: the current folder's file, else the shipped one
+    if candidate.is_file():
+        return candidate.resolve()
+    where = "" if path.is_absolute() else f" (looked in {Path.cwd()}; the shipped rigs: {', '.join(rig_names())})"
     raise RigError(f"rig file {str(value)!r} not found{where}")
 
 
@@ -581,13 +580,11 @@ def camera_bit_depth(core: Any) -> int | None:
 
 # -- configuration files -------------------------------------------------------------------------------------------
 def config_rig_path(path: str | Path) -> str:
-    """How a configuration names a rig file: relative to the checkout when it lies in it (``rigs/sim-cmu.toml``), else
-    absolute."""
+    """How a configuration names a rig file: a rig shipped with scopetwin by its bare name (``sim-cmu``, found in the
+    installed package wherever the configuration is loaded), any other by its absolute path (a configuration means
+    the same rig from every folder, as Micro-Manager's own configurations name their hardware)."""
     resolved = resolve_rig_path(path)
-    try:
-        return resolved.relative_to(CHECKOUT).as_posix()
-    except ValueError:
-        return str(resolved)
+    return shipped_rig_name(resolved) or str(resolved)
 
 
 def _header(rig: Rig, camera: CameraDevice, rig_path: str) -> list[str]:
@@ -595,10 +592,10 @@ def _header(rig: Rig, camera: CameraDevice, rig_path: str) -> list[str]:
     lights = ", ".join(f"{lamp.name}" for lamp in rig.lights()) or "none"
     na = rig.optics.get(camera.name, {}).get("numerical_aperture")
     return [
-        f"# Micro-Manager configuration of the scopetwin rig {rig.name!r} ({rig_path}), written by scopetwin.",
+        f"# Micro-Manager configuration of the scopetwin rig {rig.name!r} (Rig {rig_path}), written by scopetwin.",
         "# Its devices are pymmcore-plus Python devices (the '#py' lines, comments to Micro-Manager's C++",
-        "# core): load it with pymmcore-plus's UniMMCore().loadSystemConfiguration('THIS.cfg'). A relative",
-        "# rig path is read from the current folder, then from the scopetwin checkout.",
+        "# core): load it with pymmcore-plus's UniMMCore().loadSystemConfiguration('THIS.cfg'). A Rig without",
+        "# a folder is a rig shipped with scopetwin, found in the installed package; others are absolute paths.",
         f"# Camera {camera.name!r}: {lim.sensor_shape[1]}x{lim.sensor_shape[0]} px, {camera.bit_depth} bit, exposure "
         f"{lim.exposure_s.low * 1e3:g}..{lim.exposure_s.high * 1e3:g} ms (the limits of its Exposure property),",
         f"# {lim.sample_pixel_um:g} um per pixel on the sample ({lim.pixel_size_um:g} um pixels behind "

@@ -61,6 +61,7 @@ from scopetwin.instrument.devices import (
 from scopetwin.instrument.errors import DeviceLost, DisconnectedError, InstrumentError, InstrumentTimeout, RigError
 from scopetwin.instrument.interrupts import deferred_signals
 from scopetwin.scenes.inputs import InputError, load_toml_input
+from scopetwin.shipped import find_rig, rig_names
 
 log = logging.getLogger(__name__)
 
@@ -534,28 +535,34 @@ class Rig:
 
 def read_rig_toml(path: str | Path) -> dict[str, Any]:
     """The parsed rig TOML: a regular file of at most 16 MiB, nested at most 64 levels
-    (:mod:`scopetwin.scenes.inputs`).
+    (:mod:`scopetwin.scenes.inputs`). A path that does not exist may name a shipped rig
+    (:func:`scopetwin.shipped.find_rig`: ``sim-cmu``, ``rigs/sim-cmu.toml``).
 
     Raises
     ------
     RigError
         Missing, not a regular file (a FIFO, a device), too large, too deep, or not valid TOML.
     """
+    p = find_rig(path)
     try:
-        return load_toml_input(path, "rig")
+        return load_toml_input(p, "rig")
     except InputError as exc:
-        raise RigError(str(exc)) from None
+        hint = "" if p.exists() else f" (the shipped rigs: {', '.join(rig_names())})"
+        raise RigError(f"{exc}{hint}") from None
 
 
 def load_rig(path: str | Path) -> Rig:
     """Read a rig TOML and build its devices (no I/O yet except opening serial ports).
+
+    ``path`` is a rig file, or names a shipped one (:func:`scopetwin.shipped.find_rig`): ``sim-cmu`` or
+    ``rigs/sim-cmu.toml`` from any folder; the rig's ``path`` is then the shipped file's.
 
     Raises
     ------
     RigError
         Unreadable file, unknown kind/driver/field, or a bad limit.
     """
-    p = Path(path)
+    p = find_rig(path)
     data = read_rig_toml(p)
     tables = data.get("devices")
     if not isinstance(tables, dict) or not tables:

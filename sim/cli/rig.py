@@ -52,6 +52,7 @@ from typing import Any
 from scopetwin.instrument.devices import FocusDrive, Stage
 from scopetwin.instrument.errors import DeviceLost, RigError
 from scopetwin.instrument.rig import Rig, open_rig, read_rig_toml
+from scopetwin.shipped import rig_names
 from scopetwin.sim.cli.options import conventions, finite_float, int_range, positive_float, positive_int
 
 log = logging.getLogger(__name__)
@@ -528,7 +529,10 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
         "'scopetwin emulate KIND' and put its port in the rig file to keep their state between commands.",
         **conventions("scopetwin rig rigs/sim-cmu.toml info", "scopetwin rig rigs/emulated-hardware.toml move x 80"),
     )
-    parser.add_argument("rig", help="rig TOML file (see rigs/)")
+    parser.add_argument(
+        "rig",
+        help="rig TOML file, or the name of a rig shipped with scopetwin (" + ", ".join(rig_names()) + "; rigs/)",
+    )
     actions = parser.add_subparsers(dest="rig_action", required=True)
 
     def add(name: str, func: Any, help_: str, *examples: str) -> argparse.ArgumentParser:

@@ -20,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.inputs import parse_toml, read_text_input
+from scopetwin.shipped import find_input
 
 KINDS = ("deflectometry", "calibration", "grin", "cmu")
 #: Most samples one dataset may have: the plan keeps every sample's setup in memory (a few kB each).
@@ -521,7 +522,7 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
 def load_config(path: str | Path, count: int | None = None, overrides: list[str] | None = None) -> DatasetConfig:
     """Read and validate a dataset config TOML (``count`` overrides ``[dataset] count``; ``overrides``: ``--set``
     items, :func:`apply_overrides`)."""
-    p = Path(path)
+    p = find_input(path)  # a documented examples/datasets/... path reads the shipped config from any folder
     try:
         # bounded size and nesting depth
         data = parse_toml(read_text_input(p, "dataset configuration"), "dataset configuration", str(p))

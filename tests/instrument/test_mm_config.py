@@ -38,7 +38,17 @@ def test_shipped_configuration_is_what_mm_config_writes(name, tmp_path, capsys):
     assert main(["rig", str(ROOT / "rigs" / f"{name}.toml"), "mm-config", "--out", str(out)]) == 0
     assert out.read_text() == (ROOT / "rigs" / f"{name}.cfg").read_text()
     assert "Channel presets" in capsys.readouterr().out
-    assert "#py Property,Camera,Rig,rigs/" + name + ".toml" in out.read_text()  # relative to the checkout
+    assert f"#py Property,Camera,Rig,{name}\n" in out.read_text()  # a shipped rig: its bare name, found anywhere
+
+
+def test_a_rig_of_ones_own_is_named_by_its_absolute_path(tmp_path, monkeypatch):
+    """A configuration means the same rig from every folder: a rig that is not shipped is named absolutely."""
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "lab.toml").write_text((ROOT / "rigs" / "sim-cmu.toml").read_text())
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "lab.cfg"
+    assert main(["rig", "mine/lab.toml", "mm-config", "--out", str(out), "-q"]) == 0
+    assert f"#py Property,Camera,Rig,{tmp_path / 'mine' / 'lab.toml'}\n" in out.read_text()
 
 
 def test_a_plain_unimmcore_loads_the_file_in_a_fresh_process(tmp_path):
