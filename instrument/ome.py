@@ -11,7 +11,8 @@ streams (the writers pymmcore-plus uses), then completes the metadata its reader
   folder (ome-writers' layout) or, with ``single_file``, one multi-series file (one OME ``Image`` per position,
   written here with tifffile: ome-writers does not write one).
 - OME-Zarr (NGFF 0.5): for several positions an NGFF plate at the root (one well per position in row ``A``) that
-  ome-zarr-py's Reader and napari-ome-zarr open at the root; each image with scales in µm, a translation from the
+  ome-zarr-py's Reader and napari-ome-zarr open at the root (readers of single images, such as bioio-ome-zarr, open
+  each position's image at ``A/<N>/0``); each image with scales in µm, a translation from the
   stage and focus as they reported at its first plane, display windows from the bit depth, channel colours; the
   camera, objective and wavelengths under the attribute ``scopetwin``.
 
