@@ -160,10 +160,20 @@ def render(
 
     Examples
     --------
+    The §1.10 measurement, its camera at a quarter of the pixels (each four times as large: a few seconds on a CPU);
+    ``scopetwin.render("thesis-1.10-deflectometry")`` renders the thesis's 1360 x 1024 pixels:
+
     >>> import scopetwin
-    >>> m = scopetwin.render("thesis-1.10-deflectometry", spp=4, seed=1)  # doctest: +SKIP
-    >>> m.image.shape  # doctest: +SKIP
-    (1024, 1360)
+    >>> setup = scopetwin.load_setup(
+    ...     "thesis-1.10-deflectometry", {"camera": {"pixels": [340, 256], "pixel_pitch": 0.0186}}
+    ... )
+    >>> m = scopetwin.render(setup, spp=4, seed=1)  # Mitsuba; renderer="analytic" for the project's ray model
+    >>> m.image.shape  # rows, columns
+    (256, 340)
+    >>> m.spp, m.seed, m.second is None
+    (4, 1, True)
+    >>> bool(m.truth.visible.any())  # each marker's exact image (m.truth.center_px: column, row)
+    True
     """
     from scopetwin.sim.measurement import render_measurement
 
@@ -277,14 +287,34 @@ def reconstruct(
 
     Examples
     --------
+    The heights of a rendered measurement (the camera at a quarter of its pixels, as in :func:`render`) against the
+    surface it was rendered with, in µm:
+
+    >>> import numpy as np
     >>> import scopetwin
-    >>> m = scopetwin.render("thesis-1.10-deflectometry", spp=4, seed=1)  # doctest: +SKIP
-    >>> r = scopetwin.reconstruct(m.image, m.setup)  # doctest: +SKIP
-    >>> float(r.height_at(0.0, 0.0)), r.uncertainty.absolute_um  # doctest: +SKIP
+    >>> setup = scopetwin.load_setup(
+    ...     "thesis-1.10-deflectometry", {"camera": {"pixels": [340, 256], "pixel_pitch": 0.0186}}
+    ... )
+    >>> m = scopetwin.render(setup, spp=4, seed=1)
+    >>> r = scopetwin.reconstruct(m.image, m.setup)
+    >>> x, y = np.meshgrid(np.linspace(-10, 10, 21), np.linspace(-20, 20, 41))  # substrate coordinates, mm
+    >>> error_um = (r.height_at(x, y) - m.heights.height(x, y)) * 1e3
+    >>> bool(abs(error_um.mean()) < 1.0), bool(error_um.std() < 0.5)  # absolute height, shape
+    (True, True)
+    >>> bool(0.0 < r.uncertainty.absolute_um < 1.0), bool(0.0 < r.uncertainty.shape_um < 0.5)
+    (True, True)
+
+    The next frame of a live loop, its uncertainty's prior searched from this frame's:
+
+    >>> r_next = scopetwin.reconstruct(m.image, m.setup, previous=r)
+    >>> bool(abs(r_next.uncertainty.absolute_um - r.uncertainty.absolute_um) < 0.5 * r.uncertainty.absolute_um)
+    True
+
+    With a second image, the pattern moved 30 mm by a stage (thesis §1.3; shown, not run here):
+
     >>> m2 = scopetwin.render("thesis-1.10-deflectometry", spp=4, seed=1, pattern_shift_mm=30.0)  # doctest: +SKIP
     >>> r2 = scopetwin.reconstruct(m2.image, m2.setup, second=(m2.second.image, 30.0))  # doctest: +SKIP
     >>> r2.result.estimate.height_um, r2.uncertainty.absolute_um  # doctest: +SKIP
-    >>> r3 = scopetwin.reconstruct(m.image, m.setup, previous=r)  # the next frame of a live loop  # doctest: +SKIP
     """
     from scopetwin.recon.policy import DEFAULT_POLICY
     from scopetwin.recon.strategy import reconstruct as _reconstruct
@@ -334,10 +364,13 @@ def calibrate(
 
     Examples
     --------
+    The target of §2.8.1 seen perpendicularly from 233.24 mm (its camera at the thesis's 1360 x 1024 pixels):
+
     >>> import scopetwin
-    >>> m = scopetwin.render("thesis-2.8.1-perpendicular", spp=4)  # doctest: +SKIP
-    >>> cal = scopetwin.calibrate(m.image, m.setup)  # doctest: +SKIP
-    >>> cal.camera.center  # doctest: +SKIP
+    >>> m = scopetwin.render("thesis-2.8.1-perpendicular", spp=4)
+    >>> cal = scopetwin.calibrate(m.image, m.setup)
+    >>> float(round(cal.camera.center[2], 1))  # the camera's distance above the target, mm
+    233.2
     """
     from scopetwin.calib.oneshot.from_image import calibrate_image
 
@@ -383,10 +416,17 @@ def calibrate_setup(
 
     Examples
     --------
+    The two calibration images of §2.8.3 (the thesis's camera, 1360 x 1024 pixels; a few seconds):
+
+    >>> import numpy as np
     >>> import scopetwin
-    >>> t = scopetwin.render("thesis-2.8.3-substrate", spp=4)  # doctest: +SKIP
-    >>> m = scopetwin.render("thesis-2.8.3-mirror", spp=4)  # doctest: +SKIP
-    >>> calibrated = scopetwin.calibrate_setup(t.image, m.image).setup  # doctest: +SKIP
+    >>> t = scopetwin.render("thesis-2.8.3-substrate", spp=4)
+    >>> m = scopetwin.render("thesis-2.8.3-mirror", spp=4)
+    >>> calibrated = scopetwin.calibrate_setup(t.image, m.image)
+    >>> bool(np.allclose(calibrated.setup.camera.origin, [0.0, -200.0, 120.0], atol=0.05))  # the camera, mm (§1.10)
+    True
+    >>> bool(calibrated.uncertainties["camera"]["shift_mm"] < 0.05)  # one standard uncertainty
+    True
     """
     from scopetwin.calib.setup_calibration import calibrate_setup_from_images
 
@@ -406,8 +446,9 @@ def open_rig(path: str | Path) -> AbstractContextManager[Rig]:
     Parameters
     ----------
     path : str or path
-        A rig TOML (``rigs/sim-deflectometry.toml``, ``rigs/sim-cmu.toml``, ``rigs/emulated-hardware.toml``, or your
-        own with real ports).
+        A rig TOML (your own, with real ports), or a rig shipped with scopetwin by its bare name or its path in the
+        checkout: ``sim-deflectometry`` (``rigs/sim-deflectometry.toml``), ``sim-cmu``, ``emulated-hardware``
+        (:mod:`scopetwin.shipped`).
 
     Returns
     -------
@@ -419,8 +460,9 @@ def open_rig(path: str | Path) -> AbstractContextManager[Rig]:
     Examples
     --------
     >>> import scopetwin
-    >>> with scopetwin.open_rig("rigs/sim-deflectometry.toml") as rig:  # doctest: +SKIP
-    ...     print(sorted(rig.devices))
+    >>> with scopetwin.open_rig("sim-deflectometry") as rig:  # a shipped rig: its bare name
+    ...     print(sorted(rig.devices), rig.camera().name)
+    ['camera', 'pattern', 'x'] camera
     """
     from scopetwin.instrument.rig import open_rig as _open
 
