@@ -113,7 +113,7 @@ def distortion_case() -> None:
     cal = calibrate(xy, px, prior, lens="thin-lens", distortion=False)
     print(
         f"  without offset/distortion: rms {cal.residual_rms_px * prior.pitch:.3e} mm, pv "
-        f"{cal.residual_pv_px * prior.pitch:.3e} mm (seed: 8.553e-4 / 1.542e-3 mm)"
+        f"{cal.residual_pv_px * prior.pitch:.3e} mm (the thesis: 8.553e-4 / 1.542e-3 mm)"
     )
 
 

@@ -86,13 +86,13 @@ def main() -> None:
         dt = time.perf_counter() - t0
         dc, dp = frame_dev(r.camera.frame, cam_t), frame_dev(r.pattern, pat_t)
         print(f"\n== {title} [{dt:.1f} s, substrate b: {r.substrate.lens}]")
-        print(f"  camera  Δr_c = {fmt(dc['r'])} mm   seed Table 2.5: {SEED_25[0]}")
+        print(f"  camera  Δr_c = {fmt(dc['r'])} mm   thesis Table 2.5: {SEED_25[0]}")
         print(f"          ΔT_x = {fmt(dc['T_x'])}   seed: {SEED_25[1]}")
         print(f"          ΔT_y = {fmt(dc['T_y'])}   seed: {SEED_25[2]}")
         print(f"          ΔN_z = {fmt(dc['N_z'])}   seed: {SEED_25[3]}")
         db = r.camera.b - ss.camera_model.b
         print(f"          Δb = {db:.3e} mm ± {r.substrate.sigma['b']:.1e}   seed: {SEED_25[4]}")
-        print(f"  pattern Δr   = {fmt(dp['r'])} mm   seed Table 2.6: {SEED_26[0]}")
+        print(f"  pattern Δr   = {fmt(dp['r'])} mm   thesis Table 2.6: {SEED_26[0]}")
         print(f"          ΔT_x = {fmt(dp['T_x'])}   seed: {SEED_26[1]}")
         print(f"          ΔT_y = {fmt(dp['T_y'])}   seed: {SEED_26[2]}")
         print(f"          ΔN_z = {fmt(dp['N_z'])}   seed: {SEED_26[3]}")

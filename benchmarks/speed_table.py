@@ -105,7 +105,7 @@ TABLE: dict[str, Goal] = {
     "1": Goal("default reconstruction of one frame, with its uncertainty", 0.150, (0.145, 0.145), (4.1, 4.1)),
     "2": Goal("the same with the bias step", 0.300, (0.9, 1.15), (5.3, 5.3)),
     "3": Goal("detection + realtime reconstruction", 0.033, (0.030, 0.030), (0.041, 0.041)),
-    "4": Goal("CLI reconstruct, seed's kind, sensor noise (JSON seconds)", 0.5, None, (7.2, 7.2)),
+    "4": Goal("CLI reconstruct, the thesis's kind, sensor noise (JSON seconds)", 0.5, None, (7.2, 7.2)),
     "5": Goal("CLI reconstruct, glass-like, sensor noise (median of 3)", 1.0, None, (10.0, 27.0)),
     "6": Goal("scopetwin run (wall)", 12.0, (12.0, 12.0), (32.8, 32.8)),
     "7": Goal("scopetwin study thesis (wall)", 60.0, (55.0, 55.0), (103.0, 103.0), full_only=True),

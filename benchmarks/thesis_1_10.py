@@ -117,7 +117,7 @@ def fmt(r: dict) -> str:
 
 
 def part_a(surfaces) -> None:
-    print("\n== A. Seed §1.10: 9x5 inverse multiquadrics, sigma_x = 4, sigma_y = 3, Delta h_max criterion ==")
+    print("\n== A. Thesis §1.10: 9x5 inverse multiquadrics, sigma_x = 4, sigma_y = 3, Delta h_max criterion ==")
     print(
         "seed: distribution 1: ROI rms 0.097 max 0.697 um, whole rms 4.578 max 7.577 um, 14 outer x 3 inner, "
         "dh -0.15 um"
@@ -138,7 +138,7 @@ def part_a(surfaces) -> None:
 
 
 def part_b(surfaces) -> None:
-    print("\n== B. Seed §2.8.4 / Table 2.7: distribution 2 with ideal vs calibrated setup (9x5 basis) ==")
+    print("\n== B. Thesis §2.8.4 / Table 2.7: distribution 2 with ideal vs calibrated setup (9x5 basis) ==")
     print("seed: ideal ROI rms 0.091 max 0.357 um; calibration data ROI rms 0.414 max 1.162 um")
     h, obs = surfaces[1]
     cal = seed_calibrated_setup()
@@ -146,7 +146,7 @@ def part_b(surfaces) -> None:
         cfg = ReconstructionConfig.thesis(literal_axes=literal, search="secant")
         tag = "9 along x" if literal else "9 along y"
         print(f"  {tag}, ideal setup                 : {fmt(run(SETUP, obs, cfg, h))}")
-        print(f"  {tag}, seed's calibration deviations: {fmt(run(cal, obs, cfg, h))}")
+        print(f"  {tag}, the thesis's calibration deviations: {fmt(run(cal, obs, cfg, h))}")
 
 
 def part_c(families) -> None:
@@ -155,7 +155,7 @@ def part_c(families) -> None:
         "level criterion, secant root search) =="
     )
     print(
-        "targets (noise-free, seed's kind): shape <= 0.02 um and |absolute| <= 0.05 um (ideal setup); "
+        "targets (noise-free, the thesis's kind): shape <= 0.02 um and |absolute| <= 0.05 um (ideal setup); "
         "shape <= 0.05 um (calibrated)"
     )
     cal = seed_calibrated_setup()
@@ -175,14 +175,14 @@ def part_c(families) -> None:
 
 
 def part_d(items) -> None:
-    print("\n== D. What each step contributes (seed's kind, corr 12 mm, ideal setup; mean over surfaces) ==")
+    print("\n== D. What each step contributes (the thesis's kind, corr 12 mm, ideal setup; mean over surfaces) ==")
     steps = [
         ("seed: 9x5 IMQ (9 along y), dh_max, eq. 1.4", ReconstructionConfig.thesis(literal_axes=False)),
         ("  + root search on dh_max", ReconstructionConfig.thesis(literal_axes=False, search="secant")),
         ("  + Gaussian basis sigma 12, ridge, plane", ReconstructionConfig(criterion="delta", sigma_candidates=None)),
         ("  + level criterion (both maxima at frame)", ReconstructionConfig(sigma_candidates=None)),
         ("  + sigma chosen from the data", ReconstructionConfig()),
-        ("  same, seed's calibration deviations", ReconstructionConfig()),
+        ("  same, the thesis's calibration deviations", ReconstructionConfig()),
     ]
     cal = seed_calibrated_setup()
     for k, (name, cfg) in enumerate(steps):
@@ -238,7 +238,7 @@ def main() -> None:
     part_a(seed_kind[:2] + smoother[:2])
     part_b(seed_kind)
     families = {
-        "seed's kind (corr 12 mm)": seed_kind,
+        "the thesis's kind (corr 12 mm)": seed_kind,
         "rougher (corr 6 mm)": [surface(6.0, s) for s in range(1, n + 1)],
         "smoother (corr 18 mm)": smoother,
     }

@@ -334,7 +334,7 @@ def pose_uncertainties(result: SetupCalibration) -> dict[str, Any] | None:
 
 
 #: The first line of the TOML that ``scopetwin calibrate-setup`` writes.
-CALIBRATE_SETUP_COMMENT = "scopetwin calibrate-setup: deflectometry setup calibrated as in seed §2.7"
+CALIBRATE_SETUP_COMMENT = "scopetwin calibrate-setup: deflectometry setup calibrated as in thesis §2.7"
 
 
 def calibrated_setup(nominal: Setup, result: SetupCalibration, comment: str) -> tuple[Setup, str]:
@@ -413,7 +413,7 @@ def _check_setups(target_setup: Setup, mirror_setup: Setup) -> None:
     if mirror_setup.scene != "mirror":
         raise CalibrationError(
             f"the pattern setup {mirror_setup.name} is a {mirror_setup.scene} scene; the mirror image needs "
-            "a mirror scene (seed §2.7.2)"
+            "a mirror scene (thesis §2.7.2)"
         )
     if target_setup.scene != "target":
         raise CalibrationError(
@@ -471,7 +471,7 @@ def calibrate_setup_from_images(
     distortion: bool = False,
     share_intrinsics: bool = True,
     bias_correction: bool = True,
-    comment: str = "deflectometry setup calibrated as in seed §2.7",
+    comment: str = "deflectometry setup calibrated as in thesis §2.7",
     image_names: tuple[str, str] = ("target image", "mirror image"),
 ) -> CalibratedSetup:
     """Calibrate the deflectometry setup from its two calibration images, thesis §2.7 (§2.8.3 on renders).

@@ -436,7 +436,7 @@ def pose_axes(r_c: ArrayLike, r_0: ArrayLike, phi: float) -> tuple[Array, Array,
     t0x = np.cross([0.0, 1.0, 0.0], nz)
     n0 = np.linalg.norm(t0x)
     if n0 < 1e-12:
-        raise GeometryError("optical axis is parallel to e_y: T_0x = e_y x N_z is undefined (seed §2.5.2)")
+        raise GeometryError("optical axis is parallel to e_y: T_0x = e_y x N_z is undefined (thesis §2.5.2)")
     t0x /= n0
     t0y = np.cross(nz, t0x)
     tx = np.cos(phi) * t0x + np.sin(phi) * t0y

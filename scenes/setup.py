@@ -382,7 +382,7 @@ class Setup(_Model):
     """One physical scene of Part I (module docstring)."""
 
     name: str = "custom"
-    section: str = Field("", description="seed section the setup comes from")
+    section: str = Field("", description="thesis section the setup comes from")
     description: str = ""
     scene: Literal["deflectometry", "target", "mirror"]
     camera: CameraSpec

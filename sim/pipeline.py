@@ -462,7 +462,7 @@ def _calibrate(
             img_mirror,
             target_setup,
             mirror_setup,
-            comment="scopetwin run: setup calibrated as in seed §2.7",
+            comment="scopetwin run: setup calibrated as in thesis §2.7",
         )
         (out / "calibrated-setup.toml").write_text(cal.toml)
     except (ImportError, ScopetwinError) as exc:
@@ -655,12 +655,12 @@ def _report(s: dict[str, Any]) -> str:
         "(both frame maxima at the frame position); the frame maxima and the uncertainties from the Gaussian-"
         "process reading of the fit (recon.posterior: prior chosen by evidence).",
         "",
-        "## ROI errors beside the seed (µm)",
+        "## ROI errors beside the thesis (µm)",
         "",
         "u: one standard uncertainty as reported by the reconstruction (no truth used).",
         "",
         "| reconstruction | ROI RMS | ROI max | absolute (ROI mean) | u(absolute) | shape (RMS - mean) | u(shape) "
-        "| whole RMS | outer | inner | seed ROI RMS | seed ROI max |",
+        "| whole RMS | outer | inner | thesis ROI RMS | thesis ROI max |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
 
@@ -683,7 +683,7 @@ def _report(s: dict[str, Any]) -> str:
         f"{ex['roi_absolute_um']:+.4f} | {ua} | {ex['roi_shape_um']:.4f} | {us} | {ex['all_rms_um']:.3f} | "
         f"{ex['outer_iterations']} | | | |"
     )
-    lines += ["", "Seed figures: §1.10 height distribution 2 (ideal) and §2.8.4 Table 2.7 (calibrated).", ""]
+    lines += ["", "Thesis figures: §1.10 height distribution 2 (ideal) and §2.8.4 Table 2.7 (calibrated).", ""]
     if "calibration_deviation" in s:
         d = s["calibration_deviation"]
         lines += [

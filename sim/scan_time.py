@@ -112,7 +112,7 @@ def spacing_max(s: float, d_l_diameter: float, m: float, fov: float) -> float:
 def demonstrator_geometry(
     s: float = 4.28, d_l_diameter: float = 2.0, m: float = 4.29, fov: float = 0.4, d_l: float = 2.25
 ) -> dict[str, float]:
-    """The §8.2.2 figures: N_max, d_L,max and N at the chosen d_L (seed: N_max = 2, d_L,max = 2.848 mm)."""
+    """The §8.2.2 figures: N_max, d_L,max and N at the chosen d_L (the thesis: N_max = 2, d_L,max = 2.848 mm)."""
     return {
         "n_max": objective_count_max(s, m, fov),
         "d_l_max_mm": spacing_max(s, d_l_diameter, m, fov),

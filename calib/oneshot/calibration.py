@@ -210,7 +210,7 @@ def _auto_lens(
             notes.append(
                 f"the a-priori image distance b = {stated.b:.5g} mm disagrees with the thin-lens b = f (m + 1) = "
                 f"{cand.b:.5g} +- {cand.sigma:.2g} mm of the measured magnification m = {m:.5g} and f = "
-                f"{prior.focal_length:.5g} mm (seed §2.4.2; {z:.3g} standard deviations): the thin-lens b is the "
+                f"{prior.focal_length:.5g} mm (thesis §2.4.2; {z:.3g} standard deviations): the thin-lens b is the "
                 "candidate instead"
             )
             cal = run(cal, "thin-lens")

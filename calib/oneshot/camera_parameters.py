@@ -188,7 +188,7 @@ def tilt_phi(frame: Frame) -> float:
     """
     t0x = np.cross([0.0, 1.0, 0.0], frame.nz)
     if np.linalg.norm(t0x) < 1e-12:
-        raise CalibrationError("the optical axis is parallel to e_y: the tilt angle phi is undefined (seed §2.5.2)")
+        raise CalibrationError("the optical axis is parallel to e_y: the tilt angle phi is undefined (thesis §2.5.2)")
     t0x = unit_vector(t0x)
     t0y = np.cross(frame.nz, t0x)
     alpha = np.arctan2(-(frame.ty @ t0x), frame.tx @ t0x)

@@ -49,7 +49,7 @@ def _warnings(cal: Calibration, view: str, nz_estimate: Any, what_to_do: str) ->
             est = ", ".join(f"{v:.3g}" for v in np.round(np.asarray(nz_estimate, dtype=np.float64), 6) + 0.0)
             note = (
                 f"{view}: the a-priori sensor normal ({est}) lies midway between the two camera poses that fit a "
-                "flat target about equally well (seed §2.4.2), so the pose with the smaller residual "
+                "flat target about equally well (thesis §2.4.2), so the pose with the smaller residual "
                 f"({cal.residual_rms_px:.3g} px rms) was kept. No action is needed when that residual is small "
                 f"(well below 1 px); otherwise {what_to_do}"
             )
@@ -220,7 +220,7 @@ def _common(p: argparse.ArgumentParser) -> None:
         default="auto",
         help="image distance b: thin-lens from f (seed), free parameter, fixed, or auto (default)",
     )
-    p.add_argument("--distortion", action="store_true", help="also refine r_cs, c0, c2 (seed §2.5.1)")
+    p.add_argument("--distortion", action="store_true", help="also refine r_cs, c0, c2 (thesis §2.5.1)")
     p.add_argument(
         "--no-bias-correction",
         action="store_true",
@@ -246,7 +246,7 @@ def _quiet(func: Any) -> Any:
 
 def register(subparsers: Any) -> None:
     """Add ``calibrate`` and ``calibrate-setup`` to the ``scopetwin`` sub-command parsers."""
-    h = "one-shot camera calibration from one image of a marker target (seed ch. 2)"
+    h = "one-shot camera calibration from one image of a marker target (thesis ch. 2)"
     p = subparsers.add_parser(
         "calibrate",
         help=h,
@@ -283,7 +283,7 @@ def register(subparsers: Any) -> None:
     )
     _common(p)
 
-    h = "calibrate the deflectometry setup from a substrate-target image and a mirror image (seed §2.7)"
+    h = "calibrate the deflectometry setup from a substrate-target image and a mirror image (thesis §2.7)"
     p = subparsers.add_parser(
         "calibrate-setup",
         help=h,
@@ -306,7 +306,7 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--per-view-lens",
         action="store_true",
-        help="the seed's way: each view its own thin-lens b (default: the mirror view keeps the "
+        help="the thesis's way: each view its own thin-lens b (default: the mirror view keeps the "
         "substrate view's b and distortion)",
     )
     p.add_argument("--out", required=True, metavar="setup.toml", help="calibrated setup TOML to write")

@@ -49,7 +49,7 @@ def cmd_markers(args: argparse.Namespace) -> dict[str, Any]:
 
 def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add ``markers`` to a ``scopetwin`` subparsers object (sets ``func`` = :func:`cmd_markers`)."""
-    help_ = "find and index the markers of a camera image (seed §1.5, §2.6)"
+    help_ = "find and index the markers of a camera image (thesis §1.5, §2.6)"
     p = subparsers.add_parser(
         "markers",
         help=help_,

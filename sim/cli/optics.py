@@ -49,7 +49,7 @@ MAX_OBJECTIVES = 100_000
 
 def register(subparsers: Any) -> argparse.ArgumentParser:
     """Add ``optics`` (with ``grin`` and ``scan``) to ``subparsers``; returns the ``optics`` parser."""
-    h = "the four-channel unit, GRIN objectives (spots, target images) and scan-time models (seed Parts II, III)"
+    h = "the four-channel unit, GRIN objectives (spots, target images) and scan-time models (thesis Parts II, III)"
     optics = subparsers.add_parser(
         "optics",
         help=h,
@@ -58,7 +58,7 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     )
     sub = optics.add_subparsers(dest="optics_command", required=True)
     register_cmu(sub)
-    h = "analyse a GRIN objective preset, draw its spot diagrams, render a target image (seed §7.5.2, §8.3)"
+    h = "analyse a GRIN objective preset, draw its spot diagrams, render a target image (thesis §7.5.2, §8.3)"
     g = sub.add_parser(
         "grin",
         help=h,
@@ -88,7 +88,7 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     )
     g.add_argument("--seed", type=SEED, default=0, help="sampler seed for --image, >= 0")
     g.set_defaults(func=cmd_grin, outputs=[("json", "file"), ("spots", "file"), ("out", "file")])
-    h = "scan-time models (seed §7.2-7.4) and the objective count (§8.2.2)"
+    h = "scan-time models (thesis §7.2-7.4) and the objective count (§8.2.2)"
     s = sub.add_parser(
         "scan",
         help=h,
@@ -146,7 +146,7 @@ def print_report(rep: Any, setup: Any) -> None:
         f"cover glass, rod coefficients at "
         f"{setup.rod1.profile.wavelength_ref_nm or setup.wavelength_nm} nm (design {setup.wavelength_nm} nm)"
     )
-    print(f"{'quantity':24s} {'ours':>10s} {'seed':>10s} {'diff':>8s}")
+    print(f"{'quantity':24s} {'ours':>10s} {'thesis':>10s} {'diff':>8s}")
     for label, ours, theirs in _comparison_rows(rep):
         diff = (
             "-"
@@ -160,7 +160,7 @@ def print_report(rep: Any, setup: Any) -> None:
     )
     if rep.rms_spot_at_seed_plane_um:
         print(
-            f"RMS at the seed's image distance: axis {rep.rms_spot_at_seed_plane_um['axis']:.3f} µm, "
+            f"RMS at the thesis's image distance: axis {rep.rms_spot_at_seed_plane_um['axis']:.3f} µm, "
             f"edge {rep.rms_spot_at_seed_plane_um['edge']:.3f} µm"
         )
     print(f"OPD rms (waves): axis {rep.opd_rms_waves['axis']:.3f}, edge {rep.opd_rms_waves['edge']:.3f}")
@@ -258,7 +258,7 @@ def cmd_scan(args: argparse.Namespace) -> dict[str, Any]:
     print("§7.4 scaling: T ~ s^1.5 when N_y ~ 1/s (eq. 7.6): s = 1/4 -> T/8")
     print(
         f"§8.2.2: N_max = {geo['n_max']}, d_L,max = {geo['d_l_max_mm']:.3f} mm, N at d_L = {args.spacing} mm: "
-        f"{geo['n_at_d_l']}  (seed: N_max = 2, d_L,max = 2.848 mm)"
+        f"{geo['n_at_d_l']}  (the thesis: N_max = 2, d_L,max = 2.848 mm)"
     )
     return {
         "classic": classic,
@@ -273,7 +273,7 @@ def cmd_scan(args: argparse.Namespace) -> dict[str, Any]:
 def register_cmu(optics_subparsers: Any) -> argparse.ArgumentParser:
     """Add ``cmu`` to the ``optics`` sub-parsers; returns its parser."""
     h = (
-        "the four-channel microscope unit (seed ch. 3-5): spots, PSF, magnification, Siemens star, crosstalk; "
+        "the four-channel microscope unit (thesis ch. 3-5): spots, PSF, magnification, Siemens star, crosstalk; "
         "--budget: photon budget per channel, the lasers of §5.2.3, time per field and per slide (ch. 6)"
     )
     p = optics_subparsers.add_parser(
@@ -380,7 +380,7 @@ def cmd_cmu(args: argparse.Namespace) -> dict[str, Any]:
         cam = setup.camera
         check_render(cam.width_px, cam.height_px, args.spp, f"optics cmu --out at {args.spp} spp", "cmu")
     s512 = cmu_unit.section_5_1_2(setup, maps)
-    print("§5.1.2 (perfect lenses f = 16.45 / 164.5 mm, 20 mm beam)        ours      seed")
+    print("§5.1.2 (perfect lenses f = 16.45 / 164.5 mm, 20 mm beam)        ours    thesis")
     print(f"  perfect mirror, perpendicular: magnification          {s512['mirror_magnification']:8.3f}  10")
     print(
         f"  beam splitter 3 perpendicular, refocused: magnification {s512['bs3_perpendicular_magnification']:6.3f}"

@@ -562,7 +562,7 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
         "--pattern-stage",
         metavar="NAME",
         help="a stage that moves the pattern along its normal: one frame here and one --pattern-shift further "
-        "(deflectometry_1.exr, deflectometry_2.exr; seed §1.3), for reconstruct --second",
+        "(deflectometry_1.exr, deflectometry_2.exr; thesis §1.3), for reconstruct --second",
     )
     p.add_argument("--pattern-shift", type=finite_float(-500.0, 500.0), metavar="MM", help="with --pattern-stage, mm")
     _add_mda_commands(add)

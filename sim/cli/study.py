@@ -26,8 +26,8 @@ EXIT_TASKS_FAILED = 1
 
 #: Plain text for ``--help`` (the module docstring is reST).
 DESCRIPTION = (
-    "An accuracy study against rendered truth (thesis reproduces the seed's tables side by side). It runs on a local "
-    "Dask cluster, an existing one (--scheduler) or in this process (--workers 0), and writes report.md, "
+    "An accuracy study against rendered truth (the study 'thesis' puts the thesis's tables beside ours). It runs on "
+    "a local Dask cluster, an existing one (--scheduler) or in this process (--workers 0), and writes report.md, "
     "results.json and PNG plots into --out when it ran to its end. Exit status 1: some tasks failed (the report "
     "lists them and holds the tasks that succeeded)."
 )
@@ -62,7 +62,7 @@ def register(subparsers: Any) -> None:
     """Add ``study NAME`` to the ``scopetwin`` parser."""
     p = subparsers.add_parser(
         "study",
-        help="an accuracy study against rendered truth; thesis reproduces the seed's tables side by side",
+        help="an accuracy study against rendered truth; the study 'thesis' puts the thesis's tables beside ours",
         description=DESCRIPTION,
         **conventions("scopetwin study noise --workers 2", "scopetwin study thesis --out tables --workers 0"),
     )

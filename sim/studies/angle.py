@@ -31,7 +31,7 @@ def angle(ctx: StudyContext, spp: int = 16) -> StudyResult:
         groups,
         "angle (deg)",
         f"Camera 233.24 mm from the 11x9 target centre, elevation from 90° down; Mitsuba {spp} spp, no "
-        "noise. Seed: centroid accuracy between 1/40 and 1/20 px over the scan (Fig. 2.11).",
+        "noise. Thesis: centroid accuracy between 1/40 and 1/20 px over the scan (Fig. 2.11).",
     )
     plots = [
         line_plot(
@@ -45,7 +45,7 @@ def angle(ctx: StudyContext, spp: int = 16) -> StudyResult:
             "viewing angle (deg)",
             "centroid RMS error (px)",
             "Centroid error vs viewing angle",
-            refs={"1/20 px (seed worst)": 0.05, "1/40 px (seed best)": 0.025},
+            refs={"1/20 px (thesis worst)": 0.05, "1/40 px (thesis best)": 0.025},
         ),
         line_plot(
             ctx.out,
@@ -62,7 +62,7 @@ def angle(ctx: StudyContext, spp: int = 16) -> StudyResult:
     ]
     return StudyResult(
         "Study: error against viewing angle",
-        "The seed's §2.8.2 angle scan, with the one-shot calibration of each view added.",
+        "The thesis's §2.8.2 angle scan, with the one-shot calibration of each view added.",
         [t],
         plots,
         {"rows": jsonable(good)},

@@ -201,7 +201,7 @@ def noise(ctx: StudyContext, spp: int = 16, replicates: int = 8, renders: int = 
     return StudyResult(
         "Study: error against exposure",
         "How photon and read noise at a given exposure limit the "
-        "centroids and the one-shot calibration (seed §2.8.2 / §2.9.1).",
+        "centroids and the one-shot calibration (thesis §2.8.2 / §2.9.1).",
         [t, bias_table],
         _noise_plots(ctx.out, groups, stats, se, draws),
         {

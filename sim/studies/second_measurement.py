@@ -210,8 +210,8 @@ def second_measurement(
     plots = [_plot(ctx, good)] if good else []
     return StudyResult(
         "Study: a second measurement for the absolute height (two pattern positions)",
-        "The absolute height of glass-like substrates from one image (frame criterion, seed §1.4) beside two images "
-        f"with the pattern moved {shift_mm:+g} mm along its normal by a stage (seed §1.3), alone and combined.",
+        "The absolute height of glass-like substrates from one image (frame criterion, thesis §1.4) beside two images "
+        f"with the pattern moved {shift_mm:+g} mm along its normal by a stage (thesis §1.3), alone and combined.",
         [table],
         plots,
         {"rows": jsonable(good)},

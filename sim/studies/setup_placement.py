@@ -99,7 +99,7 @@ def setup_placement(ctx: StudyContext, per_family: int = 4, noise_px: float = 0.
     )
     return StudyResult(
         "Study: which setup brings data close enough to the frame regions",
-        "Marker pitch and the holding frame's support depth against the absolute-height error (seed §1.4).",
+        "Marker pitch and the holding frame's support depth against the absolute-height error (thesis §1.4).",
         [table],
         [],
         {"setups": jsonable(data)},

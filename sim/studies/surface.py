@@ -170,7 +170,7 @@ def _surface_table(grid: dict[tuple[float, float], Any], lengths: list[float], r
         cells=cells,
         note=f"§1.10 setup, §1.9 random surfaces, Mitsuba {spp} spp, no noise; default "
         "reconstruction (Gaussian shifted basis, scale chosen from the data, centroid-"
-        "bias correction). Seed: ROI RMS 0.092-0.097 µm at 40 µm range.",
+        "bias correction). Thesis: ROI RMS 0.092-0.097 µm at 40 µm range.",
     )
 
 
@@ -182,7 +182,7 @@ def _density_table(grid: dict[tuple[float, float], Any], good: list[dict[str, An
     for d in DENSITIES:
         r = dens.get(d)
         label = (
-            "seed's 9x5 IMQ (9 along y), σ = (3, 4) mm"
+            "the thesis's 9x5 IMQ (9 along y), σ = (3, 4) mm"
             if d == "thesis"
             else f"Gaussian grid, spacing {d.split('=')[1]} σ"
         )
@@ -261,7 +261,7 @@ def surface(ctx: StudyContext, spp: int = 16) -> StudyResult:
     return StudyResult(
         "Study: reconstruction error against the surface",
         "How the shape of the substrate and the "
-        "density of the shifted basis functions (seed §1.8) limit the reconstruction.",
+        "density of the shifted basis functions (thesis §1.8) limit the reconstruction.",
         [t1, t2, t3],
         ["surface-errors.png"],
         {"rows": jsonable(good)},

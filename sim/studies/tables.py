@@ -22,7 +22,7 @@ class Row:
 
 @dataclass
 class Table:
-    """A titled table of :class:`Row` (seed | ours | ratio) or of free columns (``columns`` + ``cells``)."""
+    """A titled table of :class:`Row` (thesis | ours | ratio) or of free columns (``columns`` + ``cells``)."""
 
     title: str
     rows: list[Row] = field(default_factory=list)
@@ -42,7 +42,7 @@ def norm(v: Any) -> float | None:
 
 
 def ratio(seed: Any, ours: Any) -> float | None:
-    """|ours| / |seed| (Euclidean norms for vectors); None when the seed is 0, missing or not finite."""
+    """|ours| / |thesis| (Euclidean norms for vectors); None when the thesis's value is 0, missing or not finite."""
     s, o = norm(seed), norm(ours)
     if s is None or o is None or s == 0:
         return None
@@ -75,7 +75,7 @@ def table_markdown(t: Table) -> str:
         lines += ["| " + " | ".join(t.columns) + " |", "|" + "---|" * len(t.columns)]
         lines += ["| " + " | ".join(fmt(c) for c in row) + " |" for row in t.cells or []]
     else:
-        lines += ["| quantity | seed | ours | ratio ours/seed |", "|---|---|---|---|"]
+        lines += ["| quantity | thesis | ours | ratio ours/thesis |", "|---|---|---|---|"]
         for r in t.rows:
             q = ratio(r.seed, r.ours)
             unit = f" {r.unit}" if r.unit else ""

@@ -297,7 +297,7 @@ EXACT_NOTE = (
 TABLES: dict[str, tuple[str, str]] = {
     "1.10": (
         "§1.10 Simulations: reconstruction with the ideal setup",
-        "Height distributions 1 and 2 of the seed (Fig. 1.10) are not published as data; ours are §1.9 "
+        "Height distributions 1 and 2 of the thesis (Fig. 1.10) are not published as data; ours are §1.9 "
         "random surfaces with the same 40 µm range (surface seeds 1 and 2). Mitsuba renders at "
         "{spp} spp, no sensor noise, markers found and indexed in the image (recon.markers).",
     ),
@@ -311,7 +311,7 @@ TABLES: dict[str, tuple[str, str]] = {
     ),
     "2.4": (
         "Table 2.4: calibration with marker images disturbed by σ = 0.233 µm (§2.8.2)",
-        "One seeded draw of the disturbance (as the seed's single draw) and, for a fair comparison, the RMS over "
+        "One seeded draw of the disturbance (as the thesis's single draw) and, for a fair comparison, the RMS over "
         "200 draws.",
     ),
     "2.8": (
@@ -329,7 +329,7 @@ TABLES: dict[str, tuple[str, str]] = {
         "Height distribution 2 (ours: surface seed 2); the calibrated setup is the one of Tables 2.5/2.6.",
     ),
     "8.3": (
-        "Part III §8.3: GRIN objectives (seed's Zemax figures)",
+        "Part III §8.3: GRIN objectives (the thesis's Zemax figures)",
         "Our figures: real rays traced through the radial index profiles (scenes.grin), image plane at best focus.",
     ),
 }
@@ -346,7 +346,7 @@ ROWS_110 = (
 #: §1.10: the reconstructions compared (result key with ``{hd}``, label).
 RECONSTRUCTIONS_110 = (
     ("hd{hd}", "ours (Gaussian SBF, bias-corrected)"),
-    ("hd{hd}_thesis", "seed's 9x5 IMQ (9 along y), Δh_max = 0 by a secant"),
+    ("hd{hd}_thesis", "the thesis's 9x5 IMQ (9 along y), Δh_max = 0 by a secant"),
 )
 #: Tables 2.2, 2.3, after the frame rows of each step: (quantity, key, unit).
 ROWS_22 = (("Δb", "b", "mm"), ("RMS of the marker-centre comparison", "rms", "mm"), ("peak-to-valley", "pv", "mm"))
@@ -384,10 +384,10 @@ GRIN_QUANTITIES = (
     ("object_distance", "mm"),
 )
 
-TITLE = "Study: the seed's tables side by side"
+TITLE = "Study: the thesis's tables side by side"
 INTRO = (
-    "Every table of Part I of the seed (§1.10, Tables 2.2-2.8) and the §8.3 GRIN figures, reproduced with "
-    "scopetwin: the seed's number, ours, and their ratio (|ours|/|seed|; vector rows compare Euclidean "
+    "Every table of Part I of the thesis (§1.10, Tables 2.2-2.8) and the §8.3 GRIN figures, reproduced with "
+    "scopetwin: the thesis's number, ours, and their ratio (|ours|/|thesis|; vector rows compare Euclidean "
     "norms). Deviations are ours minus truth."
 )
 
@@ -600,8 +600,8 @@ def _thesis_plot(out: Path, tables: list[Table]) -> list[str]:
     ax.axvline(1.0, color="k", lw=0.8)
     ax.set_yticks(y, [f"{p[0]} — {p[1]}" for p in pts], fontsize=6)
     ax.invert_yaxis()
-    ax.set_xlabel("ours / seed (log)")
-    ax.set_title("Ratio of our figures to the seed's (seed values above round-off only)")
+    ax.set_xlabel("ours / thesis (log)")
+    ax.set_title("Ratio of our figures to the thesis's (thesis values above round-off only)")
     fig.savefig(out / "ratios.png", dpi=100)
     plt.close(fig)
     return ["ratios.png"]

@@ -1,4 +1,4 @@
-"""scopetwin.sim.studies: tables (seed | ours | ratio), missing capabilities, the study runner, one study task on
+"""scopetwin.sim.studies: tables (thesis | ours | ratio), missing capabilities, the study runner, one study task on
 truth."""
 
 from __future__ import annotations
@@ -18,11 +18,11 @@ from scopetwin.sim.studies.tasks import calibration_view_task
 
 def test_ratio_and_table_rows():
     assert ratio(2.0, 1.0) == pytest.approx(0.5)
-    assert ratio((3.0, 4.0), (0.0, 10.0)) == pytest.approx(2.0)  # |ours| / |seed| for vectors
+    assert ratio((3.0, 4.0), (0.0, 10.0)) == pytest.approx(2.0)  # |ours| / |thesis| for vectors
     assert ratio(0.0, 1e-3) is None and ratio(None, 1.0) is None and ratio(1.0, float("nan")) is None
     md = table_markdown(Table("T", [Row("Δb", 0.004, 0.001, "mm"), Row("rms", 0.0, 1e-15, "mm")]))
     lines = md.splitlines()
-    assert lines[2] == "| quantity | seed | ours | ratio ours/seed |"
+    assert lines[2] == "| quantity | thesis | ours | ratio ours/thesis |"
     assert "| Δb [mm] | 0.004 | 0.001 | 0.25 |" in md
     assert "| rms [mm] | 0 | 1.000e-15 | — |" in md
 
@@ -50,7 +50,7 @@ def _square(x: float) -> float:
     return x * x
 
 
-def test_runner_writes_report_with_seed_ours_ratio(tmp_path, monkeypatch):
+def test_runner_writes_report_with_thesis_ours_ratio(tmp_path, monkeypatch):
     def demo(ctx: StudyContext) -> StudyResult:
         values = ctx.map(_square, [(1.0,), (3.0,)], "demo")
         return StudyResult(
