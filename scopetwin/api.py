@@ -299,16 +299,9 @@ def reconstruct(
     >>> r = scopetwin.reconstruct(m.image, m.setup)
     >>> x, y = np.meshgrid(np.linspace(-10, 10, 21), np.linspace(-20, 20, 41))  # substrate coordinates, mm
     >>> error_um = (r.height_at(x, y) - m.heights.height(x, y)) * 1e3
-    >>> bool(abs(error_um.mean()) < 1.0), bool(error_um.std() < 0.5)  # absolute height, shape
-    (True, True)
-    >>> bool(0.0 < r.uncertainty.absolute_um < 1.0), bool(0.0 < r.uncertainty.shape_um < 0.5)
-    (True, True)
-
-    The next frame of a live loop, its uncertainty's prior searched from this frame's:
-
-    >>> r_next = scopetwin.reconstruct(m.image, m.setup, previous=r)
-    >>> bool(abs(r_next.uncertainty.absolute_um - r.uncertainty.absolute_um) < 0.5 * r.uncertainty.absolute_um)
-    True
+    >>> bool(abs(error_um.mean()) < 1.0), bool(error_um.std() < 0.5), bool(r.uncertainty.absolute_um < 1.0)
+    (True, True, True)
+    >>> r_next = scopetwin.reconstruct(m.image, m.setup, previous=r)  # the next frame of a live loop
 
     With a second image, the pattern moved 30 mm by a stage (thesis §1.3; shown, not run here):
 
@@ -316,21 +309,29 @@ def reconstruct(
     >>> r2 = scopetwin.reconstruct(m2.image, m2.setup, second=(m2.second.image, 30.0))  # doctest: +SKIP
     >>> r2.result.estimate.height_um, r2.uncertainty.absolute_um  # doctest: +SKIP
     """
+    _check_reconstruct_options(method, second, previous)
+    return _reconstruct_checked(np.asarray(image), load_setup(setup), method, policy, second, previous)
+
+
+def _reconstruct_checked(
+    image: NDArray[Any],
+    setup: Setup,
+    method: Literal["centroid", "inverse"],
+    policy: ReconstructionPolicy | None,
+    second: tuple[NDArray[Any], float | None] | NDArray[Any] | None,
+    previous: Reconstruction | None,
+) -> Reconstruction:
+    """:func:`reconstruct` once its options are checked: both images of a pattern stage, or the one strategy."""
     from scopetwin.recon.policy import DEFAULT_POLICY
     from scopetwin.recon.strategy import reconstruct as _reconstruct
 
-    _check_reconstruct_options(method, second, previous)
     if second is not None:
         from scopetwin.recon.two_positions import reconstruct_pair
 
         image2, shift = second if isinstance(second, tuple) else (second, None)
-        return reconstruct_pair(
-            np.asarray(image), np.asarray(image2), load_setup(setup), shift, policy=policy or DEFAULT_POLICY
-        )
+        return reconstruct_pair(image, np.asarray(image2), setup, shift, policy=policy or DEFAULT_POLICY)
     start = previous.prior if previous is not None else None
-    return _reconstruct(
-        np.asarray(image), load_setup(setup), method, policy=policy or DEFAULT_POLICY, evidence_start=start
-    )
+    return _reconstruct(image, setup, method, policy=policy or DEFAULT_POLICY, evidence_start=start)
 
 
 def calibrate(
