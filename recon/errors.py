@@ -28,6 +28,11 @@ class InconsistentError(ReconstructionError):
     """The converged surface violates the frame condition that was not searched on (wrong indexing or setup)."""
 
 
+class MismatchedPairError(ReconstructionError):
+    """The second pattern position's image does not belong to the first: no one surface explains both images'
+    markers (an image of another substrate, or a pattern shift other than the one given)."""
+
+
 class NotConvergedError(ReconstructionError):
     """The outer start-height loop did not converge; ``history`` holds what was done, ``surface`` its last surface."""
 

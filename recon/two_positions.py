@@ -23,7 +23,10 @@ The method (beyond the thesis):
    sigma_r / |dr/dH| with sigma_r^2 = |r|^2 / (m - p), and a spatial block jackknife of the same estimator (the
    residuals of neighbouring markers are correlated where the surface has structure the basis cannot follow:
    glass's micro-waviness);
-4. combined with the frame criterion by inverse-variance weighting, the uncertainty scaled by the Birge ratio where
+4. the pair checked: one surface fitted to both images' markers may add at most ``max_excess_urad`` of RMS gradient
+   residual to what each image leaves alone (:func:`pair_excess`), else the second image does not belong to the
+   first (another substrate, a shift other than the one given) and the pair is refused;
+5. combined with the frame criterion by inverse-variance weighting, the uncertainty scaled by the Birge ratio where
    the two disagree beyond their uncertainties; where they disagree by more than ``disagree_sigmas`` the frame
    criterion's a-priori assumption (the substrate lies on the holding frame at the calibrated height) failed and the
    two positions are taken alone. The final surface is the joint surface at that height.
@@ -48,7 +51,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scopetwin.recon.config import ReconstructionConfig
-from scopetwin.recon.errors import ReconstructionError, TooFewMarkersError
+from scopetwin.recon.errors import MismatchedPairError, ReconstructionError, TooFewMarkersError
 from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
 from scopetwin.recon.reconstruct import (
     MarkerObservations,
@@ -102,6 +105,18 @@ class TwoPositionConfig:
         The joint surface at the height found must settle: its last RMS height change over the ROI at most this, µm
         (else no surface explains both images — a wrong shift, or centroids the bias step cannot model — and the
         height is refused rather than reported).
+    max_excess_urad : float
+        Both images must be of one surface (:func:`pair_excess`): one surface fitted to both images' markers may
+        leave at most this much RMS gradient residual beyond what each image's markers leave fitted alone, µrad;
+        more is one :class:`~scopetwin.recon.errors.MismatchedPairError` (a second image of another substrate, or a
+        pattern shift other than the one given). The joint residual alone does not tell them apart: glass's
+        micro-waviness leaves up to 126 µrad on true pairs, a mismatch of smooth surfaces of the thesis's kind 303.
+        Measured with ``benchmarks/two_position_pairs.py`` (§1.10 setup, Mitsuba 16 spp, EMVA 1288 sensor noise,
+        the pattern 40 mm closer; seeds 9100-9102 of each family): true pairs leave an excess of 0.39-0.67 µrad on
+        the thesis's kind and 0.00 on glass-like, cut, steep and local-feature surfaces; a second image of the next
+        seed's surface 308-430 µrad (thesis's kind), 595-633 (glass-like), 309-4333 (cut, steep, features; one cut
+        pair gave no height at any basis scale, itself an error); the right images with a 30 mm shift given for
+        40 mm 1614-1899. 30 µrad lies 45 times above the largest true pair and a tenth of the smallest mismatch.
     """
 
     step_um: float = 1.0
@@ -113,6 +128,7 @@ class TwoPositionConfig:
     min_markers: int = 20
     sigmas: tuple[float, ...] = (12.0, 8.0, 6.0, 4.0, 3.0)
     settle_um: float = 0.01
+    max_excess_urad: float = 30.0
 
 
 @dataclass(frozen=True)
@@ -145,7 +161,9 @@ class HeightEstimate:
     ``frame_um`` is None where image 1 alone could not be reconstructed (the two positions then start from a coarse
     fit of its markers). ``pair_std_um`` is the larger of the Gauss-Newton and the block-jackknife standard
     uncertainty; ``agreement`` is (pair - frame) / sqrt(u_pair^2 + u_frame^2); ``std_um`` includes the Birge-ratio
-    scaling where 1 < |agreement| <= ``disagree_sigmas``.
+    scaling where 1 < |agreement| <= ``disagree_sigmas``. ``residual_urad`` is the joint fit's RMS gradient residual,
+    ``separate_urad`` the residual standard deviation of each image's markers fitted alone and ``excess_urad`` what
+    the joint fit adds to it (:func:`pair_excess`; µrad).
     """
 
     frame_um: float | None
@@ -161,6 +179,8 @@ class HeightEstimate:
     markers: tuple[int, int]
     steps: int
     sigma_mm: float
+    separate_urad: float = float("nan")
+    excess_urad: float = float("nan")
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready."""
@@ -352,7 +372,10 @@ def pair_scale(
             break
         best, h, surface = fit, run.height, run.surface
     if best is None:
-        raise ReconstructionError("the two pattern positions gave no height with any basis scale: " + "; ".join(notes))
+        raise ReconstructionError(
+            "the two pattern positions gave no height with any basis scale (a second image of another substrate, or "
+            "a pattern shift other than the one given, ends here too): " + "; ".join(notes)
+        )
     for view in views:
         view.reconstructor.use_basis(best[6])
     return best, notes
@@ -398,6 +421,26 @@ def pair_uncertainty(
     k = len(moves)
     jackknife = float(np.sqrt((k - 1) / k * np.sum((np.array(moves) - np.mean(moves)) ** 2))) if k > 1 else np.inf
     return gauss_newton, jackknife, float(np.sqrt(np.mean(r**2)))
+
+
+def pair_excess(views: list[PatternView], run: JointRun, basis: ShiftedBasis) -> tuple[float, float]:
+    """What fitting both images by one surface adds to the gradient residual, rad: each view's markers fitted alone
+    (the inner loop at the joint run's height, in its basis), their pooled residual standard deviation
+    sigma_s^2 = sum |r_v|^2 / (m_1 + m_2 - 2p), the joint fit's sigma_j^2 = |r|^2 / (m - p) (m residual components,
+    p basis terms); returns sigma_s and the excess sqrt(max(sigma_j^2 - sigma_s^2, 0)).
+    """
+    cfg = views[0].reconstructor.config
+    p = basis.n_terms
+    ok = np.isfinite(run.residual)
+    joint2 = float(np.sum(run.residual[ok] ** 2)) / max(int(ok.sum()) - p, 1)
+    r2, m = 0.0, 0
+    for view in views:
+        alone = joint_surface([view], basis, run.height, run.surface, cfg)
+        ok = np.isfinite(alone.residual)
+        r2 += float(np.sum(alone.residual[ok] ** 2))
+        m += int(ok.sum())
+    separate2 = r2 / max(m - 2 * p, 1)
+    return float(np.sqrt(separate2)), float(np.sqrt(max(joint2 - separate2, 0.0)))
 
 
 def combine(
@@ -469,6 +512,8 @@ def solve_two_positions(
         h_start = rec.roi_mean(begin.coef) + begin.offset
         best, tried = pair_scale(views, begin, h_start, tp)
         run, jac, steps, gn, jk, resid, basis = best
+        separate, excess = pair_excess(views, run, basis)
+        _check_pair(excess, separate, shift_mm, tp)
         u = None if single is None else single.uncertainty
         frame_std = None if u is None else u.absolute_um * 1e-3
         h, h_std, z = combine(h_start, frame_std, run.height, max(gn, jk), tp.combine, tp.disagree_sigmas)
@@ -489,6 +534,8 @@ def solve_two_positions(
         (n1, n2),
         steps,
         float(basis.sigma[0]),
+        separate * 1e6,
+        excess * 1e6,
     )
     path = [*notes, *(single.strategy if single is not None else []), *tried, *_path(est, shift_mm, tp)]
     seconds = (single.seconds if single is not None else 0.0) + time.perf_counter() - t0
@@ -516,6 +563,18 @@ def _path(est: HeightEstimate, shift_mm: float, tp: TwoPositionConfig) -> list[s
     elif z is not None:
         path.append(f"combined with the frame criterion (z = {z:+.2f}): u = {est.std_um:.3g} µm")
     return path
+
+
+def _check_pair(excess: float, separate: float, shift_mm: float, tp: TwoPositionConfig) -> None:
+    """Both images must be of one surface: the joint fit may add at most ``tp.max_excess_urad`` to the residual
+    each image leaves alone (:func:`pair_excess`, rad)."""
+    if not excess * 1e6 <= tp.max_excess_urad:
+        raise MismatchedPairError(
+            f"the second image does not belong to the first: one surface fitted to both images' markers leaves "
+            f"{excess * 1e6:.3g} µrad RMS of gradient residual beyond the {separate * 1e6:.3g} µrad each image leaves "
+            f"alone (two images of one surface: at most {tp.max_excess_urad:g} µrad); is it an image of the same "
+            f"substrate, with the pattern moved {shift_mm:+g} mm along its normal?"
+        )
 
 
 def _held_bias(view: PatternView, surface: SBFSurface) -> PatternView:
