@@ -99,7 +99,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
 
 def _cmd_two_positions(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0: float) -> dict[str, Any]:
     """``--second IMAGE2 [--pattern-shift MM]`` (:mod:`scopetwin.recon.two_positions`): the absolute height from a
-    second image with the pattern moved along its normal, combined with the frame criterion's."""
+    second image with the pattern moved along its normal, combined with the frame criterion's. A second image that
+    does not belong to the first is a :class:`~scopetwin.recon.errors.MismatchedPairError` (one line, exit 2, no
+    height map)."""
     from scopetwin.recon.two_positions import reconstruct_pair
     from scopetwin.scenes.io import read_image, write_heightmap
     from scopetwin.scenes.pattern_stage import stage_shift
@@ -200,7 +202,7 @@ _POSE_PRIOR_KEYS = ("camera_shift_mm", "camera_rotation_rad", "pattern_shift_mm"
 
 def register(subparsers: Any) -> None:
     """Add ``reconstruct`` to the ``scopetwin`` sub-command parsers."""
-    h = "deflectometric height reconstruction from one image and a (calibrated) setup (seed §1.4)"
+    h = "deflectometric height reconstruction from one image and a (calibrated) setup (thesis §1.4)"
     p = subparsers.add_parser(
         "reconstruct",
         help=h,
@@ -217,13 +219,13 @@ def register(subparsers: Any) -> None:
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
     p.add_argument("--sigma", type=float, help="fixed basis scale, mm (default: chosen from the data)")
     p.add_argument("--criterion", choices=("level", "delta"), help="frame-region criterion (default level)")
-    p.add_argument("--thesis", action="store_true", help="the seed's 9x5 inverse-multiquadric basis and Delta h_max")
+    p.add_argument("--thesis", action="store_true", help="the thesis's 9x5 inverse-multiquadric basis and Delta h_max")
     p.add_argument("--no-bias-correction", action="store_true", help="use the raw centroids")
     p.add_argument(
         "--method",
         choices=("centroid", "inverse"),
         default="centroid",
-        help="marker centroids (seed §1.4-1.8, default) or inverse rendering: the surface fitted to the whole image "
+        help="marker centroids (thesis §1.4-1.8, default) or inverse rendering: the surface fitted to the whole image "
         "through a differentiable render, started from the centroid result",
     )
     p.add_argument(
@@ -236,7 +238,8 @@ def register(subparsers: Any) -> None:
         "--second",
         metavar="IMAGE2",
         help="a second image with the pattern moved along its normal by a stage (render --pattern-shift writes it as "
-        "shifted_image.exr): the absolute height from both images, combined with the frame criterion's (seed §1.3)",
+        "shifted_image.exr): the absolute height from both images, combined with the frame criterion's (thesis "
+        "§1.3); a second image that does not belong to the first (another substrate, another shift) is refused",
     )
     p.add_argument(
         "--pattern-shift",
