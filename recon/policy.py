@@ -1,6 +1,6 @@
-"""The reconstruction's fallbacks and their thresholds: one policy object (issue 22, item 3).
+"""The reconstruction's fallbacks and their thresholds: one policy object.
 
-The nested start-height iteration of seed §1.4 (:mod:`scopetwin.recon.reconstruct`) and the inverse fit
+The nested start-height iteration of thesis §1.4 (:mod:`scopetwin.recon.reconstruct`) and the inverse fit
 (:mod:`scopetwin.recon.inverse`) are algorithms; whether they succeed on a hard image depends on what is done when a
 step fails — the markers numbered by another indexing, a tied reference marker retried, the basis scale chosen again,
 wrongly indexed markers rejected, the start height taken from the posterior, the inverse fit started from the best
@@ -27,16 +27,21 @@ class ReconstructionPolicy:
     Attributes
     ----------
     lattice_below : float
-        The topological indexing (:func:`scopetwin.recon.markers.index_lattice`) is tried when the seed's flood
+        The topological indexing (:func:`scopetwin.recon.markers.index_lattice`) is tried when the thesis's flood
         indexing (§1.5.4) numbers fewer than this fraction of the kept spots; the indexing that numbers more is
         kept. Measured on 3 mm / 60 µm surfaces (seeds 1-8, Mitsuba 16 spp): the flood reached 12 and 308 of ~470
         spots on seeds 2 and 1, the lattice 454 and 458 (none nearer another marker's true image than its own); on
-        the other six and on the seed's surfaces (5-20 mm correlation) the flood reaches more than 0.8 and is kept.
+        the other six and on the thesis's surfaces (5-20 mm correlation) the flood reaches more than 0.8 and is kept.
     resolve_tied_reference : bool
         Where two or more spots are about as large as the reference marker
-        (:class:`scopetwin.recon.markers.ReferenceTieError`), take each as the reference in turn and keep the one
-        whose markers reconstruct a surface on the holding frame (3 mm / 60 µm seed 7: four candidates, the true one
-        reconstructs with 0.14 µm shape error, the others fail in 4-6 s each).
+        (:class:`scopetwin.recon.markers.ReferenceTieError`), number the markers from each in turn and keep the one
+        whose indices lie on the lattice's predicted image
+        (:meth:`scopetwin.recon.reconstruct.Reconstructor.lattice_offset`). 3 mm / 60 µm surface seed 7 (four
+        candidates): the true one lies 0.02 pitch off, the others 2.1, 2.3 and 2.2 pitches (3 ms each).
+    reference_offset_max : float
+        A tied candidate is the reference where its indices lie within this many pitches of the lattice's
+        predicted image in both directions: a wrong candidate k markers away lies near k pitches off, a substrate
+        on its frame tilts the image by a small fraction of a pitch.
     bias_step : bool
         Correct the marker centroids for the spot distortion of the curved mirror inside the inner loop
         (:func:`scopetwin.recon.reconstruct.centroid_bias_step`).
@@ -47,7 +52,9 @@ class ReconstructionPolicy:
         Where the default basis scale's fits throw the rays off the substrate (or leave a frame region without
         markers) — a 12 mm basis on a 3 mm / 60 µm surface — choose the scale on the gradients traced through the
         plane at the frame height and search the start height again with a fresh budget
-        (:meth:`scopetwin.recon.reconstruct.Reconstructor.scale_from_flat_start`; 3 mm / 60 µm seeds 1 and 2).
+        (:meth:`scopetwin.recon.reconstruct.Reconstructor.scale_from_flat_start`; 3 mm / 60 µm seeds 1 and 2); also
+        where the search does not converge (seed 7: 30 runs at 12 mm do not settle, the 4 mm scale chosen on the
+        flat start converges).
     rechoose_scale : bool
         After the first start-height search, choose the basis scale on data traced through its surface
         (:func:`scopetwin.recon.scale.select_sigma`) and search again with it; also when the first scale did not
@@ -57,9 +64,11 @@ class ReconstructionPolicy:
         substrate, or its start-height search does not converge, keep the first scale's converged result instead of
         failing (on bent glass a finer scale's frame maxima can swing by tens to thousands of µm between runs).
     outlier_factor : float
-        After convergence, markers whose gradient residual exceeds this many times the median residual are rejected
-        one at a time (worst first, refitting in between) and the surface is found again without them: a wrongly
-        indexed marker is ~3 mrad off, a good one within ~5 times the median (2-20 µrad). 0 turns it off.
+        After convergence, markers whose gradient residual exceeds this many times the median residual are suspects;
+        those a neighbouring index explains are rejected and the surface is found again without them
+        (:meth:`scopetwin.recon.reconstruct.Reconstructor.index_outliers`): a wrongly indexed marker is milliradians
+        off, a good one within ~5 times the median (2-20 µrad), a marker on a local feature finer than the basis
+        can be as far off but no neighbour's index explains it. 0 turns it off.
     outlier_max_fraction : float
         At most this fraction of the markers is rejected as wrongly indexed (a missed row skip of five markers on
         the §1.10 pattern of ~470 is 1 %).
@@ -90,6 +99,7 @@ class ReconstructionPolicy:
 
     lattice_below: float = 0.8
     resolve_tied_reference: bool = True
+    reference_offset_max: float = 0.5
     bias_step: bool = True
     bias_recompute_um: float = 0.2
     rescale_from_flat_start: bool = True
@@ -113,6 +123,8 @@ class ReconstructionPolicy:
     def __post_init__(self) -> None:
         if not 0.0 <= self.lattice_below <= 1.0:
             raise ValueError(f"lattice_below must lie in [0, 1], got {self.lattice_below}")
+        if not 0.0 < self.reference_offset_max < 1.0:
+            raise ValueError(f"reference_offset_max must lie in (0, 1), got {self.reference_offset_max}")
         if self.outlier_factor < 0 or not 0.0 <= self.outlier_max_fraction < 1.0:
             raise ValueError("outlier_factor must be >= 0 and outlier_max_fraction in [0, 1)")
         lo, hi = self.slope_range

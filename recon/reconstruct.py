@@ -1,4 +1,4 @@
-"""Non-stereoscopic deflectometric height reconstruction: the nested start-height iteration (seed §1.4).
+"""Non-stereoscopic deflectometric height reconstruction: the nested start-height iteration (thesis §1.4).
 
 Inner loop (self-consistent surface for a start height H, §1.4 and Fig. 1.4): start
 with the plane z = H (or the previous outer run's surface moved to H); trace every
@@ -15,7 +15,7 @@ Outer loop (start height, eq. 1.3-1.4): evaluate the maxima of the reconstructed
 surface over the two holding-frame regions, where there are no data and the surface
 is extrapolated. Criteria (:func:`scopetwin.recon.frame_criterion.frame_criterion`):
 
-* ``"delta"`` — the seed's Delta h_max = max_region1 - max_region2 = 0 (eq. 1.3);
+* ``"delta"`` — the thesis's Delta h_max = max_region1 - max_region2 = 0 (eq. 1.3);
 * ``"level"`` — both maxima at the frame position: (max_1 + max_2)/2 = z_frame. The
   start height moves the ROI almost as a pure offset but Delta h_max only at about half
   that rate, so an extrapolation error in the frame regions costs roughly twice as much
@@ -239,7 +239,7 @@ def single_thread_blas() -> contextlib.AbstractContextManager:
 
 # -- the nested iteration ---------------------------------------------------------------
 class Reconstructor:
-    """The pieces of the nested iteration of seed §1.4 for one setup and basis.
+    """The pieces of the nested iteration of thesis §1.4 for one setup and basis.
 
     :func:`scopetwin.recon.strategy.solve` runs them in order (start-height loop, scale chosen from the data, outlier
     test, posterior) and decides what to do where one fails.
@@ -343,7 +343,7 @@ class Reconstructor:
     def trace(self, surface: SBFSurface, px: Array, targets: Array) -> tuple[Array, Array, Array, NDArray]:
         """Marker rays through ``surface``: points (x, y) and gradients of those that meet the ROI, and the mask."""
         o, d = self._rays(px)
-        lam, ok = intersect_surface(surface, o, d, self.sub.frame)
+        lam, ok = intersect_surface(surface, o, d, self.sub.frame, start=self.config.intersection_start)
         hit = o + np.where(ok, lam, 0.0)[:, None] * d
         local = self.sub.frame.to_local(hit)
         ok &= (np.abs(local[:, 0]) <= 0.5 * self.sub.size_x) & (np.abs(local[:, 1]) < 0.5 * self.sub.roi_length)
@@ -371,14 +371,15 @@ class Reconstructor:
                 return Failure(
                     TooFewMarkersError,
                     f"only {n} markers within {cfg.edge_band} mm of frame region {region} ({side}); at least "
-                    f"{cfg.min_edge_markers} are needed to extrapolate the surface onto the holding frame (seed §1.4)",
+                    f"{cfg.min_edge_markers} are needed to extrapolate the surface onto the holding frame "
+                    "(thesis §1.4)",
                 )
         return None
 
     def inner_loop(
         self, start_height: float, markers: MarkerObservations, initial: SBFSurface | None = None
     ) -> InnerRun:
-        """Self-consistent surface for one start height (seed §1.4, eq. 1.5)."""
+        """Self-consistent surface for one start height (thesis §1.4, eq. 1.5)."""
         cfg = self.config
         ij, px_meas, targets = self.prepare(markers)
         if initial is not None:
@@ -467,31 +468,96 @@ class Reconstructor:
     def index_outliers(
         self, markers: MarkerObservations, surface: SBFSurface, factor: float, max_fraction: float
     ) -> NDArray[np.bool_]:
-        """Markers whose gradients no smooth surface explains: wrongly indexed ones (True = reject).
+        """Markers whose gradients no smooth surface explains but a neighbouring index does: wrongly indexed ones.
 
         A marker given its neighbour's index points at a pattern position a pitch away: its traced gradient is
-        ~3 mrad off, while good markers scatter about the fit by a few µrad. The gradients are traced through the
-        converged ``surface``; the worst marker above ``factor`` times the median residual is removed and the
-        basis refitted, until none is left above it or ``max_fraction`` of them are gone
-        (:attr:`scopetwin.recon.policy.ReconstructionPolicy.outlier_factor`).
+        milliradians off, while good markers scatter about the fit by a few µrad. A local feature finer than the
+        basis (a dimple of a few µm over 1-4 mm) leaves residuals as large on markers that are numbered right. The
+        two are told apart by tracing each marker to its eight neighbouring pattern positions as well (the same ray
+        through the converged ``surface``, another target): markers above ``factor`` times the median residual are
+        suspects; on a fit without them, a wrongly indexed suspect's residual at its own index is the pitch's whole
+        slope (~8 mrad) and at the right neighbour that of a good marker, a feature's is smaller at its own index
+        than at any neighbour. Suspects whose best neighbour halves the residual are rejected (worst first, at most
+        ``max_fraction`` of the markers); a second and third round find what a contaminated fit hid
+        (:attr:`scopetwin.recon.policy.ReconstructionPolicy.outlier_factor`). Returns True = reject.
+
+        Measured: a row of five markers given the next row's index is rejected exactly; on a local-feature surface
+        (five bumps and dimples of 0.5-3 µm over 1-4 mm) the 26 markers the bumps deflect, all numbered right, are
+        kept.
         """
-        cfg = self.config
-        xy, hx, hy, ok = self.traced_gradients(surface, markers)
+        ij, px, targets = self.prepare(markers)
+        px = self.corrected(surface, ij, px)
+        xy, hx, hy, ok = self.trace(surface, px, targets)
+        steps = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj]
+        shifted = []  # the gradients each marker would have with a neighbouring index: same rays, other targets
+        for step in steps:
+            _, sx, sy, _ = self.trace(surface, px[ok], self.pattern.centers(ij[ok] + np.asarray(step)))
+            shifted.append(np.stack([sx, sy], axis=-1))
+        alt = np.stack(shifted, axis=1)  # (n, 8, 2)
         keep = np.ones(len(xy), dtype=bool)
-        basis = surface.basis
-        for _ in range(int(max_fraction * len(xy))):
-            coef, _ = fit_gradients(
-                basis, xy[keep, 0], xy[keep, 1], hx[keep], hy[keep], cfg.regularization, method=cfg.method
-            )
-            gx, gy = SBFSurface(basis, coef).gradient(xy[:, 0], xy[:, 1])
-            r = np.hypot(gx - hx, gy - hy)
-            worst = np.flatnonzero(keep)[int(np.argmax(r[keep]))]
-            if r[worst] <= factor * float(np.median(r[keep])):
+        budget = int(max_fraction * len(xy))
+        for _ in range(3):  # a second round finds what the first round's contaminated fit hid
+            r, _ = self._gradient_residuals(surface.basis, xy, hx, hy, alt, keep)
+            suspect = keep & (r > factor * float(np.median(r[keep])))
+            if not suspect.any() or suspect.sum() > 0.5 * keep.sum():
                 break
-            keep[worst] = False
+            # judged on a fit that the suspects do not pull: the wrong index's residual is then the pitch's whole
+            # slope (~8 mrad), its neighbour's that of a good marker
+            r_clean, r_alt = self._gradient_residuals(surface.basis, xy, hx, hy, alt, keep & ~suspect)
+            wrong = np.flatnonzero(suspect & (r_alt < 0.5 * r_clean))
+            wrong = wrong[np.argsort(-r_clean[wrong])][: budget - int((~keep).sum())]
+            if wrong.size == 0:
+                break
+            keep[wrong] = False
         drop = np.zeros(len(markers.ij), dtype=bool)
         drop[np.flatnonzero(ok)[~keep]] = True
         return drop
+
+    def _gradient_residuals(
+        self, basis: ShiftedBasis, xy: Array, hx: Array, hy: Array, alt: Array, use: NDArray[np.bool_]
+    ) -> tuple[Array, Array]:
+        """Residuals of every marker's traced gradient from a fit on the ``use`` markers, and the smallest residual
+        of its gradients traced to the neighbouring pattern positions ``alt`` (n, k, 2)."""
+        cfg = self.config
+        coef, _ = fit_gradients(basis, xy[use, 0], xy[use, 1], hx[use], hy[use], cfg.regularization, method=cfg.method)
+        gx, gy = SBFSurface(basis, coef).gradient(xy[:, 0], xy[:, 1])
+        r_alt = np.min(np.hypot(gx[:, None] - alt[..., 0], gy[:, None] - alt[..., 1]), axis=1)
+        return np.hypot(gx - hx, gy - hy), r_alt
+
+    def lattice_offset(self, markers: MarkerObservations) -> Array:
+        """How many pitches the markers' indices lie off the lattice's predicted image, (di, dj).
+
+        Each marker's ray is reflected at the plane of the holding frame (the flat start, thesis §1.6.4) and the slope
+        that would send it to its indexed pattern position is read (:func:`marker_gradients`); the median of those
+        slopes, divided by the slope change one index step makes (traced the same way), is the indexing's offset
+        from the lattice the nominal setup predicts. A substrate resting on its frame tilts by far less than a pitch
+        sends (a pitch is ~8 mrad in the §1.10 setup, a 60 µm bow over the ROI ~1.5 mrad), so the right reference
+        marker gives an offset well under half a pitch and a wrong one by k markers an offset near k pitches; the
+        median keeps a few wrongly numbered markers or a caustic from moving it.
+
+        Returns
+        -------
+        ndarray, (2,)
+            The offset (di, dj), in index steps; NaN where fewer than ``config.min_markers`` rays meet the plane.
+        """
+        plane = SBFSurface.plane(self.basis, self.sub.frame_z)
+        ij, px, _ = self.prepare(markers)
+        whole = np.zeros(2, dtype=np.int64)
+        for _ in range(3):  # the slope per index step varies across the pattern: linearise again where it is
+            slopes = []
+            for step in ((0, 0), (1, 0), (0, 1)):
+                targets = self.pattern.centers(ij - whole + np.asarray(step, dtype=np.int64))
+                _, hx, hy, ok = self.trace(plane, px, targets)
+                if int(ok.sum()) < self.config.min_markers:
+                    return np.full(2, np.nan)
+                slopes.append(np.stack([hx, hy], axis=-1))
+            g0, gi, gj = slopes
+            per_index = np.stack([np.median(gi - g0, axis=0), np.median(gj - g0, axis=0)], axis=-1)
+            rest = np.linalg.solve(per_index, np.median(g0, axis=0))
+            if np.all(np.abs(rest) < 0.5):
+                break
+            whole += np.round(rest).astype(np.int64)
+        return np.asarray(whole + rest, dtype=np.float64)
 
     def coarse_surface(self, markers: MarkerObservations, iterations: int = 3, min_hit: float = 0.95) -> SBFSurface:
         """A coarse fit of the markers: the inner loop at the frame height, without the bias step or the height search.

@@ -1,19 +1,20 @@
-"""The one reconstruction strategy: what is tried, in which order, when a step fails (issue 22, item 3).
+"""The one reconstruction strategy: what is tried, in which order, when a step fails.
 
 Every entry point — ``scopetwin reconstruct`` and ``run``, the studies, the datasets, the focus map and
 :func:`scopetwin.reconstruct` — goes through :func:`reconstruct` (an image) or :func:`solve` (indexed markers), so
 one image and setup give the same heights everywhere. The thresholds are the fields of
-:class:`scopetwin.recon.policy.ReconstructionPolicy`; the pieces are those of the nested iteration of seed §1.4
+:class:`scopetwin.recon.policy.ReconstructionPolicy`; the pieces are those of the nested iteration of thesis §1.4
 (:class:`scopetwin.recon.reconstruct.Reconstructor`), the uncertainty step (:mod:`scopetwin.recon.uncertainty`) and
 the inverse fit (:mod:`scopetwin.recon.inverse`).
 
 The order, for one image:
 
-1. markers: the seed's flood indexing, the grid's topology where the flood numbers too few
+1. markers: the thesis's flood indexing, the grid's topology where the flood numbers too few
    (:attr:`~scopetwin.recon.policy.ReconstructionPolicy.lattice_below`); a tied reference marker decided by which
-   candidate reconstructs (:attr:`~scopetwin.recon.policy.ReconstructionPolicy.resolve_tied_reference`);
-2. the start-height search with the default basis scale; where its rays lose the substrate, the scale chosen on the
-   flat start and the search again (``rescale_from_flat_start``);
+   candidate's indices lie on the lattice's predicted image
+   (:attr:`~scopetwin.recon.policy.ReconstructionPolicy.resolve_tied_reference`);
+2. the start-height search with the default basis scale; where its rays lose the substrate or it does not converge,
+   the scale chosen on the flat start and the search again (``rescale_from_flat_start``);
 3. the scale chosen on the data traced through that surface and the search again (``rechoose_scale``), keeping the
    first scale's result where the finer one loses the substrate or does not converge (``keep_first_scale``);
 4. wrongly indexed markers rejected and the search again (``outlier_factor``);
@@ -64,14 +65,14 @@ if TYPE_CHECKING:
 Method = Literal["centroid", "inverse"]
 
 
-# -- indexed markers -> surface (seed §1.4) --------------------------------------------------------------------------
+# -- indexed markers -> surface (thesis §1.4) --------------------------------------------------------------------------
 def solve(
     rec: Reconstructor,
     markers: MarkerObservations,
     policy: ReconstructionPolicy = DEFAULT_POLICY,
     history_path: str | Path | None = None,
 ) -> ReconstructionResult:
-    """The nested iteration of seed §1.4 on indexed markers, with every fallback of ``policy``.
+    """The nested iteration of thesis §1.4 on indexed markers, with every fallback of ``policy``.
 
     Parameters
     ----------
@@ -152,18 +153,19 @@ def _solve(
 
 
 def _first_search(search: _Search) -> LoopOutcome:
-    """The start-height search from the frame height; where its rays lose the substrate, the scale chosen on the flat
-    start and the search again with a fresh budget (``rescale_from_flat_start``)."""
+    """The start-height search from the frame height; where its rays lose the substrate or it does not converge,
+    the scale chosen on the flat start and the search again with a fresh budget (``rescale_from_flat_start``)."""
     rec, policy = search.rec, search.policy
     out = search.loop(rec.sub.frame_z)
-    if out.status != "lost":
+    if out.converged:
         return out
-    assert out.failure is not None
     changed = rec.scale_from_flat_start(search.markers) if policy.rescale_from_flat_start else False
     if isinstance(changed, Failure):
         search.path.append("basis scale on the flat start: its rays lose the substrate too")
-        raise search.fail(changed)
+        raise search.fail(changed if out.failure is None else out.failure)
     if not changed:
+        if out.failure is None:  # not converged: the scale chosen on the data may still help
+            return out
         raise search.fail(out.failure)
     search.path.append(f"basis scale chosen on the flat start: {rec.basis.sigma[0]:g} mm")
     out = search.loop(rec.sub.frame_z, rec.config.outer_max, fresh=True)
@@ -174,8 +176,9 @@ def _first_search(search: _Search) -> LoopOutcome:
 
 def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
     """The basis scale chosen on the data traced through the search's surface, and the search again with it
-    (``rechoose_scale``); the first scale's converged result kept where the finer one loses the substrate or does not
-    converge (``keep_first_scale``).
+    (``rechoose_scale``); the first scale's converged result kept where it fits the data and the finer one loses the
+    substrate or does not converge (``keep_first_scale``). Where the first scale is too coarse for the data and the
+    re-chosen one does not converge either, the scale chosen on the flat start is searched from the frame height.
     """
     rec, policy, cfg = search.rec, search.policy, search.rec.config
     if not (policy.rechoose_scale and search.surfaces and cfg.sigma_candidates and cfg.counts is None):
@@ -189,8 +192,17 @@ def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
     first = (rec.basis, len(search.history), out, rec.last)
     rec.use_basis(cfg.make_basis(rec.sub, best))
     search.path.append(f"basis scale chosen on the data: {current:g} -> {best:g} mm")
-    h_found = search.history[-1].start_height_um * 1e-3
-    again = search.loop(h_found, None if out.converged else cfg.outer_max, fresh=True)
+    # a converged search's start height is kept; an unconverged one's is no start: from the frame height again
+    h_start = search.history[-1].start_height_um * 1e-3 if out.converged else rec.sub.frame_z
+    again = search.loop(h_start, None if out.converged else cfg.outer_max, fresh=True)
+    if not again.converged and too_coarse and policy.rescale_from_flat_start:
+        # the gradients traced through a scale too coarse for them can choose a scale that does not settle either
+        # (a 12 mm basis on a 3 mm / 60 µm surface: 3 mm chosen, its rays lose the substrate); the flat start's
+        # choice is the other estimate, searched from the frame height
+        flat = rec.scale_from_flat_start(search.markers)
+        if flat is True and float(rec.basis.sigma[0]) != best:
+            search.path.append(f"basis scale chosen on the flat start: {rec.basis.sigma[0]:g} mm")
+            again = search.loop(rec.sub.frame_z, cfg.outer_max, fresh=True)
     if again.converged or not (first[2].converged and policy.keep_first_scale):
         if again.status != "lost":
             return again
@@ -281,7 +293,7 @@ def reconstruct_markers(
     frame_z: float = 0.0,
     policy: ReconstructionPolicy = DEFAULT_POLICY,
 ) -> ReconstructionResult:
-    """Reconstruct the substrate's heights from indexed markers (seed §1.4, §1.7, §1.8): :func:`solve` for a setup.
+    """Reconstruct the substrate's heights from indexed markers (thesis §1.4, §1.7, §1.8): :func:`solve` for a setup.
 
     Parameters
     ----------
@@ -328,49 +340,74 @@ def reconstruct_image(
     history_path: str | Path | None = None,
     evidence_start: Hyper | None = None,
 ) -> ImageReconstruction:
-    """Markers of a deflectometry image and the surface they give (seed §1.4-§1.8), with every fallback of ``policy``.
+    """Markers of a deflectometry image and the surface they give (thesis §1.4-§1.8), with every fallback of ``policy``.
 
     The bias step is on where ``policy.bias_step``. Where the spots are distorted so much that two or more are
     about as large as the reference marker should be (:class:`scopetwin.recon.markers.ReferenceTieError`; 3 mm /
-    60 µm surfaces), each candidate is taken as the reference in turn (``resolve_tied_reference``): with a wrong one
-    every index is a few pitches off, the traced slopes are milliradians off and no start height lays such a surface
-    on the holding frame. The one candidate whose markers reconstruct is kept; if none or several do, the tie is
-    reported. ``evidence_start``: the posterior's warm start (:attr:`Reconstructor.evidence_start`).
+    60 µm surfaces), each candidate numbers the markers in turn (``resolve_tied_reference``): with a wrong one every
+    index is a pitch or more off the lattice the nominal setup predicts (:meth:`Reconstructor.lattice_offset`), with
+    the right one a small fraction of a pitch. The one candidate within ``reference_offset_max`` is kept; if none or
+    several are, the tie is reported with each offset. ``evidence_start``: the posterior's warm start
+    (:attr:`Reconstructor.evidence_start`).
     """
     from scopetwin.recon.markers import ReferenceTieError, find_markers_for
 
     bias = centroid_bias_step(setup, policy.bias_recompute_um) if policy.bias_step else None
 
-    def attempt(reference: int | None, path: str | Path | None) -> ImageReconstruction:
-        found = find_markers_for(image, setup, reference=reference, lattice_below=policy.lattice_below)
-        rec = Reconstructor.from_setup(setup, config, bias)
-        rec.evidence_start = evidence_start
-        result = solve(rec, MarkerObservations(found.ij, found.centroids), policy, path)
-        return ImageReconstruction(found, result, rec)
-
     try:
-        return attempt(None, history_path)
+        found = find_markers_for(image, setup, lattice_below=policy.lattice_below)
+        note = None
     except ReferenceTieError as tie:
         if not policy.resolve_tied_reference:
             raise
-        good, notes = [], []
-        for cand in tie.candidates:  # a candidate that fails leaves no partial history behind
-            try:
-                good.append(attempt(int(cand), None))
-            except ScopetwinError as exc:
-                notes.append(f"spot {int(cand)}: {type(exc).__name__}")
-        if len(good) == 1:
-            good[0].result.strategy.insert(
-                0,
-                f"reference marker tied between {len(tie.candidates)} spots: "
-                f"the one whose markers reconstruct taken ({', '.join(notes)} failed)",
-            )
-            return good[0]
-        raise ReferenceTieError(
-            tie.candidates,
-            f"{tie}; taken as the reference in turn, {len(good)} of the {len(tie.candidates)} candidates "
-            "reconstruct a surface on the holding frame",
-        ) from None
+        found, note = _decide_tied_reference(image, setup, config, policy, tie)
+    rec = Reconstructor.from_setup(setup, config, bias)
+    rec.evidence_start = evidence_start
+    result = solve(rec, MarkerObservations(found.ij, found.centroids), policy, history_path)
+    if note is not None:
+        result.strategy.insert(0, note)
+    return ImageReconstruction(found, result, rec)
+
+
+def _decide_tied_reference(
+    image: NDArray[Any],
+    setup: Setup,
+    config: ReconstructionConfig | None,
+    policy: ReconstructionPolicy,
+    tie: Exception,
+) -> tuple[Markers, str]:
+    """The tied reference candidate whose indexing agrees with the lattice's predicted image, and a note saying so.
+
+    Each candidate numbers the markers; :meth:`Reconstructor.lattice_offset` says how many pitches those indices lie
+    off the image the nominal setup predicts. The one candidate within ``policy.reference_offset_max`` pitches is
+    taken; none or several: the tie is reported with each candidate's offset.
+    """
+    from scopetwin.recon.markers import MarkerError, ReferenceTieError, find_markers_for
+
+    assert isinstance(tie, ReferenceTieError)
+    rec = Reconstructor.from_setup(setup, config)
+    good: list[Markers] = []
+    notes: list[str] = []
+    for cand in tie.candidates:
+        try:
+            found = find_markers_for(image, setup, reference=int(cand), lattice_below=policy.lattice_below)
+            off = rec.lattice_offset(MarkerObservations(found.ij, found.centroids))
+        except (MarkerError, ReconstructionError) as exc:
+            notes.append(f"spot {int(cand)}: {type(exc).__name__}")
+            continue
+        notes.append(f"spot {int(cand)}: ({off[0]:+.2f}, {off[1]:+.2f})")
+        if np.all(np.abs(off) <= policy.reference_offset_max):
+            good.append(found)
+    if len(good) == 1:
+        return good[0], (
+            f"reference marker tied between {len(tie.candidates)} spots: the one whose indices lie on the lattice's "
+            f"predicted image taken (offsets in pitches: {'; '.join(notes)})"
+        )
+    raise ReferenceTieError(
+        tie.candidates,
+        f"{tie}; {len(good)} of the {len(tie.candidates)} candidates number the markers within "
+        f"{policy.reference_offset_max:g} pitch of the lattice's predicted image (offsets: {'; '.join(notes)})",
+    ) from None
 
 
 # -- the inverse fit's start --------------------------------------------------------------------------------------
@@ -430,7 +467,7 @@ def inverse_start(
 ) -> InverseStart:
     """The start of the inverse fit: the first of ``policy.inverse_starts`` that can be had.
 
-    In the default order: the centroid method (seed §1.4-§1.8) with its bias step; without it (the bias model cannot
+    In the default order: the centroid method (thesis §1.4-§1.8) with its bias step; without it (the bias model cannot
     be evaluated near a caustic — "singular at a marker" — and the start-height loop swings with it on some 3 mm /
     60 µm surfaces that converge without it; the inverse fit needs no centroid model, only a start inside its basin);
     the last surface of a start-height loop that did not converge; a coarse fit of the indexed markers
@@ -508,7 +545,7 @@ class Reconstruction:
     Attributes
     ----------
     method : {"centroid", "inverse"}
-        The marker centroids (seed §1.4-§1.8) or the inverse fit of the whole image.
+        The marker centroids (thesis §1.4-§1.8) or the inverse fit of the whole image.
     result : ReconstructionResult or InverseResult
         The method's own result (history, iterations, per-node uncertainty).
     markers : Markers or None

@@ -1,8 +1,9 @@
-"""The substrate's footprint and where rays meet a fitted surface on it (seed §1.4, §1.6.4, §1.10)."""
+"""The substrate's footprint and where rays meet a fitted surface on it (thesis §1.4, §1.6.4, §1.10)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,7 +18,7 @@ from scopetwin.scenes.setup import Setup
 
 @dataclass(frozen=True)
 class Substrate2D:
-    """The substrate's footprint on its base plane (seed §1.4, §1.10): extent, ROI length, frame position."""
+    """The substrate's footprint on its base plane (thesis §1.4, §1.10): extent, ROI length, frame position."""
 
     size_x: float
     size_y: float
@@ -58,12 +59,23 @@ class Substrate2D:
 
 
 def intersect_surface(
-    surface: SBFSurface, origins: Array, dirs: Array, frame: Frame | None = None, tol: float = 1e-10, max_iter: int = 30
+    surface: SBFSurface,
+    origins: Array,
+    dirs: Array,
+    frame: Frame | None = None,
+    tol: float = 1e-10,
+    max_iter: int = 30,
+    start: Literal["offset", "surface"] = "offset",
+    max_height_change: float = 2.0,
 ) -> tuple[Array, NDArray[np.bool_]]:
-    """Ray parameters where rays meet a fitted surface z = f(x, y) (secant iteration of seed §1.6.4, eq. 1.6).
+    """Ray parameters where rays meet a fitted surface z = f(x, y) (secant iteration of thesis §1.6.4, eq. 1.6).
 
-    :func:`scopetwin.scenes.secant.secant_intersection`, started at the rays' intersections with the plane
-    z = offset and with the plane z = f there, which is close to the root for a nearly flat substrate.
+    :func:`scopetwin.scenes.secant.secant_intersection`, started at the rays' intersections with a plane and with
+    the plane z = f there, which is close to the root for a nearly flat substrate. ``start="offset"``: the plane
+    z = the surface's offset term. ``start="surface"``: the plane through the surface's height at the substrate's
+    centre, and a root more than ``max_height_change`` (mm) above or below it is not taken — an ill-posed fit whose
+    basis functions cancel a large offset and tilt over the substrate continues far beyond it and can meet the ray
+    there, where the offset plane's start finds it (cut sheets with rolled-off edges).
 
     Parameters
     ----------
@@ -75,20 +87,34 @@ def intersect_surface(
         The substrate's base plane (None: the rays are given in it).
     tol, max_iter : float, int
         Convergence threshold on ``|f|``, mm, and largest number of secant steps.
+    start : {"offset", "surface"}
+        The start plane.
+    max_height_change : float
+        ``start="surface"`` only: largest height of a root above or below the start plane, mm.
 
     Returns
     -------
     lam : ndarray, (n,)
         Ray parameters (meaningful where ``ok``).
     ok : ndarray of bool, (n,)
-        Converged, and in front of the ray origin (lam > 0).
+        Converged, in front of the ray origin (lam > 0) and (``start="surface"``) within ``max_height_change`` of
+        the start plane.
     """
     o = frame.to_local(origins) if frame is not None else np.asarray(origins, dtype=np.float64)
     d = frame.vectors_to_local(dirs) if frame is not None else np.asarray(dirs, dtype=np.float64)
+    if start == "surface":
+        z0 = float(np.asarray(surface.height(np.zeros(1), np.zeros(1))).ravel()[0])
+    else:
+        z0 = float(surface.offset)
     with np.errstate(divide="ignore", invalid="ignore"):
-        lam0 = (surface.offset - o[:, 2]) / d[:, 2]
+        lam0 = (z0 - o[:, 2]) / d[:, 2]
     lam, converged = secant_intersection(surface, o, d, lam0, tol=tol, max_iter=max_iter)
-    return lam, converged & (lam > 0)
+    ok = converged & (lam > 0)
+    if start == "surface":
+        # a root far along the ray from the plane at the surface's height is a fit's continuation far off the
+        # substrate, never the substrate the ray sees
+        ok &= np.abs((lam - lam0) * d[:, 2]) <= max_height_change
+    return lam, ok
 
 
 def check_substrate_visible(camera: Camera, sub: Substrate2D) -> None:

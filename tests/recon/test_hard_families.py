@@ -1,10 +1,11 @@
 """The default reconstruction on rendered bent glass it was not designed on (:mod:`scopetwin.sim.families`).
 
-Two images whose re-chosen finer basis scale does not converge or loses the substrate (a glass-like sheet whose 6 mm
-scale's frame maxima swing, a sheet with local features at 5 mm): the strategy keeps the converged result of the
-first scale instead of failing, and it is right within its reported uncertainty. Seeds 9100-9105
-of each family were fixed before the change; these are the two of them that failed without it. Mitsuba, 16 spp,
-sensor noise (the render's seed = the surface's).
+A glass-like sheet whose re-chosen finer basis scale does not converge (its 6 mm scale's frame maxima swing): the
+strategy keeps the converged result of the first scale instead of failing. A sheet with local features (bumps and
+dimples of 0.5-3 µm over 1-4 mm) whose markers the features deflect by milliradians: they are numbered right, and
+the outlier test keeps them (a neighbouring index explains none of them). Each result is right within its reported
+uncertainty. Seeds 9100-9105 of each family were fixed before the changes; these two failed before them. Mitsuba,
+16 spp, sensor noise (the render's seed = the surface's).
 """
 
 from __future__ import annotations
@@ -23,15 +24,36 @@ pytestmark = [pytest.mark.slow, pytest.mark.mitsuba]
     ("family", "seed", "kept"),
     [
         ("glass", 9100, "kept the first basis scale"),
-        ("features", 9102, "kept the first basis scale"),
+        ("features", 9102, "posterior"),
     ],
 )
-def test_a_step_that_does_not_converge_keeps_the_converged_result(mono_variant, family, seed, kept):
+def test_hard_images_reconstruct_within_their_uncertainty(mono_variant, family, seed, kept):
     setup = scopetwin.load_setup("thesis-1.10-deflectometry", {"substrate": {"surface": family_spec(family, seed)}})
     m = scopetwin.render(setup, spp=16, seed=seed)
     r = scopetwin.reconstruct(m.image, setup)
     assert any(step.startswith(kept) for step in r.strategy), r.strategy
+    assert not any("wrongly indexed" in step for step in r.strategy), r.strategy
     assert m.heights is not None
     e = roi_errors(r.result.surface.height, m.heights, Substrate2D.from_setup(setup))
     assert abs(e["roi_absolute_um"]) <= 2.0 * r.uncertainty.absolute_um  # measured: 1.2 u (glass)
-    assert e["roi_shape_um"] <= 0.2  # measured: 0.154 µm (glass; 2.6 of its u)
+    assert e["roi_shape_um"] <= 0.2  # measured: 0.154 µm (glass; 2.6 of its u), 0.096 µm (features, 1.1 u)
+
+
+def test_cut_sheet_reconstructs_with_the_intersection_started_on_the_surface(mono_variant):
+    """A cut sheet with rolled-off edges (seed 9103): the fit carries a large offset and tilt that its basis cancels
+    over the substrate, and rays started on the offset plane meet its continuation far away — with the default
+    start the substrate is lost; started on the surface (far roots refused) it reconstructs within its uncertainty
+    (measured: absolute -6.3 µm at 1.4 u, shape 0.78 µm at 1.4 u)."""
+    from scopetwin.recon.config import ReconstructionConfig
+    from scopetwin.recon.errors import SubstrateNotVisibleError
+    from scopetwin.recon.strategy import reconstruct
+
+    setup = scopetwin.load_setup("thesis-1.10-deflectometry", {"substrate": {"surface": family_spec("cut", 9103)}})
+    m = scopetwin.render(setup, spp=16, seed=9103)
+    with pytest.raises(SubstrateNotVisibleError):
+        scopetwin.reconstruct(m.image, setup)
+    res = reconstruct(m.image, setup, config=ReconstructionConfig(intersection_start="surface")).result
+    assert m.heights is not None and res.uncertainty is not None
+    e = roi_errors(res.surface.height, m.heights, Substrate2D.from_setup(setup))
+    assert abs(e["roi_absolute_um"]) <= 2.0 * res.uncertainty.absolute_um
+    assert e["roi_shape_um"] <= 2.0 * res.uncertainty.shape_um and e["roi_shape_um"] < 1.0

@@ -1,4 +1,4 @@
-"""Marker identification where it used to fail (issue 14 item 5): low exposures, strongly bent substrates.
+"""Marker identification where it used to fail: low exposures, strongly bent substrates.
 
 Indices are checked against :mod:`scopetwin.sim.truth`: a marker is wrongly indexed when the true image nearest to its
 centroid belongs to another marker (centroid bias on a strongly bent substrate reaches ~2 px, a pitch is ~20 px).
@@ -81,9 +81,10 @@ def test_tied_reference_candidates_say_what_to_change():
 
 @pytest.mark.mitsuba
 @pytest.mark.slow
-def test_tied_reference_marker_decided_by_which_candidate_reconstructs() -> None:
+def test_tied_reference_marker_decided_by_the_lattice_offset() -> None:
     """3 mm / 60 µm surface seed 7: four spots about as large as the reference marker should be near its nominal
-    image. Taken as the reference in turn, only the true one gives markers whose surface lies on the frame."""
+    image. Taken as the reference in turn, only the true one numbers the markers on the lattice's predicted image,
+    and it is decided before any reconstruction runs."""
     from scopetwin.recon.markers import ReferenceTieError
     from scopetwin.recon.strategy import reconstruct_image
     from scopetwin.recon.substrate import Substrate2D
@@ -100,6 +101,7 @@ def test_tied_reference_marker_decided_by_which_candidate_reconstructs() -> None
     assert len(tie.value.candidates) >= 2
     markers, result, _ = reconstruct_image(image, setup)  # the default policy: bias step, tie resolved
     assert result.strategy[0].startswith("reference marker tied between"), result.strategy
+    assert "lattice's predicted image taken" in result.strategy[0]
     true_ref = truth.center_px[np.flatnonzero(np.all(truth.ij == 0, axis=1))[0]]
     assert np.hypot(*(markers.centroids[np.all(markers.ij == 0, axis=1)][0] - true_ref)) < 3.0
     assert _wrong_indices(markers, truth) <= 0.01 * len(markers)
