@@ -502,12 +502,13 @@ def _detect_and_reconstruct(
 def _reconstruct_one(
     image: NDArray[Any], name: str, setup: Setup, out: Path, heights: HeightMap, sub: Substrate2D, prior: Hyper | None
 ) -> tuple[Markers, dict[str, Any]]:
-    """The image reconstructed with one setup (:func:`scopetwin.recon.strategy.reconstruct_image`): the markers found
+    """The image reconstructed with one setup (:func:`scopetwin.recon.strategy.reconstruct`): the markers found
     and ``{"result", "seconds", "errors"}``; a history that is not accepted goes to ``out/<name>-history.json``."""
-    from scopetwin.recon.strategy import reconstruct_image
+    from scopetwin.recon.strategy import reconstruct
 
     t0 = time.perf_counter()
-    markers, res, _ = reconstruct_image(image, setup, history_path=out / f"{name}-history.json", evidence_start=prior)
+    done = reconstruct(image, setup, history_path=out / f"{name}-history.json", evidence_start=prior)
+    markers, res = done.markers, done.result
     seconds = time.perf_counter() - t0
     return markers, {"result": res, "seconds": seconds, "errors": roi_errors(res.surface.height, heights, sub)}
 

@@ -42,7 +42,7 @@ def _policy(args: argparse.Namespace) -> ReconstructionPolicy:
 
 def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
     """Handler of ``scopetwin reconstruct``."""
-    from scopetwin.recon.strategy import reconstruct_image
+    from scopetwin.recon.strategy import reconstruct
     from scopetwin.scenes.io import read_image, write_heightmap
     from scopetwin.scenes.setup import load_setup
 
@@ -65,7 +65,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         return _cmd_inverse(args, setup, image, out, t0)
     history_path = out.with_name(out.name + ".history.json")
     # every fallback is the strategy's (recon.strategy); NotConvergedError: history saved, no map written
-    found, result, _ = reconstruct_image(image, setup, _config(args), _policy(args), history_path)
+    done = reconstruct(image, setup, "centroid", config=_config(args), policy=_policy(args), history_path=history_path)
+    found, result = done.markers, done.result
     heights = result.heightmap()
     write_heightmap(
         out,

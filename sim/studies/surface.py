@@ -36,7 +36,7 @@ def surface_task(folder: str, config: str = "default") -> dict[str, Any]:
 
 def broadband_task(folder: str) -> dict[str, Any]:
     """Errors and reported uncertainties of one PSD-surface sample (ideal setup, bias step on), µm."""
-    from scopetwin.recon.strategy import reconstruct_image
+    from scopetwin.recon.strategy import reconstruct
     from scopetwin.recon.substrate import Substrate2D
     from scopetwin.scenes.io import read_heightmap
     from scopetwin.sim.pipeline import roi_errors
@@ -44,7 +44,7 @@ def broadband_task(folder: str) -> dict[str, Any]:
     quiet()
     setup, image, truth = read_sample(folder)
     heights = read_heightmap(Path(folder) / "surface.exr")
-    res = reconstruct_image(image, setup).result
+    res = reconstruct(image, setup).result
     u = res.uncertainty
     return {
         "folder": folder,

@@ -63,7 +63,7 @@ def reconstruct(
 ) -> dict[str, Any]:
     """Reconstruct with ``recon_setup`` (default: the same) by the one strategy (markers found with it), compare."""
     from scopetwin.recon.config import ReconstructionConfig
-    from scopetwin.recon.strategy import reconstruct_image
+    from scopetwin.recon.strategy import reconstruct
     from scopetwin.recon.substrate import Substrate2D
     from scopetwin.sim.pipeline import roi_errors
 
@@ -78,7 +78,8 @@ def reconstruct(
     elif config.startswith("spacing="):
         cfg = ReconstructionConfig(spacing=float(config.split("=")[1]))
     t0 = time.perf_counter()
-    found, res, _ = reconstruct_image(image, rs, cfg)
+    done = reconstruct(image, rs, config=cfg)
+    found, res = done.markers, done.result
     errs = roi_errors(res.surface.height, heights, Substrate2D.from_setup(setup))
     return {
         **errs,
