@@ -8,6 +8,10 @@ on emulators) as a context manager; acquisition routines live in
 :mod:`scopetwin.instrument.emulators.serve`; the ``rig`` command in :mod:`scopetwin.sim.cli.rig`.
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
 from scopetwin.instrument.errors import (
     DisconnectedError,
     InstrumentError,
@@ -16,7 +20,9 @@ from scopetwin.instrument.errors import (
     ProtocolError,
     RigError,
 )
-from scopetwin.instrument.rig import Rig, load_rig, open_rig
+
+if TYPE_CHECKING:
+    from scopetwin.instrument.rig import Rig, load_rig, open_rig
 
 __all__ = [
     "DisconnectedError",
@@ -29,3 +35,14 @@ __all__ = [
     "load_rig",
     "open_rig",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """``Rig``, ``load_rig``, ``open_rig`` from :mod:`scopetwin.instrument.rig`, imported on first use: a module of
+    the package (:mod:`scopetwin.instrument.interrupts`, which every command of the command line uses) loads without
+    the rig and its devices."""
+    if name in ("Rig", "load_rig", "open_rig"):
+        from scopetwin.instrument import rig
+
+        return getattr(rig, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

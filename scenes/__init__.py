@@ -6,7 +6,23 @@ reference renderer and sensor physics. Pure numpy; Mitsuba lives in
 :mod:`scopetwin.scenes.mitsuba` and is only loaded when asked for.
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
 from scopetwin.scenes.errors import FileFormatError, GeometryError, ScopetwinError, SetupError
-from scopetwin.scenes.geometry import Frame
+
+if TYPE_CHECKING:
+    from scopetwin.scenes.geometry import Frame
 
 __all__ = ["FileFormatError", "Frame", "GeometryError", "ScopetwinError", "SetupError"]
+
+
+def __getattr__(name: str) -> Any:
+    """``Frame`` from :mod:`scopetwin.scenes.geometry`, imported on first use: the errors, which every command of the
+    command line uses, load without numpy."""
+    if name == "Frame":
+        from scopetwin.scenes.geometry import Frame
+
+        return Frame
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -12,11 +12,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-import numpy as np
-from numpy.typing import NDArray
-
 if TYPE_CHECKING:
     from contextlib import AbstractContextManager
+
+    import numpy as np
+    from numpy.typing import NDArray
 
     from scopetwin.calib.oneshot.refinement import Calibration
     from scopetwin.calib.setup_calibration import CalibratedSetup
@@ -195,6 +195,8 @@ def _surface(
     setup: Setup, surface: HeightMap | str | Path | NDArray[Any] | None, extrapolate: bool = False
 ) -> HeightMap | None:
     """The substrate's heights of :func:`render` (checked against the substrate's extent and the height range)."""
+    import numpy as np
+
     from scopetwin.scenes.errors import ScopetwinError
     from scopetwin.scenes.io import check_surface, read_heightmap
     from scopetwin.scenes.surface import HeightMap as _HeightMap
@@ -310,7 +312,7 @@ def reconstruct(
     >>> r2.result.estimate.height_um, r2.uncertainty.absolute_um  # doctest: +SKIP
     """
     _check_reconstruct_options(method, second, previous)
-    return _reconstruct_checked(np.asarray(image), load_setup(setup), method, policy, second, previous)
+    return _reconstruct_checked(image, load_setup(setup), method, policy, second, previous)
 
 
 def _reconstruct_checked(
@@ -322,6 +324,8 @@ def _reconstruct_checked(
     previous: Reconstruction | None,
 ) -> Reconstruction:
     """:func:`reconstruct` once its options are checked: both images of a pattern stage, or the one strategy."""
+    import numpy as np
+
     from scopetwin.recon.policy import DEFAULT_POLICY
     from scopetwin.recon.strategy import reconstruct as _reconstruct
 
@@ -329,9 +333,9 @@ def _reconstruct_checked(
         from scopetwin.recon.two_positions import reconstruct_pair
 
         image2, shift = second if isinstance(second, tuple) else (second, None)
-        return reconstruct_pair(image, np.asarray(image2), setup, shift, policy=policy or DEFAULT_POLICY)
+        return reconstruct_pair(np.asarray(image), np.asarray(image2), setup, shift, policy=policy or DEFAULT_POLICY)
     start = previous.prior if previous is not None else None
-    return _reconstruct(image, setup, method, policy=policy or DEFAULT_POLICY, evidence_start=start)
+    return _reconstruct(np.asarray(image), setup, method, policy=policy or DEFAULT_POLICY, evidence_start=start)
 
 
 def calibrate(
@@ -373,6 +377,8 @@ def calibrate(
     >>> float(round(cal.camera.center[2], 1))  # the camera's distance above the target, mm
     233.2
     """
+    import numpy as np
+
     from scopetwin.calib.oneshot.from_image import calibrate_image
 
     cal, _ = calibrate_image(
@@ -429,6 +435,8 @@ def calibrate_setup(
     >>> bool(calibrated.uncertainties["camera"]["shift_mm"] < 0.05)  # one standard uncertainty
     True
     """
+    import numpy as np
+
     from scopetwin.calib.setup_calibration import calibrate_setup_from_images
 
     return calibrate_setup_from_images(

@@ -83,10 +83,14 @@ def _groups_for(argv: Sequence[str] | None) -> tuple[str, ...]:
     no values, so the first word is the command), else all of them (help, a misspelt command).
 
     A command's process then imports its own group only: an emulator or a rig command starts without the
-    reconstruction's and the calibration's libraries (``scopetwin emulate`` ~0.3 s instead of ~1.5 s of imports)."""
+    reconstruction's and the calibration's libraries (``scopetwin emulate`` ~0.3 s instead of ~1.5 s of imports);
+    ``--version`` alone needs none. The command modules import their libraries inside the command functions, so
+    ``--help``, which registers every group, loads none of them either."""
     if argv is None:
         return GROUPS
     word = next((a for a in argv if not a.startswith("-")), None)
+    if word is None and "--version" in argv and not {"-h", "--help"} & set(argv):
+        return ()  # --version prints and exits before a command is needed
     return (_GROUP_OF[word],) if word in _GROUP_OF else GROUPS
 
 

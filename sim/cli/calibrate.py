@@ -15,22 +15,23 @@ from __future__ import annotations
 
 import argparse
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numpy.typing import NDArray
 
-from scopetwin.calib.oneshot import (
-    LENS_MODES,
-    Calibration,
-    CalibrationError,
-    Prior,
-)
-from scopetwin.calib.oneshot.from_image import calibrate_image
 from scopetwin.scenes.errors import ScopetwinError
-from scopetwin.scenes.geometry import Frame
-from scopetwin.scenes.setup import Setup
 from scopetwin.sim.cli.options import conventions, finite_float, finite_vector, positive_float
+
+if TYPE_CHECKING:
+    from numpy.typing import NDArray
+
+    from scopetwin.calib.oneshot import Calibration, Prior
+    from scopetwin.scenes.geometry import Frame
+    from scopetwin.scenes.setup import Setup
+
+#: ``--lens``'s choices: :data:`scopetwin.calib.oneshot.LENS_MODES`, spelt out so that the parser (``--help``) does
+#: not import the calibration.
+LENS_MODES: tuple[str, ...] = ("auto", "thin-lens", "free", "fixed")
 
 #: How the calibration's note about the mirror-ambiguous pose (calib.oneshot.calibration) starts.
 _AMBIGUOUS = "does not tell the two mirror-ambiguous poses"
@@ -102,6 +103,8 @@ def _prior(setup: Setup, plane: Frame, args: argparse.Namespace, header: Setup |
     b belongs to its own distance, and ``--lens auto`` takes the thin-lens b of the measured magnification
     instead (thesis §2.4.2); ``--lens fixed`` still holds the setup's b.
     """
+    from scopetwin.calib.oneshot import Prior
+
     cam = setup.camera_model
     f = args.focal_length if args.focal_length is not None else setup.camera.focal_length
     changes: dict[str, Any] = {}
@@ -120,6 +123,9 @@ def _prior(setup: Setup, plane: Frame, args: argparse.Namespace, header: Setup |
 
 def cmd_calibrate(args: argparse.Namespace) -> dict[str, Any]:
     """One-shot calibration from one image of the target of ``--target`` (thesis §2.4-2.5)."""
+    from scopetwin.calib.oneshot import CalibrationError
+    from scopetwin.calib.oneshot.from_image import calibrate_image
+
     t0 = time.perf_counter()
     image, header = _load_image(args.image)
     setup = _setup(args.target, header, args.image, "--target SETUP")
@@ -233,10 +239,10 @@ def _quiet(func: Any) -> Any:
     import functools
     import warnings
 
-    from scopetwin.calib.oneshot import CalibrationWarning
-
     @functools.wraps(func)
     def run(args: argparse.Namespace) -> dict[str, Any]:
+        from scopetwin.calib.oneshot import CalibrationWarning
+
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", CalibrationWarning)
             return func(args)

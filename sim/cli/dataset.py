@@ -17,14 +17,13 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from scopetwin.sim.cli.options import add_cluster_options, conventions
 from scopetwin.sim.cli.outputs import check_space, human_bytes
-from scopetwin.sim.datasets.config import DatasetError, load_config
-from scopetwin.sim.datasets.plan import Plan
-from scopetwin.sim.datasets.runner import check_scheduler
-from scopetwin.sim.datasets.store import SAMPLE_FILE, SAMPLES, generate, load_plan, parse_indices, sample_name, verify
+
+if TYPE_CHECKING:
+    from scopetwin.sim.datasets.plan import Plan
 
 #: Plain text for ``--help`` (the module docstring is reST).
 DESCRIPTION = (
@@ -43,6 +42,9 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def _check_workers(args: argparse.Namespace) -> None:
+    from scopetwin.sim.datasets.config import DatasetError
+    from scopetwin.sim.datasets.runner import check_scheduler
+
     if args.workers is not None and args.workers < 0:
         raise DatasetError(f"--workers must be >= 0, got {args.workers}")
     if args.threads is not None and args.threads <= 0:
@@ -55,6 +57,8 @@ def _check_workers(args: argparse.Namespace) -> None:
 
 def _check_space(plan: Plan, root: Path, indices: list[int], option: str) -> None:
     """Refuse before any work when the samples still to render would not fit on the file system of ``root``."""
+    from scopetwin.sim.datasets.store import SAMPLE_FILE, SAMPLES, sample_name
+
     todo = [i for i in indices if not (root / SAMPLES / sample_name(i) / SAMPLE_FILE).is_file()]
     if todo:
         each = plan.sample_bytes(todo[0])
@@ -87,6 +91,10 @@ def _report(result: dict[str, Any]) -> None:
 
 def cmd_generate(args: argparse.Namespace) -> dict[str, Any]:
     """Render a dataset described by a config TOML; returns the generation summary."""
+    from scopetwin.sim.datasets.config import load_config
+    from scopetwin.sim.datasets.plan import Plan
+    from scopetwin.sim.datasets.store import generate, parse_indices
+
     _check_workers(args)
     cfg = load_config(args.config, args.count, args.set)
     indices = parse_indices(args.indices, cfg.dataset.count)
@@ -100,6 +108,9 @@ def cmd_generate(args: argparse.Namespace) -> dict[str, Any]:
 
 def cmd_resume(args: argparse.Namespace) -> dict[str, Any]:
     """Finish an interrupted dataset; returns the generation summary."""
+    from scopetwin.sim.datasets.plan import Plan
+    from scopetwin.sim.datasets.store import generate, load_plan
+
     _check_workers(args)
     stored = load_plan(args.dir)
     plan = Plan.build(stored.config)
@@ -112,6 +123,8 @@ def cmd_resume(args: argparse.Namespace) -> dict[str, Any]:
 
 def cmd_verify(args: argparse.Namespace) -> dict[str, Any]:
     """Check a dataset folder; returns the ``dataset verify`` JSON (exit code 1 when ``ok`` is false)."""
+    from scopetwin.sim.datasets.store import verify
+
     result = verify(args.dir)
     print(
         f"{result['complete']} of {result['count']} samples complete; missing {len(result['missing'])}, corrupt "
@@ -139,6 +152,8 @@ def _open(folder: str) -> Any:
 
 def _positions(ds: Any, text: str | None, default: int | None = None) -> list[int]:
     """Positions in ``ds`` of the samples whose indices lie in ``A:B`` (all, or the first ``default``, without)."""
+    from scopetwin.sim.datasets.store import parse_indices
+
     if text is None:
         return list(range(len(ds) if default is None else min(default, len(ds))))
     count = int(ds.config.get("config", {}).get("dataset", {}).get("count", len(ds)))

@@ -23,7 +23,6 @@ import json
 from typing import Any
 
 from scopetwin.instrument.emulators import EMULATORS
-from scopetwin.instrument.emulators.serve import parse_options, serve
 from scopetwin.instrument.errors import RigError
 from scopetwin.sim.cli.options import conventions
 
@@ -41,6 +40,8 @@ def _announce(port: str) -> None:
 
 def cmd_emulate(args: argparse.Namespace) -> dict[str, Any]:
     """Serve one emulator until SIGINT/SIGTERM; the port path is the first stdout line."""
+    from scopetwin.instrument.emulators.serve import parse_options, serve
+
     options = parse_options(args.options)
     if args.model is not None:
         if "model" in options:

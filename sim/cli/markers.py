@@ -17,15 +17,16 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from scopetwin.recon.markers import MarkerError, find_markers_for
-from scopetwin.scenes.io import read_image
-from scopetwin.scenes.setup import load_setup
 from scopetwin.sim.cli.options import conventions
-from scopetwin.sim.figures import write_overlay
 
 
 def cmd_markers(args: argparse.Namespace) -> dict[str, Any]:
     """Handler of ``scopetwin markers``: returns the JSON-ready result (the caller writes ``--json``)."""
+    from scopetwin.recon.markers import MarkerError, find_markers_for
+    from scopetwin.scenes.io import read_image
+    from scopetwin.scenes.setup import load_setup
+    from scopetwin.sim.figures import write_overlay
+
     setup = load_setup(args.pattern)
     image, _ = read_image(args.image)
     cam = setup.camera_model

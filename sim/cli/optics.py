@@ -35,11 +35,7 @@ from typing import Any
 import numpy as np
 
 from scopetwin.scenes.errors import ScopetwinError
-from scopetwin.scenes.io import read_image, write_image
-from scopetwin.sim import cmu_unit
 from scopetwin.sim.cli.options import SEED, SIDE_PX, SPP, conventions, finite_float, positive_float, positive_int
-from scopetwin.sim.figures import write_spots
-from scopetwin.sim.measurement import write_preview
 
 #: Upper bound of the lengths ``optics scan`` takes (mm): 10 m, far beyond any substrate of the thesis.
 MAX_LENGTH_MM = 1.0e4
@@ -178,7 +174,10 @@ def cmd_grin(args: argparse.Namespace) -> dict[str, Any]:
     from scopetwin.scenes.grin.analysis import analyse, sensitivity
     from scopetwin.scenes.grin.setup import check_image_window
     from scopetwin.scenes.grin.targets import target
+    from scopetwin.scenes.io import write_image
     from scopetwin.scenes.limits import check_render
+    from scopetwin.sim.figures import write_spots
+    from scopetwin.sim.measurement import write_preview
 
     setup = load_grin_setup(args.preset)
     if args.profile is not None:
@@ -362,6 +361,9 @@ def cmd_cmu(args: argparse.Namespace) -> dict[str, Any]:
     """Handler of ``optics cmu``: the unit's analyses (and renders with ``--out``); returns the JSON-ready result."""
     from scopetwin.scenes.cmu import spectra
     from scopetwin.scenes.cmu.layout import load_cmu_setup
+    from scopetwin.scenes.io import read_image
+    from scopetwin.sim import cmu_unit
+    from scopetwin.sim.measurement import write_preview
 
     _check_budget_args(args)
     if args.budget:
@@ -431,6 +433,8 @@ def cmd_cmu(args: argparse.Namespace) -> dict[str, Any]:
 
 def _print_measured(measured: dict[str, dict[str, Any]]) -> None:
     """The Siemens-star measurements of ``optics cmu --out`` beside Tables 5.1-5.4."""
+    from scopetwin.sim import cmu_unit
+
     print("\nfrom the rendered Siemens-star images (calib.channels):")
     print("channel  m (img)  m (T5.1)  dx (µm)  dx (T5.2)  offset px (x, y)  T5.3 px      tilt (°)  T5.4")
     for ch, r in measured.items():

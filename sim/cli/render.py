@@ -12,18 +12,22 @@ from __future__ import annotations
 import argparse
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from scopetwin.scenes.errors import ScopetwinError
-from scopetwin.scenes.limits import check_render
 from scopetwin.sim.cli.options import SEED, SPP, conventions, finite_float
-from scopetwin.sim.measurement import StagedOutput, load_measurement, render_measurement, write_measurement
+
+if TYPE_CHECKING:
+    from scopetwin.sim.measurement import StagedOutput
 
 log = logging.getLogger(__name__)
 
 
 def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
     """Render one setup to EXR with its truth; returns ``{"image", "truth", "spp", "seconds"}``."""
+    from scopetwin.scenes.limits import check_render
+    from scopetwin.sim.measurement import StagedOutput, load_measurement, render_measurement, write_measurement
+
     setup, heights = load_measurement(args.setup, args.surface, args.spp, args.seed, args.noise, args.extrapolate)
     cam = setup.camera_model
     renderer = "analytic" if args.renderer == "analytic" else "setup"
@@ -76,7 +80,7 @@ def _second_position(
     if args.pattern_shift is None and setup.pattern_stage is None:
         return None
     from scopetwin.scenes.pattern_stage import stage_shift
-    from scopetwin.sim.measurement import render_second_position
+    from scopetwin.sim.measurement import render_second_position, write_measurement
 
     if setup.scene != "deflectometry":
         raise ScopetwinError(f"--pattern-shift applies to deflectometry setups; {setup.name} is a {setup.scene} scene")

@@ -7,7 +7,6 @@ from pathlib import Path
 from typing import Any
 
 from scopetwin.sim.cli.options import conventions
-from scopetwin.sim.measurement import StagedOutput
 
 
 def cmd_run(args: argparse.Namespace) -> dict[str, Any]:
@@ -19,6 +18,7 @@ def cmd_run(args: argparse.Namespace) -> dict[str, Any]:
     appears only when everything succeeded. ``--setup`` (preset or TOML) and ``--surface`` (height-map EXR) run the
     same job on a user's rig and substrate (:func:`scopetwin.sim.pipeline.run_setups`).
     """
+    from scopetwin.sim.measurement import StagedOutput
     from scopetwin.sim.pipeline import run_pipeline
 
     out = Path(args.out)

@@ -15,14 +15,15 @@ from typing import Any
 
 from scopetwin.sim.cli.options import add_cluster_options, conventions
 from scopetwin.sim.cli.outputs import check_output_path
-from scopetwin.sim.datasets.runner import check_scheduler
-from scopetwin.sim.studies.context import StudyError
-from scopetwin.sim.studies.runner import STUDIES, run_study
 
 log = logging.getLogger(__name__)
 
 #: Exit status of a study that ran to its end with failed tasks (its report written, the failures listed).
 EXIT_TASKS_FAILED = 1
+
+#: The studies' names, as :data:`scopetwin.sim.studies.runner.STUDIES` registers them, spelt out so that the parser
+#: (``--help``) does not import the studies.
+STUDY_NAMES = ("thesis", "noise", "angle", "surface", "inverse", "coverage", "setup", "second-measurement")
 
 #: Plain text for ``--help`` (the module docstring is reST).
 DESCRIPTION = (
@@ -36,6 +37,10 @@ DESCRIPTION = (
 def cmd_study(args: argparse.Namespace) -> dict[str, Any]:
     """Run the study ``NAME``; returns ``{"study", "report", "results", "seconds", "plots", "notes",
     "failed_tasks"}`` (exit status 1 when ``failed_tasks`` > 0)."""
+    from scopetwin.sim.datasets.runner import check_scheduler
+    from scopetwin.sim.studies.context import StudyError
+    from scopetwin.sim.studies.runner import STUDIES, run_study
+
     if args.name not in STUDIES:
         raise StudyError(f"unknown study {args.name!r} (known: {', '.join(STUDIES)})")
     if args.workers is not None and args.workers < 0:
@@ -66,7 +71,7 @@ def register(subparsers: Any) -> None:
         description=DESCRIPTION,
         **conventions("scopetwin study noise --workers 2", "scopetwin study thesis --out tables --workers 0"),
     )
-    p.add_argument("name", help=f"one of: {', '.join(STUDIES)}")
+    p.add_argument("name", help=f"one of: {', '.join(STUDY_NAMES)}")
     p.add_argument("--out", help="report folder (default: study-NAME)")
     add_cluster_options(p)
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")

@@ -229,7 +229,7 @@ def test_grin_image_just_past_the_bound_sees_light_and_has_a_preview(tmp_path, c
 # -- previews of optics cmu --out -------------------------------------------------------------------------------------
 @pytest.mark.slow
 def test_cmu_out_writes_a_png_preview_per_image(tmp_path, capsys, monkeypatch):
-    import scopetwin.sim.cli.optics as optics
+    import scopetwin.sim.cmu_unit as cmu_unit
 
     def fake_render(setup, maps, table, out, spp, stop, cells):  # the analyses stay real, the renders do not
         files = {}
@@ -240,7 +240,7 @@ def test_cmu_out_writes_a_png_preview_per_image(tmp_path, capsys, monkeypatch):
         measured = {ch: {"magnification": 1.0, "delta_x_um": 0.0} for ch in table}
         return {"measured": measured, "files": files}
 
-    monkeypatch.setattr(optics.cmu_unit, "render_and_measure", fake_render)
+    monkeypatch.setattr(cmu_unit, "render_and_measure", fake_render)
     code, out, err = _run(capsys, "optics", "cmu", "--out", tmp_path / "c", "--json", tmp_path / "c.json")
     assert code == 0, err
     pngs = sorted(p.name for p in (tmp_path / "c").glob("*.png"))

@@ -119,12 +119,12 @@ def test_a_failing_json_after_the_render_leaves_no_result(tmp_path, capsys, setu
 
 
 def test_a_write_failing_inside_a_command_is_one_line(tmp_path, capsys, setup_file, monkeypatch):
-    import scopetwin.sim.cli.render as render_cli
+    import scopetwin.sim.measurement as measurement
 
     def full(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device", "image.exr")
 
-    monkeypatch.setattr(render_cli, "write_measurement", full)
+    monkeypatch.setattr(measurement, "write_measurement", full)  # the command imports it when run
     code, _, err = _run(capsys, "render", setup_file, "--out", tmp_path / "o", "--renderer", "analytic")
     assert code == 2
     _one_error_line(err, "image.exr: No space left on device")

@@ -135,7 +135,7 @@ def _check(argv: list[str]) -> None:
 def no_renders(monkeypatch: pytest.MonkeyPatch) -> None:
     """Renders replaced by black images of the requested size (every check before them stays real)."""
     import scopetwin.scenes.mitsuba.grin as grin
-    import scopetwin.sim.cli.render as render
+    import scopetwin.sim.measurement as measurement
 
     def fake_measurement(setup: Any, heights: Any, spp: int, seed: int, noise: bool, renderer: str = "") -> Any:
         cam = setup.camera_model
@@ -147,11 +147,11 @@ def no_renders(monkeypatch: pytest.MonkeyPatch) -> None:
     def fake_generate(plan: Any, out: Any, *args: Any, **kw: Any) -> dict[str, Any]:
         raise ScopetwinError("(test stub) the plan passed every check; not rendering")
 
-    monkeypatch.setattr(render, "render_measurement", fake_measurement)
+    monkeypatch.setattr(measurement, "render_measurement", fake_measurement)  # the commands import them when run
     monkeypatch.setattr(grin, "render_image", fake_grin)
-    import scopetwin.sim.cli.dataset as dataset
+    import scopetwin.sim.datasets.store as store
 
-    monkeypatch.setattr(dataset, "generate", fake_generate)
+    monkeypatch.setattr(store, "generate", fake_generate)
 
 
 def _opt(name: str, values: st.SearchStrategy[str]) -> st.SearchStrategy[list[str]]:

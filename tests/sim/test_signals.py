@@ -134,9 +134,9 @@ def test_a_signalled_study_process_prints_one_line_and_leaves_nothing(tmp_path, 
 
 
 def test_sigterm_during_a_render_leaves_no_output(tmp_path, monkeypatch, capsys):
-    import scopetwin.sim.cli.render as render_cli
+    import scopetwin.sim.measurement as measurement
 
-    real = render_cli.write_measurement
+    real = measurement.write_measurement
 
     def write_then_signal(stage, *a, **k):
         names = real(stage, *a, **k)  # the files are staged ...
@@ -144,7 +144,7 @@ def test_sigterm_during_a_render_leaves_no_output(tmp_path, monkeypatch, capsys)
         time.sleep(5)
         return names
 
-    monkeypatch.setattr(render_cli, "write_measurement", write_then_signal)
+    monkeypatch.setattr(measurement, "write_measurement", write_then_signal)  # the command imports it when run
     setup = tmp_path / "small.toml"
     setup.write_text('base = "thesis-2.8.1-angular"\n[camera]\npixels = [68, 51]\npixel_pitch = 0.093\n')
     code = main(["render", str(setup), "--out", str(tmp_path / "o"), "--renderer", "analytic", "--spp", "1"])

@@ -1,0 +1,79 @@
+"""Start-up of the command line: ``--version`` and the parsers (``--help``) load none of the heavy libraries; the
+command modules import them inside the command functions. Each check runs in a fresh interpreter."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from scopetwin.sim.cli import GROUPS
+
+#: Libraries that a parser never needs (scipy's heavy modules, renderers, clusters, file formats, plots).
+HEAVY = (
+    "scipy.optimize",
+    "scipy.linalg",
+    "scipy.interpolate",
+    "scipy.spatial",
+    "scipy.ndimage",
+    "mitsuba",
+    "drjit",
+    "dask",
+    "distributed",
+    "pymmcore_plus",
+    "tifffile",
+    "zarr",
+    "h5py",
+    "matplotlib",
+    "cv2",
+)
+
+
+def _loaded_after(code: str) -> list[str]:
+    """The modules of :data:`HEAVY` and numpy in ``sys.modules`` after running ``code`` in a fresh interpreter."""
+    probe = f"{code}\nimport sys\nprint(' '.join(sorted(m for m in NAMES if m in sys.modules)))"
+    out = subprocess.run(
+        [sys.executable, "-c", f"NAMES = {HEAVY + ('numpy',)!r}\n{probe}"],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=120,
+    ).stdout
+    return out.splitlines()[-1].split()  # the last line: the probe's (``--version`` prints before it)
+
+
+def test_version_loads_no_library():
+    code = "import contextlib\nfrom scopetwin.sim.cli import main\n"
+    code += "with contextlib.suppress(SystemExit):\n    main(['--version'])"
+    assert _loaded_after(code) == []  # not even numpy
+
+
+#: The command module that imports library modules at its top (the reconstruction's configuration and policy,
+#: which load the basis and the setup models, and with them scipy's linear algebra and interpolation).
+EAGER = "reconstruct"
+
+
+def _parser_loads(groups: str) -> list[str]:
+    return [
+        m for m in _loaded_after(f"from scopetwin.sim.cli import build_parser\nbuild_parser({groups})") if m != "numpy"
+    ]
+
+
+def test_the_parser_of_every_command_loads_no_heavy_library_of_its_own():
+    eager = _loaded_after(f"import scopetwin.sim.cli.{EAGER}")
+    assert set(_parser_loads("")) <= set(eager)  # every group, as --help builds it: no more than that module's
+
+
+def test_each_group_alone_loads_no_heavy_library():
+    for group in GROUPS:
+        if group != EAGER:
+            assert _parser_loads(repr([group])) == [], group
+
+
+def test_the_names_spelt_out_for_the_parsers_are_the_libraries():
+    from scopetwin.calib.oneshot import LENS_MODES
+    from scopetwin.sim.cli.calibrate import LENS_MODES as CLI_LENS_MODES
+    from scopetwin.sim.cli.study import STUDY_NAMES
+    from scopetwin.sim.studies.runner import STUDIES
+
+    assert CLI_LENS_MODES == LENS_MODES
+    assert STUDY_NAMES == tuple(STUDIES)
