@@ -505,9 +505,21 @@ def _session_classes() -> dict[str, type]:
     """The Pyro proxy and daemon that sign each connection with its own key (built once; Pyro4 imported here)."""
     if _SESSION_CLASSES:
         return _SESSION_CLASSES
+    import Pyro4.util  # type: ignore[import-untyped]
+
+    proxy = _session_proxy_class()
+    daemon = _keyed_daemon_class(proxy)
+    Pyro4.util.SerializerBase.register_dict_to_class(
+        "Pyro4.core.SessionProxy", lambda _, d: _session_proxy_from_dict_state(d["state"])
+    )
+    _SESSION_CLASSES.update(proxy=proxy, daemon=daemon)
+    return _SESSION_CLASSES
+
+
+def _session_proxy_class() -> type:
+    """Build ``SessionProxy``: Pyro's proxy with a nonce in its connect message and a session key after it."""
     import Pyro4
     import Pyro4.errors  # type: ignore[import-untyped]
-    import Pyro4.util  # type: ignore[import-untyped]
 
     class SessionProxy(Pyro4.core.Proxy):  # Pyro4 is untyped: a subclass of Any
         """A Pyro proxy that sends a fresh nonce in each connect message and signs the rest of that connection with
@@ -544,21 +556,51 @@ def _session_classes() -> dict[str, type]:
         def __reduce__(self) -> tuple[Any, ...]:  # pickled by its state (the class is built at run time)
             return _session_proxy_from_state, (self.__getstate__(),)
 
-    class Bounded:
-        """A Pyro connection that refuses, from the message's header, a read larger than ``limit`` bytes."""
+    return SessionProxy
 
-        def __init__(self, conn: Any, limit: int) -> None:
-            self._conn = conn
-            self._limit = limit
 
-        def recv(self, size: int) -> bytes:
-            if size > self._limit:
-                self._conn.close()
-                raise Pyro4.errors.SecurityError(f"a message part of {size} bytes refused: at most {self._limit}")
-            return bytes(self._conn.recv(size))
+class _Bounded:
+    """A Pyro connection that refuses, from the message's header, a read larger than ``limit`` bytes."""
 
-        def __getattr__(self, name: str) -> Any:
-            return getattr(self._conn, name)
+    def __init__(self, conn: Any, limit: int) -> None:
+        self._conn = conn
+        self._limit = limit
+
+    def recv(self, size: int) -> bytes:
+        if size > self._limit:
+            self._conn.close()
+            raise _pyro().errors.SecurityError(f"a message part of {size} bytes refused: at most {self._limit}")
+        return bytes(self._conn.recv(size))
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._conn, name)
+
+
+def _timed_handshake(handshake: Callable[[Any], Any], conn: Any) -> bool:
+    """Run Pyro's ``handshake`` on ``conn`` within :data:`HANDSHAKE_TIMEOUT_S` and :data:`MAX_HANDSHAKE_BYTES`.
+
+    Returns
+    -------
+    bool
+        Whether it succeeded; a dropped, too slow or too large client gives False (its caller closes it).
+    """
+    watchdog = threading.Timer(HANDSHAKE_TIMEOUT_S, _shut, args=(conn,))
+    watchdog.daemon = True
+    watchdog.start()
+    try:
+        conn.timeout = HANDSHAKE_TIMEOUT_S
+        ok = bool(handshake(_Bounded(conn, MAX_HANDSHAKE_BYTES)))
+    except Exception:  # a dropped, too slow or too large client: its caller closes it, nothing to report
+        ok = False
+    finally:
+        watchdog.cancel()
+    return ok
+
+
+def _keyed_daemon_class(session_proxy: type) -> type:
+    """Build ``KeyedDaemon``: Pyro's daemon with per-connection session keys; it hands out ``session_proxy``s."""
+    import Pyro4
+    import Pyro4.errors
 
     class KeyedDaemon(Pyro4.Daemon):  # Pyro4 is untyped: a subclass of Any
         """A Pyro daemon whose connections each sign with a session key after a handshake signed with the shared
@@ -581,7 +623,7 @@ def _session_classes() -> dict[str, type]:
 
         def proxyFor(self, objectOrId: Any, nat: bool = True) -> Any:  # noqa: N802,N803 - Pyro4's names
             plain = super().proxyFor(objectOrId, nat)
-            proxy = SessionProxy(plain._pyroUri)
+            proxy: Any = session_proxy(plain._pyroUri)
             proxy._pyroHmacKey = self.__dict__.get("_Daemon__pyroHmacKey")  # the shared key, not this connection's
             proxy._pyroSerializer = self.scopetwin_serializers[0]
             return proxy
@@ -591,16 +633,7 @@ def _session_classes() -> dict[str, type]:
             self._session.pending = None
             if denied_reason:  # all workers busy: close at once rather than wait for this client in the accept loop
                 return False
-            watchdog = threading.Timer(HANDSHAKE_TIMEOUT_S, _shut, args=(conn,))
-            watchdog.daemon = True
-            watchdog.start()
-            try:
-                conn.timeout = HANDSHAKE_TIMEOUT_S
-                ok = bool(super()._handshake(Bounded(conn, MAX_HANDSHAKE_BYTES)))
-            except Exception:  # a dropped, too slow or too large client: its caller closes it, nothing to report
-                ok = False
-            finally:
-                watchdog.cancel()
+            ok = _timed_handshake(super()._handshake, conn)
             if ok and self._session.pending:
                 self._session.key = self._session.pending
                 conn.timeout = None  # a keyed client may hold its connection as long as it likes
@@ -618,13 +651,9 @@ def _session_classes() -> dict[str, type]:
         def handleRequest(self, conn: Any) -> Any:  # noqa: N802 - Pyro4's name
             if not getattr(self._session, "key", None):  # no handshake on this worker: nothing is served
                 raise Pyro4.errors.SecurityError("no session")
-            return super().handleRequest(Bounded(conn, self._max_message_bytes))
+            return super().handleRequest(_Bounded(conn, self._max_message_bytes))
 
-    Pyro4.util.SerializerBase.register_dict_to_class(
-        "Pyro4.core.SessionProxy", lambda _, d: _session_proxy_from_dict_state(d["state"])
-    )
-    _SESSION_CLASSES.update(proxy=SessionProxy, daemon=KeyedDaemon)
-    return _SESSION_CLASSES
+    return KeyedDaemon
 
 
 def _shut(conn: Any) -> None:
