@@ -157,6 +157,11 @@ class OuterStep:
     sigma_mm: float
 
 
+#: A point of the ROI farther than this from every marker is not covered by the measurement, mm (two marker spacings
+#: of the §1.10 setup; :meth:`ReconstructionResult.roi_coverage`).
+ROI_COVERAGE_GAP_MM = 3.0
+
+
 @dataclass
 class ReconstructionResult:
     """The reconstructed surface with its iteration history and (``config.posterior`` on) its uncertainty."""
@@ -170,6 +175,7 @@ class ReconstructionResult:
     uncertainty: Uncertainty | None = None
     rejected: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     strategy: list[str] = field(default_factory=list)
+    marker_xy: Array | None = None
 
     def height_at(self, x_mm: Any, y_mm: Any) -> NDArray[np.float64]:
         """Heights of the reconstructed surface at substrate coordinates (x, y), mm (vectorised, broadcast)."""
@@ -205,6 +211,21 @@ class ReconstructionResult:
     def history_dicts(self) -> list[dict[str, Any]]:
         return [asdict(s) for s in self.history]
 
+    def roi_coverage(self, max_gap_mm: float = ROI_COVERAGE_GAP_MM, step_mm: float = 0.5) -> float | None:
+        """Share of the region of interest within ``max_gap_mm`` of a marker the surface rests on (None: unknown).
+
+        The markers sample the slopes about 1.5 mm apart (§1.10); a point farther than two such spacings from every
+        marker is the basis's interpolation or extrapolation, not a measurement. Evaluated on a ``step_mm`` grid
+        over the ROI against the markers' points on the substrate (:attr:`marker_xy`).
+        """
+        if self.marker_xy is None or len(self.marker_xy) == 0:
+            return None
+        from scipy.spatial import cKDTree
+
+        gx, gy = self.substrate.roi_grid(step_mm)
+        dist, _ = cKDTree(self.marker_xy).query(np.stack([gx, gy], axis=-1))
+        return float(np.mean(dist <= max_gap_mm))
+
     def summary(self) -> dict[str, Any]:
         """JSON-ready summary (the `reconstruct` contract's keys plus the history)."""
         return {
@@ -216,6 +237,7 @@ class ReconstructionResult:
             "start_height_um": self.history[-1].start_height_um,
             "sigma_mm": list(self.surface.basis.sigma),
             "basis_functions": self.surface.basis.n_basis,
+            **({"roi_coverage": self.roi_coverage()} if self.marker_xy is not None else {}),
             **({"rejected_markers": self.rejected.tolist()} if len(self.rejected) else {}),
             **({"strategy": list(self.strategy)} if self.strategy else {}),
             **({"uncertainty": self.uncertainty.summary()} if self.uncertainty is not None else {}),
@@ -282,6 +304,7 @@ class Reconstructor:
         check_substrate_visible(camera, substrate)
         self.sigma_scores: dict[float, float] = {}
         self.last: SBFSurface | None = None
+        self.last_xy: Array | None = None  # the markers' points on the substrate in the last inner iteration, mm
         self.evidence_start: Hyper | None = None
         self.use_basis(self.config.make_basis(substrate))
 
@@ -390,6 +413,7 @@ class Reconstructor:
         prev_roi = self._roi_values @ surface.coef + surface.offset
         for _ in range(cfg.inner_max):
             xy, hx, hy, ok = self.trace(surface, self.corrected(surface, ij, px_meas), targets)
+            self.last_xy = xy
             run.lost = self.coverage(xy, len(ij))
             if run.lost is not None:
                 return run

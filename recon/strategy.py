@@ -148,6 +148,7 @@ def _solve(
         rec.config,
         rejected=search.rejected,
         strategy=search.path,
+        marker_xy=rec.last_xy,
     )
     return _accept(search, result, history_path)
 

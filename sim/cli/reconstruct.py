@@ -91,6 +91,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         "delta_h_max_um": result.delta_h_max_um,
         "seconds": seconds,
         "markers": len(found.ij),
+        "roi_coverage": result.roi_coverage(),
         "strategy": list(result.strategy),
         "start_height_um": result.history[-1].start_height_um,
         **extra,
