@@ -9,10 +9,12 @@ before any tuning) is rendered on the §1.10 setup by Mitsuba at ``--spp`` sampl
 noise (render and noise seed = the surface seed) and reconstructed with the defaults of :func:`scopetwin.reconstruct`,
 exactly as a camera frame would be. Printed per image: the outcome (or the one-line error), seconds, the absolute
 error (ROI mean) and the shape error (ROI RMS about it) in µm with each one's distance in reported standard
-uncertainties; per family: failures, the median shape and absolute errors, how many lie within 2 u, and how many
-absolute errors are within 1 µm. The ``dimple`` row is :func:`scopetwin.sim.families.dimple_spec` (the §1.10 surface
-with a 3 mm wide, 2 µm deep dimple): the depth reconstructed at its centre, relative to a 4 mm ring around it, as a
-share of the true one.
+uncertainties, and the share of the ROI within two marker spacings of a marker (``roi_coverage``); per family:
+failures, the median shape and absolute errors, how many lie within 2 u, how many absolute errors are within 1 µm
+and the least ROI coverage. ``--intersection surface`` starts the rays on the current surface
+(:attr:`~scopetwin.recon.config.ReconstructionConfig.intersection_start`) instead of the defaults. The ``dimple``
+row is :func:`scopetwin.sim.families.dimple_spec` (the §1.10 surface with a 3 mm wide, 2 µm deep dimple): the depth
+reconstructed at its centre, relative to a 4 mm ring around it, as a share of the true one.
 """
 
 from __future__ import annotations
@@ -65,6 +67,7 @@ def one(family: str, seed: int, spp: int, intersection: str = "offset") -> dict[
     row.update(roi_errors(res.surface.height, m.heights, Substrate2D.from_setup(setup)))
     assert res.uncertainty is not None
     row["u_abs_um"], row["u_shape_um"] = res.uncertainty.absolute_um, res.uncertainty.shape_um
+    row["coverage"] = res.roi_coverage()
     if family == "dimple":
         row["depth_share"] = dimple_depth(res.height_at) / dimple_depth(m.heights.height)
     return row
@@ -77,7 +80,7 @@ def line(r: dict[str, Any]) -> str:
     a, s, ua, us = r["roi_absolute_um"], r["roi_shape_um"], r["u_abs_um"], r["u_shape_um"]
     text = (
         f"{head}  {r['seconds']:5.1f} s  absolute {a:+8.3f} µm ({abs(a) / ua:4.1f} u)  "
-        f"shape {s:6.3f} µm ({s / us:4.1f} u)"
+        f"shape {s:6.3f} µm ({s / us:4.1f} u)  ROI covered {100 * r['coverage']:.0f} %"
     )
     return text + (f"  dimple depth {100 * r['depth_share']:.0f} %" if "depth_share" in r else "")
 
@@ -85,8 +88,8 @@ def line(r: dict[str, Any]) -> str:
 def table(rows: list[dict[str, Any]]) -> str:
     out = [
         "| family | images | failed | shape median µm | |absolute| median µm | within 2 u (abs, shape) | "
-        "|absolute| <= 1 µm |",
-        "|---|---|---|---|---|---|---|",
+        "|absolute| <= 1 µm | ROI covered (least) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for fam in dict.fromkeys(r["family"] for r in rows):
         rs = [r for r in rows if r["family"] == fam]
@@ -96,9 +99,13 @@ def table(rows: list[dict[str, Any]]) -> str:
             sh = np.array([r["roi_shape_um"] for r in ok])
             in_a = int(np.sum(a <= 2 * np.array([r["u_abs_um"] for r in ok])))
             in_s = int(np.sum(sh <= 2 * np.array([r["u_shape_um"] for r in ok])))
-            cells = f"{np.median(sh):.3f} | {np.median(a):.3f} | {in_a}, {in_s} of {len(ok)} | {int(np.sum(a <= 1))}"
+            cover = min(r["coverage"] for r in ok)
+            cells = (
+                f"{np.median(sh):.3f} | {np.median(a):.3f} | {in_a}, {in_s} of {len(ok)} | {int(np.sum(a <= 1))} | "
+                f"{100 * cover:.0f} %"
+            )
         else:
-            cells = "— | — | — | 0"
+            cells = "— | — | — | 0 | —"
         out.append(f"| {fam} | {len(rs)} | {len(rs) - len(ok)} | {cells} |")
     return "\n".join(out)
 

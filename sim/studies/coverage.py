@@ -22,8 +22,9 @@ from scopetwin.sim.families import family_spec
 from scopetwin.sim.studies.context import StudyContext, StudyResult, error_text, failed
 from scopetwin.sim.studies.tables import Table, jsonable
 
-#: The families: surface-spec fields per family; ranges are drawn per surface.
-FAMILIES = ("gauss", "gauss+broadband", "abc+broadband", "power+broadband", "glass")
+#: The families (:mod:`scopetwin.sim.families`): the thesis's kind and, fixed before any tuning, the bent glass it
+#: was not designed on (glass-like sheets, cut sheets with edge roll-off, steep and high sheets, local features).
+FAMILIES = ("gauss", "gauss+broadband", "abc+broadband", "power+broadband", "glass", "cut", "steep", "features")
 
 
 def coverage_task(
@@ -63,6 +64,7 @@ def coverage_task(
     u = res.uncertainty
     row.update(errs)
     row["markers"] = int(vis.sum())
+    row["roi_coverage"] = res.roi_coverage()
     row["seconds"] = time.perf_counter() - t0
     row["max_y_mm"] = float(np.max(np.abs(Substrate2D.from_setup(setup).y_range)))
     if u is not None:
@@ -77,12 +79,17 @@ def coverage_task(
 
 
 def coverage_table(rows: list[dict[str, Any]], title: str) -> Table:
-    """Per family: count, absolute/shape error quantiles, mean u, and the 2u coverage."""
+    """Per family: count, failures, absolute/shape error quantiles, mean u, the 2u coverage, the least ROI coverage.
+
+    ``rows`` may hold failed surfaces (an ``error`` key): they are counted, not measured.
+    """
     cells = []
     for fam in [*FAMILIES, "all"]:
-        rs = [r for r in rows if (fam == "all" or r["family"] == fam) and "u_abs_um" in r]
+        mine = [r for r in rows if fam == "all" or r["family"] == fam]
+        rs = [r for r in mine if "u_abs_um" in r]
         if not rs:
             continue
+        cover = [r["roi_coverage"] for r in rs if r.get("roi_coverage") is not None]
         a = np.abs([r["roi_absolute_um"] for r in rs])
         a0 = np.abs([r["uncorrected_absolute_um"] for r in rs])
         sh = np.array([r["roi_shape_um"] for r in rs])
@@ -92,6 +99,7 @@ def coverage_table(rows: list[dict[str, Any]], title: str) -> Table:
             [
                 fam,
                 len(rs),
+                sum(1 for r in mine if "error" in r),
                 float(np.median(a0)),
                 float(a0.max()),
                 float(np.median(a)),
@@ -103,6 +111,7 @@ def coverage_table(rows: list[dict[str, Any]], title: str) -> Table:
                 float(sh.max()),
                 float(np.median(us)),
                 float(np.mean(sh <= 2 * us) * 100),
+                float(min(cover) * 100) if cover else float("nan"),
             ]
         )
     return Table(
@@ -110,6 +119,7 @@ def coverage_table(rows: list[dict[str, Any]], title: str) -> Table:
         columns=[
             "family",
             "surfaces",
+            "failed",
             "|abs| median, fit (µm)",
             "|abs| max, fit (µm)",
             "|abs| median (µm)",
@@ -121,10 +131,12 @@ def coverage_table(rows: list[dict[str, Any]], title: str) -> Table:
             "shape max (µm)",
             "u_shape median (µm)",
             "shape <= 2 u_shape (%)",
+            "ROI covered, least (%)",
         ],
         cells=cells,
         note="'fit': the shifted-basis surface's own extrapolation (before the posterior correction of the start "
-        "height); the other absolute columns are the reported estimate. Calibrated coverage: 90-98 %.",
+        "height); the other absolute columns are the reported estimate. Calibrated coverage: 90-98 %. 'ROI covered': "
+        "the share of the region of interest within two marker spacings (3 mm) of a marker.",
     )
 
 
@@ -134,7 +146,7 @@ def coverage(ctx: StudyContext, per_family: int = 14, noise_px: float = 0.005) -
     rows = ctx.map(coverage_task, args, "coverage: reconstruct")
     notes = [f"surface failed: {error_text(r)}" for r in rows if failed(r)]
     good = [r for r in rows if not failed(r)]
-    t1 = coverage_table(good, f"Coverage of the reported uncertainty ({len(good)} surfaces)")
+    t1 = coverage_table(rows, f"Coverage of the reported uncertainty ({len(good)} surfaces)")
     import matplotlib
 
     matplotlib.use("Agg")
@@ -161,7 +173,8 @@ def coverage(ctx: StudyContext, per_family: int = 14, noise_px: float = 0.005) -
     return StudyResult(
         "Study: coverage of the reconstruction's uncertainty",
         "Whether the reported standard uncertainties of the absolute height and the shape are calibrated over "
-        "surfaces of mixed families (§1.9 Gaussian, with broadband content, PSD with broadband content).",
+        "surfaces of mixed families (§1.9 Gaussian, with broadband content, PSD with broadband content; glass-like, "
+        "cut, steep and locally featured sheets).",
         [t1],
         ["coverage.png"],
         {"rows": jsonable(good)},

@@ -110,6 +110,7 @@ def test_coverage_table_counts_errors_within_2u():
 
     rows = [row("gauss", 0.01, 0.01, 0.002, 0.002), row("gauss", -0.03, 0.01, 0.005, 0.002)]
     rows += [row("abc+broadband", 0.1, 0.2, 0.03, 0.02), row("abc+broadband", -0.25, 0.1, 0.02, 0.02)]
+    rows += [{"family": "gauss", "error": "NotConvergedError: ..."}]  # a failed surface is counted, not measured
     t = coverage_table(rows, "T")
     by_family = {c[0]: c for c in t.cells}
     assert set(by_family) == {"gauss", "abc+broadband", "all"}
@@ -118,6 +119,7 @@ def test_coverage_table_counts_errors_within_2u():
     assert by_family["gauss"][cols["shape <= 2 u_shape (%)"]] == pytest.approx(50.0)  # 0.005 > 2 x 0.002
     assert by_family["abc+broadband"][cols["|abs| <= 2 u_abs (%)"]] == pytest.approx(50.0)
     assert by_family["all"][cols["surfaces"]] == 4
+    assert by_family["gauss"][cols["failed"]] == 1 and by_family["abc+broadband"][cols["failed"]] == 0
     assert by_family["all"][cols["|abs| max (µm)"]] == pytest.approx(0.25)
     assert by_family["all"][cols["|abs| max, fit (µm)"]] == pytest.approx(0.5)
 
