@@ -55,6 +55,11 @@ class ReconstructionPolicy:
         (:meth:`scopetwin.recon.reconstruct.Reconstructor.scale_from_flat_start`; 3 mm / 60 µm seeds 1 and 2); also
         where the search does not converge (seed 7: 30 runs at 12 mm do not settle, the 4 mm scale chosen on the
         flat start converges).
+    scale_search_runs : int
+        Start-height runs a search gets where another path can follow it: the first search before the scale chosen
+        on the flat start is tried (the same scale: the rest of ``outer_max``), and a re-chosen scale's search where
+        the first scale's converged result can be kept. On the hard families a search that converges does so in
+        3-10 runs; one that does not cycles through all 30 (glass-like seeds 9100 and 9104: 20 s each).
     rechoose_scale : bool
         After the first start-height search, choose the basis scale on data traced through its surface
         (:func:`scopetwin.recon.scale.select_sigma`) and search again with it; also when the first scale did not
@@ -103,6 +108,7 @@ class ReconstructionPolicy:
     bias_step: bool = True
     bias_recompute_um: float = 0.2
     rescale_from_flat_start: bool = True
+    scale_search_runs: int = 15
     rechoose_scale: bool = True
     keep_first_scale: bool = True
     outlier_factor: float = 10.0
@@ -123,6 +129,8 @@ class ReconstructionPolicy:
     def __post_init__(self) -> None:
         if not 0.0 <= self.lattice_below <= 1.0:
             raise ValueError(f"lattice_below must lie in [0, 1], got {self.lattice_below}")
+        if self.scale_search_runs < 1:
+            raise ValueError(f"scale_search_runs must be >= 1, got {self.scale_search_runs}")
         if not 0.0 < self.reference_offset_max < 1.0:
             raise ValueError(f"reference_offset_max must lie in (0, 1), got {self.reference_offset_max}")
         if self.outlier_factor < 0 or not 0.0 <= self.outlier_max_fraction < 1.0:

@@ -157,7 +157,8 @@ def _first_search(search: _Search) -> LoopOutcome:
     """The start-height search from the frame height; where its rays lose the substrate or it does not converge,
     the scale chosen on the flat start and the search again with a fresh budget (``rescale_from_flat_start``)."""
     rec, policy = search.rec, search.policy
-    out = search.loop(rec.sub.frame_z)
+    budget = min(policy.scale_search_runs, rec.config.outer_max) if policy.rescale_from_flat_start else None
+    out = search.loop(rec.sub.frame_z, budget)
     if out.converged:
         return out
     changed = rec.scale_from_flat_start(search.markers) if policy.rescale_from_flat_start else False
@@ -165,9 +166,11 @@ def _first_search(search: _Search) -> LoopOutcome:
         search.path.append("basis scale on the flat start: its rays lose the substrate too")
         raise search.fail(changed if out.failure is None else out.failure)
     if not changed:
-        if out.failure is None:  # not converged: the scale chosen on the data may still help
-            return out
-        raise search.fail(out.failure)
+        if out.failure is not None:
+            raise search.fail(out.failure)
+        if len(search.history) < rec.config.outer_max:  # the same scale: the rest of its budget
+            out = search.loop(search.history[-1].start_height_um * 1e-3)
+        return out  # not converged: the scale chosen on the data may still help
     search.path.append(f"basis scale chosen on the flat start: {rec.basis.sigma[0]:g} mm")
     out = search.loop(rec.sub.frame_z, rec.config.outer_max, fresh=True)
     if out.failure is not None:
@@ -193,9 +196,12 @@ def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
     first = (rec.basis, len(search.history), out, rec.last)
     rec.use_basis(cfg.make_basis(rec.sub, best))
     search.path.append(f"basis scale chosen on the data: {current:g} -> {best:g} mm")
-    # a converged search's start height is kept; an unconverged one's is no start: from the frame height again
+    # a converged search's start height is kept; an unconverged one's is no start: from the frame height again.
+    # Where the first result can be kept, the finer scale gets a refinement's budget, not a whole search's
     h_start = search.history[-1].start_height_um * 1e-3 if out.converged else rec.sub.frame_z
-    again = search.loop(h_start, None if out.converged else cfg.outer_max, fresh=True)
+    keep = out.converged and policy.keep_first_scale
+    runs = min(policy.scale_search_runs, cfg.outer_max) if keep else (None if out.converged else cfg.outer_max)
+    again = search.loop(h_start, runs, fresh=True)
     if not again.converged and too_coarse and policy.rescale_from_flat_start:
         # the gradients traced through a scale too coarse for them can choose a scale that does not settle either
         # (a 12 mm basis on a 3 mm / 60 µm surface: 3 mm chosen, its rays lose the substrate); the flat start's
