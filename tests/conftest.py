@@ -93,12 +93,22 @@ def _jit_cleanup(request: pytest.FixtureRequest):
             pass
 
 
+def _hangup_ignored(signum: int, frame: object) -> None:
+    """The suite's SIGHUP handler under ``nohup``: the hangup is ignored, as ``nohup`` asked."""
+
+
 def pytest_configure(config: pytest.Config) -> None:
-    """The signal tests send Ctrl-C as a terminal does; a suite started as a background job of a script (``cmd &``)
-    inherits SIGINT ignored, and every process it starts would keep it ignored (as Python and the shell must). So the
-    suite's own processes take Python's SIGINT handler: the processes they start get the default action back."""
+    """The signal tests send Ctrl-C and SIGHUP as a terminal does; a suite started as a background job of a script
+    (``cmd &``) inherits SIGINT ignored, one started under ``nohup`` inherits SIGHUP ignored, and every process it
+    starts would keep it ignored (as Python, the shell and the command line must: ``nohup scopetwin ...`` survives a
+    hangup). So the suite's own processes take a handler instead (Python's for SIGINT, one that does nothing for
+    SIGHUP, so the suite itself still survives a hangup): a handler is reset by ``exec``, and the processes the tests
+    start get the default action back."""
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    hangup = getattr(signal, "SIGHUP", None)  # POSIX only
+    if hangup is not None and signal.getsignal(hangup) is signal.SIG_IGN:
+        signal.signal(hangup, _hangup_ignored)
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import shutil
 import signal
 import subprocess
 import sys
@@ -104,13 +105,14 @@ DRIVER = textwrap.dedent(
 )
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
-def test_a_signalled_study_process_prints_one_line_and_leaves_nothing(tmp_path, sig):
+def _start_waiting_study(tmp_path: Path, *prefix: str) -> subprocess.Popen:
+    """The driver in its own session (``prefix``: a command it runs under, e.g. ``nohup``), once its study waits."""
     out, ready = tmp_path / "report", tmp_path / "ready"
     proc = subprocess.Popen(
-        [sys.executable, "-c", DRIVER, str(out), str(ready)],
+        [*prefix, sys.executable, "-c", DRIVER, str(out), str(ready)],
         cwd=ROOT,
         env={**os.environ, "PYTHONPATH": str(ROOT)},
+        stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -122,15 +124,72 @@ def test_a_signalled_study_process_prints_one_line_and_leaves_nothing(tmp_path, 
             assert proc.poll() is None, proc.communicate()
             assert time.monotonic() - t0 < 60, "the study did not start"
             time.sleep(0.05)
-        os.killpg(proc.pid, sig)  # the whole group, as a terminal, `timeout` or a batch system does
+    except BaseException:
+        proc.kill()
+        proc.wait()
+        raise
+    return proc
+
+
+def _signal_and_wait(proc: subprocess.Popen, sig: int) -> str:
+    """Send ``sig`` to the driver's whole group, as a terminal, `timeout` or a batch system does; its stderr."""
+    try:
+        os.killpg(proc.pid, sig)
         _, err = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+    return err
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT], ids=lambda s: signal.Signals(s).name)
+def test_a_signalled_study_process_prints_one_line_and_leaves_nothing(tmp_path, sig):
+    proc = _start_waiting_study(tmp_path)
+    err = _signal_and_wait(proc, sig)
     assert proc.returncode == 128 + sig, err
     assert err == f"scopetwin: interrupted by {signal.Signals(sig).name}\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ready"]  # no report, no staging folder, no JSON
+
+
+@pytest.mark.skipif(shutil.which("nohup") is None, reason="no nohup here")
+def test_a_command_under_nohup_survives_a_hangup_and_still_ends_cleanly_on_sigterm(tmp_path):
+    """SIGHUP ignored when the command starts (``nohup scopetwin ...``) stays ignored: the user asked for the command
+    to outlive the terminal. SIGTERM and SIGINT still end it with one line and nothing half-written."""
+    proc = _start_waiting_study(tmp_path, shutil.which("nohup") or "nohup")
+    os.killpg(proc.pid, signal.SIGHUP)
+    time.sleep(1.0)
+    assert proc.poll() is None, proc.communicate()
+    err = _signal_and_wait(proc, signal.SIGTERM)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert err == "scopetwin: interrupted by SIGTERM\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ready"]
+
+
+def test_the_signal_tests_pass_in_a_suite_started_with_sighup_ignored(tmp_path):
+    """A suite started under ``nohup`` inherits SIGHUP ignored, and so would every command it starts (a hangup then
+    ends nothing): the suite's conftest gives its children the default action back, so the SIGHUP case above still
+    sees its command end cleanly with 129 there."""
+    node = f"{Path(__file__).relative_to(ROOT)}::test_a_signalled_study_process_prints_one_line_and_leaves_nothing"
+    code = textwrap.dedent(
+        f"""
+        import signal, sys
+        import pytest
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)  # as under nohup
+        sys.exit(pytest.main(["-q", "-p", "no:cacheprovider", "--basetemp", sys.argv[1], {node + "[SIGHUP]"!r}]))
+        """
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(tmp_path / "inner")],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "1 passed" in proc.stdout
 
 
 def test_sigterm_during_a_render_leaves_no_output(tmp_path, monkeypatch, capsys):
