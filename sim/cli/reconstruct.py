@@ -13,15 +13,19 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from scopetwin.recon.config import ReconstructionConfig
-from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.sim.cli.options import conventions, finite_float
 
+if TYPE_CHECKING:  # loaded when a reconstruction runs, not when the parser is built
+    from scopetwin.recon.config import ReconstructionConfig
+    from scopetwin.recon.policy import ReconstructionPolicy
+
 
 def _config(args: argparse.Namespace) -> ReconstructionConfig:
+    from scopetwin.recon.config import ReconstructionConfig
+
     if args.thesis:
         return ReconstructionConfig.thesis(search="secant")
     changes: dict[str, Any] = {}
@@ -37,6 +41,8 @@ def _config(args: argparse.Namespace) -> ReconstructionConfig:
 
 def _policy(args: argparse.Namespace) -> ReconstructionPolicy:
     """The strategy's policy: the default, without the bias step under ``--no-bias-correction``."""
+    from scopetwin.recon.policy import DEFAULT_POLICY
+
     return DEFAULT_POLICY.with_changes(bias_step=not args.no_bias_correction)
 
 
