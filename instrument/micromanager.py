@@ -901,7 +901,6 @@ def _writer(output: Any, seq: Any, core: Any, rig: Rig, limits: Any, single_file
     grids = [_grid_of(seq, position) for position in _positions(seq)]
     points = [_grid_extent(grid, limits)[0] if grid is not None else 1 for grid in grids]
     layout = layout_of(seq, plan_size(seq, limits).sizes, points)
-    Path(output).parent.mkdir(parents=True, exist_ok=True)
     return OmeOutput(output, layout, _acquisition_info(core, rig, seq, limits), single_file=single_file)
 
 

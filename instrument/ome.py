@@ -222,11 +222,21 @@ class OmeOutput:
         The frames' shape, type, bit depth, pixel size, channels and optics.
     single_file : bool
         OME-TIFF only: all positions in one multi-series file.
+
+    Raises
+    ------
+    RigError
+        An output path of another kind, or a name its metadata cannot hold (OME-TIFF: XML; OME-Zarr: JSON;
+        :func:`~scopetwin.instrument.ome_xml.check_names`), before anything is written.
     """
 
     def __init__(self, path: str | Path, layout: Layout, info: AcquisitionInfo, *, single_file: bool = False) -> None:
         self.path = Path(path)
         self.kind = output_kind(path)
+        from scopetwin.instrument.ome_xml import check_names
+
+        check_names(path, layout, info, self.kind)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.layout, self.info = layout, info
         self.single_file = single_file and self.kind == "tiff"
         self.reported = _Reported()

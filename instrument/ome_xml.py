@@ -1,16 +1,84 @@
 """The OME-XML parts :mod:`scopetwin.instrument.ome` adds to what ome-writers writes, and the whole OME-XML of a
 single multi-series OME-TIFF (ome-types' model). ``info`` is an :class:`~scopetwin.instrument.ome.AcquisitionInfo`,
-``out`` an :class:`~scopetwin.instrument.ome.OmeOutput` (typed ``Any`` here: this module is imported by that one)."""
+``out`` an :class:`~scopetwin.instrument.ome.OmeOutput` (typed ``Any`` here: this module is imported by that one).
+
+Every name the XML carries (the output file's name, position names from the plan, channel presets, the camera) is
+written by ome-types, which escapes quotes, ``<``, ``&`` and line breaks, so such a name reads back as it was.
+What XML 1.0 cannot hold at all (and, in OME-Zarr's JSON, text that is not Unicode) is refused before the first
+file is opened (:func:`check_names`).
+"""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from pathlib import Path
 from typing import Any
+
+from scopetwin.instrument.errors import RigError
 
 INSTRUMENT_ID = "Instrument:0"
 OBJECTIVE_ID = "Objective:0"
 DETECTOR_ID = "Detector:0"
 #: OME's order of the non-plane axes of a plane index.
 ORDER = "zct"
+
+
+def _xml_char(c: str) -> bool:
+    """Whether XML 1.0 can hold ``c`` (its production ``Char``)."""
+    o = ord(c)
+    return o in (0x9, 0xA, 0xD) or 0x20 <= o <= 0xD7FF or 0xE000 <= o <= 0xFFFD or o >= 0x10000
+
+
+def xml_text_problem(value: str) -> str | None:
+    """Why ``value`` cannot be text in an XML document (an OME-XML attribute), or None.
+
+    XML 1.0 has no way to write a NUL or another control character other than tab, line feed and carriage return
+    (not even escaped), nor U+FFFE, U+FFFF or a lone surrogate (the form Python gives a file name in another
+    encoding than UTF-8). Quotes, ``<``, ``&`` and line breaks are no problem: they are escaped.
+    """
+    bad = sorted({c for c in value if not _xml_char(c)})
+    if bad:
+        return f"holds the character(s) {', '.join(repr(c) for c in bad)}, which XML cannot hold"
+    return None
+
+
+def json_text_problem(value: str) -> str | None:
+    """Why ``value`` cannot be a string of OME-Zarr's JSON (UTF-8), or None: only a lone surrogate (text that is
+    not Unicode, such as a file name in another encoding); every other character is escaped."""
+    bad = sorted({c for c in value if "\ud800" <= c <= "\udfff"})
+    if bad:
+        return f"holds the character(s) {', '.join(repr(c) for c in bad)}, which is not Unicode text"
+    return None
+
+
+def ome_names(path: str | Path, layout: Any, info: Any, kind: str = "tiff") -> Iterable[tuple[str, str]]:
+    """``(what, name)`` of every name an OME file of ``kind`` (``"tiff"``, ``"zarr"``) for ``layout`` and ``info`` at
+    ``path`` writes into its metadata."""
+    if kind == "tiff":
+        yield "output file name", Path(path).name
+    yield from (("position", name) for name in layout.names)
+    yield from (("channel", channel.name) for channel in info.channels)
+    yield "camera", info.camera
+    if kind == "zarr":  # the attribute ``scopetwin`` names the rig and the lights too
+        yield "rig", info.rig
+        yield from (("light", channel.light) for channel in info.channels if channel.light is not None)
+
+
+def check_names(path: str | Path, layout: Any, info: Any, kind: str = "tiff") -> None:
+    """Refuse an OME file whose metadata could not hold one of its names: for OME-TIFF what XML cannot hold
+    (:func:`xml_text_problem`), for OME-Zarr what JSON cannot (:func:`json_text_problem`).
+
+    Raises
+    ------
+    RigError
+        One line naming the first such name, where it comes from and why; nothing is written.
+    """
+    problem_of, label = (xml_text_problem, "an OME-TIFF") if kind == "tiff" else (json_text_problem, "an OME-Zarr")
+    for what, name in ome_names(path, layout, info, kind):
+        problem = problem_of(name)
+        if problem is not None:
+            hint = "rename it, or write .ome.zarr" if kind == "tiff" else "rename it"
+            raise RigError(f"{what} {name!r} {problem}: {label} cannot carry it; {hint}")
 
 
 def instrument(info: Any) -> Any:
