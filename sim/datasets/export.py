@@ -25,8 +25,8 @@ dimension scales (``sample``, ``y``, ``x``, ...), which ``xarray.open_dataset(pa
 dimensions. Each variable's attributes give its meaning (``description``) and, where it has a physical unit, a
 CF-style ``units`` (``mm``, ``um``, ``nm``, ``rad``, ``degree``, ``s``, ``px``; ``1`` for dimensionless
 quantities; none for flags and indices); the root's attributes name the dataset, its kind and its format. Everything
-is checked (samples, target, backend, ``--only``) before the first sample is written; the export is written under a
-temporary name and moved into place when complete.
+is checked (samples, target, backend, ``--only``, the names: :func:`check_names`) before the first sample is written;
+the export is written under a temporary name and moved into place when complete.
 """
 
 from __future__ import annotations
@@ -184,6 +184,58 @@ def _parameters(samples: Sequence[Any]) -> dict[str, NDArray[np.float64]]:
     return out
 
 
+def node_name_problem(name: str) -> str | None:
+    """Why ``name`` cannot name an array of a Zarr store and of an HDF5 file, or None.
+
+    Both formats read a name as a path: a ``/`` hides the array in a group, ``.`` and ``..`` are path steps; a NUL
+    ends the name in HDF5 (``image_\\0x`` would be written as ``image_``), Zarr reserves names that begin with ``__``,
+    and neither takes a control character or text that is not Unicode (a file name in another encoding). The names
+    come from the samples (image files, map layers, channels), which may be someone else's.
+    """
+    if not name:
+        return "is empty"
+    bad = sorted({c for c in name if not c.isprintable()})
+    if bad:
+        return f"holds the character(s) {', '.join(repr(c) for c in bad)}"
+    if "/" in name:
+        return "holds a '/' (a path separator in Zarr and HDF5)"
+    if name in (".", ".."):
+        return "is a path step"
+    if name.startswith("__"):
+        return "begins with '__' (reserved by Zarr)"
+    return None
+
+
+def check_names(variables: dict[str, Variable], first: int) -> None:
+    """Refuse variable and dimension names that Zarr or HDF5 cannot take (:func:`node_name_problem`) or that two
+    arrays would share (a variable named like a dimension, whose coordinate is an array of that name).
+
+    Raises
+    ------
+    DatasetError
+        One line naming the first such name (of sample ``first``, whose layout the export follows).
+    """
+    dims = {d for var in variables.values() for d in var.dims}
+    for what, name in [*(("variable", n) for n in variables), *(("dimension", d) for d in sorted(dims))]:
+        problem = node_name_problem(name)
+        if problem is not None:
+            raise DatasetError(
+                f"sample {first}: {what} {name!r} {problem}: a Zarr or HDF5 array cannot be called that"
+                + ("; leave it out with --only" if what == "variable" else "")
+            )
+    shared = sorted(dims.intersection(variables))
+    if shared:
+        raise DatasetError(
+            f"sample {first}: variable {shared[0]!r} has the name of a dimension (its coordinate array); "
+            "leave it out with --only"
+        )
+
+
+def _text(value: str) -> str:
+    """``value`` as Unicode text for an attribute (a folder name in another encoding: its bytes as ``\\x..``)."""
+    return value.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
 @dataclass(frozen=True)
 class ExportPlan:
     """An export checked and laid out, nothing written yet (:func:`plan_export`); :func:`write_export` writes it.
@@ -246,8 +298,8 @@ def plan_export(dataset: Any, out: str | Path, to: Backend, names: Sequence[str]
     Raises
     ------
     DatasetError
-        No samples, ``out`` already exists, the backend is unknown or not installed, or ``names`` names a variable
-        the samples do not have.
+        No samples, ``out`` already exists, the backend is unknown or not installed, ``names`` names a variable
+        the samples do not have, or a variable's name cannot name an array (:func:`check_names`).
     """
     target = check_target(dataset, out, to)
     samples = list(dataset)
@@ -264,10 +316,14 @@ def plan_export(dataset: Any, out: str | Path, to: Backend, names: Sequence[str]
         per_sample = {k: v for k, v in per_sample.items() if k in names}
         stacked = {k: v for k, v in stacked.items() if k in names}
         values = {k: v for k, v in values.items() if k in stacked}
+    if set(per_sample) & set(stacked):
+        twice = sorted(set(per_sample) & set(stacked))[0]
+        raise DatasetError(f"sample {samples[0].index}: two variables are called {twice!r}; leave one out with --only")
+    check_names(per_sample | stacked, samples[0].index)
     attrs = {
-        "title": f"scopetwin dataset {dataset.root.name}",
-        "scopetwin_dataset": str(dataset.root),
-        "kind": dataset.kind,
+        "title": _text(f"scopetwin dataset {dataset.root.name}"),
+        "scopetwin_dataset": _text(str(dataset.root)),
+        "kind": _text(str(dataset.kind)),
         "dataset_format": dataset.format,
     }
     return ExportPlan(dataset, target, to, per_sample, stacked, values, attrs)
