@@ -82,6 +82,10 @@ for cfg in sys.argv[1:]:
     core = CMMCorePlus()
     core.loadSystemConfiguration(cfg)
     print(cfg, list(core.getLoadedDevices()), core.getCameraDevice() or "-", core.getAvailablePixelSizeConfigs())
+    # each core taken down before the next: several left to the interpreter's exit abort it about one run in three
+    # (MMCore's threads, "FATAL: exception not rethrown"), after the files have loaded
+    core.unloadAllDevices()
+    del core
 """
 
 
