@@ -30,6 +30,11 @@ from typing import Any
 from scopetwin.scenes.inputs import LIMITS, TEXT_LIMIT, InputError, native_output_captured, parse_json, read_text_input
 from scopetwin.scenes.limits import FLOATS_PER_PIXEL, check_image_size
 
+#: Most pixels an image or height map read without an expected size may declare: 2^28 (268 Mpx), well above the
+#: largest scientific camera sensors (about 150 Mpx) and below what a forged header would make this machine decode
+#: (20000 x 20000 px = 400 Mpx; the memory check alone passes it on a machine with 24 GiB).
+MAX_IMAGE_PIXELS = 1 << 28
+
 
 class UnsafeInput(InputError):
     """A file name that leaves its folder, a file that is not a regular file or is too large, a format newer than
@@ -232,7 +237,8 @@ def check_exr_header(
     Raises
     ------
     UnsafeInput
-        The header declares an empty data window, or a size other than ``shape``.
+        The header declares an empty data window, a size other than ``shape``, or (without ``shape``) more than
+        :data:`MAX_IMAGE_PIXELS`.
     scopetwin.scenes.limits.LimitError
         The declared size does not fit in ``memory``.
     InputError
@@ -246,6 +252,11 @@ def check_exr_header(
         raise UnsafeInput(
             f"{what}: {path} declares {cols} x {rows} px, but {shape[1]} x {shape[0]} px are expected; "
             "nothing was decoded"
+        )
+    if shape is None and rows * cols > MAX_IMAGE_PIXELS:
+        raise UnsafeInput(
+            f"{what}: {path} declares {cols} x {rows} px ({rows * cols / 1e6:.0f} Mpx), more than the "
+            f"{MAX_IMAGE_PIXELS / 1e6:.0f} Mpx an image read here may have; nothing was decoded"
         )
     check_image_size(cols, rows, f"{what} {path}", floats_per_pixel, memory)
     return header
