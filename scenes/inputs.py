@@ -59,7 +59,8 @@ def _limit(kind: str, limit: int | None) -> int:
     return int(limit if limit is not None else LIMITS.get(kind, TEXT_LIMIT))
 
 
-def _what(st_mode: int) -> str:
+def file_kind(st_mode: int) -> str:
+    """What a file that is not a regular file is, from its ``st_mode``, in words ("a FIFO (named pipe)", ...)."""
     if stat.S_ISDIR(st_mode):
         return "a folder"
     if stat.S_ISFIFO(st_mode):
@@ -88,7 +89,7 @@ def _open_regular(path: str | Path, kind: str, limit: int) -> tuple[int, os.stat
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
-            raise InputError(f"{kind} file {text} is {_what(st.st_mode)}, not a regular file")
+            raise InputError(f"{kind} file {text} is {file_kind(st.st_mode)}, not a regular file")
         if st.st_size > limit:
             raise InputError(f"{kind} file {text} is {_size(st.st_size)}, over the limit of {_size(limit)}")
     except BaseException:

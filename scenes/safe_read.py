@@ -27,7 +27,15 @@ from collections.abc import Collection
 from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any
 
-from scopetwin.scenes.inputs import LIMITS, TEXT_LIMIT, InputError, native_output_captured, parse_json, read_text_input
+from scopetwin.scenes.inputs import (
+    LIMITS,
+    TEXT_LIMIT,
+    InputError,
+    file_kind,
+    native_output_captured,
+    parse_json,
+    read_text_input,
+)
 from scopetwin.scenes.limits import FLOATS_PER_PIXEL, check_image_size
 
 #: Most pixels an image or height map read without an expected size may declare: 2^28 (268 Mpx), well above the
@@ -39,18 +47,6 @@ MAX_IMAGE_PIXELS = 1 << 28
 class UnsafeInput(InputError):
     """A file name that leaves its folder, a file that is not a regular file or is too large, a format newer than
     this scopetwin reads, or an image whose header declares a size that cannot be read here."""
-
-
-def _kind_of(st_mode: int) -> str:
-    if stat.S_ISDIR(st_mode):
-        return "a folder"
-    if stat.S_ISFIFO(st_mode):
-        return "a FIFO (named pipe)"
-    if stat.S_ISCHR(st_mode) or stat.S_ISBLK(st_mode):
-        return "a device"
-    if stat.S_ISSOCK(st_mode):
-        return "a socket"
-    return "not a regular file"
 
 
 def _inside(path: str, folder: str) -> bool:
@@ -112,7 +108,7 @@ def check_regular(path: str | Path, what: str, limit: int = TEXT_LIMIT) -> int:
     except OSError as exc:
         raise UnsafeInput(f"{what}: cannot read {path}: {exc.strerror or exc}") from None
     if not stat.S_ISREG(st.st_mode):
-        raise UnsafeInput(f"{what}: {path} is {_kind_of(st.st_mode)}, not a regular file")
+        raise UnsafeInput(f"{what}: {path} is {file_kind(st.st_mode)}, not a regular file")
     if st.st_size > limit:
         raise UnsafeInput(f"{what}: {path} is {st.st_size} bytes, over the limit of {limit} bytes")
     return int(st.st_size)

@@ -393,7 +393,7 @@ def with_image_distance_uncertainty(
 ) -> Calibration:
     """``cal`` (b held: fixed or thin-lens, no distortion) with a standard uncertainty ``sigma_b`` of its b added.
 
-    Issue 27 item 1: a b taken from outside the data (an a-priori or thin-lens b, thesis §2.4.2) is uncertain
+    A b taken from outside the data (an a-priori or thin-lens b, thesis §2.4.2) is uncertain
     itself, and a shift db of it moves the whole pose: at the optimum, dp/db = -(J_p^T J_p)^-1 J_p^T J_b (J_p the
     held-b Jacobian, J_b the column of a free b; for the thin-lens b the relation b = g f/(g - f) moves with
     the pose). The reported standard deviations of the parameters and of N_z, T_x, T_y, b, g get |d/db| sigma_b

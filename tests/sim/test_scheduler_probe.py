@@ -21,17 +21,21 @@ from scopetwin.sim.datasets.config import DatasetError  # noqa: E402
 from tests.sim.test_dataset_common import write_tiny  # noqa: E402
 
 
-@pytest.fixture
-def web_server() -> Iterator[str]:
-    """A tiny HTTP server in a thread (it waits for a request, as web servers do)."""
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.SimpleHTTPRequestHandler)
-    server.daemon_threads = True
+def _serving(server: socketserver.BaseServer) -> Iterator[str]:
+    """``server`` run in a thread for one test; its address as Dask would be given it."""
+    server.daemon_threads = True  # type: ignore[attr-defined]
     threading.Thread(target=server.serve_forever, daemon=True).start()
     try:
         yield f"tcp://127.0.0.1:{server.server_address[1]}"
     finally:
         server.shutdown()
         server.server_close()
+
+
+@pytest.fixture
+def web_server() -> Iterator[str]:
+    """A tiny HTTP server in a thread (it waits for a request, as web servers do)."""
+    yield from _serving(http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.SimpleHTTPRequestHandler))
 
 
 class _Talker(socketserver.BaseRequestHandler):
@@ -42,14 +46,7 @@ class _Talker(socketserver.BaseRequestHandler):
 @pytest.fixture
 def talker() -> Iterator[str]:
     """A server that answers every connection with text at once (Dask's client reads it as a frame length)."""
-    server = socketserver.ThreadingTCPServer(("127.0.0.1", 0), _Talker)
-    server.daemon_threads = True
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        yield f"tcp://127.0.0.1:{server.server_address[1]}"
-    finally:
-        server.shutdown()
-        server.server_close()
+    yield from _serving(socketserver.ThreadingTCPServer(("127.0.0.1", 0), _Talker))
 
 
 def test_a_web_server_as_scheduler_is_one_line_within_seconds(tmp_path, capsys, monkeypatch, web_server):
