@@ -211,6 +211,18 @@ class ReconstructionResult:
     def history_dicts(self) -> list[dict[str, Any]]:
         return [asdict(s) for s in self.history]
 
+    def measured_mask(self, nx: int = 128, ny: int = 288) -> NDArray[np.bool_] | None:
+        """Which nodes of :meth:`heightmap`'s grid the markers measure (None: unknown, no marker points).
+
+        :func:`measured_nodes` on the node grid over the whole substrate: a ROI node farther than
+        :data:`ROI_COVERAGE_GAP_MM` from every marker is False; the frame regions are True (their heights are the
+        frame criterion's extrapolation by design, with its uncertainty in :meth:`std_heightmap`).
+        """
+        if self.marker_xy is None or len(self.marker_xy) == 0:
+            return None
+        xx, yy = np.meshgrid(np.linspace(*self.substrate.x_range, nx), np.linspace(*self.substrate.y_range, ny))
+        return measured_nodes(self.substrate, self.marker_xy, xx, yy)
+
     def roi_coverage(self, max_gap_mm: float = ROI_COVERAGE_GAP_MM, step_mm: float = 0.5) -> float | None:
         """Share of the region of interest within ``max_gap_mm`` of a marker the surface rests on (None: unknown).
 
@@ -220,11 +232,8 @@ class ReconstructionResult:
         """
         if self.marker_xy is None or len(self.marker_xy) == 0:
             return None
-        from scipy.spatial import cKDTree
-
         gx, gy = self.substrate.roi_grid(step_mm)
-        dist, _ = cKDTree(self.marker_xy).query(np.stack([gx, gy], axis=-1))
-        return float(np.mean(dist <= max_gap_mm))
+        return float(np.mean(measured_nodes(self.substrate, self.marker_xy, gx, gy, max_gap_mm)))
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready summary (the `reconstruct` contract's keys plus the history)."""
@@ -243,6 +252,24 @@ class ReconstructionResult:
             **({"uncertainty": self.uncertainty.summary()} if self.uncertainty is not None else {}),
             "history": self.history_dicts(),
         }
+
+
+def measured_nodes(
+    sub: Substrate2D, marker_xy: Array, xx: Array, yy: Array, max_gap_mm: float = ROI_COVERAGE_GAP_MM
+) -> NDArray[np.bool_]:
+    """Points (xx, yy) the markers measure: outside the ROI, or within ``max_gap_mm`` of a marker's point.
+
+    The markers sample the slopes about 1.5 mm apart (§1.10); a ROI point farther than two such spacings from every
+    marker holds only the basis's interpolation or extrapolation. A height map written from a reconstruction leaves
+    those points NaN (:func:`scopetwin.scenes.io.write_heightmap`'s ``measured``).
+    """
+    from scipy.spatial import cKDTree
+
+    xx, yy = np.broadcast_arrays(np.asarray(xx, dtype=np.float64), np.asarray(yy, dtype=np.float64))
+    pts = np.stack([xx.ravel(), yy.ravel()], axis=-1)
+    dist, _ = cKDTree(np.asarray(marker_xy, dtype=np.float64).reshape(-1, 2)).query(pts)
+    outside = np.abs(pts[:, 1]) > 0.5 * sub.roi_length
+    return np.asarray((dist <= max_gap_mm) | outside).reshape(xx.shape)
 
 
 def single_thread_blas() -> contextlib.AbstractContextManager:

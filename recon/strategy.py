@@ -580,6 +580,12 @@ class Reconstruction:
         """The surface on a node grid over the whole substrate (:class:`scopetwin.scenes.surface.HeightMap`, mm)."""
         return self.result.heightmap(nx, ny)
 
+    def measured_mask(self, nx: int = 128, ny: int = 288) -> NDArray[np.bool_] | None:
+        """Which nodes of :meth:`heightmap`'s grid the markers measure (the ROI within two marker spacings of a
+        marker, and the frame regions); None where the method keeps no marker points."""
+        mask = getattr(self.result, "measured_mask", None)
+        return None if mask is None else mask(nx, ny)
+
     @property
     def prior(self) -> Hyper | None:
         """The Gaussian-process prior the centroid method's posterior chose by evidence (None without one): the warm

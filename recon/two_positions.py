@@ -221,6 +221,10 @@ class TwoPositionResult:
         """The surface on a node grid over the whole substrate (docs/contract.md, "Height maps")."""
         return self.surface.heightmap(self.substrate.x_range, self.substrate.y_range, nx, ny)
 
+    def measured_mask(self, nx: int = 128, ny: int = 288) -> NDArray[np.bool_] | None:
+        """The nodes image 1's markers measure (:meth:`ReconstructionResult.measured_mask`; None without it)."""
+        return None if self.single is None else self.single.measured_mask(nx, ny)
+
     def std_heightmap(self, nx: int = 128, ny: int = 288) -> HeightMap | None:
         """Per-node standard uncertainty, mm: the single image's with its absolute part replaced by the two
         positions' (None without the single image's)."""

@@ -210,19 +210,33 @@ def read_image(path: str | Path, shape: tuple[int, int] | None = None) -> tuple[
     return data, attrs
 
 
-def write_heightmap(path: str | Path, heights: HeightMap, std: HeightMap | None = None, **attrs: Any) -> None:
+def write_heightmap(
+    path: str | Path,
+    heights: HeightMap,
+    std: HeightMap | None = None,
+    measured: NDArray[np.bool_] | None = None,
+    **attrs: Any,
+) -> None:
     """Write a height map in the contract's format (channel ``Z`` in mm, extents as header attributes).
 
     ``std``: the per-node standard uncertainty of a reconstruction on the same nodes, written as channel ``Z_std``
-    (mm; docs/contract.md, "Height maps").
+    (mm; docs/contract.md, "Height maps"). ``measured``: which nodes the reconstruction's markers measure
+    (:meth:`scopetwin.recon.reconstruct.ReconstructionResult.measured_mask`); the others are written NaN in ``Z``
+    and the mask as channel ``Z_measured`` (1 measured, 0 not).
     """
     extents = dict(zip(EXTENT_KEYS, (heights.x_min, heights.x_max, heights.y_min, heights.y_max), strict=True))
-    extra = None
+    extra: dict[str, NDArray] = {}
+    z = heights.z
     if std is not None:
         if std.z.shape != heights.z.shape:
             raise FileFormatError(f"Z_std has {std.z.shape} nodes but Z has {heights.z.shape}")
-        extra = {"Z_std": std.z}
-    _write_exr(path, "Z", heights.z, {**extents, **attrs}, extra)
+        extra["Z_std"] = std.z
+    if measured is not None:
+        if measured.shape != heights.z.shape:
+            raise FileFormatError(f"Z_measured has {measured.shape} nodes but Z has {heights.z.shape}")
+        z = np.where(measured, z, np.nan)
+        extra["Z_measured"] = measured.astype(np.float32)
+    _write_exr(path, "Z", z, {**extents, **attrs}, extra or None)
 
 
 def read_heightmap_std(path: str | Path) -> HeightMap | None:
@@ -261,6 +275,12 @@ def read_heightmap(path: str | Path) -> HeightMap:
     from scopetwin.scenes.errors import GeometryError
     from scopetwin.scenes.surface import HeightMap  # scipy's splines, loaded where a height map is made
 
+    unmeasured = int(np.count_nonzero(np.isnan(data)))
+    if unmeasured:
+        raise FileFormatError(
+            f"{path}: {unmeasured} node(s) of Z are NaN (a reconstruction leaves the nodes no marker measured NaN, "
+            "see its Z_measured channel); a height map read as a surface must be finite everywhere"
+        )
     try:
         return HeightMap(data.astype(np.float64), *ext)
     except GeometryError as exc:

@@ -142,7 +142,7 @@ def test_basis_scale_is_chosen_from_the_data_on_a_rough_surface() -> None:
 def _cli(argv: list[str]) -> dict:
     import argparse
 
-    from scopetwin.sim.cli.reconstruct import register
+    from scopetwin.cli.reconstruct import register
 
     parser = argparse.ArgumentParser(prog="scopetwin")
     register(parser.add_subparsers(dest="command", required=True))
@@ -397,3 +397,13 @@ def test_a_band_without_markers_is_reconstructed_and_reported_as_not_covered(cha
     contrast = (err[band] - err.mean()) * 1e3
     sd = part.uncertainty.node_std.height(xx[band], yy[band]) * 1e3
     assert np.sqrt(np.mean(contrast**2)) <= 2.0 * np.mean(sd)
+    # the height map's nodes: those of the ROI beyond 3 mm from every marker are the ones not measured
+    assert full.measured_mask(64, 144)[:, 4:-4].all()
+    mask = part.measured_mask(64, 144)
+    assert mask is not None
+    ny_ = np.linspace(*part.substrate.y_range, 144)
+    # (the last row of markers on either side is not straight: its y varies by up to a marker spacing along x)
+    gap = (ny_ > lo + 3.0 + 0.1) & (ny_ < hi - 3.0 - 0.1)
+    near = (ny_ < lo + 3.0 - 1.5) | (ny_ > hi - 3.0 + 1.5)
+    assert not mask[gap].any()
+    assert mask[near][:, 4:-4].all()  # (the outermost columns may lie more than 3 mm beside the last marker)
