@@ -2,10 +2,10 @@
 
 The folders ``scenes/``, ``sim/``, ``recon/``, ``calib/`` and ``instrument/`` stay where they are (the project's
 layout); the wheel holds one top-level package, ``scopetwin``, with ``scopetwin.scenes`` ... ``scopetwin.instrument``
-mapped onto them. The folders ``rigs/`` (the rig TOMLs and their Micro-Manager ``.cfg``) and ``examples/`` (dataset
-configs, an MDA sequence) travel with it as package data, ``scopetwin/rigs/`` and ``scopetwin/examples/``
-(:mod:`scopetwin.shipped` finds them), so that the documented commands work from an installed wheel too. Everything
-else is declared in ``pyproject.toml``.
+mapped onto them beside its own subpackage, the command line ``scopetwin.cli``. The folders ``rigs/`` (the rig TOMLs
+and their Micro-Manager ``.cfg``) and ``examples/`` (dataset configs, an MDA sequence) travel with it as package
+data, ``scopetwin/rigs/`` and ``scopetwin/examples/`` (:mod:`scopetwin.shipped` finds them), so that the documented
+commands work from an installed wheel too. Everything else is declared in ``pyproject.toml``.
 """
 
 from pathlib import Path
@@ -17,7 +17,7 @@ LAYERS = ("scenes", "sim", "recon", "calib", "instrument")
 SHIPPED = ("rigs", "examples")
 
 package_dir = {"scopetwin": "scopetwin"}
-packages = ["scopetwin"]
+packages = ["scopetwin", *(f"scopetwin.{sub}" for sub in find_packages("scopetwin"))]  # and scopetwin.cli
 for layer in LAYERS:
     package_dir[f"scopetwin.{layer}"] = layer
     packages += [f"scopetwin.{layer}", *(f"scopetwin.{layer}.{sub}" for sub in find_packages(layer))]

@@ -19,9 +19,9 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--out", type=Path, default=Path("/tmp/cmu_bench"))
     args = ap.parse_args()
+    from scopetwin.cli import main as scopetwin
     from scopetwin.scenes.cmu.analysis import analyse, channel_optics
     from scopetwin.scenes.cmu.layout import load_cmu_setup
-    from scopetwin.sim.cli import main as scopetwin
 
     t0 = time.perf_counter()
     scopetwin(["optics", "cmu", "--json", str(args.out / "cmu.json"), "--out", str(args.out), "--spp", str(args.spp)])

@@ -5,7 +5,7 @@ on emulators) as a context manager; acquisition routines live in
 :mod:`scopetwin.instrument.acquisition`, Micro-Manager interop (pymmcore-plus, MDA) in
 :mod:`scopetwin.instrument.micromanager`, python-microscope adapters in
 :mod:`scopetwin.instrument.pymicroscope`, the emulator server behind ``scopetwin emulate`` in
-:mod:`scopetwin.instrument.emulators.serve`; the ``rig`` command in :mod:`scopetwin.sim.cli.rig`.
+:mod:`scopetwin.instrument.emulators.serve`; the ``rig`` command in :mod:`scopetwin.cli.rig`.
 """
 
 from __future__ import annotations

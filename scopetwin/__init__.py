@@ -10,8 +10,9 @@ The front door (:mod:`scopetwin.api`) gives the main jobs in a few lines::
 
 The package's layers are its subpackages: :mod:`scopetwin.scenes` (the physical world and its renders),
 :mod:`scopetwin.recon` (from images to surfaces), :mod:`scopetwin.calib` (from images to setup parameters),
-:mod:`scopetwin.instrument` (devices and rigs) and :mod:`scopetwin.sim` (synthetic truth, studies, the command line).
-``import scopetwin`` loads none of them: each front-door function imports what it needs when called.
+:mod:`scopetwin.instrument` (devices and rigs) and :mod:`scopetwin.sim` (synthetic truth, studies). The command line,
+:mod:`scopetwin.cli`, sits beside the front door, above the layers. ``import scopetwin`` loads none of them: each
+front-door function imports what it needs when called.
 """
 
 from scopetwin._version import __version__

@@ -2,6 +2,6 @@
 
 import sys
 
-from scopetwin.sim.cli import console_main
+from scopetwin.cli import console_main
 
 sys.exit(console_main())

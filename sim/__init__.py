@@ -1,4 +1,4 @@
-"""sim: synthetic truth — surfaces, measurement simulation, datasets, studies and the command line.
+"""sim: synthetic truth — surfaces, measurement simulation, datasets and studies.
 
 By job, each layer using only the public API of the ones before it:
 
@@ -13,7 +13,7 @@ By job, each layer using only the public API of the ones before it:
   runner);
 * :mod:`scopetwin.sim.pipeline` (the end-to-end ``scopetwin run``), :mod:`scopetwin.sim.cmu_unit` (the four-channel
   unit's analyses),
-  :mod:`scopetwin.sim.figures` (marker overlays, spot diagrams);
-* :mod:`scopetwin.sim.cli` — the ``scopetwin`` command line, one module per command group; it parses and calls the
-  above.
+  :mod:`scopetwin.sim.figures` (marker overlays, spot diagrams).
+
+The ``scopetwin`` command line that calls them is :mod:`scopetwin.cli`, beside the Python front door.
 """

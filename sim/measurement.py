@@ -53,7 +53,7 @@ class StagedOutput:
 
     Inside :func:`deferred_commits` (the command line runs every command in one), :meth:`commit` only records the
     stage and returns where its entries will be; the command line moves them into place after it has written the
-    ``--json`` file, so a failing ``--json`` leaves no result behind (:mod:`scopetwin.sim.cli.outputs`).
+    ``--json`` file, so a failing ``--json`` leaves no result behind (:mod:`scopetwin.cli.outputs`).
 
     Parameters
     ----------

@@ -3,10 +3,11 @@
 A batch system cancelling a job (SIGTERM), ``timeout`` (SIGTERM) and a dropped terminal session (SIGHUP) must leave
 the same state behind as Ctrl-C (SIGINT): lights off and shutters closed, staged outputs discarded, every finished
 dataset sample listed in the manifest. Python turns SIGINT into :class:`KeyboardInterrupt`; while
-:func:`terminate_on_signals` is active (``sim.cli.main`` runs every command inside it), SIGTERM and SIGHUP raise
-:class:`Terminated`, a :class:`KeyboardInterrupt` that carries the signal number. So every ``except KeyboardInterrupt``
-or ``finally`` clean-up of the package (and of the instrument layer, which catches ``KeyboardInterrupt`` to switch
-lights off) runs for all three signals, and :func:`exit_status` gives the shell's convention, 128 + n.
+:func:`terminate_on_signals` is active (:func:`scopetwin.cli.main` runs every command inside it), SIGTERM and SIGHUP
+raise :class:`Terminated`, a :class:`KeyboardInterrupt` that carries the signal number. So every
+``except KeyboardInterrupt`` or ``finally`` clean-up of the package (and of the instrument layer, which catches
+``KeyboardInterrupt`` to switch lights off) runs for all three signals, and :func:`exit_status` gives the shell's
+convention, 128 + n.
 
 :func:`deferred_signals` (the one implementation, :mod:`scopetwin.instrument.interrupts`, re-exported here) protects a
 short clean-up (writing the manifest lines of finished samples) from a second signal: signals that arrive inside the

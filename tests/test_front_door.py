@@ -46,8 +46,8 @@ def _three_ways(m: scopetwin.Measurement, tmp_path: Path, with_run: bool = True)
     """Heights on the contract's node grid from ``scopetwin reconstruct``, ``scopetwin.reconstruct`` and the
     reconstruction step of ``scopetwin run`` (that one only ``with_run``; the surface fields of the setup do not enter
     a reconstruction, so the CLI gets the preset by name)."""
+    from scopetwin.cli import main
     from scopetwin.recon.substrate import Substrate2D
-    from scopetwin.sim.cli import main
     from scopetwin.sim.pipeline import _detect_and_reconstruct
 
     exr = tmp_path / "image.exr"

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import scopetwin
+from scopetwin.cli import main
 from scopetwin.scenes.io import write_image
-from scopetwin.sim.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -33,6 +33,7 @@ def test_the_wheel_holds_one_top_level_package(wheel):
     assert tops == {"scopetwin", f"scopetwin-{scopetwin.__version__}.dist-info"}, tops
     for layer in ("scenes", "sim", "recon", "calib", "instrument"):
         assert f"scopetwin/{layer}/__init__.py" in names
+    assert "scopetwin/cli/__init__.py" in names and not any(n.startswith("scopetwin/sim/cli/") for n in names)
     assert "scopetwin/scenes/presets/thesis-1.10-deflectometry.toml" in names  # the presets travel with it
     assert "scopetwin/sim/datasets/schemas/truth.schema.json" in names  # and the datasets' JSON Schemas
     for folder, pattern in (
@@ -44,7 +45,7 @@ def test_the_wheel_holds_one_top_level_package(wheel):
         shipped = sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / folder).glob(pattern))
         assert shipped and all(f"scopetwin/{name}" in names for name in shipped), (pattern, shipped)
     entry = next(n for n in names if n.endswith("entry_points.txt"))
-    assert "scopetwin = scopetwin.sim.cli:console_main" in zipfile.ZipFile(wheel).read(entry).decode()
+    assert "scopetwin = scopetwin.cli:console_main" in zipfile.ZipFile(wheel).read(entry).decode()
 
 
 def _install(wheel: Path, site: Path) -> None:

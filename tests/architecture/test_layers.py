@@ -1,7 +1,8 @@
 """The layers' dependency rules (ARCHITECTURE.md), checked on the source: imports only point down.
 
-sim -> everything; calib | instrument -> recon, scenes (not each other); recon -> scenes;
-scenes -> nothing of ours. Mitsuba/Dr.Jit are imported only under scenes/mitsuba/, and
+scopetwin's two public faces, the front door (scopetwin.api) and the command line (scopetwin.cli), -> every layer,
+and no layer imports them; sim -> everything below; calib | instrument -> recon, scenes (not each other);
+recon -> scenes; scenes -> nothing of ours. Mitsuba/Dr.Jit are imported only under scenes/mitsuba/, and
 ``import scopetwin.scenes`` (and recon, calib) never loads them. The layer folders at the repository root install
 as ``scopetwin.<layer>`` (setup.py): every module is named, and imported, under ``scopetwin``.
 """
@@ -17,12 +18,16 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("scopetwin.scenes", "scopetwin.sim", "scopetwin.recon", "scopetwin.calib", "scopetwin.instrument")
+#: The top package's modules above every layer: the two public faces (``import scopetwin`` is the front door) and
+#: ``python -m scopetwin``. They may import any layer; no layer imports them. (A layer may use the top package's
+#: helpers below the faces, ``scopetwin._version`` and ``scopetwin.shipped``.)
+FACES = {"scopetwin", "scopetwin.api", "scopetwin.cli", "scopetwin.__main__"}
 FORBIDDEN = {
-    "scopetwin.scenes": {"scopetwin.sim", "scopetwin.recon", "scopetwin.calib", "scopetwin.instrument"},
-    "scopetwin.recon": {"scopetwin.sim", "scopetwin.calib", "scopetwin.instrument"},
-    "scopetwin.calib": {"scopetwin.sim", "scopetwin.instrument"},
-    "scopetwin.instrument": {"scopetwin.sim", "scopetwin.calib"},
-    "scopetwin.sim": set(),
+    "scopetwin.scenes": {"scopetwin.sim", "scopetwin.recon", "scopetwin.calib", "scopetwin.instrument", *FACES},
+    "scopetwin.recon": {"scopetwin.sim", "scopetwin.calib", "scopetwin.instrument", *FACES},
+    "scopetwin.calib": {"scopetwin.sim", "scopetwin.instrument", *FACES},
+    "scopetwin.instrument": {"scopetwin.sim", "scopetwin.calib", *FACES},
+    "scopetwin.sim": FACES,
 }
 RENDERERS = {"mitsuba", "drjit"}
 #: The one reconstruction package that renders (ARCHITECTURE.md): it fits the surface to the image through
@@ -66,6 +71,19 @@ def test_imports_point_down(package):
         if names & RENDERERS and not in_mitsuba_pkg:
             bad.append(f"{path.relative_to(ROOT)} imports {sorted(names & RENDERERS)} outside scenes/mitsuba/")
     assert not bad, "\n".join(bad)
+
+
+def test_the_command_line_lives_beside_the_front_door():
+    """``scopetwin.cli`` is a subpackage of the top package, in ``scopetwin/cli/``; no layer holds a command line."""
+    assert (ROOT / "scopetwin" / "cli" / "__init__.py").is_file() and (ROOT / "scopetwin" / "api.py").is_file()
+    inside = [p.relative_to(ROOT) for pkg in PACKAGES for p in sorted(_folder(pkg).glob("cli/**/*.py"))]
+    assert not inside, f"a command line inside a layer: {inside}"
+
+
+def test_a_layer_importing_a_face_is_refused():
+    """The rule sees an import of the front door or the command line from a layer (``_top`` names the face)."""
+    assert {_top(n) for n in ("scopetwin", "scopetwin.api", "scopetwin.cli.rig", "scopetwin.cli")} <= FACES
+    assert _top("scopetwin.shipped") not in FACES and _top("scopetwin.sim.signals") == "scopetwin.sim"
 
 
 def _module_imports(path: Path, top_level_only: bool) -> set[str]:
@@ -127,7 +145,7 @@ def test_importing_the_world_model_does_not_load_mitsuba():
     code = (
         "import sys, scopetwin, scopetwin.scenes, scopetwin.scenes.setup, scopetwin.scenes.analytic;"
         "import scopetwin.scenes.io, scopetwin.scenes.grin, scopetwin.recon, scopetwin.recon.markers, scopetwin.calib;"
-        "import scopetwin.sim.cli;"
+        "import scopetwin.cli;"
         "print(sorted(m for m in ('mitsuba', 'drjit') if m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
@@ -146,7 +164,7 @@ def _module_name(path: Path) -> str:
 
 def _project_modules() -> dict[str, Path]:
     files = [p for pkg in PACKAGES for p in sorted(_folder(pkg).rglob("*.py"))]
-    files += sorted((ROOT / "scopetwin").glob("*.py"))
+    files += sorted((ROOT / "scopetwin").rglob("*.py"))  # scopetwin/*.py and scopetwin/cli/
     return {_module_name(p): p for p in files}
 
 

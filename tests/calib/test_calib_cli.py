@@ -8,16 +8,16 @@ import json
 import numpy as np
 import pytest
 
+from scopetwin.cli.calibrate import register
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.io import write_image, write_json_atomic
 from scopetwin.scenes.setup import load_setup
-from scopetwin.sim.cli.calibrate import register
 
 pytestmark = pytest.mark.mitsuba
 
 
 def run(argv: list[str]) -> int:
-    """The same contract as sim.cli's main: result -> --json, ScopetwinError -> exit 2."""
+    """The same contract as scopetwin.cli's main: result -> --json, ScopetwinError -> exit 2."""
     parser = argparse.ArgumentParser(prog="scopetwin")
     register(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(argv)

@@ -215,9 +215,9 @@ def test_rendered_view_at_a_pose_no_preset_has(tmp_path):
     import json
 
     from scopetwin.calib.oneshot.from_image import calibrate_image
+    from scopetwin.cli import main
     from scopetwin.scenes.io import write_image
     from scopetwin.scenes.mitsuba.render import render_setup
-    from scopetwin.sim.cli import main
     from scopetwin.sim.measurement import apply_sensor
 
     v, _, _ = _issue_view()

@@ -14,10 +14,10 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def scopetwin(*args: str, **kwargs) -> subprocess.Popen:
-    """``python -m sim.cli ARGS`` from the repository root, stdout and stderr piped as text."""
+    """``python -m scopetwin.cli ARGS`` from the repository root, stdout and stderr piped as text."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT)}
     return subprocess.Popen(
-        [sys.executable, "-m", "scopetwin.sim.cli", *args],
+        [sys.executable, "-m", "scopetwin.cli", *args],
         cwd=ROOT,
         env=env,
         stdout=subprocess.PIPE,

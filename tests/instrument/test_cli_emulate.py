@@ -8,10 +8,10 @@ import signal
 
 import pytest
 
+from scopetwin.cli import main
 from scopetwin.instrument.drivers.fpga_board import FpgaBoard, FpgaLight
 from scopetwin.instrument.drivers.jena_piezo import DIALECTS, JenaPiezoFocus
 from scopetwin.instrument.transport import open_transport
-from scopetwin.sim.cli import main
 from tests.instrument.cli_processes import emulator, stop
 
 

@@ -18,7 +18,7 @@ pytest.importorskip("pymmcore_plus", reason="pymmcore-plus (optional extra 'mm')
 tifffile = pytest.importorskip("tifffile", reason="the OME-TIFF writer needs tifffile")
 ome_types = pytest.importorskip("ome_types", reason="ome-types reads the OME metadata back")
 
-from scopetwin.sim.cli import main  # noqa: E402
+from scopetwin.cli import main  # noqa: E402
 from tests.instrument.cli_processes import ROOT, emulator, scopetwin, stop  # noqa: E402
 
 POSITIONS = [(75000.0, 150000.0, 200.0), (75100.0, 150050.0, 210.0)]  # um, inside the sim-cmu stages' travel

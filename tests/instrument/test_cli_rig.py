@@ -9,8 +9,8 @@ import json
 import cv2
 import pytest
 
-from scopetwin.sim.cli import main
-from scopetwin.sim.cli.rig import EMU_NOTE
+from scopetwin.cli import main
+from scopetwin.cli.rig import EMU_NOTE
 from tests.instrument.cli_processes import ROOT, emulator, stop
 
 RIG = """

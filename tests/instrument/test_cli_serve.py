@@ -12,7 +12,7 @@ import pytest
 
 pytest.importorskip("microscope", reason="python-microscope is not installed")
 
-from scopetwin.sim.cli import main  # noqa: E402
+from scopetwin.cli import main  # noqa: E402
 from tests.instrument.cli_processes import scopetwin, stop  # noqa: E402
 
 RIG = """

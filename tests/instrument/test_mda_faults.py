@@ -14,10 +14,10 @@ pytest.importorskip("useq", reason="useq-schema (optional extra 'mm') is not ins
 pytest.importorskip("pymmcore_plus", reason="pymmcore-plus (optional extra 'mm') is not installed")
 tifffile = pytest.importorskip("tifffile")
 
+from scopetwin.cli import main  # noqa: E402
 from scopetwin.instrument import open_rig  # noqa: E402
 from scopetwin.instrument.errors import DeviceLost, DisconnectedError, RigError  # noqa: E402
 from scopetwin.instrument.micromanager import run_mda  # noqa: E402
-from scopetwin.sim.cli import main  # noqa: E402
 from tests.instrument.test_micromanager import RIG, SEQUENCE_2X2X3  # noqa: E402
 
 
@@ -80,7 +80,7 @@ def test_a_plan_without_events_is_one_error_before_work(rig_path, tmp_path, caps
 
 
 def test_the_line_after_a_fault_says_how_many_planes_are_on_disk(rig_path, tmp_path, capsys, monkeypatch):
-    import scopetwin.sim.cli.rig as cli_rig
+    import scopetwin.cli.rig as cli_rig
 
     real = cli_rig.open_rig
 

@@ -16,13 +16,13 @@ import pytest
 useq = pytest.importorskip("useq", reason="useq-schema (optional extra 'mm') is not installed")
 pytest.importorskip("pymmcore_plus", reason="pymmcore-plus (optional extra 'mm') is not installed")
 
+from scopetwin.cli import main  # noqa: E402
 from scopetwin.instrument import open_rig  # noqa: E402
 from scopetwin.instrument.devices import Range  # noqa: E402
 from scopetwin.instrument.errors import InstrumentError, RigError  # noqa: E402
 from scopetwin.instrument.mdaplan import PlanLimits, plan_size  # noqa: E402
 from scopetwin.instrument.micromanager import run_mda  # noqa: E402
 from scopetwin.instrument.ome import wavelength_color  # noqa: E402
-from scopetwin.sim.cli import main  # noqa: E402
 
 RIG = """
 [rig]

@@ -18,9 +18,9 @@ pytest.importorskip("pymmcore_plus", reason="pymmcore-plus (optional extra 'mm')
 
 from pymmcore_plus.experimental.unicore import UniMMCore  # noqa: E402
 
+from scopetwin.cli import main  # noqa: E402
 from scopetwin.instrument.micromanager import config_text  # noqa: E402
 from scopetwin.instrument.rig import load_rig  # noqa: E402
-from scopetwin.sim.cli import main  # noqa: E402
 from tests.instrument.cli_processes import ROOT  # noqa: E402
 
 SHIPPED = ("sim-cmu", "sim-deflectometry", "emulated-hardware")

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
+from scopetwin.cli import main
 from scopetwin.instrument.errors import RigError
 from scopetwin.instrument.micromanager import check_config_fields, config_field_problem
-from scopetwin.sim.cli import main
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -131,7 +131,7 @@ def test_ome_zarr_refuses_a_name_that_is_not_unicode_before_writing(tmp_path, wh
 @pytest.mark.parametrize("name, code", [('stage "A" <1> & B\nrow 2', 0), ("stage\x00A", 2)], ids=["escaped", "NUL"])
 def test_rig_mda_writes_a_plans_position_names_or_refuses_them_in_one_line(tmp_path, capsys, name, code):
     pytest.importorskip("pymmcore_plus", reason="pymmcore-plus (optional extra 'mm') is not installed")
-    from scopetwin.sim.cli import main
+    from scopetwin.cli import main
     from tests.instrument.test_mda_plans_and_ome import RIG, SEQUENCE
 
     rig = tmp_path / "rig.toml"

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from scopetwin.cli.rig import register
 from scopetwin.instrument import open_rig
 from scopetwin.instrument.errors import RigError
 from scopetwin.instrument.rig import load_rig
 from scopetwin.scenes.io import read_image
-from scopetwin.sim.cli.rig import register
 
 RIGS = Path(__file__).resolve().parents[2] / "rigs"
 

@@ -165,7 +165,7 @@ def test_pose_jacobian_matches_finite_differences(case):
 
 
 def test_cli_inverse_rejects_a_setup_without_substrate(tmp_path):
-    from scopetwin.sim.cli import main
+    from scopetwin.cli import main
 
     image = tmp_path / "img.exr"
     from scopetwin.scenes.io import write_image

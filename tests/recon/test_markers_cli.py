@@ -1,4 +1,4 @@
-"""`scopetwin markers IMAGE.exr --pattern SETUP [--json PATH] [--overlay PNG]` (sim.cli.markers)."""
+"""`scopetwin markers IMAGE.exr --pattern SETUP [--json PATH] [--overlay PNG]` (scopetwin.cli.markers)."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
+from scopetwin.cli import main as scopetwin_main
+from scopetwin.cli.markers import register
 from scopetwin.scenes.analytic import render
 from scopetwin.scenes.io import write_image
 from scopetwin.scenes.setup import load_setup
-from scopetwin.sim.cli import main as scopetwin_main
-from scopetwin.sim.cli.markers import register
 from scopetwin.sim.truth import marker_truth
 
 SETUP_TOML = """base = "thesis-2.8.1-angular"

@@ -80,7 +80,7 @@ def test_the_check_can_be_turned_off(markers):
 def test_reconstruct_refuses_a_second_image_of_another_substrate(tmp_path, capsys):
     """Rendered with Mitsuba (4 spp, EMVA sensor noise): ``reconstruct --second`` with the second image of another
     surface is one line, exit 2, no height map; with its own second image it reconstructs."""
-    from scopetwin.sim.cli import main
+    from scopetwin.cli import main
 
     rendered = {}
     for seed in (1, 2):

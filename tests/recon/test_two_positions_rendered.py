@@ -11,12 +11,12 @@ import pytest
 from test_two_positions import PRESET, SHIFT_MM, SURFACE
 
 import scopetwin
+from scopetwin.cli import main
 from scopetwin.recon.config import ReconstructionConfig
 from scopetwin.recon.substrate import Substrate2D
 from scopetwin.recon.two_positions import reconstruct_pair
 from scopetwin.scenes.io import read_heightmap, read_image
 from scopetwin.scenes.setup import load_setup
-from scopetwin.sim.cli import main
 from scopetwin.sim.pipeline import roi_errors
 
 ROOT = Path(__file__).resolve().parents[2]

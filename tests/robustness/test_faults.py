@@ -33,9 +33,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from scopetwin.cli import main
 from scopetwin.scenes.io import write_heightmap, write_image
 from scopetwin.scenes.surface import HeightMap
-from scopetwin.sim.cli import main
 from tests.instrument.cli_processes import ROOT, emulator, scopetwin
 
 RIGS = ROOT / "rigs"

@@ -266,8 +266,8 @@ def _json_text(data: Any) -> str:
     depth=DEEP,
 )
 def test_mda_sequences(data: dict[str, Any], form: str, depth: int) -> None:
+    from scopetwin.cli.rig import mda_size
     from scopetwin.instrument.mdaplan import load_sequence
-    from scopetwin.sim.cli.rig import mda_size
 
     deep = "[" * depth + "]" * depth
     texts = {

@@ -266,7 +266,7 @@ def key_file_refusals(c: Ctx) -> None:
 
 def serve_refuses_linked_key_file(c: Ctx) -> None:
     """``rig RIG serve --hmac-key-file LINK``: exit 2, one line, nothing served."""
-    from scopetwin.sim.cli import main
+    from scopetwin.cli import main
 
     rig = c.tmp / "rig.toml"
     rig.write_text(RIG)
@@ -367,7 +367,7 @@ def fifo_at_log_file(c: Ctx) -> None:
 
 def emulate_log_link_cli(c: Ctx) -> None:
     """``scopetwin emulate KIND --log LINK``: exit 2 in one line, the linked file untouched."""
-    from scopetwin.sim.cli import main
+    from scopetwin.cli import main
 
     victim = _victim(c)
     (c.tmp / "emu.log").symlink_to(victim)
@@ -473,7 +473,7 @@ def _heightmap(c: Ctx, name: str, z: float, half_x: float, half_y: float) -> Pat
 
 
 def _render_cli(c: Ctx, *args: str) -> tuple[int, str]:
-    from scopetwin.sim.cli import main
+    from scopetwin.cli import main
 
     code = main(["render", SETUP, "--out", str(c.tmp / "out"), "--renderer", "analytic", *args])
     return code, c.capsys.readouterr().err
@@ -575,7 +575,7 @@ def sigkill_mid_render(c: Ctx) -> None:
     """SIGKILL during ``render --out o`` leaves ``.o.staging-*``; the next render of ``o`` removes it."""
     out = c.tmp / "o"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    cmd = [sys.executable, "-m", "scopetwin.sim.cli", "render", "thesis-2.8.1-angular", "--out", str(out)]
+    cmd = [sys.executable, "-m", "scopetwin.cli", "render", "thesis-2.8.1-angular", "--out", str(out)]
     proc = subprocess.Popen([*cmd, "--spp", "64", "--no-noise", "-q"], cwd=ROOT, env=env)
     try:
         deadline = time.monotonic() + 60
@@ -604,7 +604,7 @@ def _task(x: float) -> float:
 
 def study_with_failed_task(c: Ctx) -> None:
     """A study with a failed task exits 1 and keeps its report (the failure listed, the other task's table)."""
-    from scopetwin.sim.cli import main
+    from scopetwin.cli import main
     from scopetwin.sim.studies import runner
     from scopetwin.sim.studies.context import StudyContext, StudyResult, error_text, failed
     from scopetwin.sim.studies.tables import Row, Table
@@ -628,7 +628,7 @@ def study_with_failed_task(c: Ctx) -> None:
 
 def study_without_failures(c: Ctx) -> None:
     """Control: the same study whose tasks all succeed exits 0."""
-    from scopetwin.sim.cli import main
+    from scopetwin.cli import main
     from scopetwin.sim.studies import runner
     from scopetwin.sim.studies.context import StudyContext, StudyResult
     from scopetwin.sim.studies.tables import Row, Table

@@ -1,4 +1,4 @@
-"""``optics cmu`` (sim.cli.optics): the JSON contract of docs/contract.md and the user errors."""
+"""``optics cmu`` (scopetwin.cli.optics): the JSON contract of docs/contract.md and the user errors."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import json
 
 import pytest
 
+from scopetwin.cli import main
+from scopetwin.cli.optics import cmd_cmu, register_cmu
 from scopetwin.scenes.errors import ScopetwinError
-from scopetwin.sim.cli import main
-from scopetwin.sim.cli.optics import cmd_cmu, register_cmu
 
 
 def _parse(argv: list[str]) -> argparse.Namespace:

@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
+from scopetwin.cli import main
 from scopetwin.scenes.io import read_heightmap, read_image, write_image
-from scopetwin.sim.cli import main
 
 SMALL = """
 base = "thesis-2.8.1-angular"

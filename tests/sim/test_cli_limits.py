@@ -8,13 +8,13 @@ import types
 import numpy as np
 import pytest
 
+from scopetwin.cli import main
 from scopetwin.scenes import limits
 from scopetwin.scenes.errors import SetupError
 from scopetwin.scenes.grin import load_grin_setup
 from scopetwin.scenes.grin.setup import check_image_window
 from scopetwin.scenes.io import read_image, write_image
 from scopetwin.scenes.limits import LimitError, check_image_size, check_render
-from scopetwin.sim.cli import main
 
 GRIN = "thesis-8.3.2-grin-realized"
 
@@ -281,7 +281,7 @@ def test_overlay_draws_the_reference_label_with_a_halo():
 
 
 def test_nz_note_is_said_plainly():
-    from scopetwin.sim.cli.calibrate import _warnings
+    from scopetwin.cli.calibrate import _warnings
 
     cal = types.SimpleNamespace(
         warnings=(
@@ -324,7 +324,7 @@ def test_the_reworded_note_still_matches_the_calibration():
     import inspect
 
     import scopetwin.calib.oneshot.calibration as calibration
-    from scopetwin.sim.cli.calibrate import _AMBIGUOUS
+    from scopetwin.cli.calibrate import _AMBIGUOUS
 
     assert _AMBIGUOUS in inspect.getsource(calibration)
 

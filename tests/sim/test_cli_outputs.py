@@ -13,8 +13,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_dataset_common import write_tiny  # noqa: E402
 
-from scopetwin.sim.cli import main  # noqa: E402
-from scopetwin.sim.cli import outputs as outputs_mod  # noqa: E402
+from scopetwin.cli import main  # noqa: E402
+from scopetwin.cli import outputs as outputs_mod  # noqa: E402
 
 SMALL = """
 base = "thesis-2.8.1-angular"
@@ -220,7 +220,7 @@ def test_a_scheduler_that_does_not_answer_leaves_no_folder(tmp_path, capsys, tin
 
 
 def test_the_check_names_the_path_and_creates_nothing(tmp_path):
-    from scopetwin.sim.cli.outputs import OutputError, check_output_path
+    from scopetwin.cli.outputs import OutputError, check_output_path
 
     (tmp_path / "f").write_text("x")
     assert check_output_path(tmp_path / "new" / "deeper", "dir", "--out") == tmp_path / "new" / "deeper"

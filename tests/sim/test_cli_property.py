@@ -25,9 +25,9 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
+from scopetwin.cli import main
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.io import write_image
-from scopetwin.sim.cli import main
 
 #: Examples per test; SCOPETWIN_PROPERTY_EXAMPLES=500 (with SCOPETWIN_PROPERTY_RANDOM=1: fresh draws) digs deeper.
 EXAMPLES = int(os.environ.get("SCOPETWIN_PROPERTY_EXAMPLES", "20"))

@@ -6,7 +6,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from scopetwin.sim.cli import GROUPS
+from scopetwin.cli import GROUPS
 
 #: Libraries that a parser never needs (scipy's heavy modules, renderers, clusters, file formats, plots).
 HEAVY = (
@@ -42,15 +42,13 @@ def _loaded_after(code: str) -> list[str]:
 
 
 def test_version_loads_no_library():
-    code = "import contextlib\nfrom scopetwin.sim.cli import main\n"
+    code = "import contextlib\nfrom scopetwin.cli import main\n"
     code += "with contextlib.suppress(SystemExit):\n    main(['--version'])"
     assert _loaded_after(code) == []  # not even numpy
 
 
 def _parser_loads(groups: str) -> list[str]:
-    return [
-        m for m in _loaded_after(f"from scopetwin.sim.cli import build_parser\nbuild_parser({groups})") if m != "numpy"
-    ]
+    return [m for m in _loaded_after(f"from scopetwin.cli import build_parser\nbuild_parser({groups})") if m != "numpy"]
 
 
 def test_the_parser_of_every_command_loads_no_heavy_library():
@@ -64,8 +62,8 @@ def test_each_group_alone_loads_no_heavy_library():
 
 def test_the_names_spelt_out_for_the_parsers_are_the_libraries():
     from scopetwin.calib.oneshot import LENS_MODES
-    from scopetwin.sim.cli.calibrate import LENS_MODES as CLI_LENS_MODES
-    from scopetwin.sim.cli.study import STUDY_NAMES
+    from scopetwin.cli.calibrate import LENS_MODES as CLI_LENS_MODES
+    from scopetwin.cli.study import STUDY_NAMES
     from scopetwin.sim.studies.runner import STUDIES
 
     assert CLI_LENS_MODES == LENS_MODES

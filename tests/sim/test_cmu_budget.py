@@ -8,11 +8,11 @@ import json
 import numpy as np
 import pytest
 
+from scopetwin.cli import main
 from scopetwin.scenes.cmu import photon_budget as pb
 from scopetwin.scenes.cmu.layout import load_cmu_setup
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.sim import cmu_budget
-from scopetwin.sim.cli import main
 
 
 def test_report_tables() -> None:

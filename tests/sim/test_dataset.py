@@ -13,7 +13,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_dataset_common import write_tiny  # noqa: E402
 
-from scopetwin.sim.cli import main as scopetwin_main
+from scopetwin.cli import main as scopetwin_main
 from scopetwin.sim.datasets.config import DatasetError, config_from_dict, load_config  # noqa: E402
 from scopetwin.sim.datasets.plan import Plan  # noqa: E402
 from scopetwin.sim.datasets.seeding import draw_parameters  # noqa: E402

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scopetwin.sim.cli import main as scopetwin_main
+from scopetwin.cli import main as scopetwin_main
 from scopetwin.sim.datasets.config import DatasetError, config_from_dict, load_config
 from scopetwin.sim.datasets.plan import Plan
 from scopetwin.sim.datasets.seeding import draw_parameters

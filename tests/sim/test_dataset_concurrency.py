@@ -20,7 +20,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_dataset_common import write_tiny  # noqa: E402
 
-from scopetwin.sim.cli import main  # noqa: E402
+from scopetwin.cli import main  # noqa: E402
 from scopetwin.sim.datasets import store  # noqa: E402
 from scopetwin.sim.datasets.config import DatasetError, load_config  # noqa: E402
 from scopetwin.sim.datasets.lock import LOCK_FILE, DatasetBusy, DatasetLock, holder  # noqa: E402
@@ -112,7 +112,7 @@ def _start(cfg: Path, out: Path, indices: str) -> subprocess.Popen:
         [
             sys.executable,
             "-m",
-            "scopetwin.sim.cli",
+            "scopetwin.cli",
             "dataset",
             "generate",
             str(cfg),

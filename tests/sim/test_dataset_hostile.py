@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_dataset_common import write_tiny  # noqa: E402
 
 import scopetwin  # noqa: E402
-from scopetwin.sim.cli import main  # noqa: E402
+from scopetwin.cli import main  # noqa: E402
 from scopetwin.sim.datasets.config import load_config  # noqa: E402
 from scopetwin.sim.datasets.plan import Plan  # noqa: E402
 from scopetwin.sim.datasets.reader import DatasetReadError  # noqa: E402

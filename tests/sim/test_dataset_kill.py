@@ -36,7 +36,7 @@ def _start(cfg: Path, out: Path) -> subprocess.Popen:
         [
             sys.executable,
             "-m",
-            "scopetwin.sim.cli",
+            "scopetwin.cli",
             "dataset",
             "generate",
             str(cfg),

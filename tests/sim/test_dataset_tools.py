@@ -14,7 +14,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_dataset_common import write_tiny  # noqa: E402
 
 import scopetwin  # noqa: E402
-from scopetwin.sim.cli import main as scopetwin_main  # noqa: E402
+from scopetwin.cli import main as scopetwin_main  # noqa: E402
 from scopetwin.sim.datasets.config import DatasetError, apply_overrides, load_config  # noqa: E402
 from scopetwin.sim.datasets.store import verify  # noqa: E402
 

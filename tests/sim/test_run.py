@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from scopetwin.sim.cli import main
+from scopetwin.cli import main
 
 
 @pytest.mark.slow

@@ -15,7 +15,7 @@ import pytest
 
 pytest.importorskip("distributed")
 
-from scopetwin.sim.cli import main  # noqa: E402
+from scopetwin.cli import main  # noqa: E402
 from scopetwin.sim.datasets import runner  # noqa: E402
 from scopetwin.sim.datasets.config import DatasetError  # noqa: E402
 from tests.sim.test_dataset_common import write_tiny  # noqa: E402

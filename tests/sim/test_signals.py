@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
+from scopetwin.cli import main
 from scopetwin.sim import signals
-from scopetwin.sim.cli import main
 from scopetwin.sim.studies import runner
 from scopetwin.sim.studies.context import StudyContext, StudyResult
 from scopetwin.sim.studies.tables import Row, Table
@@ -88,7 +88,7 @@ DRIVER = textwrap.dedent(
     """
     import sys, time
     from pathlib import Path
-    from scopetwin.sim.cli import main
+    from scopetwin.cli import main
     from scopetwin.sim.studies import runner
     from scopetwin.sim.studies.context import StudyResult
 
@@ -233,7 +233,7 @@ def test_an_interrupted_program_ends_within_its_grace_even_if_a_thread_never_fin
 
 def test_the_program_arms_the_grace_only_after_an_interruption(monkeypatch):
     """``console_main`` arms :func:`signals.exit_within` for 128 + n only; ``main`` (used in-process) never does."""
-    import scopetwin.sim.cli as cli
+    import scopetwin.cli as cli
 
     armed: list[int] = []
     monkeypatch.setattr(signals, "exit_within", lambda status, *a: armed.append(status))

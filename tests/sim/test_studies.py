@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from scopetwin.sim.cli import main as scopetwin_main
+from scopetwin.cli import main as scopetwin_main
 from scopetwin.sim.studies import runner
 from scopetwin.sim.studies.context import StudyContext, StudyError, StudyResult, require
 from scopetwin.sim.studies.runner import run_study

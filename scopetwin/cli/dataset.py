@@ -19,8 +19,8 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from scopetwin.sim.cli.options import add_cluster_options, conventions
-from scopetwin.sim.cli.outputs import check_space, human_bytes
+from scopetwin.cli.options import add_cluster_options, conventions
+from scopetwin.cli.outputs import check_space, human_bytes
 
 if TYPE_CHECKING:
     from scopetwin.sim.datasets.plan import Plan

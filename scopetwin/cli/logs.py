@@ -1,7 +1,7 @@
 """Log messages of the command line: the ``scopetwin`` logger on stderr, at the level ``-v``/``-q`` set.
 
 Library modules log through module loggers (``logging.getLogger(__name__)``, all under ``scopetwin.``) and never
-print; :func:`scopetwin.sim.cli.main` puts one handler on the ``scopetwin`` logger for the duration of a command:
+print; :func:`scopetwin.cli.main` puts one handler on the ``scopetwin`` logger for the duration of a command:
 
 =========  =======================  ==================================================================
 option     level                    what reaches stderr
@@ -68,7 +68,7 @@ class _Format(logging.Formatter):
 def log_to_stderr(verbosity: int = 0, quiet: bool = False) -> Iterator[logging.Logger]:
     """Within the block the ``scopetwin`` logger writes to stderr at :func:`level_for` ``(verbosity, quiet)``.
 
-    Its level, handlers and propagation are restored afterwards, so :func:`scopetwin.sim.cli.main` can run many
+    Its level, handlers and propagation are restored afterwards, so :func:`scopetwin.cli.main` can run many
     times in one process (tests) without stacking handlers. The records do not propagate to the root logger
     meanwhile: the command line owns stderr, a message appears once.
     """

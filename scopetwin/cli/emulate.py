@@ -22,9 +22,9 @@ import argparse
 import json
 from typing import Any
 
+from scopetwin.cli.options import conventions
 from scopetwin.instrument.emulators import EMULATORS
 from scopetwin.instrument.errors import RigError
-from scopetwin.sim.cli.options import conventions
 
 OPTIONS_HELP = {
     "pi-gcs": "axes=1,2 travel_mm=0,150 max_velocity_mm_s=50 reference_mm=0 stage=M-404.6PD (--model C-863.11)",

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from scopetwin.sim.cli.options import conventions
+from scopetwin.cli.options import conventions
 
 
 def cmd_run(args: argparse.Namespace) -> dict[str, Any]:

@@ -2,38 +2,38 @@
 
 One module per command group, each with a ``register(subparsers)`` that adds its commands:
 
-=======================  =====================================================================================
-:mod:`scopetwin.sim.cli.render`    ``render SETUP``, ``presets``
-:mod:`scopetwin.sim.cli.run`       ``run`` (the main job, :mod:`scopetwin.sim.pipeline`)
-:mod:`scopetwin.sim.cli.markers`   ``markers IMAGE --pattern SETUP``
-:mod:`scopetwin.sim.cli.reconstruct` ``reconstruct IMAGE --setup SETUP --out Z.exr``
-:mod:`scopetwin.sim.cli.calibrate` ``calibrate IMAGE``, ``calibrate-setup``
-:mod:`scopetwin.sim.cli.optics`    ``optics grin | cmu | scan``
-:mod:`scopetwin.sim.cli.rig`       ``rig RIG.toml info | move | position | acquire | mda | serve``
-:mod:`scopetwin.sim.cli.emulate`   ``emulate pi-gcs | jena-piezo | fpga-board``
-:mod:`scopetwin.sim.cli.dataset`   ``dataset generate | resume | verify``
-:mod:`scopetwin.sim.cli.study`     ``study NAME``
-=======================  =====================================================================================
+================================  ===============================================================
+:mod:`scopetwin.cli.render`       ``render SETUP``, ``presets``
+:mod:`scopetwin.cli.run`          ``run`` (the main job, :mod:`scopetwin.sim.pipeline`)
+:mod:`scopetwin.cli.markers`      ``markers IMAGE --pattern SETUP``
+:mod:`scopetwin.cli.reconstruct`  ``reconstruct IMAGE --setup SETUP --out Z.exr``
+:mod:`scopetwin.cli.calibrate`    ``calibrate IMAGE``, ``calibrate-setup``
+:mod:`scopetwin.cli.optics`       ``optics grin | cmu | scan``
+:mod:`scopetwin.cli.rig`          ``rig RIG.toml info | move | position | acquire | mda | serve``
+:mod:`scopetwin.cli.emulate`      ``emulate pi-gcs | jena-piezo | fpga-board``
+:mod:`scopetwin.cli.dataset`      ``dataset generate | resume | verify``
+:mod:`scopetwin.cli.study`        ``study NAME``
+================================  ===============================================================
 
-:mod:`scopetwin.sim.cli.outputs` checks and writes the outputs every command declares (below);
-:mod:`scopetwin.sim.cli.logs` writes the log on stderr.
+:mod:`scopetwin.cli.outputs` checks and writes the outputs every command declares (below);
+:mod:`scopetwin.cli.logs` writes the log on stderr.
 
 Every command function takes the parsed arguments and returns its result as a JSON-ready dict; :func:`main`
-writes it to ``--json PATH`` when given (``--json -``: to standard output, :mod:`scopetwin.sim.cli.outputs`). A
+writes it to ``--json PATH`` when given (``--json -``: to standard output, :mod:`scopetwin.cli.outputs`). A
 command whose result decides the exit status (``dataset verify``: 1 when the dataset is incomplete) sets
 ``exit_code`` (a function of the result) beside ``func`` in its parser's defaults. Bad input gives one line
 ``scopetwin: error: ...`` on stderr and exit code 2, and leaves no partial output behind.
 
 Every parser of the tree (commands and their sub-commands) shares the same conventions
-(:func:`scopetwin.sim.cli.options.conventions`): ``-v``/``--verbose`` (repeatable) and ``-q``/``--quiet``, before or
+(:func:`scopetwin.cli.options.conventions`): ``-v``/``--verbose`` (repeatable) and ``-q``/``--quiet``, before or
 after the command words; a help text ending in ``examples:``. :func:`main` sets the ``scopetwin`` logger's level from
-them for the command (:mod:`scopetwin.sim.cli.logs`: warnings by default, ``-v`` notes, ``-vv`` debugging, ``-q``
+them for the command (:mod:`scopetwin.cli.logs`: warnings by default, ``-v`` notes, ``-vv`` debugging, ``-q``
 errors only, and no progress bars); the library logs through it and never prints, the commands print their results
 on stdout.
 
 Around every command :func:`main` applies two policies:
 
-* **outputs** (:mod:`scopetwin.sim.cli.outputs`): the paths a command declares (``set_defaults(outputs=[("out", "dir"),
+* **outputs** (:mod:`scopetwin.cli.outputs`): the paths a command declares (``set_defaults(outputs=[("out", "dir"),
   ("json", "file")])``, sized by an optional ``estimate``) are checked before it runs — writable, a folder where a
   folder is needed, enough free space — and ``--json`` is written before the staged results are moved into place;
   a failed write (a full disk) is one line, exit 2, and what the command created is removed;
@@ -53,11 +53,11 @@ import time
 from collections.abc import Sequence
 
 from scopetwin._version import __version__
+from scopetwin.cli.logs import log_to_stderr
+from scopetwin.cli.options import VERBOSE, HelpFormatter, common_options, verbosity
+from scopetwin.cli.outputs import OutputTransaction, describe_os_error
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.sim import signals
-from scopetwin.sim.cli.logs import log_to_stderr
-from scopetwin.sim.cli.options import VERBOSE, HelpFormatter, common_options, verbosity
-from scopetwin.sim.cli.outputs import OutputTransaction, describe_os_error
 
 EXIT_BAD_INPUT = 2
 
@@ -108,7 +108,7 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"scopetwin {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for group in _groups_for(argv):
-        importlib.import_module(f"scopetwin.sim.cli.{group}").register(sub)
+        importlib.import_module(f"scopetwin.cli.{group}").register(sub)
     return parser
 
 

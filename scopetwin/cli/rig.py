@@ -49,11 +49,11 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from scopetwin.cli.options import conventions, finite_float, int_range, positive_float, positive_int
 from scopetwin.instrument.devices import FocusDrive, Stage
 from scopetwin.instrument.errors import DeviceLost, RigError
 from scopetwin.instrument.rig import Rig, open_rig, read_rig_toml
 from scopetwin.shipped import rig_names
-from scopetwin.sim.cli.options import conventions, finite_float, int_range, positive_float, positive_int
 
 log = logging.getLogger(__name__)
 
@@ -333,8 +333,8 @@ def cmd_mda(args: argparse.Namespace) -> dict[str, Any]:
     """Run a useq MDA sequence (YAML/JSON, µm and ms) on the rig through pymmcore-plus into an OME file."""
     from tqdm import tqdm
 
+    from scopetwin.cli.outputs import human_bytes
     from scopetwin.instrument.mdaplan import load_sequence
-    from scopetwin.sim.cli.outputs import human_bytes
 
     out = Path(args.out)
     if not out.name.lower().endswith(OME_SUFFIXES):

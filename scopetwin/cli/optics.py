@@ -20,7 +20,7 @@
 * ``optics scan [...]`` -- T_I, T_M, T_N, eq. 7.1/7.2, the s^1.5 scaling law, N (eq. 8.1), N_max (eq. 8.2), d_L,max
   (:mod:`scopetwin.sim.scan_time`).
 
-Errors the user can cause are :class:`scopetwin.scenes.errors.ScopetwinError` (exit code 2 in ``sim.cli``).
+Errors the user can cause are :class:`scopetwin.scenes.errors.ScopetwinError` (exit code 2 in :mod:`scopetwin.cli`).
 """
 
 from __future__ import annotations
@@ -34,8 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from scopetwin.cli.options import SEED, SIDE_PX, SPP, conventions, finite_float, positive_float, positive_int
 from scopetwin.scenes.errors import ScopetwinError
-from scopetwin.sim.cli.options import SEED, SIDE_PX, SPP, conventions, finite_float, positive_float, positive_int
 
 #: Upper bound of the lengths ``optics scan`` takes (mm): 10 m, far beyond any substrate of the thesis.
 MAX_LENGTH_MM = 1.0e4

@@ -13,8 +13,8 @@ import argparse
 import logging
 from typing import Any
 
-from scopetwin.sim.cli.options import add_cluster_options, conventions
-from scopetwin.sim.cli.outputs import check_output_path
+from scopetwin.cli.options import add_cluster_options, conventions
+from scopetwin.cli.outputs import check_output_path
 
 log = logging.getLogger(__name__)
 

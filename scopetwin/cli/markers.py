@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from scopetwin.sim.cli.options import conventions
+from scopetwin.cli.options import conventions
 
 
 def cmd_markers(args: argparse.Namespace) -> dict[str, Any]:

@@ -15,8 +15,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from scopetwin.cli.options import conventions, finite_float
 from scopetwin.scenes.errors import ScopetwinError
-from scopetwin.sim.cli.options import conventions, finite_float
 
 if TYPE_CHECKING:  # loaded when a reconstruction runs, not when the parser is built
     from scopetwin.recon.config import ReconstructionConfig

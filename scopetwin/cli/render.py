@@ -14,8 +14,8 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from scopetwin.cli.options import SEED, SPP, conventions, finite_float
 from scopetwin.scenes.errors import ScopetwinError
-from scopetwin.sim.cli.options import SEED, SPP, conventions, finite_float
 
 if TYPE_CHECKING:
     from scopetwin.sim.measurement import StagedOutput

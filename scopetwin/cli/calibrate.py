@@ -19,8 +19,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from scopetwin.cli.options import conventions, finite_float, finite_vector, positive_float
 from scopetwin.scenes.errors import ScopetwinError
-from scopetwin.sim.cli.options import conventions, finite_float, finite_vector, positive_float
 
 if TYPE_CHECKING:
     from numpy.typing import NDArray
