@@ -287,7 +287,9 @@ class OmeOutput:
 
         A run stopped before its first plane leaves nothing: the single file, the Zarr store, or the per-position
         files and their folder are removed (they would hold no image). A run stopped before some position's first
-        plane removes that position's file, and the files kept refer to the files kept only."""
+        plane removes that position's file (an OME-Zarr plate its well), and the files kept refer to the files
+        kept only. A run stopped before its last plane leaves files that declare only the planes acquired
+        (:mod:`~scopetwin.instrument.ome_pieces`)."""
         if self._tiff is not None:
             self._tiff.close()
             self._tiff = None
@@ -303,19 +305,7 @@ class OmeOutput:
             stream, self._stream = self._stream, None
             stream.close()
             if self.planes:
-                metadata = stream.get_metadata()
-                if self.kind == "zarr":
-                    _complete_zarr(metadata, self)
-                else:
-                    _complete_tiff(metadata, self)
-                    # a run stopped before a position's first plane leaves that position's file without a page:
-                    # no metadata to complete there, and the empty file goes (nor do the others refer to it)
-                    metadata = {p: m for p, m in metadata.items() if p in self.reported.first}
-                    _remove_pageless(self.files())
-                    _drop_missing_references(metadata, {Path(f).name for f in self.files()})
-                stream.update_metadata(metadata)
-                if self.kind == "zarr":
-                    _version_plate(self.path)
+                self._complete(stream)
             elif self.kind == "zarr":
                 import shutil
 
@@ -326,6 +316,30 @@ class OmeOutput:
                 if not self.path.exists() and folder.is_dir() and not any(folder.iterdir()):
                     folder.rmdir()  # an empty folder would block the rerun
         return self.files()
+
+    def _complete(self, stream: Any) -> None:
+        """Complete the metadata of ome-writers' files; after a stop, make them declare what they hold."""
+        from scopetwin.instrument.ome_pieces import complete, rewrite_tiff_files, shrink_zarr
+
+        stopped = not complete(self)
+        metadata = stream.get_metadata()
+        if self.kind == "zarr":
+            _complete_zarr(metadata, self)
+            stream.update_metadata(metadata)
+            _version_plate(self.path)
+            if stopped:
+                shrink_zarr(self)
+            return
+        _complete_tiff(metadata, self)
+        # a run stopped before a position's first plane leaves that position's file without a page: no metadata to
+        # complete there, and the empty file goes (nor do the others refer to it)
+        metadata = {p: m for p, m in metadata.items() if p in self.reported.first}
+        _remove_pageless(self.files())
+        if stopped:
+            rewrite_tiff_files(self, _position_files(metadata, self.files()))
+        else:
+            _drop_missing_references(metadata, {Path(f).name for f in self.files()})
+            stream.update_metadata(metadata)
 
     def files(self) -> list[str]:
         """The files (or the Zarr store) written so far."""
@@ -354,6 +368,20 @@ def _remove_pageless(paths: list[str]) -> None:
             quiet.setLevel(level)
         if empty:
             os.remove(path)
+
+
+def _position_files(metadata: dict[int, Any], files: list[str]) -> dict[int, Path]:
+    """``{position: path}`` of ome-writers' OME-TIFF files: the file whose UUID each position's OME carries."""
+    by_name = {Path(f).name: Path(f) for f in files}
+    if len(metadata) == 1 and len(files) == 1:  # one position: its file (whose OME names no file)
+        return {next(iter(metadata)): Path(files[0])}
+    found = {}
+    for position, ome in metadata.items():
+        for image in ome.images:
+            for block in image.pixels.tiff_data_blocks:
+                if block.uuid is not None and block.uuid.value == ome.uuid and block.uuid.file_name in by_name:
+                    found[position] = by_name[block.uuid.file_name]
+    return found
 
 
 def _drop_missing_references(metadata: dict[Any, Any], kept: set[str]) -> None:

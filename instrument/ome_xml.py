@@ -113,18 +113,24 @@ def complete_image(image: Any, info: Any) -> None:
         channel.emission_wavelength = known.emission_nm
 
 
-def _pixels(out: Any, position: int, ifds: list[tuple[dict[str, int], int, dict[str, Any]]]) -> Any:
-    """The ``Pixels`` of one position: sizes, channels, the planes as reported, a ``TiffData`` per plane."""
+def _pixels(out: Any, piece: Any, number: int, ifds: list[int], file: tuple[str, str] | None = None) -> Any:
+    """The ``Pixels`` of one piece (:class:`~scopetwin.instrument.ome_pieces.Piece`): its sizes and channels, its
+    planes as reported, a ``TiffData`` per plane (page ``ifds[k]`` of the file, named with its UUID in ``file``)."""
     from ome_types import model
 
-    info, sizes = out.info, out.layout.sizes
+    info = out.info
     rows, cols = info.shape
-    channels = [model.Channel(id=f"Channel:{position}:{k}", name=c.name) for k, c in enumerate(info.channels)]
+    first_c = piece.at("c")
+    held = info.channels[first_c : first_c + piece.size("c")] if "c" in piece.axes else info.channels
+    channels = [model.Channel(id=f"Channel:{number}:{k}", name=c.name) for k, c in enumerate(held)]
     if not channels:
-        channels = [model.Channel(id=f"Channel:{position}:0")]
+        channels = [model.Channel(id=f"Channel:{number}:0")]
+    reference = None if file is None else model.TiffData.UUID(file_name=file[0], value=file[1])
     planes, tiff_data = [], []
-    for index, ifd, meta in ifds:
-        z, c, t = (int(index.get(axis, 0)) for axis in ORDER)
+    for n, ifd in zip(piece.planes, ifds, strict=True):
+        _position, index, meta = out.reported.planes[n]
+        at = piece.relative(index)
+        z, c, t = (at[axis] for axis in ORDER)
         planes.append(
             model.Plane(
                 the_z=z,
@@ -140,16 +146,16 @@ def _pixels(out: Any, position: int, ifds: list[tuple[dict[str, int], int, dict[
                 position_z_unit="µm",
             )
         )
-        tiff_data.append(model.TiffData(ifd=ifd, first_z=z, first_c=c, first_t=t, plane_count=1))
+        tiff_data.append(model.TiffData(ifd=ifd, first_z=z, first_c=c, first_t=t, plane_count=1, uuid=reference))
     return model.Pixels(
-        id=f"Pixels:{position}",
+        id=f"Pixels:{number}",
         dimension_order="XYZCT",
         type=info.dtype,
         size_x=cols,
         size_y=rows,
-        size_z=max(1, sizes.get("z", 0)),
+        size_z=piece.size("z"),
         size_c=max(1, len(channels)),
-        size_t=max(1, sizes.get("t", 0)),
+        size_t=piece.size("t"),
         physical_size_x=info.pixel_size_um,
         physical_size_y=info.pixel_size_um,
         physical_size_z=out.layout.z_step_um or None,
@@ -159,17 +165,44 @@ def _pixels(out: Any, position: int, ifds: list[tuple[dict[str, int], int, dict[
     )
 
 
-def single_file_ome(out: Any) -> Any:
-    """The OME-XML of a single multi-series OME-TIFF: one ``Image`` per position, its planes in file order."""
+def _image(out: Any, piece: Any, number: int, ifds: list[int], file: tuple[str, str] | None = None) -> Any:
+    """The OME ``Image`` of one piece: named after its position (else the output file), an extra piece with its
+    :attr:`~scopetwin.instrument.ome_pieces.Piece.label` after the name."""
     from ome_types import model
 
-    by_position: dict[int, list[tuple[dict[str, int], int, dict[str, Any]]]] = {}
-    for ifd, (position, index, meta) in enumerate(out.reported.planes):
-        by_position.setdefault(position, []).append((index, ifd, meta))
-    images = []
-    for position in sorted(by_position):
-        name = out.layout.names[position] if out.layout.names else out.path.name
-        image = model.Image(id=f"Image:{position}", name=name, pixels=_pixels(out, position, by_position[position]))
-        complete_image(image, out.info)
-        images.append(image)
+    name = out.layout.names[piece.position] if out.layout.names else out.path.name
+    if not piece.main:
+        name = f"{name} {piece.label}"
+    pixels = _pixels(out, piece, number, ifds, file)
+    image = model.Image(id=f"Image:{number}", name=name, pixels=pixels)
+    complete_image(image, out.info)
+    return image
+
+
+def single_file_ome(out: Any) -> Any:
+    """The OME-XML of a single multi-series OME-TIFF: each position's pieces (one ``Image`` for a complete
+    position; :mod:`~scopetwin.instrument.ome_pieces`), their planes in file order."""
+    from ome_types import model
+
+    from scopetwin.instrument.ome_pieces import pieces
+
+    images: list[Any] = []
+    for found in pieces(out).values():
+        for piece in found:
+            images.append(_image(out, piece, len(images), list(piece.planes)))
     return model.OME(instruments=[instrument(out.info)], images=images, creator="scopetwin (tifffile)")
+
+
+def position_file_ome(out: Any, found: list[Any], file: tuple[str, str]) -> Any:
+    """The OME-XML of the OME-TIFF file of one position (``file``: its name and UUID) holding ``found``, that
+    position's pieces: each plane named by the file and its page there (a file of its own, as tifffile reads
+    pages of another file of a multi-file OME through the file it opened)."""
+    from ome_types import model
+
+    position = found[0].position
+    numbers = [n for n, (p, _index, _meta) in enumerate(out.reported.planes) if p == position]
+    page = {n: k for k, n in enumerate(numbers)}
+    images = [_image(out, piece, k, [page[n] for n in piece.planes], file) for k, piece in enumerate(found)]
+    return model.OME(
+        uuid=file[1], instruments=[instrument(out.info)], images=images, creator="scopetwin (ome-writers, tifffile)"
+    )

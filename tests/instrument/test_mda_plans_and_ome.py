@@ -182,7 +182,7 @@ def test_a_device_fault_stops_the_run_and_keeps_no_plane_after_it(rig_path, tmp_
         assert not any(lamp.is_on for lamp in rig.lights())
     kept = np.asarray(zarr_array(tmp_path / "x.ome.zarr" / "A" / "1" / "0" / "0"))
     assert all(kept[c, z].max() > 0 for c in range(2) for z in range(3))  # position 0: its 6 planes, then the fault
-    assert not np.asarray(zarr_array(tmp_path / "x.ome.zarr" / "A" / "2" / "0" / "0")).any()  # nothing at z = 118
+    assert not (tmp_path / "x.ome.zarr" / "A" / "2").exists()  # nothing at z = 118: position 1 has no well
 
 
 def zarr_array(path):
