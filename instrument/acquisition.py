@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from scopetwin.instrument.devices import CameraDevice, LightSource, TriggerMode, TriggerType
-from scopetwin.instrument.errors import InstrumentError, OutOfRangeError
+from scopetwin.instrument.errors import InstrumentError, OutOfRangeError, RigError
 from scopetwin.instrument.interrupts import deferred_signals
 from scopetwin.instrument.rig import Rig
 from scopetwin.scenes.io import atomic_path, write_image, write_json_atomic
@@ -109,7 +109,7 @@ class FrameWriter:
     Parameters
     ----------
     directory : path
-        Output folder (created).
+        Output folder (created; a symbolic link there is refused, not written through).
     meta : dict
         Run-level metadata stored in the manifest.
     display_range : (float, float), optional
@@ -127,6 +127,8 @@ class FrameWriter:
         preview: bool = True,
     ) -> None:
         self.directory = Path(directory)
+        if self.directory.is_symlink():
+            raise RigError(f"{self.directory} is a symbolic link; scopetwin writes through no link it did not make")
         self.directory.mkdir(parents=True, exist_ok=True)
         self.manifest: dict[str, Any] = {"meta": dict(meta or {}), "frames": [], "complete": False, "error": None}
         self.display_range = display_range

@@ -21,6 +21,7 @@ Nothing records a value that was asked for: positions and exposures are the ones
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 from dataclasses import dataclass, field
@@ -226,7 +227,8 @@ class OmeOutput:
     Raises
     ------
     RigError
-        An output path of another kind, or a name its metadata cannot hold (OME-TIFF: XML; OME-Zarr: JSON;
+        An output path of another kind, a symbolic link at the output (or at the folder of per-position files), or
+        a name its metadata cannot hold (OME-TIFF: XML; OME-Zarr: JSON;
         :func:`~scopetwin.instrument.ome_xml.check_names`), before anything is written.
     """
 
@@ -236,17 +238,28 @@ class OmeOutput:
         from scopetwin.instrument.ome_xml import check_names
 
         check_names(path, layout, info, self.kind)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.layout, self.info = layout, info
         self.single_file = single_file and self.kind == "tiff"
+        folders = [self.path.parent / _stem(self.path.name)] if self.kind == "tiff" and not self.single_file else []
+        for target in (self.path, *folders):  # the per-position files' folder too
+            if target.is_symlink():
+                raise RigError(
+                    f"output {str(target)!r} is a symbolic link; scopetwin writes through no link it did not make"
+                )
+        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.reported = _Reported()
         self.planes = 0
         self._stream: Any = None
         self._tiff: Any = None
+        self._staged = contextlib.ExitStack()
         if self.single_file:
             import tifffile
 
-            self._tiff = tifffile.TiffWriter(self.path, bigtiff=True)
+            from scopetwin.scenes.io import atomic_path
+
+            staged = self._staged.enter_context(atomic_path(self.path))  # renamed onto the path when closed
+            self._tiff = tifffile.TiffWriter(staged, bigtiff=True)
+            self._staged_path = staged
         else:
             self._stream = self._open_stream()
 
@@ -276,7 +289,9 @@ class OmeOutput:
             meta["delta_t"] = float(reported["elapsed_s"])
         meta |= {f"position_{axis}": v for axis, v in zip("xyz", where, strict=True) if v is not None}
         if self._tiff is not None:
-            self._tiff.write(np.asarray(image), contiguous=False, metadata=None, photometric="minisblack")
+            # the first page carries the description that the OME-XML replaces when the file is closed
+            first = {"description": "OME-XML"} if not self.planes else {}
+            self._tiff.write(np.asarray(image), contiguous=False, metadata=None, photometric="minisblack", **first)
         else:
             self._stream.append(np.asarray(image), frame_metadata=meta)
         self.reported.planes.append((position, {k: int(v) for k, v in index.items()}, meta))
@@ -298,9 +313,11 @@ class OmeOutput:
 
                 from scopetwin.instrument.ome_xml import single_file_ome
 
-                tifffile.tiffcomment(self.path, single_file_ome(self).to_xml().encode())
-            else:
-                self.path.unlink(missing_ok=True)  # a TIFF header without a page
+                with self._staged:  # renamed into place at the end of the block; removed if it raises
+                    tifffile.tiffcomment(self._staged_path, single_file_ome(self).to_xml().encode())
+            else:  # a TIFF header without a page: the staged file goes
+                with contextlib.suppress(RigError), self._staged:
+                    raise RigError("no plane")
         elif self._stream is not None:
             stream, self._stream = self._stream, None
             stream.close()
@@ -433,12 +450,14 @@ def _version_plate(store: Path) -> None:
     """The plate's own ``version`` (0.5), which ome-zarr-models looks for beside the ``ome`` version."""
     import json
 
+    from scopetwin.scenes.io import write_json_atomic
+
     root = store / "zarr.json"
     meta = json.loads(root.read_text())
     plate = meta.get("attributes", {}).get("ome", {}).get("plate")
     if plate is not None and "version" not in plate:
         plate["version"] = meta["attributes"]["ome"].get("version", "0.5")
-        root.write_text(json.dumps(meta, indent=2))
+        write_json_atomic(root, meta)
 
 
 def _optics_attrs(out: OmeOutput, first: tuple[float | None, ...]) -> dict[str, Any]:

@@ -305,12 +305,15 @@ def _write_previews(path: Path, dn: np.ndarray, max_dn: int) -> dict[str, str]:
     dark it is)."""
     import cv2
 
+    from scopetwin.scenes.io import atomic_path
     from scopetwin.sim.measurement import write_preview
 
     auto = path.with_suffix(".png")
     write_preview(auto, dn)
     full = path.with_name(path.stem + "_fullscale.png")
-    cv2.imwrite(str(full), np.clip(255.0 * dn / max_dn, 0, 255).astype(np.uint8))
+    data = cv2.imencode(".png", np.clip(255.0 * dn / max_dn, 0, 255).astype(np.uint8))[1]
+    with atomic_path(full) as tmp:  # written beside it and renamed: never through a link at ``full``
+        tmp.write_bytes(data.tobytes())
     return {"preview": str(auto), "fullscale": str(full)}
 
 
@@ -398,7 +401,9 @@ def render_cells(
     """
     from scopetwin.scenes.io import write_image
     from scopetwin.scenes.mitsuba.cmu import unit_scene
+    from scopetwin.sim.measurement import _refuse_link
 
+    _refuse_link(Path(out))  # a folder of its own: a link to another folder is not written through
     exposures = exposures_ms or dict(pb.SEED_EXPOSURE_MS)
     rho = _densities(density, snr)
     scene = unit_scene(setup, {})

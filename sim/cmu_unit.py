@@ -193,7 +193,9 @@ def render_and_measure(
         tilt relative to the NIR channel (Tables 5.3, 5.4).
     """
     from scopetwin.scenes.mitsuba.cmu import CameraPose, unit_scene
+    from scopetwin.sim.measurement import _refuse_link
 
+    _refuse_link(Path(out))  # a folder of its own: a link to another folder is not written through
     scene = unit_scene(setup, maps)
     meas, files = {}, {}
     for ch in setup.channels:

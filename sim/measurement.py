@@ -293,13 +293,19 @@ def provenance(seed: int, spp: int, renderer: str) -> dict[str, Any]:
 
 
 def write_preview(path: Path, image: NDArray[Any]) -> None:
-    """An 8-bit PNG of an image: scaled to its 99.9th percentile, gamma 1/2.2."""
+    """An 8-bit PNG of an image: scaled to its 99.9th percentile, gamma 1/2.2; written atomically (beside ``path``,
+    then renamed over it: a link there is replaced, never written through)."""
     import cv2
+
+    from scopetwin.scenes.io import atomic_path
 
     top = float(np.percentile(image, 99.9)) or 1.0
     img8 = np.clip(255.0 * (np.clip(image / top, 0, 1) ** (1 / 2.2)), 0, 255).astype(np.uint8)
-    if not cv2.imwrite(str(path), img8):
-        raise ScopetwinError(f"could not write the preview {path}")
+    ok, data = cv2.imencode(".png", img8)
+    if not ok:  # pragma: no cover - OpenCV cannot fail on a valid 8-bit image
+        raise ScopetwinError(f"could not encode the preview {path}")
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data.tobytes())
 
 
 def check_rendered(image: NDArray[Any], what: str) -> NDArray[Any]:

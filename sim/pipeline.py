@@ -103,7 +103,7 @@ def _plots(
         ax.axhline(-0.5 * sub.roi_length, color="w", lw=0.8)
         ax.axhline(0.5 * sub.roi_length, color="w", lw=0.8)
         ax.set_xlabel("x, mm")
-    fig.savefig(out / "height.png", dpi=90)
+    _save_png(fig, out / "height.png", 90)
     names.append("height.png")
 
     fig = Figure(figsize=(4.5 * len(results), 6))
@@ -116,7 +116,7 @@ def _plots(
         im = ax.imshow(err, origin="lower", extent=ext, cmap="RdBu_r")
         ax.set_title(f"error in the ROI ({name}), µm")
         fig.colorbar(im, ax=ax)
-    fig.savefig(out / "error.png", dpi=90)
+    _save_png(fig, out / "error.png", 90)
     names.append("error.png")
 
     fig = Figure(figsize=(10, 7.5))
@@ -129,7 +129,7 @@ def _plots(
     if len(ref):
         ax.plot(*(found.centroids[ref[0]] - 0.5), "co", mfc="none", ms=12)
     ax.set_title(f"measurement image with {len(found.ij)} indexed markers (cyan: reference)")
-    fig.savefig(out / "markers.png", dpi=80)
+    _save_png(fig, out / "markers.png", 80)
     names.append("markers.png")
 
     fig = Figure(figsize=(11, 4))
@@ -148,9 +148,17 @@ def _plots(
     for ax in axes:
         ax.legend()
         ax.grid(True, which="both", alpha=0.3)
-    fig.savefig(out / "convergence.png", dpi=90)
+    _save_png(fig, out / "convergence.png", 90)
     names.append("convergence.png")
     return names
+
+
+def _save_png(fig: Any, path: Path, dpi: int) -> None:
+    """``fig`` as a PNG at ``path``, written atomically (beside it, then renamed over it)."""
+    from scopetwin.scenes.io import atomic_path
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=dpi)
 
 
 def _import_plotting() -> None:
@@ -245,7 +253,8 @@ def run_pipeline(
     Parameters
     ----------
     out_dir : Path
-        Folder to write into (created; the caller stages it atomically).
+        Folder to write into (created; the caller stages it atomically). Each file is written atomically too, and
+        a folder that is a symbolic link is refused.
     spp : int, optional
         Samples per pixel of the renders (default: the setups' own).
     seed : int, optional
@@ -390,8 +399,11 @@ def _run(
 ) -> dict[str, Any]:
     from scopetwin.recon.reconstruct import MarkerObservations
     from scopetwin.recon.substrate import Substrate2D
+    from scopetwin.scenes.io import write_json_atomic, write_text_atomic
+    from scopetwin.sim.measurement import _refuse_link
 
     out = Path(out_dir)
+    _refuse_link(out)  # a folder of its own: a link to another folder is not written through
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     threading.Thread(target=_import_plotting, name="scopetwin-imports", daemon=True).start()
@@ -422,8 +434,8 @@ def _run(
     if calibrated is not None:
         summary["calibration_deviation"] = _calibration_deviation(setup, calibrated)
     summary["seconds"] = time.perf_counter() - t_start
-    (out / "report.md").write_text(_report(summary))
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    write_text_atomic(out / "report.md", _report(summary))
+    write_json_atomic(out / "summary.json", summary)
     steps.bar.update(1)
     steps.bar.close()
     return summary
@@ -456,6 +468,7 @@ def _calibrate(
     """
     try:
         from scopetwin.calib.setup_calibration import calibrate_setup_from_images
+        from scopetwin.scenes.io import write_text_atomic
 
         cal = calibrate_setup_from_images(
             img_target,
@@ -464,7 +477,7 @@ def _calibrate(
             mirror_setup,
             comment="scopetwin run: setup calibrated as in thesis §2.7",
         )
-        (out / "calibrated-setup.toml").write_text(cal.toml)
+        write_text_atomic(out / "calibrated-setup.toml", cal.toml)
     except (ImportError, ScopetwinError) as exc:
         log.warning("setup calibration failed; the 'calibrated' row uses the ideal setup", exc_info=True)
         return None, f"UNAVAILABLE ({type(exc).__name__}: {exc}); the 'calibrated' row uses the ideal setup"
@@ -559,6 +572,7 @@ def _write_files(
 def _write_focus_map(out: Path, results: dict[str, Any], sub: Substrate2D) -> FocusMap:
     """The focus map over the ROI from the calibrated reconstruction and its uncertainty; writes focusmap.csv."""
     from scopetwin.recon.focusmap import focus_map
+    from scopetwin.scenes.io import write_text_atomic
 
     cal_res = results["calibrated"]["result"]
     cal_std = cal_res.std_heightmap()
@@ -568,7 +582,7 @@ def _write_focus_map(out: Path, results: dict[str, Any], sub: Substrate2D) -> Fo
         (-0.5 * sub.roi_length, 0.5 * sub.roi_length),
         height_std=cal_std.height if cal_std is not None else None,
     )
-    (out / "focusmap.csv").write_text(fm.to_csv())
+    write_text_atomic(out / "focusmap.csv", fm.to_csv())
     return fm
 
 

@@ -37,7 +37,7 @@ from scopetwin.sim.datasets.config import SAMPLE_PACKAGES, DatasetError
 from scopetwin.sim.datasets.lock import DatasetBusy, DatasetLock, holder
 from scopetwin.sim.datasets.plan import READABLE_FORMATS, Plan
 from scopetwin.sim.datasets.runner import check_scheduler, dask_client, failure_text, init_worker, run_tasks
-from scopetwin.sim.measurement import StagedOutput, remove_stale_stage, versions
+from scopetwin.sim.measurement import StagedOutput, _refuse_link, remove_stale_stage, versions
 
 CONFIG_FILE = "dataset.json"
 MANIFEST = "manifest.jsonl"
@@ -374,7 +374,10 @@ def parse_indices(text: str | None, count: int) -> list[int]:
 
 
 def _make_folder(root: Path) -> bool:
-    """Create the dataset folder; True when this call created it (so a refused start can remove it again)."""
+    """Create the dataset folder; True when this call created it (so a refused start can remove it again).
+
+    A folder that is a symbolic link is refused: the samples are not written through it."""
+    _refuse_link(root)
     root.parent.mkdir(parents=True, exist_ok=True)
     try:
         root.mkdir()
