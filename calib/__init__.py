@@ -9,3 +9,8 @@ Modules by the thesis's sections:
 * :mod:`scopetwin.calib.setup_calibration` — calibration of the deflectometry setup with a flat mirror (§2.7);
 * :mod:`scopetwin.calib.channels` — channel registration of the microscope unit from Siemens-star images (§5.2.2).
 """
+
+if __name__ == "calib":  # the bare folder, from the checkout's root: a second copy of scopetwin.calib
+    raise ImportError(
+        "calib is part of scopetwin: import scopetwin.calib (install with `make setup` or `pip install -e .`)"
+    )

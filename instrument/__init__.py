@@ -10,6 +10,11 @@ on emulators) as a context manager; acquisition routines live in
 
 from __future__ import annotations
 
+if __name__ == "instrument":  # the bare folder, from the checkout's root: a second copy of scopetwin.instrument
+    raise ImportError(
+        "instrument is part of scopetwin: import scopetwin.instrument (install with `make setup` or `pip install -e .`)"
+    )
+
 from typing import TYPE_CHECKING, Any
 
 from scopetwin.instrument.errors import (

@@ -15,3 +15,8 @@ Modules by the thesis's sections:
   :func:`scopetwin.scenes.secant.secant_intersection` (§1.6.4);
 * :mod:`scopetwin.recon.focusmap` — focus maps from the reconstructed surface (§1.1: removing the focus search).
 """
+
+if __name__ == "recon":  # the bare folder, from the checkout's root: a second copy of scopetwin.recon
+    raise ImportError(
+        "recon is part of scopetwin: import scopetwin.recon (install with `make setup` or `pip install -e .`)"
+    )

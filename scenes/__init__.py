@@ -8,6 +8,11 @@ reference renderer and sensor physics. Pure numpy; Mitsuba lives in
 
 from __future__ import annotations
 
+if __name__ == "scenes":  # the bare folder, from the checkout's root: a second copy of scopetwin.scenes
+    raise ImportError(
+        "scenes is part of scopetwin: import scopetwin.scenes (install with `make setup` or `pip install -e .`)"
+    )
+
 from typing import TYPE_CHECKING, Any
 
 from scopetwin.scenes.errors import FileFormatError, GeometryError, ScopetwinError, SetupError

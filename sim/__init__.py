@@ -17,3 +17,8 @@ By job, each layer using only the public API of the ones before it:
 
 The ``scopetwin`` command line that calls them is :mod:`scopetwin.cli`, beside the Python front door.
 """
+
+if __name__ == "sim":  # the bare folder, from the checkout's root: a second copy of scopetwin.sim
+    raise ImportError(
+        "sim is part of scopetwin: import scopetwin.sim (install with `make setup` or `pip install -e .`)"
+    )
