@@ -1,4 +1,4 @@
-"""Inverse rendering (recon/inverse.py, scenes/mitsuba/deflectometry_ad.py) on small pixel windows.
+"""Inverse rendering (recon/inverse/, scenes/mitsuba/deflectometry_ad.py) on small pixel windows.
 
 Truth is synthesised: a smooth surface on the §1.10 setup, rendered by the float64 analytic reference
 (scenes.analytic) or by the differentiable model itself; the tests check the forward model against the reference,

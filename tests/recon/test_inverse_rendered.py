@@ -1,4 +1,4 @@
-"""Inverse rendering on a whole rendered image (recon/inverse.py): the §1.10 measurement of the thesis's kind
+"""Inverse rendering on a whole rendered image (recon/inverse/): the §1.10 measurement of the thesis's kind
 of surface, rendered with Mitsuba with the EMVA 1288 sensor noise on, reconstructed by the centroid method and then
 by inverse rendering from it (as ``scopetwin reconstruct --method inverse`` does); both compared with the truth.
 """
