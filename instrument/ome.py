@@ -311,10 +311,12 @@ class OmeOutput:
             if self.planes:
                 import tifffile
 
+                from scopetwin.instrument.ome_pieces import pieces
                 from scopetwin.instrument.ome_xml import single_file_ome
 
                 with self._staged:  # renamed into place at the end of the block; removed if it raises
-                    tifffile.tiffcomment(self._staged_path, single_file_ome(self).to_xml().encode())
+                    ome = single_file_ome(self, pieces(self))
+                    tifffile.tiffcomment(self._staged_path, ome.to_xml().encode())
             else:  # a TIFF header without a page: the staged file goes
                 with contextlib.suppress(RigError), self._staged:
                     raise RigError("no plane")

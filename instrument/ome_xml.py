@@ -179,15 +179,13 @@ def _image(out: Any, piece: Any, number: int, ifds: list[int], file: tuple[str, 
     return image
 
 
-def single_file_ome(out: Any) -> Any:
-    """The OME-XML of a single multi-series OME-TIFF: each position's pieces (one ``Image`` for a complete
-    position; :mod:`~scopetwin.instrument.ome_pieces`), their planes in file order."""
+def single_file_ome(out: Any, pieces: dict[int, list[Any]]) -> Any:
+    """The OME-XML of a single multi-series OME-TIFF: each position's ``pieces`` (one ``Image`` for a complete
+    position; :func:`scopetwin.instrument.ome_pieces.pieces`), their planes in file order."""
     from ome_types import model
 
-    from scopetwin.instrument.ome_pieces import pieces
-
     images: list[Any] = []
-    for found in pieces(out).values():
+    for found in pieces.values():
         for piece in found:
             images.append(_image(out, piece, len(images), list(piece.planes)))
     return model.OME(instruments=[instrument(out.info)], images=images, creator="scopetwin (tifffile)")

@@ -114,7 +114,8 @@ def _planes_kept(out: str, acquired: int | None = None, planned: int | None = No
         return f"the planes acquired so far kept in {', '.join(files)}"
     text = f"{acquired} of {planned} plane(s) kept in {', '.join(files)}"
     if acquired < planned:
-        text += f" (the files declare the plan's sizes; the {planned - acquired} plane(s) never acquired are missing)"
+        missing = planned - acquired
+        text += f" (each file declares only the planes it holds; the {missing} plane(s) never acquired are not in them)"
     return text
 
 

@@ -112,7 +112,7 @@ def test_the_line_after_a_fault_says_how_many_planes_are_on_disk(rig_path, tmp_p
     assert code == 3, err
     line = err.strip().splitlines()[-1]
     assert "stopped answering" in line and f"of 12 plane(s) kept in {out}" in line, line
-    assert "never acquired are missing" in line
+    assert "never acquired are not in them" in line
 
 
 # --- a stopped run's files declare the planes they hold -------------------------------------------------------------
