@@ -655,6 +655,21 @@ def _calibration_deviation(setup: Setup, calibrated: Setup) -> dict[str, Any]:
 _OVERLAP = "(calibrate, detect + reconstruct and truth reference run on two threads: their seconds overlap.)"
 
 
+def _deviation_lines(s: dict[str, Any]) -> list[str]:
+    """The report's "Calibration deviation" section (none without a calibration)."""
+    if "calibration_deviation" not in s:
+        return []
+    d = s["calibration_deviation"]
+    return [
+        "## Calibration deviation from the ideal setup",
+        "",
+        f"- camera r_c: {np.round(d['camera_r_c_mm'], 5).tolist()} mm, b: {d['camera_b_mm']:+.2e} mm, "
+        f"N_z: {np.round(d['camera_n_z'], 7).tolist()}",
+        f"- pattern r_c: {np.round(d['pattern_r_c_mm'], 5).tolist()} mm, N_z: {np.round(d['pattern_n_z'], 7).tolist()}",
+        "",
+    ]
+
+
 def _report(s: dict[str, Any]) -> str:
     rec = s["reconstructions"]
     ex = s["exact_markers"]
@@ -709,17 +724,7 @@ def _report(s: dict[str, Any]) -> str:
         f"{ex['outer_iterations']} | | {covered(ex)} | | |"
     )
     lines += ["", "Thesis figures: §1.10 height distribution 2 (ideal) and §2.8.4 Table 2.7 (calibrated).", ""]
-    if "calibration_deviation" in s:
-        d = s["calibration_deviation"]
-        lines += [
-            "## Calibration deviation from the ideal setup",
-            "",
-            f"- camera r_c: {np.round(d['camera_r_c_mm'], 5).tolist()} mm, b: {d['camera_b_mm']:+.2e} mm, "
-            f"N_z: {np.round(d['camera_n_z'], 7).tolist()}",
-            f"- pattern r_c: {np.round(d['pattern_r_c_mm'], 5).tolist()} mm, "
-            f"N_z: {np.round(d['pattern_n_z'], 7).tolist()}",
-            "",
-        ]
+    lines += _deviation_lines(s)
     fm = s["focus_map"]
     lines += [
         "## Focus map",

@@ -78,16 +78,19 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         out,
         heights,
         result.std_heightmap(),
+        result.measured_mask(),  # ROI nodes beyond two marker spacings of every marker: NaN, Z_measured 0
         scopetwin_reconstruction=f"outer={result.outer_iterations} "
         f"inner={result.inner_iterations} delta_h_max_um={result.delta_h_max_um:.4g}",
     )
     seconds = time.perf_counter() - t0
     u = result.uncertainty
     u_text = f", u(absolute) = {u.absolute_um:.3f} µm, u(shape) = {u.shape_um:.3f} µm" if u is not None else ""
+    coverage = result.roi_coverage()
+    cover_text = f", ROI measured {100.0 * coverage:.0f} %" if coverage is not None and coverage < 1.0 else ""
     print(
         f"reconstructed {len(found.ij)} markers: {result.outer_iterations} start heights, "
-        f"{result.inner_iterations} inner iterations, Delta h_max = {result.delta_h_max_um:+.4f} µm{u_text}, "
-        f"{seconds:.2f} s -> {out}"
+        f"{result.inner_iterations} inner iterations, Delta h_max = {result.delta_h_max_um:+.4f} µm{u_text}"
+        f"{cover_text}, {seconds:.2f} s -> {out}"
     )
     extra: dict[str, Any] = {"uncertainty": u.summary()} if u is not None else {}
     return {
@@ -97,7 +100,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         "delta_h_max_um": result.delta_h_max_um,
         "seconds": seconds,
         "markers": len(found.ij),
-        "roi_coverage": result.roi_coverage(),
+        "roi_coverage": coverage,
         "strategy": list(result.strategy),
         "start_height_um": result.history[-1].start_height_um,
         **extra,
@@ -129,6 +132,7 @@ def _cmd_two_positions(args: argparse.Namespace, setup: Any, image: Any, out: Pa
         out,
         result.heightmap(),
         result.std_heightmap(),
+        result.measured_mask(),
         scopetwin_reconstruction=f"two pattern positions shift_mm={shift:g} height_um={est.height_um:.4g}",
     )
     seconds = time.perf_counter() - t0

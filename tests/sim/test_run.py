@@ -31,7 +31,15 @@ def test_run_reconstructs_the_default_substrate(tmp_path, capsys):
         assert rec["roi_shape_um"] < 0.05, (which, rec["roi_shape_um"])
         u = rec["uncertainty"]
         assert 0 < u["absolute_um"] < 0.2 and 0 < u["shape_um"] < 0.2
-    assert "u(absolute)" in (out / "report.md").read_text()
+        assert rec["roi_coverage"] == pytest.approx(1.0, abs=0.02)  # the markers cover the §1.10 ROI
+    assert "u(absolute)" in (out / "report.md").read_text() and "ROI covered" in (out / "report.md").read_text()
+    import OpenEXR
+
+    with OpenEXR.File(str(out / "heights-calibrated.exr")) as f:
+        ch = f.channels()
+        measured = np.asarray(ch["Z_measured"].pixels)
+        z = np.asarray(ch["Z"].pixels)
+    assert np.array_equal(np.isnan(z), measured == 0) and measured.mean() > 0.98
     assert "std_um" in (out / "focusmap.csv").read_text().splitlines()[0]
     assert summary["markers"] > 500  # whole markers detected and indexed in the measurement image
     # the staging folder is gone: only the report folder and the JSON remain
