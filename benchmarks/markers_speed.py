@@ -3,7 +3,10 @@
 Renders the §1.10 deflectometry setup (Mitsuba, 16 spp) and the §2.8.1 angular calibration view, adds
 EMVA sensor noise, and times :func:`scopetwin.recon.markers.find_markers` (centroid search, filtering, grid
 identification, indexing) per frame, with the setup-derived hint and region prepared once per setup
-(as a measurement loop would). Prints the minimum and median over repeated runs and the stage split.
+(as a measurement loop would). Prints the minimum and median over repeated runs and the stage split; then the
+same for a strongly bent substrate (the §1.10 setup, 3 mm / 60 µm surface, seed 2), where the flood reaches a few
+markers and the grid's topology (:func:`index_lattice`) numbers them, and the speed table's reference workload timed
+before and after (``benchmarks/speed_table.py``), to compare runs on a shared machine.
 
 Usage::
 
@@ -15,7 +18,9 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -24,8 +29,10 @@ from scopetwin.recon.markers import (
     expected_axes,
     filter_spots,
     find_markers,
+    find_markers_for,
     fourier_axes,
     index_grid,
+    index_lattice,
     index_range,
     nearest_spacing,
     orient_axes,
@@ -33,6 +40,9 @@ from scopetwin.recon.markers import (
     region_for_setup,
 )
 from scopetwin.scenes.setup import Setup, load_setup
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from speed_table import reference  # noqa: E402
 
 
 def render(setup: Setup, heights, analytic: bool) -> np.ndarray:
@@ -93,6 +103,8 @@ def main() -> None:
     args = parser.parse_args()
     from scopetwin.sim.surfaces import surface_for
 
+    ref0 = reference()[0]
+
     print(f"{'frame':<34} {'markers':>7} {'min ms':>8} {'median ms':>10}   stages (min ms)")
     for name in ("thesis-1.10-deflectometry", "thesis-2.8.1-angular"):
         setup = load_setup(name)
@@ -119,6 +131,28 @@ def main() -> None:
             split = ", ".join(f"{k} {v:.1f}" for k, v in st.items())
             print(f"{name + ' ' + label:<34} {len(found):>7} {best:>8.1f} {med:>10.1f}   {split}")
     print("target: <= 20 ms per 1360x1024 frame (detection + indexing)")
+    bent(args.analytic, max(3, args.repeat // 10))
+    print(f"reference workload (speed_table.reference): {0.5 * (ref0 + reference()[0]):.4f} s, before and after")
+
+
+#: The strongly bent substrate of :func:`bent`: 3 mm correlation length, 60 µm, seed 2.
+BENT = {"substrate": {"surface": {"correlation_length": 3.0, "range_um": 60.0, "seed": 2}}}
+
+
+def bent(analytic: bool, repeat: int) -> None:
+    """Detection on the strongly bent substrate (:data:`BENT`, EMVA noise): the whole search and its topological
+    indexing (:func:`index_lattice` over every spot) alone."""
+    from scopetwin.sim.surfaces import surface_for
+
+    setup = load_setup("thesis-1.10-deflectometry", BENT)
+    image = noisy(setup, render(setup, surface_for(setup), analytic))
+    found = find_markers_for(image, setup)
+    best, med = timed(lambda: find_markers_for(image, setup), repeat)
+    spots = found.spots
+    ref = int(np.argmin(np.linalg.norm(spots.centroids - found.centroids[np.all(found.ij == 0, axis=1)][0], axis=1)))
+    lattice = timed(lambda: index_lattice(spots.centroids, ref, found.axes), repeat)[0]
+    name = "3 mm / 60 µm seed 2 EMVA 12-bit"
+    print(f"{name:<34} {len(found):>7} {best:>8.1f} {med:>10.1f}   indexing: {found.indexing}, lattice {lattice:.1f}")
 
 
 if __name__ == "__main__":

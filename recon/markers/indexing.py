@@ -22,6 +22,8 @@ NEIGHBOURS = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [-1, 1], [1, -1
 #: Axial neighbour offsets of :func:`_local_basis`: +T_x, -T_x, +T_y, -T_y.
 _AXIAL = np.array([[1, 0], [-1, 0], [0, 1], [0, -1]], dtype=np.int64)
 _AXIAL_SIGN = np.array([1.0, -1.0, 1.0, -1.0])
+#: The same offsets as tuples of ints (index arithmetic of :func:`index_lattice`, one marker at a time).
+_AXIAL_STEPS: tuple[tuple[int, int], ...] = tuple((int(di), int(dj)) for di, dj in _AXIAL)
 
 
 def _in_basis(basis: Array, dv: Array) -> tuple[Array, Array]:
@@ -297,18 +299,26 @@ def _axial_neighbour(
     and ``off_tol`` times that (at least one step) off it: the axial neighbour however much the grid is stretched
     or squeezed along the axis, never a diagonal one.
     """
-    axis = 0 if _AXIAL[k, 0] else 1
-    length = float(np.linalg.norm(basis[axis]))
+    # called thousands of times on a few candidates each: the arithmetic of _in_basis and np.linalg.norm written out
+    # on floats, the same operations in the same order
+    (b00, b01), (b10, b11) = basis.tolist()
+    det = b00 * b11 - b01 * b10
+    if abs(det) < 1e-12:
+        return -1
+    axis = 0 if k < 2 else 1  # rows 0, 1 of _AXIAL step along T_x, rows 2, 3 along T_y
+    row = basis[axis]
+    length = float(np.sqrt(row.dot(row)))
     cand = np.asarray(tree.query_ball_point(pts[a], on[1] * length + 1e-9), dtype=np.intp)
     cand = cand[cand != a]
     if cand.size == 0:
         return -1
     dv = pts[cand] - pts[a]
-    if abs(basis[0, 0] * basis[1, 1] - basis[0, 1] * basis[1, 0]) < 1e-12:
-        return -1
-    u, v = _in_basis(basis, dv)
+    dx, dy = dv[:, 0], dv[:, 1]
+    u = (dx * b11 - dy * b10) / det
+    v = (b00 * dy - b01 * dx) / det
     along, across = (u, v) if axis == 0 else (v, u)
-    along = along * _AXIAL_SIGN[k]
+    if k % 2:  # the negative direction (_AXIAL_SIGN)
+        along = -along
     ok = (along > on[0]) & (along < on[1]) & (np.abs(across) < off_tol * np.maximum(along, 1.0))
     if not ok.any():
         return -1
@@ -327,6 +337,8 @@ class _Lattice:
         self.ij = np.full((n, 2), _UNREACHED, dtype=np.int64)
         self.basis = np.zeros((n, 2, 2))
         self.where: dict[tuple[int, int], int] = {}
+        self.index: dict[int, tuple[int, int]] = {}  # the inverse of ``where``: ``ij`` of the indexed spots
+        self.xy: list[list[float]] = pts.tolist()  # the centroids as floats, for the steps of one marker
         self.bad = np.zeros(n, dtype=bool)
 
     def near(self, a: int, b: NDArray, k: int) -> int:
@@ -334,17 +346,25 @@ class _Lattice:
         return _axial_neighbour(self.pts, self.tree, a, b, k, self.on, self.off_tol)
 
     def local(self, a: int) -> NDArray:
-        """The local steps of indexed spot ``a`` from its indexed axial neighbours (else the inherited ones)."""
-        pts, ij, where = self.pts, self.ij, self.where
+        """The local steps of indexed spot ``a`` from its indexed axial neighbours (else the inherited ones).
+
+        Along each axis the mean of p[i+1] - p[i] and p[i] - p[i-1] where both are indexed, else the one that is
+        (floats: the same operations as on arrays, one marker is too few for numpy to pay).
+        """
         b = self.basis[a].copy()
-        for axis in (0, 1):
-            steps = [
-                s * (pts[o] - pts[a])
-                for s in (1, -1)
-                if (o := where.get((int(ij[a, 0]) + s * (axis == 0), int(ij[a, 1]) + s * (axis == 1)))) is not None
-            ]
-            if steps:
-                b[axis] = np.mean(steps, axis=0)
+        i, j = self.index[a]
+        xa, ya = self.xy[a]
+        for axis, (up, down) in enumerate((((i + 1, j), (i - 1, j)), ((i, j + 1), (i, j - 1)))):
+            hi, lo = self.where.get(up), self.where.get(down)
+            if hi is not None and lo is not None:
+                (xh, yh), (xl, yl) = self.xy[hi], self.xy[lo]
+                b[axis] = (((xh - xa) - (xl - xa)) / 2.0, ((yh - ya) - (yl - ya)) / 2.0)
+            elif hi is not None:
+                xh, yh = self.xy[hi]
+                b[axis] = (xh - xa, yh - ya)
+            elif lo is not None:
+                xl, yl = self.xy[lo]
+                b[axis] = (-(xl - xa), -(yl - ya))
         return b
 
     def stepped(self, b: NDArray, a: int, c: int, k: int) -> NDArray:
@@ -358,6 +378,7 @@ class _Lattice:
         """Index spot ``c`` as ``t`` with the local steps ``b``."""
         self.ij[c] = t
         self.where[t] = c
+        self.index[c] = t
         self.basis[c] = b
 
 
@@ -383,7 +404,8 @@ def _closes_quad(lat: _Lattice, ia: tuple[int, int], c: int, bc: NDArray, k: int
     a -> c, a -> p (indexed perpendicular neighbour), p -> q along k, c -> q across; ``ia`` is the index of a.
     """
     for kp in (2, 3) if k < 2 else (0, 1):
-        p = lat.where.get((ia[0] + int(_AXIAL[kp, 0]), ia[1] + int(_AXIAL[kp, 1])))
+        dp = _AXIAL_STEPS[kp]
+        p = lat.where.get((ia[0] + dp[0], ia[1] + dp[1]))
         if p is None or lat.bad[p]:
             continue
         q = lat.near(p, lat.local(p), k)
@@ -396,9 +418,9 @@ def _extend_lattice(lat: _Lattice, a: int, queue: list[int]) -> None:
     """Index the mutual axial neighbours of spot ``a`` that close a quadrilateral; queue them and their neighbours."""
     b = lat.local(a)
     lat.basis[a] = b
-    ia = (int(lat.ij[a, 0]), int(lat.ij[a, 1]))
-    for k in range(4):
-        t = (ia[0] + int(_AXIAL[k, 0]), ia[1] + int(_AXIAL[k, 1]))
+    ia = lat.index[a]
+    for k, (di, dj) in enumerate(_AXIAL_STEPS):
+        t = (ia[0] + di, ia[1] + dj)
         if t in lat.where:
             continue
         c = lat.near(a, b, k)
@@ -416,9 +438,7 @@ def _extend_lattice(lat: _Lattice, a: int, queue: list[int]) -> None:
         queue.append(c)
         # the indexed neighbours of c may close quadrilaterals now
         queue.extend(
-            o
-            for kk in range(4)
-            if (o := lat.where.get((t[0] + int(_AXIAL[kk, 0]), t[1] + int(_AXIAL[kk, 1])))) is not None and o != a
+            o for di, dj in _AXIAL_STEPS if (o := lat.where.get((t[0] + di, t[1] + dj))) is not None and o != a
         )
 
 
