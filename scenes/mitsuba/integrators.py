@@ -12,6 +12,9 @@ The reflected ray starts at ``si.p + eps*r_out``, i.e. *along* the reflected ray
 offset along the normal as Mitsuba's ``spawn_ray`` does: the normal offset moves the
 reflected ray by up to a few µm on the pattern (0.025 px RMS centroid error, docs/rendering.md),
 the offset along the ray moves nothing. The mirror reflectance is 1.
+
+The trace itself is :mod:`scopetwin.scenes.mitsuba.trace`, shared with the renderer that traces only the pixels
+that can see a marker (:mod:`scopetwin.scenes.mitsuba.lit`).
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ def integrator_dict(eps: float = DEFAULT_EPS, variant: str | None = None) -> dic
 
 
 def _make_class(mi: Any) -> type:
-    import drjit as dr
+    from scopetwin.scenes.mitsuba.trace import MirrorScene, mirror_scene, radiance
 
     class MirrorIntegrator(mi.SamplingIntegrator):
         """Emitter seen directly or in one perfect specular reflection; black elsewhere."""
@@ -42,38 +45,17 @@ def _make_class(mi: Any) -> type:
         def __init__(self, props: mi.Properties) -> None:
             super().__init__(props)
             self.eps = float(props.get("eps", DEFAULT_EPS))
-            # only what is used: position, shading normal, uv (texture), the shape (mirror test)
-            self.primary_flags = mi.RayFlags.Minimal | mi.RayFlags.UV | mi.RayFlags.ShadingFrame
-            self.secondary_flags = mi.RayFlags.Minimal | mi.RayFlags.UV | mi.RayFlags.ShadingFrame
+            self._geometry: tuple[int, MirrorScene] | None = None
+
+        def geometry(self, scene: mi.Scene) -> MirrorScene:
+            """The trace's view of ``scene`` (:func:`scopetwin.scenes.mitsuba.trace.mirror_scene`), built once."""
+            if self._geometry is None or self._geometry[0] != scene.ptr:
+                self._geometry = (scene.ptr, mirror_scene(mi, scene, self.eps))
+            return self._geometry[1]
 
         def sample(self, scene, sampler, ray, medium=None, active=True):
-            ray = mi.Ray3f(ray)
-            si = scene.ray_intersect(ray, self.primary_flags, True, active)
-            hit = active & si.is_valid()
-            mirror = self.mirror_mask(scene, si.shape) & hit
-            n = si.sh_frame.n
-            wo = ray.d - 2.0 * dr.dot(ray.d, n) * n
-            reflected = mi.Ray3f(dr.fma(wo, self.eps, si.p), wo, ray.time, ray.wavelengths)
-            si2 = scene.ray_intersect(reflected, self.secondary_flags, False, mirror)
-            # one emitter evaluation: the surface seen in the mirror, or the one seen directly
-            last = dr.select(mirror, si2, si)
-            seen = hit & last.is_valid()
-            radiance = last.emitter(scene, seen).eval(last, seen)
-            return mi.Spectrum(radiance), hit, []
-
-        @staticmethod
-        def mirror_mask(scene, shape) -> mi.Bool:
-            """True where ``shape`` is one of the scene's perfect mirrors (a delta-reflection BSDF).
-
-            The shapes are sorted out once per trace on the host, so the kernel only compares
-            pointers instead of calling into every BSDF.
-            """
-            mask = dr.zeros(mi.Bool, dr.width(shape))
-            for s in scene.shapes():
-                bsdf = s.bsdf()
-                if bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.DeltaReflection):
-                    mask |= shape == mi.ShapePtr(s)
-            return mask
+            value, seen = radiance(self.geometry(scene), scene, mi.Ray3f(ray), active)
+            return mi.Spectrum(value), seen, []
 
         def aov_names(self) -> list[str]:
             return []

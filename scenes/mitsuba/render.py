@@ -12,7 +12,9 @@ Mitsuba ``variant`` explicitly (default ``choose("mono")``, resolved at call tim
 Pixels that provably see nothing are not traced: :func:`live_window` bounds the image of
 everything that can send light to the camera (the substrate's ROI, the mirror, the pattern
 plate) and :func:`render_setup` renders that window only, leaving the rest exactly 0 — which
-is what a full render gives there (tested).
+is what a full render gives there (tested). Within the window it traces only the pixels whose rays
+can meet a marker (:func:`render_marked`, :mod:`scopetwin.scenes.mitsuba.lit`), again leaving
+exactly 0 where a render of every pixel gives 0 (tested).
 """
 
 from __future__ import annotations
@@ -25,12 +27,12 @@ from numpy.typing import NDArray
 
 from scopetwin.scenes.errors import SetupError
 from scopetwin.scenes.limits import check_render
-from scopetwin.scenes.mitsuba.scene import Window, scene_dict
+from scopetwin.scenes.mitsuba.scene import TEXEL, Window, scene_dict
 from scopetwin.scenes.mitsuba.variant import mitsuba, render_complete, resolve
 from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
 
-__all__ = ["build_scene", "live_window", "load_scene", "render_setup", "render_window"]
+__all__ = ["build_scene", "live_window", "load_scene", "render_marked", "render_setup", "render_window"]
 
 _CACHE_SIZE = 2
 _local = threading.local()
@@ -206,10 +208,43 @@ def render_setup(
     """
     cam = setup.camera_model
     check_render(cam.nx, cam.ny, int(spp or setup.render.spp), f"render {setup.name}")
-    window = live_window(setup, heights) if (setup.scene != "deflectometry" or heights is not None) else None
-    if window is None:
+    if cam.lens is not None:  # a thin lens's rays start across its aperture: every pixel is traced
         return render_window(setup, heights, spp, seed, None, variant)
+    window = live_window(setup, heights) if (setup.scene != "deflectometry" or heights is not None) else None
+    crop = render_marked(setup, heights, spp, seed, window, variant)
+    if window is None:
+        return crop
     r0, r1, c0, c1 = window
     image = np.zeros((cam.ny, cam.nx), dtype=np.float32)
-    image[r0:r1, c0:c1] = render_window(setup, heights, spp, seed, window, variant)
+    image[r0:r1, c0:c1] = crop
     return image
+
+
+def render_marked(
+    setup: Setup,
+    heights: HeightMap | None = None,
+    spp: int | None = None,
+    seed: int | None = None,
+    window: Window | None = None,
+    variant: str | None = None,
+) -> NDArray[np.float32]:
+    """Render a crop of a pinhole camera's image (default: all of it) tracing only the pixels whose rays can meet a
+    marker (:mod:`scopetwin.scenes.mitsuba.lit`); the others are exactly 0, as a render of them gives.
+
+    The traced pixels are rendered as :func:`render_window` renders them (the same rays, sampler and box filter);
+    the sample pattern differs from its render with the same seed.
+
+    Raises
+    ------
+    SetupError
+        ``heights`` missing for a deflectometry setup, or a thin-lens camera.
+    """
+    from scopetwin.scenes.mitsuba.lit import render_lit
+
+    if setup.camera_model.lens is not None:
+        raise SetupError("render_marked needs a pinhole camera: a thin lens's rays do not start at one point")
+    variant = resolve(variant, "mono")
+    spp = int(spp or setup.render.spp)
+    seed = int(setup.render.seed if seed is None else seed)
+    scene = load_scene(setup, heights, window, variant)
+    return render_lit(scene, setup.marker_pattern, spp, seed, TEXEL)

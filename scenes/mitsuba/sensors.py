@@ -6,8 +6,8 @@ coordinates (principal-point offset r_cs), undistorted in closed form
 (the inverse of r_dist = (c0 + c2*|r|)*r used by :meth:`Camera.undistort`) and
 turned into the pinhole ray through ``r_c``; with a thin lens the ray starts on
 the aperture and aims at the chief ray's point on the plane in focus
-(:meth:`Camera.lens_rays`). All camera parameters are kept in opaque Dr.Jit
-variables, so a new camera pose reuses the compiled kernels.
+(:meth:`Camera.lens_rays`). All camera parameters, its pose and the film's size and crop window included, are
+kept in opaque Dr.Jit variables, so a new camera pose or render window reuses the compiled kernels.
 
 Camera-space convention (the one of Mitsuba's ``perspective`` sensor, docs/rendering.md):
 ``to_world`` has the columns (-T_x, T_y, -N_z, r_c); the camera looks along local +z.
@@ -105,6 +105,25 @@ def sensor_dict(
     }
 
 
+def film_grid(mi: Any, film: Any) -> tuple[Any, ...]:
+    """A film's size, crop size and crop offset (x, y each) as opaque Floats: a camera with another render window or
+    pixel count reuses the compiled kernels."""
+    import drjit as dr
+
+    values = (*film.size(), *film.crop_size(), *film.crop_offset())
+    return tuple(dr.opaque(mi.Float, float(v)) for v in values)
+
+
+def opaque_transform(transform: Any) -> Any:
+    """An opaque copy of a Mitsuba transform (a sensor's holds literal constants: each camera pose would compile the
+    kernels anew)."""
+    import drjit as dr
+
+    copy = type(transform)(transform)
+    dr.make_opaque(copy)
+    return copy
+
+
 def _make_class(mi: Any) -> type:
     """Define the sensor class for the current variant (Mitsuba classes are per variant)."""
     import drjit as dr
@@ -133,14 +152,11 @@ def _make_class(mi: Any) -> type:
         # -- the mapping of scenes.camera --------------------------------------------------
         def local_ray(self, film_sample: mi.Point2f, aperture_sample: mi.Point2f) -> tuple[Any, Any]:
             """Ray origin and unit direction in camera space for film samples relative to the crop window."""
-            film = self.film()
-            size = film.size()
-            crop = film.crop_size()
-            offset = film.crop_offset()
-            x_px = dr.fma(film_sample.x, float(crop[0]), float(offset[0]))
-            y_px = dr.fma(film_sample.y, float(crop[1]), float(offset[1]))
+            nx, ny, crop_x, crop_y, offset_x, offset_y = film_grid(mi, self.film())
+            x_px = dr.fma(film_sample.x, crop_x, offset_x)
+            y_px = dr.fma(film_sample.y, crop_y, offset_y)
             # the pixel grid's convention (scenes.camera.PixelGrid), on the opaque pitch and r_cs
-            u_d, v_d = PixelGrid.map_uv(x_px, y_px, float(size[0]), float(size[1]), self.pitch, (self.x_cs, self.y_cs))
+            u_d, v_d = PixelGrid.map_uv(x_px, y_px, nx, ny, self.pitch, (self.x_cs, self.y_cs))
             s = dr.sqrt(dr.fma(u_d, u_d, v_d * v_d))
             rho = 2.0 * s / (self.c0 + dr.sqrt(dr.fma(4.0 * self.c2, s, self.c0 * self.c0)))
             k = dr.rcp(dr.fma(self.c2, rho, self.c0))
@@ -155,7 +171,7 @@ def _make_class(mi: Any) -> type:
 
         def _ray(self, time, sample1, sample2, sample3, active):
             o_local, d_local = self.local_ray(sample2, sample3)
-            to_world = self.world_transform()
+            to_world = opaque_transform(self.world_transform())
             o = to_world @ o_local
             d = dr.normalize(to_world @ d_local)
             if mi.is_spectral:
