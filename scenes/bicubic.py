@@ -13,7 +13,7 @@ including the constant continuation outside the extents. Get one from :meth:`Hei
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
@@ -42,6 +42,26 @@ def _cell_basis(t: F64) -> tuple[F64, F64]:
     return left, m
 
 
+def _horner(c: Sequence[F64] | F64, s: F64) -> F64:
+    """((c3 s + c2) s + c1) s + c0 of coefficient rows c0..c3, in place in one buffer."""
+    out = c[3] * s
+    out += c[2]
+    out *= s
+    out += c[1]
+    out *= s
+    out += c[0]
+    return out
+
+
+def _horner_derivative(c: Sequence[F64] | F64, s: F64) -> F64:
+    """(3 c3 s + 2 c2) s + c1: the derivative in s of :func:`_horner`'s cubic."""
+    out = 3.0 * c[3] * s
+    out += 2.0 * c[2]
+    out *= s
+    out += c[1]
+    return out
+
+
 class BicubicCells:
     """h(x, y) and (dh/dx, dh/dy) of a :class:`HeightMap`'s spline, vectorised (module docstring).
 
@@ -60,8 +80,10 @@ class BicubicCells:
         self.y_left, my = _cell_basis(np.asarray(ty, dtype=np.float64))
         coef = np.asarray(c, dtype=np.float64).reshape(len(ty) - 4, len(tx) - 4)
         windows = sliding_window_view(coef, (4, 4))  # (cells y, cells x, 4, 4)
-        # the bicubic polynomial of each cell: A[cy, cx, p, q] multiplies sy^p sx^q
-        self.poly = ((my.transpose(0, 2, 1)[:, None] @ windows) @ mx[None]).reshape(-1, 16)
+        # the bicubic polynomial of each cell: A[cy, cx, p, q] multiplies sy^p sx^q; stored coefficient by
+        # coefficient, poly[4 p + q, cell], so that each coefficient of many points is one contiguous row
+        poly = ((my.transpose(0, 2, 1)[:, None] @ windows) @ mx[None]).reshape(-1, 16)
+        self.poly = np.ascontiguousarray(poly.T)
         self.n_cx = len(self.x_left)
         self.x_right = np.asarray(tx, dtype=np.float64)[4 : 4 + self.n_cx]  # t[l + 1] of cell l = 3 + k
         self.y_right = np.asarray(ty, dtype=np.float64)[4 : 4 + len(self.y_left)]
@@ -76,27 +98,36 @@ class BicubicCells:
 
     def inside(self, cells: NDArray[np.intp], x: F64, y: F64) -> NDArray[np.bool_]:
         """Whether each (clamped) point lies in its given cell (so that cell's polynomial is the spline there)."""
+        return self._offsets(cells, *self._clamped(x, y))[2]
+
+    def _clamped(self, x: F64, y: F64) -> tuple[F64, F64]:
+        """The points clamped to the extents (where the spline continues with its edge values)."""
         x0, x1, y0, y1 = self.bounds
-        xc, yc = np.clip(x, x0, x1), np.clip(y, y0, y1)
+        return np.minimum(np.maximum(x, x0), x1), np.minimum(np.maximum(y, y0), y1)
+
+    def _offsets(self, cells: NDArray[np.intp], xc: F64, yc: F64) -> tuple[F64, F64, NDArray[np.bool_]]:
+        """Clamped points' offsets from their cells' left knots (sx, sy) and whether they lie in those cells."""
         cx, cy = cells % self.n_cx, cells // self.n_cx
-        return (xc >= self.x_left[cx]) & (xc <= self.x_right[cx]) & (yc >= self.y_left[cy]) & (yc <= self.y_right[cy])
+        sx, sy = xc - self.x_left[cx], yc - self.y_left[cy]
+        return sx, sy, (sx >= 0.0) & (xc <= self.x_right[cx]) & (sy >= 0.0) & (yc <= self.y_right[cy])
 
     def evaluate(self, cells: NDArray[np.intp], polys: F64, x: F64, y: F64, grad: bool = False) -> tuple[F64, F64, F64]:
         """h (and, with ``grad``, dh/dx and dh/dy; else h twice more) of 1-D points ``x``, ``y`` lying in ``cells``,
-        whose polynomials ``polys`` = ``self.poly[cells]`` the caller keeps (a point that stays in its cell
-        costs no look-up)."""
-        x0, x1, y0, y1 = self.bounds
-        xc, yc = np.clip(x, x0, x1), np.clip(y, y0, y1)
-        sx = (xc - self.x_left[cells % self.n_cx])[:, None]
-        sy = yc - self.y_left[cells // self.n_cx]
-        a = polys.reshape(-1, 4, 4)  # (n, p in y, q in x)
-        rows = ((a[:, :, 3] * sx + a[:, :, 2]) * sx + a[:, :, 1]) * sx + a[:, :, 0]  # sum_q a[p, q] sx^q
-        h = ((rows[:, 3] * sy + rows[:, 2]) * sy + rows[:, 1]) * sy + rows[:, 0]
+        whose polynomials ``polys`` = ``self.poly.take(cells, axis=1)`` (one row per coefficient) the caller keeps
+        (a point that stays in its cell costs no look-up)."""
+        sx, sy, _ = self._offsets(cells, *self._clamped(x, y))
+        return self._polynomial(polys, sx, sy, x, y, grad)
+
+    def _polynomial(self, polys: F64, sx: F64, sy: F64, x: F64, y: F64, grad: bool) -> tuple[F64, F64, F64]:
+        """:meth:`evaluate` on the offsets from the cells' left knots."""
+        rows = [_horner(polys[4 * p : 4 * p + 4], sx) for p in range(4)]  # sum_q a[p, q] sx^q
+        h = _horner(rows, sy)
         if not grad:
             return h, h, h
-        drows = (3.0 * a[:, :, 3] * sx + 2.0 * a[:, :, 2]) * sx + a[:, :, 1]
-        hx = ((drows[:, 3] * sy + drows[:, 2]) * sy + drows[:, 1]) * sy + drows[:, 0]
-        hy = (3.0 * rows[:, 3] * sy + 2.0 * rows[:, 2]) * sy + rows[:, 1]
+        x0, x1, y0, y1 = self.bounds
+        drows = [_horner_derivative(polys[4 * p : 4 * p + 4], sx) for p in range(4)]
+        hx = _horner(drows, sy)
+        hy = _horner_derivative(rows, sy)
         hx = np.where((x >= x0) & (x <= x1), hx, 0.0)  # the constant continuation outside the extents
         hy = np.where((y >= y0) & (y <= y1), hy, 0.0)
         return h, hx, hy
@@ -107,7 +138,7 @@ class BicubicCells:
         shape = np.broadcast_shapes(xa.shape, ya.shape)
         xa, ya = np.broadcast_to(xa, shape).ravel(), np.broadcast_to(ya, shape).ravel()
         cells = self.locate(xa, ya)
-        h, hx, hy = self.evaluate(cells, self.poly[cells], xa, ya, grad)
+        h, hx, hy = self.evaluate(cells, self.poly.take(cells, axis=1), xa, ya, grad)
         return h.reshape(shape), hx.reshape(shape), hy.reshape(shape)
 
     def height(self, x: ArrayLike, y: ArrayLike) -> F64:
@@ -157,28 +188,32 @@ class BicubicCells:
             with np.errstate(divide="ignore", invalid="ignore"):
                 plane = np.where(d[:, 2] != 0, -o[:, 2] / np.where(d[:, 2] != 0, d[:, 2], 1.0), np.nan)
             lam0, lam1 = plane, None  # NaN where parallel: not traced
-        residual, cells = self._residual(o, d, np.asarray(lam0, dtype=np.float64).reshape(n))
+        residual, cells, polys = self._residual(o, d, np.asarray(lam0, dtype=np.float64).reshape(n))
         lam_cur, converged = secant_intersection(  # the one secant iteration, with this evaluator's cell cache
             self, o, d, lam0, lam1, tol=tol, max_iter=max_iter, residual=residual
         )
         lam = np.where(converged, lam_cur, np.nan)
-        q = o + np.where(converged, lam_cur, 0.0)[:, None] * d
         k = np.flatnonzero(converged)
+        q = o[k] + lam_cur[k, None] * d[k]
         h, hx, hy = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
-        moved = ~self.inside(cells[k], q[k, 0], q[k, 1])
-        cells[k[moved]] = self.locate(q[k[moved], 0], q[k[moved], 1])
-        h[k], hx[k], hy[k] = self.evaluate(cells[k], self.poly[cells[k]], q[k, 0], q[k, 1], grad=True)
+        # each ray's cell and polynomial are those of its last residual, at this very point; a ray checked anyway
+        here, here_polys = cells[k], polys if len(k) == n else polys.take(k, axis=1)
+        moved = ~self.inside(here, q[:, 0], q[:, 1])
+        if moved.any():
+            here[moved] = self.locate(q[moved, 0], q[moved, 1])
+            here_polys[:, moved] = self.poly.take(here[moved], axis=1)
+        h[k], hx[k], hy[k] = self.evaluate(here, here_polys, q[:, 0], q[:, 1], grad=True)
         return lam, converged, h, hx, hy
 
     def _residual(
         self, o: F64, d: F64, lam0: F64
-    ) -> tuple[Callable[[F64, NDArray[np.intp] | None], F64], NDArray[np.intp]]:
+    ) -> tuple[Callable[[F64, NDArray[np.intp] | None], F64], NDArray[np.intp], F64]:
         """f(lam, idx) = h - z along the rays ``idx`` (all where None), each ray's cell and polynomial kept between
-        calls (started at ``lam0``); also the cells, which the residual updates in place."""
+        calls (started at ``lam0``); also the cells and polynomials, which the residual updates in place."""
         n = len(o)
         p = o + np.where(np.isfinite(lam0), lam0, 0.0)[:, None] * d
         cells = self.locate(p[:, 0], p[:, 1])
-        polys = self.poly[cells]
+        polys = self.poly.take(cells, axis=1)
 
         def residual(lam: F64, idx: NDArray[np.intp] | None = None) -> F64:
             whole = idx is None or len(idx) == n  # every ray: no gathers
@@ -187,12 +222,15 @@ class BicubicCells:
             qy = oo[:, 1] + lam * dd[:, 1]
             qz = oo[:, 2] + lam * dd[:, 2]
             at = np.arange(n) if whole else np.asarray(idx)
-            moved = ~self.inside(cells if whole else cells[at], qx, qy)
-            if moved.any():
+            xc, yc = self._clamped(qx, qy)
+            sx, sy, inside = self._offsets(cells if whole else cells[at], xc, yc)
+            if not inside.all():
+                moved = ~inside
                 k = at[moved]
                 cells[k] = self.locate(qx[moved], qy[moved])
-                polys[k] = self.poly[cells[k]]
-            here = (cells, polys) if whole else (cells[at], polys[at])
-            return self.evaluate(here[0], here[1], qx, qy)[0] - qz
+                polys[:, k] = self.poly.take(cells[k], axis=1)
+                sx[moved], sy[moved], _ = self._offsets(cells[k], xc[moved], yc[moved])
+            here = polys if whole else polys.take(at, axis=1)
+            return self._polynomial(here, sx, sy, qx, qy, False)[0] - qz
 
-        return residual, cells
+        return residual, cells, polys

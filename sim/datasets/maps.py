@@ -3,9 +3,10 @@
 Every map is exact for the ray through each pixel's centre (continuous pixel coordinates (col + 0.5, row + 0.5),
 docs/contract.md "Camera"), traced with the project's own float64 ray model of thesis §1.6 — the camera's chief ray
 (§1.6.2; a thin lens does not move it), the secant intersection with the substrate (§1.6.4, eq. 1.6), the
-reflection (§1.6.5) and the pattern plane (§1.6.3) — vectorised over all pixels with numpy; nothing is
-supersampled. It is the model :mod:`scopetwin.scenes.analytic` renders with and :mod:`scopetwin.sim.truth` finds the
-marker images with, so the maps, the marker truth and the image agree.
+reflection (§1.6.5) and the pattern plane (§1.6.3) — vectorised over the pixels with numpy (for a substrate, over
+the box of pixels whose rays can meet it); nothing is supersampled. It is the model :mod:`scopetwin.scenes.analytic`
+renders with and :mod:`scopetwin.sim.truth` finds the marker images with, so the maps, the marker truth and the image
+agree.
 
 Channels (layer ``name`` with components ``name.X`` ... as EXR layers; float32; NaN where a value does not exist):
 
@@ -91,12 +92,59 @@ BOOL_LAYERS = ("mask", "roi")
 OBJECT_LAYER = Layer(("X", "Y"), "mm", "object-plane coordinates of the pixel centre (inverse object->pixel map)")
 
 
-def _pixel_rays(setup: Setup) -> tuple[NDArray[np.float64], NDArray[np.float64], tuple[int, int]]:
-    """Chief rays (origin, unit direction) through every pixel centre, rows then columns; and (rows, cols)."""
+def _pixel_rays(
+    setup: Setup, box: tuple[int, int, int, int] | None = None
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp] | None, tuple[int, int]]:
+    """Chief rays (origin, unit direction) through the pixel centres of ``box`` (rows r0:r1, columns c0:c1; default
+    every pixel), rows then columns; their flat indices in the image (None: every pixel, in order); (rows, cols)."""
     cam = setup.camera_model
-    centres = cam.pixel_centers().reshape(-1, 2)
-    o, d = cam.rays(centres)
-    return o, d, (cam.ny, cam.nx)
+    if box is None:
+        o, d = cam.rays(cam.pixel_centers().reshape(-1, 2))
+        return o, d, None, (cam.ny, cam.nx)
+    r0, r1, c0, c1 = box
+    o, d = cam.rays(cam.pixel_centers(slice(r0, r1), slice(c0, c1)).reshape(-1, 2))
+    rows, cols = np.mgrid[r0:r1, c0:c1]
+    return o, d, (rows * cam.nx + cols).ravel(), (cam.ny, cam.nx)
+
+
+#: Samples per edge of the rectangle whose image bounds the pixels that can meet the substrate.
+_EDGE_SAMPLES = 256
+
+
+def _substrate_box(setup: Setup, sub: Any, heights: HeightMap) -> tuple[int, int, int, int] | None:
+    """The pixels (rows r0:r1, columns c0:c1) outside which no ray can meet the substrate; None: any pixel may.
+
+    :func:`_substrate_hits` traces the rays whose base-plane hit lies within the substrate grown by the ray's
+    horizontal run over the surface's height range; this box bounds the image of the substrate grown by the largest
+    such run (of the rays through the image's border pixels, where a pinhole camera's most oblique rays are, plus
+    5 %), from densely sampled edges (distortion included), padded by 2 px. None where part of that rectangle lies
+    behind the camera.
+    """
+    cam = setup.camera_model
+    border = np.concatenate(
+        [
+            cam.pixel_centers(slice(0, 1)).reshape(-1, 2),
+            cam.pixel_centers(slice(cam.ny - 1, cam.ny)).reshape(-1, 2),
+            cam.pixel_centers(None, slice(0, 1)).reshape(-1, 2),
+            cam.pixel_centers(None, slice(cam.nx - 1, cam.nx)).reshape(-1, 2),
+        ]
+    )
+    ld = _vectors(sub.frame, cam.rays(border)[1], inverse=True)
+    with np.errstate(divide="ignore"):
+        run = float(np.max(np.hypot(ld[:, 0], ld[:, 1]) / np.abs(ld[:, 2])))
+    grow = 1.05 * run * (2.0 * float(np.abs(heights.z).max()) + 1e-6)
+    if not np.isfinite(grow):
+        return None
+    hx, hy = 0.5 * sub.size_x + grow, 0.5 * sub.size_y + grow
+    corners = np.array([[-hx, -hy, 0.0], [hx, -hy, 0.0], [hx, hy, 0.0], [-hx, hy, 0.0]])
+    t = np.linspace(0.0, 1.0, _EDGE_SAMPLES)[:, None]
+    edges = np.concatenate([corners[i] + t * (corners[(i + 1) % 4] - corners[i]) for i in range(4)])
+    px = cam.project(_to_global(sub.frame, edges))
+    if not np.all(np.isfinite(px)):
+        return None
+    c0, r0 = np.maximum(np.floor(px.min(axis=0)).astype(int) - 2, 0)
+    c1, r1 = np.minimum(np.ceil(px.max(axis=0)).astype(int) + 2, [cam.nx, cam.ny])
+    return int(r0), int(max(r1, r0)), int(c0), int(max(c1, c0))
 
 
 def _mul(v: NDArray[np.float64], m: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -159,32 +207,36 @@ def part1_maps(setup: Setup, heights: HeightMap | None = None) -> dict[str, NDAr
 
     scene = AnalyticScene(setup, heights)
     pattern = scene.pattern
-    o, d, shape = _pixel_rays(setup)
-    n = len(o)
     if setup.scene == "target":
+        o, d, flat, shape = _pixel_rays(setup)
         hits = _target_hits(pattern, o, d)
     elif setup.scene == "mirror":
+        o, d, flat, shape = _pixel_rays(setup)
         hits = _mirror_hits(setup, o, d)
     else:
         assert scene.substrate is not None and heights is not None
+        o, d, flat, shape = _pixel_rays(setup, _substrate_box(setup, scene.substrate, heights))
         hits = _substrate_hits(scene.substrate, heights, o, d)
-    k = hits.idx
+    n = shape[0] * shape[1]
+    d = d[hits.idx]  # the rays that meet the element, in the order of their pixels
+    k = hits.idx if flat is None else flat[hits.idx]
     if hits.normal is None:  # a calibration view: the ray itself meets the pattern (the target)
         xy, reaches = _to_local(pattern.frame, hits.point)[:, :2], np.ones(len(k), dtype=bool)
     else:
-        refl = reflect(d[k], hits.normal)
+        refl = reflect(d, hits.normal)
         lam = intersect_plane(hits.point, refl, pattern.frame)
         reaches = ((refl @ pattern.frame.nz) < 0) & np.isfinite(lam) & (lam > 0)
         xy = _to_local(pattern.frame, hits.point + np.where(reaches, lam, 0.0)[:, None] * refl)[:, :2]
 
-    def layer(values: NDArray[Any], where: NDArray[np.intp], fill: float = np.nan) -> NDArray[np.float32]:
-        out = np.full((n, *values.shape[1:]), fill, dtype=np.float32)
+    def layer(values: Any, where: NDArray[np.intp], fill: Any = np.nan, dtype: Any = np.float32) -> NDArray[Any]:
+        values = np.asarray(values)
+        out = np.full((n, *values.shape[1:]), fill, dtype=dtype)
         out[where] = values
         return out
 
-    maps: dict[str, NDArray[Any]] = {"mask": layer(np.ones(len(k)), k, 0.0)}
+    maps: dict[str, NDArray[Any]] = {"mask": layer(True, k, False, bool)}
     if setup.scene == "deflectometry":
-        maps["roi"] = layer(hits.seen.astype(np.float64), k, 0.0)
+        maps["roi"] = layer(hits.seen, k, False, bool)
     maps["point"] = layer(hits.point, k)
     if hits.local is not None and hits.normal is not None and hits.height is not None:
         maps["surface_xy"] = layer(hits.local[:, :2], k)
@@ -195,14 +247,8 @@ def part1_maps(setup: Setup, heights: HeightMap | None = None) -> dict[str, NDAr
     ij, position = _markers(pattern, xy[seen])
     found = position >= 0
     maps["marker"] = layer(ij[found].astype(np.float64), k[seen][found])
-    maps["marker_id"] = layer(position[found].astype(np.float64), k[seen][found], -1.0)
-    out = {name: maps[name].reshape(*shape, *maps[name].shape[1:]) for name in LAYERS if name in maps}
-    for name in BOOL_LAYERS:
-        if name in out:
-            out[name] = out[name] > 0.5
-    for name, dtype in INTEGER_LAYERS.items():
-        out[name] = out[name].astype(dtype)
-    return out
+    maps["marker_id"] = layer(position[found], k[seen][found], -1, INTEGER_LAYERS["marker_id"])
+    return {name: maps[name].reshape(*shape, *maps[name].shape[1:]) for name in LAYERS if name in maps}
 
 
 def _target_hits(pattern: Any, o: NDArray[np.float64], d: NDArray[np.float64]) -> _Hits:
