@@ -40,14 +40,13 @@ class ReconstructionConfig:
         Add the unpenalised plane terms x, y.
     regularization : float
         Relative ridge weight (see :func:`scopetwin.recon.shifted_basis.fit_gradients`).
-    intersection_start : {"offset", "surface"}
+    intersection_start : {"surface", "offset"}
         Where the rays' secant search on the current surface starts
-        (:func:`scopetwin.recon.substrate.intersect_surface`): the plane of the fit's offset term, or the plane
-        through its height at the substrate's centre with far roots refused. "surface" reconstructs cut sheets with
-        rolled-off edges whose fits carry a large offset and tilt that the basis cancels over the substrate (all 6
-        of ``benchmarks/hard_families.py``'s cut sheets against 1 of 6), but on one glass-like sheet of the accuracy
-        family (seed 385162244) it turns a failure into a result 3.4 u off, its frame-region extrapolation's
-        uncertainty too small: "offset" stays the default until that uncertainty is right.
+        (:func:`scopetwin.recon.substrate.intersect_surface`): the plane through the fit's height at the substrate's
+        centre with far roots refused ("surface"), or the plane of the fit's offset term ("offset"). The offset
+        plane loses the substrate on cut sheets with rolled-off edges, whose fits carry a large offset and tilt that
+        the basis cancels over the substrate (5 of ``benchmarks/hard_families.py``'s 6 cut sheets failed with it,
+        none with "surface"), and on steep glass-like sheets whose first fit extrapolates far.
     inner_tol_um, inner_max : float, int
         Inner loop stops when the RMS height change over the ROI is below ``inner_tol_um``.
     outer_tol_um, outer_max : float, int
@@ -104,7 +103,7 @@ class ReconstructionConfig:
     margin: float = 1.0
     tilt: bool = True
     regularization: float = 1e-9
-    intersection_start: Literal["offset", "surface"] = "offset"
+    intersection_start: Literal["surface", "offset"] = "surface"
     inner_tol_um: float = 1e-4
     inner_max: int = 12
     outer_tol_um: float = 1e-4

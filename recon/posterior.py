@@ -5,14 +5,17 @@ process (:mod:`scopetwin.recon.shifted_basis`). Read that way explicitly, the sa
 
 * the **evidence** (marginal likelihood) of a prior, so its scales and amplitudes are chosen by the data instead of
   held-out bands;
-* a prior that **admits broadband content**: height covariance k = k_smooth + k_broad + plane, two squared-
-  exponential (SE) components — the smooth bow (long correlation) and the nm-level short-wavelength part real
-  glass has (docs/rendering.md, "Absolute height") — plus unpenalised tilt terms;
+* a prior that **admits broadband content**: height covariance k = k_smooth + k_broad + plane — the smooth
+  waviness and bow (long correlation; rational quadratic, a scale mixture of squared exponentials (SE) whose
+  power-law spectrum extrapolates power-law surfaces such as glass honestly: :data:`SMOOTH_SHAPE`), the nm-level
+  short-wavelength part real glass has (one SE; docs/rendering.md, "Absolute height") — plus unpenalised tilt
+  terms;
 * the **posterior** of any linear functional of the heights, and by sampling of the frame criterion itself: the
   start height of thesis §1.4 rests on the surface's maxima over the frame regions, 1-6 mm beyond the last marker,
   where the posterior variance (chiefly the broadband part's, which no data constrain there) dominates the error.
 
-Gradient observations g = (f_x, f_y)(r_i) + noise. For k(d) = a^2 exp(-|d|^2 / (2 l^2)), d = r - r':
+Gradient observations g = (f_x, f_y)(r_i) + noise. Every covariance is a sum of SE components
+(:func:`_components`); for one, k(d) = a^2 exp(-|d|^2 / (2 l^2)), d = r - r':
 cov(f(r), f_x(r')) = a^2 e d_x / l^2, cov(f_x(r), f_x(r')) = a^2 e (1/l^2 - d_x^2/l^4),
 cov(f_x(r), f_y(r')) = -a^2 e d_x d_y / l^4 (and x <-> y). Heights are known from gradients up to a constant;
 every quantity here is a contrast (heights relative to the ROI mean), in which the constant cancels.
@@ -23,6 +26,8 @@ Nothing here imports Mitsuba or sim.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
+from typing import Any
 
 import numpy as np
 import scipy.linalg as sla
@@ -50,10 +55,13 @@ class PosteriorError(ScopetwinError, ValueError):
 
 @dataclass(frozen=True)
 class Hyper:
-    """Prior hyperparameters: amplitudes (mm) and correlation lengths (mm) of both SE parts; gradient noise (rad).
+    """Prior hyperparameters: amplitudes (mm) and correlation lengths (mm) of the smooth and the broadband (SE) part;
+    gradient noise (rad); the smooth part's shape.
 
     ``noise`` is the standard deviation of the f_x observations, ``noise_y`` of the f_y ones (None: the same):
-    seen obliquely, the centroid noise maps into the two gradient components differently.
+    seen obliquely, the centroid noise maps into the two gradient components differently. ``smooth_shape``: None
+    for a squared-exponential smooth part, alpha for a rational-quadratic one (:data:`SMOOTH_SHAPE`; chosen by
+    evidence, :func:`fit_hyper`).
     """
 
     smooth_amp: float
@@ -62,6 +70,7 @@ class Hyper:
     broad_len: float
     noise: float
     noise_y: float | None = None
+    smooth_shape: float | None = None
 
     @property
     def noise_pair(self) -> tuple[float, float]:
@@ -70,7 +79,7 @@ class Hyper:
         return max(self.noise, NOISE_FLOOR), max(ny, NOISE_FLOOR)
 
     @classmethod
-    def from_dict(cls, d: dict[str, float]) -> Hyper:
+    def from_dict(cls, d: dict[str, Any]) -> Hyper:
         """The inverse of :meth:`as_dict` (µm / mm / nm / µrad in, mm / rad here)."""
         return cls(
             d["smooth_amp_um"] * 1e-3,
@@ -79,10 +88,11 @@ class Hyper:
             d["broad_len_mm"],
             d["noise_urad"] * 1e-6,
             d["noise_y_urad"] * 1e-6,
+            d.get("smooth_shape"),
         )
 
-    def as_dict(self) -> dict[str, float]:
-        """JSON-ready, in µm / mm / nm / µrad."""
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready, in µm / mm / nm / µrad; ``smooth_shape`` null for a squared-exponential smooth part."""
         return {
             "smooth_amp_um": self.smooth_amp * 1e3,
             "smooth_len_mm": self.smooth_len,
@@ -90,7 +100,40 @@ class Hyper:
             "broad_len_mm": self.broad_len,
             "noise_urad": self.noise * 1e6,
             "noise_y_urad": self.noise_pair[1] * 1e6,
+            "smooth_shape": self.smooth_shape,
         }
+
+
+#: Shape alpha of the smooth part's rational-quadratic covariance a^2 (1 + r^2 / (2 alpha l^2))^-alpha, the
+#: alternative to a squared exponential that the evidence chooses between (:func:`fit_hyper`): a scale mixture of
+#: squared exponentials whose inverse squared lengths are Gamma(alpha, alpha) distributed. Its spectrum falls off as
+#: a power law over the scales the mixture spans, as glass's waviness does, where a single SE's falls off as a
+#: Gaussian: extrapolated over the 1-4.5 mm between the last markers and the frame maxima (thesis §1.4), an SE prior
+#: is too sure of itself on power-law surfaces, and a rational-quadratic one too unsure on Gaussian-correlated ones.
+SMOOTH_SHAPE = 1.0
+#: Gauss-Laguerre nodes of the mixture: SE components at lengths l / sqrt(tau_k) with weights w_k.
+SMOOTH_NODES = 3
+
+
+@lru_cache(maxsize=8)
+def _mixture(alpha: float, nodes: int) -> tuple[tuple[float, float], ...]:
+    """(length factor 1/sqrt(tau_k), amplitude factor sqrt(w_k)) of the SE components of a rational-quadratic
+    covariance of shape ``alpha``: generalised Gauss-Laguerre quadrature of the Gamma(alpha, alpha) mixing density."""
+    from scipy.special import roots_genlaguerre
+
+    x, w = roots_genlaguerre(nodes, alpha - 1.0)
+    tau, w = x / alpha, w / w.sum()
+    return tuple((float(1.0 / np.sqrt(t)), float(np.sqrt(wk))) for t, wk in zip(tau, w, strict=True))
+
+
+def _components(h: Hyper) -> list[tuple[float, float]]:
+    """The prior's squared-exponential components (amplitude mm, length mm): the smooth part's (one, or the
+    rational-quadratic mixture of shape ``h.smooth_shape``), then the broadband part."""
+    if h.smooth_shape is None:
+        smooth = [(h.smooth_amp, h.smooth_len)]
+    else:
+        smooth = [(h.smooth_amp * a, h.smooth_len * f) for f, a in _mixture(h.smooth_shape, SMOOTH_NODES)]
+    return [*smooth, (h.broad_amp, h.broad_len)]
 
 
 def _se_parts(p: Array, q: Array, amp: float, length: float) -> tuple[Array, Array, Array]:
@@ -105,7 +148,7 @@ def gradient_kernel(r: Array, hyper: Hyper) -> Array:
     """Prior covariance of the stacked gradient observations [f_x(r); f_y(r)], (2n, 2n), noise included."""
     n = len(r)
     k = np.zeros((2 * n, 2 * n))
-    for amp, length in ((hyper.smooth_amp, hyper.smooth_len), (hyper.broad_amp, hyper.broad_len)):
+    for amp, length in _components(hyper):
         e, dx, dy = _se_parts(r, r, amp, length)
         il2, il4 = 1.0 / length**2, 1.0 / length**4
         k[:n, :n] += e * (il2 - dx * dx * il4)
@@ -128,7 +171,7 @@ def height_gradient_kernel(p: Array, r: Array, hyper: Hyper) -> Array:
     dx = p[:, None, 0] - r[None, :, 0]
     dy = p[:, None, 1] - r[None, :, 1]
     r2 = dx * dx + dy * dy
-    for amp, length in ((hyper.smooth_amp, hyper.smooth_len), (hyper.broad_amp, hyper.broad_len)):
+    for amp, length in _components(hyper):
         e = amp**2 * np.exp(-r2 / (2.0 * length**2)) / length**2
         out[:, :n] += e * dx
         out[:, n:] += e * dy
@@ -140,7 +183,7 @@ def height_gradient_kernel(p: Array, r: Array, hyper: Hyper) -> Array:
 def height_kernel(p: Array, q: Array, hyper: Hyper) -> Array:
     """cov(f(p), f(q)), (m, k) (without the unidentified constant, which cancels in contrasts)."""
     out = TILT_STD**2 * (p[:, None, 0] * q[None, :, 0] + p[:, None, 1] * q[None, :, 1])
-    for amp, length in ((hyper.smooth_amp, hyper.smooth_len), (hyper.broad_amp, hyper.broad_len)):
+    for amp, length in _components(hyper):
         out = out + _se_parts(p, q, amp, length)[0]
     return np.asarray(out)
 
@@ -217,7 +260,7 @@ class _Pairs:
 
 
 def _se_blocks(pairs: _Pairs, amp: float, length: float) -> tuple[Array, Array]:
-    """One SE part's gradient covariance K_c (2n, 2n) and its derivative in log(length)."""
+    """One SE component's gradient covariance K_c (2n, 2n) and its derivative in log(length)."""
     n = len(pairs.dxx)
     e = amp**2 * np.exp(-pairs.r2 / (2.0 * length**2))
     il2, il4 = 1.0 / length**2, 1.0 / length**4
@@ -234,17 +277,19 @@ def _se_blocks(pairs: _Pairs, amp: float, length: float) -> tuple[Array, Array]:
     return kc, dk
 
 
-def _evidence_and_gradient(theta: Array, pairs: _Pairs, g: Array) -> tuple[float, Array]:
+def _evidence_and_gradient(theta: Array, pairs: _Pairs, g: Array, shape: float | None = None) -> tuple[float, Array]:
     """Negative log evidence and its gradient in theta = log(smooth_amp, smooth_len, broad_amp, broad_len, noise_x,
     noise_y).
 
     d log p / d theta_j = tr((alpha alpha^T - K^-1) dK/d theta_j) / 2 (Rasmussen & Williams 2006, eq. 5.9).
     """
-    h = Hyper(*np.exp(theta))
+    h = Hyper(*np.exp(theta), smooth_shape=shape)
     n = len(pairs.dxx)
-    parts = [
-        _se_blocks(pairs, amp, length) for amp, length in ((h.smooth_amp, h.smooth_len), (h.broad_amp, h.broad_len))
-    ]
+    # the smooth part's components share its amplitude and (up to fixed factors) its length: their blocks and
+    # log-length derivatives add up
+    comps = [_se_blocks(pairs, amp, length) for amp, length in _components(h)]
+    smooth = (np.sum([c[0] for c in comps[:-1]], axis=0), np.sum([c[1] for c in comps[:-1]], axis=0))
+    parts = [smooth, comps[-1]]
     k = parts[0][0] + parts[1][0]
     k[:n, :n] += TILT_STD**2
     k[n:, n:] += TILT_STD**2
@@ -293,14 +338,16 @@ def _even_subsample(n: int, k: int) -> NDArray[np.intp]:
     return np.arange(n) if n <= k else np.linspace(0, n - 1, k).round().astype(np.intp)
 
 
-def _max_evidence(pairs: _Pairs, g: Array, starts: list[Array], bounds: list[tuple[float, float]]) -> Array:
-    """log-hyperparameters of the best evidence reached by L-BFGS-B from each start."""
+def _max_evidence(
+    pairs: _Pairs, g: Array, starts: list[Array], bounds: list[tuple[float, float]], shape: float | None
+) -> tuple[float, Array]:
+    """The best negative log evidence reached by L-BFGS-B from each start, and its log-hyperparameters."""
     best: tuple[float, Array] | None = None
     for x0 in starts:
         res = minimize(
             _evidence_and_gradient,
             x0,
-            args=(pairs, g),
+            args=(pairs, g, shape),
             jac=True,
             method="L-BFGS-B",
             bounds=bounds,
@@ -309,7 +356,7 @@ def _max_evidence(pairs: _Pairs, g: Array, starts: list[Array], bounds: list[tup
         if best is None or res.fun < best[0]:
             best = (float(res.fun), res.x)
     assert best is not None
-    return best[1]
+    return best
 
 
 def fit_hyper(
@@ -340,10 +387,16 @@ def fit_hyper(
     0.36 u of the maximum's (two starts on all points: 0.48 u), the shape uncertainty 0.92-1.07 of the maximum's
     (two starts on all: 0.71-1.07), in a third of the time (7.3 s for the 17 against 22.3 s).
 
-    ``start``: the one start instead of ``smooth_starts`` (warm start: the prior of an earlier frame of the same
-    setup; :attr:`scopetwin.recon.reconstruct.Reconstructor.evidence_start`). Measured on nine 16 spp §1.10 renders
-    with sensor noise (three surface kinds), started from the prior of another frame of the same kind: 11-18
-    evaluations instead of 58-76, the evidence within 0.36 nats of the two cold starts' (-0.26 to +0.36).
+    The smooth part's shape is chosen by the evidence too (Bayesian model choice): a squared exponential or a
+    rational quadratic (:data:`SMOOTH_SHAPE`), each from the same starts (on the coarse subsample where there is
+    one), the one of larger evidence refined. Gaussian-correlated surfaces (the thesis's kind) choose the former,
+    power-law ones (glass-like and cut sheets) mostly the latter.
+
+    ``start``: the one start instead of ``smooth_starts``, its smooth shape kept (warm start: the prior of an
+    earlier frame of the same setup; :attr:`scopetwin.recon.reconstruct.Reconstructor.evidence_start`). Measured on
+    nine 16 spp §1.10 renders with sensor noise (three surface kinds), started from the prior of another frame of
+    the same kind: 11-18 evaluations instead of 58-76, the evidence within 0.36 nats of the two cold starts'
+    (-0.26 to +0.36).
     """
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     gx, gy = np.ravel(gx), np.ravel(gy)
@@ -362,15 +415,21 @@ def fit_hyper(
         (np.log(NOISE_FLOOR), np.log(1e-4)),
     ]
     lo, hi = [b[0] for b in bounds], [b[1] for b in bounds]
+    pairs = _Pairs.of(xy)
     if start is not None:
         warm = (start.smooth_amp, start.smooth_len, start.broad_amp, start.broad_len, *start.noise_pair)
-        starts = [np.clip(np.log(warm), lo, hi)]
-    else:
-        starts = [np.clip(np.log([g_rms * ln, ln, 1e-6, 1.0, 3e-7, 3e-7]), lo, hi) for ln in smooth_starts]
-        if 10 <= coarse_points < len(xy):
-            sub = _even_subsample(len(xy), coarse_points)
-            starts = [_max_evidence(_Pairs.of(xy[sub]), np.concatenate([gx[sub], gy[sub]]), starts, bounds)]
-    return Hyper(*np.exp(_max_evidence(_Pairs.of(xy), g, starts, bounds)))
+        _, best = _max_evidence(pairs, g, [np.clip(np.log(warm), lo, hi)], bounds, start.smooth_shape)
+        return Hyper(*np.exp(best), smooth_shape=start.smooth_shape)
+    cold = [np.clip(np.log([g_rms * ln, ln, 1e-6, 1.0, 3e-7, 3e-7]), lo, hi) for ln in smooth_starts]
+    # the smooth part's shape by evidence: each shape's starts (on the coarse subsample where there is one), the
+    # better one refined on all observations
+    coarse = 10 <= coarse_points < len(xy)
+    sub = _even_subsample(len(xy), coarse_points) if coarse else np.arange(len(xy))
+    pairs_c, g_c = (_Pairs.of(xy[sub]), np.concatenate([gx[sub], gy[sub]])) if coarse else (pairs, g)
+    tried = {shape: _max_evidence(pairs_c, g_c, cold, bounds, shape) for shape in (None, SMOOTH_SHAPE)}
+    shape = min(tried, key=lambda k: tried[k][0])
+    best = _max_evidence(pairs, g, [tried[shape][1]], bounds, shape)[1] if coarse else tried[shape][1]
+    return Hyper(*np.exp(best), smooth_shape=shape)
 
 
 @dataclass(frozen=True)
@@ -428,7 +487,7 @@ def _roi_functional(gp: GradientGP, pts: Array, axes: tuple[Array, Array]) -> tu
     k_gm = np.zeros(2 * n)
     k_pm = np.zeros(len(pts))
     k_mm = 0.0
-    for amp, length in ((gp.hyper.smooth_amp, gp.hyper.smooth_len), (gp.hyper.broad_amp, gp.hyper.broad_len)):
+    for amp, length in _components(gp.hyper):
         ex_g, dx_g = _axis_sums(gp.xy[:, 0], xs, length)
         ey_g, dy_g = _axis_sums(gp.xy[:, 1], ys, length)
         k_gm[:n] += amp**2 * dx_g * ey_g
@@ -597,10 +656,7 @@ class ResidualCorrection:
         for s in range(0, len(p), _CORRECTION_CHUNK):
             sl = slice(s, s + _CORRECTION_CHUNK)
             gx[sl], gy[sl] = TILT_STD**2 * np.sum(ax), TILT_STD**2 * np.sum(ay)
-            for amp, length in (
-                (self.hyper.smooth_amp, self.hyper.smooth_len),
-                (self.hyper.broad_amp, self.hyper.broad_len),
-            ):
+            for amp, length in _components(self.hyper):
                 e, dx, dy = _se_parts(p[sl], self.xy, amp, length)
                 il2, il4 = 1.0 / length**2, 1.0 / length**4
                 cross = -e * dx * dy * il4

@@ -62,18 +62,18 @@ def test_glass_family_is_what_it_says() -> None:
 
 @pytest.mark.slow
 def test_glass_family_converges_and_its_uncertainty_covers_the_error() -> None:
-    """Measured (0.005 px): 7 of 8 reconstructed; |absolute| 0.12-1.92 µm (3 of 7 within 1 µm), 6 of 7 within 2 u and
-    all within 3 u; shape 0.18-0.58 µm, all within 2 u_shape. Seed 385162244 (53 µm, roll-off 1.4 mm) fails: the
-    12 mm basis's inner loop cycles from the flat start and its extrapolation throws the rays near frame region 2 off
-    the substrate — the goal "no loop that fails where the markers cover the ROI" is not met on it."""
+    """Measured (0.005 px): 8 of 8 reconstructed; |absolute| 0.12-3.1 µm, all within 2 u (the largest 1.9 u); shape
+    0.12-0.91 µm, all within 2 u_shape. Seed 385162244 (53 µm, roll-off 1.4 mm) used to fail (its fit's offset plane
+    threw the rays near frame region 2 off the substrate) and, with the rays started on the surface under a single
+    squared-exponential prior, came out 3.4 u off (+6.0 µm at u 1.8 µm): with the rational-quadratic smooth prior it
+    is +1.8 µm at u 3.1 µm."""
     rows, failed = [], []
     for seed in GLASS_SEEDS:
         try:
             rows.append((seed, *_reconstruct(seed)))
         except ScopetwinError as exc:
             failed.append((seed, str(exc)))
-    assert len(failed) <= 1, failed
-    assert all("frame region" in msg and "[tried:" in msg for _, msg in failed), failed  # one error naming the path
+    assert not failed, failed  # the markers cover the ROI of every one
     a = np.array([abs(r[1]["roi_absolute_um"]) for r in rows])
     sh = np.array([r[1]["roi_shape_um"] for r in rows])
     ua = np.array([r[2] for r in rows])

@@ -91,3 +91,52 @@ def test_frame_criterion_posterior_is_calibrated_on_prior_draws() -> None:
     z = np.abs(np.array(z))
     assert 0.85 <= np.mean(z <= 2) <= 1.0, z
     assert np.max(z) < 4.0, z
+
+
+def _exact_gradient_covariance(xy: np.ndarray, amp: float, length: float, alpha: float | None) -> np.ndarray:
+    """cov of [f_x; f_y] at xy for an isotropic k(s) = amp^2 kappa(s), s = |r - r'|^2, written here in closed form:
+    a squared exponential (``alpha`` None) or a rational quadratic (1 + s / (2 alpha l^2))^-alpha; the tilt prior of
+    the module (TILT_STD) added. cov(f_x, f_x') = -2 k' - 4 dx^2 k'', cov(f_x, f_y') = -4 dx dy k''."""
+    from scopetwin.recon.posterior import TILT_STD
+
+    dx = xy[:, None, 0] - xy[None, :, 0]
+    dy = xy[:, None, 1] - xy[None, :, 1]
+    s = dx * dx + dy * dy
+    if alpha is None:
+        e = amp**2 * np.exp(-s / (2 * length**2))
+        k1, k2 = -e / (2 * length**2), e / (4 * length**4)
+    else:
+        base = 1.0 + s / (2 * alpha * length**2)
+        k1 = -(amp**2) / (2 * length**2) * base ** -(alpha + 1)
+        k2 = amp**2 * (alpha + 1) / (4 * alpha * length**4) * base ** -(alpha + 2)
+    n = len(xy)
+    k = np.empty((2 * n, 2 * n))
+    k[:n, :n] = -2 * k1 - 4 * dx * dx * k2 + TILT_STD**2
+    k[n:, n:] = -2 * k1 - 4 * dy * dy * k2 + TILT_STD**2
+    k[:n, n:] = k[n:, :n] = -4 * dx * dy * k2
+    return k
+
+
+@pytest.mark.slow  # 8 evidence fits of each shape on 231 points
+@pytest.mark.parametrize("alpha", [None, 1.0])
+def test_evidence_chooses_the_smooth_parts_shape(alpha: float | None) -> None:
+    """Gradients drawn from an exact squared-exponential or rational-quadratic (alpha 1) prior on a marker-like
+    lattice (1.3-2.4 mm spacing, 1 µrad noise): the evidence picks the family they came from in at least 3 of 4
+    draws, and recovers the length within 35 %."""
+    from scopetwin.recon.posterior import SMOOTH_SHAPE
+
+    xx, yy = np.meshgrid(np.linspace(-12, 12, 11), np.linspace(-22, 22, 21))
+    xy = np.stack([xx.ravel(), yy.ravel()], axis=-1)
+    cov = _exact_gradient_covariance(xy, 0.01, 8.0, alpha)
+    root = np.linalg.cholesky(cov + 1e-18 * np.eye(len(cov)))
+    chosen, lengths = [], []
+    for seed in range(4):
+        rng = np.random.default_rng([seed, 41])
+        g = root @ rng.standard_normal(len(cov)) + 1e-6 * rng.standard_normal(len(cov))
+        h = fit_hyper(xy, g[: len(xy)], g[len(xy) :], max_points=400, smooth_starts=(10.0,), coarse_points=0)
+        chosen.append(h.smooth_shape)
+        lengths.append(h.smooth_len)
+    expected = None if alpha is None else SMOOTH_SHAPE
+    assert sum(c == expected for c in chosen) >= 3, (chosen, lengths)
+    right = [ln for c, ln in zip(chosen, lengths, strict=True) if c == expected]
+    assert np.all(np.abs(np.array(right) / 8.0 - 1.0) < 0.35), (chosen, lengths)

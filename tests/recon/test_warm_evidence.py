@@ -34,6 +34,8 @@ def test_hyper_round_trips_through_its_dict() -> None:
         [h.smooth_amp, h.smooth_len, h.broad_amp, h.broad_len, *h.noise_pair],
         rtol=1e-12,
     )
+    assert back.smooth_shape is None
+    assert Hyper.from_dict(Hyper(0.013, 17.0, 6e-7, 0.65, 1.8e-6, 2.2e-7, 1.0).as_dict()).smooth_shape == 1.0
 
 
 @pytest.fixture(scope="module")
