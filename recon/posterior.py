@@ -277,13 +277,19 @@ def _se_blocks(pairs: _Pairs, amp: float, length: float) -> tuple[Array, Array]:
     return kc, dk
 
 
+def _hyper(theta: Array, shape: float | None) -> Hyper:
+    """The prior of log-hyperparameters theta = log(smooth_amp, smooth_len, broad_amp, broad_len, noise_x, noise_y)."""
+    v = [float(x) for x in np.exp(theta)]
+    return Hyper(v[0], v[1], v[2], v[3], v[4], v[5], shape)
+
+
 def _evidence_and_gradient(theta: Array, pairs: _Pairs, g: Array, shape: float | None = None) -> tuple[float, Array]:
     """Negative log evidence and its gradient in theta = log(smooth_amp, smooth_len, broad_amp, broad_len, noise_x,
     noise_y).
 
     d log p / d theta_j = tr((alpha alpha^T - K^-1) dK/d theta_j) / 2 (Rasmussen & Williams 2006, eq. 5.9).
     """
-    h = Hyper(*np.exp(theta), smooth_shape=shape)
+    h = _hyper(theta, shape)
     n = len(pairs.dxx)
     # the smooth part's components share its amplitude and (up to fixed factors) its length: their blocks and
     # log-length derivatives add up
@@ -419,7 +425,7 @@ def fit_hyper(
     if start is not None:
         warm = (start.smooth_amp, start.smooth_len, start.broad_amp, start.broad_len, *start.noise_pair)
         _, best = _max_evidence(pairs, g, [np.clip(np.log(warm), lo, hi)], bounds, start.smooth_shape)
-        return Hyper(*np.exp(best), smooth_shape=start.smooth_shape)
+        return _hyper(best, start.smooth_shape)
     cold = [np.clip(np.log([g_rms * ln, ln, 1e-6, 1.0, 3e-7, 3e-7]), lo, hi) for ln in smooth_starts]
     # the smooth part's shape by evidence: each shape's starts (on the coarse subsample where there is one), the
     # better one refined on all observations
@@ -429,7 +435,7 @@ def fit_hyper(
     tried = {shape: _max_evidence(pairs_c, g_c, cold, bounds, shape) for shape in (None, SMOOTH_SHAPE)}
     shape = min(tried, key=lambda k: tried[k][0])
     best = _max_evidence(pairs, g, [tried[shape][1]], bounds, shape)[1] if coarse else tried[shape][1]
-    return Hyper(*np.exp(best), smooth_shape=shape)
+    return _hyper(best, shape)
 
 
 @dataclass(frozen=True)
