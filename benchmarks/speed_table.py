@@ -31,7 +31,9 @@ Rows (``*``: only with ``--full``):
    frame is rendered once and cached in ``--cache``); markers found once, the per-setup precomputation outside.
 2. The same with the bias step (:func:`centroid_bias_step` as the Reconstructor's bias).
 3. Detection + realtime reconstruction per frame (as ``benchmarks/reconstruct_speed.py``:
-   :meth:`ReconstructionConfig.realtime`, ``find_markers_for`` + ``solve``), minimum over repeats.
+   :meth:`ReconstructionConfig.realtime`, ``find_markers_for`` + ``solve``), minimum over repeats; beside it the
+   stream of 30 frames (``recon.stream.reconstruct_stream``) per frame, its stages one after the other and
+   overlapped (frame k+1's markers searched in a worker process while frame k is solved; goal: one frame period).
 4. ``scopetwin reconstruct`` of that frame (a subprocess; the JSON's ``seconds``), the process's wall time beside it
    (goal :data:`CLI_WALL_GOAL_S`) and their difference: the interpreter's start, the imports and the exit.
 5. ``scopetwin reconstruct`` of glass-like surfaces (:data:`GLASS`), 3 seeds, median of the JSONs' ``seconds``; the
@@ -384,11 +386,38 @@ def row_realtime(ctx: Context) -> Measured:
         t_sol.append(time.perf_counter() - t1)
 
     times = repeat_min(frame, min_runs=5, max_runs=30, budget_s=2.0)
+    seq, ovl = _stream_per_frame(image, ctx.setup, rec)
     return Measured(
         min(times),
-        extras=[("  detection alone", min(t_det), None), ("  realtime solve alone", min(t_sol), None)],
-        note=f"{len(times)} frames, median {statistics.median(times) * 1e3:.1f} ms",
+        extras=[
+            ("  detection alone", min(t_det), None),
+            ("  realtime solve alone", min(t_sol), None),
+            (f"  stream of {STREAM_FRAMES} frames, sequential (per frame)", seq, None),
+            (f"  stream of {STREAM_FRAMES} frames, overlapped (per frame)", ovl, TABLE["3"].goal_s),
+        ],
+        note=f"{len(times)} frames, median {statistics.median(times) * 1e3:.1f} ms; stream {1.0 / seq:.1f} fps "
+        f"sequential, {1.0 / ovl:.1f} fps overlapped",
     )
+
+
+#: Frames of row 3's stream figures (timed from the first frame's result to the last's).
+STREAM_FRAMES = 30
+
+
+def _stream_per_frame(image: NDArray[np.float32], setup: Any, rec: Any) -> tuple[float, float]:
+    """Seconds per frame of ``recon.stream.reconstruct_stream`` on copies of the frame, its stages one after the other
+    and overlapped (frame k+1's markers searched in the worker process while frame k is solved): the time from the
+    first frame's result to the last's over :data:`STREAM_FRAMES` frames, so the worker's start (a fresh interpreter,
+    1-2 s) and the first frame's search are not counted."""
+    from scopetwin.recon.stream import reconstruct_stream
+
+    out = []
+    for overlap in (False, True):
+        stamps = [
+            time.perf_counter() for _ in reconstruct_stream([image] * (STREAM_FRAMES + 1), setup, rec, overlap=overlap)
+        ]
+        out.append((stamps[-1] - stamps[0]) / STREAM_FRAMES)
+    return out[0], out[1]
 
 
 def _cli(args: list[str], timeout: float) -> tuple[int, float, str]:

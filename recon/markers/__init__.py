@@ -17,7 +17,9 @@ Four steps, as in the thesis, each a module named after its section:
    stretches and squeezes the reflected grid too much for the flood's predictions.
 
 :mod:`scopetwin.recon.markers.identification` runs all four (:func:`find_markers`) and takes their options from a setup
-(:func:`find_markers_for`, :func:`region_for_setup`). This package's namespace is that public API.
+(:func:`find_markers_for`, :func:`region_for_setup`); :mod:`scopetwin.recon.markers.worker` runs that search one frame
+at a time in a worker process (:class:`MarkerWorker`, the live loop's, :mod:`scopetwin.recon.stream`). This package's
+namespace is that public API.
 
 Coordinates are continuous pixel coordinates (col, row): pixel (r, c) covers [c, c+1) x [r, r+1)
 (docs/contract.md, "Camera"). Indices (i, j) count pitches along the pattern's own T_x, T_y
@@ -45,10 +47,12 @@ from scopetwin.recon.markers.identification import (
     region_for_setup,
 )
 from scopetwin.recon.markers.indexing import index_grid, index_lattice
+from scopetwin.recon.markers.worker import MarkerWorker
 
 __all__ = [
     "Filtered",
     "MarkerError",
+    "MarkerWorker",
     "Markers",
     "ReferenceTieError",
     "Region",

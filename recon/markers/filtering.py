@@ -9,6 +9,7 @@ reference marker, much larger than its neighbours, is found by :func:`find_refer
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -47,6 +48,10 @@ class ReferenceTieError(MarkerError):
     def __init__(self, candidates: NDArray[np.intp], message: str) -> None:
         super().__init__(message)
         self.candidates = np.asarray(candidates, dtype=np.intp)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled with its candidates (a marker search in another process raises it in this one)."""
+        return type(self), (self.candidates, *self.args), self.__dict__
 
 
 @dataclass(frozen=True)

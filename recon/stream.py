@@ -1,0 +1,152 @@
+"""A stream of deflectometry frames reconstructed one after another: a rig's live loop (thesis §1.5, §1.4).
+
+Each frame passes two stages: its markers found, filtered and indexed (§1.5,
+:func:`scopetwin.recon.markers.find_markers_for`), then the nested iteration on them (§1.4,
+:func:`scopetwin.recon.strategy.solve`; by default the fixed-scale :meth:`ReconstructionConfig.realtime`
+configuration, built once for the setup). :func:`reconstruct_stream` overlaps the stages of consecutive frames:
+while frame k is solved in the caller's thread, the markers of frame k+1 are searched in a worker process
+(:class:`scopetwin.recon.markers.worker.MarkerWorker`; a process, not a thread: that module says why).
+
+The results are those of the stages run one after the other in the caller's thread (``overlap=False``): the same
+frames, the same markers (computed by the same code on the same pixels), the same reconstructor, solved in the same
+order.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any, Protocol
+
+from numpy.typing import NDArray
+
+from scopetwin.recon.config import ReconstructionConfig
+from scopetwin.recon.markers.worker import WORKER_NAME, MarkerWorker, Pending, Searched, search_now
+from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
+from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor
+from scopetwin.recon.strategy import ImageReconstruction, solve
+from scopetwin.scenes.setup import Setup
+
+__all__ = ["WORKER_NAME", "reconstruct_stream"]
+
+
+class _Here:
+    """The marker search run at once in the calling thread (the stages one after the other)."""
+
+    def __init__(self, setup: Setup, options: dict[str, Any]) -> None:
+        self.setup, self.options = setup, options
+
+    def start(self, image: NDArray[Any]) -> Pending:
+        """The frame's markers, searched now (an error kept to be raised at its frame, as the worker's)."""
+        return search_now(image, self.setup, self.options)
+
+    def close(self) -> None:
+        """Nothing to end."""
+
+
+class _Stage(Protocol):
+    """Where the marker search runs: :meth:`start` one frame's, :meth:`close` at the end of the stream."""
+
+    def start(self, image: NDArray[Any]) -> Pending: ...
+
+    def close(self) -> None: ...
+
+
+def _next_frame(frames: Iterator[NDArray[Any]], stage: _Stage) -> Pending | None:
+    """The next frame drawn in the calling thread and its marker search started; None at the end.
+
+    An error of the frame source is returned as an ended search, so that it is raised at its own frame, after the
+    results of the frames before it.
+    """
+    try:
+        image = next(frames)
+    except StopIteration:
+        return None
+    except Exception as err:
+        return Searched(error=err)
+    return stage.start(image)
+
+
+def _frames(
+    frames: Iterable[NDArray[Any]], make_stage: Callable[[], _Stage], rec: Reconstructor, policy: ReconstructionPolicy
+) -> Iterator[ImageReconstruction]:
+    """Frame k solved here while frame k+1's markers are searched by the stage; each result in order.
+
+    The stage is made when the first frame is asked for and closed when the stream ends, however it ends.
+    """
+    stage = make_stage()
+    try:
+        source = iter(frames)
+        pending = _next_frame(source, stage)
+        while pending is not None:
+            found = pending.result()  # frame k's detection error is raised here, at frame k
+            pending = _next_frame(source, stage)
+            result = solve(rec, MarkerObservations(found.ij, found.centroids), policy)
+            yield ImageReconstruction(found, result, rec)
+    finally:
+        stage.close()
+
+
+def reconstruct_stream(
+    frames: Iterable[NDArray[Any]],
+    setup: Setup,
+    reconstructor: Reconstructor | None = None,
+    policy: ReconstructionPolicy = DEFAULT_POLICY,
+    *,
+    overlap: bool | None = None,
+    **marker_options: Any,
+) -> Iterator[ImageReconstruction]:
+    """The frames' markers (§1.5) and surfaces (§1.4), in order, frame k+1's markers searched while frame k is solved.
+
+    Parameters
+    ----------
+    frames : iterable of ndarray, (rows, cols)
+        Camera images of one setup, e.g. :meth:`scopetwin.instrument.devices.CameraDevice.stream`. They are drawn in
+        the caller's thread, one frame ahead: frame k+1 is drawn before frame k's result is delivered.
+    setup : Setup
+        The (calibrated) deflectometry setup of every frame.
+    reconstructor : Reconstructor, optional
+        The nested iteration's pieces for the setup, built once (default:
+        ``Reconstructor.from_setup(setup, ReconstructionConfig.realtime())``, the fixed-scale configuration for
+        one frame period, without the centroid-bias step). Its frames are solved one at a time, in order.
+    policy : ReconstructionPolicy
+        The fallbacks of :func:`scopetwin.recon.strategy.solve`; its ``lattice_below`` is the marker search's.
+    overlap : bool, optional
+        Search frame k+1's markers in a worker process while frame k is solved; False: one stage after the other
+        in the caller's thread. The results are the same either way. Default: overlapped where this process may run
+        on two CPUs or more (on one, the worker would only take turns with the solve).
+    **marker_options
+        Options of :func:`scopetwin.recon.markers.find_markers_for` (picklable: they go to the worker).
+
+    Yields
+    ------
+    ImageReconstruction
+        Per frame, in the order of ``frames``: its markers, its reconstruction result and the reconstructor.
+
+    Raises
+    ------
+    scopetwin.recon.markers.MarkerError, scopetwin.recon.errors.ReconstructionError
+        At the frame whose marker search or reconstruction failed, after the results of the frames before it; the
+        stream ends there (a tied reference marker, :class:`scopetwin.recon.markers.ReferenceTieError`, included:
+        :func:`scopetwin.recon.strategy.reconstruct_image` decides those with several reconstructions). An error
+        of the frame source is raised at the frame it failed to deliver.
+
+    Notes
+    -----
+    The worker process starts with the stream's first frame (a fresh interpreter, ~1-2 s before that frame's
+    markers) and ends with the stream: closing it (``close()``, leaving a ``for`` loop over it, the end of the frames,
+    an error, a KeyboardInterrupt in the loop or the stream) ends the worker (terminated where a search is under way)
+    and frees the shared memory; nothing is left running. As with any ``multiprocessing`` start by "spawn", a script
+    that runs a stream keeps its top-level work under ``if __name__ == "__main__":`` (the worker imports the script's
+    module). Short streams run faster with ``overlap=False``.
+    """
+    rec = Reconstructor.from_setup(setup, ReconstructionConfig.realtime()) if reconstructor is None else reconstructor
+    options = {"lattice_below": policy.lattice_below, **marker_options}
+    worker = _cpus() >= 2 if overlap is None else overlap
+    return _frames(frames, lambda: MarkerWorker(setup, **options) if worker else _Here(setup, options), rec, policy)
+
+
+def _cpus() -> int:
+    """The number of CPUs this process may run on."""
+    affinity = getattr(os, "sched_getaffinity", None)  # POSIX; elsewhere every CPU counts
+    return len(affinity(0)) if affinity is not None else os.cpu_count() or 1
