@@ -206,8 +206,9 @@ def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
         # the gradients traced through a scale too coarse for them can choose a scale that does not settle either
         # (a 12 mm basis on a 3 mm / 60 µm surface: 3 mm chosen, its rays lose the substrate); the flat start's
         # choice is the other estimate, searched from the frame height
+        # (only a finer one: the first scale was too coarse for the data, and a coarser one does not fit them either)
         flat = rec.scale_from_flat_start(search.markers)
-        if flat is True and float(rec.basis.sigma[0]) != best:
+        if flat is True and float(rec.basis.sigma[0]) != best and float(rec.basis.sigma[0]) < current:
             search.path.append(f"basis scale chosen on the flat start: {rec.basis.sigma[0]:g} mm")
             again = search.loop(rec.sub.frame_z, cfg.outer_max, fresh=True)
     if again.converged or not (first[2].converged and policy.keep_first_scale):
