@@ -259,22 +259,74 @@ class _Pairs:
         return cls(dxx, dyy, dx * dy, dxx + dyy)
 
 
-def _se_blocks(pairs: _Pairs, amp: float, length: float) -> tuple[Array, Array]:
-    """One SE component's gradient covariance K_c (2n, 2n) and its derivative in log(length)."""
-    n = len(pairs.dxx)
-    e = amp**2 * np.exp(-pairs.r2 / (2.0 * length**2))
-    il2, il4 = 1.0 / length**2, 1.0 / length**4
-    r2 = pairs.r2 * il2
-    kc = np.empty((2 * n, 2 * n))
-    dk = np.empty((2 * n, 2 * n))
-    xx = e * (il2 - pairs.dxx * il4)
-    yy = e * (il2 - pairs.dyy * il4)
-    xy_ = -e * pairs.dxy * il4
-    kc[:n, :n], kc[n:, n:], kc[:n, n:], kc[n:, :n] = xx, yy, xy_, xy_
-    dk[:n, :n] = r2 * xx + e * (-2.0 * il2 + 4.0 * pairs.dxx * il4)
-    dk[n:, n:] = r2 * yy + e * (-2.0 * il2 + 4.0 * pairs.dyy * il4)
-    dk[:n, n:] = dk[n:, :n] = xy_ * (r2 - 4.0)
-    return kc, dk
+@dataclass(frozen=True)
+class _Blocks:
+    """A symmetric (2n, 2n) covariance of gradient observations [f_x; f_y] under an isotropic kernel (or a derivative
+    of one), by its n x n pieces: the f_x f_x block is ``base + w dxx``, the f_y f_y block ``base + w dyy``, the
+    f_x f_y block ``w dxy`` (d = r_i - r_j, :class:`_Pairs`)."""
+
+    base: Array
+    w: Array
+
+    def __add__(self, other: _Blocks) -> _Blocks:
+        return _Blocks(self.base + other.base, self.w + other.w)
+
+
+def _se_pieces(pairs: _Pairs, comps: list[tuple[float, float]]) -> tuple[_Blocks, _Blocks]:
+    """The gradient covariance K of a sum of SE components (amplitude, length) and its derivative in log(length)
+    (every component's length scaled together), as :class:`_Blocks`.
+
+    For one component e = a^2 exp(-|d|^2 / (2 l^2)): K_xx = e/l^2 - e d_x^2/l^4, K_xy = -e d_x d_y/l^4, and
+    dK_xx/dlog l = e/l^2 (|d|^2/l^2 - 2) + e d_x^2/l^4 (4 - |d|^2/l^2), dK_xy/dlog l = e d_x d_y/l^4 (4 - |d|^2/l^2).
+    """
+    k_base, k_w = np.zeros_like(pairs.r2), np.zeros_like(pairs.r2)
+    d_base, d_w = np.zeros_like(pairs.r2), np.zeros_like(pairs.r2)
+    for amp, length in comps:
+        il2 = 1.0 / length**2
+        r2n = pairs.r2 * il2
+        e = np.exp(-0.5 * r2n)
+        e *= amp**2
+        e2, e4 = e * il2, e * (il2 * il2)
+        k_base += e2
+        k_w -= e4
+        d_base += e2 * (r2n - 2.0)
+        d_w += e4 * (4.0 - r2n)
+    return _Blocks(k_base, k_w), _Blocks(d_base, d_w)
+
+
+def _half_trace(p: _Blocks, pairs: _Pairs, alpha: Array, low: Array) -> float:
+    """tr((alpha alpha^T - K^-1) P) / 2 for P given by its pieces, from the lower triangle ``low`` of K^-1 (upper
+    part ignored), without forming P."""
+    n = len(pairs.r2)
+    ax, ay = alpha[:n], alpha[n:]
+    p11 = p.base + p.w * pairs.dxx
+    p22 = p.base + p.w * pairs.dyy
+    p21 = p.w * pairs.dxy
+    quad = ax @ (p11 @ ax) + ay @ (p22 @ ay) + 2.0 * (ay @ (p21 @ ax))
+    l11, l22, l21 = np.tril(low[:n, :n]), np.tril(low[n:, n:]), low[n:, :n]
+    tr = (
+        2.0 * np.vdot(l11, p11)
+        - np.diag(l11) @ np.diag(p11)
+        + 2.0 * np.vdot(l22, p22)
+        - np.diag(l22) @ np.diag(p22)
+        + 2.0 * np.vdot(l21, p21)
+    )
+    return 0.5 * float(quad - tr)
+
+
+def _assemble(k: _Blocks, pairs: _Pairs, sx2: float, sy2: float) -> Array:
+    """The (2n, 2n) matrix of :class:`_Blocks` ``k`` plus the tilt prior and the gradient noise."""
+    n = len(pairs.r2)
+    out = np.empty((2 * n, 2 * n))
+    np.multiply(k.w, pairs.dxx, out=out[:n, :n])
+    out[:n, :n] += k.base + TILT_STD**2
+    np.multiply(k.w, pairs.dyy, out=out[n:, n:])
+    out[n:, n:] += k.base + TILT_STD**2
+    np.multiply(k.w, pairs.dxy, out=out[n:, :n])
+    out[:n, n:] = out[n:, :n]
+    out[np.arange(n), np.arange(n)] += sx2
+    out[np.arange(n, 2 * n), np.arange(n, 2 * n)] += sy2
+    return out
 
 
 def _hyper(theta: Array, shape: float | None) -> Hyper:
@@ -291,19 +343,13 @@ def _evidence_and_gradient(theta: Array, pairs: _Pairs, g: Array, shape: float |
     """
     h = _hyper(theta, shape)
     n = len(pairs.dxx)
-    # the smooth part's components share its amplitude and (up to fixed factors) its length: their blocks and
-    # log-length derivatives add up
-    comps = [_se_blocks(pairs, amp, length) for amp, length in _components(h)]
-    smooth = (np.sum([c[0] for c in comps[:-1]], axis=0), np.sum([c[1] for c in comps[:-1]], axis=0))
-    parts = [smooth, comps[-1]]
-    k = parts[0][0] + parts[1][0]
-    k[:n, :n] += TILT_STD**2
-    k[n:, n:] += TILT_STD**2
+    comps = _components(h)
+    # the smooth part's components share its amplitude and (up to fixed factors) its length: one set of pieces
+    smooth, d_smooth = _se_pieces(pairs, comps[:-1])
+    broad, d_broad = _se_pieces(pairs, comps[-1:])
     sx2, sy2 = (v**2 for v in h.noise_pair)
-    k[np.arange(n), np.arange(n)] += sx2
-    k[np.arange(n, 2 * n), np.arange(n, 2 * n)] += sy2
     try:
-        c = sla.cho_factor(k, lower=True, check_finite=False)
+        c = sla.cho_factor(_assemble(smooth + broad, pairs, sx2, sy2), lower=True, check_finite=False)
     except np.linalg.LinAlgError:
         return 1e30, np.zeros(6)
     alpha = sla.cho_solve(c, g, check_finite=False)
@@ -311,18 +357,13 @@ def _evidence_and_gradient(theta: Array, pairs: _Pairs, g: Array, shape: float |
     nll = float(0.5 * g @ alpha + 0.5 * logdet + 0.5 * len(g) * np.log(2 * np.pi))
     low = _lower_inverse(c[0])
     d_low = np.diag(low)
-
-    def half_trace(p: Array) -> float:
-        """tr((alpha alpha^T - K^-1) P) / 2 for a symmetric P, from K^-1's lower triangle (no n x n temporaries)."""
-        return 0.5 * float(alpha @ (p @ alpha) - (2.0 * np.vdot(low, p) - d_low @ np.diag(p)))
-
     alpha2 = alpha * alpha
     grad = np.array(
         [
-            2.0 * half_trace(parts[0][0]),
-            half_trace(parts[0][1]),
-            2.0 * half_trace(parts[1][0]),
-            half_trace(parts[1][1]),
+            2.0 * _half_trace(smooth, pairs, alpha, low),
+            _half_trace(d_smooth, pairs, alpha, low),
+            2.0 * _half_trace(broad, pairs, alpha, low),
+            _half_trace(d_broad, pairs, alpha, low),
             float(np.sum(alpha2[:n]) - np.sum(d_low[:n])) * sx2 if h.noise > NOISE_FLOOR else 0.0,
             float(np.sum(alpha2[n:]) - np.sum(d_low[n:])) * sy2 if (h.noise_y or 0.0) > NOISE_FLOOR else 0.0,
         ]
@@ -331,12 +372,12 @@ def _evidence_and_gradient(theta: Array, pairs: _Pairs, g: Array, shape: float |
 
 
 def _lower_inverse(low: Array) -> Array:
-    """The lower triangle of K^-1 (upper zero) from the lower Cholesky factor of K (LAPACK potri: a third of the work
-    of solving against I)."""
-    inv, info = sla.lapack.dpotri(low, lower=1)
+    """K^-1 in its lower triangle (the upper one holds other numbers) from the lower Cholesky factor of K (LAPACK
+    potri: a third of the work of solving against I)."""
+    inv, info = sla.lapack.dpotri(low, lower=1, overwrite_c=1)
     if info != 0:
         raise np.linalg.LinAlgError(f"potri failed ({info})")
-    return np.tril(inv)
+    return np.asarray(inv)
 
 
 def _even_subsample(n: int, k: int) -> NDArray[np.intp]:
@@ -394,9 +435,9 @@ def fit_hyper(
     (two starts on all: 0.71-1.07), in a third of the time (7.3 s for the 17 against 22.3 s).
 
     The smooth part's shape is chosen by the evidence too (Bayesian model choice): a squared exponential or a
-    rational quadratic (:data:`SMOOTH_SHAPE`), each from the same starts (on the coarse subsample where there is
-    one), the one of larger evidence refined. Gaussian-correlated surfaces (the thesis's kind) choose the former,
-    power-law ones (glass-like and cut sheets) mostly the latter.
+    rational quadratic (:data:`SMOOTH_SHAPE`), the latter started from the former's maximum (on the coarse
+    subsample where there is one), the one of larger evidence refined. Gaussian-correlated surfaces (the thesis's
+    kind) choose the former, power-law ones (glass-like and cut sheets) mostly the latter.
 
     ``start``: the one start instead of ``smooth_starts``, its smooth shape kept (warm start: the prior of an
     earlier frame of the same setup; :attr:`scopetwin.recon.reconstruct.Reconstructor.evidence_start`). Measured on
@@ -432,7 +473,8 @@ def fit_hyper(
     coarse = 10 <= coarse_points < len(xy)
     sub = _even_subsample(len(xy), coarse_points) if coarse else np.arange(len(xy))
     pairs_c, g_c = (_Pairs.of(xy[sub]), np.concatenate([gx[sub], gy[sub]])) if coarse else (pairs, g)
-    tried = {shape: _max_evidence(pairs_c, g_c, cold, bounds, shape) for shape in (None, SMOOTH_SHAPE)}
+    tried: dict[float | None, tuple[float, Array]] = {None: _max_evidence(pairs_c, g_c, cold, bounds, None)}
+    tried[SMOOTH_SHAPE] = _max_evidence(pairs_c, g_c, [tried[None][1]], bounds, SMOOTH_SHAPE)  # from the SE's
     shape = min(tried, key=lambda k: tried[k][0])
     best = _max_evidence(pairs, g, [tried[shape][1]], bounds, shape)[1] if coarse else tried[shape][1]
     return _hyper(best, shape)
