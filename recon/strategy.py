@@ -193,7 +193,7 @@ def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
     too_coarse = current in fits and fits[current] > cfg.fit_ratio * min(fits.values())
     if best == current or not (out.converged or too_coarse):
         return out
-    first = (rec.basis, len(search.history), out, rec.last)
+    first = (rec.basis, len(search.history), out, rec.last, rec.last_xy)
     rec.use_basis(cfg.make_basis(rec.sub, best))
     search.path.append(f"basis scale chosen on the data: {current:g} -> {best:g} mm")
     # a converged search's start height is kept; an unconverged one's is no start: from the frame height again.
@@ -218,7 +218,7 @@ def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
         raise search.fail(again.failure)
     rec.use_basis(first[0])
     del search.history[first[1] :]
-    rec.last = first[3]
+    rec.last, rec.last_xy = first[3], first[4]  # the markers' points with it (the coverage, the height map's mask)
     search.path.append(f"kept the first basis scale, {first[0].sigma[0]:g} mm")
     return first[2]
 
