@@ -46,7 +46,8 @@ class ReconstructionConfig:
         centre with far roots refused ("surface"), or the plane of the fit's offset term ("offset"). The offset
         plane loses the substrate on cut sheets with rolled-off edges, whose fits carry a large offset and tilt that
         the basis cancels over the substrate (5 of ``benchmarks/hard_families.py``'s 6 cut sheets failed with it,
-        none with "surface"), and on steep glass-like sheets whose first fit extrapolates far.
+        none with "surface" and the evidence-chosen prior), and on glass-like sheets whose first fit extrapolates
+        far.
     inner_tol_um, inner_max : float, int
         Inner loop stops when the RMS height change over the ROI is below ``inner_tol_um``.
     outer_tol_um, outer_max : float, int
