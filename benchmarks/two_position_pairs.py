@@ -10,7 +10,7 @@ Each surface (the thesis's kind, :func:`scopetwin.sim.families.thesis_spec` ``ga
 :func:`scopetwin.sim.families.family_spec`) is rendered on the §1.10 setup with the pattern at its position and moved
 40 mm along its normal, by Mitsuba at ``--spp`` samples per pixel with the EMVA 1288 sensor noise
 (:func:`scopetwin.sim.measurement.render_measurement`, :func:`~scopetwin.sim.measurement.render_second_position`).
-Each image 1 is reconstructed (:func:`scopetwin.recon.two_positions.reconstruct_pair`, the pair check turned off)
+Each image 1 is reconstructed (:func:`scopetwin.recon.strategy.reconstruct_pair`, the pair check turned off)
 with its own second image (a true pair), with the second image of the next seed of its family (a mismatched pair:
 another surface of the same kind), and, for the first seed, with its own second image but a 30 mm shift given.
 Printed per pair: the RMS gradient residual of the joint fit of both images' markers, the residual standard deviation
@@ -66,7 +66,8 @@ def images(family: str, seed: int, spp: int) -> tuple[Any, Any, Any]:
 def pair(setup: Any, image: Any, image2: Any, shift_mm: float = SHIFT_MM) -> dict[str, Any]:
     """Reconstruct one pair (the pattern shift given as ``shift_mm``) with the residual check off; its residuals and
     height."""
-    from scopetwin.recon.two_positions import TwoPositionConfig, reconstruct_pair
+    from scopetwin.recon.strategy import reconstruct_pair
+    from scopetwin.recon.two_positions import TwoPositionConfig
     from scopetwin.scenes.errors import ScopetwinError
 
     t0 = time.perf_counter()

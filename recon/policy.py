@@ -96,6 +96,10 @@ class ReconstructionPolicy:
         method with its bias step, without it (the bias model is singular near a caustic on some 3 mm / 60 µm
         surfaces that converge without it), the last surface of a start-height loop that did not converge, a coarse
         fit of the markers, a plane at the frame height.
+    pair_starts : tuple of str
+        Where the two-position search (thesis §1.3, :func:`scopetwin.recon.strategy.reconstruct_pair`) starts when
+        image 1 alone cannot be reconstructed by this policy's own steps: a coarse fit of its markers, else a plane at
+        the frame height (the two positions need no frame criterion). Empty: image 1's failure is the pair's.
     coarse_iterations : int
         Fits of the coarse start (the markers' gradients traced at the frame height, then through each fit).
     coarse_min_hit : float
@@ -123,6 +127,7 @@ class ReconstructionPolicy:
         "coarse",
         "plane",
     )
+    pair_starts: tuple[Literal["coarse", "plane"], ...] = ("coarse", "plane")
     coarse_iterations: int = 3
     coarse_min_hit: float = 0.95
 

@@ -20,7 +20,12 @@ The order, for one image:
 4. wrongly indexed markers rejected and the search again (``outlier_factor``);
 5. the posterior: uncertainty and start height; the frame condition not searched on checked, by the posterior where
    the extrapolation disagrees (``posterior_consistency_sigmas``);
-6. ``method="inverse"``: the inverse fit from the best start left (``inverse_starts``).
+6. ``method="inverse"``: the inverse fit from the best start left (``inverse_starts``);
+7. a second image with the pattern moved (thesis §1.3, :func:`reconstruct_pair`): image 1 by steps 1-5, else the
+   first start of ``pair_starts``; the second image's markers sought through that surface, wrongly indexed ones
+   rejected; the height in each basis scale of the two-position configuration, the one of smallest uncertainty
+   kept; both images checked to be of one surface; combined with the frame criterion (:func:`solve_pair`; the
+   measurement's pieces are :mod:`scopetwin.recon.two_positions`'s).
 
 Inside, a failed step is a value (:class:`scopetwin.recon.reconstruct.LoopOutcome`,
 :class:`scopetwin.recon.reconstruct.Failure`); the user sees one error, only when every path failed, and its message
@@ -52,8 +57,28 @@ from scopetwin.recon.reconstruct import (
     single_thread_blas,
 )
 from scopetwin.recon.scale import select_sigma
+from scopetwin.recon.two_positions import (
+    DEFAULT_TWO_POSITIONS,
+    PairFit,
+    PatternView,
+    TwoPositionConfig,
+    TwoPositionResult,
+    check_pair,
+    check_second,
+    estimate_lines,
+    height_estimate,
+    held_bias,
+    joint_surface,
+    pair_excess,
+    pair_fit,
+    rebase,
+    view_for,
+    without,
+    without_outliers,
+)
 from scopetwin.recon.uncertainty import posterior
 from scopetwin.scenes.errors import ScopetwinError
+from scopetwin.scenes.pattern_stage import shift_pattern, stage_shift
 from scopetwin.scenes.setup import Setup
 
 if TYPE_CHECKING:
@@ -536,6 +561,203 @@ def _coarse_start(
     return InverseStart(surface, "coarse", "; ".join(notes), markers=found)
 
 
+# -- two pattern positions (thesis §1.3) -----------------------------------------------------------------------------
+def solve_pair(
+    first: PatternView,
+    single: ReconstructionResult | None,
+    second: PatternView,
+    shift_mm: float,
+    tp: TwoPositionConfig = DEFAULT_TWO_POSITIONS,
+    start: SBFSurface | None = None,
+    notes: tuple[str, ...] = (),
+) -> TwoPositionResult:
+    """The two-position height and surface from image 1's reconstruction and a second image's markers
+    (:mod:`scopetwin.recon.two_positions`).
+
+    The steps: each view's centroid bias corrected once through image 1's surface and held; the second image's
+    markers checked to meet the ROI; the height in each basis scale of ``tp.sigmas`` (:func:`_pair_scale`); both
+    images checked to be of one surface (``tp.max_excess_urad``); combined with the frame criterion's height; the
+    joint surface at the height taken.
+
+    Parameters
+    ----------
+    first : PatternView
+        Image 1's iteration pieces and markers (rejected ones removed).
+    single : ReconstructionResult or None
+        Image 1 reconstructed alone (:func:`solve`): the frame criterion's height, the start surface and its basis.
+        None: no frame criterion, the search starts from ``start``.
+    second : PatternView
+        The pieces for the setup with the pattern moved (:func:`scopetwin.scenes.pattern_stage.shift_pattern`) and
+        the second image's markers.
+    shift_mm : float
+        The pattern's shift along N_z, mm (reported).
+    tp : TwoPositionConfig
+        Steps, tolerances, basis scales, jackknife blocks, whether to combine with the frame criterion.
+    start : SBFSurface, optional
+        The start surface where there is no ``single`` (a coarse fit of image 1's markers, a plane).
+    notes : tuple of str
+        Lines put before the path's own (what failed on the way).
+    """
+    t0 = time.perf_counter()
+    rec = first.reconstructor
+    begin = single.surface if single is not None else start
+    if begin is None:
+        raise ReconstructionError("the two-position search needs image 1's reconstruction or a start surface")
+    for view in (first, second):
+        if view.reconstructor.basis is not begin.basis:
+            view.reconstructor.use_basis(begin.basis)
+    with single_thread_blas():
+        views = [held_bias(first, begin), held_bias(second, begin)]
+        check_second(views[1], begin, tp)
+        h_start = rec.roi_mean(begin.coef) + begin.offset
+        best, tried = _pair_scale(views, begin, h_start, tp)
+        run, basis = best[0], best[6]
+        separate, excess = pair_excess(views, run, basis)
+        check_pair(excess, separate, shift_mm, tp)
+        u = None if single is None else single.uncertainty
+        frame_std = None if u is None else u.absolute_um * 1e-3
+        est, h = height_estimate(first, best, None if single is None else h_start, frame_std, tp, (separate, excess))
+        final = joint_surface(views, basis, h, run.surface, rec.config) if h != run.height else run
+    path = [*notes, *(single.strategy if single is not None else []), *tried, *estimate_lines(est, shift_mm, tp)]
+    seconds = (single.seconds if single is not None else 0.0) + time.perf_counter() - t0
+    return TwoPositionResult(final.surface, rec.sub, single, est, float(shift_mm), seconds, path)
+
+
+def _pair_scale(
+    views: list[PatternView], begin: SBFSurface, h0: float, tp: TwoPositionConfig
+) -> tuple[PairFit, list[str]]:
+    """The two-position height with the basis scale that gives it the smallest uncertainty (``tp.sigmas`` from the
+    coarsest, beside ``begin``'s own; stopping at the first finer one that gives none smaller), and a line per scale
+    tried. A scale whose joint surface loses the substrate or does not settle is passed over (a finer one may still
+    follow the surface). Each scale starts from the best surface so far in its basis; the views are left on the
+    chosen basis.
+    """
+    rec = views[0].reconstructor
+    own = float(begin.basis.sigma[0])
+    best: PairFit | None = None
+    notes: list[str] = []
+    h, surface = h0, begin
+    for sigma in sorted({*tp.sigmas, own}, reverse=True):
+        basis = begin.basis if sigma == own else rec.config.make_basis(rec.sub, sigma)
+        start = begin if basis is begin.basis else rebase(surface, basis, rec.sub, rec.config)
+        try:
+            fit = pair_fit(views, basis, start, h, tp)
+        except (ScopetwinError, np.linalg.LinAlgError) as exc:
+            notes.append(f"two positions, basis scale {sigma:g} mm: {type(exc).__name__}: {exc}")
+            continue
+        if best is not None and max(fit[3], fit[4]) >= max(best[3], best[4]):
+            notes.append(
+                f"two positions, basis scale {sigma:g} mm: no smaller uncertainty; {best[6].sigma[0]:g} mm kept"
+            )
+            break
+        best, h, surface = fit, fit[0].height, fit[0].surface
+    if best is None:
+        raise ReconstructionError(
+            "the two pattern positions gave no height with any basis scale (a second image of another substrate, or "
+            "a pattern shift other than the one given, ends here too): " + "; ".join(notes)
+        )
+    for view in views:
+        view.reconstructor.use_basis(best[6])
+    return best, notes
+
+
+def reconstruct_markers_pair(
+    setup: Setup,
+    markers: MarkerObservations,
+    second_markers: MarkerObservations,
+    shift_mm: float | None = None,
+    config: ReconstructionConfig | None = None,
+    policy: ReconstructionPolicy = DEFAULT_POLICY,
+    tp: TwoPositionConfig = DEFAULT_TWO_POSITIONS,
+    bias: bool = False,
+) -> TwoPositionResult:
+    """The substrate from indexed markers of two images, the pattern at its setup position and moved by ``shift_mm``
+    along N_z (default: the setup's ``[pattern_stage]``): :func:`solve` on image 1, then :func:`solve_pair`. Exact
+    marker images need no bias step (``bias``)."""
+    shift = stage_shift(setup, shift_mm)
+    first = view_for(setup, markers, config, bias)
+    single = solve(first.reconstructor, markers, policy)
+    kept = without(markers, single.rejected)
+    second = view_for(shift_pattern(setup, shift), second_markers, config, bias)
+    return solve_pair(PatternView(first.reconstructor, kept), single, second, shift, tp)
+
+
+def reconstruct_pair(
+    image: NDArray[Any],
+    second_image: NDArray[Any],
+    setup: Setup,
+    shift_mm: float | None = None,
+    config: ReconstructionConfig | None = None,
+    policy: ReconstructionPolicy = DEFAULT_POLICY,
+    tp: TwoPositionConfig = DEFAULT_TWO_POSITIONS,
+) -> Reconstruction:
+    """The substrate from two deflectometry images, the pattern at its setup position and moved by ``shift_mm`` along
+    its normal (default: the setup's ``[pattern_stage]``), thesis §1.3-§1.8.
+
+    Image 1 goes through :func:`reconstruct_image` (every fallback of ``policy``); where it fails, the two positions
+    start from the first of ``policy.pair_starts`` that can be had (a coarse fit of image 1's markers, a plane at
+    the frame height: they need no frame criterion) and the path says what failed. The second image's markers are
+    found with the moved setup and image 1's surface, wrongly indexed ones rejected as in image 1
+    (``policy.outlier_factor``); then :func:`solve_pair`.
+
+    Returns
+    -------
+    Reconstruction
+        ``method = "centroid"``, ``result`` a :class:`~scopetwin.recon.two_positions.TwoPositionResult`, ``markers``
+        image 1's, the uncertainty's absolute part the two positions' (combined with the frame criterion's).
+    """
+    from scopetwin.recon.markers import find_markers_for
+
+    shift = stage_shift(setup, shift_mm)
+    moved = shift_pattern(setup, shift)
+    first, single, surface, markers, notes = _pair_first_image(image, setup, config, policy)
+    sub = first.reconstructor.sub
+    coarse_map = surface.heightmap(sub.x_range, sub.y_range, 64, 128)  # where the second image's markers are sought
+    found2 = find_markers_for(second_image, moved, coarse_map, lattice_below=policy.lattice_below)
+    bias = policy.bias_step and first.reconstructor.bias is not None  # both images alike
+    second = view_for(moved, MarkerObservations(found2.ij, found2.centroids), config, bias)
+    second = without_outliers(second, surface, policy.outlier_factor, policy.outlier_max_fraction)
+    result = solve_pair(first, single, second, shift, tp, surface, notes)
+    unc = StandardUncertainty(result.absolute_std_um, result.shape_std_um)
+    return Reconstruction("centroid", result, markers, unc, result.strategy)
+
+
+def _pair_first_image(
+    image: NDArray[Any], setup: Setup, config: ReconstructionConfig | None, policy: ReconstructionPolicy
+) -> tuple[PatternView, ReconstructionResult | None, SBFSurface, Any, tuple[str, ...]]:
+    """Image 1 through :func:`reconstruct_image`: its view (rejected markers removed), result, surface, markers; where
+    that fails, its view and the first of ``policy.pair_starts`` that can be had, and a note saying what failed."""
+    from scopetwin.recon.markers import find_markers_for
+    from scopetwin.recon.shifted_basis import SBFSurface
+
+    try:
+        done = reconstruct_image(image, setup, config, policy)
+    except ScopetwinError as exc:
+        if not policy.pair_starts:
+            raise
+        failed = f"image 1 alone: {type(exc).__name__}: {exc}"
+        found = find_markers_for(image, setup, lattice_below=policy.lattice_below)
+        rec = Reconstructor.from_setup(setup, config)
+        obs = MarkerObservations(found.ij, found.centroids)
+        notes: list[str] = []
+        for kind in policy.pair_starts:
+            if kind == "coarse":
+                try:
+                    start = rec.coarse_surface(obs, policy.coarse_iterations, policy.coarse_min_hit)
+                except ScopetwinError as why:  # e.g. no markers near a frame region: the two positions need none
+                    notes.append(f"coarse: {type(why).__name__}: {why}")
+                    continue
+                what = "a coarse fit of its markers"
+            else:
+                start, what = SBFSurface.plane(rec.basis, rec.sub.frame_z), "a plane at the frame height"
+            tried = f" ({'; '.join(notes)})" if notes else ""
+            note = f"{failed}; the two positions start from {what}{tried}, without the bias step"
+            return PatternView(rec, obs), None, start, found, (note,)
+        raise ReconstructionError(f"{failed}; no start for the two positions: {'; '.join(notes)}") from None
+    obs = without(MarkerObservations(done.markers.ij, done.markers.centroids), done.result.rejected)
+    return PatternView(done.reconstructor, obs), done.result, done.result.surface, done.markers, ()
+
+
 # -- one entry point for both methods ---------------------------------------------------------------------------
 @dataclass(frozen=True)
 class StandardUncertainty:
@@ -617,21 +839,29 @@ def reconstruct(
     policy: ReconstructionPolicy = DEFAULT_POLICY,
     history_path: str | Path | None = None,
     evidence_start: Hyper | None = None,
+    second: tuple[NDArray[Any], float | None] | None = None,
+    two_positions: TwoPositionConfig = DEFAULT_TWO_POSITIONS,
 ) -> Reconstruction:
-    """The surface of one deflectometry image by either method, with every fallback of ``policy``.
+    """The surface of one deflectometry image (or of two, the pattern moved between them) by either method, with every
+    fallback of ``policy``: the one place that chooses the method.
 
-    ``method="centroid"``: :func:`reconstruct_image` (``evidence_start``: its posterior's warm start).
-    ``method="inverse"``: the inverse fit (:func:`scopetwin.recon.inverse.reconstruct_inverse`) from
-    :func:`inverse_start`, holding the start's height unless it starts from a plane (``inverse_config``'s other
-    settings are kept).
+    ``method="centroid"``: :func:`reconstruct_image` (``evidence_start``: its posterior's warm start); with
+    ``second`` = (image 2, its pattern shift along N_z in mm or None for the setup's ``[pattern_stage]``):
+    :func:`reconstruct_pair` (``two_positions``: its parameters). ``method="inverse"``: the inverse fit
+    (:func:`scopetwin.recon.inverse.reconstruct_inverse`) from :func:`inverse_start`, holding the start's height
+    unless it starts from a plane (``inverse_config``'s other settings are kept); it uses one image.
     """
+    if method not in ("centroid", "inverse"):
+        raise ReconstructionError(f"method must be 'centroid' or 'inverse', got {method!r}")
+    if second is not None:
+        if method != "centroid":
+            raise ReconstructionError("a second image takes the centroid method (the inverse fit uses one image)")
+        return reconstruct_pair(image, second[0], setup, second[1], config, policy, two_positions)
     if method == "centroid":
         done = reconstruct_image(image, setup, config, policy, history_path, evidence_start)
         u = done.result.uncertainty
         unc = StandardUncertainty(u.absolute_um, u.shape_um) if u is not None else StandardUncertainty(None, None)
         return Reconstruction("centroid", done.result, done.markers, unc, done.result.strategy)
-    if method != "inverse":
-        raise ReconstructionError(f"method must be 'centroid' or 'inverse', got {method!r}")
     return _reconstruct_inverse(image, setup, config, inverse_config, policy)
 
 

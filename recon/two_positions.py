@@ -9,7 +9,8 @@ gradients of a marker by an amount that depends on the pattern's distance — ~ 
 of both images belong to one surface. Stereo deflectometry (two cameras, which thesis §1.3 names) uses the same
 principle with a second viewpoint; here one camera and a stage do.
 
-The method (beyond the thesis):
+The method (beyond the thesis; its steps and fallbacks are :func:`scopetwin.recon.strategy.solve_pair`'s, this module
+holds the measurement's pieces):
 
 1. image 1 alone through :func:`scopetwin.recon.strategy.solve` — the frame-criterion height ``h_frame`` with its
    posterior uncertainty, the basis scale, the rejected markers;
@@ -43,33 +44,25 @@ the two pattern points of one camera pixel) or more pattern positions would move
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from scopetwin.recon.config import ReconstructionConfig
 from scopetwin.recon.errors import MismatchedPairError, ReconstructionError, TooFewMarkersError
-from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
 from scopetwin.recon.reconstruct import (
     MarkerObservations,
     ReconstructionResult,
     Reconstructor,
     centroid_bias_step,
-    single_thread_blas,
 )
 from scopetwin.recon.shifted_basis import SBFSurface, ShiftedBasis, fit_gradients
 from scopetwin.recon.substrate import Substrate2D
-from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.geometry import Array
-from scopetwin.scenes.pattern_stage import shift_pattern, stage_shift
 from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
-
-if TYPE_CHECKING:
-    from scopetwin.recon.strategy import Reconstruction
 
 
 @dataclass(frozen=True)
@@ -129,6 +122,10 @@ class TwoPositionConfig:
     sigmas: tuple[float, ...] = (12.0, 8.0, 6.0, 4.0, 3.0)
     settle_um: float = 0.01
     max_excess_urad: float = 30.0
+
+
+#: The two-position parameters every entry point uses unless given others.
+DEFAULT_TWO_POSITIONS = TwoPositionConfig()
 
 
 @dataclass(frozen=True)
@@ -348,41 +345,17 @@ def pair_height(
 PairFit = tuple[JointRun, Array, int, float, float, float, ShiftedBasis]
 
 
-def pair_scale(
-    views: list[PatternView], begin: SBFSurface, h0: float, tp: TwoPositionConfig
-) -> tuple[PairFit, list[str]]:
-    """The two-position height with the basis scale that gives it the smallest uncertainty (``tp.sigmas`` from the
-    coarsest, beside ``begin``'s own; stopping at the first finer one that gives none smaller), and a line per scale
-    that failed (its joint surface lost the substrate or did not settle: a finer one may still follow the surface).
-    Each scale starts from the best surface so far in its basis. The views are left on the chosen basis.
-    """
-    rec = views[0].reconstructor
-    own = float(begin.basis.sigma[0])
-    best: PairFit | None = None
-    notes: list[str] = []
-    h, surface = h0, begin
-    for sigma in sorted({*tp.sigmas, own}, reverse=True):
-        basis = begin.basis if sigma == own else rec.config.make_basis(rec.sub, sigma)
-        for view in views:
-            view.reconstructor.use_basis(basis)
-        start = begin if basis is begin.basis else rebase(surface, basis, rec.sub, rec.config)
-        try:
-            run, jac, steps = pair_height(views, basis, start, h, tp)
-        except (ScopetwinError, np.linalg.LinAlgError) as exc:
-            notes.append(f"two positions, basis scale {sigma:g} mm: {type(exc).__name__}: {exc}")
-            continue
-        fit = (run, jac, steps, *pair_uncertainty(run, jac, basis.n_terms, tp.blocks, rec.sub), basis)
-        if best is not None and max(fit[3], fit[4]) >= max(best[3], best[4]):
-            break
-        best, h, surface = fit, run.height, run.surface
-    if best is None:
-        raise ReconstructionError(
-            "the two pattern positions gave no height with any basis scale (a second image of another substrate, or "
-            "a pattern shift other than the one given, ends here too): " + "; ".join(notes)
-        )
+def pair_fit(
+    views: list[PatternView], basis: ShiftedBasis, start: SBFSurface, h0: float, tp: TwoPositionConfig
+) -> PairFit:
+    """The two-position height in one basis (:func:`pair_height` from ``h0``) with its uncertainties
+    (:func:`pair_uncertainty`). Which basis scales are tried is the strategy's
+    (:func:`scopetwin.recon.strategy.solve_pair`)."""
     for view in views:
-        view.reconstructor.use_basis(best[6])
-    return best, notes
+        view.reconstructor.use_basis(basis)
+    run, jac, steps = pair_height(views, basis, start, h0, tp)
+    sub = views[0].reconstructor.sub
+    return (run, jac, steps, *pair_uncertainty(run, jac, basis.n_terms, tp.blocks, sub), basis)
 
 
 def rebase(surface: SBFSurface, basis: ShiftedBasis, sub: Substrate2D, cfg: ReconstructionConfig) -> SBFSurface:
@@ -470,62 +443,25 @@ def combine(
     return mean, float(1.0 / np.sqrt(w_f + w_p)) * max(1.0, abs(z)), z
 
 
-# -- one image's result and a second image -> the two-position result -----------------------------------------------
-def solve_two_positions(
+# -- the pieces around the height: the views, the checks, the estimate ---------------------------------------------
+def height_estimate(
     first: PatternView,
-    single: ReconstructionResult | None,
-    second: PatternView,
-    shift_mm: float,
-    tp: TwoPositionConfig = TwoPositionConfig(),
-    start: SBFSurface | None = None,
-    notes: tuple[str, ...] = (),
-) -> TwoPositionResult:
-    """The two-position height and surface from image 1's reconstruction and a second image's markers.
-
-    Parameters
-    ----------
-    first : PatternView
-        Image 1's iteration pieces and markers (rejected ones removed).
-    single : ReconstructionResult or None
-        Image 1 reconstructed alone (:func:`scopetwin.recon.strategy.solve`): the frame criterion's height, the start
-        surface and its basis. None: no frame criterion, the search starts from ``start``.
-    second : PatternView
-        The pieces for the setup with the pattern moved (:func:`scopetwin.scenes.pattern_stage.shift_pattern`) and
-        the second image's markers.
-    shift_mm : float
-        The pattern's shift along N_z, mm (reported).
-    tp : TwoPositionConfig
-        Steps, tolerances, jackknife blocks, whether to combine with the frame criterion.
-    start : SBFSurface, optional
-        The start surface where there is no ``single`` (a coarse fit of image 1's markers).
-    notes : tuple of str
-        Lines put before the path's own (what failed on the way).
-    """
-    t0 = time.perf_counter()
-    rec = first.reconstructor
-    begin = single.surface if single is not None else start
-    if begin is None:
-        raise ReconstructionError("the two-position search needs image 1's reconstruction or a start surface")
-    basis = begin.basis
-    for view in (first, second):
-        if view.reconstructor.basis is not basis:
-            view.reconstructor.use_basis(basis)
-    with single_thread_blas():
-        views = [_held_bias(first, begin), _held_bias(second, begin)]
-        _check_second(views[1], begin, tp)
-        h_start = rec.roi_mean(begin.coef) + begin.offset
-        best, tried = pair_scale(views, begin, h_start, tp)
-        run, jac, steps, gn, jk, resid, basis = best
-        separate, excess = pair_excess(views, run, basis)
-        _check_pair(excess, separate, shift_mm, tp)
-        u = None if single is None else single.uncertainty
-        frame_std = None if u is None else u.absolute_um * 1e-3
-        h, h_std, z = combine(h_start, frame_std, run.height, max(gn, jk), tp.combine, tp.disagree_sigmas)
-        final = joint_surface(views, basis, h, run.surface, rec.config) if h != run.height else run
+    fit: PairFit,
+    frame: float | None,
+    frame_std: float | None,
+    tp: TwoPositionConfig,
+    residuals: tuple[float, float],
+) -> tuple[HeightEstimate, float]:
+    """The :class:`HeightEstimate` of a two-position fit beside the frame criterion's height ``frame`` (mm; None
+    without it) and its standard uncertainty (mm), with the (separate, excess) residuals of :func:`pair_excess`
+    (rad); and the height taken (mm, :func:`combine`)."""
+    run, _, steps, gn, jk, resid, basis = fit
+    h, h_std, z = combine(
+        run.height if frame is None else frame, frame_std, run.height, max(gn, jk), tp.combine, tp.disagree_sigmas
+    )
     n1, n2 = (int(np.sum(np.isfinite(v))) for v in np.split(run.residual[:, 0], [len(first.markers.ij)]))
-    frame = None if single is None else h_start * 1e3
     est = HeightEstimate(
-        frame,
+        None if frame is None else frame * 1e3,
         None if frame_std is None else frame_std * 1e3,
         run.height * 1e3,
         max(gn, jk) * 1e3,
@@ -538,15 +474,13 @@ def solve_two_positions(
         (n1, n2),
         steps,
         float(basis.sigma[0]),
-        separate * 1e6,
-        excess * 1e6,
+        residuals[0] * 1e6,
+        residuals[1] * 1e6,
     )
-    path = [*notes, *(single.strategy if single is not None else []), *tried, *_path(est, shift_mm, tp)]
-    seconds = (single.seconds if single is not None else 0.0) + time.perf_counter() - t0
-    return TwoPositionResult(final.surface, rec.sub, single, est, float(shift_mm), seconds, path)
+    return est, h
 
 
-def _path(est: HeightEstimate, shift_mm: float, tp: TwoPositionConfig) -> list[str]:
+def estimate_lines(est: HeightEstimate, shift_mm: float, tp: TwoPositionConfig) -> list[str]:
     """The strategy's lines of the two positions: the height found, and how the frame criterion entered."""
     where = (
         f"height {est.pair_um - est.frame_um:+.3g} µm from the frame criterion's"
@@ -569,7 +503,7 @@ def _path(est: HeightEstimate, shift_mm: float, tp: TwoPositionConfig) -> list[s
     return path
 
 
-def _check_pair(excess: float, separate: float, shift_mm: float, tp: TwoPositionConfig) -> None:
+def check_pair(excess: float, separate: float, shift_mm: float, tp: TwoPositionConfig) -> None:
     """Both images must be of one surface: the joint fit may add at most ``tp.max_excess_urad`` to the residual
     each image leaves alone (:func:`pair_excess`, rad)."""
     if not excess * 1e6 <= tp.max_excess_urad:
@@ -581,7 +515,7 @@ def _check_pair(excess: float, separate: float, shift_mm: float, tp: TwoPosition
         )
 
 
-def _held_bias(view: PatternView, surface: SBFSurface) -> PatternView:
+def held_bias(view: PatternView, surface: SBFSurface) -> PatternView:
     """The view with its markers' centroid-bias correction made once, through ``surface`` (image 1's), and held.
 
     The bias follows the surface's curvature, which image 1's reconstruction already gives, and hardly its height;
@@ -597,7 +531,7 @@ def _held_bias(view: PatternView, surface: SBFSurface) -> PatternView:
     return PatternView(rec, held)
 
 
-def _check_second(second: PatternView, surface: SBFSurface, tp: TwoPositionConfig) -> None:
+def check_second(second: PatternView, surface: SBFSurface, tp: TwoPositionConfig) -> None:
     """The second image's markers must meet the ROI through image 1's surface: enough of them."""
     _, _, _, ok = second.reconstructor.traced_gradients(surface, second.markers)
     if int(ok.sum()) < tp.min_markers:
@@ -615,29 +549,7 @@ def view_for(
     return PatternView(Reconstructor.from_setup(setup, config, step, frame_z), markers)
 
 
-def reconstruct_markers_pair(
-    setup: Setup,
-    markers: MarkerObservations,
-    second_markers: MarkerObservations,
-    shift_mm: float | None = None,
-    config: ReconstructionConfig | None = None,
-    policy: ReconstructionPolicy = DEFAULT_POLICY,
-    tp: TwoPositionConfig = TwoPositionConfig(),
-    bias: bool = False,
-) -> TwoPositionResult:
-    """The substrate from indexed markers of two images, the pattern at its setup position and moved by ``shift_mm``
-    along N_z (default: the setup's ``[pattern_stage]``). Exact marker images need no bias step (``bias``)."""
-    from scopetwin.recon.strategy import solve
-
-    shift = stage_shift(setup, shift_mm)
-    first = view_for(setup, markers, config, bias)
-    single = solve(first.reconstructor, markers, policy)
-    kept = _without(markers, single.rejected)
-    second = view_for(shift_pattern(setup, shift), second_markers, config, bias)
-    return solve_two_positions(PatternView(first.reconstructor, kept), single, second, shift, tp)
-
-
-def _without(markers: MarkerObservations, rejected: NDArray[np.int64]) -> MarkerObservations:
+def without(markers: MarkerObservations, rejected: NDArray[np.int64]) -> MarkerObservations:
     """``markers`` without the indices in ``rejected``."""
     if len(rejected) == 0:
         return markers
@@ -645,85 +557,13 @@ def _without(markers: MarkerObservations, rejected: NDArray[np.int64]) -> Marker
     return MarkerObservations(markers.ij[~drop], markers.px[~drop])
 
 
-def reconstruct_pair(
-    image: NDArray[Any],
-    second_image: NDArray[Any],
-    setup: Setup,
-    shift_mm: float | None = None,
-    config: ReconstructionConfig | None = None,
-    policy: ReconstructionPolicy = DEFAULT_POLICY,
-    tp: TwoPositionConfig = TwoPositionConfig(),
-) -> Reconstruction:
-    """The substrate from two deflectometry images, the pattern at its setup position and moved by ``shift_mm`` along
-    its normal (default: the setup's ``[pattern_stage]``), thesis §1.3-§1.8.
-
-    Image 1 goes through the one strategy (:func:`scopetwin.recon.strategy.reconstruct_image`, every fallback of
-    ``policy``); the second image's markers are found with the moved setup and image 1's surface, wrongly indexed
-    ones rejected as in image 1 (``policy.outlier_factor``); then :func:`solve_two_positions`. Where image 1 alone
-    cannot be reconstructed (the frame criterion's loop does not converge, too few markers near a frame region), the
-    two positions need no frame: they start from a coarse fit of image 1's markers
-    (:meth:`scopetwin.recon.reconstruct.Reconstructor.coarse_surface`) without the frame criterion, and the path
-    says what failed.
-
-    Returns
-    -------
-    Reconstruction
-        ``method = "centroid"``, ``result`` a :class:`TwoPositionResult`, ``markers`` image 1's, the uncertainty's
-        absolute part the two positions' (combined with the frame criterion's).
-    """
-    from scopetwin.recon.markers import find_markers_for
-    from scopetwin.recon.strategy import Reconstruction, StandardUncertainty
-
-    shift = stage_shift(setup, shift_mm)
-    moved = shift_pattern(setup, shift)
-    first, single, surface, markers, notes = _first_image(image, setup, config, policy)
-    found2 = find_markers_for(second_image, moved, _heights(surface, first), lattice_below=policy.lattice_below)
-    bias = policy.bias_step and first.reconstructor.bias is not None  # both images alike
-    second = view_for(moved, MarkerObservations(found2.ij, found2.centroids), config, bias)
-    second = _without_outliers(second, surface, policy)
-    result = solve_two_positions(first, single, second, shift, tp, surface, notes)
-    unc = StandardUncertainty(result.absolute_std_um, result.shape_std_um)
-    return Reconstruction("centroid", result, markers, unc, result.strategy)
-
-
-def _first_image(
-    image: NDArray[Any], setup: Setup, config: ReconstructionConfig | None, policy: ReconstructionPolicy
-) -> tuple[PatternView, ReconstructionResult | None, SBFSurface, Any, tuple[str, ...]]:
-    """Image 1 through the one strategy: its view (rejected markers removed), result, surface, markers; where the
-    strategy fails, its view and a coarse fit of its markers, and a note saying what failed."""
-    from scopetwin.recon.markers import find_markers_for
-    from scopetwin.recon.strategy import reconstruct_image
-
-    try:
-        done = reconstruct_image(image, setup, config, policy)
-    except ScopetwinError as exc:
-        found = find_markers_for(image, setup, lattice_below=policy.lattice_below)
-        rec = Reconstructor.from_setup(setup, config)
-        obs = MarkerObservations(found.ij, found.centroids)
-        try:
-            start = rec.coarse_surface(obs, policy.coarse_iterations, policy.coarse_min_hit)
-            what = "a coarse fit of its markers"
-        except ScopetwinError:  # e.g. no markers near a frame region: the two positions need none
-            start, what = SBFSurface.plane(rec.basis, rec.sub.frame_z), "a plane at the frame height"
-        note = f"image 1 alone: {type(exc).__name__}: {exc}; the two positions start from {what}, without the bias step"
-        return PatternView(rec, obs), None, start, found, (note,)
-    obs = _without(MarkerObservations(done.markers.ij, done.markers.centroids), done.result.rejected)
-    return PatternView(done.reconstructor, obs), done.result, done.result.surface, done.markers, ()
-
-
-def _heights(surface: SBFSurface, view: PatternView) -> HeightMap:
-    """A surface on a coarse node grid over the substrate (where the second image's markers are looked for)."""
-    sub = view.reconstructor.sub
-    return surface.heightmap(sub.x_range, sub.y_range, 64, 128)
-
-
-def _without_outliers(view: PatternView, surface: SBFSurface, policy: ReconstructionPolicy) -> PatternView:
-    """The second image's markers without those whose gradients no smooth surface explains (wrongly indexed:
-    :meth:`scopetwin.recon.reconstruct.Reconstructor.index_outliers`, ``policy.outlier_factor``)."""
+def without_outliers(view: PatternView, surface: SBFSurface, factor: float, max_fraction: float) -> PatternView:
+    """The view's markers without those whose gradients no smooth surface explains (wrongly indexed:
+    :meth:`scopetwin.recon.reconstruct.Reconstructor.index_outliers`; ``factor`` 0 keeps all)."""
     rec = view.reconstructor
-    if policy.outlier_factor <= 0:
+    if factor <= 0:
         return view
     if rec.basis is not surface.basis:
         rec.use_basis(surface.basis)
-    drop = rec.index_outliers(view.markers, surface, policy.outlier_factor, policy.outlier_max_fraction)
+    drop = rec.index_outliers(view.markers, surface, factor, max_fraction)
     return PatternView(rec, MarkerObservations(view.markers.ij[~drop], view.markers.px[~drop]))

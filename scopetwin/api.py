@@ -329,13 +329,14 @@ def _reconstruct_checked(
     from scopetwin.recon.policy import DEFAULT_POLICY
     from scopetwin.recon.strategy import reconstruct as _reconstruct
 
+    pair = None
     if second is not None:
-        from scopetwin.recon.two_positions import reconstruct_pair
-
         image2, shift = second if isinstance(second, tuple) else (second, None)
-        return reconstruct_pair(np.asarray(image), np.asarray(image2), setup, shift, policy=policy or DEFAULT_POLICY)
+        pair = (np.asarray(image2), shift)
     start = previous.prior if previous is not None else None
-    return _reconstruct(np.asarray(image), setup, method, policy=policy or DEFAULT_POLICY, evidence_start=start)
+    return _reconstruct(
+        np.asarray(image), setup, method, policy=policy or DEFAULT_POLICY, evidence_start=start, second=pair
+    )
 
 
 def calibrate(

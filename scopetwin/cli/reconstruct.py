@@ -113,7 +113,7 @@ def _cmd_two_positions(args: argparse.Namespace, setup: Any, image: Any, out: Pa
     second image with the pattern moved along its normal, combined with the frame criterion's. A second image that
     does not belong to the first is a :class:`~scopetwin.recon.errors.MismatchedPairError` (one line, exit 2, no
     height map)."""
-    from scopetwin.recon.two_positions import reconstruct_pair
+    from scopetwin.recon.strategy import reconstruct
     from scopetwin.scenes.io import read_image, write_heightmap
     from scopetwin.scenes.pattern_stage import stage_shift
 
@@ -126,7 +126,7 @@ def _cmd_two_positions(args: argparse.Namespace, setup: Any, image: Any, out: Pa
             f"{args.second} is {second.shape[1]} x {second.shape[0]} px but {args.image} is "
             f"{image.shape[1]} x {image.shape[0]}"
         )
-    done = reconstruct_pair(image, second, setup, shift, _config(args), _policy(args))
+    done = reconstruct(image, setup, "centroid", config=_config(args), policy=_policy(args), second=(second, shift))
     result, est = done.result, done.result.estimate
     write_heightmap(
         out,

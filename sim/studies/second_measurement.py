@@ -48,8 +48,8 @@ def surface_spec(family: str, seed: int) -> dict[str, Any]:
 
 def second_measurement_task(family: str, seed: int, shift_mm: float = SHIFT_MM, spp: int = 16) -> dict[str, Any]:
     """Render one surface at both pattern positions and reconstruct it; errors and uncertainties, µm."""
+    from scopetwin.recon.strategy import reconstruct_pair
     from scopetwin.recon.substrate import Substrate2D
-    from scopetwin.recon.two_positions import reconstruct_pair
     from scopetwin.scenes.errors import ScopetwinError
     from scopetwin.scenes.setup import load_setup
     from scopetwin.sim.measurement import render_measurement, render_second_position

@@ -13,7 +13,8 @@ import pytest
 
 from scopetwin.recon.errors import MismatchedPairError, ReconstructionError
 from scopetwin.recon.reconstruct import MarkerObservations
-from scopetwin.recon.two_positions import TwoPositionConfig, reconstruct_markers_pair
+from scopetwin.recon.strategy import reconstruct_markers_pair
+from scopetwin.recon.two_positions import TwoPositionConfig
 from scopetwin.scenes.pattern_stage import shift_pattern
 from scopetwin.scenes.setup import Setup, load_setup
 from scopetwin.sim.surfaces import surface_for

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from scopetwin.recon.reconstruct import MarkerObservations
+from scopetwin.recon.strategy import reconstruct_markers_pair
 from scopetwin.recon.substrate import Substrate2D
-from scopetwin.recon.two_positions import combine, reconstruct_markers_pair
+from scopetwin.recon.two_positions import combine
 from scopetwin.scenes.errors import SetupError
 from scopetwin.scenes.pattern_stage import shift_pattern, stage_shift
 from scopetwin.scenes.setup import load_setup

@@ -13,8 +13,10 @@ from test_two_positions import PRESET, SHIFT_MM, SURFACE
 import scopetwin
 from scopetwin.cli import main
 from scopetwin.recon.config import ReconstructionConfig
+from scopetwin.recon.errors import NotConvergedError
+from scopetwin.recon.policy import DEFAULT_POLICY
+from scopetwin.recon.strategy import reconstruct_pair
 from scopetwin.recon.substrate import Substrate2D
-from scopetwin.recon.two_positions import reconstruct_pair
 from scopetwin.scenes.io import read_heightmap, read_image
 from scopetwin.scenes.setup import load_setup
 from scopetwin.sim.pipeline import roi_errors
@@ -62,6 +64,15 @@ def test_render_then_reconstruct_from_two_pattern_positions(tmp_path):
     assert "coarse fit" in done.strategy[0], done.strategy
     err = roi_errors(done.height_at, read_heightmap(out / "surface.exr"), Substrate2D.from_setup(setup))
     assert abs(err["roi_absolute_um"]) <= 0.1 and abs(err["roi_absolute_um"]) <= 2 * done.uncertainty.absolute_um
+    # the fallback starts are the policy's: none left, image 1's own failure is the pair's
+    with pytest.raises(NotConvergedError):
+        reconstruct_pair(
+            first,
+            second,
+            setup,
+            config=ReconstructionConfig(outer_max=1),
+            policy=DEFAULT_POLICY.with_changes(pair_starts=()),
+        )
 
 
 def test_the_rig_takes_both_images_with_its_pattern_stage(tmp_path):
