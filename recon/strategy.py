@@ -397,6 +397,12 @@ def reconstruct_image(
     rec = Reconstructor.from_setup(setup, config, bias)
     rec.evidence_start = evidence_start
     result = solve(rec, MarkerObservations(found.ij, found.centroids), policy, history_path)
+    if found.indexing == "lattice":
+        result.strategy.insert(
+            0,
+            f"markers indexed by the grid's topology: the flood numbered fewer than {policy.lattice_below:g} of the "
+            f"kept spots ({len(found.ij)} indexed)",
+        )
     if note is not None:
         result.strategy.insert(0, note)
     return ImageReconstruction(found, result, rec)

@@ -133,3 +133,23 @@ def test_inverse_start_falls_back_in_order(monkeypatch):
     monkeypatch.setattr(strategy, "reconstruct_image", bias_fails)
     start = strategy.inverse_start(image, setup, policy=strategy.DEFAULT_POLICY.with_changes(bias_step=False))
     assert calls == [False] and start.kind == "centroid"
+
+
+def test_the_indexing_that_numbered_the_markers_is_on_the_path(monkeypatch, exact):
+    """Where the grid's topology numbered the markers instead of the thesis's flood (a fallback of the markers step,
+    ``lattice_below``), the result's path says so; the flood's markers add no line."""
+    import scopetwin.recon.markers as markers_mod
+    from scopetwin.recon import strategy
+
+    _, obs = exact
+    image = np.zeros((SETUP.camera_model.ny, SETUP.camera_model.nx))
+
+    class Found:
+        ij, centroids, indexing = obs.ij, obs.px, "lattice"
+
+    monkeypatch.setattr(markers_mod, "find_markers_for", lambda image, setup, **kw: Found())
+    done = strategy.reconstruct_image(image, SETUP, policy=DEFAULT_POLICY.with_changes(bias_step=False))
+    assert done.result.strategy[0].startswith("markers indexed by the grid's topology"), done.result.strategy
+    Found.indexing = "flood"
+    done = strategy.reconstruct_image(image, SETUP, policy=DEFAULT_POLICY.with_changes(bias_step=False))
+    assert not any("topology" in step for step in done.result.strategy)
