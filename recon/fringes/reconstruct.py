@@ -1,0 +1,433 @@
+"""Phase-measuring deflectometry reconstruction: the nested start-height iteration on dense slopes (thesis §1.4).
+
+The marker method's iteration (:mod:`scopetwin.recon.reconstruct`) with every decoded pixel as an observation:
+
+* inner loop for a start height H: the pixels' rays meet the current surface (first the plane z = H), their slopes
+  follow from the display points they see (:func:`scopetwin.recon.fringes.slopes.dense_slopes`), the slopes are
+  integrated into a B-spline surface whose mean over the ROI is H (eq. 1.5,
+  :class:`scopetwin.recon.fringes.integration.SlopeIntegrator`); repeated until the ROI heights change by less
+  than ``inner_tol_um``;
+* outer loop: the frame criterion (:func:`scopetwin.recon.frame_criterion.frame_criterion`, eq. 1.3) on the
+  surface's maxima over the two frame regions, the next H by :func:`scopetwin.recon.frame_criterion.
+  next_start_height`, until the criterion is below ``outer_tol_um``.
+
+With a second display position (``second``, ``shift_mm``) the absolute height comes from the per-pixel
+triangulation of :mod:`scopetwin.recon.fringes.two_positions` instead: H is the weighted mean, over the pixels, of
+the triangulated height minus the integrated shape there, iterated with the inner loop.
+
+Uncertainty: posterior samples of the integration (the display points' noise carried through the slopes, and the
+curvature prior) give the shape's standard deviation relative to the ROI mean; the start height's comes from the
+spread of the frame criterion over the samples divided by the criterion's slope in H (frame criterion), or from the
+triangulated heights' noise and the samples' shape at the pixels (two positions). The start height's uncertainty
+tilts the slopes; its effect on the shape (the surface's change per unit H, ROI mean removed) is added in quadrature.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scopetwin.recon.errors import ReconstructionError
+from scopetwin.recon.frame_criterion import FrameCriterion, frame_criterion, frame_distance, next_start_height
+from scopetwin.recon.fringes.integration import Integrated, SlopeIntegrator
+from scopetwin.recon.fringes.phase import DisplayCoordinates
+from scopetwin.recon.fringes.slopes import PixelRays, SlopeObservations, dense_slopes
+from scopetwin.recon.fringes.two_positions import DirectPoints, two_position_points
+from scopetwin.recon.reconstruct import measured_nodes, single_thread_blas
+from scopetwin.recon.spline import SplineSurface
+from scopetwin.recon.substrate import Substrate2D
+from scopetwin.scenes.camera import Camera
+from scopetwin.scenes.geometry import Array, Frame
+from scopetwin.scenes.setup import Setup
+from scopetwin.scenes.surface import HeightMap
+
+
+@dataclass(frozen=True)
+class FringeConfig:
+    """Parameters of the fringe reconstruction.
+
+    Attributes
+    ----------
+    knot_spacing_mm : float
+        Knot spacing of the B-spline surface, mm.
+    curvature_std_per_mm : float
+        kappa of the curvature prior (a knot cell's curvature components N(0, kappa^2)), 1/mm.
+    samples : int
+        Posterior samples for the uncertainty.
+    seed : int
+        Seed of the posterior samples.
+    start_height_mm : float
+        First start height H, mm.
+    inner_tol_um, inner_max : float, int
+        RMS change of the ROI heights that ends the inner loop, µm; most inner iterations.
+    outer_tol_um, outer_max : float, int
+        |frame criterion| (or |start-height change| with two positions) that ends the outer loop, µm; most steps.
+    criterion : {"level", "delta"}
+        The frame criterion (:func:`scopetwin.recon.frame_criterion.frame_criterion`).
+    frame_step_mm, roi_step_mm : float
+        Steps of the evaluation grids over the frame regions and the ROI, mm.
+    measured_gap_mm : float
+        A ROI node farther than this from every observation is not measured, mm.
+    """
+
+    knot_spacing_mm: float = 0.4
+    curvature_std_per_mm: float = 1e-3
+    samples: int = 24
+    seed: int = 0
+    start_height_mm: float = 0.0
+    inner_tol_um: float = 0.002
+    inner_max: int = 8
+    outer_tol_um: float = 0.002
+    outer_max: int = 12
+    criterion: FrameCriterion = "level"
+    frame_step_mm: float = 0.25
+    roi_step_mm: float = 0.5
+    measured_gap_mm: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("knot_spacing_mm", "curvature_std_per_mm", "inner_tol_um", "outer_tol_um"):
+            if not getattr(self, name) > 0:
+                raise ReconstructionError(f"fringe reconstruction: {name} must be > 0, got {getattr(self, name)}")
+        if self.samples < 2 or self.inner_max < 1 or self.outer_max < 1:
+            raise ReconstructionError("fringe reconstruction: samples >= 2, inner_max >= 1 and outer_max >= 1 needed")
+
+
+@dataclass(frozen=True)
+class FringeStep:
+    """One outer step: start height, frame maxima, criterion (µm), inner iterations, observations, chi^2."""
+
+    start_height_um: float
+    max_1_um: float
+    max_2_um: float
+    criterion_um: float
+    inner_iterations: int
+    observations: int
+    chi2_per_dof: float
+
+
+@dataclass
+class FringeResult:
+    """The reconstructed surface with its uncertainty (the fringe counterpart of
+    :class:`scopetwin.recon.reconstruct.ReconstructionResult`).
+
+    Attributes
+    ----------
+    surface : SplineSurface
+        The surface, base-plane coordinates, mm.
+    substrate : Substrate2D
+    method : {"frame-criterion", "two-positions"}
+        Where the absolute height comes from.
+    start_height_mm : float
+        The ROI mean height H, mm.
+    absolute_um : float
+        Standard uncertainty of H, µm.
+    shape_um : float
+        RMS over the ROI of the standard uncertainty of the height relative to the ROI mean, µm.
+    samples : ndarray, (k, n_coef)
+        Posterior coefficient deviations (ROI mean removed), start-height part excluded.
+    tilt_per_mm : ndarray, (n_coef,)
+        The surface's change per unit start height, ROI mean removed (coefficients per mm).
+    observation_xy : ndarray, (n, 2)
+        Where the slopes were observed, mm.
+    history : list of FringeStep
+    converged : bool
+    seconds : float
+    """
+
+    surface: SplineSurface
+    substrate: Substrate2D
+    method: Literal["frame-criterion", "two-positions"]
+    start_height_mm: float
+    absolute_um: float
+    shape_um: float
+    samples: Array
+    tilt_per_mm: Array
+    observation_xy: Array
+    history: list[FringeStep] = field(default_factory=list)
+    converged: bool = True
+    seconds: float = 0.0
+
+    def height_at(self, x_mm: Any, y_mm: Any) -> NDArray[np.float64]:
+        """Heights at substrate coordinates (x, y), mm (vectorised)."""
+        return np.asarray(self.surface.height(np.asarray(x_mm, float), np.asarray(y_mm, float)), dtype=np.float64)
+
+    def shape_std_at(self, x_mm: Any, y_mm: Any) -> NDArray[np.float64]:
+        """Standard uncertainty of the height relative to the ROI mean at (x, y), mm (posterior samples and the
+        start height's tilt)."""
+        x = np.asarray(x_mm, dtype=np.float64)
+        design = self.surface.design(x.ravel(), np.broadcast_to(np.asarray(y_mm, float), x.shape).ravel())
+        var = np.var(np.asarray(design @ self.samples.T), axis=1, ddof=1)
+        var += (np.asarray(design @ self.tilt_per_mm) * self.absolute_um * 1e-3) ** 2
+        return np.sqrt(var).reshape(x.shape)
+
+    def heightmap(self, nx: int = 128, ny: int = 288) -> HeightMap:
+        """The surface on the contract's node grid over the substrate (docs/contract.md, "Height maps")."""
+        return self.surface.heightmap(self.substrate, nx, ny)
+
+    def std_heightmap(self, nx: int = 128, ny: int = 288) -> HeightMap:
+        """Per-node standard uncertainty of the absolute height (shape and start height together), mm."""
+        xs, ys = np.linspace(*self.substrate.x_range, nx), np.linspace(*self.substrate.y_range, ny)
+        xx, yy = np.meshgrid(xs, ys)
+        z = np.hypot(self.shape_std_at(xx, yy), self.absolute_um * 1e-3)
+        return HeightMap(z, xs[0], xs[-1], ys[0], ys[-1])
+
+    def measured_mask(self, nx: int = 128, ny: int = 288, max_gap_mm: float = 0.5) -> NDArray[np.bool_]:
+        """Nodes of :meth:`heightmap`'s grid the pixels measure (frame regions True: the criterion's extrapolation)."""
+        xx, yy = np.meshgrid(np.linspace(*self.substrate.x_range, nx), np.linspace(*self.substrate.y_range, ny))
+        return measured_nodes(self.substrate, self.observation_xy, xx, yy, max_gap_mm)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready summary (the ``reconstruct`` contract's keys where they apply)."""
+        return {
+            "method": f"fringes/{self.method}",
+            "outer_iterations": len(self.history),
+            "inner_iterations": int(sum(s.inner_iterations for s in self.history)),
+            "start_height_um": self.start_height_mm * 1e3,
+            "observations": int(len(self.observation_xy)),
+            "converged": self.converged,
+            "seconds": self.seconds,
+            "uncertainty": {"absolute_um": self.absolute_um, "shape_um": self.shape_um},
+            "history": [s.__dict__ for s in self.history],
+        }
+
+
+@dataclass
+class _Inner:
+    surface: SplineSurface
+    obs: SlopeObservations
+    integrated: Integrated
+    iterations: int
+
+
+class FringeReconstructor:
+    """The pieces of the nested iteration on dense slopes for one camera, display and substrate (module docstring)."""
+
+    def __init__(
+        self, camera: Camera, display: Frame, substrate: Substrate2D, config: FringeConfig | None = None
+    ) -> None:
+        self.camera = camera
+        self.display = display
+        self.sub = substrate
+        self.config = config or FringeConfig()
+        cfg = self.config
+        self.integrator = SlopeIntegrator(substrate, cfg.knot_spacing_mm, cfg.curvature_std_per_mm, cfg.roi_step_mm)
+        spline = self.integrator.spline
+        gx, gy = substrate.roi_grid(cfg.roi_step_mm)
+        self._roi = spline.design(gx, gy)
+        self._frames = [spline.design(*substrate.frame_grid(r, cfg.frame_step_mm)) for r in (1, 2)]
+
+    def plane(self, height: float) -> SplineSurface:
+        """The plane z = ``height`` as a spline."""
+        return self.integrator.spline.with_coef(np.full(self.integrator.n_coef, float(height)))
+
+    def frame_maxima(self, coef: Array) -> tuple[Array, Array]:
+        """Maxima of surfaces (coefficients on the last axis) over frame regions 1 and 2, mm."""
+        c = np.atleast_2d(coef).T
+        return np.asarray(self._frames[0] @ c).max(axis=0), np.asarray(self._frames[1] @ c).max(axis=0)
+
+    def inner_loop(
+        self, height: float, coords: DisplayCoordinates, rays: PixelRays, initial: SplineSurface | None = None
+    ) -> _Inner:
+        """Self-consistent surface at ROI-mean height ``height`` (thesis §1.4, eq. 1.5)."""
+        cfg = self.config
+        if initial is None:
+            surface = self.plane(height)
+        else:
+            c = initial.coef.ravel()
+            surface = initial.with_coef(c + height - float(self.integrator.roi_mean(c)))
+        prev = self._roi @ surface.coef.ravel()
+        iterations = 0
+        while iterations < cfg.inner_max:
+            iterations += 1
+            obs = dense_slopes(self.camera, self.display, coords, surface, self.sub, rays)
+            integ = self.integrator.solve(obs, height)
+            surface = integ.surface
+            roi = self._roi @ surface.coef.ravel()
+            change = float(np.sqrt(np.mean((roi - prev) ** 2)))
+            prev = roi
+            if change * 1e3 < cfg.inner_tol_um:
+                break
+        return _Inner(surface, obs, integ, iterations)
+
+    def _step(self, h: float, inner: _Inner, crit: float, m1: float, m2: float) -> FringeStep:
+        return FringeStep(
+            h * 1e3,
+            m1 * 1e3,
+            m2 * 1e3,
+            crit * 1e3,
+            inner.iterations,
+            len(inner.obs),
+            inner.integrated.chi2_per_dof,
+        )
+
+    def frame_loop(self, coords: DisplayCoordinates) -> FringeResult:
+        """The start-height loop on the frame criterion (§1.4, eqs. 1.3-1.4), with the start height's uncertainty."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        rays = PixelRays.of(self.camera, coords.valid)
+        values: list[tuple[float, float]] = []
+        runs: list[tuple[float, _Inner]] = []
+        history: list[FringeStep] = []
+        h, converged, initial = cfg.start_height_mm, False, None
+        for _ in range(cfg.outer_max):
+            inner = self.inner_loop(h, coords, rays, initial)
+            m1, m2 = (float(v[0]) for v in self.frame_maxima(inner.surface.coef.ravel()))
+            crit = frame_criterion(m1, m2, self.sub.frame_z, cfg.criterion)
+            history.append(self._step(h, inner, crit, m1, m2))
+            values.append((h, crit))
+            runs.append((h, inner))
+            initial = inner.surface
+            if abs(crit) * 1e3 <= cfg.outer_tol_um:
+                converged = True
+                break
+            d_min = frame_distance(m1, m2, self.sub.frame_z)
+            h = float(next_start_height(values, h - (d_min if cfg.criterion == "delta" else crit)))
+        if len(runs) < 2:  # the criterion's slope needs a second start height
+            probe = h + 1e-3
+            runs.append((probe, self.inner_loop(probe, coords, rays, initial)))
+            m1, m2 = (float(v[0]) for v in self.frame_maxima(runs[-1][1].surface.coef.ravel()))
+            values.append((probe, frame_criterion(m1, m2, self.sub.frame_z, cfg.criterion)))
+        best = min(range(len(values)), key=lambda i: abs(values[i][1]))
+        h_best, inner = runs[best]
+        other = max((i for i in range(len(values)) if i != best), key=lambda i: abs(values[i][0] - h_best))
+        dh = values[other][0] - h_best
+        slope = (values[other][1] - values[best][1]) / dh
+        tilt = (runs[other][1].surface.coef.ravel() - inner.surface.coef.ravel()) / dh
+        tilt -= float(self.integrator.roi_mean(tilt))
+        integ = self.integrator.solve(inner.obs, h_best, cfg.samples, cfg.seed)
+        c = integ.surface.coef.ravel()
+        m1s, m2s = self.frame_maxima(c[None, :] + integ.samples)
+        pairs = zip(m1s, m2s, strict=True)
+        f_samples = np.array([frame_criterion(a, b, self.sub.frame_z, cfg.criterion) for a, b in pairs])
+        # the criterion's spread over the posterior, and the distance left to its root, in start height
+        sigma_h = float(np.hypot(np.std(f_samples, ddof=1), values[best][1]) / abs(slope))
+        return self._result(
+            integ, inner.obs, "frame-criterion", h_best, sigma_h, tilt, history, converged, time.perf_counter() - t0
+        )
+
+    def two_position_loop(self, coords: DisplayCoordinates, direct: DirectPoints) -> FringeResult:
+        """The start height from per-pixel triangulated heights (two display positions), iterated with the inner loop.
+
+        Raises
+        ------
+        ReconstructionError
+            Fewer than 10 triangulated pixels on the ROI.
+        """
+        cfg = self.config
+        t0 = time.perf_counter()
+        on = (np.abs(direct.xy[:, 0]) <= 0.5 * self.sub.size_x) & (np.abs(direct.xy[:, 1]) < 0.5 * self.sub.roi_length)
+        on &= np.isfinite(direct.z) & (direct.z_std > 0)
+        if on.sum() < 10:
+            raise ReconstructionError(f"only {int(on.sum())} pixels triangulated on the ROI from the two positions")
+        xy, z, w = direct.xy[on], direct.z[on], 1.0 / direct.z_std[on] ** 2
+        rays = PixelRays.of(self.camera, coords.valid)
+        design = self.integrator.spline.design(xy[:, 0], xy[:, 1])
+        h, initial, history, converged = cfg.start_height_mm, None, [], False
+        keep = np.ones(len(z), dtype=bool)
+        runs: list[tuple[float, _Inner]] = []
+        for _ in range(cfg.outer_max):
+            inner = self.inner_loop(h, coords, rays, initial)
+            runs.append((h, inner))
+            resid = z - np.asarray(design @ inner.surface.coef.ravel())
+            # H moves the surface by a constant: the weighted mean residual is the correction (5-sigma outliers out)
+            for _ in range(3):
+                shift = float(np.sum(w[keep] * resid[keep]) / np.sum(w[keep]))
+                keep = np.abs(resid - shift) * np.sqrt(w) < 5.0
+            history.append(self._step(h, inner, -shift, float("nan"), float("nan")))
+            initial = inner.surface
+            h += shift
+            if abs(shift) * 1e3 <= cfg.outer_tol_um:
+                converged = True
+                break
+        h_last, inner = runs[-1]
+        resid = z - np.asarray(design @ inner.surface.coef.ravel())
+        chi2 = float(np.sum(w[keep] * (resid[keep] - shift) ** 2) / max(int(keep.sum()) - 1, 1))
+        integ = self.integrator.solve(inner.obs, h, cfg.samples, cfg.seed)
+        # the samples' shape at the pixels, weighted as H is, relative to the ROI mean
+        wk = np.where(keep, w, 0.0)
+        at_pixels = np.asarray(design @ integ.samples.T).T @ wk / wk.sum()
+        sigma_h = float(np.sqrt(max(chi2, 1.0) / wk.sum() + np.var(at_pixels, ddof=1)))
+        if len(runs) >= 2 and runs[0][0] != h_last:
+            tilt = (runs[0][1].surface.coef.ravel() - inner.surface.coef.ravel()) / (runs[0][0] - h_last)
+            tilt -= float(self.integrator.roi_mean(tilt))
+        else:
+            tilt = np.zeros(self.integrator.n_coef)
+        return self._result(
+            integ, inner.obs, "two-positions", h, sigma_h, tilt, history, converged, time.perf_counter() - t0
+        )
+
+    def _result(
+        self,
+        integ: Integrated,
+        obs: SlopeObservations,
+        method: Literal["frame-criterion", "two-positions"],
+        h: float,
+        sigma_h: float,
+        tilt: Array,
+        history: list[FringeStep],
+        converged: bool,
+        seconds: float,
+    ) -> FringeResult:
+        result = FringeResult(
+            integ.surface, self.sub, method, h, sigma_h * 1e3, 0.0, integ.samples, tilt, obs.xy, history, converged
+        )
+        gx, gy = self.sub.roi_grid(self.config.roi_step_mm)
+        std = result.shape_std_at(gx, gy)
+        result.shape_um = float(np.sqrt(np.mean(std**2)) * 1e3)
+        result.seconds = seconds
+        return result
+
+
+def reconstruct_fringes(
+    setup: Setup,
+    coords: DisplayCoordinates,
+    config: FringeConfig | None = None,
+    second: DisplayCoordinates | None = None,
+    shift_mm: float | None = None,
+    frame_z: float = 0.0,
+) -> FringeResult:
+    """Height map of the substrate from decoded fringe images (module docstring).
+
+    Parameters
+    ----------
+    setup : Setup
+        A deflectometry setup: its camera, its pattern frame (the display: origin at the centre, T_x / T_y along
+        the display coordinates u / v) and its substrate.
+    coords : DisplayCoordinates
+        The decoded display point of every pixel (:func:`scopetwin.recon.fringes.phase.decode_display`).
+    config : FringeConfig, optional
+    second : DisplayCoordinates, optional
+        The display points with the display moved by ``shift_mm`` along its normal: the absolute height then comes
+        from the two positions (no frame criterion).
+    shift_mm : float, optional
+        The second position's distance along N_z, mm (required with ``second``).
+    frame_z : float
+        The holding frame's height, mm (frame criterion).
+
+    Raises
+    ------
+    ReconstructionError
+        Not a deflectometry setup, decoded maps of another shape than the camera's image, ``second`` without
+        ``shift_mm``, or no decoded pixel on the substrate.
+    """
+    sub = Substrate2D.from_setup(setup, frame_z)
+    camera = setup.camera_model
+    if coords.shape != (camera.ny, camera.nx):
+        raise ReconstructionError(
+            f"decoded maps of shape {coords.shape} for the setup's {camera.ny} x {camera.nx} (rows x cols) camera"
+        )
+    if second is not None and shift_mm is None:
+        raise ReconstructionError("a second display position needs its shift along the display normal (shift_mm)")
+    if not coords.valid.any():
+        raise ReconstructionError("no pixel was decoded: nothing to reconstruct")
+    with single_thread_blas():  # the banded factorisation: threaded BLAS gains nothing on 2 cores and can cost 10x
+        rec = FringeReconstructor(camera, setup.marker_pattern.frame, sub, config)
+        if second is None:
+            return rec.frame_loop(coords)
+        assert shift_mm is not None
+        direct = two_position_points(camera, setup.marker_pattern.frame, shift_mm, coords, second, sub.frame)
+        return rec.two_position_loop(coords, direct)

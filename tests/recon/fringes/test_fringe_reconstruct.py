@@ -1,0 +1,110 @@
+"""The fringe reconstruction chain (recon/fringes) on synthetic phase images of known surfaces (§1.10 setup).
+
+Phase-shift frames (4 steps, periods 64 / 8 / 1 mm, EMVA 1288 noise) of the per-pixel truth of the thesis setup
+(4x binned camera, ~26,000 pixels on the ROI) are decoded and reconstructed. Acceptance: the shape error (height minus
+truth, ROI means removed) <= 0.1 µm RMS with the frame criterion and <= 0.03 µm with two display positions; the
+absolute height within 3 of its reported uncertainty; a 1.5 mm wide, 2 µm deep dimple recovered to >= 90 % of its
+depth; over several noise seeds the reported uncertainties cover the errors (slow test).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from fringe_cases import PERIODS, capture, second_position, thesis_setup, truth  # noqa: E402
+
+from scopetwin.recon.errors import ReconstructionError  # noqa: E402
+from scopetwin.recon.fringes.phase import DisplayCoordinates, decode_display  # noqa: E402
+from scopetwin.recon.fringes.reconstruct import FringeResult, reconstruct_fringes  # noqa: E402
+from scopetwin.sim.families import dimple_spec  # noqa: E402
+
+SHIFT_MM = 10.0
+
+
+@pytest.fixture(scope="module")
+def case():
+    setup = thesis_setup()
+    heights, maps = truth(setup)
+    return setup, heights, maps, second_position(setup, heights, SHIFT_MM)
+
+
+def _decode(setup, maps, seed):
+    frames = capture(setup, maps, seed)
+    return decode_display(frames.x, frames.y, PERIODS, tuple(setup.pattern.size))
+
+
+def _errors(result: FringeResult, heights) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """(absolute error, shape error RMS, per-node shape error, per-node shape std) over the ROI, mm."""
+    gx, gy = result.substrate.roi_grid(0.5)
+    est, tru = result.height_at(gx, gy), heights.height(gx, gy)
+    shape = (est - est.mean()) - (tru - tru.mean())
+    return float(est.mean() - tru.mean()), float(np.sqrt(np.mean(shape**2))), shape, result.shape_std_at(gx, gy)
+
+
+def test_frame_criterion_gives_shape_and_absolute_height(case):
+    setup, heights, maps, _ = case
+    result = reconstruct_fringes(setup, _decode(setup, maps, 1))
+    abs_err, shape_rms, _, _ = _errors(result, heights)
+    assert result.converged and result.method == "frame-criterion"
+    assert shape_rms < 1e-4, shape_rms  # 0.1 µm
+    assert abs(abs_err) * 1e3 < 3.0 * result.absolute_um, (abs_err, result.absolute_um)
+    assert 0.01 < result.absolute_um < 2.0 and 0.005 < result.shape_um < 0.2
+    assert result.measured_mask().mean() > 0.9 and result.summary()["observations"] > 20_000
+
+
+def test_two_display_positions_give_the_absolute_height(case):
+    setup, heights, maps, moved = case
+    result = reconstruct_fringes(setup, _decode(setup, maps, 2), second=_decode(setup, moved, 3), shift_mm=SHIFT_MM)
+    abs_err, shape_rms, _, _ = _errors(result, heights)
+    assert result.converged and result.method == "two-positions"
+    assert shape_rms < 3e-5, shape_rms  # 0.03 µm
+    assert abs(abs_err) * 1e3 < 3.0 * result.absolute_um and result.absolute_um < 0.3, (abs_err, result.absolute_um)
+
+
+def test_a_dimple_is_recovered_to_its_depth():
+    at = (2.0, 5.0)
+    setup = thesis_setup(dimple_spec(depth_um=2.0, width_mm=1.5, at=at))
+    heights, maps = truth(setup)
+    result = reconstruct_fringes(setup, _decode(setup, maps, 5))
+    ang = np.linspace(0.0, 2.0 * np.pi, 64, endpoint=False)
+    ring = (at[0] + 2.5 * np.cos(ang), at[1] + 2.5 * np.sin(ang))  # 2.5 mm: beyond the dimple (FWHM 1.5 mm)
+    depth_true = float(heights.height(np.array([at[0]]), np.array([at[1]]))[0] - heights.height(*ring).mean())
+    depth = float(result.height_at(*at) - result.height_at(*ring).mean())
+    assert depth_true < -1.7e-3  # the dimple (on the surface's own curvature)
+    assert 0.9 <= depth / depth_true <= 1.1, (depth, depth_true)
+
+
+def test_bad_input_is_one_clear_error(case):
+    setup, _, maps, _ = case
+    coords = DisplayCoordinates.from_arrays(maps["pattern_xy"][:10], 1e-3)
+    with pytest.raises(ReconstructionError, match="decoded maps of shape"):
+        reconstruct_fringes(setup, coords)
+    full = DisplayCoordinates.from_arrays(maps["pattern_xy"], 1e-3, maps["roi"])
+    with pytest.raises(ReconstructionError, match="shift_mm"):
+        reconstruct_fringes(setup, full, second=full)
+
+
+@pytest.mark.slow
+def test_reported_uncertainties_cover_the_errors_over_noise_seeds(case):
+    """Four noise seeds, both methods: every absolute error within 3 u, the normalised absolute errors of unit-order
+    spread, and >= 90 % of the ROI nodes' shape errors within 2 of their reported standard deviation."""
+    setup, heights, maps, moved = case
+    z_abs, inside = [], []
+    for seed in range(20, 24):
+        first = _decode(setup, maps, seed)
+        for result in (
+            reconstruct_fringes(setup, first),
+            reconstruct_fringes(setup, first, second=_decode(setup, moved, seed + 50), shift_mm=SHIFT_MM),
+        ):
+            abs_err, _, shape, std = _errors(result, heights)
+            z_abs.append(abs_err * 1e3 / result.absolute_um)
+            inside.append(np.mean(np.abs(shape) <= 2.0 * std))
+    z = np.asarray(z_abs)
+    assert np.all(np.abs(z) < 3.0), z
+    assert np.sqrt(np.mean(z**2)) < 2.0, z
+    assert np.min(inside) >= 0.9, inside
