@@ -9,6 +9,10 @@ A setup describes one physical scene of Part I of the thesis:
 * ``scene = "mirror"`` — camera, deflectometry pattern and a flat mirror on the
   holding frame (thesis §2.7.2, §2.8.3).
 
+An optional ``[fringes]`` table replaces the marker pattern of a deflectometry or mirror setup by a display showing
+phase-shifted fringes in the pattern plane (:mod:`scopetwin.scenes.fringes`): ``[fringes.display]`` and
+``[fringes.sequence]``. Setups without it are marker setups, unchanged.
+
 Presets live in ``scenes/presets/NAME.toml``; each names the section it comes
 from. A TOML file may say ``base = "PRESET"`` and override any field (tables
 merge key by key). All lengths are mm, angles rad (docs/contract.md, "Units").
@@ -24,6 +28,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from scopetwin.scenes import fringes as fr
 from scopetwin.scenes.camera import Camera, ThinLens
 from scopetwin.scenes.camera_spec import CameraGridSpec
 from scopetwin.scenes.emva1288 import EmvaSensor
@@ -327,6 +332,60 @@ class PatternStageSpec(_Model):
         return self
 
 
+class DisplaySpec(_Model):
+    """The fringe display in the pattern plane (:class:`scopetwin.scenes.fringes.FringeDisplay`)."""
+
+    pixel_pitch: Positive = Field(fr.DEFAULT_PITCH_MM, description="display pixel pitch, mm")
+    size: tuple[Positive, Positive] = Field(fr.DEFAULT_SIZE_MM, description="active area (x, y), mm")
+    gamma: float = Field(fr.DEFAULT_GAMMA, gt=0, le=10.0, description="radiance = driven value ** gamma")
+    gamma_correction: float = Field(fr.DEFAULT_GAMMA, gt=0, le=10.0, description="gamma the driver's LUT inverts")
+    black_level: float = Field(fr.DEFAULT_BLACK_LEVEL, ge=0, lt=1, description="relative radiance at driven 0")
+    blur_px: float = Field(fr.DEFAULT_BLUR_PX, ge=0, le=100.0, description="Gaussian blur sigma, display pixels")
+    bit_depth: int = Field(fr.DEFAULT_BIT_DEPTH, ge=1, le=16, description="bits of the driven value")
+
+    def display(self) -> fr.FringeDisplay:
+        """The display model."""
+        return fr.FringeDisplay(
+            self.pixel_pitch,
+            self.size,
+            self.gamma,
+            self.black_level,
+            self.blur_px,
+            self.bit_depth,
+            self.gamma_correction,
+        )
+
+
+class FringeSequenceSpec(_Model):
+    """The phase-shifting sequence (:class:`scopetwin.scenes.fringes.FringeSequence`)."""
+
+    periods: tuple[Positive, ...] = Field(fr.DEFAULT_PERIODS_MM, description="fringe periods, mm, coarsest first")
+    steps: int = Field(fr.DEFAULT_STEPS, ge=4, le=1024, description="phase steps per period and direction")
+
+    def sequence(self) -> fr.FringeSequence:
+        """The sequence."""
+        return fr.FringeSequence(tuple(self.periods), self.steps)
+
+
+class FringesSpec(_Model):
+    """A fringe display replacing the marker pattern (phase-measuring deflectometry; :mod:`scopetwin.scenes.fringes`).
+
+    The display lies in the pattern's plane and frame (``[pattern]`` origin and axes); the pattern's ``radiance``
+    scales the display's relative radiance.
+    """
+
+    display: DisplaySpec = DisplaySpec()
+    sequence: FringeSequenceSpec = FringeSequenceSpec()
+
+    @model_validator(mode="after")
+    def _check(self) -> FringesSpec:
+        try:
+            self.sequence.sequence().check_display(self.display.display())
+        except SetupError as exc:
+            raise ValueError(str(exc)) from None
+        return self
+
+
 class RenderSpec(_Model):
     """Rendering options."""
 
@@ -393,9 +452,12 @@ class Setup(_Model):
     sensor: NoiseModelSpec = NoiseModelSpec()
     calibration: CalibrationSpec | None = None
     pattern_stage: PatternStageSpec | None = None
+    fringes: FringesSpec | None = None
 
     @model_validator(mode="after")
     def _check(self) -> Setup:
+        if self.fringes is not None and self.scene == "target":
+            raise ValueError("a [fringes] display needs a deflectometry or mirror setup, not a target scene")
         if self.scene == "deflectometry" and self.substrate is None:
             raise ValueError("a deflectometry setup needs a [substrate] table")
         if self.pattern_stage is not None and self.scene != "deflectometry":
@@ -412,9 +474,19 @@ class Setup(_Model):
     def marker_pattern(self) -> MarkerPattern:
         return self.pattern.pattern()
 
+    @cached_property
+    def fringe_display(self) -> fr.FringeDisplay | None:
+        """The fringe display of a ``[fringes]`` setup, None for a marker setup."""
+        return None if self.fringes is None else self.fringes.display.display()
+
+    @cached_property
+    def fringe_sequence(self) -> fr.FringeSequence | None:
+        """The fringe sequence of a ``[fringes]`` setup, None for a marker setup."""
+        return None if self.fringes is None else self.fringes.sequence.sequence()
+
     def to_json(self) -> str:
-        """Compact JSON of the setup (for image headers)."""
-        return self.model_dump_json()
+        """Compact JSON of the setup (for image headers); a marker setup's holds no ``fringes`` key."""
+        return self.model_dump_json(exclude={"fringes"} if self.fringes is None else None)
 
 
 # -- loading ------------------------------------------------------------------------------
