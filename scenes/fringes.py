@@ -320,12 +320,18 @@ class FringeDisplay:
 
     def _axis(self, w: NDArray[np.float64], values: NDArray[np.float64] | None, axis: int) -> NDArray[np.float64]:
         """The blurred box sum ``sum_k values_k [Phi((w - a_k)/s) - Phi((w - a_k - p)/s)]`` along one axis (module
-        docstring); ``values`` None: every pixel 1 (the active area's edge)."""
-        from scipy.special import ndtr
-
+        docstring); ``values`` None: every pixel 1 (the active area's edge). NaN where ``w`` is not finite."""
         p = self.pixel_pitch_mm
         n = self.pixels[axis]
-        t = (w + 0.5 * self.size_mm[axis]) / p  # position in pixels from the active area's lower edge
+        finite = np.isfinite(w)
+        t = (np.where(finite, w, 0.0) + 0.5 * self.size_mm[axis]) / p  # pixels from the active area's lower edge
+        t = np.clip(t, -float(1 << 40), float(1 << 40))  # far outside is far outside (no integer overflow)
+        return np.where(finite, self._boxes(t, values, n), np.nan)
+
+    def _boxes(self, t: NDArray[np.float64], values: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:
+        """:meth:`_axis` at positions ``t`` in pixels from the lower edge of the ``n`` pixels."""
+        from scipy.special import ndtr
+
         if self.blur_px == 0.0:
             k = np.floor(t).astype(np.int64)
             inside = (k >= 0) & (k < n)
@@ -349,7 +355,8 @@ class FringeDisplay:
         """The relative radiance the display emits in ``frame`` at display points (u, v), mm (broadcast).
 
         Exact for the model of the module docstring: the pixels' boxes of the driven, gamma-mapped values, blurred
-        by the Gaussian; 0 far outside the active area.
+        by the Gaussian; 0 far outside the active area; NaN where a coordinate is NaN (a ray that misses the plane,
+        as ``pattern_xy`` marks it).
         """
         u, v = np.broadcast_arrays(np.asarray(u_mm, dtype=np.float64), np.asarray(v_mm, dtype=np.float64))
         axis = DIRECTIONS.index(frame.direction)

@@ -101,11 +101,17 @@ def pattern_dict(setup: Setup, texel: float = TEXEL, variant: str | None = None)
     The area emitter emits on the side of the pattern's N_z only. ``variant``: the Mitsuba variant
     (default ``choose("mono")``).
     """
+    return emitter_rectangle(setup.marker_pattern, pattern_texture(setup, texel), variant)
+
+
+def emitter_rectangle(pattern: MarkerPattern, tex: NDArray[np.float32], variant: str | None = None) -> dict[str, Any]:
+    """A rectangle spanning ``pattern``'s plate with an area emitter whose radiance is the raster ``tex`` (rows,
+    cols; row 0 / column 0 the plate's (-x, -y) corner), emitting on the side of N_z only: the marker pattern's and
+    a fringe display's (:mod:`scopetwin.scenes.mitsuba.fringes`) emitter. ``variant``: the Mitsuba variant."""
     mi = mitsuba(resolve(variant, "mono"))
-    tex = pattern_texture(setup, texel)
     return {
         "type": "rectangle",
-        "to_world": mi.ScalarTransform4f(pattern_to_world(setup.marker_pattern)),
+        "to_world": mi.ScalarTransform4f(pattern_to_world(pattern)),
         "bsdf": {"type": "diffuse", "reflectance": {"type": "uniform", "value": 0.0}},
         "emitter": {
             "type": "area",
@@ -140,6 +146,7 @@ def scene_dict(
     vertices: tuple[int, int] = DEFAULT_VERTICES,
     texel: float = TEXEL,
     variant: str | None = None,
+    emitter: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The Mitsuba scene dictionary of a setup.
 
@@ -161,6 +168,9 @@ def scene_dict(
         Pattern texel size, mm.
     variant : str, optional
         Mitsuba variant the dictionary's objects are built in (default ``choose("mono")``).
+    emitter : dict, optional
+        The emitter in the pattern plane (:func:`emitter_rectangle`) in place of the marker pattern, e.g. a fringe
+        display (default: :func:`pattern_dict`).
 
     Raises
     ------
@@ -179,7 +189,7 @@ def scene_dict(
         "type": "scene",
         "integrator": integrator_dict(eps, variant),
         "sensor": sensor_dict(cam, spp, seed, window, variant),
-        "pattern": pattern_dict(setup, texel, variant),
+        "pattern": pattern_dict(setup, texel, variant) if emitter is None else emitter,
     }
     if setup.scene == "deflectometry":
         if heights is None:
