@@ -294,12 +294,14 @@ def _image_bytes(nx: int, ny: int, images: int = 1) -> int:
 
 def estimate_render(args: argparse.Namespace) -> dict[str, int]:
     """``render``: the image (float32) and its preview, the surface height map, the truth JSON (each twice with a
-    second pattern position)."""
+    second pattern position); for a fringe setup one image per frame."""
     from scopetwin.scenes.setup import load_setup
 
     setup = load_setup(args.setup)
     cam = setup.camera_model
     nodes = 0 if setup.substrate is None else setup.substrate.surface.grid[0] * setup.substrate.surface.grid[1]
+    if setup.fringe_sequence is not None:  # one float32 EXR per frame, one surface, fringes.json
+        return {"out": len(setup.fringe_sequence) * 4 * cam.nx * cam.ny + 4 * nodes + (256 << 10)}
     times = 2 if getattr(args, "pattern_shift", None) is not None or setup.pattern_stage is not None else 1
     return {"out": times * (_image_bytes(cam.nx, cam.ny) + 4 * nodes + (256 << 10))}
 

@@ -24,11 +24,14 @@ log = logging.getLogger(__name__)
 
 
 def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
-    """Render one setup to EXR with its truth; returns ``{"image", "truth", "spp", "seconds"}``."""
+    """Render one setup to EXR with its truth; returns ``{"image", "truth", "spp", "seconds"}`` — for a setup with a
+    ``[fringes]`` display, every frame of its sequence and ``fringes.json`` (:func:`_render_fringes`)."""
     from scopetwin.scenes.limits import check_render
     from scopetwin.sim.measurement import StagedOutput, load_measurement, render_measurement, write_measurement
 
     setup, heights = load_measurement(args.setup, args.surface, args.spp, args.seed, args.noise, args.extrapolate)
+    if setup.fringes is not None:
+        return _render_fringes(args, setup, heights)
     cam = setup.camera_model
     renderer = "analytic" if args.renderer == "analytic" else "setup"
     check_render(cam.nx, cam.ny, setup.render.spp, f"render {setup.name}", renderer)  # before anything is written
@@ -72,6 +75,56 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
+def _render_fringes(args: argparse.Namespace, setup: Any, heights: Any) -> dict[str, Any]:
+    """A ``[fringes]`` setup: every frame of its sequence rendered (:func:`scopetwin.sim.fringes.render_fringes`) and
+    written with ``fringes.json`` (:func:`scopetwin.sim.fringes.write_fringes`); returns ``{"images": [...],
+    "fringes", "surface", "frames", "spp", "seconds", "seconds_per_frame"}``."""
+    from scopetwin.scenes.limits import check_render
+    from scopetwin.sim.fringes import render_fringes, write_fringes
+    from scopetwin.sim.measurement import StagedOutput
+
+    if args.renderer != "mitsuba":
+        raise ScopetwinError(f"{setup.name} shows fringes: only the Mitsuba renderer renders a fringe display")
+    if args.pattern_shift is not None or setup.pattern_stage is not None:
+        raise ScopetwinError(f"{setup.name} shows fringes: a second pattern position is for marker setups only")
+    cam = setup.camera_model
+    frames = len(setup.fringe_sequence or ())
+    check_render(cam.nx, cam.ny, setup.render.spp * frames, f"render {setup.name}, {frames} fringe frames")
+    stage = StagedOutput(Path(args.out))
+    log.info(
+        "rendering %s (%s scene, %d fringe frames): %d x %d px, %d spp, seed %d, noise %s",
+        setup.name,
+        setup.scene,
+        frames,
+        cam.nx,
+        cam.ny,
+        setup.render.spp,
+        setup.render.seed,
+        "on" if setup.render.noise else "off",
+    )
+    try:
+        measurement = render_fringes(setup, heights, setup.render.spp, setup.render.seed, setup.render.noise)
+        names = write_fringes(stage, measurement)
+        moved = stage.commit()
+    except BaseException:
+        stage.discard()
+        raise
+    seconds = float(sum(measurement.seconds_per_frame))
+    print(
+        f"rendered {setup.name} ({setup.scene}): {frames} fringe frames at {setup.render.spp} spp in {seconds:.2f} s "
+        f"({seconds / frames:.2f} s a frame) -> {args.out}"
+    )
+    return {
+        "images": [str(moved[n]) for n in names["images"]],
+        "fringes": str(moved[names["fringes"]]),
+        "surface": None if names["surface"] is None else str(moved[names["surface"]]),
+        "frames": [frame.to_dict() for frame in measurement.frames],
+        "spp": setup.render.spp,
+        "seconds": seconds,
+        "seconds_per_frame": list(measurement.seconds_per_frame),
+    }
+
+
 def _second_position(
     args: argparse.Namespace, setup: Any, heights: Any, stage: StagedOutput
 ) -> tuple[float, dict[str, str], float] | None:
@@ -113,6 +166,7 @@ def register(subparsers: Any) -> None:
         **conventions(
             "scopetwin render thesis-1.10-deflectometry --out r1 --spp 16",
             "scopetwin render thesis-1.10-deflectometry --out r2 --spp 16 --pattern-shift 30 --json r2.json",
+            "scopetwin render thesis-1.10-fringes --out f1 --spp 16 --noise --json f1.json",
         ),
     )
     p.set_defaults(func=cmd_render, outputs=[("out", "dir"), ("json", "file")], estimate="render")
