@@ -278,34 +278,18 @@ def _numbers(data: dict[str, Any], key: str, kind: Any, what: str) -> list[Any]:
     return value
 
 
-def read_fringes(folder: str | Path) -> FringeMeasurement:
-    """Read a measurement folder written by :func:`write_fringes`, every name and size checked before decoding.
+def _description(
+    data: dict[str, Any], what: str
+) -> tuple[Setup, FringeDisplay, FringeSequence, list[object], list[FringeFrame]]:
+    """The setup, display, sequence, frame file names and frames of a ``fringes.json`` (names not yet checked).
 
     Raises
     ------
-    scopetwin.scenes.safe_read.UnsafeInput
-        ``fringes.json`` or a file it names is missing, leaves the folder, is not a regular file or is too large;
-        a format newer than this scopetwin reads; an image whose header declares another size than the setup's
-        camera.
     FileFormatError
-        A field missing or of the wrong type, a frame list that is empty, too long or names a file twice, an invalid
-        setup or display, or an unreadable image.
-    LimitError
-        The K images do not fit in this machine's memory.
+        A part missing, of the wrong type or out of range (the message names it).
     """
-    from scopetwin.scenes.io import read_heightmap, read_image
-    from scopetwin.scenes.limits import FLOATS_PER_PIXEL, check_image_size
-    from scopetwin.scenes.safe_read import check_format, read_json_inside, resolve_inside
     from scopetwin.scenes.setup import setup_from_dict
 
-    root = Path(folder)
-    if not root.is_dir():
-        raise FileFormatError(f"fringe measurement {root}: not a folder")
-    what = f"{root / FRINGES_FILE}"
-    data = read_json_inside(root, FRINGES_FILE, "fringe measurement's fringes.json")
-    check_format(data.get("format"), READABLE_VERSIONS, what)
-    if data.get("kind") != FRINGES_KIND:
-        raise FileFormatError(f"{what}: kind must be {FRINGES_KIND!r}, got {data.get('kind')!r:.80}")
     try:
         setup_data = data.get("setup")
         if not isinstance(setup_data, dict):
@@ -329,6 +313,37 @@ def read_fringes(folder: str | Path) -> FringeMeasurement:
             frames.append(FringeFrame.from_dict(entry))
     except (ScopetwinError, TypeError, ValueError) as exc:
         raise FileFormatError(f"{what}: {exc}") from None
+    return setup, display, sequence, files, frames
+
+
+def read_fringes(folder: str | Path) -> FringeMeasurement:
+    """Read a measurement folder written by :func:`write_fringes`, every name and size checked before decoding.
+
+    Raises
+    ------
+    scopetwin.scenes.safe_read.UnsafeInput
+        ``fringes.json`` or a file it names is missing, leaves the folder, is not a regular file or is too large;
+        a format newer than this scopetwin reads; an image whose header declares another size than the setup's
+        camera.
+    FileFormatError
+        A field missing or of the wrong type, a frame list that is empty, too long or names a file twice, an invalid
+        setup or display, or an unreadable image.
+    LimitError
+        The K images do not fit in this machine's memory.
+    """
+    from scopetwin.scenes.io import read_heightmap, read_image
+    from scopetwin.scenes.limits import FLOATS_PER_PIXEL, check_image_size
+    from scopetwin.scenes.safe_read import check_format, read_json_inside, resolve_inside
+
+    root = Path(folder)
+    if not root.is_dir():
+        raise FileFormatError(f"fringe measurement {root}: not a folder")
+    what = f"{root / FRINGES_FILE}"
+    data = read_json_inside(root, FRINGES_FILE, "fringe measurement's fringes.json")
+    check_format(data.get("format"), READABLE_VERSIONS, what)
+    if data.get("kind") != FRINGES_KIND:
+        raise FileFormatError(f"{what}: kind must be {FRINGES_KIND!r}, got {data.get('kind')!r:.80}")
+    setup, display, sequence, files, frames = _description(data, what)
     spp = _number(data, "spp", int, what)
     seed = _number(data, "seed", int, what)
     noise = _number(data, "noise", bool, what)

@@ -61,8 +61,8 @@ def rendered() -> dict[str, Any]:
 def test_rendered_frames_equal_the_display_radiance_at_the_true_pattern_points(rendered):
     """Every frame, on the interior pixels (2 px from the ROI's edges): mean difference below 2e-4, RMS below 0.01
     (16 spp sampling noise and the pixel's footprint averaging the 1 mm fringe: 0.007 at 1 mm, 0.0015 at 8 and 64
-    mm), 99.9 % of pixels within 0.03. A few pixels in 10^4 lose one of their 16 samples (1/16 darker) to the
-    heightfield mesh, as the marker render does, which the percentile leaves out."""
+    mm), 99.9 % of pixels within 0.03. About 1 pixel in 1300 renders 1/16 darker (one of its 16 samples lost; the
+    heightfield mesh is the suspect), which the percentile leaves out."""
     setup, images, xy, interior = rendered["setup"], rendered["images"], rendered["xy"], rendered["interior"]
     display = setup.fringe_display
     assert images.shape == (24, 512, 680) and images.dtype == np.float32
