@@ -164,7 +164,6 @@ def register(subparsers: Any) -> None:
         help=help_,
         description=help_,
         **conventions(
-            "scopetwin render thesis-1.10-deflectometry --out r1 --spp 16",
             "scopetwin render thesis-1.10-deflectometry --out r2 --spp 16 --pattern-shift 30 --json r2.json",
             "scopetwin render thesis-1.10-fringes --out f1 --spp 16 --noise --json f1.json",
         ),
