@@ -205,7 +205,7 @@ class FringeSequence:
     def check_display(self, display: FringeDisplay) -> None:
         """Refuse a sequence that does not fit ``display``.
 
-        The coarsest period must cover the display's active extent along both axes (its phase is then unambiguous
+        The coarsest period must exceed the display's active extent along both axes (its phase is then unambiguous
         over the display) and the finest must span at least :data:`MIN_PERIOD_PX` display pixels.
 
         Raises
@@ -214,10 +214,10 @@ class FringeSequence:
             The message names the period and the display size or pitch.
         """
         extent = max(display.size_mm)
-        if self.periods_mm[0] < extent:
+        if not self.periods_mm[0] > extent:
             raise SetupError(
                 f"the coarsest fringe period {self.periods_mm[0]:g} mm does not cover the display's "
-                f"{extent:g} mm: its phase would be ambiguous; use a period >= {extent:g} mm"
+                f"{extent:g} mm: its phase would be ambiguous; use a period > {extent:g} mm"
             )
         finest = self.periods_mm[-1]
         if finest < MIN_PERIOD_PX * display.pixel_pitch_mm:
