@@ -49,6 +49,7 @@ geometry) and marker observations (index + image position).
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
@@ -278,12 +279,28 @@ def single_thread_blas() -> contextlib.AbstractContextManager:
     The matrices here are small (~1000 x 100): multithreaded BLAS gains nothing on them and, on a
     loaded machine, its spinning threads cost 5-20x (measured: the scopetwin run pipeline took 44 s
     instead of 2.5 s for detection + two reconstructions on a shared 2-core machine).
+
+    The limiter comes from one controller of the process (:func:`_blas_controller`): a fresh
+    ``threadpool_limits`` scans the loaded libraries each time (~1.3 ms, a realtime frame's budget is 33 ms).
+    """
+    controller = _blas_controller()
+    return contextlib.nullcontext() if controller is None else controller.limit(limits=1, user_api="blas")
+
+
+@functools.cache
+def _blas_controller() -> Any:
+    """The process's ``threadpoolctl.ThreadpoolController`` (None without threadpoolctl), created on first use.
+
+    It knows the thread pools loaded when it was made: numpy's and SciPy's BLAS (scipy.linalg is imported first, so
+    its library is among them); a library loaded later is not limited.
     """
     try:
-        from threadpoolctl import threadpool_limits
+        from threadpoolctl import ThreadpoolController
     except ImportError:  # pragma: no cover - optional
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
+        return None
+    import scipy.linalg  # noqa: F401  (its BLAS loaded before the scan)
+
+    return ThreadpoolController()
 
 
 # -- the nested iteration ---------------------------------------------------------------

@@ -21,7 +21,6 @@ symbolic link is refused.
 from __future__ import annotations
 
 import contextlib
-import importlib.metadata as md
 import os
 import shutil
 import tempfile
@@ -29,15 +28,17 @@ import time
 from collections.abc import Iterator, Sequence
 from contextvars import ContextVar
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.io import check_surface, write_json_atomic
-from scopetwin.scenes.setup import Setup
-from scopetwin.scenes.surface import HeightMap
+
+if TYPE_CHECKING:  # the command line enters deferred_commits for every command: no scipy, no setup model for it
+    from scopetwin.scenes.setup import Setup
+    from scopetwin.scenes.surface import HeightMap
 
 #: Packages whose versions a rendered image's provenance records.
 PROVENANCE_PACKAGES = ("scopetwin", "mitsuba", "drjit", "numpy")
@@ -278,6 +279,8 @@ def remove_stale_stage(folder: Path) -> bool:
 
 def versions(packages: Sequence[str] = PROVENANCE_PACKAGES) -> dict[str, str]:
     """Installed versions of ``packages`` ("unknown" for one that is not installed)."""
+    import importlib.metadata as md  # ~10 ms of imports that no command needs before it records a provenance
+
     out = {}
     for pkg in packages:
         try:

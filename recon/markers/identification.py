@@ -13,7 +13,7 @@ from a setup: the nominal geometry
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,8 +23,10 @@ from scopetwin.recon.markers.filtering import Region, filter_spots
 from scopetwin.recon.markers.grid_identification import fourier_axes, nearest_spacing, orient_axes, reference_axes
 from scopetwin.recon.markers.indexing import index_grid, index_lattice
 from scopetwin.recon.policy import DEFAULT_POLICY
-from scopetwin.scenes.setup import Setup
-from scopetwin.scenes.surface import HeightMap
+
+if TYPE_CHECKING:  # annotations only: the height map's spline (scipy.interpolate) is not needed to find markers
+    from scopetwin.scenes.setup import Setup
+    from scopetwin.scenes.surface import HeightMap
 
 
 @dataclass(frozen=True)

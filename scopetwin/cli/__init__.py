@@ -46,6 +46,7 @@ Around every command :func:`main` applies two policies:
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import logging
 import sys
@@ -135,7 +136,19 @@ def console_main() -> int:
     status = main()
     if status >= 128:
         signals.exit_within(status)
+    _quick_exit()
     return status
+
+
+def _quick_exit() -> None:
+    """Spare the interpreter's exit its garbage collections over every object the command's libraries made.
+
+    The command is done and its outputs are written and closed. The collections Python runs while it unloads the
+    modules traverse all live objects (SciPy's alone: ~0.08 s of a ``scopetwin reconstruct``'s ~0.1 s exit);
+    :func:`gc.freeze` moves them to the permanent generation, which those collections skip. Exit handlers
+    (``atexit``, logging's flush, child processes' clean-up) run as before; only cyclic garbage still unreached now
+    is left to the operating system."""
+    gc.freeze()
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -68,3 +68,25 @@ def test_the_names_spelt_out_for_the_parsers_are_the_libraries():
 
     assert CLI_LENS_MODES == LENS_MODES
     assert STUDY_NAMES == tuple(STUDIES)
+
+
+def test_the_program_exit_skips_the_collections_but_runs_the_exit_handlers(tmp_path):
+    """After a command the program (``console_main``) freezes the collector's objects (the interpreter's final
+    collections then skip them), while exit handlers still run and the command's outputs are whole."""
+    flag, out = tmp_path / "atexit.txt", tmp_path / "presets.json"
+    code = (
+        "import atexit, gc, sys\n"
+        "from scopetwin.cli import console_main\n"
+        f"atexit.register(lambda: open({str(flag)!r}, 'w').write('ran'))\n"
+        f"sys.argv = ['scopetwin', 'presets', '--json', {str(out)!r}]\n"
+        "status = console_main()\n"
+        "print('frozen', gc.get_freeze_count())\n"
+        "sys.exit(status)"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert int(proc.stdout.split()[-1]) > 1000  # the command's objects were frozen
+    assert flag.read_text() == "ran"
+    import json
+
+    assert "thesis-1.10-deflectometry" in json.dumps(json.loads(out.read_text()))
