@@ -409,13 +409,22 @@ class Reconstructor:
 
     def trace(self, surface: SBFSurface, px: Array, targets: Array) -> tuple[Array, Array, Array, NDArray]:
         """Marker rays through ``surface``: points (x, y) and gradients of those that meet the ROI, and the mask."""
+        ((xy, hx, hy),), ok = self.trace_targets(surface, px, [targets])
+        return xy, hx, hy, ok
+
+    def trace_targets(
+        self, surface: SBFSurface, px: Array, targets: list[Array]
+    ) -> tuple[list[tuple[Array, Array, Array]], NDArray]:
+        """:meth:`trace` of the same rays towards several sets of pattern points: the rays meet ``surface`` once
+        (the secant iteration, the costly part), the gradients (§1.7) follow per set. Returns (xy, hx, hy) per set
+        and the mask of the rays that meet the ROI."""
         o, d = self._rays(px)
         lam, ok = intersect_surface(surface, o, d, self.sub.frame, start=self.config.intersection_start)
         hit = o + np.where(ok, lam, 0.0)[:, None] * d
         local = self.sub.frame.to_local(hit)
         ok &= (np.abs(local[:, 0]) <= 0.5 * self.sub.size_x) & (np.abs(local[:, 1]) < 0.5 * self.sub.roi_length)
-        xy, hx, hy = marker_gradients(hit[ok], d[ok], targets[ok], self.sub.frame)
-        return xy, hx, hy, ok
+        hit_ok, d_ok = hit[ok], d[ok]
+        return [marker_gradients(hit_ok, d_ok, t[ok], self.sub.frame) for t in targets], ok
 
     def corrected(self, surface: SBFSurface, ij: NDArray[np.int64], px: Array, bias: bool = True) -> Array:
         """The image positions the inner loop uses: bias-corrected through ``surface`` where there is a bias step."""
@@ -557,11 +566,10 @@ class Reconstructor:
         px = self.corrected(surface, ij, px)
         xy, hx, hy, ok = self.trace(surface, px, targets)
         steps = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj]
-        shifted = []  # the gradients each marker would have with a neighbouring index: same rays, other targets
-        for step in steps:
-            _, sx, sy, _ = self.trace(surface, px[ok], self.pattern.centers(ij[ok] + np.asarray(step)))
-            shifted.append(np.stack([sx, sy], axis=-1))
-        alt = np.stack(shifted, axis=1)  # (n, 8, 2)
+        # the gradients each marker would have with a neighbouring index: same rays (one intersection), other targets
+        neighbours = [self.pattern.centers(ij[ok] + np.asarray(step)) for step in steps]
+        shifted, _ = self.trace_targets(surface, px[ok], neighbours)
+        alt = np.stack([np.stack([sx, sy], axis=-1) for _, sx, sy in shifted], axis=1)  # (n, 8, 2)
         keep = np.ones(len(xy), dtype=bool)
         budget = int(max_fraction * len(xy))
         for _ in range(3):  # a second round finds what the first round's contaminated fit hid
