@@ -167,25 +167,40 @@ def gradient_kernel(r: Array, hyper: Hyper) -> Array:
 def height_gradient_kernel(p: Array, r: Array, hyper: Hyper) -> Array:
     """cov(f(p), [f_x(r); f_y(r)]), (m, 2n)."""
     n = len(r)
-    out = np.zeros((len(p), 2 * n))
-    dx = p[:, None, 0] - r[None, :, 0]
-    dy = p[:, None, 1] - r[None, :, 1]
-    r2 = dx * dx + dy * dy
-    for amp, length in _components(hyper):
-        e = amp**2 * np.exp(-r2 / (2.0 * length**2)) / length**2
-        out[:, :n] += e * dx
-        out[:, n:] += e * dy
+    out = np.empty((len(p), 2 * n))
+    dx = np.subtract(p[:, None, 0], r[None, :, 0], out=out[:, :n])
+    dy = np.subtract(p[:, None, 1], r[None, :, 1], out=out[:, n:])
+    r2 = dx * dx
+    r2 += dy * dy
+    w = _radial_sum(r2, [(a**2 / ln**2, ln) for a, ln in _components(hyper)])  # sum_k a_k^2 / l_k^2 e_k
+    dx *= w  # in place: out's two halves
+    dy *= w
     out[:, :n] += TILT_STD**2 * p[:, :1]
     out[:, n:] += TILT_STD**2 * p[:, 1:2]
     return out
 
 
+def _radial_sum(r2: Array, comps: list[tuple[float, float]]) -> Array:
+    """sum_k w_k exp(-r2 / (2 l_k^2)) over (weight, length) ``comps``, with one buffer per term (r2 any shape)."""
+    out = np.zeros_like(r2)
+    buf = np.empty_like(r2)
+    for weight, length in comps:
+        np.multiply(r2, -0.5 / length**2, out=buf)
+        np.exp(buf, out=buf)
+        buf *= weight
+        out += buf
+    return out
+
+
 def height_kernel(p: Array, q: Array, hyper: Hyper) -> Array:
     """cov(f(p), f(q)), (m, k) (without the unidentified constant, which cancels in contrasts)."""
-    out = TILT_STD**2 * (p[:, None, 0] * q[None, :, 0] + p[:, None, 1] * q[None, :, 1])
-    for amp, length in _components(hyper):
-        out = out + _se_parts(p, q, amp, length)[0]
-    return np.asarray(out)
+    dx = p[:, None, 0] - q[None, :, 0]
+    dy = p[:, None, 1] - q[None, :, 1]
+    dx *= dx
+    dx += dy * dy
+    out = _radial_sum(dx, [(a**2, ln) for a, ln in _components(hyper)])
+    out += TILT_STD**2 * (p[:, None, 0] * q[None, :, 0] + p[:, None, 1] * q[None, :, 1])
+    return out
 
 
 def _height_variance(p: Array, hyper: Hyper) -> Array:
@@ -295,21 +310,20 @@ def _se_pieces(pairs: _Pairs, comps: list[tuple[float, float]]) -> tuple[_Blocks
 
 
 def _half_trace(p: _Blocks, pairs: _Pairs, alpha: Array, low: Array) -> float:
-    """tr((alpha alpha^T - K^-1) P) / 2 for P given by its pieces, from the lower triangle ``low`` of K^-1 (upper
-    part ignored), without forming P."""
+    """tr((alpha alpha^T - K^-1) P) / 2 for P given by its pieces, from the lower triangle ``low`` of K^-1 (zeros
+    above the diagonal: :func:`_lower_inverse`), without forming P: tr(K^-1 P) = 2 <low, P> - <diag low, diag P>
+    for a symmetric P."""
     n = len(pairs.r2)
     ax, ay = alpha[:n], alpha[n:]
     p11 = p.base + p.w * pairs.dxx
     p22 = p.base + p.w * pairs.dyy
     p21 = p.w * pairs.dxy
     quad = ax @ (p11 @ ax) + ay @ (p22 @ ay) + 2.0 * (ay @ (p21 @ ax))
-    l11, l22, l21 = np.tril(low[:n, :n]), np.tril(low[n:, n:]), low[n:, :n]
+    l11, l22 = low[:n, :n], low[n:, n:]
     tr = (
-        2.0 * np.vdot(l11, p11)
+        2.0 * (np.vdot(l11, p11) + np.vdot(l22, p22) + np.vdot(low[n:, :n], p21))
         - np.diag(l11) @ np.diag(p11)
-        + 2.0 * np.vdot(l22, p22)
         - np.diag(l22) @ np.diag(p22)
-        + 2.0 * np.vdot(l21, p21)
     )
     return 0.5 * float(quad - tr)
 
@@ -348,8 +362,8 @@ def _evidence_and_gradient(theta: Array, pairs: _Pairs, g: Array, shape: float |
     smooth, d_smooth = _se_pieces(pairs, comps[:-1])
     broad, d_broad = _se_pieces(pairs, comps[-1:])
     sx2, sy2 = (v**2 for v in h.noise_pair)
-    try:
-        c = sla.cho_factor(_assemble(smooth + broad, pairs, sx2, sy2), lower=True, check_finite=False)
+    try:  # the factor with zeros above the diagonal, which potri keeps (_lower_inverse)
+        c = (sla.cholesky(_assemble(smooth + broad, pairs, sx2, sy2), lower=True, check_finite=False), True)
     except np.linalg.LinAlgError:
         return 1e30, np.zeros(6)
     alpha = sla.cho_solve(c, g, check_finite=False)
@@ -372,8 +386,8 @@ def _evidence_and_gradient(theta: Array, pairs: _Pairs, g: Array, shape: float |
 
 
 def _lower_inverse(low: Array) -> Array:
-    """K^-1 in its lower triangle (the upper one holds other numbers) from the lower Cholesky factor of K (LAPACK
-    potri: a third of the work of solving against I)."""
+    """K^-1 in its lower triangle from the lower Cholesky factor of K (LAPACK potri: a third of the work of solving
+    against I), in place of ``low``; what lies above the diagonal is left as it was (zeros for a clean factor)."""
     inv, info = sla.lapack.dpotri(low, lower=1, overwrite_c=1)
     if info != 0:
         raise np.linalg.LinAlgError(f"potri failed ({info})")
@@ -598,14 +612,20 @@ def frame_posterior(
     mu_pts, wmat = gp.mean_and_whitened(pts)  # (P,), (2n, P)
     mu = mu_pts - float(k_gm @ gp.alpha)
     w_m = sla.solve_triangular(gp.chol[0], k_gm, lower=True, check_finite=False)
-    wc = wmat - w_m[:, None]
+    # the whitened contrasts are W - w_m 1^T; their products from W's without forming them
+    cross, mm = w_m @ wmat, float(w_m @ w_m)
+    explained = np.einsum("ij,ij->j", wmat, wmat) - 2.0 * cross + mm
     # the contrasts' posterior variance at every point: prior variance less the explained part (diagonals only)
-    var = np.clip(_height_variance(pts, gp.hyper) - 2.0 * k_pm + k_mm - np.einsum("ij,ij->j", wc, wc), 0.0, None)
+    var = np.clip(_height_variance(pts, gp.hyper) - 2.0 * k_pm + k_mm - explained, 0.0, None)
     # D by sampling the frame points' joint posterior (maxima: location and excess included); only the frame
     # points need their joint covariance
     fr = slice(0, n1 + n2)
-    kf = height_kernel(pts[fr], pts[fr], gp.hyper) - k_pm[fr, None] - k_pm[None, fr] + k_mm
-    root = _sqrt_psd(kf - wc[:, fr].T @ wc[:, fr])
+    kf = height_kernel(pts[fr], pts[fr], gp.hyper)
+    kf -= (k_pm[fr, None] - cross[fr, None]) + (k_pm[None, fr] - cross[None, fr])
+    kf += k_mm - mm
+    # kf -= W_f^T W_f, lower triangle only (BLAS syrk: half a product's work; nothing reads the upper one)
+    kf = sla.blas.dsyrk(-1.0, wmat[:, fr], beta=1.0, c=kf, trans=1, lower=1, overwrite_c=1)
+    root = _sqrt_psd(kf)
     draws = mu[fr][None, :] + np.random.default_rng(seed).standard_normal((samples, n1 + n2)) @ root.T
     max1, max2 = draws[:, :n1].max(axis=1), draws[:, n1:].max(axis=1)
     d = 0.5 * (max1 + max2)
@@ -628,18 +648,22 @@ def frame_posterior(
 
 
 def _sqrt_psd(c: Array) -> Array:
-    """A matrix R with R R^T = c for a (numerically) positive semi-definite c: Cholesky with jitter, else eigh."""
+    """A matrix R with R R^T = c for a (numerically) positive semi-definite c given by its lower triangle (the upper
+    one is not read): Cholesky with jitter, else eigh."""
     scale = max(float(np.mean(np.diag(c))), 1e-300)
     # the conditional covariance K - W^T W of the dense frame grid has round-off eigenvalues down to -3e-6 of the mean
     # variance (measured, §1.10 setup): a jitter of 1e-5 of it adds 0.3 % of the mean standard deviation as independent
     # noise, below the 600 draws' own Monte-Carlo noise (4 %), and keeps it off eigh (10x slower); smaller jitters
     # failed on it (each failed factorisation costs a whole one: 0.2 of the default reconstruction's 0.7 s)
+    diag = np.diag_indices(len(c))
     for jitter in (1e-5, 1e-4):
         try:
-            return np.asarray(np.linalg.cholesky(c + jitter * scale * np.eye(len(c))))
+            cj = c.copy()
+            cj[diag] += jitter * scale
+            return np.asarray(sla.cholesky(cj, lower=True, overwrite_a=True, check_finite=False))
         except np.linalg.LinAlgError:
             continue
-    evals, evecs = np.linalg.eigh(0.5 * (c + c.T))
+    evals, evecs = np.linalg.eigh(c, UPLO="L")
     return np.asarray(evecs * np.sqrt(np.clip(evals, 0.0, None))[None, :])
 
 
