@@ -165,6 +165,18 @@ class ShiftedBasis:
             extra = (np.zeros((n, 1)), np.ones((n, 1)))
         return np.concatenate([psi, *extra], axis=1)
 
+    def evaluate_height(self, coef: Array, x: ArrayLike, y: ArrayLike) -> Array:
+        """The heights of :meth:`evaluate` alone (the surface intersection asks for nothing else)."""
+        xa = np.asarray(x, dtype=np.float64).ravel()
+        ya = np.asarray(y, dtype=np.float64).ravel()
+        nb = self.n_basis
+        if self._axes is None:
+            return self.evaluate(coef, xa, ya)[0]
+        _, _, ex, ey = self._factors(xa, ya)
+        cm = coef[:nb].reshape(len(self._axes[1]), len(self._axes[0]))
+        h = np.einsum("nj,nj->n", ey @ cm, ex)
+        return h + coef[nb] * xa + coef[nb + 1] * ya if self.tilt else h
+
     def evaluate(self, coef: Array, x: ArrayLike, y: ArrayLike) -> tuple[Array, Array, Array]:
         """Heights and both gradient components of sum_k c_k Psi(r - r_k) (+ plane) at points, without matrices.
 
@@ -262,8 +274,12 @@ class SBFSurface:
 
     def height(self, x: ArrayLike, y: ArrayLike) -> Array:
         """f(x, y), mm, evaluated without integration."""
-        h, _, _, shape = self._eval(x, y)
-        out = (h + self.offset).reshape(shape)
+        xa, ya = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        xf, yf = xa.ravel(), ya.ravel()
+        h = np.empty(len(xf))
+        for s in range(0, len(xf), _CHUNK):
+            h[s : s + _CHUNK] = self.basis.evaluate_height(self.coef, xf[s : s + _CHUNK], yf[s : s + _CHUNK])
+        out = (h + self.offset).reshape(xa.shape)
         return out if self.correction is None else out + self.correction.height(x, y)
 
     def gradient(self, x: ArrayLike, y: ArrayLike) -> tuple[Array, Array]:
