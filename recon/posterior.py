@@ -41,6 +41,10 @@ from scopetwin.scenes.geometry import Array
 TILT_STD = 1e-2
 #: Floor of the gradient noise standard deviation (rad), keeping the kernel matrix well conditioned.
 NOISE_FLOOR = 2e-8
+#: Bounds of the local features' SE part (:attr:`Hyper.feature_amp`, :attr:`Hyper.feature_len`): 0.1 nm (none) to
+#: 10 µm, and 1-6 mm, the widths (FWHM 2.4-14 mm) between the marker pitch (1.5 mm, of the §1.10 pattern: what the
+#: markers resolve, docs/rendering.md) and the smooth part's shortest length; its cold start, 100 nm at 2 mm.
+FEATURE_AMP_BOUNDS, FEATURE_LEN_BOUNDS, FEATURE_START = (1e-7, 1e-2), (1.0, 6.0), (1e-4, 2.0)
 #: Relative change of the negative log evidence at which the hyperparameter search stops (L-BFGS-B's ``ftol``):
 #: 1e-6 of |log evidence| ~ 3000-6000 is a few thousandths of a nat; measured on a §1.9 surface and a glass-like one,
 #: it halves the evaluations (115 -> 58, 60 -> 57) with the hyperparameters within 1 %.
@@ -61,7 +65,9 @@ class Hyper:
     ``noise`` is the standard deviation of the f_x observations, ``noise_y`` of the f_y ones (None: the same):
     seen obliquely, the centroid noise maps into the two gradient components differently. ``smooth_shape``: None
     for a squared-exponential smooth part, alpha for a rational-quadratic one (:data:`SMOOTH_SHAPE`; chosen by
-    evidence, :func:`fit_hyper`).
+    evidence, :func:`fit_hyper`). ``feature_amp``, ``feature_len``: a third SE part at the marker pitch's scale
+    (:data:`FEATURE_LEN_BOUNDS`), local dimples and bumps of micrometres over millimetres that neither the smooth
+    part nor the nm-level broadband part admits; amplitude 0 for none.
     """
 
     smooth_amp: float
@@ -71,6 +77,8 @@ class Hyper:
     noise: float
     noise_y: float | None = None
     smooth_shape: float | None = None
+    feature_amp: float = 0.0
+    feature_len: float = 2.0
 
     @property
     def noise_pair(self) -> tuple[float, float]:
@@ -89,6 +97,8 @@ class Hyper:
             d["noise_urad"] * 1e-6,
             d["noise_y_urad"] * 1e-6,
             d.get("smooth_shape"),
+            d.get("feature_amp_nm", 0.0) * 1e-6,
+            d.get("feature_len_mm", 2.0),
         )
 
     def as_dict(self) -> dict[str, Any]:
@@ -101,6 +111,8 @@ class Hyper:
             "noise_urad": self.noise * 1e6,
             "noise_y_urad": self.noise_pair[1] * 1e6,
             "smooth_shape": self.smooth_shape,
+            "feature_amp_nm": self.feature_amp * 1e6,
+            "feature_len_mm": self.feature_len,
         }
 
 
@@ -126,14 +138,19 @@ def _mixture(alpha: float, nodes: int) -> tuple[tuple[float, float], ...]:
     return tuple((float(1.0 / np.sqrt(t)), float(np.sqrt(wk))) for t, wk in zip(tau, w, strict=True))
 
 
-def _components(h: Hyper) -> list[tuple[float, float]]:
-    """The prior's squared-exponential components (amplitude mm, length mm): the smooth part's (one, or the
-    rational-quadratic mixture of shape ``h.smooth_shape``), then the broadband part."""
+def _smooth_components(h: Hyper) -> list[tuple[float, float]]:
+    """The smooth part's squared-exponential components (amplitude mm, length mm): one, or the rational-quadratic
+    mixture of shape ``h.smooth_shape``."""
     if h.smooth_shape is None:
-        smooth = [(h.smooth_amp, h.smooth_len)]
-    else:
-        smooth = [(h.smooth_amp * a, h.smooth_len * f) for f, a in _mixture(h.smooth_shape, SMOOTH_NODES)]
-    return [*smooth, (h.broad_amp, h.broad_len)]
+        return [(h.smooth_amp, h.smooth_len)]
+    return [(h.smooth_amp * a, h.smooth_len * f) for f, a in _mixture(h.smooth_shape, SMOOTH_NODES)]
+
+
+def _components(h: Hyper) -> list[tuple[float, float]]:
+    """The prior's squared-exponential components (amplitude mm, length mm): the smooth part's, the local features'
+    (where ``h.feature_amp`` > 0), the broadband part."""
+    feature = [(h.feature_amp, h.feature_len)] if h.feature_amp > 0 else []
+    return [*_smooth_components(h), *feature, (h.broad_amp, h.broad_len)]
 
 
 def _se_parts(p: Array, q: Array, amp: float, length: float) -> tuple[Array, Array, Array]:
@@ -205,7 +222,7 @@ def height_kernel(p: Array, q: Array, hyper: Hyper) -> Array:
 
 def _height_variance(p: Array, hyper: Hyper) -> Array:
     """The diagonal of :func:`height_kernel` (p, p): var f(p) under the prior, (m,)."""
-    return TILT_STD**2 * (p[:, 0] ** 2 + p[:, 1] ** 2) + hyper.smooth_amp**2 + hyper.broad_amp**2
+    return TILT_STD**2 * (p[:, 0] ** 2 + p[:, 1] ** 2) + hyper.smooth_amp**2 + hyper.feature_amp**2 + hyper.broad_amp**2
 
 
 class GradientGP:
@@ -344,28 +361,29 @@ def _assemble(k: _Blocks, pairs: _Pairs, sx2: float, sy2: float) -> Array:
 
 
 def _hyper(theta: Array, shape: float | None) -> Hyper:
-    """The prior of log-hyperparameters theta = log(smooth_amp, smooth_len, broad_amp, broad_len, noise_x, noise_y)."""
+    """The prior of log-hyperparameters theta = log(smooth_amp, smooth_len, broad_amp, broad_len, noise_x, noise_y,
+    feature_amp, feature_len)."""
     v = [float(x) for x in np.exp(theta)]
-    return Hyper(v[0], v[1], v[2], v[3], v[4], v[5], shape)
+    return Hyper(v[0], v[1], v[2], v[3], v[4], v[5], shape, v[6], v[7])
 
 
 def _evidence_and_gradient(theta: Array, pairs: _Pairs, g: Array, shape: float | None = None) -> tuple[float, Array]:
     """Negative log evidence and its gradient in theta = log(smooth_amp, smooth_len, broad_amp, broad_len, noise_x,
-    noise_y).
+    noise_y, feature_amp, feature_len).
 
     d log p / d theta_j = tr((alpha alpha^T - K^-1) dK/d theta_j) / 2 (Rasmussen & Williams 2006, eq. 5.9).
     """
     h = _hyper(theta, shape)
     n = len(pairs.dxx)
-    comps = _components(h)
     # the smooth part's components share its amplitude and (up to fixed factors) its length: one set of pieces
-    smooth, d_smooth = _se_pieces(pairs, comps[:-1])
-    broad, d_broad = _se_pieces(pairs, comps[-1:])
+    smooth, d_smooth = _se_pieces(pairs, _smooth_components(h))
+    feature, d_feature = _se_pieces(pairs, [(h.feature_amp, h.feature_len)])
+    broad, d_broad = _se_pieces(pairs, [(h.broad_amp, h.broad_len)])
     sx2, sy2 = (v**2 for v in h.noise_pair)
     try:  # the factor with zeros above the diagonal, which potri keeps (_lower_inverse)
-        c = (sla.cholesky(_assemble(smooth + broad, pairs, sx2, sy2), lower=True, check_finite=False), True)
+        c = (sla.cholesky(_assemble(smooth + feature + broad, pairs, sx2, sy2), lower=True, check_finite=False), True)
     except np.linalg.LinAlgError:
-        return 1e30, np.zeros(6)
+        return 1e30, np.zeros(8)
     alpha = sla.cho_solve(c, g, check_finite=False)
     logdet = 2.0 * float(np.sum(np.log(np.diag(c[0]))))
     nll = float(0.5 * g @ alpha + 0.5 * logdet + 0.5 * len(g) * np.log(2 * np.pi))
@@ -380,6 +398,8 @@ def _evidence_and_gradient(theta: Array, pairs: _Pairs, g: Array, shape: float |
             _half_trace(d_broad, pairs, alpha, low),
             float(np.sum(alpha2[:n]) - np.sum(d_low[:n])) * sx2 if h.noise > NOISE_FLOOR else 0.0,
             float(np.sum(alpha2[n:]) - np.sum(d_low[n:])) * sy2 if (h.noise_y or 0.0) > NOISE_FLOOR else 0.0,
+            2.0 * _half_trace(feature, pairs, alpha, low),
+            _half_trace(d_feature, pairs, alpha, low),
         ]
     )
     return nll, -grad
@@ -474,14 +494,17 @@ def fit_hyper(
         (np.log(0.25), np.log(3.0)),
         (np.log(NOISE_FLOOR), np.log(1e-4)),
         (np.log(NOISE_FLOOR), np.log(1e-4)),
+        (float(np.log(FEATURE_AMP_BOUNDS[0])), float(np.log(FEATURE_AMP_BOUNDS[1]))),
+        (float(np.log(FEATURE_LEN_BOUNDS[0])), float(np.log(FEATURE_LEN_BOUNDS[1]))),
     ]
     lo, hi = [b[0] for b in bounds], [b[1] for b in bounds]
     pairs = _Pairs.of(xy)
     if start is not None:
-        warm = (start.smooth_amp, start.smooth_len, start.broad_amp, start.broad_len, *start.noise_pair)
+        feature = (max(start.feature_amp, FEATURE_AMP_BOUNDS[0]), start.feature_len)
+        warm = (start.smooth_amp, start.smooth_len, start.broad_amp, start.broad_len, *start.noise_pair, *feature)
         _, best = _max_evidence(pairs, g, [np.clip(np.log(warm), lo, hi)], bounds, start.smooth_shape)
         return _hyper(best, start.smooth_shape)
-    cold = [np.clip(np.log([g_rms * ln, ln, 1e-6, 1.0, 3e-7, 3e-7]), lo, hi) for ln in smooth_starts]
+    cold = [np.clip(np.log([g_rms * ln, ln, 1e-6, 1.0, 3e-7, 3e-7, *FEATURE_START]), lo, hi) for ln in smooth_starts]
     # the smooth part's shape by evidence: each shape's starts (on the coarse subsample where there is one), the
     # better one refined on all observations
     coarse = 10 <= coarse_points < len(xy)

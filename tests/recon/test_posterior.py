@@ -140,3 +140,23 @@ def test_evidence_chooses_the_smooth_parts_shape(alpha: float | None) -> None:
     assert sum(c == expected for c in chosen) >= 3, (chosen, lengths)
     right = [ln for c, ln in zip(chosen, lengths, strict=True) if c == expected]
     assert np.all(np.abs(np.array(right) / 8.0 - 1.0) < 0.35), (chosen, lengths)
+
+
+def test_evidence_admits_local_features_only_where_the_data_hold_them() -> None:
+    """Gradients at a 1.5 mm pitch of a smooth prior draw plus three local bumps of 1-2 µm over 2-4 mm: the evidence
+    gives the local-feature part a length of their scale and an amplitude of their spread over the area (measured
+    150 nm at 1.7 mm); without the bumps it stays 30 times smaller (measured 5 nm)."""
+    xx, yy = np.meshgrid(np.linspace(-12, 12, 17), np.linspace(-21, 21, 29))
+    xy = np.stack([xx.ravel(), yy.ravel()], axis=-1)
+    g, _ = _draw(HYPER, xy, xy[:1], seed=5)
+    smooth = fit_hyper(xy, g[: len(xy)], g[len(xy) :], smooth_starts=(10.0,), coarse_points=100)
+    bumps = np.zeros_like(g)
+    for cx, cy, depth, w in [(-5.0, 8.0, -2e-3, 1.3), (6.0, -12.0, 1.5e-3, 1.0), (1.0, -2.0, -1e-3, 1.6)]:
+        e = depth * np.exp(-((xy[:, 0] - cx) ** 2 + (xy[:, 1] - cy) ** 2) / (2 * w**2))
+        bumps[: len(xy)] -= e * (xy[:, 0] - cx) / w**2
+        bumps[len(xy) :] -= e * (xy[:, 1] - cy) / w**2
+    gb = g + bumps
+    featured = fit_hyper(xy, gb[: len(xy)], gb[len(xy) :], smooth_starts=(10.0,), coarse_points=100)
+    assert 5e-5 < featured.feature_amp < 2e-3  # mm
+    assert 1.0 <= featured.feature_len < 3.0
+    assert smooth.feature_amp < 0.1 * featured.feature_amp
