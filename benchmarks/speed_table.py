@@ -44,6 +44,10 @@ Rows (``*``: only with ``--full``):
 9. Mitsuba render of the §1.10 frame at 16 spp (``benchmarks/render_speed.py``'s bowed surface, warm, minimum).
 10. GRIN image 1392 x 1040 at 64 spp (``benchmarks/grin_speed.py``'s §8.3.2 objective and grid target, warm).
 11. * ``make lint`` + ``make test`` (subprocesses): wall times.
+12. The fringe method (:func:`scopetwin.recon.strategy.reconstruct_fringe_images`: decode, dense slopes,
+    integration, the frame criterion's start-height loop, the uncertainty) on the ``thesis-1.10-fringes`` preset's 24
+    frames of 1360 x 1024 px (its §1.9 surface, 16 spp, EMVA sensor noise, render seed 1; rendered once and cached in
+    ``--cache`` with :func:`scopetwin.sim.fringes.save_fringes`), minimum over repeats; the decode alone beside it.
 """
 
 from __future__ import annotations
@@ -69,6 +73,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 PRESET = "thesis-1.10-deflectometry"
+FRINGE_PRESET = "thesis-1.10-fringes"
 ROOT = Path(__file__).resolve().parent.parent
 REFERENCE_FILE = Path(__file__).resolve().parent / "speed_reference.json"
 SCOPETWIN = [sys.executable, "-m", "scopetwin"]
@@ -120,6 +125,7 @@ TABLE: dict[str, Goal] = {
     "10": Goal("GRIN image 1392 x 1040 at 64 spp", 5.0, (10.6, 10.6), (10.6, 10.6)),
     # the goal is make test's alone (<= 5 min), on its sub-row
     "11": Goal("make lint + make test (wall)", None, (185.0, 185.0), (754.0, 754.0), full_only=True),
+    "12": Goal("fringe reconstruction, 24 frames of 1360 x 1024", 2.0, None, (57.0, 64.0)),
 }  # fmt: skip
 
 
@@ -307,6 +313,25 @@ class Context:
                 setup = load_setup(PRESET, {"substrate": {"surface": {**GLASS, "seed": seed}}})
                 self._glass.append(self.render_cached(setup, seed, "frame-glass"))
         return self._glass
+
+    @property
+    def fringes(self) -> Path:
+        """Row 12's measurement: ``thesis-1.10-fringes``, its own §1.9 surface, 16 spp, sensor noise, render seed 1
+        (a folder written by :func:`scopetwin.sim.fringes.save_fringes`, rendered once)."""
+        from scopetwin.scenes.setup import load_setup
+        from scopetwin.sim.fringes import render_fringes, save_fringes
+        from scopetwin.sim.surfaces import surface_for
+
+        setup = load_setup(FRINGE_PRESET)
+        key = hashlib.sha256(f"{setup.to_json()}|16|1".encode()).hexdigest()[:16]
+        path = self.cache / f"fringes-1.10-16spp-seed1-{key}"
+        if self.fresh or not (path / "fringes.json").exists():
+            t0 = time.perf_counter()
+            if path.exists():
+                shutil.rmtree(path)
+            save_fringes(render_fringes(setup, surface_for(setup), 16, 1, True), path)
+            print(f"  (rendered {path.name} in {time.perf_counter() - t0:.1f} s)", flush=True)
+        return path
 
     def image(self) -> NDArray[np.float32]:
         from scopetwin.scenes.io import read_image
@@ -550,6 +575,26 @@ def row_grin(ctx: Context) -> Measured:
     )
 
 
+def row_fringes(ctx: Context) -> Measured:
+    """Row 12: :func:`scopetwin.recon.strategy.reconstruct_fringe_images` on the cached preset measurement (read
+    once, outside the timing), minimum over repeats; the decode of the same stack beside it."""
+    from scopetwin.recon.fringes.frames import decode_stack
+    from scopetwin.recon.strategy import reconstruct_fringe_images
+    from scopetwin.sim.fringes import read_fringes
+
+    m = read_fringes(ctx.fringes)
+    done: list[Any] = []
+    times = repeat_min(lambda: done.append(reconstruct_fringe_images(m.images, m.setup)), 1, 5, 8.0)
+    decode = repeat_min(lambda: decode_stack(m.images, m.setup), 1, 5, 2.0)
+    r = done[-1]
+    s = r.summary()
+    note = (
+        f"{s['observations']} slopes, {s['outer_iterations']} outer / {s['inner_iterations']} inner iterations, "
+        f"{len(times)} runs, u(abs) {r.uncertainty.absolute_um:.3f} µm, u(shape) {r.uncertainty.shape_um:.3f} µm"
+    )
+    return Measured(min(times), extras=[("  decode of the 24 frames", min(decode), None)], note=note)
+
+
 def row_make(ctx: Context) -> Measured:
     walls = {}
     for target in ("lint", "test"):
@@ -576,6 +621,7 @@ ROWS: dict[str, Callable[[Context], Measured]] = {
     "9": row_render,
     "10": row_grin,
     "11": row_make,
+    "12": row_fringes,
 }
 
 #: What each row needs before its timing starts (renders to the cache), so that the reference brackets the row only.
@@ -586,6 +632,7 @@ PREPARE: dict[str, Callable[[Context], Any]] = {
     "4": lambda ctx: ctx.frame,
     "5": lambda ctx: ctx.glass_frames(),
     "8": lambda ctx: ctx.frame,
+    "12": lambda ctx: ctx.fringes,
 }
 
 

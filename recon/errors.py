@@ -33,6 +33,11 @@ class MismatchedPairError(ReconstructionError):
     markers (an image of another substrate, or a pattern shift other than the one given)."""
 
 
+class MethodMismatchError(ReconstructionError):
+    """The method does not fit the measurement: marker centroids asked of a fringe setup, fringes of a marker setup,
+    or a single image where a fringe sequence's stack is needed (and the other way round)."""
+
+
 class NotConvergedError(ReconstructionError):
     """The outer start-height loop did not converge; ``history`` holds what was done, ``surface`` its last surface."""
 

@@ -98,10 +98,27 @@ class SplineSurface:
         return sp.csr_matrix((w.ravel(), (np.repeat(np.arange(n), 16), idx.ravel())), shape=(n, self.coef.size))
 
     def height(self, x: Any, y: Any) -> Array:
-        """h(x, y), mm (any array shape)."""
-        xa = np.asarray(x, dtype=np.float64)
-        idx, w, _, _ = self.basis_rows(xa, np.asarray(y, dtype=np.float64))
-        return np.sum(w * self.coef.ravel()[idx], axis=1).reshape(xa.shape)
+        """h(x, y), mm (any array shape; the points' shape broadcast).
+
+        The tensor product summed one spline axis at a time (four rows of four coefficients gathered per point), the
+        weights of :meth:`basis_rows` without forming its (n, 16) index and derivative arrays: the same values, about
+        five times faster on the 10^5-10^6 points of a fringe measurement's secant steps.
+        """
+        xa, ya = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        ny, nx = self.shape
+        u = (xa.ravel() - self.x0) / self.dx
+        v = (ya.ravel() - self.y0) / self.dy
+        i = np.clip(np.floor(u).astype(np.intp), 1, nx - 3)
+        j = np.clip(np.floor(v).astype(np.intp), 1, ny - 3)
+        wu = cubic_bspline_weights(u - i)[:4]
+        wv = cubic_bspline_weights(v - j)[:4]
+        flat = self.coef.ravel()
+        base = (j - 1) * nx + (i - 1)
+        out = np.zeros(u.shape)
+        for m in range(4):
+            row = base + m * nx
+            out += wv[m] * (wu[0] * flat[row] + wu[1] * flat[row + 1] + wu[2] * flat[row + 2] + wu[3] * flat[row + 3])
+        return out.reshape(xa.shape)
 
     def gradient(self, x: Any, y: Any) -> tuple[Array, Array]:
         """(dh/dx, dh/dy)."""

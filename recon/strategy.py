@@ -27,6 +27,11 @@ The order, for one image:
    kept; both images checked to be of one surface; combined with the frame criterion (:func:`solve_pair`; the
    measurement's pieces are :mod:`scopetwin.recon.two_positions`'s).
 
+A phase-shifted fringe measurement (``method="fringes"``, :func:`reconstruct_fringe_images`; the setup's
+``[fringes]`` table says what each of its K images shows): the stack checked against the sequence, every pixel's
+display point decoded (:mod:`scopetwin.recon.fringes.phase`), the nested start-height iteration on the dense slopes
+with the frame criterion, or the absolute height of two display positions (:mod:`scopetwin.recon.fringes`).
+
 Inside, a failed step is a value (:class:`scopetwin.recon.reconstruct.LoopOutcome`,
 :class:`scopetwin.recon.reconstruct.Failure`); the user sees one error, only when every path failed, and its message
 names what each path tried. Each result lists the path it took (``strategy``).
@@ -44,7 +49,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scopetwin.recon.config import ReconstructionConfig
-from scopetwin.recon.errors import InconsistentError, NotConvergedError, ReconstructionError
+from scopetwin.recon.errors import InconsistentError, MethodMismatchError, NotConvergedError, ReconstructionError
 from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
 from scopetwin.recon.reconstruct import (
     BiasStep,
@@ -82,12 +87,13 @@ from scopetwin.scenes.pattern_stage import shift_pattern, stage_shift
 from scopetwin.scenes.setup import Setup
 
 if TYPE_CHECKING:
+    from scopetwin.recon.fringes.reconstruct import FringeConfig, FringeResult
     from scopetwin.recon.inverse import InverseConfig, InverseResult
     from scopetwin.recon.markers import Markers
     from scopetwin.recon.posterior import Hyper
     from scopetwin.recon.shifted_basis import SBFSurface
 
-Method = Literal["centroid", "inverse"]
+Method = Literal["centroid", "inverse", "fringes"]
 
 
 # -- indexed markers -> surface (thesis §1.4) --------------------------------------------------------------------------
@@ -780,12 +786,13 @@ class Reconstruction:
 
     Attributes
     ----------
-    method : {"centroid", "inverse"}
-        The marker centroids (thesis §1.4-§1.8) or the inverse fit of the whole image.
-    result : ReconstructionResult or InverseResult
+    method : {"centroid", "inverse", "fringes"}
+        The marker centroids (thesis §1.4-§1.8), the inverse fit of the whole image, or phase-shifted fringes (every
+        pixel's display point decoded).
+    result : ReconstructionResult, InverseResult, TwoPositionResult or FringeResult
         The method's own result (history, iterations, per-node uncertainty).
     markers : Markers or None
-        The indexed markers the surface rests on (the inverse fit's start's).
+        The indexed markers the surface rests on (the inverse fit's start's; None for fringes).
     uncertainty : StandardUncertainty
         Absolute and shape, µm.
     strategy : list of str
@@ -811,7 +818,8 @@ class Reconstruction:
 
     def measured_mask(self, nx: int = 128, ny: int = 288) -> NDArray[np.bool_] | None:
         """Which nodes of :meth:`heightmap`'s grid the markers measure (the ROI within two marker spacings of a
-        marker, and the frame regions); None where the method keeps no marker points."""
+        marker, and the frame regions; for fringes within half a millimetre of a decoded pixel's point); None where
+        the method keeps no marker points."""
         mask = getattr(self.result, "measured_mask", None)
         return None if mask is None else mask(nx, ny)
 
@@ -825,10 +833,14 @@ class Reconstruction:
         return Hyper.from_dict(u.hyper) if self.method == "centroid" and u is not None else None
 
     def summary(self) -> dict[str, Any]:
-        """JSON-ready: the method's own summary, the uncertainty and the strategy's path."""
+        """JSON-ready: the method's own summary, the uncertainty and the strategy's path (for fringes ``method`` is
+        ``"fringes"`` and ``absolute_from`` says where the absolute height came from)."""
+        own = self.result.summary()
+        if self.method == "fringes":
+            own = {**own, "method": "fringes", "absolute_from": self.result.method}
         return {
             "method": self.method,
-            **self.result.summary(),
+            **own,
             "uncertainty": {"absolute_um": self.uncertainty.absolute_um, "shape_um": self.uncertainty.shape_um},
             "strategy": list(self.strategy),
             **({"start": self.start} if self.start is not None else {}),
@@ -838,7 +850,7 @@ class Reconstruction:
 def reconstruct(
     image: NDArray[Any],
     setup: Setup,
-    method: Method = "centroid",
+    method: Method | None = None,
     *,
     config: ReconstructionConfig | None = None,
     inverse_config: InverseConfig | None = None,
@@ -847,18 +859,29 @@ def reconstruct(
     evidence_start: Hyper | None = None,
     second: tuple[NDArray[Any], float | None] | None = None,
     two_positions: TwoPositionConfig = DEFAULT_TWO_POSITIONS,
+    fringe_config: FringeConfig | None = None,
 ) -> Reconstruction:
-    """The surface of one deflectometry image (or of two, the pattern moved between them) by either method, with every
-    fallback of ``policy``: the one place that chooses the method.
+    """The surface of one deflectometry measurement (or of two, the pattern moved between them) by any method, with
+    every fallback of ``policy``: the one place that chooses the method.
 
-    ``method="centroid"``: :func:`reconstruct_image` (``evidence_start``: its posterior's warm start); with
-    ``second`` = (image 2, its pattern shift along N_z in mm or None for the setup's ``[pattern_stage]``):
-    :func:`reconstruct_pair` (``two_positions``: its parameters). ``method="inverse"``: the inverse fit
-    (:func:`scopetwin.recon.inverse.reconstruct_inverse`) from :func:`inverse_start`, holding the start's height
-    unless it starts from a plane (``inverse_config``'s other settings are kept); it uses one image.
+    ``method=None`` (default): ``"fringes"`` where the setup has a ``[fringes]`` table and ``image`` is its (K, rows,
+    cols) stack, else ``"centroid"``. ``method="centroid"``: :func:`reconstruct_image` (``evidence_start``: its
+    posterior's warm start); with ``second`` = (image 2, its pattern shift along N_z in mm or None for the setup's
+    ``[pattern_stage]``): :func:`reconstruct_pair` (``two_positions``: its parameters). ``method="inverse"``: the
+    inverse fit (:func:`scopetwin.recon.inverse.reconstruct_inverse`) from :func:`inverse_start`, holding the start's
+    height unless it starts from a plane (``inverse_config``'s other settings are kept); it uses one image.
+    ``method="fringes"``: :func:`reconstruct_fringe_images` (``second``: the stack at the second display position and
+    its shift; ``fringe_config``: its parameters).
+
+    Raises
+    ------
+    MethodMismatchError
+        A marker method asked of a fringe setup, fringes of a marker setup, or a stack of images for a marker setup
+        (before any work).
     """
-    if method not in ("centroid", "inverse"):
-        raise ReconstructionError(f"method must be 'centroid' or 'inverse', got {method!r}")
+    method = _choose_method(image, setup, method)
+    if method == "fringes":
+        return reconstruct_fringe_images(image, setup, second=second, config=fringe_config)
     if second is not None:
         if method != "centroid":
             raise ReconstructionError("a second image takes the centroid method (the inverse fit uses one image)")
@@ -869,6 +892,132 @@ def reconstruct(
         unc = StandardUncertainty(u.absolute_um, u.shape_um) if u is not None else StandardUncertainty(None, None)
         return Reconstruction("centroid", done.result, done.markers, unc, done.result.strategy)
     return _reconstruct_inverse(image, setup, config, inverse_config, policy)
+
+
+def _choose_method(image: NDArray[Any], setup: Setup, method: Method | None) -> Method:
+    """The method of :func:`reconstruct`: the one asked for where it fits the setup, else one clear error."""
+    if method not in (None, "centroid", "inverse", "fringes"):
+        raise ReconstructionError(f"method must be 'centroid', 'inverse' or 'fringes', got {method!r}")
+    fringe_setup = setup.fringes is not None
+    stack = np.ndim(image) == 3
+    if method is None:
+        method = "fringes" if fringe_setup else "centroid"
+    if method == "fringes":
+        if not fringe_setup:
+            raise MethodMismatchError(
+                f"setup {setup.name} has no [fringes] table: it is a marker setup, reconstruct its image with the "
+                "centroid or the inverse method"
+            )
+        if not stack:
+            raise MethodMismatchError(
+                f"setup {setup.name} shows fringes: give the (K, rows, cols) stack of its "
+                f"{len(setup.fringe_sequence or ())} frames, not an image of shape {np.shape(image)}"
+            )
+        return method
+    if fringe_setup:
+        raise MethodMismatchError(
+            f"setup {setup.name} shows fringes, not markers: the {method} method does not apply; reconstruct its "
+            "frames with method 'fringes'"
+        )
+    if stack:
+        raise MethodMismatchError(
+            f"a stack of shape {np.shape(image)} is a fringe measurement, but setup {setup.name} has no [fringes] "
+            "table: give the marker setup's single image"
+        )
+    return method
+
+
+def reconstruct_fringe_images(
+    images: NDArray[Any],
+    setup: Setup,
+    *,
+    second: tuple[NDArray[Any], float | None] | None = None,
+    config: FringeConfig | None = None,
+) -> Reconstruction:
+    """The substrate from the camera images of a phase-shifted fringe sequence (phase-measuring deflectometry in the
+    §1.10 setup, thesis §1.2-§1.4).
+
+    The frames' meaning (direction, period, phase step) is the setup's ``[fringes]`` sequence. The stack is checked
+    first (:func:`scopetwin.recon.fringes.frames.check_fringe_stack`: its K frames, the camera's size, finite
+    values), then every pixel's display point is decoded (:func:`scopetwin.recon.fringes.phase.decode_display`, the
+    image noise from the phase-step residuals) and the surface reconstructed from the dense slopes
+    (:func:`scopetwin.recon.fringes.reconstruct.reconstruct_fringes`): the nested start-height iteration with the
+    frame criterion (eqs. 1.3-1.4), or, with ``second``, the absolute height of two display positions (§1.3).
+
+    Parameters
+    ----------
+    images : ndarray, (K, rows, cols)
+        One camera image per frame, in the sequence's order (any linear scale, e.g. digital numbers).
+    setup : Setup
+        The (calibrated) deflectometry setup with a ``[fringes]`` table.
+    second : (ndarray, float or None), optional
+        The stack with the display moved along its normal N_z, and the shift in mm (None: the setup's
+        ``[pattern_stage]`` shift).
+    config : FringeConfig, optional
+        The reconstruction's parameters (:class:`scopetwin.recon.fringes.reconstruct.FringeConfig`).
+
+    Returns
+    -------
+    Reconstruction
+        ``method = "fringes"``, ``result`` the :class:`~scopetwin.recon.fringes.reconstruct.FringeResult`,
+        ``markers`` None, ``uncertainty`` its absolute (start height) and shape parts, ``strategy`` the path: the
+        decode of each stack (pixels decoded, why the others were not), where the absolute height came from, the
+        iterations.
+
+    Raises
+    ------
+    MethodMismatchError
+        A marker setup.
+    FringeDecodingError
+        A stack of another number of frames or size than the setup's sequence and camera, a non-finite value, or
+        the second stack unlike the first (all before any work).
+    ReconstructionError
+        No pixel decoded, too few pixels triangulated on the region of interest (two positions).
+    """
+    from scopetwin.recon.fringes.frames import DecodeReport, check_fringe_stack, decode_stack
+    from scopetwin.recon.fringes.phase import FringeDecodingError
+    from scopetwin.recon.fringes.reconstruct import reconstruct_fringes
+
+    t0 = time.perf_counter()
+    label = "the fringe images" if second is None else "the fringe images at the first display position"
+    stack = check_fringe_stack(images, setup, label)
+    stack2, shift = None, None
+    if second is not None:
+        if not isinstance(second, tuple) or len(second) != 2:
+            raise FringeDecodingError("second must be (the second display position's stack, its shift in mm or None)")
+        shift = stage_shift(setup, second[1])
+        stack2 = check_fringe_stack(second[0], setup, "the fringe images at the second display position")
+    coords = decode_stack(stack, setup)
+    path = [DecodeReport.of(coords).line("decode" if second is None else "decode, first display position")]
+    coords2 = None
+    if stack2 is not None:
+        coords2 = decode_stack(stack2, setup)
+        path.append(DecodeReport.of(coords2).line(f"decode, display moved {shift:+g} mm along its normal"))
+    if not coords.valid.any():
+        raise ReconstructionError(f"no pixel of the fringe images was decoded: nothing to reconstruct ({path[0]})")
+    result: FringeResult = reconstruct_fringes(setup, coords, config, second=coords2, shift_mm=shift)
+    path.append(_fringe_height_line(result, shift))
+    result.seconds = time.perf_counter() - t0
+    unc = StandardUncertainty(result.absolute_um, result.shape_um)
+    return Reconstruction("fringes", result, None, unc, path)
+
+
+def _fringe_height_line(result: FringeResult, shift: float | None) -> str:
+    """The strategy's line for the fringe reconstruction's start-height loop."""
+    steps = result.history
+    inner = sum(s.inner_iterations for s in steps)
+    done = "converged" if result.converged else "did not converge"
+    last = steps[-1] if steps else None
+    obs = f"{last.observations} slopes, chi^2/dof {last.chi2_per_dof:.3g}" if last is not None else "no slopes"
+    if result.method == "two-positions":
+        where = f"absolute height from two display positions ({shift:+g} mm): start-height correction"
+    else:
+        where = "absolute height by the frame criterion: criterion"
+    crit = f" {last.criterion_um:+.3g} µm" if last is not None else ""
+    return (
+        f"{where}{crit} at the last step; {done} after {len(steps)} start heights, {inner} inner iterations ({obs}); "
+        f"u(absolute) = {result.absolute_um:.3g} µm, u(shape) = {result.shape_um:.3g} µm"
+    )
 
 
 def _reconstruct_inverse(

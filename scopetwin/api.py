@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from scopetwin.scenes.setup import Setup
     from scopetwin.scenes.surface import HeightMap
     from scopetwin.sim.datasets.reader import Dataset
+    from scopetwin.sim.fringes import FringeMeasurement
     from scopetwin.sim.truth import MarkerTruth
 
 
@@ -121,8 +122,9 @@ def render(
     renderer: Literal["mitsuba", "analytic"] = "mitsuba",
     extrapolate: bool = False,
     pattern_shift_mm: float | None = None,
-) -> Measurement:
-    """Render one setup as its camera would see it, with its exact truth (``scopetwin render``).
+) -> Measurement | FringeMeasurement:
+    """Render one setup as its camera would see it, with its exact truth (``scopetwin render``); a ``[fringes]`` setup
+    (e.g. ``"thesis-1.10-fringes"``): every frame of its sequence (:func:`scopetwin.sim.fringes.render_fringes`).
 
     Parameters
     ----------
@@ -150,8 +152,9 @@ def render(
 
     Returns
     -------
-    Measurement
-        ``.image`` and its truth (``.heights``, ``.truth``); ``.second`` with a second pattern position.
+    Measurement or FringeMeasurement
+        ``.image`` and its truth (``.heights``, ``.truth``); ``.second`` with a second pattern position (for a
+        fringe setup the (K, rows, cols) stack ``.images``, ``.frames``, ``.heights``, ``.second``).
 
     Raises
     ------
@@ -173,14 +176,15 @@ def render(
     >>> m.spp, m.seed, m.second is None
     (4, 1, True)
     >>> bool(m.truth.visible.any())  # each marker's exact image (m.truth.center_px: column, row)
-    True
-    """
+    True"""
     from scopetwin.sim.measurement import render_measurement
 
     s = load_setup(setup)
     heights = _surface(s, surface, extrapolate)
     n = int(spp if spp is not None else s.render.spp)
     sd = int(seed if seed is not None else s.render.seed)
+    if s.fringes is not None:
+        return _render_fringes(s, heights, n, sd, noise, renderer, pattern_shift_mm)
     image, seconds = render_measurement(s, heights, n, sd, noise, renderer)
     second = None
     if pattern_shift_mm is not None or s.pattern_stage is not None:
@@ -189,6 +193,29 @@ def render(
         moved, image2, seconds2 = render_second_position(s, heights, n, sd, noise, renderer, pattern_shift_mm)
         second = Measurement(image2, moved, heights, _truth(moved, heights), n, (sd + 1) % 2**32, seconds2)
     return Measurement(image, s, heights, _truth(s, heights), n, sd, seconds, second)
+
+
+def _render_fringes(
+    setup: Setup,
+    heights: HeightMap | None,
+    spp: int,
+    seed: int,
+    noise: bool,
+    renderer: str,
+    pattern_shift_mm: float | None,
+) -> FringeMeasurement:
+    """:func:`render` of a ``[fringes]`` setup: the sequence, and at the second display position where asked."""
+    from dataclasses import replace
+
+    from scopetwin.scenes.errors import ScopetwinError
+    from scopetwin.sim.fringes import render_fringes, render_second_fringes
+
+    if renderer != "mitsuba":
+        raise ScopetwinError(f"{setup.name} shows fringes: only the Mitsuba renderer renders a fringe display")
+    first = render_fringes(setup, heights, spp, seed, noise)
+    if pattern_shift_mm is None and setup.pattern_stage is None:
+        return first
+    return replace(first, second=render_second_fringes(setup, heights, spp, seed, noise, pattern_shift_mm))
 
 
 def _surface(
@@ -227,20 +254,20 @@ def _truth(setup: Setup, heights: HeightMap | None) -> MarkerTruth | None:
     return marker_truth(setup, heights)
 
 
-def _check_reconstruct_options(method: str, second: object, previous: Reconstruction | None) -> None:
+def _check_reconstruct_options(method: str | None, second: object, previous: Reconstruction | None) -> None:
     """One clear error for options :func:`reconstruct` cannot combine (before any work starts)."""
     from scopetwin.recon.errors import ReconstructionError
 
-    if previous is not None and (second is not None or method != "centroid"):
+    if previous is not None and (second is not None or method not in (None, "centroid")):
         raise ReconstructionError("previous= takes one image and the centroid method (no second=, no inverse)")
-    if second is not None and method != "centroid":
-        raise ReconstructionError("a second pattern position takes the centroid method")
+    if second is not None and method == "inverse":
+        raise ReconstructionError("a second pattern position takes the centroid or the fringe method")
 
 
 def reconstruct(
     image: NDArray[Any],
     setup: Setup | str | Path,
-    method: Literal["centroid", "inverse"] = "centroid",
+    method: Literal["centroid", "inverse", "fringes"] | None = None,
     *,
     policy: ReconstructionPolicy | None = None,
     second: tuple[NDArray[Any], float | None] | NDArray[Any] | None = None,
@@ -250,24 +277,27 @@ def reconstruct(
 
     One strategy for every entry point (:mod:`scopetwin.recon.strategy`): the markers found and indexed, the nested
     start-height iteration with the basis scale chosen from the data and the centroid bias corrected, every
-    fallback of the :class:`~scopetwin.recon.policy.ReconstructionPolicy` where a step fails.
+    fallback of the :class:`~scopetwin.recon.policy.ReconstructionPolicy` where a step fails. A ``[fringes]``
+    setup's stack: :func:`scopetwin.recon.strategy.reconstruct_fringe_images` (every pixel's display point decoded).
 
     Parameters
     ----------
-    image : ndarray, (rows, cols)
-        The camera image (any scale).
+    image : ndarray, (rows, cols) or (K, rows, cols)
+        The camera image (any scale); for a fringe setup the stack of its sequence's K frames, in order.
     setup : Setup, str or path
         The (calibrated) deflectometry setup, or what :func:`load_setup` takes.
-    method : {"centroid", "inverse"}
-        The marker centroids (default) or the inverse fit of the whole image through a differentiable render
-        (slower; started from the centroid method's surface).
+    method : {"centroid", "inverse", "fringes"}, optional
+        The marker centroids (the default for a marker setup), the inverse fit through a differentiable render
+        (slower; started from the centroid result), or the fringes (a fringe setup's only method; a method that does
+        not fit the setup: :class:`~scopetwin.recon.errors.MethodMismatchError`).
     policy : ReconstructionPolicy, optional
         The fallbacks and their thresholds (default: :data:`scopetwin.recon.policy.DEFAULT_POLICY`).
     second : (ndarray, float or None) or ndarray, optional
         A second image with the pattern moved along its normal by a stage, and the shift in mm (None or the image
         alone: the setup's ``[pattern_stage]`` shift): the absolute height from both images, combined with the frame
-        criterion's (:mod:`scopetwin.recon.two_positions`, thesis §1.3; centroid method only). ``.result.estimate``
-        then holds the frame criterion's, the two positions' and the combined height.
+        criterion's (:mod:`scopetwin.recon.two_positions`, thesis §1.3; centroid method). ``.result.estimate``
+        then holds the frame criterion's, the two positions' and the combined height (fringes: the second display
+        position's stack, the height from the two positions' display points per pixel).
     previous : Reconstruction, optional
         The centroid reconstruction of an earlier frame of the same setup (a rig's live loop; one image, centroid
         method): the uncertainty's prior is searched by evidence from that frame's prior, one start on all points,
@@ -310,7 +340,8 @@ def reconstruct(
     >>> m2 = scopetwin.render("thesis-1.10-deflectometry", spp=4, seed=1, pattern_shift_mm=30.0)  # doctest: +SKIP
     >>> r2 = scopetwin.reconstruct(m2.image, m2.setup, second=(m2.second.image, 30.0))  # doctest: +SKIP
     >>> r2.result.estimate.height_um, r2.uncertainty.absolute_um  # doctest: +SKIP
-    """
+    >>> f = scopetwin.render("thesis-1.10-fringes", spp=4)  # 24 fringe frames  # doctest: +SKIP
+    >>> rf = scopetwin.reconstruct(f.images, f.setup)  # every pixel a slope  # doctest: +SKIP"""
     _check_reconstruct_options(method, second, previous)
     return _reconstruct_checked(image, load_setup(setup), method, policy, second, previous)
 
@@ -318,7 +349,7 @@ def reconstruct(
 def _reconstruct_checked(
     image: NDArray[Any],
     setup: Setup,
-    method: Literal["centroid", "inverse"],
+    method: Literal["centroid", "inverse", "fringes"] | None,
     policy: ReconstructionPolicy | None,
     second: tuple[NDArray[Any], float | None] | NDArray[Any] | None,
     previous: Reconstruction | None,
@@ -329,6 +360,10 @@ def _reconstruct_checked(
     from scopetwin.recon.policy import DEFAULT_POLICY
     from scopetwin.recon.strategy import reconstruct as _reconstruct
 
+    if previous is not None and setup.fringes is not None:
+        from scopetwin.recon.errors import MethodMismatchError
+
+        raise MethodMismatchError(f"previous= is the centroid method's warm start; setup {setup.name} shows fringes")
     pair = None
     if second is not None:
         image2, shift = second if isinstance(second, tuple) else (second, None)

@@ -23,6 +23,11 @@ The folder is written through :class:`scopetwin.sim.measurement.StagedOutput` (e
 when all succeeded) and read with :mod:`scopetwin.scenes.safe_read`'s checks: file names stay inside the folder, each
 file is a regular file under its size limit, the format version is known, and every image's size is read from its
 header and checked against the setup's camera (and all K images against this machine's memory) before decoding.
+
+A second display position (the display moved along its normal by a stage, thesis §1.3: :attr:`FringeMeasurement.
+second`) is written into the same folder with the prefix ``shifted_`` on every file (``shifted_fringe_0000.exr`` ...,
+``shifted_surface.exr``, ``shifted_fringes.json``, its ``setup`` the moved one), as the marker render writes
+``shifted_image.exr``; :func:`read_fringes` reads either JSON by its path.
 """
 
 from __future__ import annotations
@@ -86,6 +91,8 @@ class FringeMeasurement:
         Wall time of each frame's render.
     provenance : dict
         Seed, spp, renderer and package versions (docs/contract.md, "Images").
+    second : FringeMeasurement or None
+        The same sequence with the display moved along its normal by a stage (its own setup; thesis §1.3).
     """
 
     images: NDArray[np.float32]
@@ -101,6 +108,7 @@ class FringeMeasurement:
     noise_seeds: tuple[int, ...] = ()
     seconds_per_frame: tuple[float, ...] = ()
     provenance: dict[str, Any] = field(default_factory=dict)
+    second: FringeMeasurement | None = None
 
     def frame_index(self, direction: str, period: int, step: int) -> int:
         """Position of a frame in :attr:`images` (:meth:`scopetwin.scenes.fringes.FringeSequence.index`)."""
@@ -197,8 +205,35 @@ def render_fringes(
     )
 
 
-def write_fringes(stage: StagedOutput, measurement: FringeMeasurement) -> dict[str, Any]:
-    """Write a measurement's images, surface and ``fringes.json`` into a staging folder (module docstring).
+def render_second_fringes(
+    setup: Setup,
+    heights: HeightMap | None,
+    spp: int | None = None,
+    seed: int | None = None,
+    noise: bool | None = None,
+    shift_mm: float | None = None,
+    variant: str | None = None,
+) -> FringeMeasurement:
+    """The sequence at the second display position of a stage (thesis §1.3): the same scene with the display moved
+    ``shift_mm`` along its normal N_z (default: the setup's ``[pattern_stage]``), rendered as :func:`render_fringes`
+    renders the first, with seed ``seed + 1`` (its own samplers and sensor noise); its ``setup`` is the moved one.
+
+    Raises
+    ------
+    SetupError
+        No shift given and no ``[pattern_stage]`` table, a shift of 0, or as :func:`render_fringes`.
+    """
+    from scopetwin.scenes.pattern_stage import shift_pattern, stage_shift
+
+    moved = shift_pattern(setup, stage_shift(setup, shift_mm))
+    first_seed = int(setup.render.seed if seed is None else seed)
+    return render_fringes(moved, heights, spp, (first_seed + 1) % 2**32, noise, variant)
+
+
+def write_fringes(stage: StagedOutput, measurement: FringeMeasurement, prefix: str = "") -> dict[str, Any]:
+    """Write a measurement's images, surface and ``fringes.json`` into a staging folder (module docstring), every
+    file name with ``prefix`` (``"shifted_"`` for a second display position). :attr:`FringeMeasurement.second` is
+    not written here (the caller writes it with its prefix).
 
     Returns
     -------
@@ -209,14 +244,14 @@ def write_fringes(stage: StagedOutput, measurement: FringeMeasurement) -> dict[s
 
     m = measurement
     setup_json = m.setup.to_json()
-    files = [frame_file(k) for k in range(len(m.frames))]
+    files = [prefix + frame_file(k) for k in range(len(m.frames))]
     for k, (name, frame) in enumerate(zip(files, m.frames, strict=True)):
         write_image(
             stage.path(name), m.images[k], setup_json, m.provenance, scopetwin_fringe=json.dumps(frame.to_dict())
         )
     surface = None
     if m.heights is not None:
-        surface = SURFACE_FILE
+        surface = prefix + SURFACE_FILE
         write_heightmap(stage.path(surface), m.heights)
     rows, cols = m.images.shape[1:]
     data = {
@@ -236,8 +271,8 @@ def write_fringes(stage: StagedOutput, measurement: FringeMeasurement) -> dict[s
         "seconds_per_frame": list(m.seconds_per_frame),
         "provenance": m.provenance,
     }
-    write_json_atomic(stage.path(FRINGES_FILE), data)
-    return {"images": files, "fringes": FRINGES_FILE, "surface": surface}
+    write_json_atomic(stage.path(prefix + FRINGES_FILE), data)
+    return {"images": files, "fringes": prefix + FRINGES_FILE, "surface": surface}
 
 
 def save_fringes(measurement: FringeMeasurement, out: str | Path) -> dict[str, Any]:
@@ -319,6 +354,9 @@ def _description(
 def read_fringes(folder: str | Path) -> FringeMeasurement:
     """Read a measurement folder written by :func:`write_fringes`, every name and size checked before decoding.
 
+    ``folder`` is the folder (its ``fringes.json`` is read) or the path of a JSON file in it (``fringes.json``,
+    ``shifted_fringes.json``); the files it names are read from its folder.
+
     Raises
     ------
     scopetwin.scenes.safe_read.UnsafeInput
@@ -335,11 +373,13 @@ def read_fringes(folder: str | Path) -> FringeMeasurement:
     from scopetwin.scenes.limits import FLOATS_PER_PIXEL, check_image_size
     from scopetwin.scenes.safe_read import check_format, read_json_inside, resolve_inside
 
-    root = Path(folder)
+    root, name = Path(folder), FRINGES_FILE
+    if root.suffix.lower() == ".json" and not root.is_dir():
+        root, name = root.parent, root.name
     if not root.is_dir():
         raise FileFormatError(f"fringe measurement {root}: not a folder")
-    what = f"{root / FRINGES_FILE}"
-    data = read_json_inside(root, FRINGES_FILE, "fringe measurement's fringes.json")
+    what = f"{root / name}"
+    data = read_json_inside(root, name, f"fringe measurement's {name}")
     check_format(data.get("format"), READABLE_VERSIONS, what)
     if data.get("kind") != FRINGES_KIND:
         raise FileFormatError(f"{what}: kind must be {FRINGES_KIND!r}, got {data.get('kind')!r:.80}")
@@ -391,6 +431,7 @@ __all__ = [
     "noise_seeds",
     "read_fringes",
     "render_fringes",
+    "render_second_fringes",
     "save_fringes",
     "write_fringes",
 ]

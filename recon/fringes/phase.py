@@ -93,7 +93,9 @@ def phase_shifts(n_steps: int) -> Array:
 
 
 def _check_stack(images: ArrayLike) -> Array:
-    stack = np.asarray(images, dtype=np.float64)
+    stack = np.asarray(images)
+    if stack.dtype not in (np.float32, np.float64):
+        stack = stack.astype(np.float64)
     if stack.ndim < 2:
         raise FringeDecodingError(f"a phase-shift stack needs shape (N, ...) with N >= {MIN_STEPS}, got {stack.shape}")
     if stack.shape[0] < MIN_STEPS:
@@ -104,16 +106,33 @@ def _check_stack(images: ArrayLike) -> Array:
 
 
 def _fit(stack: Array) -> tuple[Array, Array, Array, Array]:
-    """(phi, A, B, residual sum of squares) of the N-step fit, per pixel."""
+    """(phi, A, B, residual sum of squares) of the N-step fit, per pixel.
+
+    Accumulated one frame at a time in float64 (a float32 stack is not copied whole); the shifts whose cosine or
+    sine is zero add nothing and are skipped. 1, cos(delta_k), sin(delta_k) are orthogonal over the N steps
+    (sum cos^2 = sum sin^2 = N/2), so the residual is the frames' energy less the fitted part's:
+    rss = sum_k I_k^2 - N A^2 - (2/N)(C^2 + S^2).
+    """
     n = stack.shape[0]
-    delta = phase_shifts(n).reshape(n, *([1] * (stack.ndim - 1)))
-    c = np.sum(stack * np.cos(delta), axis=0)
-    s = np.sum(stack * np.sin(delta), axis=0)
+    delta = phase_shifts(n)
+    cos, sin = np.cos(delta), np.sin(delta)
+    c = np.zeros(stack.shape[1:])
+    s = np.zeros(stack.shape[1:])
+    a = np.zeros(stack.shape[1:])
+    sq = np.zeros(stack.shape[1:])
+    for k in range(n):
+        f = np.asarray(stack[k], dtype=np.float64)
+        a += f
+        sq += f * f
+        if abs(cos[k]) > 1e-12:
+            c += f if cos[k] == 1.0 else (-f if cos[k] == -1.0 else cos[k] * f)
+        if abs(sin[k]) > 1e-12:
+            s += f if sin[k] == 1.0 else (-f if sin[k] == -1.0 else sin[k] * f)
+    a /= n
     phi = np.arctan2(-s, c)
-    a = np.mean(stack, axis=0)
     b = 2.0 * np.hypot(c, s) / n
-    resid = stack - (a + b * np.cos(phi + delta))
-    return phi, a, b, np.sum(resid * resid, axis=0)
+    rss = np.maximum(sq - n * a * a - (2.0 / n) * (c * c + s * s), 0.0)
+    return phi, a, b, rss
 
 
 def fit_noise_model(stacks: Sequence[ArrayLike], mask: ArrayLike | None = None) -> NoiseModel:
@@ -134,14 +153,19 @@ def fit_noise_model(stacks: Sequence[ArrayLike], mask: ArrayLike | None = None) 
     FringeDecodingError
         No pixels to pool, or a stack with fewer than four steps.
     """
-    ys, xs = [], []
+    pooled = []
     for images in stacks:
         stack = _check_stack(images)
         _, a, _, rss = _fit(stack)
         sel = np.ones(a.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
-        ys.append(rss[sel] / (stack.shape[0] - 3))
-        xs.append(a[sel])
-    y, x = np.concatenate(ys), np.concatenate(xs)
+        pooled.append((a[sel], rss[sel] / (stack.shape[0] - 3)))
+    return _noise_model(pooled)
+
+
+def _noise_model(pooled: Sequence[tuple[Array, Array]]) -> NoiseModel:
+    """:func:`fit_noise_model` from (background A, rss / (N - 3)) of the pooled pixels of each stack."""
+    x = np.concatenate([p[0] for p in pooled])
+    y = np.concatenate([p[1] for p in pooled])
     if y.size < 10:
         raise FringeDecodingError("too few pixels to estimate the image noise from the fringe fits")
     # both terms non-negative (non-negative least squares): over a narrow range of signal the split between them is
@@ -171,7 +195,12 @@ def phase_shift(images: ArrayLike, noise: float | ArrayLike | NoiseModel) -> Pha
         Fewer than four frames, non-finite values, or a negative noise.
     """
     stack = _check_stack(images)
-    phi, a, b, _ = _fit(stack)
+    return _phase_map(_fit(stack), stack.shape[0], noise)
+
+
+def _phase_map(fit: tuple[Array, Array, Array, Array], n: int, noise: float | ArrayLike | NoiseModel) -> PhaseMap:
+    """The :class:`PhaseMap` of an N-step fit (:func:`_fit`) with the image noise ``noise``."""
+    phi, a, b, _ = fit
     if isinstance(noise, NoiseModel):
         sigma = noise.std(a)
     else:
@@ -179,7 +208,7 @@ def phase_shift(images: ArrayLike, noise: float | ArrayLike | NoiseModel) -> Pha
         if np.any(~(sigma >= 0)):
             raise FringeDecodingError("the image noise sigma_I must be >= 0")
     with np.errstate(divide="ignore"):
-        std = np.where(b > 0, np.sqrt(2.0 / stack.shape[0]) * sigma / np.where(b > 0, b, 1.0), np.inf)
+        std = np.where(b > 0, np.sqrt(2.0 / n) * sigma / np.where(b > 0, b, 1.0), np.inf)
     return PhaseMap(phi, a, b, std, np.asarray(sigma, dtype=np.float64))
 
 
@@ -357,11 +386,13 @@ def decode_display(
         raise FringeDecodingError(
             f"the coarsest period {periods[0]} mm must exceed the display ({sx} x {sy} mm) to be unambiguous"
         )
+    fits = [_fit(s) for s in stacks]  # each stack fitted once: the noise model and the phases share the fits
     if noise is None:
-        b_first = _fit(stacks[0])[2]
-        noise = fit_noise_model(stacks, b_first > 0.1 * float(b_first.max()))
-    maps_x = [phase_shift(s, noise) for s in stacks[: len(periods)]]
-    maps_y = [phase_shift(s, noise) for s in stacks[len(periods) :]]
+        b_first = fits[0][2]
+        sel = b_first > 0.1 * float(b_first.max())
+        noise = _noise_model([(f[1][sel], f[3][sel] / (s.shape[0] - 3)) for f, s in zip(fits, stacks, strict=True)])
+    maps = [_phase_map(f, s.shape[0], noise) for f, s in zip(fits, stacks, strict=True)]
+    maps_x, maps_y = maps[: len(periods)], maps[len(periods) :]
     if min_modulation is None:
         min_modulation = 5.0 * float(np.median(maps_x[0].noise_std))
     ux = unwrap_temporal(maps_x, periods, min_modulation, max_disagreement)

@@ -180,6 +180,15 @@ class FringeResult:
         xx, yy = np.meshgrid(np.linspace(*self.substrate.x_range, nx), np.linspace(*self.substrate.y_range, ny))
         return measured_nodes(self.substrate, self.observation_xy, xx, yy, max_gap_mm)
 
+    def roi_coverage(self, max_gap_mm: float = 0.5, step_mm: float = 0.5) -> float:
+        """Share of the region of interest within ``max_gap_mm`` of a decoded pixel's point on the substrate (the
+        marker method's :meth:`scopetwin.recon.reconstruct.ReconstructionResult.roi_coverage`, with the pixels'
+        spacing of a few tens of µm in place of the markers' 1.5 mm), on a ``step_mm`` grid over the ROI."""
+        if len(self.observation_xy) == 0:
+            return 0.0
+        gx, gy = self.substrate.roi_grid(step_mm)
+        return float(np.mean(measured_nodes(self.substrate, self.observation_xy, gx, gy, max_gap_mm)))
+
     def summary(self) -> dict[str, Any]:
         """JSON-ready summary (the ``reconstruct`` contract's keys where they apply)."""
         return {

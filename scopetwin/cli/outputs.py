@@ -300,9 +300,9 @@ def estimate_render(args: argparse.Namespace) -> dict[str, int]:
     setup = load_setup(args.setup)
     cam = setup.camera_model
     nodes = 0 if setup.substrate is None else setup.substrate.surface.grid[0] * setup.substrate.surface.grid[1]
-    if setup.fringe_sequence is not None:  # one float32 EXR per frame, one surface, fringes.json
-        return {"out": len(setup.fringe_sequence) * 4 * cam.nx * cam.ny + 4 * nodes + (256 << 10)}
     times = 2 if getattr(args, "pattern_shift", None) is not None or setup.pattern_stage is not None else 1
+    if setup.fringe_sequence is not None:  # one float32 EXR per frame, one surface, fringes.json (per position)
+        return {"out": times * (len(setup.fringe_sequence) * 4 * cam.nx * cam.ny + 4 * nodes + (256 << 10))}
     return {"out": times * (_image_bytes(cam.nx, cam.ny) + 4 * nodes + (256 << 10))}
 
 

@@ -1,4 +1,5 @@
-"""``scopetwin reconstruct IMAGE.exr --setup SETUP --out heights.exr [--json PATH]`` (docs/contract.md, thesis §1.4).
+"""``scopetwin reconstruct IMAGE.exr --setup SETUP --out heights.exr [--json PATH]`` (docs/contract.md, thesis §1.4);
+``scopetwin reconstruct fringes.json --out heights.exr`` for a fringe measurement.
 
 Detects and indexes the markers of a deflectometry image (:mod:`scopetwin.recon.markers`), runs the
 nested start-height iteration (:mod:`scopetwin.recon.reconstruct`) and writes the substrate's height map
@@ -6,6 +7,13 @@ in the contract's format (channel ``Z`` in mm over the whole substrate, channel 
 uncertainty), and reports the standard uncertainties of the absolute height and of the shape. Bad input raises a
 :class:`~scopetwin.scenes.errors.ScopetwinError` (exit code 2) and writes no height map; when the outer loop
 does not converge, its partial history is written to ``OUT.history.json`` for diagnosis.
+
+A fringe measurement (the ``fringes.json`` that ``scopetwin render`` writes for a ``[fringes]`` setup, read with every
+check of :func:`scopetwin.sim.fringes.read_fringes`) is reconstructed by the fringe method
+(:func:`scopetwin.recon.strategy.reconstruct_fringe_images`): the setup is the JSON's own unless ``--setup`` names a
+(calibrated) one, whose ``[fringes]`` sequence must list the same frames; ``--second shifted_fringes.json`` is the
+sequence at the second display position (the shift: ``--pattern-shift``, else the setup's ``[pattern_stage]``, else
+the move along the display's normal between the two JSONs' setups).
 """
 
 from __future__ import annotations
@@ -56,6 +64,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
     out = Path(args.out)
     if out.suffix.lower() != ".exr":
         raise ScopetwinError(f"--out must name an .exr height-map file, got {out}")
+    if _is_fringe_input(args.image):
+        return _cmd_fringes(args, out, t0)
+    if args.setup is None:
+        raise ScopetwinError("--setup is required with a camera image (a fringes.json carries its own setup)")
+    if args.method == "fringes":
+        raise ScopetwinError(f"--method fringes takes a fringe measurement's fringes.json, not the image {args.image}")
     setup = load_setup(args.setup)
     if setup.scene != "deflectometry":
         raise ScopetwinError(f"setup {args.setup} is a {setup.scene!r} scene; reconstruct needs a deflectometry setup")
@@ -108,6 +122,127 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def _is_fringe_input(path: str) -> bool:
+    """A fringe measurement: a JSON file (``fringes.json``, ``shifted_fringes.json``) or a folder holding one."""
+    p = Path(path)
+    return p.suffix.lower() == ".json" or p.is_dir()
+
+
+#: Options of the marker methods that a fringe measurement does not take (argparse dest -> option).
+_MARKER_ONLY = {
+    "sigma": "--sigma",
+    "thesis": "--thesis",
+    "no_bias_correction": "--no-bias-correction",
+    "refine_setup": "--refine-setup",
+    "posterior": "--posterior",
+}
+
+
+def _cmd_fringes(args: argparse.Namespace, out: Path, t0: float) -> dict[str, Any]:
+    """A fringe measurement (module docstring): the checks before any work, the strategy's fringe method, the height
+    map (+ ``Z_std``, + measured mask) and the contract's keys where they apply."""
+    from scopetwin.recon.fringes.reconstruct import FringeConfig
+    from scopetwin.recon.strategy import reconstruct
+    from scopetwin.scenes.io import write_heightmap
+    from scopetwin.scenes.setup import load_setup
+    from scopetwin.sim.fringes import read_fringes
+
+    if args.method not in (None, "fringes"):
+        raise ScopetwinError(
+            f"{args.image} is a fringe measurement: it takes the fringe method, not --method {args.method}"
+        )
+    given = [opt for dest, opt in _MARKER_ONLY.items() if getattr(args, dest, None) not in (None, False)]
+    if given:
+        raise ScopetwinError(f"{', '.join(given)}: marker-method options; {args.image} is a fringe measurement")
+    measurement = read_fringes(args.image)  # names, sizes and memory checked before any image is decoded
+    setup = measurement.setup if args.setup is None else load_setup(args.setup)
+    _check_frames(setup, measurement.frames, args.image)
+    second, shift = None, None
+    if args.second is not None:
+        if not _is_fringe_input(args.second):
+            raise ScopetwinError(f"--second {args.second}: a fringe measurement's second position is its JSON")
+        other = read_fringes(args.second)
+        _check_frames(setup, other.frames, args.second)
+        shift = _fringe_shift(setup, measurement.setup, other.setup, args)
+        second = (other.images, shift)
+    elif args.pattern_shift is not None:
+        raise ScopetwinError("--pattern-shift applies with --second")
+    config = FringeConfig(criterion=args.criterion or "level")
+    done = reconstruct(measurement.images, setup, "fringes", second=second, fringe_config=config)
+    result = done.result
+    write_heightmap(
+        out,
+        result.heightmap(),
+        result.std_heightmap(),
+        result.measured_mask(),  # ROI nodes farther than 0.5 mm from every decoded pixel's point: NaN, Z_measured 0
+        scopetwin_reconstruction=f"method=fringes absolute={result.method} outer={len(result.history)} "
+        f"start_height_um={result.start_height_mm * 1e3:.4g}",
+    )
+    seconds = time.perf_counter() - t0
+    u = done.uncertainty
+    coverage = result.roi_coverage()
+    summary = done.summary()
+    where = "frame criterion" if result.method == "frame-criterion" else f"two display positions ({shift:+g} mm)"
+    print(
+        f"reconstructed {summary['observations']} pixel slopes of {len(measurement.frames)} fringe frames ({where}): "
+        f"{summary['outer_iterations']} start heights, {summary['inner_iterations']} inner iterations, "
+        f"u(absolute) = {u.absolute_um:.3f} µm, u(shape) = {u.shape_um:.3f} µm, ROI measured {100.0 * coverage:.0f} %, "
+        f"{seconds:.2f} s -> {out}"
+    )
+    best = min(result.history, key=lambda s: abs(s.criterion_um)) if result.history else None
+    delta = None if best is None or result.method != "frame-criterion" else best.max_1_um - best.max_2_um
+    return {
+        "heights": str(out),
+        "method": "fringes",
+        "absolute_from": result.method,
+        "outer_iterations": summary["outer_iterations"],
+        "inner_iterations": summary["inner_iterations"],
+        "delta_h_max_um": delta,
+        "seconds": seconds,
+        "observations": summary["observations"],
+        "roi_coverage": coverage,
+        "strategy": list(done.strategy),
+        "start_height_um": summary["start_height_um"],
+        "converged": summary["converged"],
+        "uncertainty": {"absolute_um": u.absolute_um, "shape_um": u.shape_um},
+        **({} if shift is None else {"pattern_shift_mm": shift}),
+        "history": summary["history"],
+    }
+
+
+def _check_frames(setup: Any, frames: Any, name: str) -> None:
+    """The measurement's frames are the setup's sequence (the frames' meaning comes from the setup)."""
+    from scopetwin.recon.fringes.frames import fringe_parts
+
+    _, sequence = fringe_parts(setup)  # a marker setup: one clear error
+    if tuple(frames) != sequence.frames():
+        raise ScopetwinError(
+            f"{name}: its {len(frames)} frames are not the {len(sequence)} frames of setup {setup.name}'s sequence "
+            f"(periods {list(sequence.periods_mm)} mm, {sequence.steps} steps)"
+        )
+
+
+def _fringe_shift(setup: Any, first: Any, second: Any, args: argparse.Namespace) -> float:
+    """The second display position's shift along the display's normal, mm: ``--pattern-shift``, else the setup's
+    ``[pattern_stage]``, else the move between the two measurements' own setups (which must be along N_z only)."""
+    import numpy as np
+
+    from scopetwin.scenes.pattern_stage import stage_shift
+
+    if args.pattern_shift is not None or setup.pattern_stage is not None:
+        return stage_shift(setup, args.pattern_shift)
+    a, b = first.pattern, second.pattern
+    move = np.asarray(b.origin, dtype=float) - np.asarray(a.origin, dtype=float)
+    shift = float(move @ np.asarray(a.n_z, dtype=float))
+    same_axes = all(np.allclose(getattr(a, k), getattr(b, k), atol=1e-9) for k in ("t_x", "t_y", "n_z"))
+    if not same_axes or not np.allclose(move, shift * np.asarray(a.n_z, dtype=float), atol=1e-6):
+        raise ScopetwinError(
+            f"--second {args.second}: its display is not the first's moved along the display's normal; give "
+            "--pattern-shift"
+        )
+    return stage_shift(setup, shift)
+
+
 def _cmd_two_positions(args: argparse.Namespace, setup: Any, image: Any, out: Path, t0: float) -> dict[str, Any]:
     """``--second IMAGE2 [--pattern-shift MM]`` (:mod:`scopetwin.recon.two_positions`): the absolute height from a
     second image with the pattern moved along its normal, combined with the frame criterion's. A second image that
@@ -117,7 +252,7 @@ def _cmd_two_positions(args: argparse.Namespace, setup: Any, image: Any, out: Pa
     from scopetwin.scenes.io import read_image, write_heightmap
     from scopetwin.scenes.pattern_stage import stage_shift
 
-    if args.method != "centroid":
+    if args.method not in (None, "centroid"):
         raise ScopetwinError("--second takes the centroid method (the inverse fit uses one image)")
     shift = stage_shift(setup, args.pattern_shift)
     second, _ = read_image(args.second, image.shape)  # the header's size checked before decoding
@@ -222,11 +357,21 @@ def register(subparsers: Any) -> None:
         **conventions(
             "scopetwin render thesis-1.10-deflectometry --out r1 --spp 16",
             "scopetwin reconstruct r1/image.exr --setup thesis-1.10-deflectometry --out r1/heights.exr --json r1.json",
+            "scopetwin render thesis-1.10-fringes --out f1 --spp 16 --noise",
+            "scopetwin reconstruct f1/fringes.json --out f1/heights.exr --json f1.json",
         ),
     )
     p.set_defaults(func=cmd_reconstruct, outputs=[("out", "file"), ("json", "file")])
-    p.add_argument("image", help="camera image of the reflected pattern (OpenEXR, channel Y)")
-    p.add_argument("--setup", required=True, help="preset name or TOML (e.g. the one calibrate-setup wrote)")
+    p.add_argument(
+        "image",
+        help="camera image of the reflected pattern (OpenEXR, channel Y), or a fringe measurement's fringes.json "
+        "(scopetwin render of a [fringes] setup writes it)",
+    )
+    p.add_argument(
+        "--setup",
+        help="preset name or TOML (e.g. the one calibrate-setup wrote); required with an image, for a fringes.json "
+        "its own setup by default",
+    )
     p.add_argument("--out", required=True, help="height-map EXR to write (channel Z, mm)")
     p.add_argument("--json", metavar="PATH", help="write machine-readable results here")
     p.add_argument("--sigma", type=float, help="fixed basis scale, mm (default: chosen from the data)")
@@ -235,10 +380,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--no-bias-correction", action="store_true", help="use the raw centroids")
     p.add_argument(
         "--method",
-        choices=("centroid", "inverse"),
-        default="centroid",
-        help="marker centroids (thesis §1.4-1.8, default) or inverse rendering: the surface fitted to the whole image "
-        "through a differentiable render, started from the centroid result",
+        choices=("centroid", "inverse", "fringes"),
+        help="marker centroids (thesis §1.4-1.8, the default for an image) or inverse rendering: the surface fitted to "
+        "the whole image through a differentiable render, started from the centroid result; fringes (the default "
+        "and only method for a fringes.json)",
     )
     p.add_argument(
         "--refine-setup",
@@ -251,7 +396,8 @@ def register(subparsers: Any) -> None:
         metavar="IMAGE2",
         help="a second image with the pattern moved along its normal by a stage (render --pattern-shift writes it as "
         "shifted_image.exr): the absolute height from both images, combined with the frame criterion's (thesis "
-        "§1.3); a second image that does not belong to the first (another substrate, another shift) is refused",
+        "§1.3); a second image that does not belong to the first (another substrate, another shift) is refused. "
+        "For a fringes.json: the second display position's JSON (shifted_fringes.json)",
     )
     p.add_argument(
         "--pattern-shift",

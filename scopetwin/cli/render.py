@@ -78,18 +78,28 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
 def _render_fringes(args: argparse.Namespace, setup: Any, heights: Any) -> dict[str, Any]:
     """A ``[fringes]`` setup: every frame of its sequence rendered (:func:`scopetwin.sim.fringes.render_fringes`) and
     written with ``fringes.json`` (:func:`scopetwin.sim.fringes.write_fringes`); returns ``{"images": [...],
-    "fringes", "surface", "frames", "spp", "seconds", "seconds_per_frame"}``."""
+    "fringes", "surface", "frames", "spp", "seconds", "seconds_per_frame"}``. With ``--pattern-shift`` or the setup's
+    ``[pattern_stage]`` the sequence at the second display position too (seed + 1), its files prefixed ``shifted_``
+    (``shifted_fringes.json``), listed as ``shifted_images``, ``shifted_fringes``, ``pattern_shift_mm``."""
     from scopetwin.scenes.limits import check_render
-    from scopetwin.sim.fringes import render_fringes, write_fringes
+    from scopetwin.scenes.pattern_stage import stage_shift
+    from scopetwin.sim.fringes import render_fringes, render_second_fringes, write_fringes
     from scopetwin.sim.measurement import StagedOutput
 
     if args.renderer != "mitsuba":
         raise ScopetwinError(f"{setup.name} shows fringes: only the Mitsuba renderer renders a fringe display")
+    shift = None
     if args.pattern_shift is not None or setup.pattern_stage is not None:
-        raise ScopetwinError(f"{setup.name} shows fringes: a second pattern position is for marker setups only")
+        shift = stage_shift(setup, args.pattern_shift)  # a zero or non-finite shift refused before the render
     cam = setup.camera_model
     frames = len(setup.fringe_sequence or ())
-    check_render(cam.nx, cam.ny, setup.render.spp * frames, f"render {setup.name}, {frames} fringe frames")
+    positions = 1 if shift is None else 2
+    check_render(
+        cam.nx,
+        cam.ny,
+        setup.render.spp * frames * positions,
+        f"render {setup.name}, {frames * positions} fringe frames",
+    )
     stage = StagedOutput(Path(args.out))
     log.info(
         "rendering %s (%s scene, %d fringe frames): %d x %d px, %d spp, seed %d, noise %s",
@@ -105,14 +115,29 @@ def _render_fringes(args: argparse.Namespace, setup: Any, heights: Any) -> dict[
     try:
         measurement = render_fringes(setup, heights, setup.render.spp, setup.render.seed, setup.render.noise)
         names = write_fringes(stage, measurement)
+        names2 = None
+        if shift is not None:
+            log.info("rendering the second display position, %+g mm along the display's normal", shift)
+            spp, seed, noise = setup.render.spp, setup.render.seed, setup.render.noise
+            measurement2 = render_second_fringes(setup, heights, spp, seed, noise, shift)
+            names2 = write_fringes(stage, measurement2, "shifted_")
         moved = stage.commit()
     except BaseException:
         stage.discard()
         raise
     seconds = float(sum(measurement.seconds_per_frame))
+    second: dict[str, Any] = {}
+    if names2 is not None:
+        seconds += float(sum(measurement2.seconds_per_frame))
+        second = {
+            "shifted_images": [str(moved[n]) for n in names2["images"]],
+            "shifted_fringes": str(moved[names2["fringes"]]),
+            "pattern_shift_mm": shift,
+        }
     print(
-        f"rendered {setup.name} ({setup.scene}): {frames} fringe frames at {setup.render.spp} spp in {seconds:.2f} s "
-        f"({seconds / frames:.2f} s a frame) -> {args.out}"
+        f"rendered {setup.name} ({setup.scene}): {frames * positions} fringe frames"
+        f"{'' if shift is None else f' (two display positions, {shift:+g} mm)'} at {setup.render.spp} spp in "
+        f"{seconds:.2f} s ({seconds / (frames * positions):.2f} s a frame) -> {args.out}"
     )
     return {
         "images": [str(moved[n]) for n in names["images"]],
@@ -122,6 +147,7 @@ def _render_fringes(args: argparse.Namespace, setup: Any, heights: Any) -> dict[
         "spp": setup.render.spp,
         "seconds": seconds,
         "seconds_per_frame": list(measurement.seconds_per_frame),
+        **second,
     }
 
 
