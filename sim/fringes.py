@@ -326,8 +326,8 @@ def read_fringes(folder: str | Path) -> FringeMeasurement:
         a format newer than this scopetwin reads; an image whose header declares another size than the setup's
         camera.
     FileFormatError
-        A field missing or of the wrong type, a frame list that is empty, too long or names a file twice, an invalid
-        setup or display, or an unreadable image.
+        A field missing or of the wrong type, a frame list that is empty, too long, names a file twice or is not the
+        sequence's frames in order, an invalid setup or display, or an unreadable image.
     LimitError
         The K images do not fit in this machine's memory.
     """
@@ -353,6 +353,10 @@ def read_fringes(folder: str | Path) -> FringeMeasurement:
         raise FileFormatError(f"{what}: shape {data.get('shape')!r:.40} is not the setup camera's {list(shape)}")
     if len(set(map(str, files))) != len(files):
         raise FileFormatError(f"{what}: two frames name the same file")
+    if tuple(frames) != sequence.frames():
+        raise FileFormatError(
+            f"{what}: its {len(frames)} frames are not the {len(sequence)} frames of its sequence, in order"
+        )
     # all K images at once, checked before the first is decoded
     check_image_size(cam.nx, cam.ny, f"{what}: {len(files)} images", FLOATS_PER_PIXEL + len(files))
     paths = [resolve_inside(root, name, f"{what} frame {k}") for k, name in enumerate(files)]
