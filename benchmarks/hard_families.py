@@ -33,13 +33,6 @@ FAMILIES = ("glass", "cut", "steep", "features")
 SEEDS = (9100, 9101, 9102, 9103, 9104, 9105)
 
 
-def dimple_depth(height: Any, x: float = 2.0, y: float = 5.0, ring_mm: float = 4.0) -> float:
-    """Height at (x, y) below the mean over a ring of ``ring_mm`` around it, of a callable ``height(x, y)``, mm."""
-    a = np.linspace(0.0, 2.0 * np.pi, 24, endpoint=False)
-    ring = np.asarray(height(x + ring_mm * np.cos(a), y + ring_mm * np.sin(a)), float)
-    return float(np.mean(ring) - np.asarray(height(np.array([x]), np.array([y])), float)[0])
-
-
 def one(family: str, seed: int, spp: int, intersection: str = "surface") -> dict[str, Any]:
     """Render and reconstruct one surface; errors and uncertainties in µm."""
     import scopetwin
@@ -47,7 +40,7 @@ def one(family: str, seed: int, spp: int, intersection: str = "surface") -> dict
     from scopetwin.recon.strategy import reconstruct
     from scopetwin.recon.substrate import Substrate2D
     from scopetwin.scenes.errors import ScopetwinError
-    from scopetwin.sim.families import dimple_spec, family_spec
+    from scopetwin.sim.families import dimple_depth, dimple_spec, family_spec
     from scopetwin.sim.pipeline import roi_errors
 
     spec = dimple_spec() if family == "dimple" else family_spec(family, seed)

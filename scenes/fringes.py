@@ -55,12 +55,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scopetwin.scenes.errors import SetupError
+
+if TYPE_CHECKING:
+    from scopetwin.scenes.pattern import MarkerPattern
 
 Direction = Literal["x", "y"]
 DIRECTIONS: tuple[Direction, Direction] = ("x", "y")
@@ -385,6 +388,53 @@ class FringeDisplay:
             cols = self._axis(u, None, 0)
             rows = self._axis(v, self.pixel_radiance(frame), 1)
         return np.multiply.outer(rows.astype(np.float32), cols.astype(np.float32))
+
+    def pixel_centres(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Display coordinates (u of the pixel columns, v of the pixel rows), mm, of the display pixels' centres; row 0
+        / column 0 is the (-x, -y) corner."""
+        nx, ny = self.pixels
+        p = self.pixel_pitch_mm
+        u = (np.arange(nx, dtype=np.float64) + 0.5) * p - 0.5 * self.size_mm[0]
+        return u, (np.arange(ny, dtype=np.float64) + 0.5) * p - 0.5 * self.size_mm[1]
+
+    def marker_values(self, pattern: MarkerPattern) -> NDArray[np.float64]:
+        """The ideal values (rows, cols of display pixels) of the display showing a marker pattern (thesis §1.6.3):
+        each pixel the pattern's grey value g = max(0, 1 - r / r_m) at its centre (:meth:`MarkerPattern.grey_local`,
+        the pattern in the display's own frame)."""
+        u, v = self.pixel_centres()
+        uu, vv = np.meshgrid(u, v)
+        return np.asarray(pattern.grey_local(np.stack([uu, vv], axis=-1)), dtype=np.float64)
+
+    def image_texture(self, values: ArrayLike, texel_mm: float) -> NDArray[np.float32]:
+        """The radiance of the display showing an image of ideal values (rows, cols of display pixels), rasterised at
+        the texel centres of :meth:`texel_centres`, float32.
+
+        Each pixel is driven as a fringe frame's (look-up table, ``bit_depth`` bits; :meth:`driven`), emits
+        :meth:`emitted` over its box, and the panel's Gaussian blur of ``blur_px`` pixels spreads it: the box is
+        sampled at the texel centres and the blur applied on the texel grid (:func:`scipy.ndimage.gaussian_filter`,
+        nothing emitted beyond the active area). Unlike a fringe frame the image need not be separable.
+
+        Raises
+        ------
+        SetupError
+            ``values`` not of the display's (rows, cols) of pixels.
+        """
+        from scipy.ndimage import gaussian_filter
+
+        nx, ny = self.pixels
+        ideal = np.asarray(values, dtype=np.float64)
+        if ideal.shape != (ny, nx):
+            raise SetupError(f"a display image must have the display's {ny} x {nx} pixels, got shape {ideal.shape}")
+        radiance = self.emitted(self.driven(ideal))
+        u, v = self.texel_centres(texel_mm)
+        p = self.pixel_pitch_mm
+        cols = np.clip(np.floor((u + 0.5 * self.size_mm[0]) / p).astype(np.int64), 0, nx - 1)
+        rows = np.clip(np.floor((v + 0.5 * self.size_mm[1]) / p).astype(np.int64), 0, ny - 1)
+        tex = radiance[np.ix_(rows, cols)]
+        if self.blur_px > 0.0:
+            sigma = (self.blur_px * p / (self.size_mm[1] / len(v)), self.blur_px * p / (self.size_mm[0] / len(u)))
+            tex = gaussian_filter(tex, sigma, mode="constant", cval=0.0, truncate=_BLUR_REACH)
+        return tex.astype(np.float32)
 
     def to_dict(self) -> dict[str, Any]:
         """The display's parameters as JSON-ready values (keys as the dataclass fields)."""

@@ -12,7 +12,8 @@ drawn from the seed alone, so a family's surfaces are fixed before any tuning of
 * ``features`` — the thesis's kind or glass with 2-5 local dimples and bumps of 0.5-3 µm over 1-4 mm (full width at
   half maximum).
 
-:func:`dimple_spec` is the one named case of a local feature: the §1.10 surface with a 3 mm wide, 2 µm deep dimple.
+:func:`dimple_spec` is the one named case of a local feature: the §1.10 surface with a 3 mm wide, 2 µm deep dimple;
+:func:`dimple_depth` measures it on any height function.
 """
 
 from __future__ import annotations
@@ -144,6 +145,17 @@ def dimple_spec(depth_um: float = 2.0, width_mm: float = 3.0, at: tuple[float, f
         "range_um": 40.0,
         "features": [{"x": at[0], "y": at[1], "width_mm": width_mm, "height_um": -depth_um}],
     }
+
+
+def dimple_depth(height: Callable[[Any, Any], Any], x: float = 2.0, y: float = 5.0, ring_mm: float = 4.0) -> float:
+    """Depth of a dimple at (x, y): the mean height over a ring of ``ring_mm`` around it minus the height there, mm.
+
+    ``height(x, y)`` is any vectorised height function in mm (a height map's, a reconstruction's). The ratio of a
+    reconstruction's depth to the true surface's is the share of the dimple (:func:`dimple_spec`) it recovers.
+    """
+    a = np.linspace(0.0, 2.0 * np.pi, 24, endpoint=False)
+    ring = np.asarray(height(x + ring_mm * np.cos(a), y + ring_mm * np.sin(a)), float)
+    return float(np.mean(ring) - np.asarray(height(np.array([x]), np.array([y])), float)[0])
 
 
 _HARD: dict[str, Callable[[int], dict[str, Any]]] = {

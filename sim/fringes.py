@@ -364,8 +364,8 @@ def read_fringes(folder: str | Path) -> FringeMeasurement:
         a format newer than this scopetwin reads; an image whose header declares another size than the setup's
         camera.
     FileFormatError
-        A field missing or of the wrong type, a frame list that is empty, too long or names a file twice, an invalid
-        setup or display, or an unreadable image.
+        A field missing or of the wrong type, a frame list that is empty, too long, names a file twice or is not the
+        sequence's frames in order, an invalid setup or display, or an unreadable image.
     LimitError
         The K images do not fit in this machine's memory.
     """
@@ -393,6 +393,10 @@ def read_fringes(folder: str | Path) -> FringeMeasurement:
         raise FileFormatError(f"{what}: shape {data.get('shape')!r:.40} is not the setup camera's {list(shape)}")
     if len(set(map(str, files))) != len(files):
         raise FileFormatError(f"{what}: two frames name the same file")
+    if tuple(frames) != sequence.frames():
+        raise FileFormatError(
+            f"{what}: its {len(frames)} frames are not the {len(sequence)} frames of its sequence, in order"
+        )
     # all K images at once, checked before the first is decoded
     check_image_size(cam.nx, cam.ny, f"{what}: {len(files)} images", FLOATS_PER_PIXEL + len(files))
     paths = [resolve_inside(root, name, f"{what} frame {k}") for k, name in enumerate(files)]
@@ -423,7 +427,88 @@ def read_fringes(folder: str | Path) -> FringeMeasurement:
     )
 
 
+@dataclass(frozen=True)
+class DisplayCalibrationImages:
+    """The two calibration images of a fringe setup (thesis §2.7) with the display showing the marker pattern.
+
+    Attributes
+    ----------
+    target_setup, mirror_setup : Setup
+        The §2.8.3 target on the holding frame and the display seen in a flat mirror on it, both by the fringe
+        setup's camera (:func:`scopetwin.sim.pipeline.calibration_setups`).
+    target_image, mirror_image : ndarray
+        float32 (rows, cols): the target's render and the display's (showing the marker pattern of the setup's
+        ``[pattern]`` through its pixels, look-up table, bit depth and blur), with the sensor model where asked.
+    """
+
+    target_setup: Setup
+    mirror_setup: Setup
+    target_image: NDArray[np.float32]
+    mirror_image: NDArray[np.float32]
+
+
+def render_display_calibration(
+    setup: Setup, spp: int, seed: int, noise: bool = False, variant: str | None = None
+) -> DisplayCalibrationImages:
+    """Render the setup calibration's two images of a fringe setup, the display showing the marker pattern.
+
+    A display can show the marker pattern itself (thesis §1.6.3: each display pixel the pattern's grey value at its
+    centre, :meth:`scopetwin.scenes.fringes.FringeDisplay.marker_values`), so the calibration of thesis §2.7 finds
+    the display's pose as it finds a printed pattern's: the mirror image is rendered with the display's emitter
+    (:func:`scopetwin.scenes.mitsuba.fringes.render_display_image`), the target image as any (seed + 1). With
+    ``noise`` each gets the EMVA 1288 sensor model (:func:`scopetwin.sim.measurement.apply_sensor`).
+
+    Raises
+    ------
+    SetupError
+        A setup without ``[fringes]`` or without a substrate.
+    """
+    from scopetwin.scenes.mitsuba.fringes import render_display_image
+    from scopetwin.scenes.mitsuba.render import render_setup
+    from scopetwin.sim.pipeline import calibration_setups
+
+    display, _ = _fringe_parts(setup)
+    if setup.substrate is None:
+        raise SetupError(f"setup {setup.name} has no substrate: its calibration needs the holding frame")
+    target_setup, mirror_setup = calibration_setups(setup)
+    values = display.marker_values(mirror_setup.marker_pattern)
+    mirror = check_rendered(
+        render_display_image(mirror_setup, None, display, values, spp, seed, variant), "the display in the mirror"
+    )
+    target = check_rendered(render_setup(target_setup, None, spp=spp, seed=seed + 1), "the calibration target")
+    if noise:
+        mirror = apply_sensor(mirror_setup, mirror, seed)
+        target = apply_sensor(target_setup, target, seed + 1)
+    return DisplayCalibrationImages(target_setup, mirror_setup, target, mirror)
+
+
+def calibrate_display(setup: Setup, images: DisplayCalibrationImages) -> Any:
+    """The fringe setup calibrated from its two calibration images (thesis §2.7,
+    :func:`scopetwin.calib.setup_calibration.calibrate_setup_from_images` with the fringe setup as the nominal one):
+    the calibrated setup keeps its ``[fringes]`` table, its pattern pose is the display's.
+
+    Returns
+    -------
+    scopetwin.calib.setup_calibration.CalibratedSetup
+    """
+    from scopetwin.calib.setup_calibration import calibrate_setup_from_images
+
+    _fringe_parts(setup)
+    return calibrate_setup_from_images(
+        images.target_image,
+        images.mirror_image,
+        images.target_setup,
+        images.mirror_setup,
+        nominal=setup,
+        comment="fringe setup calibrated as in thesis §2.7, the display showing the marker pattern",
+        image_names=("target image", "display in the mirror"),
+    )
+
+
 __all__ = [
+    "DisplayCalibrationImages",
+    "calibrate_display",
+    "render_display_calibration",
     "FRINGES_FILE",
     "FRINGES_VERSION",
     "FringeMeasurement",

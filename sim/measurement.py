@@ -433,14 +433,27 @@ def apply_sensor(setup: Setup, image: NDArray[Any], seed: int) -> NDArray[Any]:
     ScopetwinError
         The image is black, so no exposure can be chosen.
     """
+    exposure = sensor_exposure(setup, image)
+    return setup.sensor.sensor().capture(image, setup.sensor.photons_per_unit_s, exposure, rng=seed)
+
+
+def sensor_exposure(setup: Setup, image: NDArray[Any]) -> float:
+    """The exposure, s, at which :func:`apply_sensor` captures a rendered irradiance image: the setup's
+    ``sensor.exposure_s`` or, without one, the exposure at which the image peak fills ``sensor.fill_fraction`` of the
+    full well (EMVA 1288 model, :mod:`scopetwin.scenes.emva1288`).
+
+    Raises
+    ------
+    ScopetwinError
+        The image is black, so no exposure can be chosen.
+    """
+    if setup.sensor.exposure_s is not None:
+        return float(setup.sensor.exposure_s)
+    peak = float(image.max())
+    if peak <= 0:
+        raise ScopetwinError("the rendered image is black: cannot choose an exposure for the noise model")
     sensor = setup.sensor.sensor()
-    exposure = setup.sensor.exposure_s
-    if exposure is None:
-        peak = float(image.max())
-        if peak <= 0:
-            raise ScopetwinError("the rendered image is black: cannot choose an exposure for the noise model")
-        exposure = sensor.exposure_for(peak, setup.sensor.photons_per_unit_s, setup.sensor.fill_fraction)
-    return sensor.capture(image, setup.sensor.photons_per_unit_s, exposure, rng=seed)
+    return float(sensor.exposure_for(peak, setup.sensor.photons_per_unit_s, setup.sensor.fill_fraction))
 
 
 def write_measurement(

@@ -204,18 +204,30 @@ def run_setups(
     render_over: dict[str, Any] = {"render": dict(over.get("render", {}))}
     if setup_name is None:
         return setup, load_setup(TARGET, render_over), load_setup(MIRROR, render_over)
+    return (setup, *calibration_setups(setup, render_over))
+
+
+def calibration_setups(setup: Setup, over: dict[str, Any] | None = None) -> tuple[Setup, Setup]:
+    """The two calibration scenes of a deflectometry setup (thesis §2.7): the §2.8.3 target on the holding frame seen
+    by the setup's camera, and the setup's pattern (or display) seen in a flat mirror on the frame by that camera
+    (with the setup's substrate); ``over`` (e.g. ``{"render": {...}}``) overrides both."""
+    from scopetwin.scenes.setup import load_setup
+
+    if setup.substrate is None:
+        raise ScopetwinError(f"setup {setup.name} is a {setup.scene!r} scene; its calibration needs a substrate")
+    base = dict(over or {})
     camera = setup.camera.model_dump(exclude_none=True)
-    target = load_setup(TARGET, {**render_over, "camera": camera})
+    target = load_setup(TARGET, {**base, "camera": camera})
     mirror = load_setup(
         MIRROR,
         {
-            **render_over,
+            **base,
             "camera": camera,
             "pattern": setup.pattern.model_dump(exclude_none=True) if setup.pattern is not None else {},
             "substrate": setup.substrate.model_dump(exclude_none=True),
         },
     )
-    return setup, target, mirror
+    return target, mirror
 
 
 def surface_description(setup: Setup) -> str:

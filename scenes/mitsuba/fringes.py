@@ -16,7 +16,7 @@ has (the sensor's own noise is added per frame by :func:`scopetwin.sim.fringes.r
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -31,7 +31,7 @@ from scopetwin.scenes.mitsuba.variant import mitsuba, resolve
 from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
 
-__all__ = ["DISPLAY_TEXTURE_KEY", "display_plate", "render_fringe_frames"]
+__all__ = ["DISPLAY_TEXTURE_KEY", "display_plate", "render_display_image", "render_fringe_frames"]
 
 #: The scene parameter holding the display's radiance raster.
 DISPLAY_TEXTURE_KEY = "pattern.emitter.radiance.data"
@@ -102,24 +102,65 @@ def render_fringe_frames(
     LimitError
         The K images or the render time exceed this machine's limits (checked before anything is rendered).
     """
-    import drjit as dr
-
     if not frames:
         raise SetupError("a fringe render needs at least one frame")
+    radiance = float(setup.pattern.radiance)
+    textures = (_texture(display, frame, texel, radiance) for frame in frames)
+    return _render_textures(setup, heights, display, textures, len(frames), spp, seed, variant)
+
+
+def render_display_image(
+    setup: Setup,
+    heights: HeightMap | None,
+    display: FringeDisplay,
+    values: NDArray[np.float64],
+    spp: int,
+    seed: int,
+    variant: str | None = None,
+    texel: float = TEXEL,
+) -> NDArray[np.float32]:
+    """Render the scene with the display showing an image of ideal values per display pixel (e.g. the marker pattern,
+    :meth:`scopetwin.scenes.fringes.FringeDisplay.marker_values`, for the setup calibration of thesis §2.7 with the
+    display as the pattern): linear irradiance, float32 (ny, nx).
+
+    The display's texture is :meth:`~scopetwin.scenes.fringes.FringeDisplay.image_texture` times the pattern's
+    ``radiance``; scene, live window and errors as :func:`render_fringe_frames`.
+    """
+    tex = display.image_texture(values, texel)
+    radiance = float(setup.pattern.radiance)
+    if radiance != 1.0:
+        tex *= np.float32(radiance)
+    images, _ = _render_textures(setup, heights, display, iter([tex]), 1, spp, seed, variant)
+    return images[0]
+
+
+def _render_textures(
+    setup: Setup,
+    heights: HeightMap | None,
+    display: FringeDisplay,
+    textures: Iterator[NDArray[np.float32]],
+    k: int,
+    spp: int,
+    seed: int,
+    variant: str | None,
+) -> tuple[NDArray[np.float32], list[float]]:
+    """Render ``k`` display textures (each made when its frame is due) in one loaded scene (module docstring)."""
+    import drjit as dr
+
     if setup.scene == "target":
         raise SetupError("a fringe display is rendered in a deflectometry or mirror setup, not a target scene")
     if setup.scene == "deflectometry" and heights is None:
         raise SetupError("a deflectometry render needs the substrate's height map (heights=HeightMap(...))")
     cam = setup.camera_model
-    k = len(frames)
-    check_render(cam.nx, cam.ny, int(spp) * k, f"render {setup.name}, {k} fringe frames", "setup", FLOATS_PER_PIXEL + k)
+    check_render(
+        cam.nx, cam.ny, int(spp) * k, f"render {setup.name}, {k} display frames", "setup", FLOATS_PER_PIXEL + k
+    )
     variant = resolve(variant, "mono")
     mi = mitsuba(variant)
     plate = display_plate(setup, display)
     window = None if cam.lens is not None else live_window(plate, heights)
-    radiance = float(setup.pattern.radiance)
     t0 = time.perf_counter()
-    first = emitter_rectangle(plate.marker_pattern, _texture(display, frames[0], texel, radiance), variant)
+    first = emitter_rectangle(plate.marker_pattern, next(textures), variant)
     scene: Any = mi.load_dict(scene_dict(plate, heights, spp, seed, window, variant=variant, emitter=first))
     params = mi.traverse(scene)
     if DISPLAY_TEXTURE_KEY not in params:  # pragma: no cover - the scene dictionary names it
@@ -127,9 +168,9 @@ def render_fringe_frames(
     images = np.zeros((k, cam.ny, cam.nx), dtype=np.float32)
     seconds = []
     r0, r1, c0, c1 = (0, cam.ny, 0, cam.nx) if window is None else window
-    for i, frame in enumerate(frames):
+    for i in range(k):
         if i > 0:
-            params[DISPLAY_TEXTURE_KEY] = mi.TensorXf(_texture(display, frame, texel, radiance)[:, :, None])
+            params[DISPLAY_TEXTURE_KEY] = mi.TensorXf(next(textures)[:, :, None])
             params.update()
         images[i, r0:r1, c0:c1] = scene_render(scene, spp, seed, variant)
         dr.sync_thread()

@@ -23,7 +23,18 @@ EXIT_TASKS_FAILED = 1
 
 #: The studies' names, as :data:`scopetwin.sim.studies.runner.STUDIES` registers them, spelt out so that the parser
 #: (``--help``) does not import the studies.
-STUDY_NAMES = ("thesis", "noise", "angle", "surface", "inverse", "coverage", "setup", "second-measurement")
+STUDY_NAMES = (
+    "thesis",
+    "noise",
+    "angle",
+    "surface",
+    "inverse",
+    "coverage",
+    "setup",
+    "second-measurement",
+    "fringes",
+    "fringes-full",
+)
 
 #: Plain text for ``--help`` (the module docstring is reST).
 DESCRIPTION = (

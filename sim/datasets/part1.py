@@ -180,23 +180,84 @@ def write_normals(path: Path, heights: HeightMap) -> None:
 
 
 def write_part1(cfg: DatasetConfig, index: int, setup: Setup, stage: StagedOutput) -> dict[str, Any]:
-    """Render and write Part I sample ``index`` (its ``setup``) into ``stage``; returns its files and truth."""
-    from scopetwin.scenes.opencv_camera import opencv_camera
-    from scopetwin.sim.datasets.maps import MAPS_FILE, MAPS_FORMAT, MAPS_VERSION, part1_maps, write_maps
+    """Render and write Part I sample ``index`` (its ``setup``) into ``stage``; returns its files and truth.
+
+    A setup with a ``[fringes]`` table (phase-measuring deflectometry) writes its K frames instead of one image
+    (:func:`write_fringe_frames`); the truth, normals and per-pixel maps are the same for both.
+    """
     from scopetwin.sim.datasets.validate import check_image
     from scopetwin.sim.surfaces import surface_for
 
     heights = surface_for(setup)
     spp, seed = setup.render.spp, setup.render.seed
-    # the render is checked before the sensor model (whose dark noise would hide a black render), then after it
-    image, _ = render_measurement(setup, heights, spp, seed, False)
-    check_image(image, f"sample {index}: the render")
-    if setup.render.noise:
-        image = apply_sensor(setup, image, seed)
-        check_image(image, f"sample {index}: the image after the sensor model")
-    names = write_measurement(stage, "", setup, heights, image, spp, seed, "mitsuba")
-    if not cfg.dataset.preview:
-        stage.path(names.pop("preview")).unlink()
+    if setup.fringe_display is not None:
+        names, truth = write_fringe_frames(index, setup, heights, stage)
+    else:
+        # the render is checked before the sensor model (whose dark noise would hide a black render), then after it
+        image, _ = render_measurement(setup, heights, spp, seed, False)
+        check_image(image, f"sample {index}: the render")
+        if setup.render.noise:
+            image = apply_sensor(setup, image, seed)
+            check_image(image, f"sample {index}: the image after the sensor model")
+        names = write_measurement(stage, "", setup, heights, image, spp, seed, "mitsuba")
+        if not cfg.dataset.preview:
+            stage.path(names.pop("preview")).unlink()
+        truth = json.loads(stage.path(names["truth"]).read_text())
+    return {"files": names, "truth": _part1_truth(cfg, setup, heights, stage, names, truth)}
+
+
+def write_fringe_frames(
+    index: int, setup: Setup, heights: HeightMap | None, stage: StagedOutput
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Render a fringe setup's sequence (:func:`scopetwin.sim.fringes.render_fringes`, the sample's spp, seed and
+    noise) and write it as :func:`scopetwin.sim.fringes.write_fringes` does: ``fringe_0000.exr`` ... (one per frame,
+    the frame in its header), ``fringes.json`` (the frames, sequence, display, exposure, noise seeds) and
+    ``surface.exr``. Returns the file names and the truth's first keys (no marker is shown: ``markers`` is empty;
+    ``fringes`` names the JSON, ``frames`` the images in order, ``exposure_s`` the one exposure of all frames).
+
+    Raises
+    ------
+    InvalidImage
+        A frame is non-finite or carries no signal (after the sensor model): nothing is written for the sample.
+    """
+    from scopetwin.sim.datasets.validate import check_image
+    from scopetwin.sim.fringes import render_fringes, write_fringes
+
+    m = render_fringes(setup, heights, setup.render.spp, setup.render.seed, setup.render.noise)
+    for k in range(len(m.frames)):
+        check_image(m.images[k], f"sample {index}: fringe frame {k}")
+    written = write_fringes(stage, m)
+    names: dict[str, Any] = {f"frame_{k:04d}": name for k, name in enumerate(written["images"])}
+    names["fringes"] = written["fringes"]
+    names["truth"] = "truth.json"
+    if written["surface"] is not None:
+        names["surface"] = written["surface"]
+    truth = {
+        "setup": setup.name,
+        "scene": setup.scene,
+        "surface": written["surface"],
+        "markers": [],
+        "fringes": written["fringes"],
+        "frames": list(written["images"]),
+        "exposure_s": m.exposure_s,
+    }
+    return names, truth
+
+
+def _part1_truth(
+    cfg: DatasetConfig,
+    setup: Setup,
+    heights: HeightMap | None,
+    stage: StagedOutput,
+    names: dict[str, Any],
+    truth: dict[str, Any],
+) -> dict[str, Any]:
+    """Write the normals and (``[dataset] maps``) the per-pixel maps of a Part I sample; the truth completed with the
+    camera (thesis's and OpenCV's), the maps' description, the setup and the seeds."""
+    from scopetwin.scenes.opencv_camera import opencv_camera
+    from scopetwin.sim.datasets.maps import MAPS_FILE, MAPS_FORMAT, MAPS_VERSION, part1_maps, write_maps
+
+    seed = setup.render.seed
     if heights is not None:
         write_normals(stage.path("normals.exr"), heights)
         names["normals"] = "normals.exr"
@@ -206,7 +267,6 @@ def write_part1(cfg: DatasetConfig, index: int, setup: Setup, stage: StagedOutpu
         write_maps(stage.path(MAPS_FILE), maps)
         names["maps"] = MAPS_FILE
         maps_entry = {"file": MAPS_FILE, "format": f"{MAPS_FORMAT}/{MAPS_VERSION}", "layers": list(maps)}
-    truth = json.loads(stage.path(names["truth"]).read_text())
     cam = setup.camera_model
     truth.update(
         camera={
@@ -232,4 +292,4 @@ def write_part1(cfg: DatasetConfig, index: int, setup: Setup, stage: StagedOutpu
             "noise": seed if setup.render.noise else None,
         },
     )
-    return {"files": names, "truth": truth}
+    return truth

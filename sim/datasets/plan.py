@@ -133,8 +133,9 @@ class Plan:
         """An upper estimate of the bytes sample ``index`` takes on disk (checked against the free space first).
 
         Images count as uncompressed float32 (4 bytes a pixel; the noise of a real image leaves little to
-        compress), a preview PNG as one byte a pixel, a height map as 4 bytes a node per channel (a deflectometry
-        sample also stores three normal components), the per-pixel maps as 4 bytes a pixel per channel, plus
+        compress; a fringe setup writes one per frame of its sequence and no preview), a preview PNG as one byte a
+        pixel, a height map as 4 bytes a node per channel (a deflectometry sample also stores three normal
+        components), the per-pixel maps as 4 bytes a pixel per channel, plus
         256 KiB for the truth JSON and the sample record.
         """
         kind = self.config.dataset.kind
@@ -155,4 +156,6 @@ class Plan:
         px = cam.nx * cam.ny
         nodes = 0 if sample.substrate is None else sample.substrate.surface.grid[0] * sample.substrate.surface.grid[1]
         maps = 4 * 17 if self.config.dataset.maps else 0  # the channels of maps.exr, float32 (before compression)
+        if sample.fringe_sequence is not None:  # a fringe setup: one image per frame, no preview
+            return int(px * (4 * len(sample.fringe_sequence) + maps) + nodes * 4 * 5 + extra)
         return int(px * (4 + preview + maps) + nodes * 4 * 5 + extra)

@@ -6,7 +6,9 @@ sample folder is renamed into place only when complete, :mod:`scopetwin.sim.data
 :class:`Sample` reads its files when an attribute is first asked for, so opening a dataset of 10,000 samples reads
 only its folder listing, and reading a sample costs what reading its files costs:
 
-* ``.image`` / ``.images``: the camera image(s), float32 (rows, cols);
+* ``.image`` / ``.images``: the camera image(s), float32 (rows, cols); a sample of a fringe setup (``[fringes]``:
+  phase-measuring deflectometry) has its K frames as ``.fringes`` (:class:`scopetwin.sim.fringes.FringeMeasurement`)
+  and ``.images`` holds them by file name (``fringe_0000`` ...);
 * ``.maps``: the per-pixel truth aligned with the image (``maps.exr``, :mod:`scopetwin.sim.datasets.maps`), a dict
   of (rows, cols[, k]) arrays: ``mask``, ``point``, ``height``, ``pattern_xy``, ``marker``, ...;
 * ``.camera``: the camera in OpenCV's convention (``K``, ``dist``, ``R``, ``t``;
@@ -174,12 +176,28 @@ class Sample:
         from scopetwin.scenes.io import read_image
 
         files = self.meta.get("files", {})
-        names = sorted(str(n) for n in files if str(n).startswith("image") and str(n).endswith(".exr"))
+        names = sorted(str(n) for n in files if str(n).startswith(("image", "fringe_")) and str(n).endswith(".exr"))
         if not names:
             raise DatasetReadError(f"{self.folder}: the sample lists no image file")
         shape = self.image_shape
         try:
             return {n.removesuffix(".exr"): read_image(self._file(n), shape)[0] for n in names}
+        except ScopetwinError as exc:
+            raise DatasetReadError(f"sample {self.index}: {exc}") from None
+
+    @cached_property
+    def fringes(self) -> Any:
+        """The fringe measurement of a sample rendered with a ``[fringes]`` setup
+        (:class:`scopetwin.sim.fringes.FringeMeasurement`: ``images`` (K, rows, cols) float32 in the sequence's
+        order, ``frames``, ``display``, ``sequence``, ``exposure_s``, the true ``heights``), read from its
+        ``fringes.json`` with :func:`scopetwin.sim.fringes.read_fringes`'s checks. The per-pixel truth of every frame
+        is :attr:`maps` (``pattern_xy``: the display point each pixel sees)."""
+        from scopetwin.sim.fringes import FRINGES_FILE, read_fringes
+
+        if FRINGES_FILE not in self.meta.get("files", {}):
+            raise DatasetReadError(f"sample {self.index}: not a fringe sample (it lists no {FRINGES_FILE})")
+        try:
+            return read_fringes(self.folder)
         except ScopetwinError as exc:
             raise DatasetReadError(f"sample {self.index}: {exc}") from None
 

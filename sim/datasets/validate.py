@@ -31,7 +31,7 @@ from scopetwin.scenes.safe_read import check_format, read_json_inside, resolve_i
 #: The schema files and the format version each validates.
 SCHEMAS = {"dataset": 2, "sample": 2, "truth": 2, "exr": 1}
 #: The format of an EXR without a ``scopetwin_format`` header attribute, by its file name.
-LEGACY_EXR_FORMAT = {"image": "image/1", "surface": "heightmap/1", "height_": "heightmap/1"}
+LEGACY_EXR_FORMAT = {"image": "image/1", "fringe_": "image/1", "surface": "heightmap/1", "height_": "heightmap/1"}
 
 
 class InvalidImage(ScopetwinError):
@@ -199,6 +199,33 @@ def _maps_problems(maps: dict[str, NDArray[Any]], shape: tuple[int, ...]) -> lis
     return out
 
 
+def _fringe_problems(folder: Path, files: dict[str, Any]) -> tuple[list[str], tuple[int, ...] | None]:
+    """A fringe sample's frames checked with their ``fringes.json`` (:func:`scopetwin.sim.fringes.read_fringes`:
+    names inside the folder, format, sizes from the headers against the setup's camera): the frames it lists are the
+    sample's ``fringe_*.exr`` files, and each frame is finite and carries signal. Returns the problems and the
+    frames' (rows, cols) (None where they could not be read)."""
+    from scopetwin.sim.fringes import FRINGES_FILE, read_fringes
+
+    listed_frames = sorted(n for n in files if n.startswith("fringe_") and n.endswith(".exr"))
+    try:
+        data = read_json_inside(folder, FRINGES_FILE, FRINGES_FILE)
+        frames = data.get("frames")
+        if not isinstance(frames, list) or not all(isinstance(f, dict) for f in frames):
+            return [f"{FRINGES_FILE}: frames must be a list of objects"], None
+        named = sorted(str(f.get("file")) for f in frames)
+        if named != listed_frames:
+            return [f"{FRINGES_FILE}: lists frames {named[:4]}... but the sample holds {listed_frames[:4]}..."], None
+        m = read_fringes(folder)
+    except ScopetwinError as exc:
+        return [f"{FRINGES_FILE}: {exc}"], None
+    problems = []
+    for k in range(len(m.images)):
+        reason = image_problem(m.images[k])
+        if reason is not None:
+            problems.append(f"fringe frame {k} {reason}")
+    return problems, tuple(m.images.shape[1:])
+
+
 def check_sample(folder: Path, fmt: int, readable: Collection[int]) -> list[str]:
     """Every way a finished sample (its hashes already checked) breaks its format's schemas or holds values that
     cannot be true; empty when it is valid.
@@ -209,6 +236,7 @@ def check_sample(folder: Path, fmt: int, readable: Collection[int]) -> list[str]
     """
     from scopetwin.scenes.io import read_heightmap, read_image
     from scopetwin.sim.datasets.maps import MAPS_FILE, read_maps
+    from scopetwin.sim.fringes import FRINGES_FILE
 
     problems: list[str] = []
     try:
@@ -237,6 +265,9 @@ def check_sample(folder: Path, fmt: int, readable: Collection[int]) -> list[str]
         except ScopetwinError as exc:
             problems.append(str(exc))
     shape: tuple[int, ...] | None = None
+    if FRINGES_FILE in body.get("files", {}):
+        fringe_problems, shape = _fringe_problems(folder, body["files"])
+        problems += fringe_problems
     for name in sorted(body.get("files", {})):
         if not name.endswith(".exr"):
             continue
@@ -254,6 +285,8 @@ def check_sample(folder: Path, fmt: int, readable: Collection[int]) -> list[str]
                 if reason is not None:
                     problems.append(f"{name} {reason}")
                 shape = img.shape
+            elif name.startswith("fringe_"):
+                pass  # the frames: read and checked with their fringes.json (_fringe_problems)
             elif name.startswith(("surface", "height_")):
                 read_heightmap(path)  # refuses non-finite heights, bad extents
             elif name == MAPS_FILE:

@@ -18,6 +18,7 @@ from scopetwin.sim.measurement import StagedOutput
 from scopetwin.sim.studies import (
     angle,
     coverage,
+    fringes,
     inverse,
     noise,
     second_measurement,
@@ -38,6 +39,8 @@ STUDIES: dict[str, Callable[[StudyContext], StudyResult]] = {
     "coverage": coverage.coverage,
     "setup": setup_placement.setup_placement,
     "second-measurement": second_measurement.second_measurement,
+    "fringes": fringes.fringes,
+    "fringes-full": fringes.fringes_full,
 }
 
 
