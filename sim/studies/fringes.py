@@ -7,8 +7,9 @@ the hard families of :mod:`scopetwin.sim.families` (``glass``, ``cut``, ``steep`
 any result was seen, those of ``benchmarks/hard_families.py``) and the §1.10 surface with a 1.5 mm wide, 2 µm deep
 dimple (:func:`scopetwin.sim.families.dimple_spec`). Both are rendered by Mitsuba at 16 spp with the EMVA 1288
 sensor noise and reconstructed with their absolute height from the frame criterion (§1.4) and from two positions of
-the pattern / display moved along its normal by the setup's ``[pattern_stage]`` (§1.3): markers by
-:func:`scopetwin.recon.strategy.reconstruct`, fringes by :func:`reconstruct_fringe_images`.
+the pattern / display moved along its normal by the setup's ``[pattern_stage]`` (§1.3), both by the one strategy,
+:func:`scopetwin.recon.strategy.reconstruct` (the setup chooses the method: a fringe setup's stack goes to
+``reconstruct_fringe_images``).
 
 Per family, method and number of positions: failures, the shape error (ROI RMS after removing the ROI mean), the
 absolute error (ROI mean), each within 2 of its reported standard uncertainty u (coverage), the dimple's depth share
@@ -100,29 +101,6 @@ def study_setups(family: str, seed: int, camera: dict[str, Any] | None, shift_mm
     return load_setup(MARKER_PRESET, over), load_setup(FRINGE_PRESET, over)
 
 
-def reconstruct_fringe_images(images: Any, setup: Any, *, second: tuple[Any, float | None] | None = None) -> Any:
-    """A fringe stack reconstructed with the setup's sequence: the display point of every pixel decoded
-    (:func:`scopetwin.recon.fringes.phase.decode_display`), then :func:`scopetwin.recon.fringes.reconstruct.
-    reconstruct_fringes` (frame criterion, or with ``second`` = (stack 2, shift or None for ``[pattern_stage]``)
-    the two display positions). Returns the :class:`~scopetwin.recon.fringes.reconstruct.FringeResult`."""
-    from scopetwin.recon.fringes.phase import decode_display
-    from scopetwin.recon.fringes.reconstruct import reconstruct_fringes
-    from scopetwin.scenes.pattern_stage import stage_shift
-
-    display, seq = setup.fringe_display, setup.fringe_sequence
-
-    def decode(stack: Any) -> Any:
-        idx = {d: [[seq.index(d, p, k) for k in range(seq.steps)] for p in range(len(seq.periods_mm))] for d in "xy"}
-        return decode_display(
-            [stack[i] for i in idx["x"]], [stack[i] for i in idx["y"]], seq.periods_mm, tuple(display.size_mm)
-        )
-
-    if second is None:
-        return reconstruct_fringes(setup, decode(images))
-    shift = stage_shift(setup, second[1])
-    return reconstruct_fringes(setup, decode(images), second=decode(second[0]), shift_mm=shift)
-
-
 def _errors(row: dict[str, Any], height: Any, heights: Any, setup: Any, u_abs: Any, u_shape: Any) -> None:
     """ROI errors, uncertainties and (dimple) depth share into ``row``, µm."""
     from scopetwin.recon.substrate import Substrate2D
@@ -154,7 +132,6 @@ def fringes_task(
     and either ``error`` (the reconstruction's one-line error) or ``seconds`` (reconstruction), ``absolute_um``,
     ``shape_um``, ``u_abs_um``, ``u_shape_um`` (µm) and, for the dimple, ``depth_share``.
     """
-    from scopetwin.recon.reconstruct import single_thread_blas
     from scopetwin.recon.strategy import reconstruct
     from scopetwin.scenes.errors import ScopetwinError
     from scopetwin.scenes.mitsuba.render import render_setup
@@ -197,15 +174,12 @@ def fringes_task(
             }
             t0 = time.perf_counter()
             try:
-                if method == "markers":
-                    second = None if n == 1 else (marker_images[1], None)
-                    done = reconstruct(marker_images[0], marker_setup, second=second)
-                    height, u_abs, u_shape = done.height_at, done.uncertainty.absolute_um, done.uncertainty.shape_um
-                else:
-                    with single_thread_blas():
-                        fsecond = None if n == 1 else (fringe_stacks[1], None)
-                        res = reconstruct_fringe_images(fringe_stacks[0], fringe_setup, second=fsecond)
-                    height, u_abs, u_shape = res.height_at, res.absolute_um, res.shape_um
+                images, stage_setup = (
+                    (marker_images, marker_setup) if method == "markers" else (fringe_stacks, fringe_setup)
+                )
+                # the one strategy: it chooses the method by the setup (markers, or the fringe sequence)
+                done = reconstruct(images[0], stage_setup, second=None if n == 1 else (images[1], None))
+                height, u_abs, u_shape = done.height_at, done.uncertainty.absolute_um, done.uncertainty.shape_um
             except ScopetwinError as exc:
                 rows.append({**row, "error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"})
                 continue

@@ -63,13 +63,7 @@ def test_a_3_mm_dimple_is_reconstructed_to_most_of_its_depth(mono_variant):
     """The §1.10 surface with a 3 mm wide (FWHM), 2 µm deep dimple (``dimple_spec``): the prior's local-feature part
     (micrometres over millimetres, chosen by evidence) lets the posterior mean follow what the basis fit smooths away.
     Its depth against a 4 mm ring: measured 88 % (the basis fit alone: -9 %, no dimple)."""
-    import sys
-    from pathlib import Path
-
-    from scopetwin.sim.families import dimple_spec
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-    from hard_families import dimple_depth
+    from scopetwin.sim.families import dimple_depth, dimple_spec
 
     setup = scopetwin.load_setup("thesis-1.10-deflectometry", {"substrate": {"surface": dimple_spec()}})
     m = scopetwin.render(setup, spp=16, seed=1)
