@@ -5,11 +5,12 @@ process (:mod:`scopetwin.recon.shifted_basis`). Read that way explicitly, the sa
 
 * the **evidence** (marginal likelihood) of a prior, so its scales and amplitudes are chosen by the data instead of
   held-out bands;
-* a prior that **admits broadband content**: height covariance k = k_smooth + k_broad + plane — the smooth
-  waviness and bow (long correlation; rational quadratic, a scale mixture of squared exponentials (SE) whose
-  power-law spectrum extrapolates power-law surfaces such as glass honestly: :data:`SMOOTH_SHAPE`), the nm-level
-  short-wavelength part real glass has (one SE; docs/rendering.md, "Absolute height") — plus unpenalised tilt
-  terms;
+* a prior that **admits broadband content**: height covariance k = k_smooth + k_feature + k_broad + plane — the
+  smooth waviness and bow (long correlation; rational quadratic, a scale mixture of squared exponentials (SE) whose
+  power-law spectrum extrapolates power-law surfaces such as glass honestly: :data:`SMOOTH_SHAPE`), local dimples
+  and bumps of micrometres over millimetres (one SE at the marker pitch's scale, :data:`FEATURE_LEN_BOUNDS`; its
+  amplitude stays near zero on surfaces without them), the nm-level short-wavelength part real glass has (one SE;
+  docs/rendering.md, "Absolute height") — plus unpenalised tilt terms;
 * the **posterior** of any linear functional of the heights, and by sampling of the frame criterion itself: the
   start height of thesis §1.4 rests on the surface's maxima over the frame regions, 1-6 mm beyond the last marker,
   where the posterior variance (chiefly the broadband part's, which no data constrain there) dominates the error.
