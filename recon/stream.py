@@ -17,7 +17,7 @@ past a frame that fails (``keep_going``) receives that frame's :class:`FrameFail
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator
 from typing import Any, Literal, NamedTuple, Protocol, overload
 
 from numpy.typing import NDArray
@@ -97,7 +97,7 @@ def _frames(
     policy: ReconstructionPolicy,
     warm_start: bool = True,
     keep_going: bool = False,
-) -> Iterator[ImageReconstruction | FrameFailure]:
+) -> Generator[ImageReconstruction | FrameFailure, None, None]:
     """Frame k solved here while frame k+1's markers are searched by the stage; each result in order.
 
     The stage is made when the first frame is asked for and closed when the stream ends, however it ends. With
@@ -145,7 +145,7 @@ def reconstruct_stream(
     warm_start: bool = True,
     keep_going: Literal[False] = False,
     **marker_options: Any,
-) -> Iterator[ImageReconstruction]: ...
+) -> Generator[ImageReconstruction, None, None]: ...
 
 
 @overload
@@ -159,7 +159,7 @@ def reconstruct_stream(
     warm_start: bool = True,
     keep_going: Literal[True],
     **marker_options: Any,
-) -> Iterator[ImageReconstruction | FrameFailure]: ...
+) -> Generator[ImageReconstruction | FrameFailure, None, None]: ...
 
 
 def reconstruct_stream(
@@ -172,7 +172,7 @@ def reconstruct_stream(
     warm_start: bool = True,
     keep_going: bool = False,
     **marker_options: Any,
-) -> Iterator[ImageReconstruction] | Iterator[ImageReconstruction | FrameFailure]:
+) -> Generator[ImageReconstruction, None, None] | Generator[ImageReconstruction | FrameFailure, None, None]:
     """The frames' markers (§1.5) and surfaces (§1.4), in order, frame k+1's markers searched while frame k is solved.
 
     Parameters
