@@ -22,7 +22,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -38,6 +38,7 @@ from scopetwin.instrument.rig import Rig
 from scopetwin.recon.config import ReconstructionConfig
 from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
 from scopetwin.recon.reconstruct import ReconstructionResult, Reconstructor
+from scopetwin.recon.strategy import ImageReconstruction
 from scopetwin.recon.stream import FrameFailure, reconstruct_stream
 from scopetwin.scenes.io import write_heightmap
 from scopetwin.scenes.setup import Setup, load_setup
@@ -179,84 +180,96 @@ def live_reconstruction(
     OutOfRangeError
         ``n_frames`` below 1, ``seconds`` not positive, ``every`` below 1 (before the light goes on).
     """
+    _check_limits(n_frames, seconds, every)
+    cam, lamp = rig.camera(camera), rig.light(light)
+    if exposure_s is not None:
+        cam.limits.exposure_s.check(exposure_s, f"exposure of camera {cam.name!r}")
+    cfg = ReconstructionConfig.realtime(posterior="correct") if config is None else config
+    rec = Reconstructor.from_setup(setup, cfg)
+    meta: dict[str, Any] = {"routine": "live reconstruction", "rig": rig.name, "camera": cam.name, "light": lamp.name}
+    meta |= {"setup": setup.name, "every": int(every), "posterior": cfg.posterior}
+    run = _LiveRun(FrameWriter(out_dir, meta, preview=False), Path(out_dir), int(every), rec)
+    with _run(run.writer, rig):
+        lamp.switch_on(lamp.current_range.high if lamp.current_ma == 0 else None)
+        if exposure_s is None:
+            choose_exposure(cam)
+        else:
+            cam.set_exposure_s(exposure_s)
+        run.writer.manifest["meta"]["exposure_s"] = cam.exposure_s
+        frames = _grabbed(cam, lambda: lamp.is_on, run.arrivals, n_frames, seconds)
+        stream = reconstruct_stream(frames, setup, rec, policy, overlap=overlap, keep_going=True)
+        with contextlib.closing(stream):  # the worker process ends here, however the loop ends
+            for index, done in enumerate(stream):
+                entry = run.record(index, done)
+                if on_frame is not None:
+                    on_frame(entry)
+    return run.summary(setup)
+
+
+def _check_limits(n_frames: int | None, seconds: float | None, every: int) -> None:
+    """``n_frames`` >= 1, ``seconds`` > 0, ``every`` >= 1, or an :class:`OutOfRangeError` naming the one that is not."""
     if n_frames is not None and (int(n_frames) != n_frames or n_frames < 1):
         raise OutOfRangeError(f"number of frames must be a positive integer, got {n_frames}")
     if seconds is not None and not (np.isfinite(seconds) and seconds > 0):
         raise OutOfRangeError(f"seconds must be a positive number, got {seconds}")
     if int(every) != every or every < 1:
         raise OutOfRangeError(f"every must be a positive integer, got {every}")
-    cam, lamp = rig.camera(camera), rig.light(light)
-    if exposure_s is not None:
-        cam.limits.exposure_s.check(exposure_s, f"exposure of camera {cam.name!r}")
-    cfg = ReconstructionConfig.realtime(posterior="correct") if config is None else config
-    rec = Reconstructor.from_setup(setup, cfg)
-    meta = {
-        "routine": "live reconstruction",
-        "rig": rig.name,
-        "camera": cam.name,
-        "light": lamp.name,
-        "setup": setup.name,
-        "every": int(every),
-        "posterior": cfg.posterior,
-    }
-    writer = FrameWriter(out_dir, meta, preview=False)
-    directory = Path(out_dir)
-    arrivals: list[_Arrival] = []
-    counts = {"reconstructed": 0, "failed": 0, "written": 0}
-    last: dict[str, Any] = {}
-    with _run(writer, rig):
-        lamp.switch_on(lamp.current_range.high if lamp.current_ma == 0 else None)
-        if exposure_s is None:
-            choose_exposure(cam)
+
+
+@dataclass
+class _LiveRun:
+    """One live run's bookkeeping: the manifest's writer, the frames' arrivals, what came of them."""
+
+    writer: FrameWriter
+    directory: Path
+    every: int
+    rec: Reconstructor
+    arrivals: list[_Arrival] = field(default_factory=list)
+    counts: dict[str, int] = field(default_factory=lambda: {"reconstructed": 0, "failed": 0, "written": 0})
+    last: dict[str, Any] = field(default_factory=dict)
+
+    def record(self, index: int, done: ImageReconstruction | FrameFailure) -> dict[str, Any]:
+        """Frame ``index``'s map (every ``every``-th) and manifest entry on disk together; the entry."""
+        arrived = self.arrivals[index]
+        entry: dict[str, Any] = {"index": index, "time": arrived.wall.isoformat()}
+        entry["seconds"] = time.monotonic() - arrived.monotonic
+        if isinstance(done, FrameFailure):
+            self.counts["failed"] += 1
+            entry |= {"path": None, "error": _error_text(done.error)}
         else:
-            cam.set_exposure_s(exposure_s)
-        writer.manifest["meta"]["exposure_s"] = cam.exposure_s
-        frames = _grabbed(cam, lambda: lamp.is_on, arrivals, n_frames, seconds)
-        stream = reconstruct_stream(frames, setup, rec, policy, overlap=overlap, keep_going=True)
-        with contextlib.closing(stream):  # the worker process ends here, however the loop ends
-            for index, done in enumerate(stream):
-                arrived = arrivals[index]
-                entry: dict[str, Any] = {
-                    "index": index,
-                    "time": arrived.wall.isoformat(),
-                    "seconds": time.monotonic() - arrived.monotonic,
-                }
-                if isinstance(done, FrameFailure):
-                    counts["failed"] += 1
-                    entry |= {"path": None, "error": _error_text(done.error)}
-                else:
-                    entry |= _solved(rec, done.result, len(done.markers.ij))
-                    counts["reconstructed"] += 1
-                elapsed = time.monotonic() - arrivals[0].monotonic
-                entry["fps"] = (index + 1) / elapsed if elapsed > 0 else None
-                path = directory / _map_name(index) if entry["error"] is None and index % every == 0 else None
-                with deferred_signals():  # a map on disk is in the manifest
-                    if path is not None and not isinstance(done, FrameFailure):
-                        _write_map(path, done.result, entry)
-                        entry["path"] = path.name
-                        counts["written"] += 1
-                    writer.manifest["frames"].append(entry)
-                    writer._flush()
-                last = entry
-                if on_frame is not None:
-                    on_frame(entry)
-    listed = len(writer.manifest["frames"])
-    total = arrivals[-1].monotonic - arrivals[0].monotonic if len(arrivals) > 1 else 0.0
-    return {
-        "out": str(directory),
-        "manifest": str(directory / MANIFEST_NAME),
-        "frames": listed,
-        "reconstructed": counts["reconstructed"],
-        "failed": counts["failed"],
-        "maps_written": counts["written"],
-        "fps": last.get("fps"),
-        "exposure_s": writer.manifest["meta"]["exposure_s"],
-        "setup": setup.name,
-        "absolute_height_um": last.get("absolute_height_um"),
-        "absolute_um": last.get("absolute_um"),
-        "shape_um": last.get("shape_um"),
-        "seconds_between_first_and_last_frame": total,
-    }
+            entry |= _solved(self.rec, done.result, len(done.markers.ij))
+            self.counts["reconstructed"] += 1
+        elapsed = time.monotonic() - self.arrivals[0].monotonic
+        entry["fps"] = (index + 1) / elapsed if elapsed > 0 else None
+        with deferred_signals():  # a map on disk is in the manifest
+            if not isinstance(done, FrameFailure) and index % self.every == 0:
+                path = self.directory / _map_name(index)
+                _write_map(path, done.result, entry)
+                entry["path"] = path.name
+                self.counts["written"] += 1
+            self.writer.manifest["frames"].append(entry)
+            self.writer._flush()
+        self.last = entry
+        return entry
+
+    def summary(self, setup: Setup) -> dict[str, Any]:
+        """The run's summary (the command's ``--json``)."""
+        span = self.arrivals[-1].monotonic - self.arrivals[0].monotonic if self.arrivals else 0.0
+        return {
+            "out": str(self.directory),
+            "manifest": str(self.directory / MANIFEST_NAME),
+            "frames": len(self.writer.manifest["frames"]),
+            "reconstructed": self.counts["reconstructed"],
+            "failed": self.counts["failed"],
+            "maps_written": self.counts["written"],
+            "fps": self.last.get("fps"),
+            "exposure_s": self.writer.manifest["meta"]["exposure_s"],
+            "setup": setup.name,
+            "absolute_height_um": self.last.get("absolute_height_um"),
+            "absolute_um": self.last.get("absolute_um"),
+            "shape_um": self.last.get("shape_um"),
+            "seconds_between_first_and_last_frame": span,
+        }
 
 
 def _solved(rec: Reconstructor, result: ReconstructionResult, markers: int) -> dict[str, Any]:
