@@ -52,10 +52,14 @@ class Pending(Protocol):
 
 @dataclass
 class Searched:
-    """A marker search that has ended: its markers, or the error to raise when they are asked for."""
+    """A marker search that has ended: its markers, or the error to raise when they are asked for.
+
+    ``source_error``: the error is the frame source's (no frame came), not the search's.
+    """
 
     markers: Markers | None = None
     error: Exception | None = None
+    source_error: bool = False
 
     def result(self) -> Markers:
         """The markers, or the error raised."""

@@ -1,4 +1,4 @@
-"""``scopetwin rig RIG.toml info|move|position|acquire|mda|mm-config|serve`` (docs/contract.md, 'Rig files').
+"""``scopetwin rig RIG.toml info|move|position|acquire|live|mda|mm-config|serve`` (docs/contract.md, 'Rig files').
 
 :func:`register` adds the ``rig`` command to an argparse subparsers object; each
 action's handler returns a JSON-ready dict (written by the main CLI when
@@ -12,6 +12,10 @@ action's handler returns a JSON-ready dict (written by the main CLI when
 * ``acquire OUT`` — frames from a camera with a light on (fixed or automatic exposure), written
   to ``OUT`` as they come, plus ``manifest.json`` and ``preview.png`` (the last frame); one warning
   line when no frame carries signal;
+* ``live OUT`` — frames from a deflectometry camera with the pattern light on, each reconstructed as it comes
+  (:func:`scopetwin.instrument.live_reconstruction.live_reconstruction`, the realtime stream of
+  :mod:`scopetwin.recon.stream`): a height map per frame (every ``--every``-th) and ``manifest.json`` listing
+  every frame's time, absolute height and uncertainty, seconds and frames per second so far;
 * ``mda SEQUENCE --camera NAME --out PATH`` — a useq MDA sequence through pymmcore-plus
   (:func:`scopetwin.instrument.micromanager.run_mda`) into OME-TIFF or OME-Zarr, with a progress bar; the plan is
   sized in closed form and checked against the rig's limits before anything moves (one line naming the event and
@@ -26,7 +30,7 @@ A device that stops answering during ``move``, ``acquire`` or ``mda`` (its port 
 ends the command with one line naming it and what is known of its state ("light 'halogen' may still be on"),
 every other device in its safe state and, for ``acquire`` and ``mda``, the frames already taken kept and named;
 exit status 3 (:data:`scopetwin.instrument.errors.EXIT_DEVICE_LOST`).
-SIGINT, SIGTERM and SIGHUP during ``acquire`` or ``mda`` end the command cleanly: lights off,
+SIGINT, SIGTERM and SIGHUP during ``acquire``, ``live`` or ``mda`` end the command cleanly: lights off,
 shutters closed, every frame on disk listed in the manifest (the OME file closed with the planes
 acquired so far); the main CLI prints the line naming the signal and exits 128 + n. ``serve`` ends
 on SIGINT or SIGTERM with one line and exit 0, as ``scopetwin emulate`` does.
@@ -287,6 +291,50 @@ def cmd_acquire(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def estimate_live(args: argparse.Namespace) -> dict[str, int]:
+    """Bytes ``live`` writes at most with ``--frames``: each written map three float32 channels on 128 x 288 nodes
+    (uncompressed bound) plus its manifest entry; without ``--frames``, one map (the run's length is unknown)."""
+    maps = 1 if args.frames is None else -(-int(args.frames) // int(args.every))
+    return {"out": maps * (128 * 288 * 3 * 4 + 4096)}
+
+
+def cmd_live(args: argparse.Namespace) -> dict[str, Any]:
+    """Reconstruct a deflectometry camera's frames live; each map and manifest entry on disk as the frame is done."""
+    from scopetwin.instrument.live_reconstruction import live_reconstruction, rig_setup
+
+    with _kept(lambda: _frames_kept(args.out)), open_rig(args.rig) as rig:
+        setup = rig_setup(rig, args.camera, args.setup)  # checked before the light goes on
+        lamp = rig.light(args.light)
+        if args.exposure_s is not None:
+            cam = rig.camera(args.camera)
+            cam.limits.exposure_s.check(args.exposure_s, f"--exposure-s of camera {cam.name!r}")
+        if args.frames is None and args.seconds is None:
+            log.info("reconstructing live until interrupted (Ctrl-C keeps every map written)")
+        summary = live_reconstruction(
+            rig,
+            args.out,
+            setup,
+            n_frames=args.frames,
+            seconds=args.seconds,
+            every=args.every,
+            camera=args.camera,
+            light=lamp.name,
+            exposure_s=args.exposure_s,
+        )
+    height = summary["absolute_height_um"]
+    last = "" if height is None else f"; last absolute height {height:+.3f} µm"
+    if height is not None and summary["absolute_um"] is not None:
+        last += f" (u = {summary['absolute_um']:.3f} µm)"
+    fps = summary["fps"]
+    print(
+        f"reconstructed {summary['reconstructed']} of {summary['frames']} frame(s)"
+        + (f" at {fps:.2f} frames/s" if fps is not None else "")
+        + (f", {summary['failed']} failed" if summary["failed"] else "")
+        + f"; {summary['maps_written']} map(s) in {args.out}, listed in {summary['manifest']}{last}"
+    )
+    return summary
+
+
 def _two_positions(rig: Rig, args: argparse.Namespace) -> tuple[list[Path], list[float]]:
     """``acquire --pattern-stage NAME --pattern-shift MM``: one frame at the stage's position, one ``MM`` further
     (:func:`scopetwin.instrument.acquisition.two_position_capture`, thesis §1.3)."""
@@ -488,6 +536,32 @@ def _add_motion_commands(add: Callable[..., argparse.ArgumentParser]) -> None:
     p.add_argument("name", help="device name in the rig")
 
 
+def _add_live_command(add: Callable[..., argparse.ArgumentParser]) -> None:
+    """``rig RIG live OUT``."""
+    p = add(
+        "live",
+        cmd_live,
+        "reconstruct a deflectometry camera's frames as they come (pattern light on; the next frame's markers searched "
+        "while this one is solved): a height map per frame with its std and measured mask, manifest.json listing "
+        "every frame; SIGINT/SIGTERM/SIGHUP switch the lights off and keep every map written",
+        "scopetwin rig sim-deflectometry live live-maps --frames 5",
+        "scopetwin rig rigs/sim-deflectometry.toml live live-maps --seconds 30 --every 10 --json live.json",
+    )
+    p.add_argument("out", help="output folder (heights_NNNNNN.exr, manifest.json)")
+    p.set_defaults(outputs=[("out", "dir", "keep", "positional"), ("json", "file")], estimate=estimate_live)
+    p.add_argument("--frames", type=positive_int(MAX_FRAMES), help="most frames (>= 1; default: no limit)")
+    p.add_argument("--seconds", type=positive_float(), help="stop grabbing after this many seconds (default: no limit)")
+    p.add_argument("--every", type=positive_int(MAX_FRAMES), default=1, help="write every K-th map (all are listed)")
+    p.add_argument("--camera", help="camera name (default: the first)")
+    p.add_argument("--light", help="the pattern's light (default: the first)")
+    p.add_argument("--exposure-s", type=positive_float(), help="exposure time (default: automatic, ~70%% of the range)")
+    p.add_argument(
+        "--setup",
+        help="the frames' (calibrated) deflectometry setup, preset name or TOML (default: the setup a simulated "
+        "deflectometry camera renders)",
+    )
+
+
 def _add_mda_commands(add: Callable[..., argparse.ArgumentParser]) -> None:
     """``rig RIG mda`` and ``rig RIG mm-config``."""
     p = add(
@@ -520,7 +594,7 @@ def _add_mda_commands(add: Callable[..., argparse.ArgumentParser]) -> None:
 
 
 def register(subparsers: Any) -> argparse.ArgumentParser:
-    """Add ``rig RIG.toml info|move|position|acquire|mda|mm-config|serve`` to an argparse subparsers object."""
+    """Add ``rig RIG.toml info|move|position|acquire|live|mda|mm-config|serve`` to an argparse subparsers object."""
     parser = subparsers.add_parser(
         "rig",
         help="open a rig config (simulated or hardware): list devices, move, acquire, MDA, serve",
@@ -566,6 +640,7 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
         "(deflectometry_1.exr, deflectometry_2.exr; thesis §1.3), for reconstruct --second",
     )
     p.add_argument("--pattern-shift", type=finite_float(-500.0, 500.0), metavar="MM", help="with --pattern-stage, mm")
+    _add_live_command(add)
     _add_mda_commands(add)
     p = add(
         "serve",

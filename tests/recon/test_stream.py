@@ -13,7 +13,8 @@ import pytest
 import scopetwin.recon.stream as stream_module
 from scopetwin.recon.errors import TooFewMarkersError
 from scopetwin.recon.markers import MarkerError, ReferenceTieError, find_markers_for
-from scopetwin.recon.stream import WORKER_NAME, reconstruct_stream
+from scopetwin.recon.strategy import ImageReconstruction
+from scopetwin.recon.stream import WORKER_NAME, FrameFailure, reconstruct_stream
 from scopetwin.scenes.setup import Setup, load_setup
 from scopetwin.sim.surfaces import surface_for
 
@@ -161,3 +162,58 @@ def test_the_stages_overlap_by_default_only_with_two_cpus(frames, monkeypatch) -
     assert len(_workers()) == 1
     stream.close()
     assert not _workers()
+
+
+@pytest.mark.parametrize("overlap", [True, False])
+def test_keep_going_yields_a_failed_frame_in_its_place_and_goes_on(frames, overlap: bool) -> None:
+    """A blank frame (marker search) and a frame with too few markers (reconstruction) each come back as their
+    FrameFailure; the frames after them are reconstructed as without the failures."""
+    setup, images = frames
+    source = [images[0], np.zeros_like(images[0]), _few_markers(setup, images[1]), images[2]]
+    got = list(reconstruct_stream(source, setup, overlap=overlap, keep_going=True))
+    assert [type(g).__name__ for g in got] == [
+        "ImageReconstruction",
+        "FrameFailure",
+        "FrameFailure",
+        "ImageReconstruction",
+    ]
+    assert isinstance(got[1], FrameFailure) and isinstance(got[1].error, MarkerError)
+    assert isinstance(got[2], FrameFailure) and isinstance(got[2].error, TooFewMarkersError)
+    alone = next(iter(reconstruct_stream([images[2]], setup, overlap=False)))
+    last = got[3]
+    assert isinstance(last, ImageReconstruction) and last.result.converged
+    np.testing.assert_array_equal(last.markers.centroids, alone.markers.centroids)
+    assert not _workers()
+
+
+def test_a_frame_source_error_ends_a_keep_going_stream(frames) -> None:
+    setup, images = frames
+    stream = reconstruct_stream(_Source(images, at=1, fail=TimeoutError("no frame")), setup, keep_going=True)
+    assert isinstance(next(stream), ImageReconstruction)
+    with pytest.raises(TimeoutError, match="no frame"):
+        next(stream)
+    assert not _workers()
+
+
+def test_each_frames_posterior_starts_from_the_prior_of_the_frame_before(frames) -> None:
+    """With the posterior on, frame k+1's evidence maximisation starts from frame k's chosen prior; the warm-started
+    frame's uncertainty agrees with a cold start's within 20 % (the same frame, the same evidence maximum)."""
+    from scopetwin.recon.config import ReconstructionConfig
+    from scopetwin.recon.posterior import Hyper
+    from scopetwin.recon.reconstruct import Reconstructor
+
+    setup, images = frames
+    rec = Reconstructor.from_setup(setup, ReconstructionConfig.realtime(posterior="report"))
+    seen: list[Hyper | None] = []
+    results = []
+    for done in reconstruct_stream(images[:2], setup, rec, overlap=False):
+        seen.append(rec.evidence_start)
+        results.append(done.result)
+    first, second = (r.uncertainty for r in results)
+    assert first is not None and second is not None
+    assert seen[0] == Hyper.from_dict(first.hyper) and seen[1] == Hyper.from_dict(second.hyper)
+    rec_cold = Reconstructor.from_setup(setup, ReconstructionConfig.realtime(posterior="report"))
+    alone = next(iter(reconstruct_stream(images[1:2], setup, rec_cold, overlap=False))).result.uncertainty
+    assert alone is not None
+    assert second.absolute_um == pytest.approx(alone.absolute_um, rel=0.2)
+    assert second.shape_um == pytest.approx(alone.shape_um, rel=0.2)
