@@ -10,7 +10,8 @@ with C_i the 2 x 2 covariance of observation i's gradients (from the display poi
 the second differences (xx, yy, sqrt(2) xy) of the coefficient grid per mm^2: a curvature (thin-plate) prior under
 which the curvature of every knot cell is N(0, kappa^2). The slopes leave the constant free; the surface is put at
 the requested mean height over the region of interest afterwards (thesis eq. 1.5). The normal matrix is banded
-(bandwidth 3 knot rows + 3), factorised once by LAPACK's banded Cholesky (scipy.linalg.cholesky_banded).
+(bandwidth 3 knot rows + 3): each observation's 16 B-spline weights are accumulated into its band directly (no
+sparse design matrix), and it is factorised by LAPACK's banded Cholesky (scipy.linalg.cholesky_banded).
 
 Posterior by perturbation: re-solving with the observations perturbed by their noise and the prior by draws of its
 own distribution gives exact samples of the Gaussian posterior (c_s - c = M^{-1}(A^T W^{1/2} e + D^T z / kappa));
@@ -24,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg as sl
 import scipy.sparse as sp
+from numpy.typing import NDArray
 
 from scopetwin.recon.errors import ReconstructionError
 from scopetwin.recon.fringes.slopes import SlopeObservations
@@ -87,7 +89,11 @@ class SlopeIntegrator:
         self.curvature_std = float(curvature_std)
         d = self.spline.smoothness() / np.sqrt(self.spline.dx * self.spline.dy)
         self.prior = (d / self.curvature_std).tocsr()
-        self._prior_normal = (self.prior.T @ self.prior).tocsr()
+        #: Bandwidth of the normal matrix: an observation's 16 coefficients span 3 knot rows + 3.
+        self.kd = 3 * self.spline.shape[1] + 3
+        self._prior_band = _band(sp.csr_matrix(self.prior.T @ self.prior), self.kd)
+        # the (a, b) places of an observation's 16 x 16 outer product in the upper triangle (its indices increase)
+        self._pairs = np.triu_indices(16)
         gx, gy = sub.roi_grid(roi_step)
         self.roi_row = np.asarray(self.spline.design(gx, gy).mean(axis=0)).ravel()
 
@@ -99,8 +105,9 @@ class SlopeIntegrator:
         """Mean height over the ROI of coefficient vectors (last axis), mm."""
         return np.asarray(np.asarray(coef) @ self.roi_row)
 
-    def _whitened(self, obs: SlopeObservations) -> tuple[sp.csr_matrix, Array]:
-        """Rows of the whitened observation equations L^{-1} (A c - g), C = L L^T per observation."""
+    def _whitened(self, obs: SlopeObservations) -> _Rows:
+        """The whitened observation equations L^{-1} (A c - g), C = L L^T per observation, as each observation's 16
+        coefficient indices and its two rows' weights there."""
         c11, c12, c22 = obs.cov[:, 0], obs.cov[:, 1], obs.cov[:, 2]
         if np.any(~(c11 > 0)) or np.any(~(c11 * c22 - c12 * c12 > 0)):
             raise ReconstructionError("slope observations with a covariance that is not positive definite")
@@ -109,18 +116,41 @@ class SlopeIntegrator:
         l22 = np.sqrt(c22 - l21 * l21)
         a, b, c = 1.0 / l11, -l21 / (l11 * l22), 1.0 / l22
         idx, _, wx, wy = self.spline.basis_rows(obs.xy[:, 0], obs.xy[:, 1])
-        n = len(obs)
-        vals = np.concatenate([a[:, None] * wx, b[:, None] * wx + c[:, None] * wy])
-        cols = np.concatenate([idx, idx])
-        indptr = np.arange(0, 32 * n + 1, 16)
-        mat = sp.csr_matrix((vals.ravel(), cols.ravel(), indptr), shape=(2 * n, self.n_coef))
-        rhs = np.concatenate([a * obs.hx, b * obs.hx + c * obs.hy])
-        return mat, rhs
+        return _Rows(idx, a[:, None] * wx, b[:, None] * wx + c[:, None] * wy, a * obs.hx, b * obs.hx + c * obs.hy)
+
+    def _normal_band(self, rows: _Rows) -> Array:
+        """Upper banded storage (LAPACK, bandwidth :attr:`kd`) of A^T A + D^T D / kappa^2, the observations' part
+        accumulated straight into the band (no sparse design matrix): the observations grouped by knot cell (all of a
+        cell's share its 16 coefficients), each cell's 16 x 16 Gram matrix of its whitened rows by one batched
+        matrix product (the groups zero-padded to the largest), and the cells' upper triangles added at their places
+        in the band."""
+        n_coef, kd = self.n_coef, self.kd
+        a, b = self._pairs
+        cell = rows.idx[:, 0]
+        order = np.argsort(cell, kind="stable")
+        sorted_cell = cell[order]
+        starts = np.flatnonzero(np.r_[True, sorted_cell[1:] != sorted_cell[:-1]])
+        counts = np.diff(np.r_[starts, len(cell)])
+        group = np.repeat(np.arange(len(starts)), counts)
+        slot = np.arange(len(cell)) - starts[group]
+        width = int(counts.max())
+        stacked = np.zeros((len(starts), 2 * width, 16))
+        stacked[group, slot] = rows.r1[order]
+        stacked[group, width + slot] = rows.r2[order]
+        gram = np.matmul(stacked.transpose(0, 2, 1), stacked)
+        first = rows.idx[order[starts]]
+        flat = (kd + first[:, a] - first[:, b]) * n_coef + first[:, b]
+        band = np.bincount(flat.ravel(), gram[:, a, b].ravel(), (kd + 1) * n_coef).reshape(kd + 1, n_coef)
+        return band + self._prior_band
 
     def solve(
         self, obs: SlopeObservations, height: float, samples: int = 0, rng: np.random.Generator | int | None = 0
     ) -> Integrated:
         """The posterior-mean surface of the observations at ROI-mean height ``height`` (mm), and ``samples`` draws.
+
+        The draws are scaled by sqrt(max(1, chi^2 per dof)): residuals larger than the observations' covariance
+        says (noise the model left out, or surface detail the spline and prior do not follow) widen the posterior
+        by their excess (the Birge ratio), never narrow it.
 
         Raises
         ------
@@ -129,37 +159,74 @@ class SlopeIntegrator:
         """
         if len(obs) < 3:
             raise ReconstructionError(f"only {len(obs)} slope observations: too few to integrate a surface")
-        mat, rhs = self._whitened(obs)
+        rows = self._whitened(obs)
+        n_coef = self.n_coef
         with single_thread_blas():  # threaded BLAS on a banded factorisation: nothing gained on 2 cores, up to 10x lost
-            factor = _banded_cholesky(mat.T @ mat + self._prior_normal)
-            coef = np.asarray(sl.cho_solve_banded((factor, False), np.asarray(mat.T @ rhs)), dtype=np.float64)
-        resid = mat @ coef - rhs
+            factor = _banded_cholesky(self._normal_band(rows))
+            aty = np.bincount(
+                rows.idx.ravel(), (rows.r1 * rows.g1[:, None] + rows.r2 * rows.g2[:, None]).ravel(), n_coef
+            )
+            coef = np.asarray(sl.cho_solve_banded((factor, False), aty), dtype=np.float64)
+        at = coef[rows.idx]
+        resid = np.concatenate([np.sum(rows.r1 * at, axis=1) - rows.g1, np.sum(rows.r2 * at, axis=1) - rows.g2])
+        chi2 = float(resid @ resid) / len(resid)
         coef += height - float(self.roi_mean(coef))
-        draws = np.zeros((0, self.n_coef))
+        draws = np.zeros((0, n_coef))
         if samples > 0:
             gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-            e = gen.standard_normal((mat.shape[0], samples))
+            n = len(obs)
+            indptr = np.arange(0, 16 * n + 1, 16)
+            a1 = sp.csr_matrix((rows.r1.ravel(), rows.idx.ravel(), indptr), shape=(n, n_coef))
+            a2 = sp.csr_matrix((rows.r2.ravel(), rows.idx.ravel(), indptr), shape=(n, n_coef))
+            e1, e2 = gen.standard_normal((n, samples)), gen.standard_normal((n, samples))
             z = gen.standard_normal((self.prior.shape[0], samples))
-            pert = np.asarray(mat.T @ e) + np.asarray(self.prior.T @ z)
+            pert = np.asarray(a1.T @ e1) + np.asarray(a2.T @ e2) + np.asarray(self.prior.T @ z)
             with single_thread_blas():
                 draws = np.asarray(sl.cho_solve_banded((factor, False), pert), dtype=np.float64).T
             draws -= self.roi_mean(draws)[:, None]
-        return Integrated(self.spline.with_coef(coef), draws, float(resid @ resid) / len(rhs))
+            draws *= np.sqrt(max(chi2, 1.0))
+        return Integrated(self.spline.with_coef(coef), draws, chi2)
 
 
-def _banded_cholesky(normal: sp.spmatrix) -> Array:
-    """Upper banded Cholesky factor of a sparse symmetric positive-definite matrix (LAPACK pbtrf), with the gauge
-    ridge :data:`GAUGE_RIDGE` on the diagonal.
+@dataclass(frozen=True)
+class _Rows:
+    """Whitened observation rows: per observation the 16 coefficient indices (increasing), the weights of its two
+    whitened equations there, and their right-hand sides."""
+
+    idx: NDArray[np.int64]
+    r1: Array
+    r2: Array
+    g1: Array
+    g2: Array
+
+
+def _band(normal: sp.csr_matrix, kd: int) -> Array:
+    """Upper banded storage (bandwidth ``kd``) of a sparse symmetric matrix.
+
+    Raises
+    ------
+    ReconstructionError
+        An entry outside the band.
+    """
+    upper = sp.triu(normal).tocoo()
+    if upper.nnz and int((upper.col - upper.row).max()) > kd:
+        raise ReconstructionError(f"a normal matrix wider than its band of {kd}")
+    band = np.zeros((kd + 1, normal.shape[0]))
+    band[kd + upper.row - upper.col, upper.col] = upper.data
+    return band
+
+
+def _banded_cholesky(band: Array) -> Array:
+    """Upper banded Cholesky factor (LAPACK pbtrf) of a symmetric positive-definite matrix in upper banded storage,
+    with the gauge ridge :data:`GAUGE_RIDGE` on the diagonal.
 
     Raises
     ------
     ReconstructionError
         The matrix is not positive definite (no data and no prior on some coefficient).
     """
-    upper = sp.triu(normal).tocoo()
-    kd = int((upper.col - upper.row).max()) if upper.nnz else 0
-    band = np.zeros((kd + 1, normal.shape[0]))
-    band[kd + upper.row - upper.col, upper.col] = upper.data
+    kd = band.shape[0] - 1
+    band = band.copy()
     band[kd] += GAUGE_RIDGE * float(band[kd].mean())
     try:
         return np.asarray(sl.cholesky_banded(band, lower=False), dtype=np.float64)

@@ -296,6 +296,9 @@ class DisplayCoordinates:
         Decoded: modulation high enough, unwrapping consistent, on the display.
     low_modulation, inconsistent, off_display : ndarray of bool
         Why a pixel is not valid (a pixel may have several reasons).
+    block : int
+        1: one entry per camera pixel; b > 1: one per b x b pixel tile, the tile's mean display point seen along the
+        ray through its centre (:func:`scopetwin.recon.fringes.blocks.block_average`).
     """
 
     u: Array
@@ -306,6 +309,7 @@ class DisplayCoordinates:
     low_modulation: NDArray[np.bool_]
     inconsistent: NDArray[np.bool_]
     off_display: NDArray[np.bool_]
+    block: int = 1
 
     @property
     def shape(self) -> tuple[int, ...]:

@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 
 from scopetwin.recon.errors import ReconstructionError
 from scopetwin.recon.frame_criterion import FrameCriterion, frame_criterion, frame_distance, next_start_height
+from scopetwin.recon.fringes.blocks import block_average, block_size
 from scopetwin.recon.fringes.integration import Integrated, SlopeIntegrator
 from scopetwin.recon.fringes.phase import DisplayCoordinates
 from scopetwin.recon.fringes.slopes import PixelRays, SlopeObservations, dense_slopes
@@ -72,6 +73,10 @@ class FringeConfig:
         Steps of the evaluation grids over the frame regions and the ROI, mm.
     measured_gap_mm : float
         A ROI node farther than this from every observation is not measured, mm.
+    block_px : int
+        Edge of the pixel blocks the display points are averaged over before the iteration
+        (:mod:`scopetwin.recon.fringes.blocks`), pixels; 0: chosen from the knot spacing
+        (:func:`scopetwin.recon.fringes.blocks.block_size`), 1: every pixel its own observation.
     """
 
     knot_spacing_mm: float = 0.4
@@ -87,11 +92,16 @@ class FringeConfig:
     frame_step_mm: float = 0.25
     roi_step_mm: float = 0.5
     measured_gap_mm: float = 0.5
+    block_px: int = 0
 
     def __post_init__(self) -> None:
         for name in ("knot_spacing_mm", "curvature_std_per_mm", "inner_tol_um", "outer_tol_um"):
             if not getattr(self, name) > 0:
                 raise ReconstructionError(f"fringe reconstruction: {name} must be > 0, got {getattr(self, name)}")
+        if self.block_px < 0:
+            raise ReconstructionError(
+                f"fringe reconstruction: block_px must be >= 0 (0: automatic), got {self.block_px}"
+            )
         if self.samples < 2 or self.inner_max < 1 or self.outer_max < 1:
             raise ReconstructionError("fringe reconstruction: samples >= 2, inner_max >= 1 and outer_max >= 1 needed")
 
@@ -133,6 +143,8 @@ class FringeResult:
         The surface's change per unit start height, ROI mean removed (coefficients per mm).
     observation_xy : ndarray, (n, 2)
         Where the slopes were observed, mm.
+    block_px : int
+        Edge of the pixel blocks the display points were averaged over (one observation each), pixels.
     history : list of FringeStep
     converged : bool
     seconds : float
@@ -148,6 +160,7 @@ class FringeResult:
     tilt_per_mm: Array
     observation_xy: Array
     history: list[FringeStep] = field(default_factory=list)
+    block_px: int = 1
     converged: bool = True
     seconds: float = 0.0
 
@@ -197,6 +210,7 @@ class FringeResult:
             "inner_iterations": int(sum(s.inner_iterations for s in self.history)),
             "start_height_um": self.start_height_mm * 1e3,
             "observations": int(len(self.observation_xy)),
+            "block_px": self.block_px,
             "converged": self.converged,
             "seconds": self.seconds,
             "uncertainty": {"absolute_um": self.absolute_um, "shape_um": self.shape_um},
@@ -277,7 +291,7 @@ class FringeReconstructor:
         """The start-height loop on the frame criterion (§1.4, eqs. 1.3-1.4), with the start height's uncertainty."""
         cfg = self.config
         t0 = time.perf_counter()
-        rays = PixelRays.of(self.camera, coords.valid)
+        rays = PixelRays.of(self.camera, coords.valid, coords.block)
         values: list[tuple[float, float]] = []
         runs: list[tuple[float, _Inner]] = []
         history: list[FringeStep] = []
@@ -333,7 +347,7 @@ class FringeReconstructor:
         if on.sum() < 10:
             raise ReconstructionError(f"only {int(on.sum())} pixels triangulated on the ROI from the two positions")
         xy, z, w = direct.xy[on], direct.z[on], 1.0 / direct.z_std[on] ** 2
-        rays = PixelRays.of(self.camera, coords.valid)
+        rays = PixelRays.of(self.camera, coords.valid, coords.block)
         design = self.integrator.spline.design(xy[:, 0], xy[:, 1])
         h, initial, history, converged = cfg.start_height_mm, None, [], False
         keep = np.ones(len(z), dtype=bool)
@@ -433,10 +447,20 @@ def reconstruct_fringes(
         raise ReconstructionError("a second display position needs its shift along the display normal (shift_mm)")
     if not coords.valid.any():
         raise ReconstructionError("no pixel was decoded: nothing to reconstruct")
+    config = config or FringeConfig()
+    block = config.block_px or block_size(camera, sub, config.knot_spacing_mm)
+    coords, _ = block_average(coords, block)
+    if second is not None:
+        second, _ = block_average(second, block)
+    if not coords.valid.any():
+        raise ReconstructionError(f"no full {block} x {block} pixel block was decoded: nothing to reconstruct")
     with single_thread_blas():  # the banded factorisation: threaded BLAS gains nothing on 2 cores and can cost 10x
         rec = FringeReconstructor(camera, setup.marker_pattern.frame, sub, config)
         if second is None:
-            return rec.frame_loop(coords)
-        assert shift_mm is not None
-        direct = two_position_points(camera, setup.marker_pattern.frame, shift_mm, coords, second, sub.frame)
-        return rec.two_position_loop(coords, direct)
+            result = rec.frame_loop(coords)
+        else:
+            assert shift_mm is not None
+            direct = two_position_points(camera, setup.marker_pattern.frame, shift_mm, coords, second, sub.frame)
+            result = rec.two_position_loop(coords, direct)
+    result.block_px = block
+    return result

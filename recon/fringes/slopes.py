@@ -38,21 +38,25 @@ class PixelRays:
     dirs: Array
 
     @classmethod
-    def of(cls, camera: Camera, valid: NDArray[np.bool_]) -> PixelRays:
-        """Rays through the centres (col + 0.5, row + 0.5) of the pixels where ``valid`` (rows, cols) is True.
+    def of(cls, camera: Camera, valid: NDArray[np.bool_], block: int = 1) -> PixelRays:
+        """Rays through the centres (col + 0.5, row + 0.5) of the pixels where ``valid`` (rows, cols) is True; with
+        ``block`` b > 1 ``valid`` is over b x b pixel tiles and the rays pass through the tiles' centres
+        ((col + 0.5) b, (row + 0.5) b) in pixels.
 
         Raises
         ------
         FringeDecodingError
-            ``valid`` is not the camera's image shape.
+            ``valid`` is not the camera's image shape (in tiles).
         """
-        if valid.shape != (camera.ny, camera.nx):
+        shape = (camera.ny // block, camera.nx // block)
+        if valid.shape != shape:
             raise FringeDecodingError(
                 f"decoded maps of shape {valid.shape} for a {camera.ny} x {camera.nx} (rows x cols) camera"
+                + (f" in {block}-pixel blocks" if block > 1 else "")
             )
         idx = np.flatnonzero(valid)
-        rows, cols = np.divmod(idx, camera.nx)
-        px = np.stack([cols + 0.5, rows + 0.5], axis=-1).astype(np.float64)
+        rows, cols = np.divmod(idx, shape[1])
+        px = (block * np.stack([cols + 0.5, rows + 0.5], axis=-1)).astype(np.float64)
         o, d = camera.rays(px)
         return cls(idx, o, d)
 
@@ -140,7 +144,7 @@ def dense_slopes(
     SubstrateNotVisibleError
         No valid pixel's ray meets the region of interest.
     """
-    rays = rays if rays is not None else PixelRays.of(camera, coords.valid)
+    rays = rays if rays is not None else PixelRays.of(camera, coords.valid, coords.block)
     hit, ok = intersect_rays(surface, rays.origins, rays.dirs, sub)
     if not ok.any():
         raise SubstrateNotVisibleError("no decoded pixel's ray meets the substrate's region of interest")

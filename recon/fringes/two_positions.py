@@ -91,14 +91,14 @@ def two_position_points(
     FringeDecodingError
         The two maps differ in shape, the shift is zero or not finite, or no pixel is valid in both.
     """
-    if first.shape != second.shape:
+    if first.shape != second.shape or first.block != second.block:
         raise FringeDecodingError(f"the two positions' maps differ in shape: {first.shape} and {second.shape}")
     if not np.isfinite(shift_mm) or shift_mm == 0:
         raise FringeDecodingError(f"the display shift must be a finite, non-zero distance, got {shift_mm!r} mm")
     both = first.valid & second.valid
     if not both.any():
         raise FringeDecodingError("no pixel is decoded in both display positions")
-    rays = PixelRays.of(camera, both)
+    rays = PixelRays.of(camera, both, first.block)
     frame_2 = moved_frame(frame_1, shift_mm)
     k = rays.index
     vals = [a.ravel()[k] for a in (first.u, first.v, second.u, second.v)]

@@ -156,6 +156,7 @@ def test_the_full_preset_end_to_end(tmp_path):
     err = roi_errors(done.height_at, m.heights, done.result.substrate)
     u = done.uncertainty
     print(err, u, done.strategy, done.result.seconds)
-    assert done.result.converged and done.summary()["observations"] > 300_000
+    s = done.summary()
+    assert done.result.converged and s["observations"] * s["block_px"] ** 2 > 300_000
     assert err["roi_shape_um"] < 0.1 and err["roi_shape_um"] < 3 * u.shape_um, (err, u)
     assert abs(err["roi_absolute_um"]) < 3 * u.absolute_um, (err, u)

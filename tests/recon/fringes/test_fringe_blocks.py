@@ -1,0 +1,125 @@
+"""Pixel blocks (recon/fringes/blocks.py) and the integration's normal matrix built straight into its band.
+
+Synthetic display points: an affine field over a 240 x 180 pixel image plus a smooth quadratic term, with the
+decoder's stated noise (sigma_dec) and an unstated per-pixel noise (sigma_x, as a render's sampling error). Acceptance:
+the block average finds sigma_x within 10 %, the block means' errors against the noiseless field have a mean square
+of 1 +- 0.1 of their stated variance (and 3x that without sigma_x were it left out), nothing found when there is
+none; the rays of a block pass through its centre; the banded normal matrix equals A^T A + D^T D / kappa^2 of the
+sparse design matrix to 1e-12 relative.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from scopetwin.recon.fringes.blocks import block_average, block_size, pixel_footprint_mm
+from scopetwin.recon.fringes.integration import SlopeIntegrator
+from scopetwin.recon.fringes.phase import DisplayCoordinates, FringeDecodingError
+from scopetwin.recon.fringes.slopes import PixelRays, SlopeObservations
+from scopetwin.recon.substrate import Substrate2D
+
+ROWS, COLS = 180, 240
+SIGMA_DEC, SIGMA_X = 1.5e-3, 2.5e-3  # mm
+
+
+def _field() -> tuple[np.ndarray, np.ndarray]:
+    r, c = np.mgrid[0:ROWS, 0:COLS].astype(float) + 0.5
+    u = -20.0 + 0.15 * c + 0.01 * r + 1e-6 * (c - 120) ** 2
+    v = -15.0 + 0.02 * c + 0.16 * r - 1e-6 * (r - 90) ** 2
+    return u, v
+
+
+def _coords(extra: float, seed: int, block: int) -> tuple[DisplayCoordinates, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    u, v = _field()
+    sigma = SIGMA_DEC * (1.0 + 0.5 * rng.random((ROWS, COLS)))  # the decoder's per-pixel noise, varying
+    noisy = [a + rng.normal(0.0, 1.0, a.shape) * np.hypot(sigma, extra) for a in (u, v)]
+    valid = np.ones((ROWS, COLS), dtype=bool)
+    valid[:7, :] = False  # a partial band of blocks at the top
+    valid[100, 50] = False
+    uv = np.stack(noisy, axis=-1)
+    coords = DisplayCoordinates.from_arrays(np.where(valid[..., None], uv, np.nan), np.stack([sigma, sigma], -1))
+    # the noiseless block means: the mean of the field over each tile
+    tiles = [a[: ROWS // block * block, : COLS // block * block] for a in (u, v)]
+    means = [t.reshape(ROWS // block, block, COLS // block, block).mean(axis=(1, 3)) for t in tiles]
+    return coords, means[0], means[1]
+
+
+@pytest.mark.parametrize("block", [3, 4])
+def test_block_average_finds_the_unstated_noise_and_covers(block):
+    coords, tu, tv = _coords(SIGMA_X, 7, block)
+    avg, noise = block_average(coords, block)
+    assert avg.block == block and avg.shape == (ROWS // block, COLS // block)
+    assert not avg.valid[: 7 // block + 1].any() or block == 1  # tiles with an undecoded pixel are dropped
+    assert not avg.valid[100 // block, 50 // block] and avg.valid.sum() > 0.9 * avg.valid.size
+    for found in (noise.excess_u_mm, noise.excess_v_mm):
+        assert abs(found / SIGMA_X - 1.0) < 0.1, found
+    ok = avg.valid
+    for mean, std, true in ((avg.u, avg.u_std, tu), (avg.v, avg.v_std, tv)):
+        z2 = np.mean(((mean[ok] - true[ok]) / std[ok]) ** 2)
+        assert abs(z2 - 1.0) < 0.1, z2
+        stated_only = std[ok] ** 2 - SIGMA_X**2 / block**2  # what the decoder's noise alone would have said
+        assert np.mean((mean[ok] - true[ok]) ** 2 / stated_only) > 2.5
+
+
+def test_no_unstated_noise_is_found_where_there_is_none():
+    coords, tu, _ = _coords(0.0, 8, 4)
+    avg, noise = block_average(coords, 4)
+    assert noise.excess_u_mm < 0.3 * SIGMA_DEC and noise.excess_v_mm < 0.3 * SIGMA_DEC
+    z2 = np.mean(((avg.u[avg.valid] - tu[avg.valid]) / avg.u_std[avg.valid]) ** 2)
+    assert abs(z2 - 1.0) < 0.1, z2
+
+
+def test_bad_blocks_are_refused():
+    coords, _, _ = _coords(0.0, 9, 2)
+    with pytest.raises(FringeDecodingError, match="at least 1 pixel"):
+        block_average(coords, 0)
+    avg, _ = block_average(coords, 2)
+    with pytest.raises(FringeDecodingError, match="already averaged"):
+        block_average(avg, 2)
+
+
+def test_block_rays_pass_through_block_centres_and_size_follows_the_knots():
+    import scopetwin
+
+    setup = scopetwin.load_setup("thesis-1.10-fringes")
+    cam, sub = setup.camera_model, Substrate2D.from_setup(setup)
+    valid = np.zeros((cam.ny // 3, cam.nx // 3), dtype=bool)
+    valid[100, 200] = valid[5, 7] = True
+    rays = PixelRays.of(cam, valid, 3)
+    o, d = cam.rays(np.array([[3 * 7 + 1.5, 3 * 5 + 1.5], [3 * 200 + 1.5, 3 * 100 + 1.5]]))
+    np.testing.assert_allclose(rays.dirs, d, atol=1e-12)
+    foot = pixel_footprint_mm(cam, sub)
+    assert 0.03 < foot < 0.08  # 4.65 µm pixels at a magnification of ~0.09
+    assert block_size(cam, sub, 0.4) == int(0.2 // foot) == 3
+    assert block_size(cam, sub, 0.05) == 1
+    with pytest.raises(FringeDecodingError, match="in 3-pixel blocks"):
+        PixelRays.of(cam, np.zeros((cam.ny, cam.nx), dtype=bool), 3)
+
+
+def test_banded_normal_matrix_equals_the_sparse_one():
+    import scopetwin
+
+    sub = Substrate2D.from_setup(scopetwin.load_setup("thesis-1.10-fringes"))
+    integ = SlopeIntegrator(sub, 0.8, 1e-3)
+    rng = np.random.default_rng(3)
+    n = 5000
+    xy = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-20, 20, n)])
+    c11, c22 = rng.uniform(1, 2, n) * 1e-10, rng.uniform(1, 2, n) * 1e-10
+    cov = np.column_stack([c11, 0.3 * np.sqrt(c11 * c22), c22])
+    obs = SlopeObservations(np.arange(n), xy, rng.normal(0, 1e-3, n), rng.normal(0, 1e-3, n), cov, np.zeros((n, 3)))
+    rows = integ._whitened(obs)
+    band = integ._normal_band(rows)
+    indptr = np.arange(0, 16 * n + 1, 16)
+    a = sp.vstack(
+        [sp.csr_matrix((r.ravel(), rows.idx.ravel(), indptr), shape=(n, integ.n_coef)) for r in (rows.r1, rows.r2)]
+    )
+    normal = (a.T @ a + integ.prior.T @ integ.prior).toarray()
+    kd = integ.kd
+    dense = np.zeros_like(normal)
+    for k in range(kd + 1):
+        i = np.arange(integ.n_coef - (kd - k))
+        dense[i, i + kd - k] = band[k, kd - k + i]
+    np.testing.assert_allclose(np.triu(dense), np.triu(normal), rtol=1e-12, atol=1e-12 * np.abs(normal).max())
