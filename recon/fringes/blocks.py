@@ -24,12 +24,13 @@ of a block's display points about their best affine fit in the pixel offsets sho
 square, over n - 3 degrees of freedom, estimates the per-pixel variance of everything that is independent from pixel
 to pixel. The excess over the decoder's variance is pooled over all blocks (per direction, median with the
 chi^2_(n-3) median's correction: a few blocks over an unwrapping slip or an edge do not move it) and added to every
-pixel's variance: sigma_block^2 = (mean_i sigma_i^2 + excess^2) / n.
+pixel's variance: sigma_block^2 = (mean_i sigma_i^2 + excess^2) / n. Where every pixel stays its own observation
+(block 1) the excess is found the same way over 3 x 3 tiles and added to each pixel's variance.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -44,6 +45,8 @@ from scopetwin.scenes.camera import Camera
 BLOCKS_PER_KNOT = 2.0
 #: Largest automatic block edge, pixels.
 MAX_BLOCK_PX = 8
+#: Tile edge over which the unstated per-pixel noise is found when every pixel stays its own observation, pixels.
+NOISE_TILE_PX = 3
 
 
 @dataclass(frozen=True)
@@ -85,7 +88,7 @@ def _tiles(a: NDArray[Any], b: int) -> NDArray[Any]:
 
 def block_average(coords: DisplayCoordinates, block: int) -> tuple[DisplayCoordinates, BlockNoise]:
     """The display points averaged over full ``block`` x ``block`` pixel tiles, with the uncertainty of the module
-    docstring (``block`` 1: the coordinates unchanged, no excess found).
+    docstring (``block`` 1: every pixel kept, the unstated noise found over 3 x 3 tiles added to its variance).
 
     Returns
     -------
@@ -104,10 +107,18 @@ def block_average(coords: DisplayCoordinates, block: int) -> tuple[DisplayCoordi
         raise FringeDecodingError(f"the pixel block must be at least 1 pixel, got {block}")
     if coords.block != 1:
         raise FringeDecodingError(f"the display coordinates are already averaged over {coords.block}-pixel blocks")
-    if block == 1:
-        return coords, BlockNoise(0.0, 0.0)
-    if coords.shape[0] < block or coords.shape[1] < block:
+    if coords.shape[0] < max(block, NOISE_TILE_PX) or coords.shape[1] < max(block, NOISE_TILE_PX):
         raise FringeDecodingError(f"an image of {coords.shape} pixels is smaller than one {block}-pixel block")
+    if block == 1:  # every pixel its own observation: the unstated noise from 3 x 3 tiles, added to each pixel's
+        _, noise = _averaged(coords, NOISE_TILE_PX)
+        u_std = np.hypot(coords.u_std, noise.excess_u_mm)
+        v_std = np.hypot(coords.v_std, noise.excess_v_mm)
+        return replace(coords, u_std=u_std, v_std=v_std), noise
+    return _averaged(coords, block)
+
+
+def _averaged(coords: DisplayCoordinates, block: int) -> tuple[DisplayCoordinates, BlockNoise]:
+    """:func:`block_average` for ``block`` >= 2."""
     n = block * block
     full = np.all(_tiles(coords.valid, block), axis=-1)
     off = np.arange(block, dtype=np.float64) - 0.5 * (block - 1)

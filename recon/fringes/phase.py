@@ -171,7 +171,10 @@ def _noise_model(pooled: Sequence[tuple[Array, Array]]) -> NoiseModel:
     # both terms non-negative (non-negative least squares): over a narrow range of signal the split between them is
     # ill-determined, but their sum at the signals seen is not
     scale = max(float(np.mean(x)), 1e-30)
-    (read, shot), _ = nnls(np.column_stack([np.ones_like(x), x / scale]), y)
+    # on the 2 x 2 triangle of the design's QR (the same minimiser: |X b - y|^2 = |R b - Q^T y|^2 + const), not on
+    # the 10^5-10^6 rows
+    q, r = np.linalg.qr(np.column_stack([np.ones_like(x), x / scale]))
+    (read, shot), _ = nnls(r, q.T @ y)
     return NoiseModel(float(read), float(shot) / scale)
 
 

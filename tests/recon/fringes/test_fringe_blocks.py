@@ -64,6 +64,18 @@ def test_block_average_finds_the_unstated_noise_and_covers(block):
         assert np.mean((mean[ok] - true[ok]) ** 2 / stated_only) > 2.5
 
 
+def test_single_pixels_carry_the_unstated_noise():
+    coords, _, _ = _coords(SIGMA_X, 10, 1)
+    kept, noise = block_average(coords, 1)
+    assert kept.block == 1 and np.array_equal(kept.valid, coords.valid)
+    assert abs(noise.excess_u_mm / SIGMA_X - 1.0) < 0.1 and abs(noise.excess_v_mm / SIGMA_X - 1.0) < 0.1
+    u, v = _field()
+    ok = kept.valid
+    for est, std, true in ((kept.u, kept.u_std, u), (kept.v, kept.v_std, v)):
+        z2 = np.mean(((est[ok] - true[ok]) / std[ok]) ** 2)
+        assert abs(z2 - 1.0) < 0.05, z2
+
+
 def test_no_unstated_noise_is_found_where_there_is_none():
     coords, tu, _ = _coords(0.0, 8, 4)
     avg, noise = block_average(coords, 4)
