@@ -22,10 +22,13 @@ error that is the same in every frame of a pixel, such as the render's (or a rea
 the pixel footprint on the display, which shifts each pixel's display point without a phase residual. The scatter
 of a block's display points about their best affine fit in the pixel offsets shows it: with n = b^2 pixels its mean
 square, over n - 3 degrees of freedom, estimates the per-pixel variance of everything that is independent from pixel
-to pixel. The excess over the decoder's variance is pooled over all blocks (per direction, median with the
-chi^2_(n-3) median's correction: a few blocks over an unwrapping slip or an edge do not move it) and added to every
-pixel's variance: sigma_block^2 = (mean_i sigma_i^2 + excess^2) / n. Where every pixel stays its own observation
-(block 1) the excess is found the same way over 3 x 3 tiles and added to each pixel's variance.
+to pixel. Its ratio to the decoder's variance, pooled over all blocks (per direction, the median with the
+chi^2_(n-3) median's correction: a few blocks over an unwrapping slip or an edge do not move it), is the factor
+F^2 >= 1 by which every pixel's variance is scaled: sigma_block^2 = F^2 mean_i sigma_i^2 / n. A factor, not an added
+constant: the pixels the decoder trusts less (low modulation) scatter more, and an added constant would flatten
+their weights (on rendered glass at two display positions, the absolute height's error doubled with it). Where
+every pixel stays its own observation (block 1) F is found the same way over 3 x 3 tiles and scales each pixel's
+sigma.
 """
 
 from __future__ import annotations
@@ -51,10 +54,10 @@ NOISE_TILE_PX = 3
 
 @dataclass(frozen=True)
 class BlockNoise:
-    """The per-pixel display-point noise a block average found beyond the decoder's, mm (u and v)."""
+    """How much larger the per-pixel display-point scatter is than the decoder's sigma (u and v; F >= 1)."""
 
-    excess_u_mm: float
-    excess_v_mm: float
+    factor_u: float
+    factor_v: float
 
 
 def pixel_footprint_mm(camera: Camera, sub: Substrate2D) -> float:
@@ -88,7 +91,7 @@ def _tiles(a: NDArray[Any], b: int) -> NDArray[Any]:
 
 def block_average(coords: DisplayCoordinates, block: int) -> tuple[DisplayCoordinates, BlockNoise]:
     """The display points averaged over full ``block`` x ``block`` pixel tiles, with the uncertainty of the module
-    docstring (``block`` 1: every pixel kept, the unstated noise found over 3 x 3 tiles added to its variance).
+    docstring (``block`` 1: every pixel kept, its sigma scaled by the factor found over 3 x 3 tiles).
 
     Returns
     -------
@@ -96,7 +99,7 @@ def block_average(coords: DisplayCoordinates, block: int) -> tuple[DisplayCoordi
         One entry per tile (rows // block, cols // block), ``block`` set: entry (r, c) is the tile of pixels
         [r b, (r + 1) b) x [c b, (c + 1) b), seen along the ray through its centre.
     BlockNoise
-        The pooled per-pixel excess noise, mm.
+        The pooled factors F of the per-pixel sigma.
 
     Raises
     ------
@@ -111,9 +114,7 @@ def block_average(coords: DisplayCoordinates, block: int) -> tuple[DisplayCoordi
         raise FringeDecodingError(f"an image of {coords.shape} pixels is smaller than one {block}-pixel block")
     if block == 1:  # every pixel its own observation: the unstated noise from 3 x 3 tiles, added to each pixel's
         _, noise = _averaged(coords, NOISE_TILE_PX)
-        u_std = np.hypot(coords.u_std, noise.excess_u_mm)
-        v_std = np.hypot(coords.v_std, noise.excess_v_mm)
-        return replace(coords, u_std=u_std, v_std=v_std), noise
+        return replace(coords, u_std=noise.factor_u * coords.u_std, v_std=noise.factor_v * coords.v_std), noise
     return _averaged(coords, block)
 
 
@@ -126,7 +127,7 @@ def _averaged(coords: DisplayCoordinates, block: int) -> tuple[DisplayCoordinate
     design = np.column_stack([np.ones(n), dx, dy])
     residual_map = np.eye(n) - design @ np.linalg.pinv(design)  # I - H: the affine fit's residuals
     median_factor = float(chi2.median(n - 3) / (n - 3))
-    means, stds, excess = [], [], []
+    means, stds, factors = [], [], []
     for value, std in ((coords.u, coords.u_std), (coords.v, coords.v_std)):
         tiles = np.where(full[..., None], _tiles(np.where(coords.valid, value, 0.0), block), 0.0)
         var = _tiles(np.where(coords.valid, std, 0.0) ** 2, block).mean(axis=-1)
@@ -134,11 +135,11 @@ def _averaged(coords: DisplayCoordinates, block: int) -> tuple[DisplayCoordinate
         if full.any():
             scatter = np.einsum("...i,ji->...j", tiles[full], residual_map)
             ms = np.sum(scatter * scatter, axis=-1) / (n - 3)
-            extra = max(float(np.median(ms)) / median_factor - float(np.median(var[full])), 0.0)
+            ratio = max(float(np.median(ms / np.maximum(var[full], 1e-300))) / median_factor, 1.0)
         else:
-            extra = 0.0
-        excess.append(np.sqrt(extra))
-        stds.append(np.sqrt((var + extra) / n))
+            ratio = 1.0
+        factors.append(np.sqrt(ratio))
+        stds.append(np.sqrt(ratio * var / n))
     no = np.zeros(full.shape, dtype=bool)
     low = np.any(_tiles(coords.low_modulation, block), axis=-1) & ~full
     averaged = DisplayCoordinates(
@@ -152,4 +153,4 @@ def _averaged(coords: DisplayCoordinates, block: int) -> tuple[DisplayCoordinate
         ~full & ~low,
         block,
     )
-    return averaged, BlockNoise(float(excess[0]), float(excess[1]))
+    return averaged, BlockNoise(float(factors[0]), float(factors[1]))

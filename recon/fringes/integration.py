@@ -20,7 +20,7 @@ each sample costs one back-substitution with the same factors. Heights relative 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg as sl
@@ -52,11 +52,16 @@ class Integrated:
     chi2_per_dof : float
         Whitened residual sum of squares of the observations per observation row (about 1 when the noise model
         holds and the surface follows the data).
+    factor, rows : ndarray, optional
+        The normal matrix's banded Cholesky factor and the whitened observation rows it came from (for
+        :meth:`SlopeIntegrator.with_samples`).
     """
 
     surface: SplineSurface
     samples: Array
     chi2_per_dof: float
+    factor: Array | None = field(default=None, repr=False)
+    rows: _Rows | None = field(default=None, repr=False)
 
 
 class SlopeIntegrator:
@@ -146,11 +151,8 @@ class SlopeIntegrator:
     def solve(
         self, obs: SlopeObservations, height: float, samples: int = 0, rng: np.random.Generator | int | None = 0
     ) -> Integrated:
-        """The posterior-mean surface of the observations at ROI-mean height ``height`` (mm), and ``samples`` draws.
-
-        The draws are scaled by sqrt(max(1, chi^2 per dof)): residuals larger than the observations' covariance
-        says (noise the model left out, or surface detail the spline and prior do not follow) widen the posterior
-        by their excess (the Birge ratio), never narrow it.
+        """The posterior-mean surface of the observations at ROI-mean height ``height`` (mm), and ``samples`` draws
+        (:meth:`with_samples`).
 
         Raises
         ------
@@ -171,21 +173,43 @@ class SlopeIntegrator:
         resid = np.concatenate([np.sum(rows.r1 * at, axis=1) - rows.g1, np.sum(rows.r2 * at, axis=1) - rows.g2])
         chi2 = float(resid @ resid) / len(resid)
         coef += height - float(self.roi_mean(coef))
-        draws = np.zeros((0, n_coef))
-        if samples > 0:
-            gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-            n = len(obs)
-            indptr = np.arange(0, 16 * n + 1, 16)
-            a1 = sp.csr_matrix((rows.r1.ravel(), rows.idx.ravel(), indptr), shape=(n, n_coef))
-            a2 = sp.csr_matrix((rows.r2.ravel(), rows.idx.ravel(), indptr), shape=(n, n_coef))
-            e1, e2 = gen.standard_normal((n, samples)), gen.standard_normal((n, samples))
-            z = gen.standard_normal((self.prior.shape[0], samples))
-            pert = np.asarray(a1.T @ e1) + np.asarray(a2.T @ e2) + np.asarray(self.prior.T @ z)
-            with single_thread_blas():
-                draws = np.asarray(sl.cho_solve_banded((factor, False), pert), dtype=np.float64).T
-            draws -= self.roi_mean(draws)[:, None]
-            draws *= np.sqrt(max(chi2, 1.0))
-        return Integrated(self.spline.with_coef(coef), draws, chi2)
+        solved = Integrated(self.spline.with_coef(coef), np.zeros((0, n_coef)), chi2, factor, rows)
+        return self.with_samples(solved, samples, rng) if samples > 0 else solved
+
+    def with_samples(
+        self, solved: Integrated, samples: int, rng: np.random.Generator | int | None = 0, height: float | None = None
+    ) -> Integrated:
+        """``solved`` with ``samples`` posterior draws from its own factorisation (module docstring: one
+        back-substitution each), and moved to ROI-mean height ``height`` (mm) when given.
+
+        The draws are scaled by sqrt(max(1, chi^2 per dof)): residuals larger than the observations' covariance
+        says (noise the model left out, or surface detail the spline and prior do not follow) widen the posterior
+        by their excess (the Birge ratio), never narrow it.
+
+        Raises
+        ------
+        ReconstructionError
+            ``solved`` does not carry its factorisation (not from :meth:`solve`).
+        """
+        if solved.factor is None or solved.rows is None:
+            raise ReconstructionError("posterior draws need the solve's factorisation (SlopeIntegrator.solve)")
+        coef = solved.surface.coef.ravel()
+        if height is not None:
+            coef = coef + (height - float(self.roi_mean(coef)))
+        gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+        rows, n_coef = solved.rows, self.n_coef
+        n = len(rows.g1)
+        indptr = np.arange(0, 16 * n + 1, 16)
+        a1 = sp.csr_matrix((rows.r1.ravel(), rows.idx.ravel(), indptr), shape=(n, n_coef))
+        a2 = sp.csr_matrix((rows.r2.ravel(), rows.idx.ravel(), indptr), shape=(n, n_coef))
+        e1, e2 = gen.standard_normal((n, samples)), gen.standard_normal((n, samples))
+        z = gen.standard_normal((self.prior.shape[0], samples))
+        pert = np.asarray(a1.T @ e1) + np.asarray(a2.T @ e2) + np.asarray(self.prior.T @ z)
+        with single_thread_blas():
+            draws = np.asarray(sl.cho_solve_banded((solved.factor, False), pert), dtype=np.float64).T
+        draws -= self.roi_mean(draws)[:, None]
+        draws *= np.sqrt(max(solved.chi2_per_dof, 1.0))
+        return replace(solved, surface=self.spline.with_coef(coef), samples=draws)
 
 
 @dataclass(frozen=True)

@@ -46,6 +46,10 @@ from scopetwin.scenes.geometry import Array, Frame
 from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
 
+#: Two display positions: a pixel whose triangulated height is farther from the surface than this many robust
+#: standard deviations (1.4826 x the median absolute deviation of the whitened residuals) is left out of H.
+OUTLIER_ROBUST_SIGMAS = 4.0
+
 
 @dataclass(frozen=True)
 class FringeConfig:
@@ -321,7 +325,7 @@ class FringeReconstructor:
         slope = (values[other][1] - values[best][1]) / dh
         tilt = (runs[other][1].surface.coef.ravel() - inner.surface.coef.ravel()) / dh
         tilt -= float(self.integrator.roi_mean(tilt))
-        integ = self.integrator.solve(inner.obs, h_best, cfg.samples, cfg.seed)
+        integ = self.integrator.with_samples(inner.integrated, cfg.samples, cfg.seed)
         c = integ.surface.coef.ravel()
         m1s, m2s = self.frame_maxima(c[None, :] + integ.samples)
         pairs = zip(m1s, m2s, strict=True)
@@ -356,10 +360,14 @@ class FringeReconstructor:
             inner = self.inner_loop(h, coords, rays, initial)
             runs.append((h, inner))
             resid = z - np.asarray(design @ inner.surface.coef.ravel())
-            # H moves the surface by a constant: the weighted mean residual is the correction (5-sigma outliers out)
+            # H moves the surface by a constant: the weighted mean residual is the correction, the pixels beyond
+            # OUTLIER_ROBUST_SIGMAS of the whitened residuals' robust scale (1.4826 MAD: the cut does not depend on
+            # how well the stated sigmas are scaled) left out
             for _ in range(3):
                 shift = float(np.sum(w[keep] * resid[keep]) / np.sum(w[keep]))
-                keep = np.abs(resid - shift) * np.sqrt(w) < 5.0
+                t = (resid - shift) * np.sqrt(w)
+                scale = 1.4826 * float(np.median(np.abs(t - np.median(t))))
+                keep = np.abs(t) < OUTLIER_ROBUST_SIGMAS * scale
             history.append(self._step(h, inner, -shift, float("nan"), float("nan")))
             initial = inner.surface
             h += shift
@@ -369,7 +377,7 @@ class FringeReconstructor:
         h_last, inner = runs[-1]
         resid = z - np.asarray(design @ inner.surface.coef.ravel())
         chi2 = float(np.sum(w[keep] * (resid[keep] - shift) ** 2) / max(int(keep.sum()) - 1, 1))
-        integ = self.integrator.solve(inner.obs, h, cfg.samples, cfg.seed)
+        integ = self.integrator.with_samples(inner.integrated, cfg.samples, cfg.seed, h)
         # the samples' shape at the pixels, weighted as H is, relative to the ROI mean
         wk = np.where(keep, w, 0.0)
         at_pixels = np.asarray(design @ integ.samples.T).T @ wk / wk.sum()
