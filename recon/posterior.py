@@ -455,6 +455,7 @@ def fit_hyper(
     smooth_starts: tuple[float, ...] = (10.0, 25.0),
     start: Hyper | None = None,
     coarse_points: int = 0,
+    local_features: bool = False,
 ) -> Hyper:
     """Hyperparameters of maximum evidence (type-II maximum likelihood) for the gradient data.
 
@@ -525,26 +526,35 @@ def fit_hyper(
     tried[SMOOTH_SHAPE] = _max_evidence(pairs_c, g_c, [tried[None][1]], off, SMOOTH_SHAPE)  # from the SE's
     shape = min(tried, key=lambda k: tried[k][0])
     found = _max_evidence(pairs, g, [tried[shape][1]], off, shape) if coarse else tried[shape]
-    return _hyper(_local_features(pairs, g, found, bounds, shape), shape)
+    if not local_features:
+        return _hyper(found[1], shape)
+    return _hyper(_local_features(pairs, g, found, bounds, shape, cold), shape)
 
 
 def _local_features(
-    pairs: _Pairs, g: Array, without: tuple[float, Array], bounds: list[tuple[float, float]], shape: float | None
+    pairs: _Pairs,
+    g: Array,
+    without: tuple[float, Array],
+    bounds: list[tuple[float, float]],
+    shape: float | None,
+    cold: list[Array],
 ) -> Array:
     """The log-hyperparameters with the local-features part where the evidence asks for it, else ``without``'s.
 
-    All refined together from ``without``'s smooth part with the part added at :data:`FEATURE_START` and the short
-    scales (broadband part, noise) at their cold starts — from ``without``'s maximum the part cannot show its
-    worth: there the broadband part and the noise have taken the features in, at their bounds, and every step
-    towards the part first lowers the evidence; kept where that raises the log evidence by more than
-    :data:`FEATURE_GAIN`. The two models are nested, so the part is chosen only where the data hold what it
-    describes.
+    All refined together from two starts with the part at :data:`FEATURE_START` — ``without``'s smooth part with the
+    short scales (broadband part, noise) at their cold starts, and the first of the ``cold`` starts (from
+    ``without``'s maximum itself the part cannot show its worth: there the broadband part and the noise have taken
+    the features in, at their bounds, and every step towards the part first lowers the evidence); the better kept
+    where it raises the log evidence by more than :data:`FEATURE_GAIN`. The two models are nested, so the part is
+    chosen only where the data hold what it describes.
     """
     nll0, theta0 = without
     lo, hi = [b[0] for b in bounds], [b[1] for b in bounds]
     x0 = np.clip(np.log([1.0, 1.0, 1e-6, 1.0, 3e-7, 3e-7, *FEATURE_START]), lo, hi)
     x0[:2] = theta0[:2]  # the smooth part kept; the short scales from the cold start, as if the part had been there
-    nll1, theta1 = _max_evidence(pairs, g, [x0], bounds, shape)
+    x1 = cold[0].copy()
+    x1[6:] = np.clip(np.log(FEATURE_START), lo[6:], hi[6:])
+    nll1, theta1 = _max_evidence(pairs, g, [x0, x1], bounds, shape)
     return theta1 if nll0 - nll1 > FEATURE_GAIN else theta0
 
 

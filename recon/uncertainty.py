@@ -133,7 +133,13 @@ def _read(it: Iteration, surf: SBFSurface, markers: Any, hyper: Hyper | None) ->
     xy, hx, hy, _ = it.traced_gradients(surf, markers)
     try:
         hyper = hyper or fit_hyper(
-            xy, hx, hy, cfg.evidence_points, start=it.evidence_start, coarse_points=cfg.evidence_coarse_points
+            xy,
+            hx,
+            hy,
+            cfg.evidence_points,
+            start=it.evidence_start,
+            coarse_points=cfg.evidence_coarse_points,
+            local_features=cfg.local_features,
         )
         data = posterior_subset(xy, hx, hy, cfg.posterior_points)
         gp = GradientGP(*data, hyper)

@@ -144,10 +144,11 @@ def test_evidence_chooses_the_smooth_parts_shape(alpha: float | None) -> None:
 
 @pytest.mark.parametrize("depth_um", [pytest.param(2.0, marks=pytest.mark.slow), 0.0])
 def test_evidence_admits_local_features_only_where_the_data_hold_them(depth_um: float) -> None:
-    """Exact marker images (0.005 px of centroid noise) of the §1.10 surface with a 3 mm wide (FWHM) dimple: with a
-    2 µm dimple the evidence adds the local-features part (measured 134 nm at 1.8 mm) and the shape follows the dimple
-    (measured 119 % of its depth; the basis fit alone smooths it away); without the dimple the prior is the one
-    without the part, exactly."""
+    """Exact marker images (0.005 px of centroid noise) of the §1.10 surface with a 3 mm wide (FWHM) dimple, the
+    local-features part allowed (``ReconstructionConfig.local_features``): with a 2 µm dimple the evidence adds it
+    (measured 134 nm at 1.8 mm) and the shape follows the dimple (measured 119 % of its depth; the basis fit alone
+    smooths it away); without the dimple the prior is the one without the part, exactly."""
+    from scopetwin.recon.config import ReconstructionConfig
     from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor
     from scopetwin.recon.strategy import solve
     from scopetwin.scenes.setup import load_setup
@@ -160,7 +161,8 @@ def test_evidence_admits_local_features_only_where_the_data_hold_them(depth_um: 
     assert heights is not None
     t = marker_truth(setup, heights)
     px = t.center_px[t.visible] + 0.005 * np.random.default_rng(7).standard_normal((int(t.visible.sum()), 2))
-    res = solve(Reconstructor.from_setup(setup), MarkerObservations(t.ij[t.visible], px))
+    rec = Reconstructor.from_setup(setup, ReconstructionConfig(local_features=True))
+    res = solve(rec, MarkerObservations(t.ij[t.visible], px))
     assert res.uncertainty is not None
     prior = Hyper.from_dict(res.uncertainty.hyper)
     if depth_um == 0.0:
