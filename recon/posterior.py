@@ -447,6 +447,20 @@ def _max_evidence(
     return best
 
 
+def _bounds(g_rms: float) -> list[tuple[float, float]]:
+    """Bounds of the log-hyperparameters (:func:`_hyper`'s order) for gradients of RMS ``g_rms``."""
+    return [
+        (float(np.log(g_rms * 0.3)), float(np.log(g_rms * 300.0))),
+        (float(np.log(3.0)), float(np.log(60.0))),
+        (float(np.log(1e-8)), float(np.log(3e-4))),
+        (float(np.log(0.25)), float(np.log(3.0))),
+        (float(np.log(NOISE_FLOOR)), float(np.log(1e-4))),
+        (float(np.log(NOISE_FLOOR)), float(np.log(1e-4))),
+        (float(np.log(FEATURE_AMP_BOUNDS[0])), float(np.log(FEATURE_AMP_BOUNDS[1]))),
+        (float(np.log(FEATURE_LEN_BOUNDS[0])), float(np.log(FEATURE_LEN_BOUNDS[1]))),
+    ]
+
+
 def fit_hyper(
     xy: Array,
     gx: Array,
@@ -495,16 +509,7 @@ def fit_hyper(
     xy, gx, gy = xy[keep], gx[keep], gy[keep]
     g = np.concatenate([gx, gy])
     g_rms = float(np.sqrt(np.mean(g**2))) + 1e-9
-    bounds = [
-        (np.log(g_rms * 0.3), np.log(g_rms * 300.0)),
-        (np.log(3.0), np.log(60.0)),
-        (np.log(1e-8), np.log(3e-4)),
-        (np.log(0.25), np.log(3.0)),
-        (np.log(NOISE_FLOOR), np.log(1e-4)),
-        (np.log(NOISE_FLOOR), np.log(1e-4)),
-        (float(np.log(FEATURE_AMP_BOUNDS[0])), float(np.log(FEATURE_AMP_BOUNDS[1]))),
-        (float(np.log(FEATURE_LEN_BOUNDS[0])), float(np.log(FEATURE_LEN_BOUNDS[1]))),
-    ]
+    bounds = _bounds(g_rms)
     lo, hi = [b[0] for b in bounds], [b[1] for b in bounds]
     pairs = _Pairs.of(xy)
     # the prior without the local-features part: its amplitude held at the floor

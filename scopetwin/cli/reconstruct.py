@@ -358,10 +358,10 @@ def register(subparsers: Any) -> None:
         help=h,
         description=h,
         **conventions(
-            "scopetwin render thesis-1.10-deflectometry --out r1 --spp 16",
             "scopetwin reconstruct r1/image.exr --setup thesis-1.10-deflectometry --out r1/heights.exr --json r1.json",
-            "scopetwin render thesis-1.10-fringes --out f1 --spp 16 --noise",
             "scopetwin reconstruct f1/fringes.json --out f1/heights.exr --json f1.json",
+            note="The images first: 'scopetwin render thesis-1.10-deflectometry --out r1 --spp 16' (markers), "
+            "'scopetwin render thesis-1.10-fringes --out f1 --spp 16 --noise' (a fringe sequence, fringes.json).",
         ),
     )
     p.set_defaults(func=cmd_reconstruct, outputs=[("out", "file"), ("json", "file")])
