@@ -34,15 +34,9 @@ __all__ = ["WORKER_NAME", "FrameFailure", "reconstruct_stream"]
 
 
 class FrameFailure(NamedTuple):
-    """A frame whose marker search (§1.5) or reconstruction (§1.4) failed, in its place in a ``keep_going`` stream.
-
-    Attributes
-    ----------
-    error : Exception
-        What the marker search or the nested iteration raised (a
-        :class:`~scopetwin.recon.markers.MarkerError` or :class:`~scopetwin.recon.errors.ReconstructionError` as a
-        rule).
-    """
+    """A frame whose marker search (§1.5) or reconstruction (§1.4) failed, in its place in a ``keep_going`` stream;
+    ``error`` is what the marker search or the nested iteration raised (a :class:`~scopetwin.recon.markers.
+    MarkerError` or :class:`~scopetwin.recon.errors.ReconstructionError` as a rule)."""
 
     error: Exception
 
