@@ -1,6 +1,6 @@
 """Same seeds, same bytes: renders of every preset and the figures of ``scopetwin run`` / ``study thesis``.
 
-Issue 12 (the redesign) promises that behaviour does not change.  This script drives the command line only (the
+A restructuring must not change behaviour. This script drives the command line only (the
 contract, docs/contract.md), so it survives any internal restructuring:
 
 * every Part I preset rendered with Mitsuba (``scopetwin render PRESET --spp 4 --seed 1``),

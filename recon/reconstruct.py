@@ -711,7 +711,7 @@ def predict_surface(surfaces: list[SBFSurface], values: list[tuple[float, float]
 def centroid_bias_step(
     setup: Setup, recompute_um: float = DEFAULT_POLICY.bias_recompute_um, grid: tuple[int, int] = (48, 112)
 ) -> BiasStep:
-    """A bias step for the inner loop built on :mod:`scopetwin.recon.bias` (markers issue), or an error if absent.
+    """A bias step for the inner loop built on :mod:`scopetwin.recon.bias`, or an error if absent.
 
     The bias of each marker's centroid (the spot is distorted by the curved mirror) is predicted
     from the current surface estimate and added to the measured centroid. The prediction is

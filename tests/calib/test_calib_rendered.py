@@ -38,7 +38,7 @@ def _calibrate(setup: Setup, image: np.ndarray, distortion: bool = False) -> Cal
 @pytest.mark.slow
 @pytest.mark.parametrize("fill", [0.2, 0.4, 0.95])
 def test_noisy_substrate_view_camera_centre_within_2_um(rendered, fill):
-    """Issue 14 item 4: three exposures (20, 40, 95 % of the full well at the peak), camera centre <= 2 µm.
+    """Three exposures (20, 40, 95 % of the full well at the peak), camera centre <= 2 µm.
 
     Two noise draws each: their mean error (the bias; it was 10 µm) within 2 µm, each draw within 2 µm plus
     three times its reported standard deviation (photon noise at 20 % of the full well scatters it by ~1 µm).
@@ -56,7 +56,7 @@ def test_noisy_substrate_view_camera_centre_within_2_um(rendered, fill):
 
 @pytest.mark.mitsuba
 def test_distortion_on_a_distortion_free_view_converges_to_c0_1_c2_0(rendered):
-    """Issue 14 item 6: the substrate view has no distortion; refining it gives c0 = 1, c2 = 0 within 3 sigma."""
+    """The substrate view has no distortion; refining it gives c0 = 1, c2 = 0 within 3 sigma."""
     setup = load_setup("thesis-2.8.3-substrate")
     cal = _calibrate(setup, rendered[0], distortion=True)
     cam = cal.camera
@@ -68,7 +68,7 @@ def test_distortion_on_a_distortion_free_view_converges_to_c0_1_c2_0(rendered):
 
 @pytest.mark.mitsuba
 def test_distortion_preset_recovered_within_uncertainty():
-    """Issue 14 item 6: the §2.8.5 view (r_cs = 46.5 µm, c2 = 0.00123/mm) rendered; c0, c2, r_cs within 3 sigma."""
+    """The §2.8.5 view (r_cs = 46.5 µm, c2 = 0.00123/mm) rendered; c0, c2, r_cs within 3 sigma."""
     from scopetwin.scenes.mitsuba.render import render_setup
 
     setup = load_setup("thesis-2.8.5-distortion")
@@ -84,7 +84,7 @@ def test_distortion_preset_recovered_within_uncertainty():
 @pytest.mark.mitsuba
 @pytest.mark.slow
 def test_noisy_angular_view_at_2_percent_fill_has_no_camera_centre_bias():
-    """Issue 14 item 4 at the lowest exposure of ``study noise`` (2 % of the full well at the peak).
+    """The camera centre at the lowest exposure of ``study noise`` (2 % of the full well at the peak).
 
     One render of the §2.8.1 angular view, 16 noise draws: the mean camera-centre error (the bias) within 2 µm
     plus twice its standard error. The scatter there is ~8 µm (64 draws: bias 0.7 +- 1.0 µm), so 16 draws

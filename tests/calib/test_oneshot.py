@@ -51,7 +51,7 @@ def test_perpendicular_thin_lens_consistent_focal_length(perpendicular):
 
 
 def test_thin_lens_mismatch_moves_camera_along_axis(perpendicular):
-    """Issue 4 item 5: b = 28 mm with f = 25 mm is 0.097 mm off the thin-lens focus: ~10 µm along the axis."""
+    """b = 28 mm with f = 25 mm is 0.097 mm off the thin-lens focus: ~10 µm along the axis."""
     s, xy, px, prior = perpendicular
     cal = calibrate(xy, px, prior, lens="thin-lens")
     dz = cal.camera.center[2] - s.camera_model.center[2]
@@ -121,7 +121,7 @@ def test_noise_experiment_uncertainty_matches_scatter(angular, rng):
 
 
 def test_auto_keeps_the_a_priori_image_distance_unless_the_data_reject_it(angular, rng):
-    """Issue 14 item 4: auto uses the camera's stated b; a b the data reject (z test) gives way to a free b."""
+    """auto uses the camera's stated b; a b the data reject (z test) gives way to a free b."""
     s, xy, px, prior = angular
     sigma_px = 0.005  # the rendered view's centroid scatter at 40 % of the full well
     noisy = px + rng.normal(0.0, sigma_px, px.shape)

@@ -1,4 +1,4 @@
-"""Issue 13 acceptance: ``scopetwin rig rigs/sim-cmu.toml mda SEQ.json --camera cam_nir --out x.ome.tif`` with
+"""``scopetwin rig rigs/sim-cmu.toml mda SEQ.json --camera cam_nir --out x.ome.tif`` with
 2 positions x 2 channels x 3 z gives 12 planes with a real pixel size, the channel names and the positions asked for
 (read back with tifffile and ome-types); and a signal mid-MDA keeps the planes written, readable, lights off."""
 

@@ -1,4 +1,4 @@
-"""Issue 15: SIGTERM and SIGHUP during ``rig acquire`` on the emulated-hardware rig whose FPGA board is a
+"""SIGTERM and SIGHUP during ``rig acquire`` on the emulated-hardware rig whose FPGA board is a
 ``scopetwin emulate fpga-board`` in its own process: the board's log shows every light off afterwards, the frames
 on disk are exactly those of the manifest, one line names the signal, exit 128 + n, no traceback (and Ctrl-C alike)."""
 

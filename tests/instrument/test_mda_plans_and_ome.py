@@ -1,4 +1,4 @@
-"""Issue 24, items 2 and 3: plans checked against the rig before anything moves (one line naming the event and the
+"""Plans checked against the rig before anything moves (one line naming the event and the
 limit, exit 2, nothing written), sizes in closed form (a 1e8-loop or 1e9 um plan in milliseconds), what the devices
 reported recorded (never what was asked), and OME files that independent readers read right: ome-zarr-py's Reader
 and ome-zarr-models at the store's root, tifffile and ome-types for OME-TIFF (one file per position, or one

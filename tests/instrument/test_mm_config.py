@@ -1,4 +1,4 @@
-"""Issue 24, item 1: Micro-Manager configuration files that a plain ``UniMMCore`` loads with nothing of scopetwin
+"""Micro-Manager configuration files that a plain ``UniMMCore`` loads with nothing of scopetwin
 called first; the shipped ``rigs/*.cfg`` are what ``scopetwin rig RIG mm-config`` writes; a fresh core snaps,
 switches the Channel presets and runs a useq MDA through ``core.mda`` into pymmcore-plus's own OME writers; and
 pymmcore-widgets (Qt offscreen) opens a configuration."""

@@ -294,7 +294,7 @@ def test_strongly_bent_substrate_chooses_a_basis_that_fits() -> None:
 
 @pytest.mark.slow
 def test_wrongly_indexed_markers_are_rejected() -> None:
-    """Issue 14 item 5: a row skip missed by the indexing (five markers given their neighbour's row) is found by the
+    """A row skip missed by the indexing (five markers given their neighbour's row) is found by the
     gradient residuals (~3 mrad against a few µrad), the markers rejected and named, and the surface found again:
     as accurate as from the clean markers. Clean markers lose none."""
     h = make_surface(SETUP.substrate.surface, SETUP.substrate)

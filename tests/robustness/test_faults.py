@@ -1,4 +1,4 @@
-"""Issue 25: bad inputs and faults, one row each — what the command does with them.
+"""Bad inputs and faults, one row each — what the command does with them.
 
 Every row builds its inputs in a fresh folder, runs one ``scopetwin`` command and checks:
 

@@ -1,4 +1,4 @@
-"""Issue 25: a property-based run over setups (TOML fragments), rigs, MDA sequences and dataset configs.
+"""A property-based run over setups (TOML fragments), rigs, MDA sequences and dataset configs.
 
 Hypothesis writes input files from the keys the loaders know and from values of every kind — numbers that are zero,
 negative, tiny (1e-300), huge (1e300), ``inf``, ``nan``; strings; arrays and tables nested up to 4000 levels deep;

@@ -210,7 +210,7 @@ def _rays_over_the_array(s, st, start, n, rng):
 
 @pytest.mark.parametrize("start", ["image", "object"])
 def test_sequential_trace_equals_mitsuba_intersections(realized, mono_variant, start):
-    """Issue 26: intersecting the planes a sequential trace meets in their known order (no Mitsuba ray
+    """Intersecting the planes a sequential trace meets in their known order (no Mitsuba ray
     intersection) gives the very same rays as asking Mitsuba's intersection at every plane, fates included."""
     s, st = realized
     gs = grin.GrinScene(s, st, 0.9, variant=mono_variant)
@@ -251,7 +251,7 @@ def test_multijitter_counts_are_those_mitsuba_keeps(mi_mono):
 
 
 def test_multijitter_at_25_spp_is_less_noisy_than_64_independent(realized, mono_variant):
-    """Issue 26, fewer paths for the same noise: stratified pixel and pupil samples (Mitsuba's multi-jittered
+    """Fewer paths for the same noise: stratified pixel and pupil samples (Mitsuba's multi-jittered
     sampler) at 25 spp give at most the per-pixel noise of 64 independent samples, around the same mean.
 
     The noise of each is the RMS difference of two renders with different seeds / sqrt 2 (no reference needed);

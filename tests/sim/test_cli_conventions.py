@@ -1,4 +1,4 @@
-"""Issue 22 item 5, command-line conventions: every command and sub-command takes -v/-q before or after its words,
+"""Command-line conventions: every command and sub-command takes -v/-q before or after its words,
 ends its help with examples that parse and name shipped presets / rigs / examples, and the library logs instead of
 printing."""
 
