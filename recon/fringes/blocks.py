@@ -1,11 +1,18 @@
 """Pixel blocks: the decoded display points averaged over b x b pixel tiles before the slope iteration (thesis §1.7).
 
 A pixel block's mean display point, seen along the ray through the block's centre, is one observation of the
-surface's gradient at the block's footprint (the ray model of :mod:`scopetwin.recon.fringes.slopes` unchanged). Over
-a block the display point is an affine function of the pixel position to well below its noise (the surface's
-curvature changes the reflected ray's direction little over a few pixels), so the mean over a full block is the
-display point of the block's centre. Only blocks whose b^2 pixels are all decoded are kept: their centre is the mean
-pixel position exactly.
+surface's gradient at the block's footprint (the ray model of :mod:`scopetwin.recon.fringes.slopes` unchanged). Only
+blocks whose b^2 pixels are all decoded are kept: their centre is the mean pixel position exactly. Were the display
+point an affine function of the pixel position over a block, the block's mean would be the display point of its
+centre. It is not quite: the surface's short-wavelength content (glass's micro-waviness of tens of nm at 1-8 mm)
+curves the display-point map f by f_rr ~ 3 µm per pixel^2 along the rows of the §1.10 camera (measured against the
+per-pixel truth of rendered cut sheets), and a block of b pixels, each a box of one, averages f over a box of b
+pixels: mean = f(centre) + (b^2 / 24)(f_rr + f_cc), about 1 µm at b = 3, a bias along the surface's own detail that
+no noise model covers (at two display positions it was the second largest error of the shape on such sheets, 2.3 nm
+of 4 nm). The second differences of neighbouring block means along the block rows and columns are b^2 f_rr and
+b^2 f_cc (to second order), so :func:`block_centre_values` takes (D_r + D_c) / 24 off each mean: a component of
+wavelength 4.4 blocks (1 mm along the rows at b = 3) is then kept to 0.98 instead of 0.91. It raises the block's
+noise variance by :data:`CENTRE_VARIANCE_FACTOR` (1.37).
 
 The block size is chosen from what the slope integration resolves: the cubic B-spline of knot spacing s
 (:class:`scopetwin.recon.fringes.integration.SlopeIntegrator`) follows no gradient component shorter than a
@@ -48,6 +55,14 @@ from scopetwin.scenes.camera import Camera
 BLOCKS_PER_KNOT = 2.0
 #: Largest automatic block edge, pixels.
 MAX_BLOCK_PX = 8
+#: The block mean's second-order term: a box of b pixels (each pixel's own footprint a box of one) has the offset
+#: variance b^2 / 12 in pixel units along each axis, so mean = centre + (b^2 / 24) (f_rr + f_cc) for a display-point
+#: map f of curvature f_rr, f_cc per pixel^2; the second differences of neighbouring block means are b^2 f'' (module
+#: docstring).
+SECOND_ORDER_DIVISOR = 24.0
+#: Variance of the corrected value relative to the plain mean's: (1 + 4 + 1) / 24^2 more per axis, and the mean's
+#: own share in its second differences (-2 / 24 twice) (module docstring).
+CENTRE_VARIANCE_FACTOR = (1.0 + 4.0 / 24.0) ** 2 + 4.0 / 24.0**2
 #: Tile edge over which the unstated per-pixel noise is found when every pixel stays its own observation, pixels.
 NOISE_TILE_PX = 3
 
@@ -87,6 +102,23 @@ def _tiles(a: NDArray[Any], b: int) -> NDArray[Any]:
     """(rows, cols) -> (rows // b, cols // b, b * b): each full b x b tile's pixels on the last axis."""
     r, c = a.shape[0] // b, a.shape[1] // b
     return a[: r * b, : c * b].reshape(r, b, c, b).transpose(0, 2, 1, 3).reshape(r, c, b * b)
+
+
+def block_centre_values(means: NDArray[Any]) -> NDArray[Any]:
+    """The display point of each block's centre ray from the blocks' mean display points (rows, cols; NaN where a
+    block is not decoded): the second-order term of the module docstring removed, mean - (D_r + D_c) / 24, with D_r,
+    D_c the second differences of the means along the block rows and columns; an axis whose two neighbours are not
+    both decoded is left uncorrected."""
+    out = means.copy()
+    for axis in (0, 1):
+        d2 = np.zeros_like(means)
+        inner = [slice(None), slice(None)]
+        inner[axis] = slice(1, -1)
+        lo, hi = list(inner), list(inner)
+        lo[axis], hi[axis] = slice(None, -2), slice(2, None)
+        d2[tuple(inner)] = means[tuple(hi)] - 2.0 * means[tuple(inner)] + means[tuple(lo)]
+        out -= np.where(np.isfinite(d2), d2, 0.0) / SECOND_ORDER_DIVISOR
+    return out
 
 
 def block_average(coords: DisplayCoordinates, block: int) -> tuple[DisplayCoordinates, BlockNoise]:
@@ -131,7 +163,7 @@ def _averaged(coords: DisplayCoordinates, block: int) -> tuple[DisplayCoordinate
     for value, std in ((coords.u, coords.u_std), (coords.v, coords.v_std)):
         tiles = np.where(full[..., None], _tiles(np.where(coords.valid, value, 0.0), block), 0.0)
         var = _tiles(np.where(coords.valid, std, 0.0) ** 2, block).mean(axis=-1)
-        means.append(tiles.mean(axis=-1))
+        means.append(block_centre_values(np.where(full, tiles.mean(axis=-1), np.nan)))
         if full.any():
             scatter = np.einsum("...i,ji->...j", tiles[full], residual_map)
             ms = np.sum(scatter * scatter, axis=-1) / (n - 3)
@@ -139,7 +171,7 @@ def _averaged(coords: DisplayCoordinates, block: int) -> tuple[DisplayCoordinate
         else:
             ratio = 1.0
         factors.append(np.sqrt(ratio))
-        stds.append(np.sqrt(ratio * var / n))
+        stds.append(np.sqrt(ratio * var / n * CENTRE_VARIANCE_FACTOR))
     no = np.zeros(full.shape, dtype=bool)
     low = np.any(_tiles(coords.low_modulation, block), axis=-1) & ~full
     averaged = DisplayCoordinates(
