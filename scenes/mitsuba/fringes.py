@@ -8,6 +8,17 @@ The scene is loaded once; each frame only writes the display's texture (:meth:`s
 texture`, times the pattern's ``radiance``) into the emitter's bitmap through ``mi.traverse`` and renders again: the
 texture is a buffer of the same shape, so every frame launches the kernels the first one compiled (tested).
 
+The substrate's mesh is finer than the marker render's (:data:`FRINGE_VERTICES`, 0.033 x 0.037 mm between vertices
+on the 25.2 x 57 mm substrate). Mitsuba interpolates the exact vertex normals linearly across each triangle, which
+smooths the mirror's slopes at the vertex spacing: every decoded display point is then the true one plus half the
+display-point map's curvature times an effective variance, measured on rendered cut and features sheets (clean
+renders against the per-pixel truth ``pattern_xy``) as 0.41-0.46 px^2 along the rows and 1.09-1.25 px^2 along the
+columns with the marker render's 256 x 512 vertices (0.10 x 0.11 mm apart: 1.5 rows, 2.5 columns of the §1.10
+camera); with 768 x 1536 it is 0.13-0.21 px^2, the pixel's own box (1/12 px^2) and the rest. At the fringes'
+display-point noise (about 1.5 µm per pixel) the coarser mesh was the largest error of a reconstruction at two
+display positions on those sheets: nanometres of shape, a correlated error no noise model of the decoder covers.
+The markers' centroids do not resolve it (docs/rendering.md).
+
 Every frame is rendered with the same sampler seed: a camera pixel integrates the same footprint in each frame, as a
 real pixel does; independent seeds would add Monte Carlo noise that differs between the phase steps, which no camera
 has (the sensor's own noise is added per frame by :func:`scopetwin.sim.fringes.render_fringes`).
@@ -33,6 +44,9 @@ from scopetwin.scenes.surface import HeightMap
 
 __all__ = ["DISPLAY_TEXTURE_KEY", "display_plate", "render_display_image", "render_fringe_frames"]
 
+#: Vertex counts (x, y) of the substrate's mesh in a fringe render: three times the marker render's
+#: (:data:`scopetwin.scenes.mitsuba.shapes.DEFAULT_VERTICES`) along each axis (module docstring).
+FRINGE_VERTICES = (768, 1536)
 #: The scene parameter holding the display's radiance raster.
 DISPLAY_TEXTURE_KEY = "pattern.emitter.radiance.data"
 
@@ -161,7 +175,9 @@ def _render_textures(
     window = None if cam.lens is not None else live_window(plate, heights)
     t0 = time.perf_counter()
     first = emitter_rectangle(plate.marker_pattern, next(textures), variant)
-    scene: Any = mi.load_dict(scene_dict(plate, heights, spp, seed, window, variant=variant, emitter=first))
+    scene: Any = mi.load_dict(
+        scene_dict(plate, heights, spp, seed, window, vertices=FRINGE_VERTICES, variant=variant, emitter=first)
+    )
     params = mi.traverse(scene)
     if DISPLAY_TEXTURE_KEY not in params:  # pragma: no cover - the scene dictionary names it
         raise SetupError(f"the loaded scene has no parameter {DISPLAY_TEXTURE_KEY!r}")
