@@ -16,6 +16,13 @@ sparse design matrix), and it is factorised by LAPACK's banded Cholesky (scipy.l
 Posterior by perturbation: re-solving with the observations perturbed by their noise and the prior by draws of its
 own distribution gives exact samples of the Gaussian posterior (c_s - c = M^{-1}(A^T W^{1/2} e + D^T z / kappa));
 each sample costs one back-substitution with the same factors. Heights relative to the ROI mean are read off them.
+
+Repeated solves: between the iterations of the reconstruction the observations move little (the rays meet a surface
+a fraction of a micrometre away), so the normal matrix changes little. A solve given an earlier one (``warm``) skips
+the band accumulation and the factorisation: conjugate gradients on its own normal equations (matrix-vector products
+straight from the whitened rows), preconditioned by the earlier banded Cholesky factor and started at the earlier
+coefficients, converge in a few iterations to the same solution (to :data:`WARM_RTOL`); a fresh factorisation where
+they do not within :data:`WARM_MAXITER`. The posterior draws then factorise once, when asked for.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import scipy.linalg as sl
 import scipy.sparse as sp
+import scipy.sparse.linalg as spl
 from numpy.typing import NDArray
 
 from scopetwin.recon.errors import ReconstructionError
@@ -36,6 +44,10 @@ from scopetwin.scenes.geometry import Array
 
 #: Relative ridge on the coefficients that fixes the constant the slopes leave free (removed by the ROI gauge).
 GAUGE_RIDGE = 1e-9
+#: Relative residual |M c - A^T W g| / |A^T W g| at which the preconditioned conjugate gradients of a warm solve stop.
+WARM_RTOL = 1e-8
+#: Most conjugate-gradient iterations of a warm solve before it factorises afresh.
+WARM_MAXITER = 6
 
 
 @dataclass(frozen=True)
@@ -53,8 +65,12 @@ class Integrated:
         Whitened residual sum of squares of the observations per observation row (about 1 when the noise model
         holds and the surface follows the data).
     factor, rows : ndarray, optional
-        The normal matrix's banded Cholesky factor and the whitened observation rows it came from (for
-        :meth:`SlopeIntegrator.with_samples`).
+        A banded Cholesky factor of the normal matrix and the whitened observation rows of the solve (for
+        :meth:`SlopeIntegrator.with_samples`, and the preconditioner of a warm solve).
+    exact : bool
+        Whether ``factor`` is of these rows' normal matrix (False: an earlier solve's, that preconditioned this one).
+    cg_iterations : int
+        Conjugate-gradient iterations of a warm solve (0: solved by a factorisation of its own).
     """
 
     surface: SplineSurface
@@ -62,6 +78,8 @@ class Integrated:
     chi2_per_dof: float
     factor: Array | None = field(default=None, repr=False)
     rows: _Rows | None = field(default=None, repr=False)
+    exact: bool = True
+    cg_iterations: int = 0
 
 
 class SlopeIntegrator:
@@ -96,7 +114,8 @@ class SlopeIntegrator:
         self.prior = (d / self.curvature_std).tocsr()
         #: Bandwidth of the normal matrix: an observation's 16 coefficients span 3 knot rows + 3.
         self.kd = 3 * self.spline.shape[1] + 3
-        self._prior_band = _band(sp.csr_matrix(self.prior.T @ self.prior), self.kd)
+        self._prior_normal = sp.csr_matrix(self.prior.T @ self.prior)
+        self._prior_band = _band(self._prior_normal, self.kd)
         # the (a, b) places of an observation's 16 x 16 outer product in the upper triangle (its indices increase)
         self._pairs = np.triu_indices(16)
         gx, gy = sub.roi_grid(roi_step)
@@ -149,10 +168,18 @@ class SlopeIntegrator:
         return band + self._prior_band
 
     def solve(
-        self, obs: SlopeObservations, height: float, samples: int = 0, rng: np.random.Generator | int | None = 0
+        self,
+        obs: SlopeObservations,
+        height: float,
+        samples: int = 0,
+        rng: np.random.Generator | int | None = 0,
+        warm: Integrated | None = None,
     ) -> Integrated:
         """The posterior-mean surface of the observations at ROI-mean height ``height`` (mm), and ``samples`` draws
         (:meth:`with_samples`).
+
+        With ``warm``, an earlier solve of nearby observations (the same integrator), its factorisation
+        preconditions conjugate gradients on these observations' normal equations (module docstring).
 
         Raises
         ------
@@ -163,18 +190,50 @@ class SlopeIntegrator:
             raise ReconstructionError(f"only {len(obs)} slope observations: too few to integrate a surface")
         rows = self._whitened(obs)
         n_coef = self.n_coef
+        weighted = (rows.r1 * rows.g1[:, None] + rows.r2 * rows.g2[:, None]).ravel()
+        aty: Array = np.bincount(rows.idx.ravel(), weighted, n_coef).astype(np.float64)
+        coef: Array | None = None
+        factor, exact, iterations = None, True, 0
         with single_thread_blas():  # threaded BLAS on a banded factorisation: nothing gained on 2 cores, up to 10x lost
-            factor = _banded_cholesky(self._normal_band(rows))
-            aty = np.bincount(
-                rows.idx.ravel(), (rows.r1 * rows.g1[:, None] + rows.r2 * rows.g2[:, None]).ravel(), n_coef
-            )
-            coef = np.asarray(sl.cho_solve_banded((factor, False), aty), dtype=np.float64)
+            if warm is not None and warm.factor is not None and warm.factor.shape == (self.kd + 1, n_coef):
+                coef, iterations = self._warm_solve(rows, aty, warm.factor, warm.surface.coef.ravel())
+                factor, exact = warm.factor, False
+            if coef is None:
+                factor, exact, iterations = _banded_cholesky(self._normal_band(rows)), True, 0
+                coef = np.asarray(sl.cho_solve_banded((factor, False), aty), dtype=np.float64)
         at = coef[rows.idx]
         resid = np.concatenate([np.sum(rows.r1 * at, axis=1) - rows.g1, np.sum(rows.r2 * at, axis=1) - rows.g2])
         chi2 = float(resid @ resid) / len(resid)
-        coef += height - float(self.roi_mean(coef))
-        solved = Integrated(self.spline.with_coef(coef), np.zeros((0, n_coef)), chi2, factor, rows)
+        coef = coef + (height - float(self.roi_mean(coef)))
+        solved = Integrated(self.spline.with_coef(coef), np.zeros((0, n_coef)), chi2, factor, rows, exact, iterations)
         return self.with_samples(solved, samples, rng) if samples > 0 else solved
+
+    def _warm_solve(self, rows: _Rows, aty: Array, factor: Array, start: Array) -> tuple[Array | None, int]:
+        """Conjugate gradients on the normal equations of ``rows`` (gauge ridge included, as
+        :func:`_banded_cholesky` adds it), preconditioned by an earlier banded Cholesky ``factor`` and started at
+        ``start``: the solution and the iterations, or None where they did not reach :data:`WARM_RTOL` within
+        :data:`WARM_MAXITER`."""
+        n_coef = self.n_coef
+        design = rows.design(n_coef)
+        # the diagonal's mean, as the factorisation's ridge is set: the rows' squared weights and the prior's
+        ridge = GAUGE_RIDGE * (float(design.data @ design.data) + float(self._prior_band[self.kd].sum())) / n_coef
+        prior = self._prior_normal
+
+        def normal(x: Array) -> Array:
+            return np.asarray(design.T @ (design @ x) + prior @ x + ridge * x)
+
+        def precondition(r: Array) -> Array:
+            return np.asarray(sl.cho_solve_banded((factor, False), r, check_finite=False))
+
+        count = [0]
+
+        def counted(_: Array) -> None:
+            count[0] += 1
+
+        op = spl.LinearOperator((n_coef, n_coef), matvec=normal, dtype=np.float64)
+        pre = spl.LinearOperator((n_coef, n_coef), matvec=precondition, dtype=np.float64)
+        coef, info = spl.cg(op, aty, x0=start, rtol=WARM_RTOL, maxiter=WARM_MAXITER, M=pre, callback=counted)
+        return (np.asarray(coef, dtype=np.float64) if info == 0 else None), count[0]
 
     def with_samples(
         self, solved: Integrated, samples: int, rng: np.random.Generator | int | None = 0, height: float | None = None
@@ -186,27 +245,32 @@ class SlopeIntegrator:
         says (noise the model left out, or surface detail the spline and prior do not follow) widen the posterior
         by their excess (the Birge ratio), never narrow it.
 
+        A warm solve (``solved.exact`` False) factorises its own normal matrix first.
+
         Raises
         ------
         ReconstructionError
-            ``solved`` does not carry its factorisation (not from :meth:`solve`).
+            ``solved`` does not carry its observation rows (not from :meth:`solve`).
         """
-        if solved.factor is None or solved.rows is None:
-            raise ReconstructionError("posterior draws need the solve's factorisation (SlopeIntegrator.solve)")
+        rows = solved.rows
+        if rows is None:
+            raise ReconstructionError("posterior draws need the solve's observation rows (SlopeIntegrator.solve)")
+        factor = solved.factor
+        if factor is None or not solved.exact:
+            with single_thread_blas():
+                factor = _banded_cholesky(self._normal_band(rows))
+            solved = replace(solved, factor=factor, exact=True)
         coef = solved.surface.coef.ravel()
         if height is not None:
             coef = coef + (height - float(self.roi_mean(coef)))
         gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-        rows, n_coef = solved.rows, self.n_coef
+        n_coef = self.n_coef
         n = len(rows.g1)
-        indptr = np.arange(0, 16 * n + 1, 16)
-        a1 = sp.csr_matrix((rows.r1.ravel(), rows.idx.ravel(), indptr), shape=(n, n_coef))
-        a2 = sp.csr_matrix((rows.r2.ravel(), rows.idx.ravel(), indptr), shape=(n, n_coef))
-        e1, e2 = gen.standard_normal((n, samples)), gen.standard_normal((n, samples))
+        e = np.concatenate([gen.standard_normal((n, samples)), gen.standard_normal((n, samples))])
         z = gen.standard_normal((self.prior.shape[0], samples))
-        pert = np.asarray(a1.T @ e1) + np.asarray(a2.T @ e2) + np.asarray(self.prior.T @ z)
+        pert = np.asarray(rows.design(n_coef).T @ e) + np.asarray(self.prior.T @ z)
         with single_thread_blas():
-            draws = np.asarray(sl.cho_solve_banded((solved.factor, False), pert), dtype=np.float64).T
+            draws = np.asarray(sl.cho_solve_banded((factor, False), pert), dtype=np.float64).T
         draws -= self.roi_mean(draws)[:, None]
         draws *= np.sqrt(max(solved.chi2_per_dof, 1.0))
         return replace(solved, surface=self.spline.with_coef(coef), samples=draws)
@@ -222,6 +286,15 @@ class _Rows:
     r2: Array
     g1: Array
     g2: Array
+
+    def design(self, n_coef: int) -> sp.csr_matrix:
+        """The whitened equations' design matrix (2 n x ``n_coef``: every observation's first equations, then its
+        second ones), sparse."""
+        n = len(self.g1)
+        data = np.concatenate([self.r1.ravel(), self.r2.ravel()])
+        idx = np.ravel(self.idx)
+        indptr = np.arange(0, 32 * n + 1, 16)
+        return sp.csr_matrix((data, np.concatenate([idx, idx]), indptr), shape=(2 * n, n_coef))
 
 
 def _band(normal: sp.csr_matrix, kd: int) -> Array:

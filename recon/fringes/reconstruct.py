@@ -246,6 +246,8 @@ class FringeReconstructor:
         gx, gy = substrate.roi_grid(cfg.roi_step_mm)
         self._roi = spline.design(gx, gy)
         self._frames = [spline.design(*substrate.frame_grid(r, cfg.frame_step_mm)) for r in (1, 2)]
+        #: The latest integration: its factorisation preconditions the next one's (SlopeIntegrator.solve, warm).
+        self._warm: Integrated | None = None
 
     def plane(self, height: float) -> SplineSurface:
         """The plane z = ``height`` as a spline."""
@@ -271,7 +273,8 @@ class FringeReconstructor:
         while iterations < cfg.inner_max:
             iterations += 1
             obs = dense_slopes(self.camera, self.display, coords, surface, self.sub, rays)
-            integ = self.integrator.solve(obs, height)
+            integ = self.integrator.solve(obs, height, warm=self._warm)
+            self._warm = integ
             surface = integ.surface
             roi = self._roi @ surface.coef.ravel()
             change = float(np.sqrt(np.mean((roi - prev) ** 2)))

@@ -170,3 +170,38 @@ def test_banded_normal_matrix_equals_the_sparse_one():
         i = np.arange(integ.n_coef - (kd - k))
         dense[i, i + kd - k] = band[k, kd - k + i]
     np.testing.assert_allclose(np.triu(dense), np.triu(normal), rtol=1e-12, atol=1e-12 * np.abs(normal).max())
+
+
+def test_warm_solve_gives_the_factorised_solution_and_posterior():
+    """An integration preconditioned by an earlier one's factorisation (observations moved by a few µm, slopes by
+    their noise) gives the surface and posterior draws of its own factorisation; a warm start from far-off
+    observations (a quarter of them) factorises afresh and gives them too."""
+    import scopetwin
+
+    sub = Substrate2D.from_setup(scopetwin.load_setup("thesis-1.10-fringes"))
+    integ = SlopeIntegrator(sub, 0.8, 1e-3)
+    rng = np.random.default_rng(5)
+    n = 6000
+    xy = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-20, 20, n)])
+    c11, c22 = rng.uniform(1, 2, n) * 1e-10, rng.uniform(1, 2, n) * 1e-10
+    cov = np.column_stack([c11, 0.3 * np.sqrt(c11 * c22), c22])
+    hx, hy = 2e-3 * xy[:, 0] / 10 + rng.normal(0, 1e-5, n), -1e-3 * xy[:, 1] / 20 + rng.normal(0, 1e-5, n)
+    obs = SlopeObservations(np.arange(n), xy, hx, hy, cov, np.zeros((n, 3)))
+    earlier = integ.solve(obs, 0.01)
+    moved = SlopeObservations(
+        obs.index, xy + rng.normal(0, 2e-3, xy.shape), hx + rng.normal(0, 1e-5, n), hy, cov * 1.01, obs.hit
+    )
+    cold = integ.solve(moved, 0.01)
+    far = integ.solve(SlopeObservations(obs.index[::4], xy[::4], hx[::4], hy[::4], cov[::4], obs.hit[::4]), 0.01)
+    gx, gy = sub.roi_grid(0.5)
+    reference = integ.with_samples(cold, 32, 1)
+    std = np.std(np.asarray(integ.spline.design(gx, gy) @ reference.samples.T), axis=1)
+    for start, preconditioned in ((earlier, True), (far, False)):
+        warm = integ.solve(moved, 0.01, warm=start)
+        assert (not warm.exact and warm.cg_iterations > 0) == preconditioned
+        diff = warm.surface.height(gx, gy) - cold.surface.height(gx, gy)
+        assert np.max(np.abs(diff)) < 1e-3 * std.min()  # a thousandth of the heights' own uncertainty
+        assert warm.chi2_per_dof == pytest.approx(cold.chi2_per_dof, rel=1e-8)
+        drawn = integ.with_samples(warm, 32, 1)
+        assert drawn.exact
+        np.testing.assert_allclose(drawn.samples, reference.samples, atol=1e-8 * np.abs(reference.samples).max())
