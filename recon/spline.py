@@ -76,14 +76,20 @@ class SplineSurface:
         tu, tv = u - i, v - j
         wu = np.stack(cubic_bspline_weights(tu), axis=-1)  # (n, 8)
         wv = np.stack(cubic_bspline_weights(tv), axis=-1)
-        m_grid, k_grid = np.meshgrid(np.arange(4), np.arange(4), indexing="ij")
-        mm, kk = m_grid.ravel(), k_grid.ravel()
-        idx = (j[:, None] - 1 + mm[None, :]) * nx + (i[:, None] - 1 + kk[None, :])
-        w = wv[:, mm] * wu[:, kk]
-        wx = wv[:, mm] * wu[:, 4 + kk] / self.dx
-        wy = wv[:, 4 + mm] * wu[:, kk] / self.dy
+        n, r4 = len(u), np.arange(4)
+        # entry 4 m + k: coefficient row j - 1 + m, column i - 1 + k (outer products by broadcasting)
+        idx = ((((j - 1)[:, None] + r4) * nx)[:, :, None] + ((i - 1)[:, None] + r4)[:, None, :]).reshape(n, 16)
+
+        def outer(a: Array, b: Array) -> Array:
+            return (a[:, :, None] * b[:, None, :]).reshape(n, 16)
+
+        w = outer(wv[:, :4], wu[:, :4])
+        wx = outer(wv[:, :4], wu[:, 4:]) / self.dx
+        wy = outer(wv[:, 4:], wu[:, :4]) / self.dy
         if not second:
             return idx, w, wx, wy, None
+        m_grid, k_grid = np.meshgrid(r4, r4, indexing="ij")
+        mm, kk = m_grid.ravel(), k_grid.ravel()
         su = np.stack([1.0 - tu, 3.0 * tu - 2.0, 1.0 - 3.0 * tu, tu], axis=-1)  # d^2 w / dt^2
         sv = np.stack([1.0 - tv, 3.0 * tv - 2.0, 1.0 - 3.0 * tv, tv], axis=-1)
         wxx = wv[:, mm] * su[:, kk] / self.dx**2
