@@ -51,6 +51,17 @@ from scopetwin.scenes.surface import HeightMap
 OUTLIER_ROBUST_SIGMAS = 4.0
 
 
+def distance_left(change: float, last_change: float) -> float:
+    """The RMS distance of the ROI heights to the inner loop's fixed point (mm), extrapolated from the last two
+    RMS changes (mm) of a contracting iteration: with the ratio q = change / last_change < 1 the steps still to come
+    sum to change q / (1 - q) (geometric series); infinite where the changes do not shrink or there is no last
+    change (``last_change`` infinite)."""
+    if not (np.isfinite(last_change) and 0.0 <= change < last_change):
+        return float("inf")
+    q = change / last_change
+    return change * q / (1.0 - q)
+
+
 @dataclass(frozen=True)
 class FringeConfig:
     """Parameters of the fringe reconstruction.
@@ -68,7 +79,8 @@ class FringeConfig:
     start_height_mm : float
         First start height H, mm.
     inner_tol_um, inner_max : float, int
-        RMS change of the ROI heights that ends the inner loop, µm; most inner iterations.
+        RMS change of the ROI heights, or RMS distance left to the self-consistent surface that the last two
+        changes extrapolate to (:func:`distance_left`), that ends the inner loop, µm; most inner iterations.
     outer_tol_um, outer_max : float, int
         |frame criterion| (or |start-height change| with two positions) that ends the outer loop, µm; most steps.
     criterion : {"level", "delta"}
@@ -269,7 +281,7 @@ class FringeReconstructor:
             c = initial.coef.ravel()
             surface = initial.with_coef(c + height - float(self.integrator.roi_mean(c)))
         prev = self._roi @ surface.coef.ravel()
-        iterations = 0
+        iterations, last_change = 0, float("inf")
         while iterations < cfg.inner_max:
             iterations += 1
             obs = dense_slopes(self.camera, self.display, coords, surface, self.sub, rays)
@@ -279,8 +291,9 @@ class FringeReconstructor:
             roi = self._roi @ surface.coef.ravel()
             change = float(np.sqrt(np.mean((roi - prev) ** 2)))
             prev = roi
-            if change * 1e3 < cfg.inner_tol_um:
+            if min(change, distance_left(change, last_change)) * 1e3 < cfg.inner_tol_um:
                 break
+            last_change = change
         return _Inner(surface, obs, integ, iterations)
 
     def _step(self, h: float, inner: _Inner, crit: float, m1: float, m2: float) -> FringeStep:

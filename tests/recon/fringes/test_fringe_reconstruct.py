@@ -21,7 +21,7 @@ from fringe_cases import PERIODS, capture, second_position, thesis_setup, truth 
 
 from scopetwin.recon.errors import ReconstructionError  # noqa: E402
 from scopetwin.recon.fringes.phase import DisplayCoordinates, decode_display  # noqa: E402
-from scopetwin.recon.fringes.reconstruct import FringeResult, reconstruct_fringes  # noqa: E402
+from scopetwin.recon.fringes.reconstruct import FringeResult, distance_left, reconstruct_fringes  # noqa: E402
 from scopetwin.sim.families import dimple_spec  # noqa: E402
 
 SHIFT_MM = 10.0
@@ -124,3 +124,15 @@ def test_reported_uncertainties_cover_the_errors_over_noise_seeds(case):
     assert np.all(np.abs(z) < 3.0), z
     assert np.sqrt(np.mean(z**2)) < 2.0, z
     assert np.min(inside) >= 0.9, inside
+
+
+def test_distance_left_sums_the_steps_of_a_contracting_iteration():
+    """A fixed-point iteration whose steps shrink by q: the steps still to come sum to the extrapolated distance; no
+    distance (infinite) without a last step or where the steps do not shrink."""
+    q, first = 0.07, 10.0
+    steps = first * q ** np.arange(60)
+    for k in (1, 2, 5):
+        assert distance_left(steps[k], steps[k - 1]) == pytest.approx(steps[k + 1 :].sum(), rel=1e-12)
+    assert distance_left(1.0, float("inf")) == float("inf")
+    assert distance_left(1.0, 1.0) == float("inf")
+    assert distance_left(2.0, 1.0) == float("inf")
