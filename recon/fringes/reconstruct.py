@@ -21,13 +21,14 @@ maxima by microns. With ``frame_posterior`` (default) the criterion's shape func
 the ROI mean) is read instead from the Gaussian-process posterior of the marker path (:mod:`scopetwin.recon.
 posterior`: prior chosen by evidence, :func:`~scopetwin.recon.posterior.fit_hyper`; the slopes traced through the
 converged surface, a few hundred of them by :func:`scopetwin.recon.uncertainty.posterior_subset`), and the start
-height solves H + D_post(H) = z_frame by Newton steps, each followed by the inner loop at the new H (as
+height solves H + D_post(H) = z_frame by Newton steps, each but the last followed by the inner loop at the new H (as
 :func:`scopetwin.recon.uncertainty.posterior` does for the markers; ``level`` criterion only).
 
 Uncertainty: posterior samples of the integration (the display points' noise carried through the slopes, and the
 curvature prior) give the shape's standard deviation relative to the ROI mean; the start height's comes from the
-posterior spread of D divided by the criterion's slope in H (frame criterion with ``frame_posterior``; without it
-the spread of the frame criterion over the integration's samples), or from the triangulated heights' noise and the
+posterior spread of D divided by the criterion's slope in H, but not less than the spread of the frame criterion
+over the integration's samples (frame criterion with ``frame_posterior``; without it that spread and the distance
+left to the criterion's root), or from the triangulated heights' noise and the
 samples' shape at the pixels (two positions). The start height's uncertainty
 tilts the slopes; its effect on the shape (the surface's change per unit H, ROI mean removed) is added in quadrature.
 """
@@ -125,7 +126,7 @@ class FringeConfig:
     frame_posterior: bool = True
     evidence_points: int = 250
     evidence_coarse_points: int = 100
-    posterior_points: int = 400
+    posterior_points: int = 600
     posterior_iterations: int = 3
 
     def __post_init__(self) -> None:
@@ -190,7 +191,8 @@ class FringeResult:
     frame_posterior : dict or None
         The frame criterion read from the Gaussian-process posterior (``FringeConfig.frame_posterior``): D's
         posterior mean and spread and the spline's D (µm), the start-height correction it made (µm), the Newton
-        steps and the prior chosen by evidence; None where not used.
+        steps, the prior chosen by evidence, and the two parts of ``absolute_um`` (the larger is reported): D's
+        posterior spread and the criterion's spread over the spline's samples (µm); None where not used.
     """
 
     surface: SplineSurface
@@ -377,7 +379,13 @@ class FringeReconstructor:
         if cfg.frame_posterior and cfg.criterion == "level":
             solved = self.posterior_start_height(h_best, inner, slope, coords, rays)
             if solved is not None:
-                h_best, inner, sigma_h, info = solved
+                h_best, inner, sigma_post, info = solved
+                # not below the criterion's spread over the spline's own posterior samples: the Gaussian process
+                # sees a subset of the slopes with the white noise of its evidence, and on rendered steep sheets
+                # and the dimple its spread alone is short by 2-5 (docs/markers-vs-fringes.md)
+                sigma_spline = float(np.std(f_samples, ddof=1) / abs(slope))
+                sigma_h = max(sigma_post, sigma_spline)
+                info |= {"u_posterior_um": sigma_post * 1e3, "u_spline_um": sigma_spline * 1e3}
                 integ = self.integrator.with_samples(inner.integrated, cfg.samples, cfg.seed, h_best)
         result = self._result(
             integ, inner.obs, "frame-criterion", h_best, sigma_h, tilt, history, converged, time.perf_counter() - t0
