@@ -15,10 +15,21 @@ With a second display position (``second``, ``shift_mm``) the absolute height co
 triangulation of :mod:`scopetwin.recon.fringes.two_positions` instead: H is the weighted mean, over the pixels, of
 the triangulated height minus the integrated shape there, iterated with the inner loop.
 
+The frame criterion's extrapolation: the spline's fixed curvature prior extrapolates the surface 1-6 mm beyond the
+last decoded pixel into the frame regions, and on steep sheets (80-200 µm of waviness, a bow) it misses the frame
+maxima by microns. With ``frame_posterior`` (default) the criterion's shape functional D (frame maxima relative to
+the ROI mean) is read instead from the Gaussian-process posterior of the marker path (:mod:`scopetwin.recon.
+posterior`: prior chosen by evidence, :func:`~scopetwin.recon.posterior.fit_hyper`; the slopes traced through the
+converged surface, a few hundred of them by :func:`scopetwin.recon.uncertainty.posterior_subset`), and the start
+height solves H + D_post(H) = z_frame by Newton steps, each but the last followed by the inner loop at the new H (as
+:func:`scopetwin.recon.uncertainty.posterior` does for the markers; ``level`` criterion only).
+
 Uncertainty: posterior samples of the integration (the display points' noise carried through the slopes, and the
 curvature prior) give the shape's standard deviation relative to the ROI mean; the start height's comes from the
-spread of the frame criterion over the samples divided by the criterion's slope in H (frame criterion), or from the
-triangulated heights' noise and the samples' shape at the pixels (two positions). The start height's uncertainty
+posterior spread of D divided by the criterion's slope in H, but not less than the spread of the frame criterion
+over the integration's samples (frame criterion with ``frame_posterior``; without it that spread and the distance
+left to the criterion's root), or from the triangulated heights' noise and the
+samples' shape at the pixels (two positions). The start height's uncertainty
 tilts the slopes; its effect on the shape (the surface's change per unit H, ROI mean removed) is added in quadrature.
 """
 
@@ -38,9 +49,12 @@ from scopetwin.recon.fringes.integration import Integrated, SlopeIntegrator
 from scopetwin.recon.fringes.phase import DisplayCoordinates
 from scopetwin.recon.fringes.slopes import PixelRays, SlopeObservations, dense_slopes
 from scopetwin.recon.fringes.two_positions import DirectPoints, two_position_points
+from scopetwin.recon.policy import DEFAULT_POLICY
+from scopetwin.recon.posterior import FramePosterior, GradientGP, Hyper, PosteriorError, fit_hyper, frame_posterior
 from scopetwin.recon.reconstruct import measured_nodes, single_thread_blas
 from scopetwin.recon.spline import SplineSurface
 from scopetwin.recon.substrate import Substrate2D
+from scopetwin.recon.uncertainty import posterior_subset
 from scopetwin.scenes.camera import Camera
 from scopetwin.scenes.geometry import Array, Frame
 from scopetwin.scenes.setup import Setup
@@ -93,6 +107,18 @@ class FringeConfig:
         Edge of the pixel blocks the display points are averaged over before the iteration
         (:mod:`scopetwin.recon.fringes.blocks`), pixels; 0: chosen from the knot spacing
         (:func:`scopetwin.recon.fringes.blocks.block_size`), 1: every pixel its own observation.
+    frame_posterior : bool
+        The frame criterion's D from the Gaussian-process posterior of the slopes (prior by evidence) and the start
+        height from H + D_post = z_frame (module docstring); False: D of the spline's extrapolation. ``level``
+        criterion only.
+    evidence_points, evidence_coarse_points : int
+        Slopes (an even subsample) the evidence is maximised on, and the coarse subsample its starts run on
+        (:func:`scopetwin.recon.posterior.fit_hyper`).
+    posterior_points : int
+        Slopes the posterior is conditioned on (:func:`scopetwin.recon.uncertainty.posterior_subset`: the half
+        nearest the frame regions in full, an even subsample of the rest).
+    posterior_iterations : int
+        Most Newton steps on H + D_post(H) = z_frame.
     """
 
     knot_spacing_mm: float = 0.4
@@ -109,6 +135,11 @@ class FringeConfig:
     roi_step_mm: float = 0.5
     measured_gap_mm: float = 0.5
     block_px: int = 0
+    frame_posterior: bool = True
+    evidence_points: int = 250
+    evidence_coarse_points: int = 100
+    posterior_points: int = 600
+    posterior_iterations: int = 3
 
     def __post_init__(self) -> None:
         for name in ("knot_spacing_mm", "curvature_std_per_mm", "inner_tol_um", "outer_tol_um"):
@@ -117,6 +148,11 @@ class FringeConfig:
         if self.block_px < 0:
             raise ReconstructionError(
                 f"fringe reconstruction: block_px must be >= 0 (0: automatic), got {self.block_px}"
+            )
+        if self.evidence_points < 10 or self.posterior_points < 10 or self.posterior_iterations < 1:
+            raise ReconstructionError(
+                "fringe reconstruction: evidence_points >= 10, posterior_points >= 10 and posterior_iterations >= 1 "
+                f"needed, got {self.evidence_points}, {self.posterior_points}, {self.posterior_iterations}"
             )
         if self.samples < 2 or self.inner_max < 1 or self.outer_max < 1:
             raise ReconstructionError("fringe reconstruction: samples >= 2, inner_max >= 1 and outer_max >= 1 needed")
@@ -164,6 +200,11 @@ class FringeResult:
     history : list of FringeStep
     converged : bool
     seconds : float
+    frame_posterior : dict or None
+        The frame criterion read from the Gaussian-process posterior (``FringeConfig.frame_posterior``): D's
+        posterior mean and spread and the spline's D (µm), the start-height correction it made (µm), the Newton
+        steps, the prior chosen by evidence, and the two parts of ``absolute_um`` (the larger is reported): D's
+        posterior spread and the criterion's spread over the spline's samples (µm); None where not used.
     """
 
     surface: SplineSurface
@@ -179,6 +220,7 @@ class FringeResult:
     block_px: int = 1
     converged: bool = True
     seconds: float = 0.0
+    frame_posterior: dict[str, Any] | None = None
 
     def height_at(self, x_mm: Any, y_mm: Any) -> NDArray[np.float64]:
         """Heights at substrate coordinates (x, y), mm (vectorised)."""
@@ -231,6 +273,7 @@ class FringeResult:
             "seconds": self.seconds,
             "uncertainty": {"absolute_um": self.absolute_um, "shape_um": self.shape_um},
             "history": [s.__dict__ for s in self.history],
+            "frame_posterior": self.frame_posterior,
         }
 
 
@@ -348,9 +391,89 @@ class FringeReconstructor:
         f_samples = np.array([frame_criterion(a, b, self.sub.frame_z, cfg.criterion) for a, b in pairs])
         # the criterion's spread over the posterior, and the distance left to its root, in start height
         sigma_h = float(np.hypot(np.std(f_samples, ddof=1), values[best][1]) / abs(slope))
-        return self._result(
+        info = None
+        if cfg.frame_posterior and cfg.criterion == "level":
+            solved = self.posterior_start_height(h_best, inner, slope, coords, rays)
+            if solved is not None:
+                h_best, inner, sigma_post, info = solved
+                # not below the criterion's spread over the spline's own posterior samples: the Gaussian process
+                # sees a subset of the slopes with the white noise of its evidence, and on rendered steep sheets
+                # and the dimple its spread alone is short by 2-5 (docs/markers-vs-fringes.md)
+                sigma_spline = float(np.std(f_samples, ddof=1) / abs(slope))
+                sigma_h = max(sigma_post, sigma_spline)
+                info |= {"u_posterior_um": sigma_post * 1e3, "u_spline_um": sigma_spline * 1e3}
+                integ = self.integrator.with_samples(inner.integrated, cfg.samples, cfg.seed, h_best)
+        result = self._result(
             integ, inner.obs, "frame-criterion", h_best, sigma_h, tilt, history, converged, time.perf_counter() - t0
         )
+        result.frame_posterior = info
+        return result
+
+    def read_frame_posterior(self, obs: SlopeObservations, hyper: Hyper | None = None) -> tuple[FramePosterior, Hyper]:
+        """The Gaussian-process posterior of the frame criterion's shape functional D from the slopes ``obs``
+        (prior by evidence where ``hyper`` is None), on the ROI grid of the integrator's ROI mean.
+
+        Raises
+        ------
+        scopetwin.recon.posterior.PosteriorError
+            Too few slopes, or the posterior cannot be formed.
+        """
+        cfg, sub = self.config, self.sub
+        hyper = hyper or fit_hyper(
+            obs.xy, obs.hx, obs.hy, cfg.evidence_points, coarse_points=cfg.evidence_coarse_points
+        )
+        gp = GradientGP(*posterior_subset(obs.xy, obs.hx, obs.hy, cfg.posterior_points), hyper)
+        rx, ry = sub.roi_grid(cfg.roi_step_mm)
+        post = frame_posterior(gp, sub.x_range, sub.y_range, sub.roi_length, (np.unique(rx), np.unique(ry)))
+        return post, hyper
+
+    def posterior_start_height(
+        self, h: float, inner: _Inner, slope: float, coords: DisplayCoordinates, rays: PixelRays
+    ) -> tuple[float, _Inner, float, dict[str, Any]] | None:
+        """The start height from the posterior frame criterion: H + D_post(H) = z_frame (thesis §1.4, eq. 1.4 with
+        the posterior D) by Newton steps from the fitted root ``h``, each but the last followed by the inner loop at
+        the new H (the traced slopes follow the start height), the marker path's
+        :func:`scopetwin.recon.uncertainty.posterior` on the fringe slopes.
+
+        Returns the start height (mm), the last inner run, the start height's standard uncertainty (D's posterior
+        spread over the criterion's slope, mm) and a summary; None where the posterior cannot be formed (the
+        spline's extrapolation is kept).
+        """
+        cfg = self.config
+        slope = DEFAULT_POLICY.trusted_slope(slope)
+        h0 = h
+        m1, m2 = (float(v[0]) for v in self.frame_maxima(inner.surface.coef.ravel()))
+        d_fit = 0.5 * (m1 + m2) - h
+        hyper: Hyper | None = None
+        tried: list[tuple[float, float]] = []  # (H, F_post(H))
+        for k in range(cfg.posterior_iterations):
+            try:
+                post, hyper = self.read_frame_posterior(inner.obs, hyper)
+            except PosteriorError:
+                return None
+            f_post = h + post.d_mean - self.sub.frame_z
+            tried.append((h, f_post))
+            s = slope
+            if len(tried) >= 2 and tried[-1][0] != tried[-2][0]:
+                (ha, fa), (hb, fb) = tried[-2], tried[-1]
+                secant = (fb - fa) / (hb - ha)
+                lo, hi = DEFAULT_POLICY.slope_range
+                s = secant if lo < abs(secant) < hi else slope
+            step = -f_post / s
+            sigma = post.d_std / abs(slope)
+            h += step
+            if abs(step) <= sigma or abs(step) * 1e3 <= cfg.outer_tol_um or k == cfg.posterior_iterations - 1:
+                break  # the last, small step without another inner loop
+            inner = self.inner_loop(h, coords, rays, inner.surface)
+        info = {
+            "d_um": post.d_mean * 1e3,
+            "d_std_um": post.d_std * 1e3,
+            "d_spline_um": d_fit * 1e3,
+            "correction_um": (h - h0) * 1e3,
+            "steps": len(tried),
+            "prior": post.hyper.as_dict(),
+        }
+        return h, inner, sigma, info
 
     def two_position_loop(self, coords: DisplayCoordinates, direct: DirectPoints) -> FringeResult:
         """The start height from per-pixel triangulated heights (two display positions), iterated with the inner loop.
