@@ -155,6 +155,17 @@ class ReconstructionPolicy:
         lo, hi = self.slope_range
         return slope if lo < abs(slope) < hi else 1.0
 
+    def newton_slope(self, tried: list[tuple[float, float]], slope: float) -> float:
+        """The slope of a Newton step on F(H) = 0 from its evaluations ``tried`` = [(H, F(H)), ...]: the secant
+        through the last two where they differ in H and it lies inside :attr:`slope_range`, else ``slope``."""
+        if len(tried) >= 2 and tried[-1][0] != tried[-2][0]:
+            (ha, fa), (hb, fb) = tried[-2], tried[-1]
+            secant = (fb - fa) / (hb - ha)
+            lo, hi = self.slope_range
+            if lo < abs(secant) < hi:
+                return secant
+        return slope
+
 
 #: The policy every entry point uses unless given another.
 DEFAULT_POLICY = ReconstructionPolicy()

@@ -172,13 +172,7 @@ def _newton_start_height(
         h = it.roi_mean(surf.coef) + surf.offset
         f_post = h + reading.post.d_mean - it.sub.frame_z  # the fitted surface satisfies H + D_fit(H) ~ z_frame
         tried.append((h, f_post))
-        s_post = slope
-        if len(tried) >= 2 and tried[-1][0] != tried[-2][0]:
-            (ha, fa), (hb, fb) = tried[-2], tried[-1]
-            s_post = (fb - fa) / (hb - ha)
-            lo, hi = policy.slope_range
-            s_post = s_post if lo < abs(s_post) < hi else slope
-        step = -f_post / s_post
+        step = -f_post / policy.newton_slope(tried, slope)
         settled = abs(step) <= cfg.posterior_settle * reading.spread / abs(slope)
         log.debug("posterior Newton step %d: %+.3g µm (u %.3g µm)", k, step * 1e3, reading.spread / abs(slope) * 1e3)
         if settled or abs(step) * 1e3 <= cfg.outer_tol_um or k == cfg.posterior_iterations - 1:

@@ -453,13 +453,7 @@ class FringeReconstructor:
                 return None
             f_post = h + post.d_mean - self.sub.frame_z
             tried.append((h, f_post))
-            s = slope
-            if len(tried) >= 2 and tried[-1][0] != tried[-2][0]:
-                (ha, fa), (hb, fb) = tried[-2], tried[-1]
-                secant = (fb - fa) / (hb - ha)
-                lo, hi = DEFAULT_POLICY.slope_range
-                s = secant if lo < abs(secant) < hi else slope
-            step = -f_post / s
+            step = -f_post / DEFAULT_POLICY.newton_slope(tried, slope)
             sigma = post.d_std / abs(slope)
             h += step
             if abs(step) <= sigma or abs(step) * 1e3 <= cfg.outer_tol_um or k == cfg.posterior_iterations - 1:

@@ -146,6 +146,13 @@ def test_block_rays_pass_through_block_centres_and_size_follows_the_knots():
         PixelRays.of(cam, np.zeros((cam.ny, cam.nx), dtype=bool), 3)
 
 
+def _scattered(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """n slope positions over the ROI (mm) and their covariances (c11, c12, c22; ~1e-10 rad^2, correlation 0.3)."""
+    xy = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-20, 20, n)])
+    c11, c22 = rng.uniform(1, 2, n) * 1e-10, rng.uniform(1, 2, n) * 1e-10
+    return xy, np.column_stack([c11, 0.3 * np.sqrt(c11 * c22), c22])
+
+
 def test_banded_normal_matrix_equals_the_sparse_one():
     import scopetwin
 
@@ -153,9 +160,7 @@ def test_banded_normal_matrix_equals_the_sparse_one():
     integ = SlopeIntegrator(sub, 0.8, 1e-3)
     rng = np.random.default_rng(3)
     n = 5000
-    xy = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-20, 20, n)])
-    c11, c22 = rng.uniform(1, 2, n) * 1e-10, rng.uniform(1, 2, n) * 1e-10
-    cov = np.column_stack([c11, 0.3 * np.sqrt(c11 * c22), c22])
+    xy, cov = _scattered(rng, n)
     obs = SlopeObservations(np.arange(n), xy, rng.normal(0, 1e-3, n), rng.normal(0, 1e-3, n), cov, np.zeros((n, 3)))
     rows = integ._whitened(obs)
     band = integ._normal_band(rows)
@@ -182,9 +187,7 @@ def test_warm_solve_gives_the_factorised_solution_and_posterior():
     integ = SlopeIntegrator(sub, 0.8, 1e-3)
     rng = np.random.default_rng(5)
     n = 6000
-    xy = np.column_stack([rng.uniform(-10, 10, n), rng.uniform(-20, 20, n)])
-    c11, c22 = rng.uniform(1, 2, n) * 1e-10, rng.uniform(1, 2, n) * 1e-10
-    cov = np.column_stack([c11, 0.3 * np.sqrt(c11 * c22), c22])
+    xy, cov = _scattered(rng, n)
     hx, hy = 2e-3 * xy[:, 0] / 10 + rng.normal(0, 1e-5, n), -1e-3 * xy[:, 1] / 20 + rng.normal(0, 1e-5, n)
     obs = SlopeObservations(np.arange(n), xy, hx, hy, cov, np.zeros((n, 3)))
     earlier = integ.solve(obs, 0.01)
