@@ -584,7 +584,7 @@ def row_fringes(ctx: Context) -> Measured:
 
     m = read_fringes(ctx.fringes)
     done: list[Any] = []
-    times = repeat_min(lambda: done.append(reconstruct_fringe_images(m.images, m.setup)), 1, 5, 8.0)
+    times = repeat_min(lambda: done.append(reconstruct_fringe_images(m.images, m.setup)), 2, 5, 8.0)
     decode = repeat_min(lambda: decode_stack(m.images, m.setup), 1, 5, 2.0)
     r = done[-1]
     s = r.summary()

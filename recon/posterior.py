@@ -278,13 +278,8 @@ class GradientGP:
 
     def whitened(self, p: Array) -> Array:
         """L^-1 cov(g, f(p)), (2n, m): the posterior covariance is K_pp - W^T W."""
-        return self.mean_and_whitened(p)[1]
-
-    def mean_and_whitened(self, p: Array) -> tuple[Array, Array]:
-        """:meth:`mean` and :meth:`whitened` at the same points from one cross-covariance (its cost dominates both)."""
         kg = height_gradient_kernel(p, self.xy, self.hyper)
-        w = sla.solve_triangular(self.chol[0], kg.T, lower=True, check_finite=False)
-        return np.asarray(kg @ self.alpha), np.asarray(w)
+        return np.asarray(sla.solve_triangular(self.chol[0], kg.T, lower=True, check_finite=False))
 
 
 @dataclass(frozen=True)
@@ -643,6 +638,81 @@ def _roi_functional(gp: GradientGP, pts: Array, axes: tuple[Array, Array]) -> tu
     return k_gm, k_pm, k_mm
 
 
+#: Largest movement of any observation, mm, for which :meth:`FrameModel.covers` lets a frame model be read with new
+#: gradients at the moved positions (the posterior's Newton steps on the start height move the traced observations
+#: by about the step times the rays' slope: 0.03-0.2 µm on the thesis's kind, several µm on steep sheets, read
+#: anew). Measured on the ``thesis-1.10-fringes`` preset's render (600 slopes moved by 0.22 µm): D read with the old
+#: model lies 0.13 nm (0.007 of its spread) from a fresh posterior of the same observations, where choosing the
+#: posterior's subset anew alone moves it by 4 nm (0.2 of its spread): the model keeps its subset too.
+REUSE_SHIFT_MM = 5e-4
+
+
+@dataclass(frozen=True)
+class FrameModel:
+    """The part of :func:`frame_posterior` that does not depend on the gradient values: for one set of observation
+    positions and one prior, the factor, the whitened cross-covariances of the frame points and nodes, the nodes'
+    spread and the draws' deviations. :meth:`read` gives the posterior for any gradients at those positions with two
+    triangular solves and a product (the Newton steps of the posterior start height read the same geometry again).
+
+    Attributes
+    ----------
+    xy : ndarray, (n, 2)
+        Observation positions, mm.
+    hyper : Hyper
+        The prior.
+    chol : ndarray, (2n, 2n)
+        Lower Cholesky factor L of the gradient covariance.
+    whitened : ndarray, (2n, P)
+        L^-1 cov(g, f(p) - m) for the frame points and nodes p (m: the ROI mean).
+    deviations : ndarray, (samples, k)
+        Draws of the frame points' joint posterior less its mean.
+    node_x, node_y, node_std, roi, frame1, frame2
+        As :class:`FramePosterior` (``node_std``: its ``contrast_std``).
+    """
+
+    xy: Array
+    hyper: Hyper
+    chol: Array
+    whitened: Array
+    deviations: Array
+    node_x: Array
+    node_y: Array
+    node_std: Array
+    roi: NDArray[np.bool_]
+    frame1: Array
+    frame2: Array
+
+    def covers(self, xy: Array) -> bool:
+        """Whether gradients observed at ``xy`` may be read with this model: the same observations, none moved by
+        more than :data:`REUSE_SHIFT_MM`."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        return xy.shape == self.xy.shape and float(np.max(np.abs(xy - self.xy), initial=0.0)) <= REUSE_SHIFT_MM
+
+    def read(self, gx: Array, gy: Array) -> FramePosterior:
+        """The posterior of D and of the contrasts for gradients (gx, gy) observed at :attr:`xy`."""
+        g = np.concatenate([np.ravel(gx), np.ravel(gy)]).astype(np.float64)
+        v = sla.solve_triangular(self.chol, g, lower=True, check_finite=False)
+        mu = self.whitened.T @ v  # the posterior mean of the contrasts: cov(f(p) - m, g) K^-1 g
+        n1, n2 = len(self.frame1), len(self.frame2)
+        draws = mu[None, : n1 + n2] + self.deviations
+        max1, max2 = draws[:, :n1].max(axis=1), draws[:, n1:].max(axis=1)
+        d = 0.5 * (max1 + max2)
+        return FramePosterior(
+            float(d.mean()),
+            float(d.std()),
+            float((max1 - max2).mean()),
+            float((max1 - max2).std()),
+            self.node_x,
+            self.node_y,
+            mu[n1 + n2 :].reshape(self.node_std.shape),
+            self.node_std,
+            self.roi,
+            self.hyper,
+            self.frame1,
+            self.frame2,
+        )
+
+
 def frame_posterior(
     gp: GradientGP,
     x_range: tuple[float, float],
@@ -654,7 +724,8 @@ def frame_posterior(
     samples: int = 600,
     seed: int = 0,
 ) -> FramePosterior:
-    """The posterior of D (frame maxima relative to the ROI mean) and of the height contrasts (thesis §1.4).
+    """The posterior of D (frame maxima relative to the ROI mean) and of the height contrasts (thesis §1.4):
+    :func:`frame_model`'s reading of the process's own gradients.
 
     Parameters
     ----------
@@ -670,6 +741,23 @@ def frame_posterior(
     samples, seed : int
         Posterior draws of the frame points for the maxima.
     """
+    model = frame_model(gp, x_range, y_range, roi_length, roi_axes, frame_step, node_step, samples, seed)
+    n = len(gp.xy)
+    return model.read(gp.g[:n], gp.g[n:])
+
+
+def frame_model(
+    gp: GradientGP,
+    x_range: tuple[float, float],
+    y_range: tuple[float, float],
+    roi_length: float,
+    roi_axes: tuple[Array, Array] | None = None,
+    frame_step: float = FRAME_STEP,
+    node_step: float = 1.0,
+    samples: int = 600,
+    seed: int = 0,
+) -> FrameModel:
+    """The :class:`FrameModel` of ``gp``'s positions and prior (the arguments as :func:`frame_posterior`'s)."""
     half = 0.5 * roi_length
     nx = max(2, int(round((x_range[1] - x_range[0]) / node_step)) + 1)
     ny = max(2, int(round((y_range[1] - y_range[0]) / node_step)) + 1)
@@ -686,8 +774,7 @@ def frame_posterior(
     n1, n2 = len(f1), len(f2)
     # the ROI mean m as one more functional; contrasts c = f(p) - m
     k_gm, k_pm, k_mm = _roi_functional(gp, pts, axes)
-    mu_pts, wmat = gp.mean_and_whitened(pts)  # (P,), (2n, P)
-    mu = mu_pts - float(k_gm @ gp.alpha)
+    wmat = gp.whitened(pts)  # (2n, P)
     w_m = sla.solve_triangular(gp.chol[0], k_gm, lower=True, check_finite=False)
     # the whitened contrasts are W - w_m 1^T; their products from W's without forming them
     cross, mm = w_m @ wmat, float(w_m @ w_m)
@@ -703,25 +790,11 @@ def frame_posterior(
     # kf -= W_f^T W_f, lower triangle only (BLAS syrk: half a product's work; nothing reads the upper one)
     kf = sla.blas.dsyrk(-1.0, wmat[:, fr], beta=1.0, c=kf, trans=1, lower=1, overwrite_c=1)
     root = _sqrt_psd(kf)
-    draws = mu[fr][None, :] + np.random.default_rng(seed).standard_normal((samples, n1 + n2)) @ root.T
-    max1, max2 = draws[:, :n1].max(axis=1), draws[:, n1:].max(axis=1)
-    d = 0.5 * (max1 + max2)
-    node_mu = mu[n1 + n2 :].reshape(ny, nx)
+    deviations = np.random.default_rng(seed).standard_normal((samples, n1 + n2)) @ root.T
+    wmat -= w_m[:, None]  # the whitened contrasts themselves, for the means
     node_sd = np.sqrt(var[n1 + n2 :]).reshape(ny, nx)
-    return FramePosterior(
-        float(d.mean()),
-        float(d.std()),
-        float((max1 - max2).mean()),
-        float((max1 - max2).std()),
-        node_x,
-        node_y,
-        node_mu,
-        node_sd,
-        roi.reshape(ny, nx),
-        gp.hyper,
-        f1,
-        f2,
-    )
+    roi_nodes = roi.reshape(ny, nx)
+    return FrameModel(gp.xy, gp.hyper, gp.chol[0], wmat, deviations, node_x, node_y, node_sd, roi_nodes, f1, f2)
 
 
 def _sqrt_psd(c: Array) -> Array:

@@ -16,7 +16,6 @@ past a frame that fails (``keep_going``) receives that frame's :class:`FrameFail
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Generator, Iterable, Iterator
 from typing import Any, Literal, NamedTuple, Protocol, overload
 
@@ -24,6 +23,7 @@ from numpy.typing import NDArray
 
 from scopetwin.recon.config import ReconstructionConfig
 from scopetwin.recon.markers.worker import WORKER_NAME, MarkerWorker, Pending, Searched, search_now
+from scopetwin.recon.parallel import available_cpus as _cpus
 from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
 from scopetwin.recon.posterior import Hyper
 from scopetwin.recon.reconstruct import MarkerObservations, ReconstructionResult, Reconstructor
@@ -231,9 +231,3 @@ def reconstruct_stream(
         warm_start,
         keep_going,
     )
-
-
-def _cpus() -> int:
-    """The number of CPUs this process may run on."""
-    affinity = getattr(os, "sched_getaffinity", None)  # POSIX; elsewhere every CPU counts
-    return len(affinity(0)) if affinity is not None else os.cpu_count() or 1

@@ -30,7 +30,7 @@ log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from scopetwin.recon.config import ReconstructionConfig
-    from scopetwin.recon.posterior import FramePosterior, Hyper
+    from scopetwin.recon.posterior import FrameModel, FramePosterior, Hyper
     from scopetwin.recon.shifted_basis import SBFSurface
 
 
@@ -105,14 +105,18 @@ class Posterior:
 
 @dataclass
 class _Reading:
-    """The last Gaussian-process reading of the traced gradients: posterior, prior, and the fitted surface's error
-    of the criterion's shape functional against the posterior with its spread, mm."""
+    """The last Gaussian-process reading of the traced gradients: posterior (with its model), prior, and the fitted
+    surface's error of the criterion's shape functional against the posterior with its spread, mm."""
 
-    post: FramePosterior
+    frame: FrameReading
     hyper: Hyper
     err: float
     spread: float
     data: tuple[Array, Array, Array]
+
+    @property
+    def post(self) -> FramePosterior:
+        return self.frame.post
 
 
 def criterion_slope(history: list[Any], policy: ReconstructionPolicy = DEFAULT_POLICY) -> float:
@@ -124,14 +128,17 @@ def criterion_slope(history: list[Any], policy: ReconstructionPolicy = DEFAULT_P
     return policy.trusted_slope(slope)
 
 
-def _read(it: Iteration, surf: SBFSurface, markers: Any, hyper: Hyper | None) -> _Reading | None:
-    """Trace the gradients through ``surf`` and read them as a Gaussian process; None where the posterior fails."""
-    from scopetwin.recon.posterior import GradientGP, PosteriorError, fit_hyper, frame_posterior
+def _read(it: Iteration, surf: SBFSurface, markers: Any, earlier: _Reading | None) -> _Reading | None:
+    """Trace the gradients through ``surf`` and read them as a Gaussian process (the prior and, where the
+    observations have not moved, the model of the ``earlier`` reading: :func:`read_frame`); None where the posterior
+    fails."""
+    from scopetwin.recon.posterior import PosteriorError, fit_hyper
 
     cfg, sub = it.config, it.sub
     rx, ry = sub.roi_grid(cfg.grid_step)
     xy, hx, hy, _ = it.traced_gradients(surf, markers)
     try:
+        hyper = earlier.hyper if earlier is not None else None
         hyper = hyper or fit_hyper(
             xy,
             hx,
@@ -141,18 +148,19 @@ def _read(it: Iteration, surf: SBFSurface, markers: Any, hyper: Hyper | None) ->
             coarse_points=cfg.evidence_coarse_points,
             local_features=cfg.local_features,
         )
-        data = posterior_subset(xy, hx, hy, cfg.posterior_points)
-        gp = GradientGP(*data, hyper)
-        post = frame_posterior(gp, sub.x_range, sub.y_range, sub.roi_length, (np.unique(rx), np.unique(ry)))
+        axes = (np.unique(rx), np.unique(ry))
+        frame = read_frame(sub, axes, (xy, hx, hy), hyper, cfg.posterior_points, earlier.frame if earlier else None)
     except PosteriorError:
         return None
+    post = frame.post
+    data = (xy[frame.keep], hx[frame.keep], hy[frame.keep])
     # the fitted surface's frame maxima on the posterior's own frame points (same discretisation)
     m1 = float(np.max(surf.height(post.frame1[:, 0], post.frame1[:, 1])))
     m2 = float(np.max(surf.height(post.frame2[:, 0], post.frame2[:, 1])))
     h = it.roi_mean(surf.coef) + surf.offset
     if cfg.criterion == "level":
-        return _Reading(post, hyper, (0.5 * (m1 + m2) - h) - post.d_mean, post.d_std, data)
-    return _Reading(post, hyper, (m1 - m2) - post.delta_mean, post.delta_std, data)
+        return _Reading(frame, hyper, (0.5 * (m1 + m2) - h) - post.d_mean, post.d_std, data)
+    return _Reading(frame, hyper, (m1 - m2) - post.delta_mean, post.delta_std, data)
 
 
 def _newton_start_height(
@@ -166,7 +174,7 @@ def _newton_start_height(
     tried: list[tuple[float, float]] = []  # (H, F_post(H)) of each step
     reading: _Reading | None = None
     for k in range(cfg.posterior_iterations if correcting else 1):
-        reading = _read(it, surf, markers, reading.hyper if reading is not None else None)
+        reading = _read(it, surf, markers, reading)
         if reading is None or not correcting:
             break
         h = it.roi_mean(surf.coef) + surf.offset
@@ -275,13 +283,62 @@ def _contrast(surf: SBFSurface, h: float, xx: Array, yy: Array) -> Array:
 
 
 def posterior_subset(xy: Array, hx: Array, hy: Array, budget: int) -> tuple[Array, Array, Array]:
-    """At most ``budget`` observations for the posterior: the outer half of the budget nearest the frame regions
-    (largest |y|) in full, an even subsample of the interior for the rest; the extrapolation rests on the former."""
+    """At most ``budget`` observations for the posterior (:func:`posterior_subset_indices`)."""
+    keep = posterior_subset_indices(xy, budget)
+    return xy[keep], hx[keep], hy[keep]
+
+
+def posterior_subset_indices(xy: Array, budget: int) -> NDArray[np.intp]:
+    """Indices of at most ``budget`` observations for the posterior: the outer half of the budget nearest the frame
+    regions (largest |y|) in full, an even subsample of the interior for the rest; the extrapolation rests on the
+    former."""
     if len(xy) <= budget:
-        return xy, hx, hy
+        return np.arange(len(xy))
     order = np.argsort(-np.abs(xy[:, 1]))
     outer = order[: budget // 2]
     inner = order[budget // 2 :]
     inner = inner[np.linspace(0, len(inner) - 1, budget - len(outer)).round().astype(int)]
-    keep = np.sort(np.concatenate([outer, inner]))
-    return xy[keep], hx[keep], hy[keep]
+    return np.sort(np.concatenate([outer, inner]))
+
+
+@dataclass(frozen=True)
+class FrameReading:
+    """One reading of traced gradients by the frame criterion's posterior (:func:`read_frame`): the posterior, the
+    model it was read with and the observations that entered it (indices into the traced ones, and their count)."""
+
+    post: FramePosterior
+    model: FrameModel
+    keep: NDArray[np.intp]
+    n_traced: int
+
+
+def read_frame(
+    sub: Substrate2D,
+    roi_axes: tuple[Array, Array],
+    traced: tuple[Array, Array, Array],
+    hyper: Hyper,
+    budget: int,
+    earlier: FrameReading | None = None,
+) -> FrameReading:
+    """The posterior of the frame criterion's shape functional from traced gradients ``traced`` = (xy, hx, hy)
+    under the prior ``hyper``, at most ``budget`` of them (:func:`posterior_subset_indices`).
+
+    ``earlier``: the reading of the same observations before a start-height step. Where its observations have
+    not moved beyond :data:`scopetwin.recon.posterior.REUSE_SHIFT_MM` (:meth:`FrameModel.covers`), its model reads the
+    new gradients (two triangular solves) instead of a new factorisation and frame model.
+
+    Raises
+    ------
+    scopetwin.recon.posterior.PosteriorError
+        The posterior cannot be formed.
+    """
+    from scopetwin.recon.posterior import GradientGP, frame_model
+
+    xy, hx, hy = traced
+    if earlier is not None and len(xy) == earlier.n_traced and earlier.model.covers(xy[earlier.keep]):
+        model, keep = earlier.model, earlier.keep
+    else:
+        keep = posterior_subset_indices(xy, budget)
+        gp = GradientGP(xy[keep], hx[keep], hy[keep], hyper)
+        model = frame_model(gp, sub.x_range, sub.y_range, sub.roi_length, roi_axes)
+    return FrameReading(model.read(hx[keep], hy[keep]), model, keep, len(xy))

@@ -31,6 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import nnls
 
 from scopetwin.recon.errors import ReconstructionError
+from scopetwin.recon.parallel import thread_map
 from scopetwin.scenes.geometry import Array
 
 #: Fewest phase steps per period: with N >= 4 the fit of (A, B, phi) leaves a residual to estimate the noise from.
@@ -355,6 +356,18 @@ class DisplayCoordinates:
         )
 
 
+def _phase_maps(stacks: list[Array], noise: float | ArrayLike | NoiseModel | None) -> list[PhaseMap]:
+    """The phase map of every stack, the stacks side by side in threads; each stack fitted once (the noise model,
+    fitted where ``noise`` is None, and the phases share the fits)."""
+    fits = thread_map(_fit, stacks)
+    if noise is None:
+        b_first = fits[0][2]
+        sel = b_first > 0.1 * float(b_first.max())
+        noise = _noise_model([(f[1][sel], f[3][sel] / (s.shape[0] - 3)) for f, s in zip(fits, stacks, strict=True)])
+    sigma_i = noise
+    return thread_map(lambda k: _phase_map(fits[k], stacks[k].shape[0], sigma_i), range(len(stacks)))
+
+
 def decode_display(
     frames_x: Sequence[ArrayLike],
     frames_y: Sequence[ArrayLike],
@@ -409,17 +422,12 @@ def decode_display(
         raise FringeDecodingError(
             f"the coarsest period {periods[0]} mm must exceed the display ({sx} x {sy} mm) to be unambiguous"
         )
-    fits = [_fit(s) for s in stacks]  # each stack fitted once: the noise model and the phases share the fits
-    if noise is None:
-        b_first = fits[0][2]
-        sel = b_first > 0.1 * float(b_first.max())
-        noise = _noise_model([(f[1][sel], f[3][sel] / (s.shape[0] - 3)) for f, s in zip(fits, stacks, strict=True)])
-    maps = [_phase_map(f, s.shape[0], noise) for f, s in zip(fits, stacks, strict=True)]
+    maps = _phase_maps(stacks, noise)
     maps_x, maps_y = maps[: len(periods)], maps[len(periods) :]
     if min_modulation is None:
         min_modulation = 5.0 * float(np.median(maps_x[0].noise_std))
-    ux = unwrap_temporal(maps_x, periods, min_modulation, max_disagreement)
-    uy = unwrap_temporal(maps_y, periods, min_modulation, max_disagreement)
+    level = min_modulation
+    ux, uy = thread_map(lambda m: unwrap_temporal(m, periods, level, max_disagreement), [maps_x, maps_y])
     low = ~(ux.modulation_ok & uy.modulation_ok)
     inconsistent = ~(ux.consistent & uy.consistent)
     off = ~((np.abs(ux.coordinate) <= 0.5 * sx) & (np.abs(uy.coordinate) <= 0.5 * sy))

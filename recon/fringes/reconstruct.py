@@ -50,11 +50,11 @@ from scopetwin.recon.fringes.phase import DisplayCoordinates
 from scopetwin.recon.fringes.slopes import PixelRays, SlopeObservations, dense_slopes
 from scopetwin.recon.fringes.two_positions import DirectPoints, two_position_points
 from scopetwin.recon.policy import DEFAULT_POLICY
-from scopetwin.recon.posterior import FramePosterior, GradientGP, Hyper, PosteriorError, fit_hyper, frame_posterior
+from scopetwin.recon.posterior import PosteriorError, fit_hyper
 from scopetwin.recon.reconstruct import measured_nodes, single_thread_blas
 from scopetwin.recon.spline import SplineSurface
 from scopetwin.recon.substrate import Substrate2D
-from scopetwin.recon.uncertainty import posterior_subset
+from scopetwin.recon.uncertainty import FrameReading, read_frame
 from scopetwin.scenes.camera import Camera
 from scopetwin.scenes.geometry import Array, Frame
 from scopetwin.scenes.setup import Setup
@@ -384,34 +384,40 @@ class FringeReconstructor:
         slope = (values[other][1] - values[best][1]) / dh
         tilt = (runs[other][1].surface.coef.ravel() - inner.surface.coef.ravel()) / dh
         tilt -= float(self.integrator.roi_mean(tilt))
-        integ = self.integrator.with_samples(inner.integrated, cfg.samples, cfg.seed)
-        c = integ.surface.coef.ravel()
-        m1s, m2s = self.frame_maxima(c[None, :] + integ.samples)
-        pairs = zip(m1s, m2s, strict=True)
-        f_samples = np.array([frame_criterion(a, b, self.sub.frame_z, cfg.criterion) for a, b in pairs])
-        # the criterion's spread over the posterior, and the distance left to its root, in start height
-        sigma_h = float(np.hypot(np.std(f_samples, ddof=1), values[best][1]) / abs(slope))
-        info = None
+        solved = None
         if cfg.frame_posterior and cfg.criterion == "level":
             solved = self.posterior_start_height(h_best, inner, slope, coords, rays)
-            if solved is not None:
-                h_best, inner, sigma_post, info = solved
-                # not below the criterion's spread over the spline's own posterior samples: the Gaussian process
-                # sees a subset of the slopes with the white noise of its evidence, and on rendered steep sheets
-                # and the dimple its spread alone is short by 2-5 (docs/markers-vs-fringes.md)
-                sigma_spline = float(np.std(f_samples, ddof=1) / abs(slope))
-                sigma_h = max(sigma_post, sigma_spline)
-                info |= {"u_posterior_um": sigma_post * 1e3, "u_spline_um": sigma_spline * 1e3}
-                integ = self.integrator.with_samples(inner.integrated, cfg.samples, cfg.seed, h_best)
+        info = None
+        if solved is None:
+            integ = self.integrator.with_samples(inner.integrated, cfg.samples, cfg.seed)
+            # the criterion's spread over the posterior, and the distance left to its root, in start height
+            sigma_h = float(np.hypot(self._criterion_spread(integ), values[best][1]) / abs(slope))
+        else:
+            h_best, inner, sigma_post, info = solved
+            integ = self.integrator.with_samples(inner.integrated, cfg.samples, cfg.seed, h_best)
+            # not below the criterion's spread over the spline's own posterior samples: the Gaussian process sees a
+            # subset of the slopes with the white noise of its evidence, and on rendered steep sheets and the
+            # dimple its spread alone is short by 2-5 (docs/markers-vs-fringes.md)
+            sigma_spline = self._criterion_spread(integ) / abs(slope)
+            sigma_h = max(sigma_post, sigma_spline)
+            info |= {"u_posterior_um": sigma_post * 1e3, "u_spline_um": sigma_spline * 1e3}
         result = self._result(
             integ, inner.obs, "frame-criterion", h_best, sigma_h, tilt, history, converged, time.perf_counter() - t0
         )
         result.frame_posterior = info
         return result
 
-    def read_frame_posterior(self, obs: SlopeObservations, hyper: Hyper | None = None) -> tuple[FramePosterior, Hyper]:
-        """The Gaussian-process posterior of the frame criterion's shape functional D from the slopes ``obs``
-        (prior by evidence where ``hyper`` is None), on the ROI grid of the integrator's ROI mean.
+    def _criterion_spread(self, integ: Integrated) -> float:
+        """The frame criterion's standard deviation over the spline's posterior samples ``integ.samples``, mm."""
+        c = integ.surface.coef.ravel()
+        m1s, m2s = self.frame_maxima(c[None, :] + integ.samples)
+        pairs = zip(m1s, m2s, strict=True)
+        return float(np.std([frame_criterion(a, b, self.sub.frame_z, self.config.criterion) for a, b in pairs], ddof=1))
+
+    def read_frame_posterior(self, obs: SlopeObservations, earlier: FrameReading | None = None) -> FrameReading:
+        """The Gaussian-process posterior of the frame criterion's shape functional D from the slopes ``obs``, on
+        the ROI grid of the integrator's ROI mean: prior by evidence, or ``earlier``'s prior (and its model where
+        the slopes have not moved: :func:`scopetwin.recon.uncertainty.read_frame`).
 
         Raises
         ------
@@ -419,13 +425,14 @@ class FringeReconstructor:
             Too few slopes, or the posterior cannot be formed.
         """
         cfg, sub = self.config, self.sub
-        hyper = hyper or fit_hyper(
-            obs.xy, obs.hx, obs.hy, cfg.evidence_points, coarse_points=cfg.evidence_coarse_points
+        hyper = (
+            earlier.post.hyper
+            if earlier is not None
+            else fit_hyper(obs.xy, obs.hx, obs.hy, cfg.evidence_points, coarse_points=cfg.evidence_coarse_points)
         )
-        gp = GradientGP(*posterior_subset(obs.xy, obs.hx, obs.hy, cfg.posterior_points), hyper)
         rx, ry = sub.roi_grid(cfg.roi_step_mm)
-        post = frame_posterior(gp, sub.x_range, sub.y_range, sub.roi_length, (np.unique(rx), np.unique(ry)))
-        return post, hyper
+        axes = (np.unique(rx), np.unique(ry))
+        return read_frame(sub, axes, (obs.xy, obs.hx, obs.hy), hyper, cfg.posterior_points, earlier)
 
     def posterior_start_height(
         self, h: float, inner: _Inner, slope: float, coords: DisplayCoordinates, rays: PixelRays
@@ -444,13 +451,14 @@ class FringeReconstructor:
         h0 = h
         m1, m2 = (float(v[0]) for v in self.frame_maxima(inner.surface.coef.ravel()))
         d_fit = 0.5 * (m1 + m2) - h
-        hyper: Hyper | None = None
+        reading: FrameReading | None = None
         tried: list[tuple[float, float]] = []  # (H, F_post(H))
         for k in range(cfg.posterior_iterations):
             try:
-                post, hyper = self.read_frame_posterior(inner.obs, hyper)
+                reading = self.read_frame_posterior(inner.obs, reading)
             except PosteriorError:
                 return None
+            post = reading.post
             f_post = h + post.d_mean - self.sub.frame_z
             tried.append((h, f_post))
             step = -f_post / DEFAULT_POLICY.newton_slope(tried, slope)

@@ -194,3 +194,82 @@ def test_frame_posterior_at_its_frame_step_matches_the_dense_frame_grid() -> Non
     assert abs(coarse.delta_mean - dense.delta_mean) < 0.15 * dense.delta_std
     np.testing.assert_allclose(coarse.contrast_std, dense.contrast_std, rtol=1e-6)
     np.testing.assert_allclose(coarse.contrast_mean, dense.contrast_mean, rtol=1e-9, atol=1e-12)
+
+
+def _lattice() -> np.ndarray:
+    xx, yy = np.meshgrid(np.linspace(-12, 12, 9), np.linspace(-22.5, 22.5, 16))
+    return np.stack([xx.ravel(), yy.ravel()], axis=-1)
+
+
+def _bowed_gradients(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gradients of a known bowed surface with waviness, f = 4e-5 x^2 - 2e-5 y^2 + 5e-4 sin(0.4 x + 0.2 y) (mm)."""
+    x, y = xy[:, 0], xy[:, 1]
+    wave = 5e-4 * np.cos(0.4 * x + 0.2 * y)
+    return 8e-5 * x + 0.4 * wave, -4e-5 * y + 0.2 * wave
+
+
+def test_a_frame_model_reads_other_gradients_as_their_own_posterior() -> None:
+    """frame_model's reading of gradients g2 at the same positions equals the posterior conditioned on g2 itself
+    (the same draws: D's mean and spread, the contrast map)."""
+    from scopetwin.recon.posterior import frame_model
+
+    xy = _lattice()
+    g1, _ = _draw(HYPER, xy, xy[:1], seed=21)
+    g2, _ = _draw(HYPER, xy, xy[:1], seed=41)
+    n = len(xy)
+    args = ((-12.6, 12.6), (-28.5, 28.5), 48.0)
+    model = frame_model(GradientGP(xy, g1[:n], g1[n:], HYPER), *args)
+    read = model.read(g2[:n], g2[n:])
+    fresh = frame_posterior(GradientGP(xy, g2[:n], g2[n:], HYPER), *args)
+    assert abs(read.d_mean - fresh.d_mean) < 1e-6 * fresh.d_std
+    assert read.d_std == pytest.approx(fresh.d_std, rel=1e-6)
+    assert read.delta_mean == pytest.approx(fresh.delta_mean, rel=1e-6, abs=1e-6 * fresh.delta_std)
+    np.testing.assert_allclose(
+        read.contrast_mean, fresh.contrast_mean, rtol=1e-6, atol=1e-9 * np.ptp(fresh.contrast_mean)
+    )
+    np.testing.assert_allclose(read.contrast_std, fresh.contrast_std, rtol=1e-12)
+
+
+def test_a_frame_model_covers_observations_moved_by_less_than_its_tolerance() -> None:
+    """Gradients of a known surface observed at positions moved by up to 0.5 µm (all alike, as a start-height step
+    moves them, or each its own way) read with the model of the old positions: D within 0.02 of its spread (7 nm
+    here) of the fresh posterior's, its spread within 1e-3; moved by 0.6 µm, or one observation fewer, the model
+    does not cover them."""
+    from scopetwin.recon.posterior import REUSE_SHIFT_MM, frame_model
+
+    xy = _lattice()
+    args = ((-12.6, 12.6), (-28.5, 28.5), 48.0)
+    model = frame_model(GradientGP(xy, *_bowed_gradients(xy), HYPER), *args)
+    assert REUSE_SHIFT_MM == 5e-4
+    for moved in (xy + np.array([5e-5, -4.9e-4]), xy + np.random.default_rng(5).uniform(-4.9e-4, 4.9e-4, xy.shape)):
+        assert model.covers(moved)
+        read = model.read(*_bowed_gradients(moved))
+        fresh = frame_posterior(GradientGP(moved, *_bowed_gradients(moved), HYPER), *args)
+        assert abs(read.d_mean - fresh.d_mean) < 0.02 * fresh.d_std
+        assert read.d_std == pytest.approx(fresh.d_std, rel=1e-3)
+    assert not model.covers(xy + 6e-4)
+    assert not model.covers(xy[1:])
+
+
+def test_read_frame_reuses_the_earlier_model_only_where_it_covers() -> None:
+    """recon.uncertainty.read_frame: the earlier reading's model is read again for observations that barely moved
+    (its posterior subset kept), a new one is formed where they moved further or their count changed."""
+    from types import SimpleNamespace
+
+    from scopetwin.recon.uncertainty import read_frame
+
+    sub = SimpleNamespace(x_range=(-12.6, 12.6), y_range=(-28.5, 28.5), roi_length=48.0)
+    axes = (np.linspace(-12.6, 12.6, 7), np.linspace(-24, 24, 13))
+    xy = _lattice()
+    first = read_frame(sub, axes, (xy, *_bowed_gradients(xy)), HYPER, budget=100)  # type: ignore[arg-type]
+    assert len(first.keep) == 100 and first.n_traced == len(xy)
+    near = xy + 3e-4
+    again = read_frame(sub, axes, (near, *_bowed_gradients(near)), HYPER, 100, first)  # type: ignore[arg-type]
+    assert again.model is first.model and np.array_equal(again.keep, first.keep)
+    assert again.post.d_mean != first.post.d_mean  # the new gradients were read
+    far = xy + 2e-3
+    anew = read_frame(sub, axes, (far, *_bowed_gradients(far)), HYPER, 100, first)  # type: ignore[arg-type]
+    assert anew.model is not first.model
+    fewer = xy[:-1]
+    other = read_frame(sub, axes, (fewer, *_bowed_gradients(fewer)), HYPER, 100, first)  # type: ignore[arg-type]
+    assert other.model is not first.model

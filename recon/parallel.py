@@ -1,0 +1,36 @@
+"""Threads for independent array work of one reconstruction: how many CPUs the process may use, and a map over
+them.
+
+NumPy's element-wise kernels release the interpreter lock, so independent whole-image passes (the phase fits of a
+fringe sequence's stacks) run side by side in threads without copies or processes. BLAS stays single-threaded where
+the reconstruction asks it to (:func:`scopetwin.recon.reconstruct.single_thread_blas`): these threads block while
+they wait, they do not spin.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def available_cpus() -> int:
+    """The number of CPUs this process may run on (its affinity where the platform reports one)."""
+    affinity = getattr(os, "sched_getaffinity", None)  # POSIX; elsewhere every CPU counts
+    return len(affinity(0)) if affinity is not None else os.cpu_count() or 1
+
+
+def thread_map(fn: Callable[[T], R], items: Sequence[T], max_threads: int | None = None) -> list[R]:
+    """``[fn(x) for x in items]``, on up to ``max_threads`` threads (default :func:`available_cpus`), in order.
+
+    One item or one CPU: in this thread, without a pool. An exception of ``fn`` is raised here.
+    """
+    threads = min(len(items), max_threads or available_cpus())
+    if threads <= 1:
+        return [fn(x) for x in items]
+    with ThreadPoolExecutor(threads) as pool:
+        return list(pool.map(fn, items))

@@ -1,0 +1,30 @@
+"""recon.parallel: the thread map keeps the order, raises its function's errors, and runs here without a pool."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from scopetwin.recon.parallel import available_cpus, thread_map
+
+
+def test_thread_map_keeps_the_order_of_its_items() -> None:
+    assert thread_map(lambda x: x * x, list(range(20)), max_threads=3) == [x * x for x in range(20)]
+    assert available_cpus() >= 1
+
+
+def test_thread_map_raises_the_error_of_its_function() -> None:
+    def bad(x: int) -> int:
+        if x == 3:
+            raise ValueError("three")
+        return x
+
+    with pytest.raises(ValueError, match="three"):
+        thread_map(bad, [1, 2, 3, 4], max_threads=2)
+
+
+def test_one_thread_or_one_item_runs_in_the_calling_thread() -> None:
+    here = threading.get_ident()
+    assert thread_map(lambda _: threading.get_ident(), [0, 1], max_threads=1) == [here, here]
+    assert thread_map(lambda _: threading.get_ident(), [0]) == [here]
