@@ -167,11 +167,26 @@ def _components(h: Hyper) -> list[tuple[float, float]]:
     return [*_smooth_components(h), *feature, (h.broad_amp, h.broad_len)]
 
 
+#: Largest decay exponent of a squared-exponential term: exp(-x) is evaluated as exp(-min(x, EXP_CUT)), a term
+#: 5e-131 of its peak where it would be smaller. Smaller terms multiply into subnormal numbers, which x86 processors
+#: compute 10-100x slower: the broadband part (0.25-3 mm) between points tens of mm apart is below 1e-300 for most
+#: pairs, and its kernel pieces took as long as three smooth components together. Against entries of order 1e-8
+#: (and the factorisation's round-off) the floor changes nothing.
+EXP_CUT = 300.0
+
+
+def _decay(x: Array, out: Array | None = None) -> Array:
+    """exp(-x) for x >= 0, floored at exp(-:data:`EXP_CUT`) (into ``out`` where given; ``x`` may be ``out``)."""
+    y = np.minimum(x, EXP_CUT, out=out)
+    np.negative(y, out=y)
+    return np.exp(y, out=y)
+
+
 def _se_parts(p: Array, q: Array, amp: float, length: float) -> tuple[Array, Array, Array]:
     """exp term, d_x, d_y between point sets p (m, 2) and q (n, 2), scaled by amp^2."""
     dx = p[:, None, 0] - q[None, :, 0]
     dy = p[:, None, 1] - q[None, :, 1]
-    e = amp**2 * np.exp(-(dx * dx + dy * dy) / (2.0 * length**2))
+    e = amp**2 * _decay((dx * dx + dy * dy) / (2.0 * length**2))
     return e, dx, dy
 
 
@@ -216,8 +231,8 @@ def _radial_sum(r2: Array, comps: list[tuple[float, float]]) -> Array:
     out = np.zeros_like(r2)
     buf = np.empty_like(r2)
     for weight, length in comps:
-        np.multiply(r2, -0.5 / length**2, out=buf)
-        np.exp(buf, out=buf)
+        np.multiply(r2, 0.5 / length**2, out=buf)
+        _decay(buf, out=buf)
         buf *= weight
         out += buf
     return out
@@ -319,39 +334,64 @@ def _se_pieces(pairs: _Pairs, comps: list[tuple[float, float]]) -> tuple[_Blocks
 
     For one component e = a^2 exp(-|d|^2 / (2 l^2)): K_xx = e/l^2 - e d_x^2/l^4, K_xy = -e d_x d_y/l^4, and
     dK_xx/dlog l = e/l^2 (|d|^2/l^2 - 2) + e d_x^2/l^4 (4 - |d|^2/l^2), dK_xy/dlog l = e d_x d_y/l^4 (4 - |d|^2/l^2).
+    Over the components, with S_k = sum e / l^k: K's pieces are (S_2, -S_4) and dK's (|d|^2 S_4 - 2 S_2,
+    4 S_4 - |d|^2 S_6), three sums for any number of components.
     """
-    k_base, k_w = np.zeros_like(pairs.r2), np.zeros_like(pairs.r2)
-    d_base, d_w = np.zeros_like(pairs.r2), np.zeros_like(pairs.r2)
+    r2 = pairs.r2
+    if not comps:
+        zero = np.zeros_like(r2)
+        return _Blocks(zero, zero), _Blocks(zero, zero)
+    sums = [np.zeros_like(r2) for _ in range(3)]
+    e, term = np.empty_like(r2), np.empty_like(r2)
     for amp, length in comps:
         il2 = 1.0 / length**2
-        r2n = pairs.r2 * il2
-        e = np.exp(-0.5 * r2n)
-        e *= amp**2
-        e2, e4 = e * il2, e * (il2 * il2)
-        k_base += e2
-        k_w -= e4
-        d_base += e2 * (r2n - 2.0)
-        d_w += e4 * (4.0 - r2n)
-    return _Blocks(k_base, k_w), _Blocks(d_base, d_w)
+        np.multiply(r2, 0.5 * il2, out=e)
+        _decay(e, out=e)
+        for k, acc in enumerate(sums, start=1):  # S_2, S_4, S_6
+            np.multiply(e, amp**2 * il2**k, out=term)
+            acc += term
+    s2, s4, s6 = sums
+    d_base = r2 * s4
+    d_base -= 2.0 * s2
+    d_w = r2 * s6
+    np.subtract(4.0 * s4, d_w, out=d_w)
+    np.negative(s4, out=s4)
+    return _Blocks(s2, s4), _Blocks(d_base, d_w)
 
 
-def _half_trace(p: _Blocks, pairs: _Pairs, alpha: Array, low: Array) -> float:
-    """tr((alpha alpha^T - K^-1) P) / 2 for P given by its pieces, from the lower triangle ``low`` of K^-1 (zeros
-    above the diagonal: :func:`_lower_inverse`), without forming P: tr(K^-1 P) = 2 <low, P> - <diag low, diag P>
-    for a symmetric P."""
-    n = len(pairs.r2)
-    ax, ay = alpha[:n], alpha[n:]
-    p11 = p.base + p.w * pairs.dxx
-    p22 = p.base + p.w * pairs.dyy
-    p21 = p.w * pairs.dxy
-    quad = ax @ (p11 @ ax) + ay @ (p22 @ ay) + 2.0 * (ay @ (p21 @ ax))
-    l11, l22 = low[:n, :n], low[n:, n:]
-    tr = (
-        2.0 * (np.vdot(l11, p11) + np.vdot(l22, p22) + np.vdot(low[n:, :n], p21))
-        - np.diag(l11) @ np.diag(p11)
-        - np.diag(l22) @ np.diag(p22)
-    )
-    return 0.5 * float(quad - tr)
+@dataclass(frozen=True)
+class _TraceForm:
+    """tr((alpha alpha^T - K^-1) P) / 2 for any P given by :class:`_Blocks` (base, w), as two inner products with
+    matrices formed once per evaluation: P's blocks are base + w dxx, base + w dyy and w dxy, so the quadratic form
+    and the trace collect into <S_b, base> + <S_w, w> + <dg, diag base> (d_xx = d_yy = 0 on the diagonal)."""
+
+    s_b: Array
+    s_w: Array
+    dg: Array
+
+    @classmethod
+    def of(cls, pairs: _Pairs, alpha: Array, low: Array) -> _TraceForm:
+        """From alpha = K^-1 g and the lower triangle ``low`` of K^-1 (zeros above the diagonal:
+        :func:`_lower_inverse`): tr(K^-1 P) = 2 <low, P> - <diag low, diag P> for a symmetric P."""
+        n = len(pairs.r2)
+        ax, ay = alpha[:n], alpha[n:]
+        l11, l22, l21 = low[:n, :n], low[n:, n:], low[n:, :n]
+        xx, yy = np.outer(ax, ax), np.outer(ay, ay)
+        s_b = xx + yy
+        s_b -= 2.0 * l11
+        s_b -= 2.0 * l22
+        xx -= 2.0 * l11
+        yy -= 2.0 * l22
+        xy = np.outer(ay, ax)
+        xy -= l21
+        s_w = xx * pairs.dxx
+        s_w += yy * pairs.dyy
+        s_w += 2.0 * xy * pairs.dxy
+        return cls(s_b, s_w, np.diag(l11) + np.diag(l22))
+
+    def half(self, p: _Blocks) -> float:
+        """tr((alpha alpha^T - K^-1) P) / 2."""
+        return 0.5 * float(np.vdot(self.s_b, p.base) + np.vdot(self.s_w, p.w) + self.dg @ np.diag(p.base))
 
 
 def _assemble(k: _Blocks, pairs: _Pairs, sx2: float, sy2: float) -> Array:
@@ -390,8 +430,9 @@ def _evidence_and_gradient(theta: Array, pairs: _Pairs, g: Array, shape: float |
     feature, d_feature = _se_pieces(pairs, [(h.feature_amp, h.feature_len)] if h.feature_amp > 0 else [])
     broad, d_broad = _se_pieces(pairs, [(h.broad_amp, h.broad_len)])
     sx2, sy2 = (v**2 for v in h.noise_pair)
+    total = smooth + broad + feature if h.feature_amp > 0 else smooth + broad
     try:  # the factor with zeros above the diagonal, which potri keeps (_lower_inverse)
-        c = (sla.cholesky(_assemble(smooth + feature + broad, pairs, sx2, sy2), lower=True, check_finite=False), True)
+        c = (sla.cholesky(_assemble(total, pairs, sx2, sy2), lower=True, check_finite=False), True)
     except np.linalg.LinAlgError:
         return 1e30, np.zeros(8)
     alpha = sla.cho_solve(c, g, check_finite=False)
@@ -400,16 +441,18 @@ def _evidence_and_gradient(theta: Array, pairs: _Pairs, g: Array, shape: float |
     low = _lower_inverse(c[0])
     d_low = np.diag(low)
     alpha2 = alpha * alpha
+    form = _TraceForm.of(pairs, alpha, low)
+    on = h.feature_amp > 0  # off: its amplitude held at the floor, its two entries unused
     grad = np.array(
         [
-            2.0 * _half_trace(smooth, pairs, alpha, low),
-            _half_trace(d_smooth, pairs, alpha, low),
-            2.0 * _half_trace(broad, pairs, alpha, low),
-            _half_trace(d_broad, pairs, alpha, low),
+            2.0 * form.half(smooth),
+            form.half(d_smooth),
+            2.0 * form.half(broad),
+            form.half(d_broad),
             float(np.sum(alpha2[:n]) - np.sum(d_low[:n])) * sx2 if h.noise > NOISE_FLOOR else 0.0,
             float(np.sum(alpha2[n:]) - np.sum(d_low[n:])) * sy2 if (h.noise_y or 0.0) > NOISE_FLOOR else 0.0,
-            2.0 * _half_trace(feature, pairs, alpha, low),
-            _half_trace(d_feature, pairs, alpha, low),
+            2.0 * form.half(feature) if on else 0.0,
+            form.half(d_feature) if on else 0.0,
         ]
     )
     return nll, -grad
@@ -606,7 +649,7 @@ class FramePosterior:
 def _axis_sums(v: Array, grid: Array, length: float) -> tuple[Array, Array]:
     """Means over ``grid`` of e = exp(-(g - v)^2 / (2 l^2)) and of e (g - v) / l^2, for each v (one axis of SE)."""
     d = grid[None, :] - v[:, None]
-    e = np.exp(-(d * d) / (2.0 * length**2))
+    e = _decay((d * d) / (2.0 * length**2))
     return e.mean(axis=1), (e * d).mean(axis=1) / length**2
 
 
