@@ -319,10 +319,12 @@ def read_frame(
     hyper: Hyper,
     budget: int,
     earlier: FrameReading | None = None,
+    contrasts: bool = True,
 ) -> FrameReading:
     """The posterior of the frame criterion's shape functional from traced gradients ``traced`` = (xy, hx, hy)
     under the prior ``hyper``, at most ``budget`` of them (:func:`posterior_subset_indices`).
 
+    ``contrasts`` False: D alone, without the contrast map (:func:`scopetwin.recon.posterior.frame_model`).
     ``earlier``: the reading of the same observations before a start-height step. Where its observations have
     not moved beyond :data:`scopetwin.recon.posterior.REUSE_SHIFT_MM` (:meth:`FrameModel.covers`), its model reads the
     new gradients (two triangular solves) instead of a new factorisation and frame model.
@@ -340,5 +342,5 @@ def read_frame(
     else:
         keep = posterior_subset_indices(xy, budget)
         gp = GradientGP(xy[keep], hx[keep], hy[keep], hyper)
-        model = frame_model(gp, sub.x_range, sub.y_range, sub.roi_length, roi_axes)
+        model = frame_model(gp, sub.x_range, sub.y_range, sub.roi_length, roi_axes, contrasts=contrasts)
     return FrameReading(model.read(hx[keep], hy[keep]), model, keep, len(xy))

@@ -432,7 +432,8 @@ class FringeReconstructor:
         )
         rx, ry = sub.roi_grid(cfg.roi_step_mm)
         axes = (np.unique(rx), np.unique(ry))
-        return read_frame(sub, axes, (obs.xy, obs.hx, obs.hy), hyper, cfg.posterior_points, earlier)
+        # D alone: the fringe shape's uncertainty comes from the spline's own samples, not the contrast map
+        return read_frame(sub, axes, (obs.xy, obs.hx, obs.hy), hyper, cfg.posterior_points, earlier, contrasts=False)
 
     def posterior_start_height(
         self, h: float, inner: _Inner, slope: float, coords: DisplayCoordinates, rays: PixelRays

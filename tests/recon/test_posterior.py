@@ -273,3 +273,18 @@ def test_read_frame_reuses_the_earlier_model_only_where_it_covers() -> None:
     fewer = xy[:-1]
     other = read_frame(sub, axes, (fewer, *_bowed_gradients(fewer)), HYPER, 100, first)  # type: ignore[arg-type]
     assert other.model is not first.model
+
+
+def test_a_frame_model_without_contrasts_reads_the_same_criterion() -> None:
+    """frame_model(contrasts=False) (the fringe path reads D alone): the same D and Delta h_max, no contrast map."""
+    from scopetwin.recon.posterior import frame_model
+
+    xy = _lattice()
+    gp = GradientGP(xy, *_bowed_gradients(xy), HYPER)
+    args = ((-12.6, 12.6), (-28.5, 28.5), 48.0)
+    full = frame_model(gp, *args).read(*_bowed_gradients(xy))
+    bare = frame_model(gp, *args, contrasts=False).read(*_bowed_gradients(xy))
+    assert bare.d_mean == pytest.approx(full.d_mean, rel=1e-9)
+    assert bare.d_std == pytest.approx(full.d_std, rel=1e-9)
+    assert bare.delta_mean == pytest.approx(full.delta_mean, rel=1e-9, abs=1e-9 * full.delta_std)
+    assert bare.contrast_mean.size == 0 and bare.contrast_std.size == 0 and full.contrast_std.size > 0
