@@ -36,6 +36,8 @@ tilts the slopes; its effect on the shape (the surface's change per unit H, ROI 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -49,8 +51,9 @@ from scopetwin.recon.fringes.integration import Integrated, SlopeIntegrator
 from scopetwin.recon.fringes.phase import DisplayCoordinates
 from scopetwin.recon.fringes.slopes import PixelRays, SlopeObservations, dense_slopes
 from scopetwin.recon.fringes.two_positions import DirectPoints, two_position_points
+from scopetwin.recon.parallel import available_cpus
 from scopetwin.recon.policy import DEFAULT_POLICY
-from scopetwin.recon.posterior import PosteriorError, fit_hyper
+from scopetwin.recon.posterior import Hyper, PosteriorError, fit_hyper
 from scopetwin.recon.reconstruct import measured_nodes, single_thread_blas
 from scopetwin.recon.spline import SplineSurface
 from scopetwin.recon.substrate import Substrate2D
@@ -74,6 +77,51 @@ def distance_left(change: float, last_change: float) -> float:
         return float("inf")
     q = change / last_change
     return change * q / (1.0 - q)
+
+
+#: The frame loop hands its slopes to the posterior's evidence search once its criterion lies within this of its
+#: root, µm: the search runs in a second thread beside the loop's remaining start heights instead of after them, on
+#: slopes traced at a start height at most this far from the final one (the prior describes the surface's kind and
+#: the slopes' noise, which a start height that close does not change). The same slopes on one CPU, in this thread.
+EVIDENCE_EARLY_UM = 1.0
+
+
+class _EarlyEvidence:
+    """The posterior's prior, searched from the frame loop's slopes as soon as the loop is near its root
+    (:data:`EVIDENCE_EARLY_UM`): in a second thread where the process has two CPUs, else at once."""
+
+    def __init__(self, fit: Callable[[SlopeObservations], Hyper], wanted: bool) -> None:
+        self._fit, self._wanted = fit, wanted
+        self._pool: ThreadPoolExecutor | None = None
+        self._job: Future[Hyper] | None = None
+
+    def offer(self, criterion_mm: float, obs: SlopeObservations) -> None:
+        """Start the search on ``obs`` if none has started and the criterion is near its root."""
+        if not self._wanted or self._job is not None or abs(criterion_mm) * 1e3 > EVIDENCE_EARLY_UM:
+            return
+        if available_cpus() >= 2:
+            self._pool = ThreadPoolExecutor(1)
+            self._job = self._pool.submit(self._fit, obs)
+        else:
+            self._job = Future()
+            try:
+                self._job.set_result(self._fit(obs))
+            except PosteriorError as exc:
+                self._job.set_exception(exc)
+
+    def result(self) -> Hyper | None:
+        """The prior (None where no search started).
+
+        Raises
+        ------
+        scopetwin.recon.posterior.PosteriorError
+            The search failed (too few slopes).
+        """
+        return None if self._job is None else self._job.result()
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
 
 
 @dataclass(frozen=True)
@@ -355,6 +403,18 @@ class FringeReconstructor:
         cfg = self.config
         t0 = time.perf_counter()
         rays = PixelRays.of(self.camera, coords.valid, coords.block)
+        early = _EarlyEvidence(self.evidence, cfg.frame_posterior and cfg.criterion == "level")
+        try:
+            return self._frame_loop(coords, rays, early, t0)
+        finally:
+            early.close()
+
+    def _start_heights(
+        self, coords: DisplayCoordinates, rays: PixelRays, early: _EarlyEvidence
+    ) -> tuple[list[tuple[float, float]], list[tuple[float, _Inner]], list[FringeStep], bool]:
+        """The outer loop's start heights: (H, criterion) and (H, inner run) of each, its steps, whether it
+        converged; at least two start heights (the criterion's slope needs them)."""
+        cfg = self.config
         values: list[tuple[float, float]] = []
         runs: list[tuple[float, _Inner]] = []
         history: list[FringeStep] = []
@@ -367,6 +427,7 @@ class FringeReconstructor:
             values.append((h, crit))
             runs.append((h, inner))
             initial = inner.surface
+            early.offer(crit, inner.obs)
             if abs(crit) * 1e3 <= cfg.outer_tol_um:
                 converged = True
                 break
@@ -377,6 +438,13 @@ class FringeReconstructor:
             runs.append((probe, self.inner_loop(probe, coords, rays, initial)))
             m1, m2 = (float(v[0]) for v in self.frame_maxima(runs[-1][1].surface.coef.ravel()))
             values.append((probe, frame_criterion(m1, m2, self.sub.frame_z, cfg.criterion)))
+        return values, runs, history, converged
+
+    def _frame_loop(
+        self, coords: DisplayCoordinates, rays: PixelRays, early: _EarlyEvidence, t0: float
+    ) -> FringeResult:
+        cfg = self.config
+        values, runs, history, converged = self._start_heights(coords, rays, early)
         best = min(range(len(values)), key=lambda i: abs(values[i][1]))
         h_best, inner = runs[best]
         other = max((i for i in range(len(values)) if i != best), key=lambda i: abs(values[i][0] - h_best))
@@ -386,7 +454,7 @@ class FringeReconstructor:
         tilt -= float(self.integrator.roi_mean(tilt))
         solved = None
         if cfg.frame_posterior and cfg.criterion == "level":
-            solved = self.posterior_start_height(h_best, inner, slope, coords, rays)
+            solved = self.posterior_start_height(h_best, inner, slope, coords, rays, early)
         info = None
         if solved is None:
             integ = self.integrator.with_samples(inner.integrated, cfg.samples, cfg.seed)
@@ -414,10 +482,18 @@ class FringeReconstructor:
         pairs = zip(m1s, m2s, strict=True)
         return float(np.std([frame_criterion(a, b, self.sub.frame_z, self.config.criterion) for a, b in pairs], ddof=1))
 
-    def read_frame_posterior(self, obs: SlopeObservations, earlier: FrameReading | None = None) -> FrameReading:
+    def evidence(self, obs: SlopeObservations) -> Hyper:
+        """The posterior's prior by evidence on the slopes ``obs`` (:func:`scopetwin.recon.posterior.fit_hyper`)."""
+        cfg = self.config
+        return fit_hyper(obs.xy, obs.hx, obs.hy, cfg.evidence_points, coarse_points=cfg.evidence_coarse_points)
+
+    def read_frame_posterior(
+        self, obs: SlopeObservations, earlier: FrameReading | None = None, hyper: Hyper | None = None
+    ) -> FrameReading:
         """The Gaussian-process posterior of the frame criterion's shape functional D from the slopes ``obs``, on
-        the ROI grid of the integrator's ROI mean: prior by evidence, or ``earlier``'s prior (and its model where
-        the slopes have not moved: :func:`scopetwin.recon.uncertainty.read_frame`).
+        the ROI grid of the integrator's ROI mean: under ``earlier``'s prior (and its model where the slopes have
+        not moved: :func:`scopetwin.recon.uncertainty.read_frame`), else ``hyper``, else the prior by evidence on
+        ``obs``.
 
         Raises
         ------
@@ -425,18 +501,20 @@ class FringeReconstructor:
             Too few slopes, or the posterior cannot be formed.
         """
         cfg, sub = self.config, self.sub
-        hyper = (
-            earlier.post.hyper
-            if earlier is not None
-            else fit_hyper(obs.xy, obs.hx, obs.hy, cfg.evidence_points, coarse_points=cfg.evidence_coarse_points)
-        )
+        prior = earlier.post.hyper if earlier is not None else hyper or self.evidence(obs)
         rx, ry = sub.roi_grid(cfg.roi_step_mm)
         axes = (np.unique(rx), np.unique(ry))
         # D alone: the fringe shape's uncertainty comes from the spline's own samples, not the contrast map
-        return read_frame(sub, axes, (obs.xy, obs.hx, obs.hy), hyper, cfg.posterior_points, earlier, contrasts=False)
+        return read_frame(sub, axes, (obs.xy, obs.hx, obs.hy), prior, cfg.posterior_points, earlier, contrasts=False)
 
     def posterior_start_height(
-        self, h: float, inner: _Inner, slope: float, coords: DisplayCoordinates, rays: PixelRays
+        self,
+        h: float,
+        inner: _Inner,
+        slope: float,
+        coords: DisplayCoordinates,
+        rays: PixelRays,
+        early: _EarlyEvidence | None = None,
     ) -> tuple[float, _Inner, float, dict[str, Any]] | None:
         """The start height from the posterior frame criterion: H + D_post(H) = z_frame (thesis §1.4, eq. 1.4 with
         the posterior D) by Newton steps from the fitted root ``h``, each but the last followed by the inner loop at
@@ -445,7 +523,8 @@ class FringeReconstructor:
 
         Returns the start height (mm), the last inner run, the start height's standard uncertainty (D's posterior
         spread over the criterion's slope, mm) and a summary; None where the posterior cannot be formed (the
-        spline's extrapolation is kept).
+        spline's extrapolation is kept). ``early``: the prior searched while the frame loop ran (on its slopes near
+        the root), else by evidence on ``inner``'s.
         """
         cfg = self.config
         slope = DEFAULT_POLICY.trusted_slope(slope)
@@ -456,7 +535,8 @@ class FringeReconstructor:
         tried: list[tuple[float, float]] = []  # (H, F_post(H))
         for k in range(cfg.posterior_iterations):
             try:
-                reading = self.read_frame_posterior(inner.obs, reading)
+                prior = early.result() if early is not None and reading is None else None
+                reading = self.read_frame_posterior(inner.obs, reading, prior)
             except PosteriorError:
                 return None
             post = reading.post

@@ -1,0 +1,50 @@
+"""The fringe frame loop's early evidence search: started once, near the criterion's root, on the same slopes whether
+it runs in a second thread or at once; a failed search reaches the caller."""
+
+from __future__ import annotations
+
+import pytest
+
+from scopetwin.recon.fringes import reconstruct as fr
+from scopetwin.recon.posterior import PosteriorError
+
+
+@pytest.mark.parametrize("cpus", [1, 2])
+def test_the_search_starts_once_near_the_root_on_one_cpu_or_two(monkeypatch, cpus: int) -> None:
+    monkeypatch.setattr(fr, "available_cpus", lambda: cpus)
+    seen: list[str] = []
+
+    def fit(obs):
+        seen.append(obs)
+        return f"prior of {obs}"
+
+    early = fr._EarlyEvidence(fit, wanted=True)
+    try:
+        early.offer(5e-3, "slopes 5 µm from the root")  # beyond EVIDENCE_EARLY_UM: not yet
+        assert early.result() is None
+        early.offer(4e-4, "slopes 0.4 µm from the root")
+        early.offer(1e-6, "slopes at the root")  # one search only
+        assert early.result() == "prior of slopes 0.4 µm from the root"
+    finally:
+        early.close()
+    assert seen == ["slopes 0.4 µm from the root"] and fr.EVIDENCE_EARLY_UM == 1.0
+
+
+@pytest.mark.parametrize("cpus", [1, 2])
+def test_a_failed_search_reaches_the_caller_and_an_unwanted_one_never_runs(monkeypatch, cpus: int) -> None:
+    monkeypatch.setattr(fr, "available_cpus", lambda: cpus)
+
+    def too_few(obs):
+        raise PosteriorError("5 gradient observations are too few for the evidence")
+
+    early = fr._EarlyEvidence(too_few, wanted=True)
+    try:
+        early.offer(0.0, "slopes")
+        with pytest.raises(PosteriorError, match="too few"):
+            early.result()
+    finally:
+        early.close()
+    off = fr._EarlyEvidence(too_few, wanted=False)
+    off.offer(0.0, "slopes")
+    assert off.result() is None
+    off.close()
