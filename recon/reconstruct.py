@@ -718,12 +718,9 @@ def centroid_bias_step(
     redone only when the surface's shape (mean removed) has changed by more than ``recompute_um``
     RMS since the last one: the bias follows the curvature, which settles after the first
     iterations, and hardly depends on the start height, which moves the surface as an offset.
-    A prediction for the same markers starts from the last one's centre images, so one pass of
-    :func:`scopetwin.recon.bias.predict_spots` re-centres its local maps (the first starts from the
-    measured centroids with two).
     """
     try:
-        from scopetwin.recon.bias import model_for_setup, predict_spots
+        from scopetwin.recon.bias import correct_centroids, model_for_setup
     except ImportError as exc:  # pragma: no cover - recon.bias is part of the package
         raise ReconstructionError(f"centroid-bias correction is unavailable: {exc}") from None
     sub = Substrate2D.from_setup(setup)
@@ -735,12 +732,10 @@ def centroid_bias_step(
     def step(surface: SBFSurface, ij: NDArray[np.int64], px: Array) -> Array:
         z = surface.height(xx, yy)
         last = cache.get("z")
-        same = cache.get("n") == len(px) and np.array_equal(cache.get("ij", ()), ij)
-        if last is None or not same or np.std(z - last) * 1e3 > recompute_um:
+        if last is None or cache.get("n") != len(px) or np.std(z - last) * 1e3 > recompute_um:
             hm = HeightMap(z, sub.x_range[0], sub.x_range[1], sub.y_range[0], sub.y_range[1])
-            start = cache["centres"] if same else px
-            pred = predict_spots(model_for_setup(setup, hm), ij, guess_px=start, passes=1 if same else 2)
-            cache.update(z=z, n=len(px), ij=np.array(ij), correction=pred.correction, centres=pred.center)
+            corrected, _ = correct_centroids(px, ij, model_for_setup(setup, hm))
+            cache.update(z=z, n=len(px), correction=corrected - px)
         return px + cache["correction"]
 
     return step
