@@ -193,3 +193,22 @@ def test_one_singular_marker_map_leaves_only_that_marker_unfitted():
     for i in (0, 1, 3, 5):
         np.testing.assert_allclose(coef[i], np.linalg.solve(lhs[i], rhs[i]), rtol=1e-12)
     assert np.isnan(coef[[2, 4]]).all()
+
+
+def test_one_pass_from_near_the_centre_images_is_two_passes():
+    """The bias step fits its local maps once (BIAS_PASSES), around the measured centroids: started 0.3 px off the
+    centre images of a 200 µm bowed substrate's markers, one pass and two agree within 1e-6 px (measured 2e-7 px;
+    the corrections reach 0.06 px)."""
+    from scopetwin.recon.reconstruct import BIAS_PASSES
+
+    setup = load_setup("thesis-1.10-deflectometry", {"substrate": {"surface": {"range_um": 200.0, "seed": 4}}})
+    heights = surface_for(setup)
+    truth = marker_truth(setup, heights)
+    vis = np.flatnonzero(truth.visible)
+    model = model_for_setup(setup, heights)
+    start = truth.center_px[vis] + 0.3
+    one = predict_spots(model, truth.ij[vis], guess_px=start, passes=BIAS_PASSES)
+    two = predict_spots(model, truth.ij[vis], guess_px=start, passes=2)
+    assert BIAS_PASSES == 1 and one.predicted.all() and two.predicted.all()
+    assert np.abs(two.correction).max() > 0.05
+    np.testing.assert_allclose(one.correction, two.correction, atol=1e-6)
