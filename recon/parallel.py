@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import TypeVar
+from typing import Generic, TypeVar
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -34,3 +34,33 @@ def thread_map(fn: Callable[[T], R], items: Sequence[T], max_threads: int | None
         return [fn(x) for x in items]
     with ThreadPoolExecutor(threads) as pool:
         return list(pool.map(fn, items))
+
+
+class Background(Generic[R]):
+    """``fn()`` computed beside the caller: in a thread of its own where the process may use two CPUs (started at
+    once), else in the caller's thread when its result is first asked for. Either way :meth:`result` returns its
+    value or raises its exception; :meth:`close` waits for the thread (use it as a context manager)."""
+
+    def __init__(self, fn: Callable[[], R]) -> None:
+        self._fn = fn
+        self._pool = ThreadPoolExecutor(1) if available_cpus() >= 2 else None
+        self._job = self._pool.submit(fn) if self._pool is not None else None
+        self._value: list[R] = []
+
+    def result(self) -> R:
+        """The value of ``fn()`` (computed now where no thread runs it)."""
+        if self._job is not None:
+            return self._job.result()
+        if not self._value:
+            self._value.append(self._fn())
+        return self._value[0]
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+
+    def __enter__(self) -> Background[R]:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

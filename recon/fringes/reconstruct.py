@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
@@ -51,7 +50,7 @@ from scopetwin.recon.fringes.integration import Integrated, SlopeIntegrator
 from scopetwin.recon.fringes.phase import DisplayCoordinates
 from scopetwin.recon.fringes.slopes import PixelRays, SlopeObservations, dense_slopes
 from scopetwin.recon.fringes.two_positions import DirectPoints, two_position_points
-from scopetwin.recon.parallel import available_cpus
+from scopetwin.recon.parallel import Background
 from scopetwin.recon.policy import DEFAULT_POLICY
 from scopetwin.recon.posterior import Hyper, PosteriorError, fit_hyper
 from scopetwin.recon.reconstruct import measured_nodes, single_thread_blas
@@ -82,7 +81,8 @@ def distance_left(change: float, last_change: float) -> float:
 #: The frame loop hands its slopes to the posterior's evidence search once its criterion lies within this of its
 #: root, µm: the search runs in a second thread beside the loop's remaining start heights instead of after them, on
 #: slopes traced at a start height at most this far from the final one (the prior describes the surface's kind and
-#: the slopes' noise, which a start height that close does not change). The same slopes on one CPU, in this thread.
+#: the slopes' noise, which a start height that close does not change). The same slopes on one CPU (searched when
+#: the posterior asks for the prior).
 EVIDENCE_EARLY_UM = 1.0
 #: Newton steps of the posterior start height up to this size (µm) move the surface to first order instead of running
 #: the inner loop again: shifted by the step and bent by the frame loop's change per unit start height (the tilt)
@@ -94,26 +94,16 @@ LINEAR_STEP_UM = 1.0
 
 class _EarlyEvidence:
     """The posterior's prior, searched from the frame loop's slopes as soon as the loop is near its root
-    (:data:`EVIDENCE_EARLY_UM`): in a second thread where the process has two CPUs, else at once."""
+    (:data:`EVIDENCE_EARLY_UM`), beside the loop (:class:`scopetwin.recon.parallel.Background`)."""
 
     def __init__(self, fit: Callable[[SlopeObservations], Hyper], wanted: bool) -> None:
         self._fit, self._wanted = fit, wanted
-        self._pool: ThreadPoolExecutor | None = None
-        self._job: Future[Hyper] | None = None
+        self._job: Background[Hyper] | None = None
 
     def offer(self, criterion_mm: float, obs: SlopeObservations) -> None:
         """Start the search on ``obs`` if none has started and the criterion is near its root."""
-        if not self._wanted or self._job is not None or abs(criterion_mm) * 1e3 > EVIDENCE_EARLY_UM:
-            return
-        if available_cpus() >= 2:
-            self._pool = ThreadPoolExecutor(1)
-            self._job = self._pool.submit(self._fit, obs)
-        else:
-            self._job = Future()
-            try:
-                self._job.set_result(self._fit(obs))
-            except PosteriorError as exc:
-                self._job.set_exception(exc)
+        if self._wanted and self._job is None and abs(criterion_mm) * 1e3 <= EVIDENCE_EARLY_UM:
+            self._job = Background(lambda: self._fit(obs))
 
     def result(self) -> Hyper | None:
         """The prior (None where no search started).
@@ -126,8 +116,8 @@ class _EarlyEvidence:
         return None if self._job is None else self._job.result()
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
+        if self._job is not None:
+            self._job.close()
 
 
 @dataclass(frozen=True)
@@ -458,17 +448,24 @@ class FringeReconstructor:
         slope = (values[other][1] - values[best][1]) / dh
         tilt = (runs[other][1].surface.coef.ravel() - inner.surface.coef.ravel()) / dh
         tilt -= float(self.integrator.roi_mean(tilt))
-        solved = None
-        if cfg.frame_posterior and cfg.criterion == "level":
-            solved = self.posterior_start_height(h_best, inner, slope, coords, rays, early, tilt)
-        info = None
+        solved, info = None, None
+        # the spline's posterior draws depend on the run's observation rows, not on its start height: drawn beside
+        # the posterior's Newton steps, kept where those moved the surface without another inner loop
+        with Background(lambda: self.integrator.with_samples(inner.integrated, cfg.samples, cfg.seed)) as draws:
+            if cfg.frame_posterior and cfg.criterion == "level":
+                solved = self.posterior_start_height(h_best, inner, slope, coords, rays, early, tilt)
+            if solved is None:
+                integ = draws.result()
+            elif solved[1].integrated.rows is inner.integrated.rows:
+                integ = self._at_height(draws.result(), solved[1].surface, solved[0])
         if solved is None:
-            integ = self.integrator.with_samples(inner.integrated, cfg.samples, cfg.seed)
             # the criterion's spread over the posterior, and the distance left to its root, in start height
             sigma_h = float(np.hypot(self._criterion_spread(integ), values[best][1]) / abs(slope))
         else:
-            h_best, inner, sigma_post, info = solved
-            integ = self.integrator.with_samples(inner.integrated, cfg.samples, cfg.seed, h_best)
+            h_best, moved, sigma_post, info = solved
+            if moved.integrated.rows is not inner.integrated.rows:  # an inner loop ran: its own draws
+                integ = self.integrator.with_samples(moved.integrated, cfg.samples, cfg.seed, h_best)
+            inner = moved
             # not below the criterion's spread over the spline's own posterior samples: the Gaussian process sees a
             # subset of the slopes with the white noise of its evidence, and on rendered steep sheets and the
             # dimple its spread alone is short by 2-5 (docs/markers-vs-fringes.md)
@@ -480,6 +477,11 @@ class FringeReconstructor:
         )
         result.frame_posterior = info
         return result
+
+    def _at_height(self, drawn: Integrated, surface: SplineSurface, height: float) -> Integrated:
+        """``drawn`` (with its posterior draws) carrying ``surface`` moved to ROI-mean height ``height`` (mm)."""
+        c = surface.coef.ravel()
+        return replace(drawn, surface=surface.with_coef(c + (height - float(self.integrator.roi_mean(c)))))
 
     def _criterion_spread(self, integ: Integrated) -> float:
         """The frame criterion's standard deviation over the spline's posterior samples ``integ.samples``, mm."""

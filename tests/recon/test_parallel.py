@@ -28,3 +28,27 @@ def test_one_thread_or_one_item_runs_in_the_calling_thread() -> None:
     here = threading.get_ident()
     assert thread_map(lambda _: threading.get_ident(), [0, 1], max_threads=1) == [here, here]
     assert thread_map(lambda _: threading.get_ident(), [0]) == [here]
+
+
+@pytest.mark.parametrize("cpus", [1, 2])
+def test_background_gives_its_value_or_its_error_on_one_cpu_or_two(monkeypatch, cpus: int) -> None:
+    from scopetwin.recon import parallel
+
+    monkeypatch.setattr(parallel, "available_cpus", lambda: cpus)
+    runs: list[int] = []
+
+    def work() -> int:
+        runs.append(threading.get_ident())
+        return 42
+
+    with parallel.Background(work) as job:
+        if cpus == 1:
+            assert runs == []  # on one CPU nothing runs until the result is asked for
+        assert job.result() == 42 and job.result() == 42
+    assert len(runs) == 1 and (runs[0] == threading.get_ident()) == (cpus == 1)
+
+    def fail() -> int:
+        raise ValueError("no data")
+
+    with parallel.Background(fail) as bad, pytest.raises(ValueError, match="no data"):
+        bad.result()

@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import pytest
 
+from scopetwin.recon import parallel
 from scopetwin.recon.fringes import reconstruct as fr
 from scopetwin.recon.posterior import PosteriorError
 
 
 @pytest.mark.parametrize("cpus", [1, 2])
 def test_the_search_starts_once_near_the_root_on_one_cpu_or_two(monkeypatch, cpus: int) -> None:
-    monkeypatch.setattr(fr, "available_cpus", lambda: cpus)
+    monkeypatch.setattr(parallel, "available_cpus", lambda: cpus)
     seen: list[str] = []
 
     def fit(obs):
@@ -32,7 +33,7 @@ def test_the_search_starts_once_near_the_root_on_one_cpu_or_two(monkeypatch, cpu
 
 @pytest.mark.parametrize("cpus", [1, 2])
 def test_a_failed_search_reaches_the_caller_and_an_unwanted_one_never_runs(monkeypatch, cpus: int) -> None:
-    monkeypatch.setattr(fr, "available_cpus", lambda: cpus)
+    monkeypatch.setattr(parallel, "available_cpus", lambda: cpus)
 
     def too_few(obs):
         raise PosteriorError("5 gradient observations are too few for the evidence")
