@@ -451,19 +451,20 @@ class FringeReconstructor:
         solved, info = None, None
         # the spline's posterior draws depend on the run's observation rows, not on its start height: drawn beside
         # the posterior's Newton steps, kept where those moved the surface without another inner loop
-        with Background(lambda: self.integrator.with_samples(inner.integrated, cfg.samples, cfg.seed)) as draws:
+        best_run = inner.integrated
+        with Background(lambda: self.integrator.with_samples(best_run, cfg.samples, cfg.seed)) as draws:
             if cfg.frame_posterior and cfg.criterion == "level":
                 solved = self.posterior_start_height(h_best, inner, slope, coords, rays, early, tilt)
             if solved is None:
                 integ = draws.result()
-            elif solved[1].integrated.rows is inner.integrated.rows:
+            elif solved[1].integrated.rows is best_run.rows:
                 integ = self._at_height(draws.result(), solved[1].surface, solved[0])
         if solved is None:
             # the criterion's spread over the posterior, and the distance left to its root, in start height
             sigma_h = float(np.hypot(self._criterion_spread(integ), values[best][1]) / abs(slope))
         else:
             h_best, moved, sigma_post, info = solved
-            if moved.integrated.rows is not inner.integrated.rows:  # an inner loop ran: its own draws
+            if moved.integrated.rows is not best_run.rows:  # an inner loop ran: its own draws
                 integ = self.integrator.with_samples(moved.integrated, cfg.samples, cfg.seed, h_best)
             inner = moved
             # not below the criterion's spread over the spline's own posterior samples: the Gaussian process sees a
