@@ -91,7 +91,7 @@ class ReconstructionConfig:
         2 cores); measured on a 16 spp §1.10 render with sensor noise, a 3 mm wide, 2 µm deep dimple comes back at
         88 % of its depth with it, -9 % without. Surfaces without such features keep the prior without it.
     posterior_points : int
-        Most gradient observations entering the posterior (:func:`scopetwin.recon.uncertainty.posterior_subset`:
+        Most gradient observations entering the posterior (:func:`scopetwin.recon.uncertainty.posterior_subset_indices`:
         all of the outermost along y, an even subsample of the rest).
     consistency_um : float
         After convergence the criterion not searched on must hold too: ``|Delta h_max|`` (criterion

@@ -756,37 +756,11 @@ class FrameModel:
         )
 
 
-def frame_posterior(
-    gp: GradientGP,
-    x_range: tuple[float, float],
-    y_range: tuple[float, float],
-    roi_length: float,
-    roi_axes: tuple[Array, Array] | None = None,
-    frame_step: float = FRAME_STEP,
-    node_step: float = 1.0,
-    samples: int = 600,
-    seed: int = 0,
-) -> FramePosterior:
+def frame_posterior(gp: GradientGP, *args: Any, **kwargs: Any) -> FramePosterior:
     """The posterior of D (frame maxima relative to the ROI mean) and of the height contrasts (thesis §1.4):
-    :func:`frame_model`'s reading of the process's own gradients.
-
-    Parameters
-    ----------
-    gp : GradientGP
-        The conditioned process.
-    x_range, y_range, roi_length : tuple, tuple, float
-        The substrate's extent and ROI length, mm (frame regions: |y| >= roi_length/2, edges included).
-    roi_axes : (ndarray, ndarray), optional
-        Axes (xs, ys) of the tensor grid whose plain mean defines the ROI mean (the reconstruction's own grid, so
-        the contrast matches its start height exactly); default the ROI nodes of the ``node_step`` grid.
-    frame_step, node_step : float
-        Spacing of the frame-region grids (for the maxima) and of the node grid (for the contrast map), mm.
-    samples, seed : int
-        Posterior draws of the frame points for the maxima.
-    """
-    model = frame_model(gp, x_range, y_range, roi_length, roi_axes, frame_step, node_step, samples, seed)
+    :func:`frame_model` of ``gp`` (the same arguments) read with the process's own gradients."""
     n = len(gp.xy)
-    return model.read(gp.g[:n], gp.g[n:])
+    return frame_model(gp, *args, **kwargs).read(gp.g[:n], gp.g[n:])
 
 
 def frame_model(
@@ -801,10 +775,25 @@ def frame_model(
     seed: int = 0,
     contrasts: bool = True,
 ) -> FrameModel:
-    """The :class:`FrameModel` of ``gp``'s positions and prior (the arguments as :func:`frame_posterior`'s).
+    """The :class:`FrameModel` of ``gp``'s positions and prior: what :func:`frame_posterior` and
+    :func:`scopetwin.recon.uncertainty.read_frame` read gradients with.
 
-    ``contrasts`` False: D and Delta h_max only, no node grid (its contrast map and spread are empty): the node
-    grid's 1500 points cost three quarters of the whitening where the caller reads D alone.
+    Parameters
+    ----------
+    gp : GradientGP
+        The conditioned process (its positions, prior and factor).
+    x_range, y_range, roi_length : tuple, tuple, float
+        The substrate's extent and ROI length, mm (frame regions: |y| >= roi_length/2, edges included).
+    roi_axes : (ndarray, ndarray), optional
+        Axes (xs, ys) of the tensor grid whose plain mean defines the ROI mean (the reconstruction's own grid, so
+        the contrast matches its start height exactly); default the ROI nodes of the ``node_step`` grid.
+    frame_step, node_step : float
+        Spacing of the frame-region grids (for the maxima) and of the node grid (for the contrast map), mm.
+    samples, seed : int
+        Posterior draws of the frame points for the maxima.
+    contrasts : bool
+        False: D and Delta h_max only, no node grid (its contrast map and spread are empty): the node grid's 1500
+        points cost three quarters of the whitening where the caller reads D alone.
     """
     half = 0.5 * roi_length
     nx = max(2, int(round((x_range[1] - x_range[0]) / node_step)) + 1)

@@ -282,12 +282,6 @@ def _contrast(surf: SBFSurface, h: float, xx: Array, yy: Array) -> Array:
     return np.asarray(surf.height(xx, yy)) - h
 
 
-def posterior_subset(xy: Array, hx: Array, hy: Array, budget: int) -> tuple[Array, Array, Array]:
-    """At most ``budget`` observations for the posterior (:func:`posterior_subset_indices`)."""
-    keep = posterior_subset_indices(xy, budget)
-    return xy[keep], hx[keep], hy[keep]
-
-
 def posterior_subset_indices(xy: Array, budget: int) -> NDArray[np.intp]:
     """Indices of at most ``budget`` observations for the posterior: the outer half of the budget nearest the frame
     regions (largest |y|) in full, an even subsample of the interior for the rest; the extrapolation rests on the

@@ -20,7 +20,7 @@ last decoded pixel into the frame regions, and on steep sheets (80-200 µm of wa
 maxima by microns. With ``frame_posterior`` (default) the criterion's shape functional D (frame maxima relative to
 the ROI mean) is read instead from the Gaussian-process posterior of the marker path (:mod:`scopetwin.recon.
 posterior`: prior chosen by evidence, :func:`~scopetwin.recon.posterior.fit_hyper`; the slopes traced through the
-converged surface, a few hundred of them by :func:`scopetwin.recon.uncertainty.posterior_subset`), and the start
+converged surface, a few hundred of them by :func:`scopetwin.recon.uncertainty.posterior_subset_indices`), and the start
 height solves H + D_post(H) = z_frame by Newton steps, each but the last followed by the inner loop at the new H (as
 :func:`scopetwin.recon.uncertainty.posterior` does for the markers; ``level`` criterion only).
 
@@ -159,7 +159,7 @@ class FringeConfig:
         Slopes (an even subsample) the evidence is maximised on, and the coarse subsample its starts run on
         (:func:`scopetwin.recon.posterior.fit_hyper`).
     posterior_points : int
-        Slopes the posterior is conditioned on (:func:`scopetwin.recon.uncertainty.posterior_subset`: the half
+        Slopes the posterior is conditioned on (:func:`scopetwin.recon.uncertainty.posterior_subset_indices`: the half
         nearest the frame regions in full, an even subsample of the rest).
     posterior_iterations : int
         Most Newton steps on H + D_post(H) = z_frame.
