@@ -431,8 +431,10 @@ def _evidence_and_gradient(theta: Array, pairs: _Pairs, g: Array, shape: float |
     broad, d_broad = _se_pieces(pairs, [(h.broad_amp, h.broad_len)])
     sx2, sy2 = (v**2 for v in h.noise_pair)
     total = smooth + broad + feature if h.feature_amp > 0 else smooth + broad
-    try:  # the factor with zeros above the diagonal, which potri keeps (_lower_inverse)
-        c = (sla.cholesky(_assemble(total, pairs, sx2, sy2), lower=True, check_finite=False), True)
+    # the factor with zeros above the diagonal, which potri keeps (_lower_inverse); numpy's factorisation releases
+    # the interpreter lock (SciPy's wrappers hold it), so a search in a thread runs beside the caller's work
+    try:
+        c = (np.asfortranarray(np.linalg.cholesky(_assemble(total, pairs, sx2, sy2))), True)
     except np.linalg.LinAlgError:
         return 1e30, np.zeros(8)
     alpha = sla.cho_solve(c, g, check_finite=False)

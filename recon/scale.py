@@ -8,13 +8,20 @@ import scipy.linalg as sla
 from numpy.typing import NDArray
 
 from scopetwin.recon.config import ReconstructionConfig
+from scopetwin.recon.parallel import thread_map
 from scopetwin.recon.shifted_basis import ShiftedBasis
 from scopetwin.recon.substrate import Substrate2D
 from scopetwin.scenes.geometry import Array
 
 
 def select_sigma(
-    sub: Substrate2D, x: Array, y: Array, hx: Array, hy: Array, config: ReconstructionConfig
+    sub: Substrate2D,
+    x: Array,
+    y: Array,
+    hx: Array,
+    hy: Array,
+    config: ReconstructionConfig,
+    max_threads: int | None = None,
 ) -> tuple[float, dict[float, float], dict[float, float]]:
     """Basis scale from the data: among the scales that fit the data, the one that best extrapolates.
 
@@ -25,13 +32,19 @@ def select_sigma(
     is fitted to the rest, and the RMS gradient error on the held-out band is measured: the same extrapolation the
     frame criterion relies on (thesis §1.4). The scale with the smallest RMS over both ends wins. Returns
     (sigma, {sigma: held-out score in µrad}, {sigma: residual of the fit to all gradients in µrad}).
+
+    The candidates are fitted on up to ``max_threads`` threads (default: every CPU the process may use,
+    :func:`scopetwin.recon.parallel.thread_map`); their products and factorisations release the interpreter lock.
     """
     scores: dict[float, float] = {}
     fits: dict[float, float] = {}
     ends = [y >= y.max() - config.holdout_band, y <= y.min() + config.holdout_band]
-    for sigma in config.sigma_candidates or ():
-        basis = config.make_basis(sub, sigma)
-        fit, errs = _fit_and_holdouts(basis, x, y, hx, hy, ends, config.regularization)
+    candidates = [float(s) for s in config.sigma_candidates or ()]
+
+    def one(sigma: float) -> tuple[float, list[float]]:
+        return _fit_and_holdouts(config.make_basis(sub, sigma), x, y, hx, hy, ends, config.regularization)
+
+    for sigma, (fit, errs) in zip(candidates, thread_map(one, candidates, max_threads), strict=True):
         fits[float(sigma)] = fit * 1e6
         if errs:
             scores[float(sigma)] = float(np.sqrt(np.mean(errs)) * 1e6)
@@ -79,6 +92,7 @@ def _ridge(gram: NDArray[np.float64], rhs: Array, nb: int, lam: float) -> Array:
     m = gram.copy()
     m[np.arange(nb), np.arange(nb)] += lam
     try:
-        return np.asarray(sla.cho_solve(sla.cho_factor(m, lower=False, check_finite=False), rhs, check_finite=False))
+        # numpy's factorisation releases the interpreter lock (SciPy's wrappers hold it): threads fit side by side
+        return np.asarray(sla.cho_solve((np.linalg.cholesky(m), True), rhs, check_finite=False))
     except np.linalg.LinAlgError:
         return np.asarray(sla.lstsq(m, rhs, lapack_driver="gelsy", check_finite=False)[0])

@@ -81,7 +81,7 @@ from scopetwin.recon.two_positions import (
     without,
     without_outliers,
 )
-from scopetwin.recon.uncertainty import posterior
+from scopetwin.recon.uncertainty import PriorAhead, posterior
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.pattern_stage import shift_pattern, stage_shift
 from scopetwin.scenes.setup import Setup
@@ -139,6 +139,7 @@ class _Search:
         self.surfaces: list[SBFSurface] = []
         self.path: list[str] = []
         self.rejected: NDArray[np.int64] = np.zeros((0, 2), dtype=np.int64)
+        self.ahead: PriorAhead | None = None  # the posterior step's evidence search, started early
 
     def loop(self, h: float, runs: int | None = None, fresh: bool = False) -> LoopOutcome:
         """One start-height loop from ``h`` (``fresh``: no warm start from an earlier loop's surfaces)."""
@@ -165,6 +166,15 @@ def _solve(
 ) -> ReconstructionResult:
     t0 = time.perf_counter()
     search = _Search(rec, markers, policy)
+    try:
+        return _search_and_accept(search, history_path, t0)
+    finally:
+        if search.ahead is not None:
+            search.ahead.close()
+
+
+def _search_and_accept(search: _Search, history_path: str | Path | None, t0: float) -> ReconstructionResult:
+    rec = search.rec
     out = _first_search(search)
     out = _rechoose_scale(search, out)
     out = _reject_outliers(search, out)
@@ -219,7 +229,15 @@ def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
     if not (policy.rechoose_scale and search.surfaces and cfg.sigma_candidates and cfg.counts is None):
         return out
     xy, hx, hy, _ = rec.traced_gradients(search.surfaces[-1], search.markers)
-    best, rec.sigma_scores, fits = select_sigma(rec.sub, xy[:, 0], xy[:, 1], hx, hy, cfg)
+    # where this Reconstructor chose its scale on an earlier frame (that choice usually stands), the posterior's
+    # evidence search starts beside the choice on this surface (taken where nothing changes it; results identical);
+    # on a first frame the candidates share the CPUs instead
+    speculate = bool(rec.sigma_scores) and out.converged and cfg.posterior != "off"
+    if speculate:
+        search.ahead = PriorAhead(rec, search.surfaces[-1], search.markers, (xy, hx, hy))
+    best, rec.sigma_scores, fits = select_sigma(
+        rec.sub, xy[:, 0], xy[:, 1], hx, hy, cfg, max_threads=1 if speculate else None
+    )
     current = float(rec.basis.sigma[0])
     too_coarse = current in fits and fits[current] > cfg.fit_ratio * min(fits.values())
     if best == current or not (out.converged or too_coarse):
@@ -283,7 +301,9 @@ def _accept(search: _Search, result: ReconstructionResult, history_path: str | P
     )
     if result.converged and (other <= cfg.consistency_um or cfg.criterion == "level"):
         post = (
-            posterior(rec, search.markers, result.surface, result.history, policy) if cfg.posterior != "off" else None
+            posterior(rec, search.markers, result.surface, result.history, policy, search.ahead)
+            if cfg.posterior != "off"
+            else None
         )
         if post is not None:
             result.surface, result.uncertainty = post.surface, post.uncertainty

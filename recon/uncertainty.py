@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from scopetwin.recon.parallel import Background
 from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
 from scopetwin.recon.substrate import Substrate2D
 from scopetwin.scenes.errors import ScopetwinError
@@ -128,26 +129,56 @@ def criterion_slope(history: list[Any], policy: ReconstructionPolicy = DEFAULT_P
     return policy.trusted_slope(slope)
 
 
-def _read(it: Iteration, surf: SBFSurface, markers: Any, earlier: _Reading | None) -> _Reading | None:
+def evidence_prior(cfg: ReconstructionConfig, traced: tuple[Array, Array, Array], start: Hyper | None) -> Hyper:
+    """The prior of the posterior step: :func:`scopetwin.recon.posterior.fit_hyper` on traced gradients ``traced`` =
+    (xy, hx, hy) with ``cfg``'s evidence settings, warm-started from ``start`` where there is one."""
+    from scopetwin.recon.posterior import fit_hyper
+
+    return fit_hyper(
+        *traced,
+        cfg.evidence_points,
+        start=start,
+        coarse_points=cfg.evidence_coarse_points,
+        local_features=cfg.local_features,
+    )
+
+
+class PriorAhead:
+    """The posterior step's evidence search started early, beside the rest of a solve
+    (:class:`scopetwin.recon.parallel.Background`): on the gradients traced through a converged surface before the
+    basis scale is re-chosen and outliers are tested. Where neither changes anything, the posterior step reads the
+    same surface with the same markers, and takes this prior (the same arrays give the same prior: results are
+    identical); otherwise it is not used. :meth:`close` waits for the search."""
+
+    def __init__(self, it: Iteration, surface: SBFSurface, markers: Any, traced: tuple[Array, Array, Array]) -> None:
+        self._key = (surface, markers, it.evidence_start, it.config)
+        cfg, start = it.config, it.evidence_start
+        self._job: Background[Hyper] = Background(lambda: evidence_prior(cfg, traced, start))
+
+    def hyper(self, it: Iteration, surface: SBFSurface, markers: Any) -> Hyper | None:
+        """The early search's prior where ``surface`` and ``markers`` are the ones it traced (and the iteration's
+        warm start and configuration the same), else None."""
+        same = all(a is b for a, b in zip(self._key, (surface, markers, it.evidence_start, it.config), strict=True))
+        return self._job.result() if same else None
+
+    def close(self) -> None:
+        self._job.close()
+
+
+def _read(
+    it: Iteration, surf: SBFSurface, markers: Any, earlier: _Reading | None, ahead: PriorAhead | None = None
+) -> _Reading | None:
     """Trace the gradients through ``surf`` and read them as a Gaussian process (the prior and, where the
-    observations have not moved, the model of the ``earlier`` reading: :func:`read_frame`); None where the posterior
-    fails."""
-    from scopetwin.recon.posterior import PosteriorError, fit_hyper
+    observations have not moved, the model of the ``earlier`` reading: :func:`read_frame`; the first prior from
+    ``ahead`` where it traced the same); None where the posterior fails."""
+    from scopetwin.recon.posterior import PosteriorError
 
     cfg, sub = it.config, it.sub
     rx, ry = sub.roi_grid(cfg.grid_step)
     xy, hx, hy, _ = it.traced_gradients(surf, markers)
     try:
-        hyper = earlier.hyper if earlier is not None else None
-        hyper = hyper or fit_hyper(
-            xy,
-            hx,
-            hy,
-            cfg.evidence_points,
-            start=it.evidence_start,
-            coarse_points=cfg.evidence_coarse_points,
-            local_features=cfg.local_features,
-        )
+        hyper = earlier.hyper if earlier is not None else ahead.hyper(it, surf, markers) if ahead is not None else None
+        hyper = hyper or evidence_prior(it.config, (xy, hx, hy), it.evidence_start)
         axes = (np.unique(rx), np.unique(ry))
         frame = read_frame(sub, axes, (xy, hx, hy), hyper, cfg.posterior_points, earlier.frame if earlier else None)
     except PosteriorError:
@@ -164,7 +195,12 @@ def _read(it: Iteration, surf: SBFSurface, markers: Any, earlier: _Reading | Non
 
 
 def _newton_start_height(
-    it: Iteration, surf: SBFSurface, markers: Any, slope: float, policy: ReconstructionPolicy
+    it: Iteration,
+    surf: SBFSurface,
+    markers: Any,
+    slope: float,
+    policy: ReconstructionPolicy,
+    ahead: PriorAhead | None = None,
 ) -> tuple[SBFSurface, _Reading | None]:
     """The start height from the posterior frame criterion: H + D_post(H) = z_frame by Newton steps (each followed
     by the inner loop at the new H, so the traced gradients follow the start height); one reading without steps
@@ -174,7 +210,7 @@ def _newton_start_height(
     tried: list[tuple[float, float]] = []  # (H, F_post(H)) of each step
     reading: _Reading | None = None
     for k in range(cfg.posterior_iterations if correcting else 1):
-        reading = _read(it, surf, markers, reading)
+        reading = _read(it, surf, markers, reading, ahead)
         if reading is None or not correcting:
             break
         h = it.roi_mean(surf.coef) + surf.offset
@@ -193,7 +229,12 @@ def _newton_start_height(
 
 
 def posterior(
-    it: Iteration, markers: Any, surface: SBFSurface, history: list[Any], policy: ReconstructionPolicy = DEFAULT_POLICY
+    it: Iteration,
+    markers: Any,
+    surface: SBFSurface,
+    history: list[Any],
+    policy: ReconstructionPolicy = DEFAULT_POLICY,
+    ahead: PriorAhead | None = None,
 ) -> Posterior | None:
     """Uncertainty of the converged ``surface`` and (``posterior = "correct"``) the posterior start height.
 
@@ -202,11 +243,12 @@ def posterior(
     (frame maxima relative to the ROI mean) compared with the fitted surface's D. The start height solves
     H + D(H) = z_frame; with the posterior D in place of the extrapolated one this is solved by Newton steps
     H <- H + (D_fit - D_post) / slope (slope = dF/dH of the outer loop). None where the posterior cannot be formed.
+    ``ahead``: an evidence search started earlier (:class:`PriorAhead`), its prior taken where it traced this surface.
     """
     cfg = it.config
     slope = criterion_slope(history, policy)
     h0 = it.roi_mean(surface.coef) + surface.offset
-    surf, reading = _newton_start_height(it, surface, markers, slope, policy)
+    surf, reading = _newton_start_height(it, surface, markers, slope, policy, ahead)
     if reading is None:
         return None
     post = reading.post

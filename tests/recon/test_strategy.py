@@ -153,3 +153,43 @@ def test_the_indexing_that_numbered_the_markers_is_on_the_path(monkeypatch, exac
     Found.indexing = "flood"
     done = strategy.reconstruct_image(image, SETUP, policy=DEFAULT_POLICY.with_changes(bias_step=False))
     assert not any("topology" in step for step in done.result.strategy)
+
+
+def test_a_later_frame_searches_its_prior_beside_the_scale_choice(exact, monkeypatch):
+    """From a Reconstructor's second frame on, the posterior's evidence search starts beside the basis scale's
+    choice on the converged surface (uncertainty.PriorAhead) and is taken where nothing changed that surface: the
+    result is the one of a Reconstructor that starts at the chosen scale and searches after the choice."""
+    import threading
+
+    import scopetwin.recon.uncertainty as uncertainty
+    from scopetwin.recon.parallel import available_cpus
+
+    _, obs = exact
+    rec = Reconstructor.from_setup(SETUP)
+    solve(rec, obs)  # the first frame chooses the scale
+    threads: list[threading.Thread] = []
+    searched = uncertainty.evidence_prior
+
+    def counted(*args):
+        threads.append(threading.current_thread())
+        return searched(*args)
+
+    monkeypatch.setattr(uncertainty, "evidence_prior", counted)
+    later = solve(rec, obs)
+    assert len(threads) == 1
+    if available_cpus() >= 2:
+        assert threads[0] is not threading.main_thread()
+    fresh = Reconstructor.from_setup(SETUP)
+    fresh.use_basis(rec.basis)
+    first = solve(fresh, obs)
+    assert len(threads) == 2 and threads[1] is threading.main_thread()
+    np.testing.assert_array_equal(later.surface.coef, first.surface.coef)
+    assert later.surface.offset == first.surface.offset
+    assert later.uncertainty.summary() == first.uncertainty.summary()
+    # the early search is not taken for another surface
+    xy, hx, hy, _ = rec.traced_gradients(first.surface, obs)
+    ahead = uncertainty.PriorAhead(rec, first.surface, obs, (xy, hx, hy))
+    assert ahead.hyper(rec, later.surface, obs) is None
+    assert ahead.hyper(rec, first.surface, MarkerObservations(obs.ij, obs.px)) is None
+    assert ahead.hyper(rec, first.surface, obs) is not None
+    ahead.close()
