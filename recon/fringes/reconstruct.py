@@ -80,16 +80,29 @@ def distance_left(change: float, last_change: float) -> float:
 
 #: The frame loop hands its slopes to the posterior's evidence search once its criterion lies within this of its
 #: root, µm: the search runs in a second thread beside the loop's remaining start heights instead of after them, on
-#: slopes traced at a start height at most this far from the final one (the prior describes the surface's kind and
-#: the slopes' noise, which a start height that close does not change). The same slopes on one CPU (searched when
-#: the posterior asks for the prior).
-EVIDENCE_EARLY_UM = 1.0
+#: slopes traced at a start height about this far from the final one at most (the prior describes the surface's kind
+#: and the slopes' noise, which a start height that close barely changes). The same slopes on one CPU (searched when
+#: the posterior asks for the prior). Measured on the ``thesis-1.10-fringes`` preset's render, the prior searched on
+#: the slopes traced through the final surface shifted by 10, 20, 50 and 100 µm moves the posterior's D by 0.002,
+#: 0.06, 0.13 and 0.14 of its spread (0.020 µm; the fringe result's u(absolute) is 0.31 µm): the first start height,
+#: 10.6 µm from the root, starts the search beside the second's inner loop.
+EVIDENCE_EARLY_UM = 20.0
 #: Newton steps of the posterior start height up to this size (µm) move the surface to first order instead of running
 #: the inner loop again: shifted by the step and bent by the frame loop's change per unit start height (the tilt)
 #: times the step, the slopes traced through it anew. Measured on the ``thesis-1.10-fringes`` preset's render (a
 #: 0.125 µm step): the first-order surface lies 0.0002 µm RMS (ROI, mean removed) from the inner loop's, whose
 #: change it predicts (0.016 µm RMS). Larger steps (steep sheets: several µm) run the inner loop.
 LINEAR_STEP_UM = 1.0
+
+
+#: With the frame posterior, the frame loop hands over to the posterior's Newton steps once its criterion lies within
+#: this of its root, µm (and it has two start heights, for the criterion's slope): the posterior moves the start height
+#: by its own correction anyway (0.1-0.2 µm on the thesis's kind), and steps up to :data:`LINEAR_STEP_UM` move the
+#: surface to first order, so a last inner loop to the fitted criterion's root buys nothing the result keeps. Where
+#: the posterior cannot be formed, the loop goes on to that root. Measured on the ``thesis-1.10-fringes`` preset's
+#: render: the loop hands over at 0.047 µm after two start heights instead of converging after three, and the result's
+#: start height moves by 0.0009 µm, D by 0.0008 µm (0.04 of its spread), u(absolute) by 1e-5 µm.
+POSTERIOR_HANDOFF_UM = 0.5
 
 
 class _EarlyEvidence:
@@ -329,6 +342,31 @@ class _Inner:
     iterations: int
 
 
+@dataclass
+class _Loop:
+    """The frame loop's start heights so far: (H, criterion) and (H, inner run) of each, its steps, whether it
+    converged, and whether it stopped short of the root to hand over to the posterior (:data:`POSTERIOR_HANDOFF_UM`)."""
+
+    values: list[tuple[float, float]]
+    runs: list[tuple[float, _Inner]]
+    history: list[FringeStep]
+    converged: bool
+    handed_over: bool = False
+
+
+@dataclass(frozen=True)
+class _Root:
+    """The frame loop's run nearest the fitted criterion's root: its start height (mm), inner run and criterion
+    (mm), the criterion's slope in the start height, and the surface's change per unit start height (ROI mean
+    removed)."""
+
+    h: float
+    inner: _Inner
+    criterion: float
+    slope: float
+    tilt: Array
+
+
 class FringeReconstructor:
     """The pieces of the nested iteration on dense slopes for one camera, display and substrate (module docstring)."""
 
@@ -406,16 +444,26 @@ class FringeReconstructor:
             early.close()
 
     def _start_heights(
-        self, coords: DisplayCoordinates, rays: PixelRays, early: _EarlyEvidence
-    ) -> tuple[list[tuple[float, float]], list[tuple[float, _Inner]], list[FringeStep], bool]:
+        self,
+        coords: DisplayCoordinates,
+        rays: PixelRays,
+        early: _EarlyEvidence,
+        handoff: bool = False,
+        earlier: _Loop | None = None,
+    ) -> _Loop:
         """The outer loop's start heights: (H, criterion) and (H, inner run) of each, its steps, whether it
-        converged; at least two start heights (the criterion's slope needs them)."""
+        converged; at least two start heights (the criterion's slope needs them). ``handoff``: stop within
+        :data:`POSTERIOR_HANDOFF_UM` of the root (the posterior's Newton steps go on from there); ``earlier``: a loop
+        that handed over, continued to the root."""
         cfg = self.config
-        values: list[tuple[float, float]] = []
-        runs: list[tuple[float, _Inner]] = []
-        history: list[FringeStep] = []
-        h, converged, initial = cfg.start_height_mm, False, None
-        for _ in range(cfg.outer_max):
+        loop = earlier or _Loop([], [], [], False)
+        values, runs, history = loop.values, loop.runs, loop.history
+        h, converged = cfg.start_height_mm, False
+        initial = runs[-1][1].surface if runs else None
+        if earlier is not None:
+            m1, m2 = (float(v[0]) for v in self.frame_maxima(runs[-1][1].surface.coef.ravel()))
+            h = float(next_start_height(values, self._thesis_step(values[-1][0], m1, m2, values[-1][1])))
+        for _ in range(cfg.outer_max - len(values)):
             inner = self.inner_loop(h, coords, rays, initial)
             m1, m2 = (float(v[0]) for v in self.frame_maxima(inner.surface.coef.ravel()))
             crit = frame_criterion(m1, m2, self.sub.frame_z, cfg.criterion)
@@ -427,41 +475,47 @@ class FringeReconstructor:
             if abs(crit) * 1e3 <= cfg.outer_tol_um:
                 converged = True
                 break
-            d_min = frame_distance(m1, m2, self.sub.frame_z)
-            h = float(next_start_height(values, h - (d_min if cfg.criterion == "delta" else crit)))
+            if handoff and len(runs) >= 2 and abs(crit) * 1e3 <= POSTERIOR_HANDOFF_UM:
+                return _Loop(values, runs, history, True, handed_over=True)
+            h = float(next_start_height(values, self._thesis_step(h, m1, m2, crit)))
         if len(runs) < 2:  # the criterion's slope needs a second start height
             probe = h + 1e-3
             runs.append((probe, self.inner_loop(probe, coords, rays, initial)))
             m1, m2 = (float(v[0]) for v in self.frame_maxima(runs[-1][1].surface.coef.ravel()))
             values.append((probe, frame_criterion(m1, m2, self.sub.frame_z, cfg.criterion)))
-        return values, runs, history, converged
+        return _Loop(values, runs, history, converged)
+
+    def _thesis_step(self, h: float, m1: float, m2: float, crit: float) -> float:
+        """The thesis's next start height after a run at ``h`` with frame maxima ``m1``, ``m2`` and criterion
+        ``crit`` (§1.4, eqs. 1.3-1.4), mm."""
+        return h - (frame_distance(m1, m2, self.sub.frame_z) if self.config.criterion == "delta" else crit)
 
     def _frame_loop(
         self, coords: DisplayCoordinates, rays: PixelRays, early: _EarlyEvidence, t0: float
     ) -> FringeResult:
         cfg = self.config
-        values, runs, history, converged = self._start_heights(coords, rays, early)
-        best = min(range(len(values)), key=lambda i: abs(values[i][1]))
-        h_best, inner = runs[best]
-        other = max((i for i in range(len(values)) if i != best), key=lambda i: abs(values[i][0] - h_best))
-        dh = values[other][0] - h_best
-        slope = (values[other][1] - values[best][1]) / dh
-        tilt = (runs[other][1].surface.coef.ravel() - inner.surface.coef.ravel()) / dh
-        tilt -= float(self.integrator.roi_mean(tilt))
+        posterior = cfg.frame_posterior and cfg.criterion == "level"
+        loop = self._start_heights(coords, rays, early, handoff=posterior)
+        fit = self._fitted_root(loop)
         solved, info = None, None
         # the spline's posterior draws depend on the run's observation rows, not on its start height: drawn beside
         # the posterior's Newton steps, kept where those moved the surface without another inner loop
-        best_run = inner.integrated
+        best_run = fit.inner.integrated
         with Background(lambda: self.integrator.with_samples(best_run, cfg.samples, cfg.seed)) as draws:
-            if cfg.frame_posterior and cfg.criterion == "level":
-                solved = self.posterior_start_height(h_best, inner, slope, coords, rays, early, tilt)
-            if solved is None:
+            if posterior:
+                solved = self.posterior_start_height(fit.h, fit.inner, fit.slope, coords, rays, early, fit.tilt)
+            if solved is None and loop.handed_over:  # no posterior after all: the loop goes on to the fitted root
+                loop = self._start_heights(coords, rays, early, earlier=loop)
+                fit = self._fitted_root(loop)
+                integ = self.integrator.with_samples(fit.inner.integrated, cfg.samples, cfg.seed)
+            elif solved is None:
                 integ = draws.result()
             elif solved[1].integrated.rows is best_run.rows:
                 integ = self._at_height(draws.result(), solved[1].surface, solved[0])
+        h_best, inner = fit.h, fit.inner
         if solved is None:
             # the criterion's spread over the posterior, and the distance left to its root, in start height
-            sigma_h = float(np.hypot(self._criterion_spread(integ), values[best][1]) / abs(slope))
+            sigma_h = float(np.hypot(self._criterion_spread(integ), fit.criterion) / abs(fit.slope))
         else:
             h_best, moved, sigma_post, info = solved
             if moved.integrated.rows is not best_run.rows:  # an inner loop ran: its own draws
@@ -470,14 +524,27 @@ class FringeReconstructor:
             # not below the criterion's spread over the spline's own posterior samples: the Gaussian process sees a
             # subset of the slopes with the white noise of its evidence, and on rendered steep sheets and the
             # dimple its spread alone is short by 2-5 (docs/markers-vs-fringes.md)
-            sigma_spline = self._criterion_spread(integ) / abs(slope)
+            sigma_spline = self._criterion_spread(integ) / abs(fit.slope)
             sigma_h = max(sigma_post, sigma_spline)
             info |= {"u_posterior_um": sigma_post * 1e3, "u_spline_um": sigma_spline * 1e3}
+        elapsed = time.perf_counter() - t0
         result = self._result(
-            integ, inner.obs, "frame-criterion", h_best, sigma_h, tilt, history, converged, time.perf_counter() - t0
+            integ, inner.obs, "frame-criterion", h_best, sigma_h, fit.tilt, loop.history, loop.converged, elapsed
         )
         result.frame_posterior = info
         return result
+
+    def _fitted_root(self, loop: _Loop) -> _Root:
+        """The run nearest the fitted criterion's root, the criterion's slope and the surface's tilt between it and
+        the run farthest from it."""
+        values, runs = loop.values, loop.runs
+        best = min(range(len(values)), key=lambda i: abs(values[i][1]))
+        h_best, inner = runs[best]
+        other = max((i for i in range(len(values)) if i != best), key=lambda i: abs(values[i][0] - h_best))
+        dh = values[other][0] - h_best
+        tilt = (runs[other][1].surface.coef.ravel() - inner.surface.coef.ravel()) / dh
+        tilt -= float(self.integrator.roi_mean(tilt))
+        return _Root(h_best, inner, values[best][1], (values[other][1] - values[best][1]) / dh, tilt)
 
     def _at_height(self, drawn: Integrated, surface: SplineSurface, height: float) -> Integrated:
         """``drawn`` (with its posterior draws) carrying ``surface`` moved to ROI-mean height ``height`` (mm)."""

@@ -21,14 +21,15 @@ def test_the_search_starts_once_near_the_root_on_one_cpu_or_two(monkeypatch, cpu
 
     early = fr._EarlyEvidence(fit, wanted=True)
     try:
-        early.offer(5e-3, "slopes 5 µm from the root")  # beyond EVIDENCE_EARLY_UM: not yet
+        near = fr.EVIDENCE_EARLY_UM * 1e-3  # mm
+        early.offer(2.0 * near, "slopes twice EVIDENCE_EARLY_UM from the root")  # not yet
         assert early.result() is None
-        early.offer(4e-4, "slopes 0.4 µm from the root")
+        early.offer(-0.4 * near, "slopes near the root")
         early.offer(1e-6, "slopes at the root")  # one search only
-        assert early.result() == "prior of slopes 0.4 µm from the root"
+        assert early.result() == "prior of slopes near the root"
     finally:
         early.close()
-    assert seen == ["slopes 0.4 µm from the root"] and fr.EVIDENCE_EARLY_UM == 1.0
+    assert seen == ["slopes near the root"]
 
 
 @pytest.mark.parametrize("cpus", [1, 2])

@@ -180,7 +180,7 @@ def test_a_small_posterior_step_moves_the_surface_as_the_inner_loop_would(case):
     coords, _ = block_average(_decode(setup, maps, 3), block_size(cam, sub, cfg.knot_spacing_mm))
     rec = FringeReconstructor(cam, setup.marker_pattern.frame, sub, cfg)
     rays = PixelRays.of(cam, coords.valid, coords.block)
-    values, runs, _, _ = rec._start_heights(coords, rays, _EarlyEvidence(rec.evidence, wanted=False))
+    runs = rec._start_heights(coords, rays, _EarlyEvidence(rec.evidence, wanted=False)).runs
     (h0, inner), (h1, other) = runs[-1], runs[0]
     tilt = (other.surface.coef.ravel() - inner.surface.coef.ravel()) / (h1 - h0)
     tilt -= float(rec.integrator.roi_mean(tilt))
@@ -198,3 +198,28 @@ def test_a_small_posterior_step_moves_the_surface_as_the_inner_loop_would(case):
     assert shape_rms(moved.surface, ran.surface) < 2e-6
     assert shape_rms(shifted, ran.surface) > 5 * shape_rms(moved.surface, ran.surface)
     assert len(moved.obs) == len(ran.obs)
+
+
+def test_the_frame_loop_hands_over_to_the_posterior_near_its_root(case, monkeypatch):
+    """With the frame posterior, the loop stops within POSTERIOR_HANDOFF_UM of the fitted criterion's root and the
+    posterior's Newton steps take the start height from there: fewer start heights than the loop run to its root,
+    the same start height within a few nm (a small part of its uncertainty). Where the posterior cannot be formed
+    after a hand-over, the loop goes on to the fitted root: the spline's own result."""
+    from scopetwin.recon.fringes import reconstruct as fr
+
+    setup, heights, maps, _ = case
+    coords = _decode(setup, maps, 1)
+    handed = reconstruct_fringes(setup, coords)
+    with monkeypatch.context() as m:
+        m.setattr(fr, "POSTERIOR_HANDOFF_UM", 0.0)  # never: to the root
+        full = reconstruct_fringes(setup, coords)
+    assert handed.converged and full.converged
+    assert len(handed.history) < len(full.history), (handed.history, full.history)
+    dh_um = abs(handed.start_height_mm - full.start_height_mm) * 1e3
+    assert dh_um < 0.005 and dh_um < 0.1 * full.absolute_um, (dh_um, full.absolute_um)
+    spline = reconstruct_fringes(setup, coords, FringeConfig(frame_posterior=False))
+    monkeypatch.setattr(fr.FringeReconstructor, "posterior_start_height", lambda *args, **kwargs: None)
+    fallback = reconstruct_fringes(setup, coords)
+    assert fallback.converged and abs(fallback.history[-1].criterion_um) <= FringeConfig().outer_tol_um
+    assert fallback.start_height_mm == spline.start_height_mm
+    assert fallback.absolute_um == pytest.approx(spline.absolute_um, rel=1e-9)
