@@ -900,8 +900,11 @@ class ResidualCorrection:
     roi_mean: float
 
     def height(self, x: Array, y: Array) -> Array:
-        """The correction at (x, y), mm (any shape)."""
+        """The correction at (x, y), mm (any shape; a tensor grid ``meshgrid(xs, ys)`` by :meth:`on_grid`)."""
         xa, ya = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        if xa.ndim == 2 and xa.size > 1 and np.array_equal(xa, np.broadcast_to(xa[:1], xa.shape)):
+            if np.array_equal(ya, np.broadcast_to(ya[:, :1], ya.shape)):
+                return self.on_grid(xa[0], ya[:, 0])
         p = np.stack([xa.ravel(), ya.ravel()], axis=-1)
         out = np.empty(len(p))
         for s in range(0, len(p), _CORRECTION_CHUNK):
@@ -909,6 +912,25 @@ class ResidualCorrection:
                 height_gradient_kernel(p[s : s + _CORRECTION_CHUNK], self.xy, self.hyper) @ self.alpha
             )
         return (out - self.roi_mean).reshape(xa.shape)
+
+    def on_grid(self, xs: Array, ys: Array) -> Array:
+        """The correction on the tensor grid ``meshgrid(xs, ys)``, (len(ys), len(xs)), mm.
+
+        Each squared-exponential component factorises over x and y, exp(-|d|^2 / 2l^2) = e_x e_y, so the sum over
+        the observations, sum_i a^2 / l^2 e_x e_y (alpha_x,i d_x + alpha_y,i d_y), is two matrix products of the
+        one-dimensional factors per component (a 128 x 288 map of 527 observations: 0.45 s pointwise, a few ms here).
+        """
+        xs, ys = np.asarray(xs, dtype=np.float64), np.asarray(ys, dtype=np.float64)
+        n = len(self.xy)
+        ax, ay = self.alpha[:n], self.alpha[n:]
+        dx = xs[:, None] - self.xy[None, :, 0]  # (nx, n)
+        dy = ys[:, None] - self.xy[None, :, 1]  # (ny, n)
+        out = TILT_STD**2 * (xs[None, :] * float(np.sum(ax)) + ys[:, None] * float(np.sum(ay)))
+        for amp, length in _components(self.hyper):
+            ex = _decay(dx * dx / (2.0 * length**2))
+            ey = _decay(dy * dy / (2.0 * length**2))
+            out += amp**2 / length**2 * ((ey * ax) @ (ex * dx).T + (ey * dy * ay) @ ex.T)
+        return out - self.roi_mean
 
     def gradient(self, x: Array, y: Array) -> tuple[Array, Array]:
         """d correction / dx and / dy at (x, y) (any shape)."""
