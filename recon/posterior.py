@@ -27,7 +27,7 @@ Nothing here imports Mitsuba or sim.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -625,7 +625,8 @@ class FramePosterior:
     node_x, node_y : ndarray
         Axes of the coarse node grid of ``contrast_std`` (whole substrate), mm.
     contrast_mean, contrast_std : ndarray, (ny, nx)
-        Posterior mean and standard deviation of f - mean_ROI(f) on that grid, mm.
+        Posterior mean and standard deviation of f - mean_ROI(f) on that grid, mm (computed when first asked for:
+        :class:`_NodePart`).
     roi : ndarray of bool, (ny, nx)
         Nodes inside the ROI.
     hyper : Hyper
@@ -640,12 +641,20 @@ class FramePosterior:
     delta_std: float
     node_x: Array
     node_y: Array
-    contrast_mean: Array
-    contrast_std: Array
     roi: NDArray[np.bool_]
     hyper: Hyper
     frame1: Array
     frame2: Array
+    nodes: _NodePart
+    v: Array  # L^-1 g, the whitened gradients the contrasts' mean is read with
+
+    @cached_property
+    def contrast_mean(self) -> Array:
+        return np.asarray(self.nodes.whitened.T @ self.v).reshape(self.nodes.std.shape)
+
+    @property
+    def contrast_std(self) -> Array:
+        return self.nodes.std
 
 
 def _axis_sums(v: Array, grid: Array, length: float) -> tuple[Array, Array]:
@@ -692,12 +701,36 @@ def _roi_functional(gp: GradientGP, pts: Array, axes: tuple[Array, Array]) -> tu
 REUSE_SHIFT_MM = 5e-4
 
 
+class _NodePart:
+    """The node grid's part of a :class:`FrameModel`: the whitened contrasts L^-1 cov(g, f(p) - m) of the nodes p and
+    their posterior standard deviation, formed when first asked for (three quarters of the whitening: a reading whose
+    contrast map nobody asks for, an intermediate Newton step's, never pays for it)."""
+
+    def __init__(self, gp: GradientGP, nodes: Array, k_pm: Array, k_mm: float, w_m: Array, shape: tuple[int, int]):
+        self._gp, self._nodes, self._k_pm, self._k_mm, self._w_m, self._shape = gp, nodes, k_pm, k_mm, w_m, shape
+
+    @cached_property
+    def whitened(self) -> Array:
+        """(2n, N): the nodes' whitened contrasts."""
+        wmat = self._gp.whitened(self._nodes)
+        wmat -= self._w_m[:, None]
+        return wmat
+
+    @cached_property
+    def std(self) -> Array:
+        """(ny, nx): the contrasts' posterior standard deviation (prior variance less the explained part)."""
+        explained = np.einsum("ij,ij->j", self.whitened, self.whitened)
+        prior = _height_variance(self._nodes, self._gp.hyper) - 2.0 * self._k_pm + self._k_mm
+        return np.sqrt(np.clip(prior - explained, 0.0, None)).reshape(self._shape)
+
+
 @dataclass(frozen=True)
 class FrameModel:
     """The part of :func:`frame_posterior` that does not depend on the gradient values: for one set of observation
-    positions and one prior, the factor, the whitened cross-covariances of the frame points and nodes, the nodes'
-    spread and the draws' deviations. :meth:`read` gives the posterior for any gradients at those positions with two
-    triangular solves and a product (the Newton steps of the posterior start height read the same geometry again).
+    positions and one prior, the factor, the whitened cross-covariances of the frame points, the draws' deviations,
+    and the node grid's part (formed when a reading's contrasts are first asked for). :meth:`read` gives the
+    posterior for any gradients at those positions with a triangular solve and a product (the Newton steps of the
+    posterior start height read the same geometry again).
 
     Attributes
     ----------
@@ -707,12 +740,14 @@ class FrameModel:
         The prior.
     chol : ndarray, (2n, 2n)
         Lower Cholesky factor L of the gradient covariance.
-    whitened : ndarray, (2n, P)
-        L^-1 cov(g, f(p) - m) for the frame points and nodes p (m: the ROI mean).
+    whitened : ndarray, (2n, k)
+        L^-1 cov(g, f(p) - m) for the frame points p (m: the ROI mean).
     deviations : ndarray, (samples, k)
         Draws of the frame points' joint posterior less its mean.
-    node_x, node_y, node_std, roi, frame1, frame2
-        As :class:`FramePosterior` (``node_std``: its ``contrast_std``).
+    node_x, node_y, roi, frame1, frame2
+        As :class:`FramePosterior`.
+    nodes : _NodePart
+        The node grid's whitened contrasts and spread.
     """
 
     xy: Array
@@ -722,10 +757,15 @@ class FrameModel:
     deviations: Array
     node_x: Array
     node_y: Array
-    node_std: Array
     roi: NDArray[np.bool_]
     frame1: Array
     frame2: Array
+    nodes: _NodePart
+
+    @property
+    def node_std(self) -> Array:
+        """The contrasts' posterior standard deviation on the node grid, (ny, nx), mm."""
+        return self.nodes.std
 
     def covers(self, xy: Array) -> bool:
         """Whether gradients observed at ``xy`` may be read with this model: the same observations, none moved by
@@ -734,12 +774,12 @@ class FrameModel:
         return xy.shape == self.xy.shape and float(np.max(np.abs(xy - self.xy), initial=0.0)) <= REUSE_SHIFT_MM
 
     def read(self, gx: Array, gy: Array) -> FramePosterior:
-        """The posterior of D and of the contrasts for gradients (gx, gy) observed at :attr:`xy`."""
+        """The posterior of D and (when asked for) of the contrasts for gradients (gx, gy) observed at :attr:`xy`."""
         g = np.concatenate([np.ravel(gx), np.ravel(gy)]).astype(np.float64)
         v = sla.solve_triangular(self.chol, g, lower=True, check_finite=False)
-        mu = self.whitened.T @ v  # the posterior mean of the contrasts: cov(f(p) - m, g) K^-1 g
-        n1, n2 = len(self.frame1), len(self.frame2)
-        draws = mu[None, : n1 + n2] + self.deviations
+        mu = self.whitened.T @ v  # the posterior mean of the frame points' contrasts: cov(f(p) - m, g) K^-1 g
+        n1 = len(self.frame1)
+        draws = mu[None, :] + self.deviations
         max1, max2 = draws[:, :n1].max(axis=1), draws[:, n1:].max(axis=1)
         d = 0.5 * (max1 + max2)
         return FramePosterior(
@@ -749,12 +789,12 @@ class FrameModel:
             float((max1 - max2).std()),
             self.node_x,
             self.node_y,
-            mu[n1 + n2 :].reshape(self.node_std.shape),
-            self.node_std,
             self.roi,
             self.hyper,
             self.frame1,
             self.frame2,
+            self.nodes,
+            v,
         )
 
 
@@ -794,8 +834,8 @@ def frame_model(
     samples, seed : int
         Posterior draws of the frame points for the maxima.
     contrasts : bool
-        False: D and Delta h_max only, no node grid (its contrast map and spread are empty): the node grid's 1500
-        points cost three quarters of the whitening where the caller reads D alone.
+        False: D and Delta h_max only, no node grid (its contrast map and spread are empty). With it, the node
+        grid's part (three quarters of the whitening) is formed when a reading's contrasts are first asked for.
     """
     half = 0.5 * roi_length
     nx = max(2, int(round((x_range[1] - x_range[0]) / node_step)) + 1)
@@ -811,31 +851,26 @@ def frame_model(
     if contrasts and not roi.any():
         raise PosteriorError("the node grid has no point in the ROI")
     f1, f2 = frame_points(x_range, y_range, roi_length, frame_step)
-    pts = np.concatenate([f1, f2, nodes])
-    n1, n2 = len(f1), len(f2)
+    fr = np.concatenate([f1, f2])
     # the ROI mean m as one more functional; contrasts c = f(p) - m
-    k_gm, k_pm, k_mm = _roi_functional(gp, pts, axes)
-    wmat = gp.whitened(pts)  # (2n, P)
+    k_gm, k_pm, k_mm = _roi_functional(gp, np.concatenate([fr, nodes]), axes)
+    wmat = gp.whitened(fr)  # (2n, k)
     w_m = sla.solve_triangular(gp.chol[0], k_gm, lower=True, check_finite=False)
-    # the whitened contrasts are W - w_m 1^T; their products from W's without forming them
-    cross, mm = w_m @ wmat, float(w_m @ w_m)
-    explained = np.einsum("ij,ij->j", wmat, wmat) - 2.0 * cross + mm
-    # the contrasts' posterior variance at every point: prior variance less the explained part (diagonals only)
-    var = np.clip(_height_variance(pts, gp.hyper) - 2.0 * k_pm + k_mm - explained, 0.0, None)
-    # D by sampling the frame points' joint posterior (maxima: location and excess included); only the frame
-    # points need their joint covariance
-    fr = slice(0, n1 + n2)
-    kf = height_kernel(pts[fr], pts[fr], gp.hyper)
-    kf -= (k_pm[fr, None] - cross[fr, None]) + (k_pm[None, fr] - cross[None, fr])
-    kf += k_mm - mm
-    # kf -= W_f^T W_f, lower triangle only (BLAS syrk: half a product's work; nothing reads the upper one)
-    kf = sla.blas.dsyrk(-1.0, wmat[:, fr], beta=1.0, c=kf, trans=1, lower=1, overwrite_c=1)
+    wmat -= w_m[:, None]  # the frame points' whitened contrasts
+    # D by sampling the frame points' joint posterior (maxima: location and excess included): prior covariance of
+    # the contrasts less the explained part, W^T W, lower triangle only (BLAS syrk: half a product's work; nothing
+    # reads the upper one)
+    k = len(fr)
+    kf = height_kernel(fr, fr, gp.hyper)
+    kf -= k_pm[:k, None] + k_pm[None, :k]
+    kf += k_mm
+    kf = sla.blas.dsyrk(-1.0, wmat, beta=1.0, c=kf, trans=1, lower=1, overwrite_c=1)
     root = _sqrt_psd(kf)
-    deviations = np.random.default_rng(seed).standard_normal((samples, n1 + n2)) @ root.T
-    wmat -= w_m[:, None]  # the whitened contrasts themselves, for the means
-    node_sd = np.sqrt(var[n1 + n2 :]).reshape(len(node_y), len(node_x))
-    roi_nodes = roi.reshape(node_sd.shape)
-    return FrameModel(gp.xy, gp.hyper, gp.chol[0], wmat, deviations, node_x, node_y, node_sd, roi_nodes, f1, f2)
+    deviations = np.random.default_rng(seed).standard_normal((samples, k)) @ root.T
+    part = _NodePart(gp, nodes, k_pm[k:], k_mm, w_m, (len(node_y), len(node_x)))
+    return FrameModel(
+        gp.xy, gp.hyper, gp.chol[0], wmat, deviations, node_x, node_y, roi.reshape(part._shape), f1, f2, part
+    )
 
 
 def _sqrt_psd(c: Array) -> Array:
