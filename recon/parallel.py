@@ -18,10 +18,24 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
+#: This process's share of the CPUs where it is one worker of several (:func:`limit_cpus`); empty: no cap.
+_SHARE: list[int] = []
+
+
 def available_cpus() -> int:
-    """The number of CPUs this process may run on (its affinity where the platform reports one)."""
+    """The number of CPUs this process may run on (its affinity where the platform reports one), at most its share
+    where :func:`limit_cpus` set one."""
     affinity = getattr(os, "sched_getaffinity", None)  # POSIX; elsewhere every CPU counts
-    return len(affinity(0)) if affinity is not None else os.cpu_count() or 1
+    n = len(affinity(0)) if affinity is not None else os.cpu_count() or 1
+    return min(n, _SHARE[0]) if _SHARE else n
+
+
+def limit_cpus(share: int | None) -> None:
+    """Cap :func:`available_cpus` for this process at ``share`` (None: no cap). A worker of a multi-process run
+    (one per core) sets its share, so that one reconstruction's threads do not compete with the other workers'."""
+    if share is not None and share < 1:
+        raise ValueError(f"a process's CPU share must be >= 1, got {share}")
+    _SHARE[:] = [] if share is None else [int(share)]
 
 
 def thread_map(fn: Callable[[T], R], items: Sequence[T], max_threads: int | None = None) -> list[R]:

@@ -30,7 +30,8 @@ _WORKER_STATE: dict[str, Any] = {}
 
 
 def init_worker(threads: int | None) -> None:
-    """Once per worker process: Dr.Jit's thread count (one per worker on a local cluster; None/0 leaves it), and
+    """Once per worker process: Dr.Jit's thread count and the reconstruction's threads
+    (:func:`scopetwin.recon.parallel.limit_cpus`; one per worker on a local cluster; None/0 leaves them), and
     Mitsuba's log at errors only (a worker's warnings — e.g. Mitsuba's own "winding down" on a Ctrl-C that reached
     the worker — would only add lines to the client's one-line report)."""
     if not _WORKER_STATE.get("quiet") and _in_dask_worker():
@@ -39,9 +40,11 @@ def init_worker(threads: int | None) -> None:
         quiet_warnings(resolve(None, "mono"))
         _WORKER_STATE["quiet"] = True
     if threads and _WORKER_STATE.get("threads") != threads:
+        from scopetwin.recon.parallel import limit_cpus
         from scopetwin.scenes.mitsuba.variant import set_thread_count
 
         set_thread_count(int(threads))
+        limit_cpus(int(threads))
         _WORKER_STATE["threads"] = threads
 
 

@@ -52,3 +52,23 @@ def test_background_gives_its_value_or_its_error_on_one_cpu_or_two(monkeypatch, 
 
     with parallel.Background(fail) as bad, pytest.raises(ValueError, match="no data"):
         bad.result()
+
+
+def test_a_workers_share_caps_the_cpus_its_threads_use() -> None:
+    """A worker of a multi-process run caps this process's CPUs at its share (limit_cpus): thread_map then runs in
+    the calling thread; no cap again gives the affinity's count; a share below one is refused."""
+    from scopetwin.recon.parallel import limit_cpus
+
+    full = available_cpus()
+    here = threading.get_ident()
+    try:
+        limit_cpus(1)
+        assert available_cpus() == 1
+        assert thread_map(lambda _: threading.get_ident(), [0, 1, 2]) == [here] * 3
+        limit_cpus(full + 5)
+        assert available_cpus() == full
+        with pytest.raises(ValueError, match="share"):
+            limit_cpus(0)
+    finally:
+        limit_cpus(None)
+    assert available_cpus() == full
