@@ -870,10 +870,9 @@ def frame_model(
     kf = sla.blas.dsyrk(-1.0, wmat, beta=1.0, c=kf, trans=1, lower=1, overwrite_c=1)
     root = _sqrt_psd(kf)
     deviations = np.random.default_rng(seed).standard_normal((samples, k)) @ root.T
-    part = _NodePart(gp, nodes, k_pm[k:], k_mm, w_m, (len(node_y), len(node_x)))
-    return FrameModel(
-        gp.xy, gp.hyper, gp.chol[0], wmat, deviations, node_x, node_y, roi.reshape(part._shape), f1, f2, part
-    )
+    shape = (len(node_y), len(node_x))
+    part = _NodePart(gp, nodes, k_pm[k:], k_mm, w_m, shape)
+    return FrameModel(gp.xy, gp.hyper, gp.chol[0], wmat, deviations, node_x, node_y, roi.reshape(shape), f1, f2, part)
 
 
 def _sqrt_psd(c: Array) -> Array:
