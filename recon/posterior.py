@@ -472,7 +472,7 @@ def _lower_inverse(low: Array) -> Array:
     return np.asarray(inv)
 
 
-def _even_subsample(n: int, k: int) -> NDArray[np.intp]:
+def even_subsample(n: int, k: int) -> NDArray[np.intp]:
     """Indices of an even subsample of k of n observations (all of them where n <= k)."""
     return np.arange(n) if n <= k else np.linspace(0, n - 1, k).round().astype(np.intp)
 
@@ -556,7 +556,7 @@ def fit_hyper(
     gx, gy = np.ravel(gx), np.ravel(gy)
     if len(xy) < 10:
         raise PosteriorError(f"{len(xy)} gradient observations are too few for the evidence")
-    keep = _even_subsample(len(xy), max_points)
+    keep = even_subsample(len(xy), max_points)
     xy, gx, gy = xy[keep], gx[keep], gy[keep]
     g = np.concatenate([gx, gy])
     g_rms = float(np.sqrt(np.mean(g**2))) + 1e-9
@@ -576,7 +576,7 @@ def fit_hyper(
     # the smooth part's shape by evidence: each shape's starts (on the coarse subsample where there is one), the
     # better one refined on all observations
     coarse = 10 <= coarse_points < len(xy)
-    sub = _even_subsample(len(xy), coarse_points) if coarse else np.arange(len(xy))
+    sub = even_subsample(len(xy), coarse_points) if coarse else np.arange(len(xy))
     pairs_c, g_c = (_Pairs.of(xy[sub]), np.concatenate([gx[sub], gy[sub]])) if coarse else (pairs, g)
     tried: dict[float | None, tuple[float, Array]] = {None: _max_evidence(pairs_c, g_c, cold, off, None)}
     tried[SMOOTH_SHAPE] = _max_evidence(pairs_c, g_c, [tried[None][1]], off, SMOOTH_SHAPE)  # from the SE's

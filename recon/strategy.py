@@ -229,10 +229,9 @@ def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
     if not (policy.rechoose_scale and search.surfaces and cfg.sigma_candidates and cfg.counts is None):
         return out
     xy, hx, hy, _ = rec.traced_gradients(search.surfaces[-1], search.markers)
-    # where this Reconstructor chose its scale on an earlier frame (that choice usually stands), the posterior's
-    # evidence search starts beside the choice on this surface (taken where nothing changes it; results identical);
-    # on a first frame the candidates share the CPUs instead
-    speculate = bool(rec.sigma_scores) and out.converged and cfg.posterior != "off"
+    # the posterior's evidence search starts beside the choice on this surface: taken where nothing changes it
+    # (results identical), else refined from on the gradients traced anew (PriorAhead)
+    speculate = out.converged and cfg.posterior != "off"
     if speculate:
         search.ahead = PriorAhead(rec, search.surfaces[-1], search.markers, (xy, hx, hy))
     best, rec.sigma_scores, fits = select_sigma(

@@ -155,41 +155,62 @@ def test_the_indexing_that_numbered_the_markers_is_on_the_path(monkeypatch, exac
     assert not any("topology" in step for step in done.result.strategy)
 
 
-def test_a_later_frame_searches_its_prior_beside_the_scale_choice(exact, monkeypatch):
-    """From a Reconstructor's second frame on, the posterior's evidence search starts beside the basis scale's
-    choice on the converged surface (uncertainty.PriorAhead) and is taken where nothing changed that surface: the
-    result is the one of a Reconstructor that starts at the chosen scale and searches after the choice."""
+def test_the_prior_is_searched_beside_the_scale_choice(exact, monkeypatch):
+    """The posterior's evidence search starts beside the basis scale's choice on the converged surface
+    (uncertainty.PriorAhead). Where nothing changed that surface it is taken as it is: the result is the one of a
+    solve that searches its prior afterwards. Where the scale changed it is refined from on the gradients traced
+    anew, to the evidence of a cold search on them."""
     import threading
 
     import scopetwin.recon.uncertainty as uncertainty
     from scopetwin.recon.parallel import available_cpus
+    from scopetwin.recon.posterior import GradientGP
 
     _, obs = exact
     rec = Reconstructor.from_setup(SETUP)
-    solve(rec, obs)  # the first frame chooses the scale
-    threads: list[threading.Thread] = []
+    calls: list[tuple[threading.Thread, object]] = []
     searched = uncertainty.evidence_prior
 
-    def counted(*args):
-        threads.append(threading.current_thread())
-        return searched(*args)
+    def counted(cfg, traced, start):
+        calls.append((threading.current_thread(), start))
+        return searched(cfg, traced, start)
 
     monkeypatch.setattr(uncertainty, "evidence_prior", counted)
-    later = solve(rec, obs)
-    assert len(threads) == 1
+    first = solve(rec, obs)
+    assert any("basis scale chosen on the data" in step for step in first.strategy), first.strategy
+    # the early search beside the choice, then a search for the new scale's surface (exact images: the noise at its
+    # floor, the new scale moved the gradients far beyond the prior's spread of them, so a cold one)
+    assert len(calls) == 2 and calls[0][1] is None and calls[1][1] is None
+    assert calls[1][0] is threading.main_thread()
     if available_cpus() >= 2:
-        assert threads[0] is not threading.main_thread()
+        assert calls[0][0] is not threading.main_thread()
+    calls.clear()
+    later = solve(rec, obs)  # the scale stands: the early search's prior as it is
+    assert len(calls) == 1
     fresh = Reconstructor.from_setup(SETUP)
     fresh.use_basis(rec.basis)
-    first = solve(fresh, obs)
-    assert len(threads) == 2 and threads[1] is threading.main_thread()
-    np.testing.assert_array_equal(later.surface.coef, first.surface.coef)
-    assert later.surface.offset == first.surface.offset
-    assert later.uncertainty.summary() == first.uncertainty.summary()
-    # the early search is not taken for another surface
+    after = solve(fresh, obs, DEFAULT_POLICY.with_changes(rechoose_scale=False))
+    assert len(calls) == 2 and calls[1][0] is threading.main_thread()
+    np.testing.assert_array_equal(later.surface.coef, after.surface.coef)
+    assert later.surface.offset == after.surface.offset
+    assert later.uncertainty.summary() == after.uncertainty.summary()
+    # for a surface whose gradients moved within the prior's spread of them (here a start height 0.01 µm off),
+    # refined from: the evidence of a cold search on the gradients traced through it; moved beyond it (20 µm), none
     xy, hx, hy, _ = rec.traced_gradients(first.surface, obs)
     ahead = uncertainty.PriorAhead(rec, first.surface, obs, (xy, hx, hy))
-    assert ahead.hyper(rec, later.surface, obs) is None
-    assert ahead.hyper(rec, first.surface, MarkerObservations(obs.ij, obs.px)) is None
-    assert ahead.hyper(rec, first.surface, obs) is not None
+    near, far = (later.surface.shifted(first.surface.offset + dz) for dz in (1e-5, 0.02))
+    traced = rec.traced_gradients(near, obs)[:3]
+    refined = ahead.hyper(rec, near, obs, traced)
+    cold = searched(rec.config, traced, None)
+    assert refined is not None
+    keep = np.linspace(0, len(traced[0]) - 1, rec.config.evidence_points).round().astype(int)
+    evidence = [
+        GradientGP(traced[0][keep], traced[1][keep], traced[2][keep], h).log_evidence() for h in (refined, cold)
+    ]
+    assert evidence[0] > evidence[1] - 0.5, evidence
+    assert ahead.hyper(rec, far, obs, rec.traced_gradients(far, obs)[:3]) is None
+    assert ahead.hyper(rec, near, MarkerObservations(obs.ij, obs.px), traced) is None  # other markers
+    assert ahead.hyper(rec, first.surface, obs, (xy, hx, hy)) == searched(rec.config, (xy, hx, hy), None)
+    rec.evidence_start = cold  # another warm start than the early search's: not used
+    assert ahead.hyper(rec, first.surface, obs, (xy, hx, hy)) is None
     ahead.close()
