@@ -192,22 +192,11 @@ def _se_parts(p: Array, q: Array, amp: float, length: float) -> tuple[Array, Arr
 
 def gradient_kernel(r: Array, hyper: Hyper) -> Array:
     """Prior covariance of the stacked gradient observations [f_x(r); f_y(r)], (2n, 2n), noise included."""
-    n = len(r)
-    k = np.zeros((2 * n, 2 * n))
-    for amp, length in _components(hyper):
-        e, dx, dy = _se_parts(r, r, amp, length)
-        il2, il4 = 1.0 / length**2, 1.0 / length**4
-        k[:n, :n] += e * (il2 - dx * dx * il4)
-        k[n:, n:] += e * (il2 - dy * dy * il4)
-        xy = -e * dx * dy * il4
-        k[:n, n:] += xy
-        k[n:, :n] += xy
-    k[:n, :n] += TILT_STD**2
-    k[n:, n:] += TILT_STD**2
+    pairs = _Pairs.of(np.asarray(r, dtype=np.float64).reshape(-1, 2))
+    s2, s4 = _se_sums(pairs.r2, _components(hyper), 2)
+    np.negative(s4, out=s4)
     sx, sy = hyper.noise_pair
-    k[np.arange(n), np.arange(n)] += sx**2
-    k[np.arange(n, 2 * n), np.arange(n, 2 * n)] += sy**2
-    return k
+    return _assemble(_Blocks(s2, s4), pairs, sx**2, sy**2)
 
 
 def height_gradient_kernel(p: Array, r: Array, hyper: Hyper) -> Array:
@@ -341,15 +330,7 @@ def _se_pieces(pairs: _Pairs, comps: list[tuple[float, float]]) -> tuple[_Blocks
     if not comps:
         zero = np.zeros_like(r2)
         return _Blocks(zero, zero), _Blocks(zero, zero)
-    sums = [np.zeros_like(r2) for _ in range(3)]
-    e, term = np.empty_like(r2), np.empty_like(r2)
-    for amp, length in comps:
-        il2 = 1.0 / length**2
-        np.multiply(r2, 0.5 * il2, out=e)
-        _decay(e, out=e)
-        for k, acc in enumerate(sums, start=1):  # S_2, S_4, S_6
-            np.multiply(e, amp**2 * il2**k, out=term)
-            acc += term
+    sums = _se_sums(r2, comps, 3)
     s2, s4, s6 = sums
     d_base = r2 * s4
     d_base -= 2.0 * s2
@@ -357,6 +338,21 @@ def _se_pieces(pairs: _Pairs, comps: list[tuple[float, float]]) -> tuple[_Blocks
     np.subtract(4.0 * s4, d_w, out=d_w)
     np.negative(s4, out=s4)
     return _Blocks(s2, s4), _Blocks(d_base, d_w)
+
+
+def _se_sums(r2: Array, comps: list[tuple[float, float]], orders: int) -> list[Array]:
+    """S_2, S_4, ... (the first ``orders``) of :func:`_se_pieces`: S_2k = sum over the SE components (amplitude,
+    length) of a^2 exp(-r2 / (2 l^2)) / l^2k, one exponential per component."""
+    sums = [np.zeros_like(r2) for _ in range(orders)]
+    e, term = np.empty_like(r2), np.empty_like(r2)
+    for amp, length in comps:
+        il2 = 1.0 / length**2
+        np.multiply(r2, 0.5 * il2, out=e)
+        _decay(e, out=e)
+        for k, acc in enumerate(sums, start=1):
+            np.multiply(e, amp**2 * il2**k, out=term)
+            acc += term
+    return sums
 
 
 @dataclass(frozen=True)
