@@ -69,6 +69,12 @@ class InverseConfig:
         Prior standard deviations of those motions: camera shift (mm), camera rotation (rad), pattern shift (mm),
         pattern rotation (rad) — the calibration's uncertainties where the setup carries them
         (:func:`pose_sigma_for`, ``[calibration]`` of a setup that ``calibrate-setup`` wrote).
+    near_margin : int
+        From the centroid method's surface, its start height held and the setup not refined, only the pixels within
+        this many of one whose centre ray sees a marker (or misses the substrate) are traced at each level
+        (:meth:`scopetwin.recon.inverse.render._Level.restrict`): the others see the dark ground between the markers,
+        and the fit's equations are the same without their rays as long as the markers' images move by less than
+        the margin (from that start, hundredths of a pixel). 0: every pixel traced.
     pose_box : float
         The pose stays within this many of those standard deviations of the setup (each step shortened to keep
         it so): the pixels of an unknown specular surface hardly tell a camera motion from a change of the surface's
@@ -96,6 +102,11 @@ class InverseConfig:
     refine_setup: bool = False
     pose_sigma: tuple[float, float, float, float] = (0.05, 2e-4, 0.05, 2e-4)
     pose_box: float = 3.0
+    near_margin: int = 3
+
+    def __post_init__(self) -> None:
+        if self.near_margin < 0:
+            raise ValueError(f"near_margin must be >= 0 pixels, got {self.near_margin}")
 
 
 def pose_sigma_for(

@@ -83,8 +83,9 @@ class _Measurement:
             raise ReconstructionError("the camera does not see the substrate's region of interest")
         return (r0, r1, c0, c1)
 
-    def _level(self, b: int, sub: int) -> _Level:
-        """The resolution level of b x b pixel blocks with ``sub`` x ``sub`` rays each, over the fitted window."""
+    def _level(self, b: int, sub: int, near: tuple[SplineSurface, int] | None = None) -> _Level:
+        """The resolution level of b x b pixel blocks with ``sub`` x ``sub`` rays each, over the fitted window (only
+        the pixels near the markers' images through a surface traced: ``near`` = (surface, margin))."""
         return _Level(
             self.camera,
             self.pattern,
@@ -96,6 +97,7 @@ class _Measurement:
             sub,
             self.variant,
             self.config.jitter,
+            near,
         )
 
     def _linearise(

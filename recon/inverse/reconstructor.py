@@ -91,8 +91,10 @@ class InverseReconstructor(_ShapeUncertainty):
         xs, ys = self.sub.roi_grid(0.5)
         h = float(np.mean(surf.height(xs, ys)))
         schedule = cfg.levels if initial is not None else cfg.plane_levels
-        levels = [self._level(b, s) for b, s in schedule]
         search = initial is None or cfg.absolute == "frame"
+        # the markers' images stay where they are (InverseConfig.near_margin): only the pixels near them traced
+        near = (surf, cfg.near_margin) if cfg.near_margin > 0 and not (search or cfg.refine_setup) else None
+        levels = [self._level(b, s, near) for b, s in schedule]
         surf = self._coarse_to_fine(levels, surf, h)
         fine = levels[-1]
         surf, found = self._height_search(fine, surf, h, len(levels) - 1, search)

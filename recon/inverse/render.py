@@ -103,7 +103,10 @@ def _coefficient_jacobian(res: Any, ok: NDArray[np.bool_], spp: int, surf: Splin
 
 
 class _Level:
-    """One resolution level: the ray model of the (binned) window's pixels and the binned image with weights."""
+    """One resolution level: the ray model of the (binned) window's pixels and the binned image with weights.
+
+    ``near`` = (surface, margin): trace only the pixels near a marker's image through that surface
+    (:meth:`restrict`)."""
 
     def __init__(
         self,
@@ -117,6 +120,7 @@ class _Level:
         sub: int,
         variant: str | None,
         jitter: bool = False,
+        near: tuple[SplineSurface, int] | None = None,
     ) -> None:
         from scopetwin.scenes.mitsuba.deflectometry_ad import RayModel
 
@@ -126,45 +130,107 @@ class _Level:
         # variance of a block mean: mean variance / b^2
         self.var = bin_image(var, b, (r0, r1), (c0, c1)).ravel() / (b * b)
         nr, nc = (r1 - r0) // b, (c1 - c0) // b
+        self.shape = (nr, nc)
         rr, cc = np.meshgrid(np.arange(nr), np.arange(nc), indexing="ij")
+        #: the pixels traced (indices into the level's pixels), None: all; of the others, whether their rays meet the
+        #: substrate (then they are dark) or miss it (:meth:`restrict`)
+        self.near: NDArray[np.intp] | None = None
+        self._far_ok: NDArray[np.bool_] | None = None
         # a super-pixel of b x b pixels: model its rays on a b-times coarser pixel grid
         assert setup.substrate is not None
-        self.model: RayModel = RayModel(
-            _binned_camera(camera, b, r0, c0),
-            pattern,
-            setup.pattern.radiance,
-            setup.substrate.size,
-            setup.substrate.roi_length,
-            rr.ravel(),
-            cc.ravel(),
-            sub,
-            variant,
-            jitter,
+        cam_b = _binned_camera(camera, b, r0, c0)
+        size, roi, radiance = setup.substrate.size, setup.substrate.roi_length, setup.pattern.radiance
+        if near is not None:  # one ray per pixel first, to find the pixels near the markers' images
+            probe = RayModel(cam_b, pattern, radiance, size, roi, rr.ravel(), cc.ravel(), 1, variant, False)
+            self.near, self._far_ok = _near_pixels(probe, self.shape, *near)
+        self.model = RayModel(
+            cam_b, pattern, radiance, size, roi, rr.ravel(), cc.ravel(), sub, variant, jitter, self.near
         )
 
     def linearise(
         self, surf: SplineSurface, need_jac: bool = True, pose: bool = False
     ) -> tuple[Array, NDArray[np.bool_], sp.csr_matrix | None, Array | None]:
         """Model pixel values, usable-pixel mask, sparse Jacobian (usable pixels x coefficients) and, with ``pose``,
-        the Jacobian of the 12 camera and pattern motions (usable pixels x 12)."""
+        the Jacobian of the 12 camera and pattern motions (usable pixels x 12). Of the level's every pixel: those
+        not traced (:meth:`restrict`) are usable, dark, and their rows of the Jacobians zero."""
         model = self.model
         res = model.trace(spline_grid(surf), surf.coef, sensitivities=need_jac, pose=pose)
         vals, ok = model.pixel_values(res)
-        if not need_jac:
-            return vals, ok, None, None
-        assert res.sens is not None
-        jac = _coefficient_jacobian(res, ok, model.spp, surf)
-        jpose = None
-        if res.pose is not None:
-            jpose = res.pose.reshape(12, -1, model.spp).mean(axis=2)[:, ok].T
-        return vals, ok, jac, jpose
+        jac = jpose = None
+        if need_jac:
+            assert res.sens is not None
+            jac = _coefficient_jacobian(res, ok, model.spp, surf)
+            if res.pose is not None:
+                jpose = res.pose.reshape(12, -1, model.spp).mean(axis=2)[:, ok].T
+        if self.near is None:
+            return vals, ok, jac, jpose
+        assert self._far_ok is not None
+        vals_all, ok_all = np.zeros(len(self._far_ok)), self._far_ok.copy()
+        vals_all[self.near], ok_all[self.near] = vals, ok
+        if jac is not None:  # the traced pixels' rows among every usable pixel's
+            rows = (np.cumsum(ok_all) - 1)[self.near[ok]]
+            jac = _with_rows(jac, rows, int(ok_all.sum()))
+            if jpose is not None:
+                jpose_all = np.zeros((int(ok_all.sum()), 12))
+                jpose_all[rows] = jpose
+                jpose = jpose_all
+        return vals_all, ok_all, jac, jpose
+
+    def restrict(self, surf: SplineSurface, margin: int) -> None:
+        """Trace only the pixels within ``margin`` pixels of one that sees a marker, of the edge of the substrate's
+        image or of the level's, through ``surf`` (one ray at each pixel's centre). The others see the dark ground
+        between the markers (their value 0, their rows of the Jacobians zero: :meth:`linearise`) or miss the
+        substrate (not usable), as long as the markers' images move by less than the margin (a fit that starts from
+        the centroid method's surface and holds its start height: hundredths of a pixel)."""
+        self.near, self._far_ok = _near_pixels(self.model, self.shape, surf, margin)
+        self.model = self._model(self.model, self.near)
 
     def aim(self, camera: Camera, pattern: MarkerPattern) -> None:
         """The level's rays traced anew from a moved camera (on the level's pixel grid) and pattern."""
-        from scopetwin.scenes.mitsuba.deflectometry_ad import RayModel
-
         m = self.model
         m.camera, m.pattern = camera, pattern
-        fresh = RayModel(m.camera, m.pattern, m.radiance, m.size, m.roi_length, m.rows, m.cols, m.sub, None, m.jitter)
+        self.model = self._model(m, self.near)
+
+    @staticmethod
+    def _model(m: RayModel, keep: NDArray[np.intp] | None) -> RayModel:
+        """``m``'s ray model (its camera, pattern and pixels) anew, tracing the pixels ``keep``."""
+        from scopetwin.scenes.mitsuba.deflectometry_ad import RayModel
+
+        cam, pat = m.camera, m.pattern
+        fresh = RayModel(cam, pat, m.radiance, m.size, m.roi_length, m.rows, m.cols, m.sub, None, m.jitter, keep)
         fresh.m = m.m
-        self.model = fresh
+        return fresh
+
+
+def _near_pixels(
+    m: RayModel, shape: tuple[int, int], surf: SplineSurface, margin: int
+) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
+    """:meth:`_Level.restrict`'s pixels to trace (indices) and whether each pixel's centre ray meets the substrate,
+    from one ray at each centre of ``m``'s pixels through ``surf``."""
+    from scipy import ndimage
+
+    from scopetwin.scenes.mitsuba.deflectometry_ad import RayModel
+
+    if margin < 1:
+        raise ValueError(f"the margin of the pixels traced must be >= 1 pixel, got {margin}")
+    probe = m
+    if m.sub != 1 or m.keep is not None or m.jitter:
+        probe = RayModel(m.camera, m.pattern, m.radiance, m.size, m.roi_length, m.rows, m.cols, 1, None, False)
+        probe.m = m.m
+    res = probe.trace(spline_grid(surf), surf.coef, sensitivities=False)
+
+    def within(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        return np.asarray(ndimage.binary_dilation(mask.reshape(shape), np.ones((3, 3), bool), iterations=margin))
+
+    valid = np.asarray(res.valid, dtype=bool)
+    # (a marker beyond the window's edge is not seen by its rays: the pixels within the margin of the edge traced)
+    edge = np.ones(shape, dtype=bool)
+    edge[margin:-margin, margin:-margin] = False
+    near = within(res.value > 0.0) | (within(valid) & within(~valid)) | edge
+    return np.flatnonzero(near), valid
+
+
+def _with_rows(jac: sp.csr_matrix, rows: NDArray[np.intp], n: int) -> sp.csr_matrix:
+    """``jac``'s rows placed at ``rows`` of an n-row matrix (the others zero)."""
+    coo = jac.tocoo()
+    return sp.csr_matrix((coo.data, (rows[coo.row], coo.col)), shape=(n, jac.shape[1]))

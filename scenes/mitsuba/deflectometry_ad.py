@@ -128,6 +128,9 @@ class RayModel:
         Fixed pseudo-random positions inside the sub-pixels instead of their centres (the same every trace).
     variant : str, optional
         Selects the backend (:func:`backend`).
+    keep : array_like of int, optional
+        Indices of the pixels traced among ``rows``, ``cols`` (default all); a pixel's rays (and their jitter) are
+        the same whichever pixels are traced.
     """
 
     def __init__(
@@ -142,6 +145,7 @@ class RayModel:
         sub: int = 3,
         variant: str | None = None,
         jitter: bool = False,
+        keep: Any = None,
     ) -> None:
         self.camera = camera
         self.pattern = pattern
@@ -164,9 +168,11 @@ class RayModel:
             oy = oy + rng.random(oy.shape)
         else:
             ox, oy = ox + 0.5, oy + 0.5
-        px = np.stack(
-            [(self.cols[:, None] + ox / self.sub).ravel(), (self.rows[:, None] + oy / self.sub).ravel()], axis=-1
-        )
+        self.keep = None if keep is None else np.asarray(keep, dtype=np.intp).ravel()
+        rows_t, cols_t = self.rows, self.cols
+        if self.keep is not None:
+            ox, oy, rows_t, cols_t = ox[self.keep], oy[self.keep], rows_t[self.keep], cols_t[self.keep]
+        px = np.stack([(cols_t[:, None] + ox / self.sub).ravel(), (rows_t[:, None] + oy / self.sub).ravel()], axis=-1)
         _, d = camera.rays(px)
         del px
         F = self.m.Float64
@@ -191,7 +197,7 @@ class RayModel:
 
     @property
     def n_rays(self) -> int:
-        return len(self.rows) * self.spp
+        return (len(self.rows) if self.keep is None else len(self.keep)) * self.spp
 
     # -- the surface ---------------------------------------------------------------------------------------------
     def _surface(self, grid: SplineGrid, coef: Any, x: Any, y: Any) -> tuple[Any, Any, Any]:

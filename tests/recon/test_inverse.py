@@ -374,3 +374,30 @@ def test_the_start_height_term_is_the_fits_own_response_to_the_held_height(case)
     fd = float(np.sqrt(np.mean((((c2 - c2.mean()) - (c1 - c1.mean())) / dh) ** 2)))
     assert linear > 0
     assert linear == pytest.approx(fd, rel=0.02)
+
+
+def test_only_the_pixels_near_the_markers_images_are_traced(case):
+    """InverseConfig.near_margin: a level that traces only the pixels within 3 of a marker's image (or of the
+    substrate's edge) through a surface gives the same values, usable pixels and Jacobian as one that traces every
+    pixel, at that surface and at one that moves the markers' images by a fraction of a pixel; its fit is the same."""
+    setup, sub, truth, _, _ = case
+    image = np.zeros((setup.camera_model.ny, setup.camera_model.nx))
+    cfg = InverseConfig(spacing=1.0, noise="none", smoothness=1e-6)
+    rec = InverseReconstructor(setup, image, cfg, window=(496, 592, 636, 732))
+    every, near = rec._level(1, 3), rec._level(1, 3, (truth, 3))
+    assert near.near is not None and 0.3 < len(near.near) / every.data.size < 0.9
+    moved = truth.with_coef(truth.coef + 2e-4 * np.cos(np.arange(truth.coef.size)).reshape(truth.coef.shape))
+    for surf in (truth, moved):
+        a, b = every.linearise(surf), near.linearise(surf)
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])
+        assert a[2] is not None and b[2] is not None and abs(a[2] - b[2]).max() == 0.0
+    vals, _, _, _ = every.linearise(truth)
+    for lev in (every, near):
+        lev.data, lev.var = vals.copy(), np.ones_like(vals)
+    xs, ys = sub.roi_grid(0.5)
+    h = float(np.mean(truth.height(xs, ys)))
+    fits = [rec.fit_level(lev, moved, h, 2, 0) for lev in (every, near)]
+    np.testing.assert_array_equal(fits[0].coef, fits[1].coef)
+    with pytest.raises(ValueError, match="near_margin"):
+        InverseConfig(near_margin=-1)
