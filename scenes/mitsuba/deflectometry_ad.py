@@ -129,8 +129,8 @@ class RayModel:
     variant : str, optional
         Selects the backend (:func:`backend`).
     keep : array_like of int, optional
-        Indices of the pixels traced among ``rows``, ``cols`` (default all); a pixel's rays (and their jitter) are
-        the same whichever pixels are traced.
+        Indices of the pixels traced among ``rows``, ``cols`` (default all; taken in increasing order); a pixel's
+        rays (and their jitter) are the same whichever pixels are traced.
     """
 
     def __init__(
@@ -158,25 +158,39 @@ class RayModel:
         self.spp = self.sub * self.sub
         self.jitter = bool(jitter)
         self.m = backend(variant)
-        k = np.arange(self.sub)
-        kx, ky = np.meshgrid(k, k)
-        ox = np.broadcast_to(kx.ravel(), (len(self.rows), self.spp)).astype(np.float64)
-        oy = np.broadcast_to(ky.ravel(), (len(self.rows), self.spp)).astype(np.float64)
-        if self.jitter:  # stratified, fixed pseudo-random positions: the midpoint rule's kink errors decorrelated
-            rng = np.random.default_rng(12345)
-            ox = ox + rng.random(ox.shape)
-            oy = oy + rng.random(oy.shape)
-        else:
-            ox, oy = ox + 0.5, oy + 0.5
-        self.keep = None if keep is None else np.asarray(keep, dtype=np.intp).ravel()
+        self.keep = None if keep is None else np.unique(np.asarray(keep, dtype=np.intp))
         rows_t, cols_t = self.rows, self.cols
         if self.keep is not None:
-            ox, oy, rows_t, cols_t = ox[self.keep], oy[self.keep], rows_t[self.keep], cols_t[self.keep]
+            rows_t, cols_t = rows_t[self.keep], cols_t[self.keep]
+        ox, oy = self._offsets()
         px = np.stack([(cols_t[:, None] + ox / self.sub).ravel(), (rows_t[:, None] + oy / self.sub).ravel()], axis=-1)
         _, d = camera.rays(px)
         del px
         F = self.m.Float64
         self._d = tuple(F(np.ascontiguousarray(d[:, k])) for k in range(3))
+
+    def _offsets(self, chunk: int = 65536) -> tuple[Array, Array]:
+        """The rays' positions inside the traced pixels, in pixels (n traced, spp) for x and y: sub-pixel centres,
+        or with ``jitter`` fixed pseudo-random positions inside them (stratified: the midpoint rule's kink errors
+        decorrelated), drawn for every pixel of ``rows`` in turn (x for all, then y), ``chunk`` pixels at a time,
+        and kept for the traced ones: a pixel's positions do not depend on which others are traced."""
+        k = np.arange(self.sub, dtype=np.float64)
+        kx, ky = (a.ravel() for a in np.meshgrid(k, k))
+        n = len(self.rows) if self.keep is None else len(self.keep)
+        if not self.jitter:
+            return np.broadcast_to(kx + 0.5, (n, self.spp)).copy(), np.broadcast_to(ky + 0.5, (n, self.spp)).copy()
+        rng = np.random.default_rng(12345)
+        out = []
+        for base in (kx, ky):
+            parts = []
+            for start in range(0, len(self.rows), chunk):
+                draw = rng.random((min(chunk, len(self.rows) - start), self.spp))
+                if self.keep is not None:
+                    sel = self.keep[(self.keep >= start) & (self.keep < start + len(draw))] - start
+                    draw = draw[sel]
+                parts.append(draw + base)
+            out.append(np.concatenate(parts) if parts else np.empty((0, self.spp)))
+        return out[0], out[1]
 
     @classmethod
     def from_setup(cls, setup: Setup, rows: Any, cols: Any, sub: int = 3, variant: str | None = None) -> RayModel:
