@@ -65,37 +65,37 @@ class SplineSurface:
         assert second is not None
         return idx, w, wx, wy, second
 
-    def _rows(
-        self, x: Array, y: Array, second: bool
-    ) -> tuple[NDArray[np.int64], Array, Array, Array, tuple[Array, Array, Array] | None]:
+    def axis_weights(
+        self, x: Array, y: Array
+    ) -> tuple[NDArray[np.int64], tuple[Array, Array, Array], tuple[Array, Array, Array]]:
+        """For each point: the 16 coefficient indices (flattened; entry 4 m + k is coefficient row j - 1 + m, column
+        i - 1 + k) and, along x and along y, the four cubic B-spline weights with their first and second derivatives
+        by x (by y), each (n, 4). The basis is their tensor product: value ``outer(wy, wx)``, d/dx
+        ``outer(wy, dwx)``, d2/dxdy ``outer(dwy, dwx)``, and so on."""
         ny, nx = self.shape
         u = (np.asarray(x, dtype=np.float64).ravel() - self.x0) / self.dx
         v = (np.asarray(y, dtype=np.float64).ravel() - self.y0) / self.dy
         i = np.clip(np.floor(u).astype(np.int64), 1, nx - 3)
         j = np.clip(np.floor(v).astype(np.int64), 1, ny - 3)
         tu, tv = u - i, v - j
-        wu = np.stack(cubic_bspline_weights(tu), axis=-1)  # (n, 8)
-        wv = np.stack(cubic_bspline_weights(tv), axis=-1)
         n, r4 = len(u), np.arange(4)
-        # entry 4 m + k: coefficient row j - 1 + m, column i - 1 + k (outer products by broadcasting)
         idx = ((((j - 1)[:, None] + r4) * nx)[:, :, None] + ((i - 1)[:, None] + r4)[:, None, :]).reshape(n, 16)
 
-        def outer(a: Array, b: Array) -> Array:
-            return (a[:, :, None] * b[:, None, :]).reshape(n, 16)
+        def axis(t: Array, step: float) -> tuple[Array, Array, Array]:
+            w = np.stack(cubic_bspline_weights(t), axis=-1)  # (n, 8): the weights, then their derivatives by t
+            second = np.stack([1.0 - t, 3.0 * t - 2.0, 1.0 - 3.0 * t, t], axis=-1)  # d^2 w / dt^2
+            return w[:, :4], w[:, 4:] / step, second / step**2
 
-        w = outer(wv[:, :4], wu[:, :4])
-        wx = outer(wv[:, :4], wu[:, 4:]) / self.dx
-        wy = outer(wv[:, 4:], wu[:, :4]) / self.dy
+        return idx, axis(tu, self.dx), axis(tv, self.dy)
+
+    def _rows(
+        self, x: Array, y: Array, second: bool
+    ) -> tuple[NDArray[np.int64], Array, Array, Array, tuple[Array, Array, Array] | None]:
+        idx, (wu, du, su), (wv, dv, sv) = self.axis_weights(x, y)
+        w, wx, wy = _outer(wv, wu), _outer(wv, du), _outer(dv, wu)
         if not second:
             return idx, w, wx, wy, None
-        m_grid, k_grid = np.meshgrid(r4, r4, indexing="ij")
-        mm, kk = m_grid.ravel(), k_grid.ravel()
-        su = np.stack([1.0 - tu, 3.0 * tu - 2.0, 1.0 - 3.0 * tu, tu], axis=-1)  # d^2 w / dt^2
-        sv = np.stack([1.0 - tv, 3.0 * tv - 2.0, 1.0 - 3.0 * tv, tv], axis=-1)
-        wxx = wv[:, mm] * su[:, kk] / self.dx**2
-        wyy = sv[:, mm] * wu[:, kk] / self.dy**2
-        wxy = wv[:, 4 + mm] * wu[:, 4 + kk] / (self.dx * self.dy)
-        return idx, w, wx, wy, (wxx, wxy, wyy)
+        return idx, w, wx, wy, (_outer(wv, su), _outer(dv, du), _outer(sv, wu))
 
     def design(self, x: Array, y: Array) -> sp.csr_matrix:
         """Sparse matrix of basis values: (design @ coef.ravel()) = h(x, y)."""
@@ -198,3 +198,8 @@ class SplineSurface:
             return out[:, 0] if out.shape[1] == 1 else out
 
         return s, project
+
+
+def _outer(a: Array, b: Array) -> Array:
+    """Row-wise outer products of (n, 4) arrays, flattened to (n, 16) (entry 4 m + k: a[:, m] b[:, k])."""
+    return (a[:, :, None] * b[:, None, :]).reshape(len(a), 16)

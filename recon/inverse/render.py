@@ -75,16 +75,16 @@ def _pixel_moments(res: Any, ok: NDArray[np.bool_], spp: int, block: int = 32768
     s_all = [res.sens[k].reshape(-1, spp) for k in range(3)]
     for start in range(0, len(good), block):
         rows = good[start : start + block]
-        x, y = x_all[rows], y_all[rows]
-        xm, ym = x.mean(axis=1), y.mean(axis=1)
-        ddx, ddy = x - xm[:, None], y - ym[:, None]
-        sa, sb, sc = (s[rows] for s in s_all)
+        ddx, ddy = x_all[rows], y_all[rows]  # copies, centred in place
         part = out[:, start : start + len(rows)]
-        part[0], part[1] = xm, ym
-        part[2], part[3], part[4] = sa.mean(axis=1), sb.mean(axis=1), sc.mean(axis=1)
-        part[5], part[6] = (sa * ddx).mean(axis=1), (sa * ddy).mean(axis=1)
-        part[7], part[8] = (sb * ddx).mean(axis=1), (sb * ddy).mean(axis=1)
-        part[9], part[10] = (sc * ddx).mean(axis=1), (sc * ddy).mean(axis=1)
+        part[0], part[1] = ddx.mean(axis=1), ddy.mean(axis=1)
+        ddx -= part[0][:, None]
+        ddy -= part[1][:, None]
+        for k, s in enumerate(s_all):  # mean of a, b, c and of each times the hit's offsets (row-wise dots)
+            sk = s[rows]
+            part[2 + k] = sk.mean(axis=1)
+            part[5 + 2 * k] = np.einsum("ij,ij->i", sk, ddx) / spp
+            part[6 + 2 * k] = np.einsum("ij,ij->i", sk, ddy) / spp
     return tuple(out)
 
 
@@ -93,13 +93,18 @@ def _coefficient_jacobian(res: Any, ok: NDArray[np.bool_], spp: int, surf: Splin
     combined with the B-spline basis expanded to second order about its mean hit point (:func:`_pixel_moments`)."""
     npix = int(ok.sum())
     xm, ym, ma, mb, mc, max_, may, mbx, mby, mcx, mcy = _pixel_moments(res, ok, spp)
-    idx, w, wx, wy, (wxx, wxy, wyy) = surf.basis_rows_second(xm, ym)
+    idx, (wu, du, su), (wv, dv, sv) = surf.axis_weights(xm, ym)
     col = lambda v: v[:, None]  # noqa: E731
-    data = (
-        col(ma) * w + col(max_ + mb) * wx + col(may + mc) * wy + col(mbx) * wxx + col(mby + mcx) * wxy + col(mcy) * wyy
-    )
-    rows = np.repeat(np.arange(npix), 16)
-    return sp.csr_matrix((data.ravel(), (rows, idx.ravel())), shape=(npix, surf.coef.size))
+    # ma w + (max + mb) w_x + (may + mc) w_y + mbx w_xx + (mby + mcx) w_xy + mcy w_yy, the basis a tensor product:
+    # gathered by its y factor, three outer products
+    ax = col(ma) * wu + col(max_ + mb) * du + col(mbx) * su
+    bx = col(may + mc) * wu + col(mby + mcx) * du
+    data = wv[:, :, None] * ax[:, None, :]
+    data += dv[:, :, None] * bx[:, None, :]
+    data += sv[:, :, None] * (col(mcy) * wu)[:, None, :]
+    # 16 entries a row, their columns increasing (axis_weights' order): the compressed rows directly
+    indptr = np.arange(0, 16 * npix + 1, 16)
+    return sp.csr_matrix((data.ravel(), idx.ravel(), indptr), shape=(npix, surf.coef.size))
 
 
 class _Level:
