@@ -339,15 +339,22 @@ class Camera:
 
     def rays_from_sensor(self, uv_ideal: ArrayLike) -> tuple[Array, Array]:
         """Pinhole chief rays through ideal sensor points: origin r_c, unit direction ``(r_s - r_c)/|r_s - r_c|``."""
+        d = self._directions(uv_ideal)
+        return np.broadcast_to(self.center, d.shape).copy(), d
+
+    def _directions(self, uv_ideal: ArrayLike) -> Array:
+        """The unit directions of :meth:`rays_from_sensor`."""
         q = np.asarray(uv_ideal, dtype=np.float64)
         f = self.frame
-        d = -self.b * f.nz + q[..., :1] * f.tx + q[..., 1:2] * f.ty
-        origins = np.broadcast_to(self.center, d.shape).copy()
-        return origins, normalize(d)
+        return normalize(-self.b * f.nz + q[..., :1] * f.tx + q[..., 1:2] * f.ty)
 
     def rays(self, px: ArrayLike) -> tuple[Array, Array]:
         """Pinhole rays (origin, unit direction) through continuous pixel coordinates."""
         return self.rays_from_sensor(self.undistort(self.pixel_to_sensor(px)))
+
+    def ray_directions(self, px: ArrayLike) -> Array:
+        """The unit directions of :meth:`rays` alone (their origin is the centre r_c)."""
+        return self._directions(self.undistort(self.pixel_to_sensor(px)))
 
     def focus_distance(self) -> float | None:
         """Distance of the plane in focus (thin lens), mm; None for a pinhole."""

@@ -163,11 +163,16 @@ class RayModel:
         if self.keep is not None:
             rows_t, cols_t = rows_t[self.keep], cols_t[self.keep]
         ox, oy = self._offsets()
-        px = np.stack([(cols_t[:, None] + ox / self.sub).ravel(), (rows_t[:, None] + oy / self.sub).ravel()], axis=-1)
-        _, d = camera.rays(px)
-        del px
+        d = np.empty((3, len(rows_t) * self.spp))
+        chunk = 16384  # pixels at a time: the camera's temporaries stay within a few tens of MB
+        for start in range(0, len(rows_t), chunk):
+            sl = slice(start, start + chunk)
+            px = np.stack(
+                [(cols_t[sl, None] + ox[sl] / self.sub).ravel(), (rows_t[sl, None] + oy[sl] / self.sub).ravel()], -1
+            )
+            d[:, start * self.spp : start * self.spp + len(px)] = camera.ray_directions(px).T
         F = self.m.Float64
-        self._d = tuple(F(np.ascontiguousarray(d[:, k])) for k in range(3))
+        self._d = tuple(F(d[k]) for k in range(3))
 
     def _offsets(self, chunk: int = 65536) -> tuple[Array, Array]:
         """The rays' positions inside the traced pixels, in pixels (n traced, spp) for x and y: sub-pixel centres,
