@@ -393,6 +393,7 @@ def test_only_the_pixels_near_the_markers_images_are_traced(case):
         np.testing.assert_array_equal(a[1], b[1])
         assert a[2] is not None and b[2] is not None and abs(a[2] - b[2]).max() == 0.0
     vals, _, _, _ = every.linearise(truth)
+    near.linearise(truth)  # the same last trace (each level's rays start from its last trace's hits)
     for lev in (every, near):
         lev.data, lev.var = vals.copy(), np.ones_like(vals)
     xs, ys = sub.roi_grid(0.5)
@@ -401,3 +402,18 @@ def test_only_the_pixels_near_the_markers_images_are_traced(case):
     np.testing.assert_array_equal(fits[0].coef, fits[1].coef)
     with pytest.raises(ValueError, match="near_margin"):
         InverseConfig(near_margin=-1)
+
+
+def test_a_trace_starts_from_the_last_ones_hits(case):
+    """RayModel.trace starts the ray-surface Newton iteration from its previous trace's hits (NEWTON_WARM_STEPS):
+    through a surface a fit's step away, the values and sensitivities are those of a cold start from the plane."""
+    _, _, truth, _, lev = case
+    model = lev.model
+    moved = truth.with_coef(truth.coef + 5e-4 * np.sin(np.arange(truth.coef.size)).reshape(truth.coef.shape))
+    model.trace(spline_grid(truth), truth.coef)
+    warm = model.trace(spline_grid(moved), moved.coef)
+    cold = model.trace(spline_grid(moved), moved.coef, warm=False)
+    assert warm.sens is not None and cold.sens is not None
+    np.testing.assert_array_equal(warm.valid, cold.valid)
+    assert np.max(np.abs(warm.value - cold.value)) < 1e-12 * np.max(np.abs(cold.value))
+    assert np.max(np.abs(warm.sens - cold.sens)) < 1e-10 * np.max(np.abs(cold.sens))
