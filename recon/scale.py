@@ -73,8 +73,6 @@ def _fit_and_holdouts(
     nb = basis.n_basis
     gram, rhs = a.T @ a, a.T @ b
     col = np.einsum("ij,ij->j", a[:, :nb], a[:, :nb])
-    coef = _ridge(gram, rhs, nb, regularization * float(np.mean(col)))
-    fit = float(np.sqrt(np.mean((a @ coef - b) ** 2) * 2.0))
     errs = []
     for test in ends:
         if test.all() or (~test).sum() * 2 < basis.n_terms // 4:
@@ -84,12 +82,14 @@ def _fit_and_holdouts(
         lam = regularization * float(np.mean(col - np.einsum("ij,ij->j", at[:, :nb], at[:, :nb])))
         coef = _ridge(gram - at.T @ at, rhs - at.T @ bt, nb, lam)
         errs.append(float(np.mean((at @ coef - bt) ** 2) * 2.0))
+    coef = _ridge(gram, rhs, nb, regularization * float(np.mean(col)))  # the last use of gram: no copy
+    fit = float(np.sqrt(np.mean((a @ coef - b) ** 2) * 2.0))
     return fit, errs
 
 
-def _ridge(gram: NDArray[np.float64], rhs: Array, nb: int, lam: float) -> Array:
-    """Solve (gram + lam on the first ``nb`` diagonal entries) c = rhs (Cholesky; least squares if singular)."""
-    m = gram.copy()
+def _ridge(m: NDArray[np.float64], rhs: Array, nb: int, lam: float) -> Array:
+    """Solve (m + lam on the first ``nb`` diagonal entries) c = rhs (Cholesky; least squares if singular); ``m`` (a
+    Gram matrix) is overwritten."""
     m[np.arange(nb), np.arange(nb)] += lam
     try:
         # numpy's factorisation releases the interpreter lock (SciPy's wrappers hold it): threads fit side by side
