@@ -207,12 +207,15 @@ def _moved_within_prior(
     """Whether the gradients ``after`` (xy, hx, hy) moved from ``before`` by at most :data:`REFINE_SHIFT` (squared
     Mahalanobis distance under the prior ``h``, on the evidence's subsample of ``cfg.evidence_points``); False where
     the observations are not the same ones."""
-    from scopetwin.recon.posterior import GradientGP, even_subsample
+    from scopetwin.recon.posterior import GradientGP, PosteriorError, even_subsample
 
     if before[0].shape != after[0].shape:
         return False
     keep = even_subsample(len(before[0]), cfg.evidence_points)
-    moved = GradientGP(before[0][keep], (after[1] - before[1])[keep], (after[2] - before[2])[keep], h)
+    try:
+        moved = GradientGP(before[0][keep], (after[1] - before[1])[keep], (after[2] - before[2])[keep], h)
+    except PosteriorError:  # no factor of the prior's kernel: a cold search decides
+        return False
     return float(moved.g @ moved.alpha) <= REFINE_SHIFT
 
 
