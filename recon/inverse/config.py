@@ -34,7 +34,8 @@ class InverseConfig:
         biases the fit more than the surface's own signal. 6 x 6 jittered rays (``jitter``): shape error at
         5 mm / 40 µm 0.0022 µm against 0.0030-0.0032 µm with 4 x 4 centred or jittered rays. Default 8 x 8: chi^2
         per pixel 3.6e-7 against 5.4e-7 at 6 x 6 on a Mitsuba 16 spp render (its own floor 3.2e-7), shape at
-        12 mm / 40 µm 0.00112 against 0.00126 µm (basis span), 28 against 16 s per fit, about twice the memory.
+        12 mm / 40 µm 0.00112 against 0.00126 µm (basis span), 28 against 16 s per fit when every pixel of the
+        window was traced (:attr:`near_margin`), about twice the memory.
     plane_levels : tuple of (int, int)
         The schedule for a start from a plane (no centroid result): binned levels first, to widen the basin.
     absolute : {"start", "frame"}
