@@ -714,9 +714,10 @@ def predict_surface(surfaces: list[SBFSurface], values: list[tuple[float, float]
 #: corrections): one pass and two differ by at most 2e-7 px with the start 0.3 px off the centre images, 6e-11 px
 #: on them.
 BIAS_PASSES = 1
-#: Shapes whose bias predictions the bias step keeps for reuse within one solve. Measured on the §1.10 preset's
-#: render (seed 1, the basis scale re-chosen 12 -> 15 mm): 8 predictions, of which the new scale's search from the
-#: flat start repeats the first's shape exactly and its last lies 0.05 µm RMS from the first search's last: 6.
+#: Most shapes whose bias predictions the bias step keeps for reuse (a bound on its memory, about 50 kB a shape for the
+#: §1.10 markers, not a tuned value: the solves measured predict 6-9 shapes). On the §1.10 preset's render (seed 1,
+#: the basis scale re-chosen 12 -> 15 mm) the new scale's search from the flat start repeats the first's shape
+#: exactly and its last lies 0.05 µm RMS from the first search's last: 6 predictions instead of 8.
 BIAS_SHAPES_KEPT = 16
 
 

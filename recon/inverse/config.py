@@ -73,7 +73,7 @@ class InverseConfig:
     near_margin : int
         From the centroid method's surface, its start height held and the setup not refined, only the pixels within
         this many of one whose centre ray sees a marker (or misses the substrate) are traced at each level
-        (:meth:`scopetwin.recon.inverse.render._Level.restrict`): the others see the dark ground between the markers,
+        (:func:`scopetwin.recon.inverse.render._near_pixels`): the others see the dark ground between the markers,
         and the fit's equations are the same without their rays as long as the markers' images move by less than
         the margin (from that start, hundredths of a pixel). 0: every pixel traced.
     pose_box : float

@@ -111,7 +111,7 @@ class _Level:
     """One resolution level: the ray model of the (binned) window's pixels and the binned image with weights.
 
     ``near`` = (surface, margin): trace only the pixels near a marker's image through that surface
-    (:meth:`restrict`)."""
+    (:func:`_near_pixels`)."""
 
     def __init__(
         self,
@@ -138,7 +138,7 @@ class _Level:
         self.shape = (nr, nc)
         rr, cc = np.meshgrid(np.arange(nr), np.arange(nc), indexing="ij")
         #: the pixels traced (indices into the level's pixels), None: all; of the others, whether their rays meet the
-        #: substrate (then they are dark) or miss it (:meth:`restrict`)
+        #: substrate (then they are dark) or miss it (:func:`_near_pixels`)
         self.near: NDArray[np.intp] | None = None
         self._far_ok: NDArray[np.bool_] | None = None
         # a super-pixel of b x b pixels: model its rays on a b-times coarser pixel grid
@@ -157,7 +157,8 @@ class _Level:
     ) -> tuple[Array, NDArray[np.bool_], sp.csr_matrix | None, Array | None]:
         """Model pixel values, usable-pixel mask, sparse Jacobian (usable pixels x coefficients) and, with ``pose``,
         the Jacobian of the 12 camera and pattern motions (usable pixels x 12). Of the level's every pixel: those
-        not traced (:meth:`restrict`) are usable, dark, and their rows of the Jacobians zero."""
+        not traced (:func:`_near_pixels`) are dark (value 0, rows of the Jacobians zero) and usable where their
+        centre ray met the substrate."""
         model = self.model
         res = model.trace(spline_grid(surf), surf.coef, sensitivities=need_jac, pose=pose)
         vals, ok = model.pixel_values(res)
@@ -181,15 +182,6 @@ class _Level:
                 jpose = jpose_all
         return vals_all, ok_all, jac, jpose
 
-    def restrict(self, surf: SplineSurface, margin: int) -> None:
-        """Trace only the pixels within ``margin`` pixels of one that sees a marker, of the edge of the substrate's
-        image or of the level's, through ``surf`` (one ray at each pixel's centre). The others see the dark ground
-        between the markers (their value 0, their rows of the Jacobians zero: :meth:`linearise`) or miss the
-        substrate (not usable), as long as the markers' images move by less than the margin (a fit that starts from
-        the centroid method's surface and holds its start height: hundredths of a pixel)."""
-        self.near, self._far_ok = _near_pixels(self.model, self.shape, surf, margin)
-        self.model = self._model(self.model, self.near)
-
     def aim(self, camera: Camera, pattern: MarkerPattern) -> None:
         """The level's rays traced anew from a moved camera (on the level's pixel grid) and pattern."""
         m = self.model
@@ -208,20 +200,18 @@ class _Level:
 
 
 def _near_pixels(
-    m: RayModel, shape: tuple[int, int], surf: SplineSurface, margin: int
+    probe: RayModel, shape: tuple[int, int], surf: SplineSurface, margin: int
 ) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
-    """:meth:`_Level.restrict`'s pixels to trace (indices) and whether each pixel's centre ray meets the substrate,
-    from one ray at each centre of ``m``'s pixels through ``surf``."""
+    """The pixels to trace (indices) and whether each pixel's centre ray meets the substrate, from ``probe``'s one
+    ray at each pixel's centre through ``surf``: those within ``margin`` pixels of one that sees a marker, of the
+    edge of the substrate's image or of the level's. The others see the dark ground between the markers (value 0,
+    rows of the Jacobians zero) or miss the substrate (not usable), as long as the markers' images move by less than
+    the margin (a fit that starts from the centroid method's surface and holds its start height: hundredths of a
+    pixel)."""
     from scipy import ndimage
-
-    from scopetwin.scenes.mitsuba.deflectometry_ad import RayModel
 
     if margin < 1:
         raise ValueError(f"the margin of the pixels traced must be >= 1 pixel, got {margin}")
-    probe = m
-    if m.sub != 1 or m.keep is not None or m.jitter:
-        probe = RayModel(m.camera, m.pattern, m.radiance, m.size, m.roi_length, m.rows, m.cols, 1, None, False)
-        probe.m = m.m
     res = probe.trace(spline_grid(surf), surf.coef, sensitivities=False)
 
     def within(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
