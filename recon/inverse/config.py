@@ -75,7 +75,9 @@ class InverseConfig:
         this many of one whose centre ray sees a marker (or misses the substrate) are traced at each level
         (:func:`scopetwin.recon.inverse.render._near_pixels`): the others see the dark ground between the markers,
         and the fit's equations are the same without their rays as long as the markers' images move by less than
-        the margin (from that start, hundredths of a pixel). 0: every pixel traced.
+        the margin (from that start, hundredths of a pixel). The fit's surface is checked at the end, and the pixels
+        it needs beyond those traced are added and fitted again (:meth:`scopetwin.recon.inverse.render._Level.widen`,
+        the result's ``extras["pixels_added"]``). 0: every pixel traced.
     pose_box : float
         The pose stays within this many of those standard deviations of the setup (each step shortened to keep
         it so): the pixels of an unknown specular surface hardly tell a camera motion from a change of the surface's

@@ -28,6 +28,13 @@ from scopetwin.recon.shifted_basis import ShiftedBasis
 from scopetwin.recon.spline import SplineSurface
 from scopetwin.scenes.setup import Setup
 
+#: Most times the fit is checked against the pixels traced and fitted again with those its surface adds
+#: (:meth:`scopetwin.recon.inverse.render._Level.widen`): only the pixels near the markers' images through the start
+#: are traced (:attr:`InverseConfig.near_margin`), and a fit that moved an image further than the margin would
+#: otherwise have fitted it without some of the pixels it lights. Each round adds pixels, so a few suffice; the
+#: result says how many were added (``extras["pixels_added"]``).
+WIDEN_ROUNDS = 3
+
 
 @dataclass
 class _HeightSearch:
@@ -98,7 +105,15 @@ class InverseReconstructor(_ShapeUncertainty):
         surf = self._coarse_to_fine(levels, surf, h)
         fine = levels[-1]
         surf, found = self._height_search(fine, surf, h, len(levels) - 1, search)
-        return self._result(surf, found, fine, schedule[-1][1], search, absolute_std_um, t0)
+        added = 0
+        for _ in range(WIDEN_ROUNDS):  # the pixels the fit's surface sees near the markers: all traced?
+            more = fine.widen(surf)
+            if not more:
+                break
+            added += more
+            surf = self.fit_level(fine, surf, found.h, cfg.iterations[-1], len(levels) - 1)
+            surf, found = self._height_search(fine, surf, found.h, len(levels) - 1, search)
+        return self._result(surf, found, fine, schedule[-1][1], search, absolute_std_um, t0, added)
 
     def _start_surface(self, initial: Any) -> SplineSurface:
         """The start's spline: a plane at the frame height, or ``initial`` fitted; the span to keep to, if any."""
@@ -160,8 +175,10 @@ class InverseReconstructor(_ShapeUncertainty):
         search: bool,
         absolute_std_um: float | None,
         t0: float,
+        added: int = 0,
     ) -> InverseResult:
-        """The result of :meth:`run`: the refined setup and the shape uncertainty (start-height term included)."""
+        """The result of :meth:`run`: the refined setup and the shape uncertainty (start-height term included);
+        ``added``: the pixels the fit's surface added to those traced (:data:`WIDEN_ROUNDS`)."""
         cam, pat = (
             _pose_update(self.camera, self.pattern, self.pose)
             if self.config.refine_setup
@@ -186,6 +203,7 @@ class InverseReconstructor(_ShapeUncertainty):
                 "surface": "spline" if self._span is None else "start-basis",
                 "span_terms": None if self._span is None else int(self._span.shape[1]),
                 "start_height_term_um": height_term,
+                "pixels_added": added,
             },
         )
 

@@ -145,9 +145,12 @@ class _Level:
         assert setup.substrate is not None
         cam_b = _binned_camera(camera, b, r0, c0)
         size, roi, radiance = setup.substrate.size, setup.substrate.roi_length, setup.pattern.radiance
+        #: the one-ray probe the traced pixels were chosen with, and their margin (:meth:`widen`)
+        self._probe: tuple[RayModel, int] | None = None
         if near is not None:  # one ray per pixel first, to find the pixels near the markers' images
             probe = RayModel(cam_b, pattern, radiance, size, roi, rr.ravel(), cc.ravel(), 1, variant, False)
             self.near, self._far_ok = _near_pixels(probe, self.shape, *near)
+            self._probe = (probe, near[1])
         self.model = RayModel(
             cam_b, pattern, radiance, size, roi, rr.ravel(), cc.ravel(), sub, variant, jitter, self.near
         )
@@ -181,6 +184,27 @@ class _Level:
                 jpose_all[rows] = jpose
                 jpose = jpose_all
         return vals_all, ok_all, jac, jpose
+
+    def widen(self, surf: SplineSurface) -> int:
+        """Check the traced pixels against ``surf`` (the fit's last surface); where it needs more, add them. Returns
+        how many were added (0: the selection held; every pixel traced: always 0).
+
+        The equations are those of every pixel traced while each pixel within one of one whose centre ray sees a
+        marker, or of the substrate image's edge, through ``surf`` is traced (:func:`_near_pixels` with margin 1:
+        a marker's image is several pixels wide). Where one is not, the pixels within the level's margin through
+        ``surf`` are added: the margin stays the slack for the next fit."""
+        if self.near is None or self._probe is None:
+            return 0
+        probe, margin = self._probe
+        needed, far_ok = _near_pixels(probe, self.shape, surf, 1)
+        if not len(np.setdiff1d(needed, self.near, assume_unique=True)):
+            return 0
+        near, far_ok = _near_pixels(probe, self.shape, surf, margin)
+        added = np.setdiff1d(near, self.near, assume_unique=True)
+        self.near = np.union1d(self.near, added)
+        self._far_ok = far_ok
+        self.model = self._model(self.model, self.near)
+        return len(added)
 
     def aim(self, camera: Camera, pattern: MarkerPattern) -> None:
         """The level's rays traced anew from a moved camera (on the level's pixel grid) and pattern."""

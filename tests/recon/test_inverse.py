@@ -404,6 +404,30 @@ def test_only_the_pixels_near_the_markers_images_are_traced(case):
         InverseConfig(near_margin=-1)
 
 
+def test_the_pixels_a_fit_moves_the_markers_images_to_are_added(case):
+    """_Level.widen: where a surface moves the markers' images beyond the margin of the pixels traced, it adds the
+    pixels that surface asks for, and the level then gives the values, usable pixels and Jacobian of one that traces
+    every pixel; at the surface the pixels were chosen with it adds none."""
+    setup, _, truth, _, _ = case
+    image = np.zeros((setup.camera_model.ny, setup.camera_model.nx))
+    rec = InverseReconstructor(setup, image, InverseConfig(spacing=1.0, noise="none"), window=(496, 592, 636, 732))
+    every, near = rec._level(1, 3), rec._level(1, 3, (truth, 1))
+    assert near.near is not None
+    traced = len(near.near)
+    assert near.widen(truth) == 0 and len(near.near) == traced
+    far = truth.with_coef(truth.coef + 6e-3 * np.cos(np.arange(truth.coef.size)).reshape(truth.coef.shape))
+    a, b = every.linearise(far), near.linearise(far)
+    assert np.any(a[0] != b[0])  # lit pixels not traced: the selection no longer holds
+    added = near.widen(far)
+    assert added > 0 and len(near.near) == traced + added
+    b = near.linearise(far)
+    np.testing.assert_array_equal(a[1], b[1])
+    np.testing.assert_allclose(b[0], a[0], rtol=0, atol=1e-12 * np.max(np.abs(a[0])))
+    assert a[2] is not None and b[2] is not None
+    assert abs(a[2] - b[2]).max() <= 1e-10 * abs(a[2]).max()
+    assert near.widen(far) == 0
+
+
 def test_a_trace_starts_from_the_last_ones_hits(case):
     """RayModel.trace starts the ray-surface Newton iteration from its previous trace's hits (NEWTON_WARM_STEPS):
     through a surface a fit's step away, the values and sensitivities are those of a cold start from the plane."""
