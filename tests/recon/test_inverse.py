@@ -441,3 +441,25 @@ def test_a_trace_starts_from_the_last_ones_hits(case):
     np.testing.assert_array_equal(warm.valid, cold.valid)
     assert np.max(np.abs(warm.value - cold.value)) < 1e-12 * np.max(np.abs(cold.value))
     assert np.max(np.abs(warm.sens - cold.sens)) < 1e-10 * np.max(np.abs(cold.sens))
+
+
+@pytest.mark.parametrize("family", ["steep", "cut"])
+def test_a_trace_from_a_plane_to_a_steep_sheet_starts_warm(family):
+    """NEWTON_WARM_STEPS from the hits of a plane's trace through a whole steep (226 µm) or cut sheet, the largest move
+    between two traces (a plane start's first step): the values and sensitivities of a cold start."""
+    from scopetwin.sim.families import family_spec
+    from scopetwin.sim.surfaces import make_surface
+
+    setup = load_setup("thesis-1.10-deflectometry", {"substrate": {"surface": family_spec(family, 9100)}})
+    sub = Substrate2D.from_setup(setup)
+    truth = SplineSurface.fit(make_surface(setup.substrate.surface, setup.substrate).height, sub, 0.5)
+    plane = SplineSurface.covering(sub, 0.5, sub.frame_z)
+    image = np.zeros((setup.camera_model.ny, setup.camera_model.nx))
+    model = InverseReconstructor(setup, image, InverseConfig(spacing=0.5), window=WINDOW)._level(1, 3).model
+    model.trace(spline_grid(plane), plane.coef)
+    warm = model.trace(spline_grid(truth), truth.coef)
+    cold = model.trace(spline_grid(truth), truth.coef, warm=False)
+    assert warm.sens is not None and cold.sens is not None
+    np.testing.assert_array_equal(warm.valid, cold.valid)
+    assert np.max(np.abs(warm.value - cold.value)) < 1e-12 * np.max(np.abs(cold.value))
+    assert np.max(np.abs(warm.sens - cold.sens)) < 1e-10 * np.max(np.abs(cold.sens))
