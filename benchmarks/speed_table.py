@@ -35,7 +35,8 @@ Rows (``*``: only with ``--full``):
    stream of 30 frames (``recon.stream.reconstruct_stream``) per frame, its stages one after the other and
    overlapped (frame k+1's markers searched in a worker process while frame k is solved; goal: one frame period).
 4. ``scopetwin reconstruct`` of that frame (a subprocess; the JSON's ``seconds``), the process's wall time beside it
-   (goal :data:`CLI_WALL_GOAL_S`) and their difference: the interpreter's start, the imports and the exit.
+   (goal :data:`CLI_WALL_GOAL_S`) and their difference: the interpreter's start, the imports and the exit; then the
+   next frame of a rig (render seed 2) with ``--previous`` that frame's JSON (the evidence searched from its prior).
 5. ``scopetwin reconstruct`` of glass-like surfaces (:data:`GLASS`), 3 seeds, median of the JSONs' ``seconds``; the
    median process wall time beside it.
 6. ``scopetwin run`` (a subprocess): wall time; its ``summary.json``'s detect + reconstruct step beside it.
@@ -470,6 +471,8 @@ def _reconstruct_cli(ctx: Context, image: Path, name: str, extra: list[str], tim
 
 #: The goal of the process's wall time of ``scopetwin reconstruct`` (row 4's sub-row), seconds.
 CLI_WALL_GOAL_S = 1.0
+#: Row 4's goal (its JSON's ``seconds``), for its sub-row of the next frame.
+CLI_GOAL_S = 0.5
 
 
 def _wall_extras(seconds: float, wall: float, goal: float | None) -> list[tuple[str, float, float | None]]:
@@ -483,7 +486,12 @@ def _wall_extras(seconds: float, wall: float, goal: float | None) -> list[tuple[
 
 def row_cli_seed(ctx: Context) -> Measured:
     seconds, wall = _reconstruct_cli(ctx, ctx.frame, "cli-seed", [], 600)
-    return Measured(seconds, extras=_wall_extras(seconds, wall, CLI_WALL_GOAL_S))
+    extras = _wall_extras(seconds, wall, CLI_WALL_GOAL_S)
+    if np.isfinite(seconds):  # a rig's next frame (render seed 2), its prior searched from this frame's
+        prior = ["--previous", str(ctx.work / "cli-seed.json")]
+        nxt, nxt_wall = _reconstruct_cli(ctx, ctx.render_cached(ctx.setup, 2, "frame-1.10"), "cli-next", prior, 600)
+        extras += [("  next frame, --previous (JSON seconds)", nxt, CLI_GOAL_S), ("    its wall time", nxt_wall, None)]
+    return Measured(seconds, extras=extras)
 
 
 def row_cli_glass(ctx: Context) -> Measured:

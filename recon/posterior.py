@@ -130,6 +130,42 @@ class Hyper:
         }
 
 
+#: The keys of a recorded prior (:meth:`Hyper.as_dict`) that must be positive numbers; ``feature_amp_nm`` may be 0.
+_POSITIVE = ("smooth_amp_um", "smooth_len_mm", "broad_amp_nm", "broad_len_mm", "noise_urad", "noise_y_urad")
+
+
+def recorded_prior(record: Any, where: str) -> Hyper:
+    """The prior a reconstruction chose, from its JSON output (``uncertainty.prior``: :meth:`Hyper.as_dict`), checked:
+    the warm start of another frame's evidence search (:func:`fit_hyper` ``start``).
+
+    Raises
+    ------
+    PosteriorError
+        No ``uncertainty.prior`` object, or one of its values missing or not a finite number in its range (naming it).
+    """
+    prior = record.get("uncertainty") if isinstance(record, dict) else None
+    prior = prior.get("prior") if isinstance(prior, dict) else None
+    if not isinstance(prior, dict):
+        raise PosteriorError(f"{where} holds no uncertainty.prior (the JSON of a reconstruction with its posterior)")
+
+    def check(key: str, positive: bool = True, absent: bool = False, null: bool = False) -> None:
+        """``key``'s value a finite number > 0 (``positive``) or >= 0; ``absent``: it may be missing, ``null``: None."""
+        if (absent and key not in prior) or (null and key in prior and prior[key] is None):
+            return
+        v = prior.get(key)
+        x = float(v) if isinstance(v, int | float) and not isinstance(v, bool) else float("nan")
+        if not (x > 0 if positive else x >= 0) or x == float("inf"):
+            kind = "positive" if positive else "non-negative"
+            raise PosteriorError(f"{where}: uncertainty.prior.{key} must be a {kind} number, got {v!r}")
+
+    for key in _POSITIVE:
+        check(key)
+    check("smooth_shape", absent=True, null=True)
+    check("feature_amp_nm", positive=False, absent=True)
+    check("feature_len_mm", absent=True)
+    return Hyper.from_dict(prior)
+
+
 #: Shape alpha of the smooth part's rational-quadratic covariance a^2 (1 + r^2 / (2 alpha l^2))^-alpha, the
 #: alternative to a squared exponential that the evidence chooses between (:func:`fit_hyper`): a scale mixture of
 #: squared exponentials whose inverse squared lengths are Gamma(alpha, alpha) distributed. Its spectrum falls off as

@@ -72,6 +72,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         raise ScopetwinError("--setup is required with a camera image (a fringes.json carries its own setup)")
     if args.method == "fringes":
         raise ScopetwinError(f"--method fringes takes a fringe measurement's fringes.json, not the image {args.image}")
+    start = _previous_prior(args)
     setup = load_setup(args.setup)
     if setup.scene != "deflectometry":
         raise ScopetwinError(f"setup {args.setup} is a {setup.scene!r} scene; reconstruct needs a deflectometry setup")
@@ -87,7 +88,15 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         return _cmd_inverse(args, setup, image, out, t0)
     history_path = out.with_name(out.name + ".history.json")
     # every fallback is the strategy's (recon.strategy); NotConvergedError: history saved, no map written
-    done = reconstruct(image, setup, "centroid", config=_config(args), policy=_policy(args), history_path=history_path)
+    done = reconstruct(
+        image,
+        setup,
+        "centroid",
+        config=_config(args),
+        policy=_policy(args),
+        history_path=history_path,
+        evidence_start=start,
+    )
     found, result = done.markers, done.result
     heights = result.heightmap()
     write_heightmap(
@@ -124,6 +133,25 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def _previous_prior(args: argparse.Namespace) -> Any:
+    """``--previous``: the prior an earlier reconstruction's JSON recorded (checked before any work), or None (the
+    command line's ``scopetwin.reconstruct(previous=...)``)."""
+    if args.previous is None:
+        return None
+    if args.second is not None or args.method == "inverse":
+        raise ScopetwinError("--previous takes one image and the centroid method (no --second, no --method inverse)")
+    if args.posterior == "off":
+        raise ScopetwinError("--previous starts the posterior's evidence search, which --posterior off skips")
+    from scopetwin.recon.posterior import recorded_prior
+    from scopetwin.scenes.inputs import load_json_input
+
+    return recorded_prior(load_json_input(args.previous, "reconstruction JSON", PRIOR_JSON_LIMIT), args.previous)
+
+
+#: Largest ``--previous`` file read, bytes: a reconstruction's JSON with its history is ~10-50 kB.
+PRIOR_JSON_LIMIT = 4 << 20
+
+
 def _is_fringe_input(path: str) -> bool:
     """A fringe measurement: a JSON file (``fringes.json``, ``shifted_fringes.json``) or a folder holding one."""
     p = Path(path)
@@ -138,6 +166,7 @@ _MARKER_ONLY = {
     "refine_setup": "--refine-setup",
     "posterior": "--posterior",
     "local_features": "--local-features",
+    "previous": "--previous",
 }
 
 
@@ -414,6 +443,14 @@ def register(subparsers: Any) -> None:
         choices=("correct", "report", "off"),
         help="uncertainty from the Gaussian-process reading of the fit; 'correct' (default) also takes the start "
         "height from the posterior frame maxima, 'report' only reports, 'off' skips both",
+    )
+    p.add_argument(
+        "--previous",
+        metavar="JSON",
+        help="the --json output of an earlier frame of the same setup (a rig's frames one after another): the "
+        "posterior's prior is searched by evidence from that frame's (uncertainty.prior), a few evaluations instead of "
+        "80-100; the result then depends on that frame within the evidence's flatness, so leave it out where each "
+        "frame must stand alone",
     )
     p.add_argument(
         "--local-features",

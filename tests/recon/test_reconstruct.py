@@ -237,6 +237,15 @@ def test_cli_reconstructs_a_rendered_image(tmp_path: Path) -> None:
     xx, yy = np.meshgrid(np.linspace(-12.6, 12.6, 43), np.linspace(-23.9, 23.9, 81))
     err = hm.height(xx, yy) - truth.height(xx, yy)
     assert np.sqrt(np.mean(err**2)) * 1e3 < 0.1  # µm over the ROI, rendered at 4 spp, raw centroids
+    # the next frame of a rig (--previous: the evidence searched from this frame's prior, scopetwin.reconstruct's
+    # previous=): the same markers and a prior of the same evidence, so the same uncertainties within 10 %
+    first = tmp_path / "first.json"
+    first.write_text(json.dumps(result))
+    again = _cli(["reconstruct", str(image), "--setup", "thesis-1.10-deflectometry", "--out", str(out)]
+                 + ["--no-bias-correction", "--sigma", "12", "--previous", str(first)])  # fmt: skip
+    for key in ("absolute_um", "shape_um"):
+        assert again["uncertainty"][key] == pytest.approx(u[key], rel=0.1)
+    assert again["start_height_um"] == pytest.approx(result["start_height_um"], abs=0.5 * u["absolute_um"])
 
 
 def test_misindexed_markers_are_an_error_not_a_tilted_map(tilt, tmp_path: Path) -> None:

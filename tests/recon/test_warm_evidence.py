@@ -108,3 +108,62 @@ def test_previous_with_a_second_image_or_the_inverse_method_is_one_clear_error()
     for kwargs in ({"second": image}, {"method": "inverse"}):
         with pytest.raises(ReconstructionError, match="previous= takes one image"):
             scopetwin.reconstruct(image, "thesis-1.10-deflectometry", previous=dummy, **kwargs)  # type: ignore[arg-type]
+
+
+def test_a_recorded_prior_is_read_back_and_checked() -> None:
+    """recorded_prior: the prior of a reconstruction's JSON (``uncertainty.prior``) as the Hyper it was, and one error
+    naming the value for anything that is not a prior."""
+    from scopetwin.recon.posterior import PosteriorError, recorded_prior
+
+    h = Hyper(0.013, 17.0, 6e-7, 0.65, 1.8e-6, 2.2e-7, 1.0, 3e-6, 2.5)
+    record = {"uncertainty": {"absolute_um": 0.02, "prior": h.as_dict()}}
+    back = recorded_prior(record, "r.json")
+    assert back.as_dict() == pytest.approx(h.as_dict())
+    no_features = {k: v for k, v in Hyper(0.013, 17.0, 6e-7, 0.65, 1.8e-6, 2.2e-7).as_dict().items() if "feat" not in k}
+    assert recorded_prior({"uncertainty": {"prior": no_features}}, "r.json").feature_amp == 0.0
+    for bad, match in (
+        ({}, "holds no uncertainty.prior"),
+        ({"uncertainty": None}, "holds no uncertainty.prior"),
+        ({"uncertainty": {"prior": [1, 2]}}, "holds no uncertainty.prior"),
+        ({"uncertainty": {"prior": {**h.as_dict(), "noise_urad": -1.0}}}, "noise_urad must be a positive number"),
+        ({"uncertainty": {"prior": {**h.as_dict(), "smooth_len_mm": float("inf")}}}, "smooth_len_mm must be"),
+        ({"uncertainty": {"prior": {**h.as_dict(), "broad_amp_nm": True}}}, "broad_amp_nm must be"),
+        ({"uncertainty": {"prior": {**h.as_dict(), "smooth_amp_um": "13"}}}, "smooth_amp_um must be"),
+        ({"uncertainty": {"prior": {**h.as_dict(), "feature_amp_nm": -0.1}}}, "feature_amp_nm must be a non-negative"),
+        ({"uncertainty": {"prior": {**h.as_dict(), "smooth_shape": 0}}}, "smooth_shape must be a positive"),
+        ({"uncertainty": {"prior": {k: v for k, v in h.as_dict().items() if k != "broad_len_mm"}}}, "broad_len_mm"),
+    ):
+        with pytest.raises(PosteriorError, match=match):
+            recorded_prior(bad, "r.json")
+
+
+def test_cli_previous_is_checked_before_any_work(tmp_path) -> None:
+    """``scopetwin reconstruct --previous JSON``: a file that holds no prior, or the option with a second image, the
+    inverse method or no posterior, is one clear error before the image is read; nothing is written."""
+    import argparse
+    import json
+
+    from scopetwin.cli.reconstruct import register
+    from scopetwin.scenes.errors import ScopetwinError
+
+    parser = argparse.ArgumentParser(prog="scopetwin")
+    register(parser.add_subparsers(dest="command", required=True))
+    good, bad = tmp_path / "good.json", tmp_path / "bad.json"
+    good.write_text(json.dumps({"uncertainty": {"prior": Hyper(0.013, 17.0, 6e-7, 0.65, 1.8e-6, 2.2e-7).as_dict()}}))
+    bad.write_text(json.dumps({"seconds": 1.0}))
+    base = ["reconstruct", str(tmp_path / "missing.exr"), "--setup", "thesis-1.10-deflectometry"]
+    base += ["--out", str(tmp_path / "h.exr")]
+    for extra, match in (
+        (["--previous", str(bad)], "holds no uncertainty.prior"),
+        (["--previous", str(tmp_path / "none.json")], "does not exist"),
+        (["--previous", str(good), "--method", "inverse"], "--previous takes one image"),
+        (["--previous", str(good), "--second", str(tmp_path / "b.exr")], "--previous takes one image"),
+        (["--previous", str(good), "--posterior", "off"], "--posterior off skips"),
+    ):
+        args = parser.parse_args(base + extra)
+        with pytest.raises(ScopetwinError, match=match):
+            args.func(args)
+    args = parser.parse_args(base + ["--previous", str(good)])
+    with pytest.raises(ScopetwinError, match="does not exist"):  # the prior read, then the image
+        args.func(args)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.json", "good.json"]
