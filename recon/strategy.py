@@ -234,12 +234,12 @@ def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
     speculate = out.converged and cfg.posterior != "off"
     if speculate:
         search.ahead = PriorAhead(rec, search.surfaces[-1], search.markers, (xy, hx, hy))
-    # the choice leaves a CPU to a cold search, the longer of the two; a warm-started one is short, and the choice
-    # takes both CPUs (the §1.10 preset's render, medians of the whole solve, 14-16 runs alternated: beside a cold
-    # search 0.52 s on one CPU against 0.58 s on both; beside a warm one 0.46 s against 0.40 s)
-    cold = rec.evidence_start is None
+    # the choice leaves a CPU to the search: the longer of the two, warm-started or not (measured on the §1.10 preset's
+    # renders, medians of the whole solve, 12-16 runs alternated: beside a cold search 0.52 s on one CPU against
+    # 0.58 s on both; beside one warm-started from the frame before, 0.49 against 0.50 s where the scale changes and
+    # that search runs on the first scale's surface, 0.46 against 0.40 s where it does not)
     best, rec.sigma_scores, fits = select_sigma(
-        rec.sub, xy[:, 0], xy[:, 1], hx, hy, cfg, max_threads=1 if speculate and cold else None
+        rec.sub, xy[:, 0], xy[:, 1], hx, hy, cfg, max_threads=1 if speculate else None
     )
     current = float(rec.basis.sigma[0])
     too_coarse = current in fits and fits[current] > cfg.fit_ratio * min(fits.values())
