@@ -176,6 +176,17 @@ class ReconstructionConfig:
         )
         return replace(base, **changes)
 
+    def starting_at(self, sigma: float | None) -> ReconstructionConfig:
+        """This configuration with the search starting on the basis scale ``sigma`` (mm: the scale an earlier frame
+        of the same setup ended on, a rig's next frame) where the scale is chosen from the data: the scale choice then
+        mostly keeps it, and the search on the default scale before it is saved. Unchanged for a fixed basis
+        (``sigma_candidates`` None, the thesis's grid) or ``sigma`` None."""
+        if sigma is None or self.sigma_candidates is None or self.counts is not None:
+            return self
+        if not 0.0 < sigma < float("inf"):
+            raise ValueError(f"a basis scale must be a positive number of mm, got {sigma!r}")
+        return replace(self, sigma=(float(sigma), float(sigma)))
+
     def make_basis(self, sub: Substrate2D, sigma: float | None = None) -> ShiftedBasis:
         """The shifted basis of this configuration over a substrate (``sigma`` overrides a covering grid's scale)."""
         if self.counts is not None:

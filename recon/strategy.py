@@ -847,6 +847,15 @@ class Reconstruction:
         return None if mask is None else mask(nx, ny)
 
     @property
+    def scale(self) -> float | None:
+        """The basis scale (mm) the centroid method's surface ended on (None for the other methods): where the next
+        frame of the same setup starts its search (:meth:`ReconstructionConfig.starting_at`)."""
+        from scopetwin.recon.shifted_basis import ShiftedBasis
+
+        basis = getattr(getattr(self.result, "surface", None), "basis", None)
+        return float(basis.sigma[0]) if self.method == "centroid" and isinstance(basis, ShiftedBasis) else None
+
+    @property
     def prior(self) -> Hyper | None:
         """The Gaussian-process prior the centroid method's posterior chose by evidence (None without one): the warm
         start of the next frame of the same setup (``evidence_start``)."""

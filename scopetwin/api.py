@@ -300,8 +300,10 @@ def reconstruct(
         position's stack, the height from the two positions' display points per pixel).
     previous : Reconstruction, optional
         The centroid reconstruction of an earlier frame of the same setup (a rig's live loop; one image, centroid
-        method): the uncertainty's prior is searched by evidence from that frame's prior, one start on all points,
-        instead of two coarse-to-fine starts (the §1.10 frame: 0.92 s instead of 1.21 s, ``make bench`` row 1). The
+        method): the search starts on the basis scale that frame ended on (:attr:`Reconstruction.scale`; the scale is
+        still chosen from the data), and the uncertainty's prior is searched by evidence from that frame's prior, one
+        start on all points, instead of two coarse-to-fine starts (the §1.10 preset's second render, detection
+        included: 0.65 s instead of 0.95 s, medians of 8). The
         result then depends on the earlier frame within the evidence's own flatness (both land within half a
         standard uncertainty of the evidence's maximum: tests/recon/test_warm_evidence.py); leave it out where each
         frame must stand alone (accuracy studies).
@@ -368,9 +370,18 @@ def _reconstruct_checked(
     if second is not None:
         image2, shift = second if isinstance(second, tuple) else (second, None)
         pair = (np.asarray(image2), shift)
+    from scopetwin.recon.config import ReconstructionConfig
+
     start = previous.prior if previous is not None else None
+    config = ReconstructionConfig().starting_at(previous.scale if previous is not None else None)
     return _reconstruct(
-        np.asarray(image), setup, method, policy=policy or DEFAULT_POLICY, evidence_start=start, second=pair
+        np.asarray(image),
+        setup,
+        method,
+        config=config,
+        policy=policy or DEFAULT_POLICY,
+        evidence_start=start,
+        second=pair,
     )
 
 

@@ -99,13 +99,15 @@ def test_they_agree_where_the_reference_marker_is_tied(tmp_path):
 
 @pytest.mark.slow
 def test_the_next_frame_of_a_live_loop_starts_from_the_previous_prior():
-    """``previous=``: the next frame's posterior starts from the earlier frame's prior (one evidence start instead of
-    two) and gives the surface and uncertainty the cold start gives, within a fifth of that uncertainty."""
+    """``previous=``: the next frame's search starts on the basis scale the earlier frame ended on and its posterior
+    from the earlier frame's prior (one evidence start instead of two); it gives the surface and uncertainty the cold
+    start gives, within a fifth of that uncertainty."""
     first, second = (scopetwin.render(PRESET, spp=4, seed=s) for s in (1, 2))
     r1 = scopetwin.reconstruct(first.image, first.setup)
     assert r1.prior is not None and r1.prior.smooth_len > 0
     cold = scopetwin.reconstruct(second.image, second.setup)
     warm = scopetwin.reconstruct(second.image, second.setup, previous=r1)
+    assert r1.scale is not None and f"basis scale {r1.scale:g} mm" in warm.strategy[0]  # its search starts there
     u = cold.uncertainty.absolute_um
     assert abs(warm.uncertainty.absolute_um - u) <= 0.1 * u
     x, y = np.meshgrid(np.linspace(-10, 10, 21), np.linspace(-15, 15, 31))

@@ -72,7 +72,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         raise ScopetwinError("--setup is required with a camera image (a fringes.json carries its own setup)")
     if args.method == "fringes":
         raise ScopetwinError(f"--method fringes takes a fringe measurement's fringes.json, not the image {args.image}")
-    start = _previous_prior(args)
+    start, scale = _previous(args)
     setup = load_setup(args.setup)
     if setup.scene != "deflectometry":
         raise ScopetwinError(f"setup {args.setup} is a {setup.scene!r} scene; reconstruct needs a deflectometry setup")
@@ -92,7 +92,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         image,
         setup,
         "centroid",
-        config=_config(args),
+        config=_config(args).starting_at(scale),
         policy=_policy(args),
         history_path=history_path,
         evidence_start=start,
@@ -133,11 +133,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def _previous_prior(args: argparse.Namespace) -> Any:
-    """``--previous``: the prior an earlier reconstruction's JSON recorded (checked before any work), or None (the
-    command line's ``scopetwin.reconstruct(previous=...)``)."""
+def _previous(args: argparse.Namespace) -> tuple[Any, float | None]:
+    """``--previous``: the prior and the final basis scale (mm; None where the JSON has no history) an earlier
+    reconstruction's JSON recorded, checked before any work; (None, None) without the option (the command line's
+    ``scopetwin.reconstruct(previous=...)``)."""
     if args.previous is None:
-        return None
+        return None, None
     if args.second is not None or args.method == "inverse":
         raise ScopetwinError("--previous takes one image and the centroid method (no --second, no --method inverse)")
     if args.posterior == "off":
@@ -145,9 +146,20 @@ def _previous_prior(args: argparse.Namespace) -> Any:
     from scopetwin.recon.posterior import recorded_prior
     from scopetwin.scenes.inputs import load_json_input
 
-    return recorded_prior(load_json_input(args.previous, "reconstruction JSON", PRIOR_JSON_LIMIT), args.previous)
+    record = load_json_input(args.previous, "reconstruction JSON", PRIOR_JSON_LIMIT)
+    prior = recorded_prior(record, args.previous)
+    history = record.get("history")
+    last = history[-1] if isinstance(history, list) and history and isinstance(history[-1], dict) else {}
+    scale = last.get("sigma_mm")
+    if scale is None:
+        return prior, None
+    if isinstance(scale, bool) or not isinstance(scale, int | float) or not 0.0 < scale <= MAX_SCALE_MM:
+        raise ScopetwinError(f"{args.previous}: history[-1].sigma_mm must be a basis scale in (0, {MAX_SCALE_MM}] mm")
+    return prior, float(scale)
 
 
+#: Largest basis scale ``--previous`` takes from a JSON, mm (the scale choice's candidates reach 24 mm).
+MAX_SCALE_MM = 1000.0
 #: Largest ``--previous`` file read, bytes: a reconstruction's JSON with its history is ~10-50 kB.
 PRIOR_JSON_LIMIT = 4 << 20
 
@@ -447,10 +459,10 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--previous",
         metavar="JSON",
-        help="the --json output of an earlier frame of the same setup (a rig's frames one after another): the "
-        "posterior's prior is searched by evidence from that frame's (uncertainty.prior), a few evaluations instead of "
-        "80-100; the result then depends on that frame within the evidence's flatness, so leave it out where each "
-        "frame must stand alone",
+        help="the --json output of an earlier frame of the same setup (a rig's frames one after another): the search "
+        "starts on the basis scale that frame ended on and the posterior's prior is searched by evidence from that "
+        "frame's (uncertainty.prior); the result then depends on that frame within the evidence's flatness, so leave "
+        "it out where each frame must stand alone",
     )
     p.add_argument(
         "--local-features",

@@ -163,7 +163,29 @@ def test_cli_previous_is_checked_before_any_work(tmp_path) -> None:
         args = parser.parse_args(base + extra)
         with pytest.raises(ScopetwinError, match=match):
             args.func(args)
+    scaled = tmp_path / "scaled.json"
+    scaled.write_text(json.dumps({**json.loads(good.read_text()), "history": [{"sigma_mm": -3.0}]}))
+    args = parser.parse_args(base + ["--previous", str(scaled)])
+    with pytest.raises(ScopetwinError, match="sigma_mm must be a basis scale"):
+        args.func(args)
+    scaled.unlink()
     args = parser.parse_args(base + ["--previous", str(good)])
     with pytest.raises(ScopetwinError, match="does not exist"):  # the prior read, then the image
         args.func(args)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.json", "good.json"]
+
+
+def test_the_next_frame_starts_on_the_scale_the_last_ended_on() -> None:
+    from scopetwin.recon.config import ReconstructionConfig
+
+    cfg = ReconstructionConfig()
+    assert (
+        cfg.starting_at(15.0).sigma == (15.0, 15.0) and cfg.starting_at(15.0).sigma_candidates == cfg.sigma_candidates
+    )
+    assert cfg.starting_at(None) is cfg
+    fixed = ReconstructionConfig(sigma=(6.0, 6.0), sigma_candidates=None)
+    assert fixed.starting_at(15.0) is fixed  # a fixed scale stays
+    thesis = ReconstructionConfig.thesis()
+    assert thesis.starting_at(15.0) is thesis
+    with pytest.raises(ValueError, match="positive"):
+        cfg.starting_at(0.0)
