@@ -300,13 +300,11 @@ def reconstruct(
         position's stack, the height from the two positions' display points per pixel).
     previous : Reconstruction, optional
         The centroid reconstruction of an earlier frame of the same setup (a rig's live loop; one image, centroid
-        method): the search starts on the basis scale that frame ended on (:attr:`Reconstruction.scale`; the scale is
-        still chosen from the data), and the uncertainty's prior is searched by evidence from that frame's prior, one
-        start on all points, instead of two coarse-to-fine starts (the §1.10 preset's second render, detection
-        included: 0.65 s instead of 0.95 s, medians of 8). The
-        result then depends on the earlier frame within the evidence's own flatness (both land within half a
-        standard uncertainty of the evidence's maximum: tests/recon/test_warm_evidence.py); leave it out where each
-        frame must stand alone (accuracy studies).
+        method): the search starts on the scale that frame ended on (:attr:`Reconstruction.scale`, still chosen from
+        the data) and the prior is searched by evidence from that frame's (the §1.10 preset's second render: 0.65 s
+        instead of 0.95 s). The result then depends on the earlier frame within the evidence's flatness (both land
+        within half a standard uncertainty of its maximum: tests/recon/test_warm_evidence.py); leave it out where
+        each frame must stand alone (accuracy studies).
 
     Returns
     -------
