@@ -373,20 +373,20 @@ def _calibrate_and_reconstruct(
     Returns the calibrated setup (None where the calibration failed), the report's calibration note, the markers
     found with the ideal setup, the results per setup name and the truth reference with its errors.
     """
-    from scopetwin.recon.posterior import Hyper
     from scopetwin.recon.substrate import Substrate2D
 
     sub = Substrate2D.from_setup(setup)
     worker = _Worker()
     try:
-        ideal = worker.submit(_timed, _reconstruct_one, image, "ideal", setup, out, heights, sub, None)
+        ideal = worker.submit(_timed, _reconstruct_one, image, "ideal", setup, out, heights, sub, None, None)
         truth = worker.submit(_timed, _truth_reference, setup, heights, sub)
         (calibrated, note), t_cal = _timed(_calibrate, target[0], mirror[0], target[1], mirror[1], out)
         steps.record("calibrate", t_cal)
         (found, r_ideal), t_ideal = ideal.result()
-        res = r_ideal["result"]
-        prior = Hyper.from_dict(res.uncertainty.hyper) if res.uncertainty is not None else None
-        (_, r_cal), t_rec = _timed(_reconstruct_one, image, "calibrated", calibrated or setup, out, heights, sub, prior)
+        prior, scale = _next_start(r_ideal["result"])
+        (_, r_cal), t_rec = _timed(
+            _reconstruct_one, image, "calibrated", calibrated or setup, out, heights, sub, prior, scale
+        )
         steps.record("detect + reconstruct", t_ideal + t_rec)
         exact, t_truth = truth.result()
         steps.record("truth reference", t_truth)
@@ -505,34 +505,54 @@ def _detect_and_reconstruct(
 
     Returns the markers found with the ideal setup, their observations and per setup name ``{"result", "seconds",
     "errors"}`` (:func:`roi_errors` against the truth ``heights``); a history that is not accepted goes to
-    ``out/<name>-history.json``. The same image's later reconstructions start their posterior's evidence
-    maximisation from the first one's prior (``evidence_start``, one start instead of two cold ones).
+    ``out/<name>-history.json``. The same image's later reconstructions start where the first one ended, as
+    ``scopetwin.reconstruct(previous=)`` does: their search on its basis scale, their posterior's evidence
+    maximisation from its prior (``evidence_start``, one start instead of two cold ones).
     """
-    from scopetwin.recon.posterior import Hyper
     from scopetwin.recon.reconstruct import MarkerObservations
 
     results: dict[str, Any] = {}
     found: Markers | None = None
     prior: Hyper | None = None
+    scale: float | None = None
     for name, s in setups.items():
-        markers, results[name] = _reconstruct_one(image, name, s, out, heights, sub, prior)
-        res = results[name]["result"]
-        if prior is None and res.uncertainty is not None:
-            prior = Hyper.from_dict(res.uncertainty.hyper)
+        markers, results[name] = _reconstruct_one(image, name, s, out, heights, sub, prior, scale)
+        if prior is None:
+            prior, scale = _next_start(results[name]["result"])
         found = markers if found is None or name == "ideal" else found
     assert found is not None
     return found, MarkerObservations(found.ij, found.centroids), results
 
 
+def _next_start(res: ReconstructionResult) -> tuple[Hyper | None, float | None]:
+    """Where the same image's next reconstruction starts: ``res``'s prior and the basis scale it ended on (None, None
+    without an uncertainty)."""
+    from scopetwin.recon.posterior import Hyper
+
+    if res.uncertainty is None:
+        return None, None
+    return Hyper.from_dict(res.uncertainty.hyper), float(res.surface.basis.sigma[0])
+
+
 def _reconstruct_one(
-    image: NDArray[Any], name: str, setup: Setup, out: Path, heights: HeightMap, sub: Substrate2D, prior: Hyper | None
+    image: NDArray[Any],
+    name: str,
+    setup: Setup,
+    out: Path,
+    heights: HeightMap,
+    sub: Substrate2D,
+    prior: Hyper | None,
+    scale: float | None,
 ) -> tuple[Markers, dict[str, Any]]:
-    """The image reconstructed with one setup (:func:`scopetwin.recon.strategy.reconstruct`): the markers found
-    and ``{"result", "seconds", "errors"}``; a history that is not accepted goes to ``out/<name>-history.json``."""
+    """The image reconstructed with one setup (:func:`scopetwin.recon.strategy.reconstruct`; its search started on
+    the basis scale ``scale``, its evidence from ``prior``, where given): the markers found and ``{"result",
+    "seconds", "errors"}``; a history that is not accepted goes to ``out/<name>-history.json``."""
+    from scopetwin.recon.config import ReconstructionConfig
     from scopetwin.recon.strategy import reconstruct
 
     t0 = time.perf_counter()
-    done = reconstruct(image, setup, history_path=out / f"{name}-history.json", evidence_start=prior)
+    config = ReconstructionConfig().starting_at(scale)
+    done = reconstruct(image, setup, config=config, history_path=out / f"{name}-history.json", evidence_start=prior)
     markers, res = done.markers, done.result
     seconds = time.perf_counter() - t0
     return markers, {"result": res, "seconds": seconds, "errors": roi_errors(res.surface.height, heights, sub)}

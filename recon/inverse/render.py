@@ -196,7 +196,7 @@ class _Level:
         if self.near is None or self._probe is None:
             return 0
         probe, margin = self._probe
-        needed, far_ok = _near_pixels(probe, self.shape, surf, 1)
+        needed, _ = _near_pixels(probe, self.shape, surf, 1)
         if not len(np.setdiff1d(needed, self.near, assume_unique=True)):
             return 0
         near, far_ok = _near_pixels(probe, self.shape, surf, margin)
