@@ -428,19 +428,25 @@ def test_the_pixels_a_fit_moves_the_markers_images_to_are_added(case):
     assert near.widen(far) == 0
 
 
+def _assert_warm_is_cold(model, before, after):
+    """A trace through ``after`` warm-started from the hits of one through ``before`` (NEWTON_WARM_STEPS) gives the
+    usable rays of a cold start, its values within 1e-12 and its sensitivities within 1e-10 (relative)."""
+    model.trace(spline_grid(before), before.coef)
+    warm = model.trace(spline_grid(after), after.coef)
+    cold = model.trace(spline_grid(after), after.coef, warm=False)
+    assert warm.sens is not None and cold.sens is not None
+    np.testing.assert_array_equal(warm.valid, cold.valid)
+    assert np.max(np.abs(warm.value - cold.value)) < 1e-12 * np.max(np.abs(cold.value))
+    assert np.max(np.abs(warm.sens - cold.sens)) < 1e-10 * np.max(np.abs(cold.sens))
+
+
 def test_a_trace_starts_from_the_last_ones_hits(case):
     """RayModel.trace starts the ray-surface Newton iteration from its previous trace's hits (NEWTON_WARM_STEPS):
     through a surface a fit's step away, the values and sensitivities are those of a cold start from the plane."""
     _, _, truth, _, lev = case
     model = lev.model
     moved = truth.with_coef(truth.coef + 5e-4 * np.sin(np.arange(truth.coef.size)).reshape(truth.coef.shape))
-    model.trace(spline_grid(truth), truth.coef)
-    warm = model.trace(spline_grid(moved), moved.coef)
-    cold = model.trace(spline_grid(moved), moved.coef, warm=False)
-    assert warm.sens is not None and cold.sens is not None
-    np.testing.assert_array_equal(warm.valid, cold.valid)
-    assert np.max(np.abs(warm.value - cold.value)) < 1e-12 * np.max(np.abs(cold.value))
-    assert np.max(np.abs(warm.sens - cold.sens)) < 1e-10 * np.max(np.abs(cold.sens))
+    _assert_warm_is_cold(model, truth, moved)
 
 
 @pytest.mark.parametrize("family", ["steep", "cut"])
@@ -456,10 +462,4 @@ def test_a_trace_from_a_plane_to_a_steep_sheet_starts_warm(family):
     plane = SplineSurface.covering(sub, 0.5, sub.frame_z)
     image = np.zeros((setup.camera_model.ny, setup.camera_model.nx))
     model = InverseReconstructor(setup, image, InverseConfig(spacing=0.5), window=WINDOW)._level(1, 3).model
-    model.trace(spline_grid(plane), plane.coef)
-    warm = model.trace(spline_grid(truth), truth.coef)
-    cold = model.trace(spline_grid(truth), truth.coef, warm=False)
-    assert warm.sens is not None and cold.sens is not None
-    np.testing.assert_array_equal(warm.valid, cold.valid)
-    assert np.max(np.abs(warm.value - cold.value)) < 1e-12 * np.max(np.abs(cold.value))
-    assert np.max(np.abs(warm.sens - cold.sens)) < 1e-10 * np.max(np.abs(cold.sens))
+    _assert_warm_is_cold(model, plane, truth)
