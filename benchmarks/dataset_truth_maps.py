@@ -6,6 +6,8 @@
    run weighs on both alike. Beside it, the maps' own time per sample (trace + EXR write, the minimum of 3 runs each,
    wall and CPU) against the render's, and as a share of the median sample without maps: a figure the load moves
    less than the alternating totals. Target: the maps cost <= 15 % of a sample's time.
+   Beside them, every lossless compression OpenEXR offers for the maps of that sample: write and decode time
+   (minimum of 3) and size (``maps_compression`` chooses between Zstandard, the default, and ZIP).
 2. Reader throughput: ``scopetwin.open_dataset`` reading every sample's image and maps (``.image``, ``.maps``)
    beside the raw reads of the same files (their bytes; and OpenEXR's own decode of every channel).
 
@@ -21,6 +23,8 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 from scopetwin.sim.datasets.config import config_from_dict
 from scopetwin.sim.datasets.plan import Plan
@@ -71,7 +75,8 @@ def _maps_alone(config: Path, repeats: int = 3) -> dict[str, float]:
     from scopetwin.sim.measurement import render_measurement
     from scopetwin.sim.surfaces import surface_for
 
-    setup = _plan(config, True, 1).setup_of(0)
+    plan = _plan(config, True, 1)
+    setup = plan.setup_of(0)
     heights = surface_for(setup)
     steps = {
         "render": lambda: render_measurement(setup, heights, setup.render.spp, 0, setup.render.noise),
@@ -80,7 +85,8 @@ def _maps_alone(config: Path, repeats: int = 3) -> dict[str, float]:
     maps = part1_maps(setup, heights)
     out: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        steps["maps_write"] = lambda: write_maps(Path(tmp) / "maps.exr", maps)
+        compression = plan.config.dataset.maps_compression
+        steps["maps_write"] = lambda: write_maps(Path(tmp) / "maps.exr", maps, compression)
         for name, step in steps.items():
             step()  # warm-up
             wall, cpu = [], []
@@ -90,6 +96,38 @@ def _maps_alone(config: Path, repeats: int = 3) -> dict[str, float]:
                 wall.append(time.perf_counter() - t0)
                 cpu.append(time.process_time() - c0)
             out[f"{name}_s"], out[f"{name}_cpu_s"] = min(wall), min(cpu)
+    return out
+
+
+def _compressions(config: Path, repeats: int = 3) -> dict[str, dict[str, float]]:
+    """Each lossless OpenEXR compression on one sample's maps (the channels :func:`write_maps` writes): write and
+    decode seconds (minimum of ``repeats``), megabytes."""
+    import OpenEXR
+
+    from scopetwin.sim.datasets.maps import part1_maps
+    from scopetwin.sim.surfaces import surface_for
+
+    setup = _plan(config, True, 1).setup_of(0)
+    chans: dict[str, object] = {}
+    for name, arr in part1_maps(setup, surface_for(setup)).items():
+        parts = [arr[..., k] for k in range(arr.shape[2])] if arr.ndim == 3 else [arr]
+        for k, part in enumerate(parts):
+            chans[f"{name}.{k}"] = np.ascontiguousarray(part, dtype=np.float32)
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        path = str(Path(tmp) / "maps.exr")
+        for name in ("ZSTD", "ZIP", "ZIPS", "RLE", "PIZ", "HTJ2K32", "HTJ2K256", "NO"):
+            header = {"compression": getattr(OpenEXR, f"{name}_COMPRESSION"), "type": OpenEXR.scanlineimage}
+            write, read = [], []
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                OpenEXR.File(header, dict(chans)).write(path)  # a copy: the binding replaces the dict's arrays
+                write.append(time.perf_counter() - t0)
+                t0 = time.perf_counter()
+                for chan in OpenEXR.File(path, separate_channels=True).channels().values():
+                    _ = chan.pixels
+                read.append(time.perf_counter() - t0)
+            out[name] = {"write_s": min(write), "decode_s": min(read), "megabytes": Path(path).stat().st_size / 1e6}
     return out
 
 
@@ -151,6 +189,10 @@ def main() -> None:
             f"{100 * own / gen['plain_median_s']:.1f} % of the median sample without maps",
             flush=True,
         )
+        comp = _compressions(Path(args.config))
+        print("  maps.exr compressions (lossless; write / decode, minimum of 3):", flush=True)
+        for name, c in comp.items():
+            print(f"    {name:9s} {1e3 * c['write_s']:6.1f} / {1e3 * c['decode_s']:5.1f} ms  {c['megabytes']:5.2f} MB")
         read = _reading(Path(gen.pop("root")))
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
@@ -161,7 +203,9 @@ def main() -> None:
         f"  open_dataset      {read['reader_samples_per_s']:8.1f} samples/s ({read['reader_mb_per_s']:.0f} MB/s)"
     )
     if args.json:
-        Path(args.json).write_text(json.dumps({"generation": gen, "one_sample": alone, "reading": read}, indent=2))
+        Path(args.json).write_text(
+            json.dumps({"generation": gen, "one_sample": alone, "compressions": comp, "reading": read}, indent=2)
+        )
 
 
 if __name__ == "__main__":

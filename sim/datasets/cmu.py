@@ -430,7 +430,7 @@ def write_cmu(cfg: DatasetConfig, index: int, sample: CmuSample, stage: StagedOu
 
         _, _, h, w = unit.box
         object_maps = cmu_object_maps(channels, h, w)
-        write_maps(stage.path(MAPS_FILE), object_maps)
+        write_maps(stage.path(MAPS_FILE), object_maps, cfg.dataset.maps_compression)
         files["maps"] = MAPS_FILE
         truth["maps"] = {"file": MAPS_FILE, "format": f"{MAPS_FORMAT}/{MAPS_VERSION}", "layers": list(object_maps)}
     return {"files": files, "truth": truth}

@@ -319,6 +319,9 @@ class DatasetSection(_Model):
     description: str = ""
     preview: bool = Field(True, description="write preview.png beside each image")
     maps: bool = Field(True, description="write the per-pixel truth maps (maps.exr) of each sample")
+    maps_compression: Literal["zstd", "zip"] = Field(
+        "zstd", description="maps.exr's lossless compression: zstd (read by OpenEXR 3.5 and later) or zip (any reader)"
+    )
 
 
 class GrinSection(_Model):

@@ -84,7 +84,7 @@ def write_grin(cfg: DatasetConfig, index: int, sample: tuple[Any, Any], stage: S
         from scopetwin.sim.datasets.maps import MAPS_FILE, MAPS_FORMAT, MAPS_VERSION, grin_object_maps, write_maps
 
         maps = grin_object_maps(setup, stack, img.shape[1], img.shape[0], centre)
-        write_maps(stage.path(MAPS_FILE), maps)
+        write_maps(stage.path(MAPS_FILE), maps, cfg.dataset.maps_compression)
         files["maps"] = MAPS_FILE
         truth["maps"] = {"file": MAPS_FILE, "format": f"{MAPS_FORMAT}/{MAPS_VERSION}", "layers": list(maps)}
     return {"files": files, "truth": truth}

@@ -264,7 +264,7 @@ def _part1_truth(
     maps_entry = None
     if cfg.dataset.maps:
         maps = part1_maps(setup, heights)
-        write_maps(stage.path(MAPS_FILE), maps)
+        write_maps(stage.path(MAPS_FILE), maps, cfg.dataset.maps_compression)
         names["maps"] = MAPS_FILE
         maps_entry = {"file": MAPS_FILE, "format": f"{MAPS_FORMAT}/{MAPS_VERSION}", "layers": list(maps)}
     cam = setup.camera_model

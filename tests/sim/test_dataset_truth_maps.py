@@ -358,3 +358,33 @@ def test_maps_agree_with_the_renderers_own_trace(preset):
     if preset.endswith("mirror"):
         m = maps["mask"]
         assert np.abs(maps["point"][m][:, 2]).max() < 1e-9 and (maps["normal"][m] == [0, 0, 1]).all()
+
+
+@pytest.mark.parametrize("compression", ["zstd", "zip"])
+def test_maps_read_back_bit_for_bit_with_either_compression(deflectometry, tmp_path, compression):
+    import OpenEXR
+
+    from scopetwin.sim.datasets.maps import read_maps, write_maps
+
+    maps = scopetwin.open_dataset(deflectometry)[0].maps
+    path = tmp_path / "maps.exr"
+    write_maps(path, maps, compression)
+    header = OpenEXR.File(str(path)).header()
+    assert header["compression"] == getattr(OpenEXR.Compression, f"{compression.upper()}_COMPRESSION")
+    back = read_maps(path, maps["mask"].shape)
+    assert list(back) == list(maps)
+    for name, arr in maps.items():
+        assert back[name].dtype == arr.dtype and np.array_equal(back[name], arr, equal_nan=arr.dtype.kind == "f")
+
+
+def test_the_maps_compression_is_checked(deflectometry, tmp_path):
+    from scopetwin.sim.datasets.maps import write_maps
+
+    assert config_from_dict(_cfg()).dataset.maps_compression == "zstd"  # the default
+    cfg = _cfg()
+    cfg["dataset"]["maps_compression"] = "piz"
+    with pytest.raises(DatasetError, match="maps_compression"):
+        config_from_dict(cfg)
+    with pytest.raises(ValueError, match="zstd, zip"):
+        write_maps(tmp_path / "maps.exr", scopetwin.open_dataset(deflectometry)[0].maps, "piz")
+    assert not (tmp_path / "maps.exr").exists()
