@@ -291,7 +291,8 @@ def _substrate_hits(sub: Any, heights: HeightMap, o: NDArray[np.float64], d: NDA
     the largest horizontal run of a ray over the surface's height range (the spline overshoots its nodes by less than
     their range, so twice the largest node height bounds it). The secant iteration is the renderer's
     (:meth:`scopetwin.scenes.surface.Substrate.intersect`), on the same spline (:meth:`HeightMap.cells`), started on the
-    base plane.
+    base plane, run as one compiled kernel where Dr.Jit's LLVM backend is available (the same hits:
+    :mod:`scopetwin.scenes.bicubic_llvm`; a sample's renderer has started that backend already).
     """
     lo, ld = _to_local(sub.frame, o), _vectors(sub.frame, d, inverse=True)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -306,7 +307,7 @@ def _substrate_hits(sub: Any, heights: HeightMap, o: NDArray[np.float64], d: NDA
         & (np.abs(base[:, 0]) <= 0.5 * sub.size_x + grow)
         & (np.abs(base[:, 1]) <= 0.5 * sub.size_y + grow)
     )
-    lam, ok, h, hx, hy = heights.cells().intersect(lo[cand], ld[cand])
+    lam, ok, h, hx, hy = heights.cells().intersect(lo[cand], ld[cand], lam_plane[cand], compiled=True)
     ok &= lam > 0
     local = lo[cand] + np.where(ok, lam, 0.0)[:, None] * ld[cand]
     on = ok & sub.on_substrate(local[:, 0], local[:, 1])

@@ -68,3 +68,69 @@ def test_the_cells_secant_from_the_base_plane_meets_the_surface(wavy):
     assert ok.mean() > 0.9
     assert np.abs(wavy.height(q[:, 0], q[:, 1]) - q[:, 2]).max() < 1e-10
     assert np.abs(h[ok] - q[:, 2]).max() < 1e-10
+
+
+def _compiled_or_skip() -> None:
+    from scopetwin.scenes import bicubic_llvm
+
+    if not bicubic_llvm.available():
+        pytest.skip("Dr.Jit's LLVM backend is not available")
+
+
+def _same(a: tuple, b: tuple, tol: float) -> None:
+    """lam, converged, h, hx, hy of two intersections: the same rays converged, the values within ``tol`` mm."""
+    assert (a[1] == b[1]).all()
+    for x, y in zip(a, b, strict=True):
+        assert (np.isnan(x) == np.isnan(y)).all()
+        assert np.nanmax(np.abs(np.asarray(x, dtype=float) - np.asarray(y, dtype=float)), initial=0.0) <= tol
+
+
+@pytest.mark.mitsuba
+def test_the_compiled_iteration_gives_the_numpy_iterations_hits(wavy):
+    """The Dr.Jit kernel against the numpy iteration on the same rays and starts: every default start (rays that miss,
+    graze and run parallel to the base plane included), given starts, and an iteration cut short (max_iter 1)."""
+    _compiled_or_skip()
+    rng = np.random.default_rng(9)
+    o, d = _rays(rng, 3000)
+    d[:5] = [1.0, 0.0, 0.0]  # parallel to the base plane: not traced
+    cells = wavy.cells()
+    _same(cells.intersect(o, d, compiled=True), cells.intersect(o, d), 1e-12)
+    assert cells.intersect(o, d)[1][5:].mean() > 0.9
+    lam0, lam1 = np.zeros(len(o)), intersect_plane(o, d, Frame.identity())  # the substrate's starts
+    _same(cells.intersect(o, d, lam0, lam1, compiled=True), cells.intersect(o, d, lam0, lam1), 1e-12)
+    short = cells.intersect(o, d, max_iter=1, compiled=True)
+    _same(short, cells.intersect(o, d, max_iter=1), 1e-12)
+    assert 0 < short[1].sum() < cells.intersect(o, d)[1].sum()  # some rays need more than one step
+
+
+@pytest.mark.mitsuba
+def test_the_compiled_iteration_is_compiled_once(wavy):
+    """Later calls, on other rays in other memory and on another surface of the same node grid (other heights and
+    extents), run the first call's kernel: none is built again (Dr.Jit compiles for the alignment of the memory it
+    reads, which the aligned copies fix, and the surface's scalars are opaque)."""
+    _compiled_or_skip()
+    import drjit as dr
+
+    rng = np.random.default_rng(10)
+    other = HeightMap(wavy.z[::-1] * 0.5, -10.0, 11.0, -20.0, 24.0)
+    wavy.cells().intersect(*_rays(rng, 1000), compiled=True)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()  # cleared
+        for n, surface in [(999, wavy), (1500, other), (700, wavy)]:
+            o, d = _rays(rng, n)
+            got = surface.cells().intersect(o[1:], d[1:], compiled=True)  # a view at another offset
+            _same(got, surface.cells().intersect(o[1:], d[1:]), 1e-12)
+        kernels = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert len(kernels) == 3 and all(k["cache_hit"] for k in kernels)
+
+
+def test_without_dr_jit_the_numpy_iteration_serves(wavy, monkeypatch):
+    from scopetwin.scenes import bicubic_llvm
+
+    monkeypatch.setattr(bicubic_llvm, "available", lambda: False)
+    monkeypatch.setattr(bicubic_llvm, "intersect", None)  # never reached
+    o, d = _rays(np.random.default_rng(11), 500)
+    _same(wavy.cells().intersect(o, d, compiled=True), wavy.cells().intersect(o, d), 0.0)
