@@ -317,9 +317,14 @@ class GradientGP:
         return np.asarray(height_gradient_kernel(p, self.xy, self.hyper) @ self.alpha)
 
     def whitened(self, p: Array) -> Array:
-        """L^-1 cov(g, f(p)), (2n, m): the posterior covariance is K_pp - W^T W."""
-        kg = height_gradient_kernel(p, self.xy, self.hyper)
-        return np.asarray(sla.solve_triangular(self.chol[0], kg.T, lower=True, check_finite=False))
+        """L^-1 cov(g, f(p)), (2n, m): the posterior covariance is K_pp - W^T W (block by block of the points on every
+        CPU the process may use, the solves without the interpreter lock: :func:`scopetwin.recon.lapack.solve_lower`)."""
+        from scopetwin.recon.lapack import solve_lower_blocks
+
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 2)
+        return solve_lower_blocks(
+            self.chol[0], len(p), lambda start, stop: height_gradient_kernel(p[start:stop], self.xy, self.hyper)
+        )
 
 
 @dataclass(frozen=True)
@@ -497,11 +502,12 @@ def _evidence_and_gradient(theta: Array, pairs: _Pairs, g: Array, shape: float |
 
 def _lower_inverse(low: Array) -> Array:
     """K^-1 in its lower triangle from the lower Cholesky factor of K (LAPACK potri: a third of the work of solving
-    against I), in place of ``low``; what lies above the diagonal is left as it was (zeros for a clean factor)."""
-    inv, info = sla.lapack.dpotri(low, lower=1, overwrite_c=1)
-    if info != 0:
-        raise np.linalg.LinAlgError(f"potri failed ({info})")
-    return np.asarray(inv)
+    against I), in place of ``low``; what lies above the diagonal is left as it was (zeros for a clean factor). Without
+    the interpreter lock (:func:`scopetwin.recon.lapack.lower_inverse`): a search in a thread does not stall the
+    caller while it runs."""
+    from scopetwin.recon.lapack import lower_inverse
+
+    return lower_inverse(low)
 
 
 def even_subsample(n: int, k: int) -> NDArray[np.intp]:

@@ -1,0 +1,63 @@
+"""recon.lapack: SciPy's own triangular solve and Cholesky inverse called without the interpreter lock, against
+SciPy's wrappers of the same routines."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+
+from scopetwin.recon.lapack import BLOCK, lower_inverse, solve_lower, solve_lower_blocks
+
+
+@pytest.fixture
+def factor() -> tuple[np.ndarray, np.ndarray]:
+    """A kernel-like SPD matrix's cho_factor (Fortran order, the matrix's own values left above the diagonal) and
+    numpy's factor of it (C order, zeros above)."""
+    rng = np.random.default_rng(3)
+    a = rng.standard_normal((300, 300))
+    k = a @ a.T + 300 * np.eye(300)
+    return sla.cho_factor(k, lower=True, check_finite=False)[0], np.linalg.cholesky(k)
+
+
+@pytest.mark.parametrize("count", [0, 1, BLOCK, BLOCK + 1, 3 * BLOCK - 7])
+def test_the_solve_is_scipys_in_either_order(factor, count):
+    f_low, c_low = factor
+    rhs = np.random.default_rng(count).standard_normal((count, 300))
+    ref = sla.solve_triangular(c_low, rhs.T, lower=True, check_finite=False)
+    for low in (f_low, c_low):
+        x = solve_lower(low, rhs)
+        assert x.shape == (300, count) and x.flags.f_contiguous
+        np.testing.assert_allclose(x, ref, rtol=0, atol=1e-14 * max(np.abs(ref).max(initial=0.0), 1.0))
+
+
+def test_the_result_does_not_depend_on_the_threads(factor):
+    rhs = np.random.default_rng(4).standard_normal((2 * BLOCK + 5, 300))
+    one = solve_lower(factor[0], rhs, max_threads=1)
+    assert np.array_equal(one, solve_lower(factor[0], rhs, max_threads=2))
+    made = solve_lower_blocks(factor[0], len(rhs), lambda a, b: rhs[a:b], max_threads=2)
+    assert np.array_equal(one, made)
+
+
+def test_the_inverse_is_scipys_potri(factor):
+    f_low = np.asfortranarray(np.tril(factor[0]))
+    ref, info = sla.lapack.dpotri(f_low.copy(order="F"), lower=1)
+    assert info == 0
+    got = lower_inverse(f_low.copy(order="F"))
+    assert np.array_equal(np.tril(got), np.tril(ref))
+    k = factor[1] @ factor[1].T
+    np.testing.assert_allclose(np.tril(got) + np.tril(got, -1).T, np.linalg.inv(k), rtol=1e-10)
+
+
+def test_bad_input_is_refused(factor):
+    with pytest.raises(ValueError, match="square float64"):
+        solve_lower(np.zeros((3, 4)), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="length 300"):
+        solve_lower(factor[0], np.zeros((2, 5)))
+    with pytest.raises(ValueError, match="contiguous"):
+        solve_lower(np.zeros((600, 600))[::2, ::2], np.zeros((1, 300)))
+    with pytest.raises(ValueError, match="Fortran order"):
+        lower_inverse(factor[1])
+    singular = np.zeros((3, 3), order="F")
+    with pytest.raises(np.linalg.LinAlgError, match="potri"):
+        lower_inverse(singular)
