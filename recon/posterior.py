@@ -318,7 +318,7 @@ class GradientGP:
 
     def whitened(self, p: Array) -> Array:
         """L^-1 cov(g, f(p)), (2n, m): the posterior covariance is K_pp - W^T W (block by block of the points on every
-        CPU the process may use, the solves without the interpreter lock: :func:`scopetwin.recon.lapack.solve_lower`)."""
+        CPU the process may use, solved without the interpreter lock: :func:`scopetwin.recon.lapack.solve_lower`)."""
         from scopetwin.recon.lapack import solve_lower_blocks
 
         p = np.asarray(p, dtype=np.float64).reshape(-1, 2)

@@ -178,7 +178,7 @@ class BicubicCells:
             Largest number of secant steps.
         compiled : bool
             Run the iteration as one Dr.Jit kernel on the LLVM backend where that backend is available
-            (:mod:`scopetwin.scenes.bicubic_llvm`: the same operations, the same hits; a third of the time on 10^5
+            (:mod:`scopetwin.scenes.mitsuba.secant`: the same operations, the same hits; a third of the time on 10^5
             rays, but Dr.Jit's import and start cost ~0.3 s in a process that has not rendered).
 
         Returns
@@ -194,11 +194,11 @@ class BicubicCells:
                 plane = np.where(d[:, 2] != 0, -o[:, 2] / np.where(d[:, 2] != 0, d[:, 2], 1.0), np.nan)
             lam0, lam1 = plane, None  # NaN where parallel: not traced
         if compiled:
-            from scopetwin.scenes import bicubic_llvm
+            from scopetwin.scenes.mitsuba import secant as compiled_secant
 
-            if bicubic_llvm.available():
+            if compiled_secant.available():
                 lam1a = None if lam1 is None else np.asarray(lam1, dtype=np.float64).reshape(n)
-                return bicubic_llvm.intersect(
+                return compiled_secant.intersect(
                     self, o, d, np.asarray(lam0, dtype=np.float64).reshape(n), lam1a, tol, max_iter
                 )
         residual, cells, polys = self._residual(o, d, np.asarray(lam0, dtype=np.float64).reshape(n))

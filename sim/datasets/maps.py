@@ -292,7 +292,7 @@ def _substrate_hits(sub: Any, heights: HeightMap, o: NDArray[np.float64], d: NDA
     their range, so twice the largest node height bounds it). The secant iteration is the renderer's
     (:meth:`scopetwin.scenes.surface.Substrate.intersect`), on the same spline (:meth:`HeightMap.cells`), started on the
     base plane, run as one compiled kernel where Dr.Jit's LLVM backend is available (the same hits:
-    :mod:`scopetwin.scenes.bicubic_llvm`; a sample's renderer has started that backend already).
+    :mod:`scopetwin.scenes.mitsuba.secant`; a sample's renderer has started that backend already).
     """
     lo, ld = _to_local(sub.frame, o), _vectors(sub.frame, d, inverse=True)
     with np.errstate(divide="ignore", invalid="ignore"):

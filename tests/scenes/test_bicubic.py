@@ -71,9 +71,9 @@ def test_the_cells_secant_from_the_base_plane_meets_the_surface(wavy):
 
 
 def _compiled_or_skip() -> None:
-    from scopetwin.scenes import bicubic_llvm
+    from scopetwin.scenes.mitsuba import secant as compiled_secant
 
-    if not bicubic_llvm.available():
+    if not compiled_secant.available():
         pytest.skip("Dr.Jit's LLVM backend is not available")
 
 
@@ -128,9 +128,9 @@ def test_the_compiled_iteration_is_compiled_once(wavy):
 
 
 def test_without_dr_jit_the_numpy_iteration_serves(wavy, monkeypatch):
-    from scopetwin.scenes import bicubic_llvm
+    from scopetwin.scenes.mitsuba import secant as compiled_secant
 
-    monkeypatch.setattr(bicubic_llvm, "available", lambda: False)
-    monkeypatch.setattr(bicubic_llvm, "intersect", None)  # never reached
+    monkeypatch.setattr(compiled_secant, "available", lambda: False)
+    monkeypatch.setattr(compiled_secant, "intersect", None)  # never reached
     o, d = _rays(np.random.default_rng(11), 500)
     _same(wavy.cells().intersect(o, d, compiled=True), wavy.cells().intersect(o, d), 0.0)

@@ -20,21 +20,28 @@ from __future__ import annotations
 import functools
 import weakref
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-if TYPE_CHECKING:
-    from scopetwin.scenes.bicubic import BicubicCells
-
 F64 = NDArray[np.float64]
+
+
+class BicubicCells(Protocol):
+    """What the kernel reads of a :class:`scopetwin.scenes.bicubic.BicubicCells`."""
+
+    x_left: F64
+    y_left: F64
+    poly: F64
+    n_cx: int
+    bounds: tuple[float, float, float, float]
 
 
 @functools.lru_cache(maxsize=1)
 def available() -> bool:
     """Whether Dr.Jit's LLVM backend can run here (a shared LLVM library of version 16 or newer)."""
-    from scopetwin.scenes.mitsuba.variant import _llvm_library
+    from .variant import _llvm_library
 
     if _llvm_library() is None:
         return False
