@@ -1,5 +1,6 @@
-"""Triangular solves and Cholesky inverses that run without the interpreter lock, so that threads run them side by
-side: SciPy's own BLAS/LAPACK routines (``scipy.linalg.cython_blas``, ``cython_lapack``), called through ``ctypes``.
+"""Triangular solves, Cholesky factorisations and inverses that run without the interpreter lock, so that threads
+run them side by side: SciPy's own BLAS/LAPACK routines (``scipy.linalg.cython_blas``, ``cython_lapack``), called
+through ``ctypes``.
 
 SciPy's Python wrappers of these routines (``solve_triangular``, ``lapack.dpotri``, ``blas.dtrsm``) hold the
 interpreter lock while they run: two threads each solving half of a posterior's whitening took as long as one solve,
@@ -124,3 +125,35 @@ def lower_inverse(low: NDArray[np.float64]) -> NDArray[np.float64]:
     if info.value != 0:
         raise np.linalg.LinAlgError(f"potri failed ({info.value})")
     return low
+
+
+def cholesky_solve(m: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64]:
+    """x with M x = rhs for a symmetric positive definite ``m`` (n, n; contiguous, overwritten by its Cholesky
+    factor: LAPACK ``dpotrf`` and ``dpotrs`` on its lower triangle as stored in Fortran order, the upper one in C
+    order, which is the same matrix). ``rhs``: (n,) or (n, k).
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        ``m`` is not positive definite (``dpotrf``'s leading minor of that order is not positive).
+    """
+    if (
+        m.dtype != np.float64
+        or m.ndim != 2
+        or m.shape[0] != m.shape[1]
+        or not (m.flags.f_contiguous or m.flags.c_contiguous)
+    ):
+        raise ValueError(f"a contiguous square float64 matrix is needed, got {m.dtype} {m.shape}")
+    n = m.shape[0]
+    x = np.array(rhs, dtype=np.float64, order="F", copy=True)
+    if x.shape[0] != n:
+        raise ValueError(f"right-hand sides of length {n} are needed, got shape {x.shape}")
+    info = ctypes.c_int(0)
+    a = ctypes.c_void_p(m.ctypes.data)
+    _routine("cython_lapack", "dpotrf", 5)(_char("L"), _int(n), a, _int(n), ctypes.byref(info))
+    if info.value != 0:
+        raise np.linalg.LinAlgError(f"the matrix is not positive definite (potrf: {info.value})")
+    k = 1 if x.ndim == 1 else x.shape[1]
+    _routine("cython_lapack", "dpotrs", 8)(_char("L"), _int(n), _int(k), a, _int(n), ctypes.c_void_p(x.ctypes.data),
+                                           _int(n), ctypes.byref(info))  # fmt: skip
+    return x

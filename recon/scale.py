@@ -10,6 +10,7 @@ import scipy.linalg as sla
 from numpy.typing import NDArray
 
 from scopetwin.recon.config import ReconstructionConfig
+from scopetwin.recon.lapack import cholesky_solve
 from scopetwin.recon.parallel import thread_map
 from scopetwin.recon.shifted_basis import ShiftedBasis
 from scopetwin.recon.substrate import Substrate2D
@@ -111,7 +112,7 @@ def _ridge(m: NDArray[np.float64], rhs: Array, nb: int, lam: float) -> Array:
     Gram matrix) is overwritten."""
     m[np.arange(nb), np.arange(nb)] += lam
     try:
-        # numpy's factorisation releases the interpreter lock (SciPy's wrappers hold it): threads fit side by side
-        return np.asarray(sla.cho_solve((np.linalg.cholesky(m), True), rhs, check_finite=False))
+        # without the interpreter lock: threads fit side by side, and beside an evidence search in a thread
+        return cholesky_solve(m.copy(), rhs)
     except np.linalg.LinAlgError:
         return np.asarray(sla.lstsq(m, rhs, lapack_driver="gelsy", check_finite=False)[0])

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from scopetwin.recon.lapack import BLOCK, lower_inverse, solve_lower, solve_lower_blocks
+from scopetwin.recon.lapack import BLOCK, cholesky_solve, lower_inverse, solve_lower, solve_lower_blocks
 
 
 @pytest.fixture
@@ -61,3 +61,22 @@ def test_bad_input_is_refused(factor):
     singular = np.zeros((3, 3), order="F")
     with pytest.raises(np.linalg.LinAlgError, match="potri"):
         lower_inverse(singular)
+
+
+def test_the_cholesky_solve_is_scipys(factor):
+    k = factor[1] @ factor[1].T
+    rhs = np.random.default_rng(5).standard_normal((300, 3))
+    ref = sla.cho_solve(sla.cho_factor(k, lower=True), rhs)
+    for order in ("C", "F"):
+        for b in (rhs, rhs[:, 0]):
+            m = np.array(k, order=order)
+            np.testing.assert_allclose(cholesky_solve(m, b), ref if b.ndim == 2 else ref[:, 0], rtol=1e-11)
+            stored = np.tril(m.T if order == "C" else m)  # the factor, in the lower triangle as LAPACK sees it
+            np.testing.assert_allclose(stored, np.linalg.cholesky(k), rtol=0, atol=1e-12 * np.abs(stored).max())
+
+
+def test_a_matrix_that_is_not_positive_definite_is_refused():
+    with pytest.raises(np.linalg.LinAlgError, match="not positive definite"):
+        cholesky_solve(np.diag([1.0, -1.0, 2.0]), np.ones(3))
+    with pytest.raises(ValueError, match="length 3"):
+        cholesky_solve(np.eye(3), np.ones(4))
