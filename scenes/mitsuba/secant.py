@@ -77,7 +77,7 @@ def _tables(cells: BicubicCells) -> _Tables:
         found = _Tables(
             _owned(Float64, cells.x_left),
             _owned(Float64, cells.y_left),
-            _owned(Float64, cells.poly.T.ravel()),
+            _owned(Float64, cells.poly.T),
             dr.opaque(UInt32, cells.n_cx),
             tuple(dr.opaque(Float64, float(b)) for b in cells.bounds),  # type: ignore[arg-type]
         )
@@ -124,12 +124,12 @@ ALIGN = 128
 
 
 def _owned(kind: Any, values: F64) -> Any:
-    """A Dr.Jit array over a copy of ``values`` aligned to :data:`ALIGN` bytes."""
-    flat = np.asarray(values, dtype=np.float64).ravel()
-    buf = np.empty(len(flat) + ALIGN // 8, dtype=np.float64)
+    """A Dr.Jit array over a copy of ``values`` (any shape, read in C order) aligned to :data:`ALIGN` bytes."""
+    values = np.asarray(values, dtype=np.float64)
+    buf = np.empty(values.size + ALIGN // 8, dtype=np.float64)
     start = (-buf.ctypes.data % ALIGN) // 8
-    aligned = buf[start : start + len(flat)]
-    aligned[:] = flat
+    aligned = buf[start : start + values.size]
+    np.copyto(aligned.reshape(values.shape), values)  # one copy, whatever the strides
     return kind(aligned)
 
 
