@@ -22,6 +22,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+import scipy.linalg as sla
 from numpy.typing import NDArray
 
 from scopetwin.recon.parallel import thread_map
@@ -31,18 +32,35 @@ from scopetwin.recon.parallel import thread_map
 BLOCK = 256
 
 
-@functools.cache
-def _routine(module: str, name: str, nargs: int) -> Any:
-    """The C function ``name`` SciPy exports from ``scipy.linalg.<module>`` (every argument a pointer), for ctypes."""
-    import importlib
+#: The C signatures this module calls SciPy's routines with (SciPy's double type written ``d``): a routine whose
+#: exported signature differs (another integer width, say) is not called; SciPy's own wrapper serves instead.
+SIGNATURES = {
+    "dtrsm": "void (char *, char *, char *, char *, int *, int *, d *, d *, int *, d *, int *)",
+    "dpotri": "void (char *, int *, d *, int *, int *)",
+    "dpotrf": "void (char *, int *, d *, int *, int *)",
+    "dpotrs": "void (char *, int *, int *, d *, int *, d *, int *, int *)",
+}
 
-    capsules = importlib.import_module(f"scipy.linalg.{module}").__pyx_capi__
-    get_name, get_pointer = ctypes.pythonapi.PyCapsule_GetName, ctypes.pythonapi.PyCapsule_GetPointer
-    get_name.restype, get_name.argtypes = ctypes.c_char_p, [ctypes.py_object]
-    get_pointer.restype, get_pointer.argtypes = ctypes.c_void_p, [ctypes.py_object, ctypes.c_char_p]
-    capsule = capsules[name]
-    address = get_pointer(capsule, get_name(capsule))
-    return ctypes.CFUNCTYPE(None, *([ctypes.c_void_p] * nargs))(address)
+
+@functools.cache
+def _routine(module: str, name: str) -> Any:
+    """The C function ``name`` SciPy exports from ``scipy.linalg.<module>`` for ctypes, or None where it is not
+    there with the signature of :data:`SIGNATURES` (or this Python cannot read SciPy's capsules)."""
+    import importlib
+    import re
+
+    try:
+        capsule = importlib.import_module(f"scipy.linalg.{module}").__pyx_capi__[name]
+        get_name, get_pointer = ctypes.pythonapi.PyCapsule_GetName, ctypes.pythonapi.PyCapsule_GetPointer
+        get_name.restype, get_name.argtypes = ctypes.c_char_p, [ctypes.py_object]
+        get_pointer.restype, get_pointer.argtypes = ctypes.c_void_p, [ctypes.py_object, ctypes.c_char_p]
+        signature = get_name(capsule)
+        if re.sub(r"__pyx_t_\w+_d \*", "d *", signature.decode()) != SIGNATURES[name]:
+            return None
+        address = get_pointer(capsule, signature)
+    except (AttributeError, ImportError, KeyError, ValueError):
+        return None
+    return ctypes.CFUNCTYPE(None, *([ctypes.c_void_p] * (SIGNATURES[name].count(",") + 1)))(address)
 
 
 def _char(c: str) -> Any:
@@ -87,7 +105,7 @@ def solve_lower_blocks(
     uplo, trans = _lower_factor(low)
     n = low.shape[0]
     out = np.empty((n, k), order="F")
-    trsm = _routine("cython_blas", "dtrsm", 11)
+    trsm = _routine("cython_blas", "dtrsm")
     one = ctypes.c_double(1.0)
 
     def solve(start: int) -> None:
@@ -95,6 +113,9 @@ def solve_lower_blocks(
         rhs = rhs_block(start, stop)
         if rhs.shape != (stop - start, n):
             raise ValueError(f"right-hand sides of length {n} are needed, got shape {rhs.shape}")
+        if trsm is None:  # SciPy's wrapper (it holds the interpreter lock)
+            out[:, start:stop] = sla.solve_triangular(low, rhs.T, lower=True, check_finite=False)
+            return
         out[:, start:stop] = rhs.T
         block = ctypes.c_void_p(out.ctypes.data + start * n * 8)
         a = ctypes.c_void_p(low.ctypes.data)
@@ -118,10 +139,16 @@ def lower_inverse(low: NDArray[np.float64]) -> NDArray[np.float64]:
     uplo, _ = _lower_factor(low)
     if uplo != "L":
         raise ValueError("lower_inverse needs the factor in Fortran order")
+    potri = _routine("cython_lapack", "dpotri")
+    if potri is None:
+        inv, failed = sla.lapack.dpotri(low, lower=1, overwrite_c=1)
+        if failed != 0:
+            raise np.linalg.LinAlgError(f"potri failed ({failed})")
+        low[...] = inv
+        return low
     info = ctypes.c_int(0)
     n = low.shape[0]
-    _routine("cython_lapack", "dpotri", 5)(_char("L"), _int(n), ctypes.c_void_p(low.ctypes.data), _int(n),
-                                           ctypes.byref(info))  # fmt: skip
+    potri(_char("L"), _int(n), ctypes.c_void_p(low.ctypes.data), _int(n), ctypes.byref(info))
     if info.value != 0:
         raise np.linalg.LinAlgError(f"potri failed ({info.value})")
     return low
@@ -148,12 +175,17 @@ def cholesky_solve(m: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[
     x = np.array(rhs, dtype=np.float64, order="F", copy=True)
     if x.shape[0] != n:
         raise ValueError(f"right-hand sides of length {n} are needed, got shape {x.shape}")
+    potrf, potrs = _routine("cython_lapack", "dpotrf"), _routine("cython_lapack", "dpotrs")
+    if potrf is None or potrs is None:  # SciPy's wrappers (they hold the interpreter lock)
+        try:
+            return np.asarray(sla.cho_solve(sla.cho_factor(m, lower=True, overwrite_a=True), x))
+        except np.linalg.LinAlgError as exc:
+            raise np.linalg.LinAlgError(f"the matrix is not positive definite ({exc})") from None
     info = ctypes.c_int(0)
     a = ctypes.c_void_p(m.ctypes.data)
-    _routine("cython_lapack", "dpotrf", 5)(_char("L"), _int(n), a, _int(n), ctypes.byref(info))
+    potrf(_char("L"), _int(n), a, _int(n), ctypes.byref(info))
     if info.value != 0:
         raise np.linalg.LinAlgError(f"the matrix is not positive definite (potrf: {info.value})")
     k = 1 if x.ndim == 1 else x.shape[1]
-    _routine("cython_lapack", "dpotrs", 8)(_char("L"), _int(n), _int(k), a, _int(n), ctypes.c_void_p(x.ctypes.data),
-                                           _int(n), ctypes.byref(info))  # fmt: skip
+    potrs(_char("L"), _int(n), _int(k), a, _int(n), ctypes.c_void_p(x.ctypes.data), _int(n), ctypes.byref(info))
     return x

@@ -80,3 +80,28 @@ def test_a_matrix_that_is_not_positive_definite_is_refused():
         cholesky_solve(np.diag([1.0, -1.0, 2.0]), np.ones(3))
     with pytest.raises(ValueError, match="length 3"):
         cholesky_solve(np.eye(3), np.ones(4))
+
+
+def test_scipys_wrappers_serve_where_the_routines_are_not_exported_as_expected(factor, monkeypatch):
+    """A SciPy whose capsules carry another signature (another integer width): the same results through SciPy's own
+    wrappers."""
+    import scopetwin.recon.lapack as lapack
+
+    rhs = np.random.default_rng(6).standard_normal((BLOCK + 3, 300))
+    k = factor[1] @ factor[1].T
+    f_low = np.asfortranarray(np.tril(factor[0]))
+    direct = (solve_lower(factor[0], rhs), lower_inverse(f_low.copy(order="F")), cholesky_solve(k.copy(), rhs[0]))
+    monkeypatch.setattr(lapack, "_routine", lambda module, name: None)
+    wrapped = (solve_lower(factor[0], rhs), lower_inverse(f_low.copy(order="F")), cholesky_solve(k.copy(), rhs[0]))
+    np.testing.assert_allclose(direct[0], wrapped[0], rtol=0, atol=1e-14 * np.abs(direct[0]).max())
+    assert np.array_equal(np.tril(direct[1]), np.tril(wrapped[1]))  # the same LAPACK routine
+    np.testing.assert_allclose(direct[2], wrapped[2], rtol=1e-11)
+    with pytest.raises(np.linalg.LinAlgError, match="not positive definite"):
+        cholesky_solve(np.diag([1.0, -1.0, 2.0]), np.ones(3))
+
+
+def test_every_routine_is_exported_with_the_expected_signature():
+    import scopetwin.recon.lapack as lapack
+
+    for module, name in [("cython_blas", "dtrsm"), *(("cython_lapack", n) for n in ("dpotri", "dpotrf", "dpotrs"))]:
+        assert lapack._routine(module, name) is not None, name
