@@ -189,3 +189,37 @@ def cholesky_solve(m: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[
     k = 1 if x.ndim == 1 else x.shape[1]
     potrs(_char("L"), _int(n), _int(k), a, _int(n), ctypes.c_void_p(x.ctypes.data), _int(n), ctypes.byref(info))
     return x
+
+
+@functools.lru_cache(maxsize=4)
+def _lower_mask(n: int) -> NDArray[np.float64]:
+    """1 on and below the diagonal of an (n, n) Fortran-order matrix, 0 above, as the C-order array of its memory."""
+    return np.ascontiguousarray(np.tril(np.ones((n, n))).T)
+
+
+def cholesky_lower(a: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The lower Cholesky factor of the symmetric positive definite, C-contiguous ``a``, in place (LAPACK ``dpotrf``
+    on its memory, which read in Fortran order is the same symmetric matrix), returned as a Fortran-order view of that
+    memory with zeros above the diagonal (what :func:`lower_inverse` takes).
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        ``a`` is not positive definite.
+    """
+    if a.dtype != np.float64 or a.ndim != 2 or a.shape[0] != a.shape[1] or not a.flags.c_contiguous:
+        raise ValueError(f"a C-contiguous square float64 matrix is needed, got {a.dtype} {a.shape}")
+    n = a.shape[0]
+    potrf = _routine("cython_lapack", "dpotrf")
+    if potrf is None:  # SciPy's wrapper (it holds the interpreter lock)
+        factor, failed = sla.lapack.dpotrf(a.T, lower=1, clean=1, overwrite_a=1)
+        if failed != 0:
+            raise np.linalg.LinAlgError(f"the matrix is not positive definite (potrf: {failed})")
+        a.T[...] = factor
+        return a.T
+    info = ctypes.c_int(0)
+    potrf(_char("L"), _int(n), ctypes.c_void_p(a.ctypes.data), _int(n), ctypes.byref(info))
+    if info.value != 0:
+        raise np.linalg.LinAlgError(f"the matrix is not positive definite (potrf: {info.value})")
+    a *= _lower_mask(n)
+    return a.T

@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from scopetwin.recon.lapack import BLOCK, cholesky_solve, lower_inverse, solve_lower, solve_lower_blocks
+from scopetwin.recon.lapack import (
+    BLOCK,
+    cholesky_lower,
+    cholesky_solve,
+    lower_inverse,
+    solve_lower,
+    solve_lower_blocks,
+)
 
 
 @pytest.fixture
@@ -105,3 +112,19 @@ def test_every_routine_is_exported_with_the_expected_signature():
 
     for module, name in [("cython_blas", "dtrsm"), *(("cython_lapack", n) for n in ("dpotri", "dpotrf", "dpotrs"))]:
         assert lapack._routine(module, name) is not None, name
+
+
+@pytest.mark.parametrize("n", [1, 200, 501])
+def test_the_factor_in_place_is_the_cholesky_factor(n, monkeypatch):
+    import scopetwin.recon.lapack as lapack
+
+    x = np.random.default_rng(n).standard_normal((n, n))
+    k = x @ x.T + n * np.eye(n)
+    for export in (True, False):
+        if not export:
+            monkeypatch.setattr(lapack, "_routine", lambda module, name: None)
+        low = cholesky_lower(k.copy())
+        assert low.flags.f_contiguous and not np.triu(low, 1).any()
+        np.testing.assert_allclose(low, np.linalg.cholesky(k), rtol=0, atol=1e-13 * np.abs(low).max())
+    with pytest.raises(np.linalg.LinAlgError, match="not positive definite"):
+        cholesky_lower(np.diag([1.0, -1.0, 2.0]))
