@@ -154,6 +154,27 @@ def lower_inverse(low: NDArray[np.float64]) -> NDArray[np.float64]:
     return low
 
 
+def factor_solve(low: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64]:
+    """x with L L^T x = rhs for the Fortran-order lower Cholesky factor ``low`` (:func:`cholesky_lower`; LAPACK
+    ``dpotrs``, what ``scipy.linalg.cho_solve`` calls, without its checks and without the interpreter lock). ``rhs``:
+    (n,) or (n, k)."""
+    uplo, _ = _lower_factor(low)
+    if uplo != "L":
+        raise ValueError("factor_solve needs the factor in Fortran order")
+    n = low.shape[0]
+    x = np.array(rhs, dtype=np.float64, order="F", copy=True)
+    if x.shape[0] != n:
+        raise ValueError(f"right-hand sides of length {n} are needed, got shape {x.shape}")
+    potrs = _routine("cython_lapack", "dpotrs")
+    if potrs is None:
+        return np.asarray(sla.cho_solve((low, True), x, check_finite=False))
+    info = ctypes.c_int(0)
+    k = 1 if x.ndim == 1 else x.shape[1]
+    potrs(_char("L"), _int(n), _int(k), ctypes.c_void_p(low.ctypes.data), _int(n), ctypes.c_void_p(x.ctypes.data),
+          _int(n), ctypes.byref(info))  # fmt: skip
+    return x
+
+
 def cholesky_solve(m: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64]:
     """x with M x = rhs for a symmetric positive definite ``m`` (n, n; contiguous, overwritten by its Cholesky
     factor: LAPACK ``dpotrf`` and ``dpotrs`` on its lower triangle as stored in Fortran order, the upper one in C

@@ -11,6 +11,7 @@ from scopetwin.recon.lapack import (
     BLOCK,
     cholesky_lower,
     cholesky_solve,
+    factor_solve,
     lower_inverse,
     solve_lower,
     solve_lower_blocks,
@@ -128,3 +129,17 @@ def test_the_factor_in_place_is_the_cholesky_factor(n, monkeypatch):
         np.testing.assert_allclose(low, np.linalg.cholesky(k), rtol=0, atol=1e-13 * np.abs(low).max())
     with pytest.raises(np.linalg.LinAlgError, match="not positive definite"):
         cholesky_lower(np.diag([1.0, -1.0, 2.0]))
+
+
+def test_the_factor_solve_is_scipys_cho_solve(factor, monkeypatch):
+    import scopetwin.recon.lapack as lapack
+
+    f_low = np.asfortranarray(np.tril(factor[0]))
+    rhs = np.random.default_rng(7).standard_normal((300, 2))
+    ref = sla.cho_solve((f_low, True), rhs)
+    assert np.array_equal(factor_solve(f_low, rhs), ref)  # the same LAPACK routine on the same memory
+    assert np.array_equal(factor_solve(f_low, rhs[:, 1]), ref[:, 1])
+    monkeypatch.setattr(lapack, "_routine", lambda module, name: None)
+    assert np.array_equal(factor_solve(f_low, rhs), ref)
+    with pytest.raises(ValueError, match="Fortran order"):
+        factor_solve(np.ascontiguousarray(f_low), rhs)
