@@ -577,9 +577,10 @@ def fit_hyper(
     L-BFGS-B at :data:`FTOL` stops short of its maximum whichever way it starts (on glass-like surfaces by 1-7 nats,
     the noise of f_y 4-6 µrad where the maximum has 20-30). Measured against the maximum itself (``ftol`` 1e-12,
     400 iterations) on 17 surfaces none of this was chosen on (six PSD, seven glass-like, four §1.9; exact marker
-    images with 0.005-0.01 px of centroid noise; ``benchmarks/evidence_search.py``): the absolute height within
-    0.36 u of the maximum's (two starts on all points: 0.48 u), the shape uncertainty 0.92-1.07 of the maximum's
-    (two starts on all: 0.71-1.07), in a third of the time (7.3 s for the 17 against 22.3 s).
+    images with 0.005-0.01 px of centroid noise; ``benchmarks/evidence_search.py``, last run on this code): the
+    absolute height within 0.20 u of the maximum's (two starts on all points: 1.05 u), the shape uncertainty
+    0.97-1.08 of the maximum's (two starts on all: 0.20-1.07), in two fifths of the time (4.9 s for the 17 against
+    12.2 s).
 
     The smooth part's shape is chosen by the evidence too (Bayesian model choice): a squared exponential or a
     rational quadratic (:data:`SMOOTH_SHAPE`), the latter started from the former's maximum (on the coarse
