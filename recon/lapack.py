@@ -175,41 +175,49 @@ def factor_solve(low: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[
     return x
 
 
-def cholesky_solve(m: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64]:
-    """x with M x = rhs for a symmetric positive definite ``m`` (n, n; contiguous, overwritten by its Cholesky
-    factor: LAPACK ``dpotrf`` and ``dpotrs`` on its lower triangle as stored in Fortran order, the upper one in C
-    order, which is the same matrix). ``rhs``: (n,) or (n, k).
+def _factor_in_place(a: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The lower Cholesky factor of the symmetric positive definite, contiguous ``a`` in its own memory (LAPACK
+    ``dpotrf``; a C-order ``a`` read in Fortran order is the same symmetric matrix), as the Fortran-order view whose
+    lower triangle holds it; what lies above the diagonal is left as it was.
 
     Raises
     ------
     numpy.linalg.LinAlgError
-        ``m`` is not positive definite (``dpotrf``'s leading minor of that order is not positive).
+        ``a`` is not positive definite.
     """
     if (
-        m.dtype != np.float64
-        or m.ndim != 2
-        or m.shape[0] != m.shape[1]
-        or not (m.flags.f_contiguous or m.flags.c_contiguous)
+        a.dtype != np.float64
+        or a.ndim != 2
+        or a.shape[0] != a.shape[1]
+        or not (a.flags.c_contiguous or a.flags.f_contiguous)
     ):
-        raise ValueError(f"a contiguous square float64 matrix is needed, got {m.dtype} {m.shape}")
-    n = m.shape[0]
-    x = np.array(rhs, dtype=np.float64, order="F", copy=True)
-    if x.shape[0] != n:
-        raise ValueError(f"right-hand sides of length {n} are needed, got shape {x.shape}")
-    potrf, potrs = _routine("cython_lapack", "dpotrf"), _routine("cython_lapack", "dpotrs")
-    if potrf is None or potrs is None:  # SciPy's wrappers (they hold the interpreter lock)
-        try:
-            return np.asarray(sla.cho_solve(sla.cho_factor(m, lower=True, overwrite_a=True), x))
-        except np.linalg.LinAlgError as exc:
-            raise np.linalg.LinAlgError(f"the matrix is not positive definite ({exc})") from None
-    info = ctypes.c_int(0)
-    a = ctypes.c_void_p(m.ctypes.data)
-    potrf(_char("L"), _int(n), a, _int(n), ctypes.byref(info))
-    if info.value != 0:
-        raise np.linalg.LinAlgError(f"the matrix is not positive definite (potrf: {info.value})")
-    k = 1 if x.ndim == 1 else x.shape[1]
-    potrs(_char("L"), _int(n), _int(k), a, _int(n), ctypes.c_void_p(x.ctypes.data), _int(n), ctypes.byref(info))
-    return x
+        raise ValueError(f"a contiguous square float64 matrix is needed, got {a.dtype} {a.shape}")
+    f = a if a.flags.f_contiguous else a.T
+    potrf = _routine("cython_lapack", "dpotrf")
+    if potrf is None:  # SciPy's wrapper (it holds the interpreter lock)
+        factor, failed = sla.lapack.dpotrf(f, lower=1, clean=0, overwrite_a=1)
+        info = int(failed)
+        if info == 0:
+            f[...] = factor
+    else:
+        status = ctypes.c_int(0)
+        potrf(_char("L"), _int(f.shape[0]), ctypes.c_void_p(f.ctypes.data), _int(f.shape[0]), ctypes.byref(status))
+        info = status.value
+    if info != 0:
+        raise np.linalg.LinAlgError(f"the matrix is not positive definite (potrf: {info})")
+    return f
+
+
+def cholesky_solve(m: NDArray[np.float64], rhs: NDArray[np.float64]) -> NDArray[np.float64]:
+    """x with M x = rhs for a symmetric positive definite, contiguous ``m`` (n, n), which is overwritten by its
+    Cholesky factor (:func:`_factor_in_place`, then :func:`factor_solve`). ``rhs``: (n,) or (n, k).
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        ``m`` is not positive definite.
+    """
+    return factor_solve(_factor_in_place(m), rhs)
 
 
 @functools.lru_cache(maxsize=4)
@@ -219,28 +227,17 @@ def _lower_mask(n: int) -> NDArray[np.float64]:
 
 
 def cholesky_lower(a: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The lower Cholesky factor of the symmetric positive definite, C-contiguous ``a``, in place (LAPACK ``dpotrf``
-    on its memory, which read in Fortran order is the same symmetric matrix), returned as a Fortran-order view of that
-    memory with zeros above the diagonal (what :func:`lower_inverse` takes).
+    """The lower Cholesky factor of the symmetric positive definite, C-contiguous ``a``, in place
+    (:func:`_factor_in_place`), returned as a Fortran-order view of that memory with zeros above the diagonal (what
+    :func:`lower_inverse` takes).
 
     Raises
     ------
     numpy.linalg.LinAlgError
         ``a`` is not positive definite.
     """
-    if a.dtype != np.float64 or a.ndim != 2 or a.shape[0] != a.shape[1] or not a.flags.c_contiguous:
-        raise ValueError(f"a C-contiguous square float64 matrix is needed, got {a.dtype} {a.shape}")
-    n = a.shape[0]
-    potrf = _routine("cython_lapack", "dpotrf")
-    if potrf is None:  # SciPy's wrapper (it holds the interpreter lock)
-        factor, failed = sla.lapack.dpotrf(a.T, lower=1, clean=1, overwrite_a=1)
-        if failed != 0:
-            raise np.linalg.LinAlgError(f"the matrix is not positive definite (potrf: {failed})")
-        a.T[...] = factor
-        return a.T
-    info = ctypes.c_int(0)
-    potrf(_char("L"), _int(n), ctypes.c_void_p(a.ctypes.data), _int(n), ctypes.byref(info))
-    if info.value != 0:
-        raise np.linalg.LinAlgError(f"the matrix is not positive definite (potrf: {info.value})")
-    a *= _lower_mask(n)
-    return a.T
+    if not a.flags.c_contiguous:
+        raise ValueError("cholesky_lower needs a C-contiguous matrix")
+    factor = _factor_in_place(a)
+    a *= _lower_mask(a.shape[0])
+    return factor
