@@ -388,3 +388,17 @@ def test_the_maps_compression_is_checked(deflectometry, tmp_path):
     with pytest.raises(ValueError, match="zstd, zip"):
         write_maps(tmp_path / "maps.exr", scopetwin.open_dataset(deflectometry)[0].maps, "piz")
     assert not (tmp_path / "maps.exr").exists()
+
+
+def test_the_compressions_are_the_same_list_everywhere():
+    """The config's choices, the writer's and the dataset schema's are one list."""
+    import typing
+    from importlib.resources import files
+
+    from scopetwin.sim.datasets.config import DatasetSection
+    from scopetwin.sim.datasets.maps import MAPS_COMPRESSION
+
+    schema = json.loads((files("scopetwin.sim.datasets") / "schemas" / "dataset.schema.json").read_text())
+    enum = schema["properties"]["config"]["properties"]["dataset"]["properties"]["maps_compression"]["enum"]
+    assert typing.get_args(DatasetSection.model_fields["maps_compression"].annotation) == MAPS_COMPRESSION
+    assert tuple(enum) == MAPS_COMPRESSION
