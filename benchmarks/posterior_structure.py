@@ -19,23 +19,45 @@ traced through the result (n markers, 2n observations) it prints:
 * the flops of one evidence evaluation on all the data: dense Cholesky (2n)^3 / 3, against low rank plus diagonal
   (Woodbury) 2n r^2 with r = ``rank>noise``.
 
-Nothing here is timed: it measures how far a structured posterior could cut the work, for the choice between one.
-Measured at seed 9100 (529 markers or fewer): the smooth part resolves 18-201 directions above the noise (glass 471:
-its rational-quadratic part reaches 2.4 mm), so a low-rank smooth part would take 10-1000x fewer flops per evidence
-evaluation than the dense 0.4 GFlop (glass 1.7x); the broadband part (0.25-0.8 mm) is independent noise on the data
-where it is short (cut, steep, features: correlations <= 0.03) and not where it is longer (gauss, power, glass:
-correlations 0.27-0.47 between neighbouring markers), so it needs a sparse part, not a diagonal; a Hilbert-space basis
-for it would need 3,700-37,000 functions.
+and, timed on one BLAS thread (minimum of :data:`REPEATS`), what one evidence evaluation's factorisations cost each way:
+
+* ``dense ms``: the Cholesky factor and the inverse (LAPACK potrf + potri, what the evidence's gradient reads) of the
+  whole 2n x 2n gradient covariance, as :func:`scopetwin.recon.posterior.fit_hyper` does now;
+* ``struct ms``: the least a structured evaluation needs: the sparse LU factor (SuperLU) of the broadband part plus
+  the noise, entries below :data:`SPARSE_CUT` of the diagonal dropped, its solve against the Hilbert-space smooth
+  basis (``HS smooth`` columns) and the Cholesky factor of the small m x m matrix that leaves. It leaves out what the
+  gradient would add (the broadband part's selected inverse, which SciPy does not offer), so it is a floor.
+
+It measures how far a structured posterior could cut the work, for the choice between one.
+Measured at seed 9100 (441-529 markers, 882-1058 observations; this machine, 2 cores): the smooth part resolves
+21-125 directions above the noise (glass 456: its rational-quadratic part reaches 2.4 mm), and a Hilbert-space basis
+for it needs 6-78 functions (glass 420). The broadband part is short (0.25-0.45 mm; neighbouring markers correlated
+by at most 0.35) on five families, 0.79 mm on gauss (0.47), and 2.1 mm on cut, where it is a second smooth part
+(0.90). The factorisations of one evaluation: dense 22-34 ms; the structured floor 0.4-0.6 ms (steep, features),
+4-8 ms (gauss, gauss+broadband, power+broadband), 22 ms (glass) and 46 ms (cut, whose long broadband part fills the
+sparse factor). So a structured posterior would pay on the short-broadband families and not on cut, where the
+broadband part belongs in the low-rank part.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 
-import numpy as np
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import time  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 FAMILIES = ("gauss", "gauss+broadband", "power+broadband", "glass", "cut", "steep", "features")
 BOUNDARY = 1.2  # c: the Hilbert-space box is c times the substrate's half extent
+#: Entries of the broadband part below this fraction of the geometric mean of their two variances are dropped for the
+#: sparse factor (a tolerance far below the noise: the part's correlations that matter are 1e-2 and up).
+SPARSE_CUT = 1e-6
+#: Timed repeats of each factorisation; the minimum is printed.
+REPEATS = 20
 
 
 def _kernel(xy: np.ndarray, comps: list[tuple[float, float]]) -> np.ndarray:
@@ -94,6 +116,9 @@ def one(family: str, seed: int) -> dict[str, float]:
 
     n2 = 2 * len(xy)
     rank = int(np.sum(ev > noise2))
+    noise = np.repeat(np.square(hyper.noise_pair), len(xy))
+    dense_ms = _dense_ms(_kernel(xy, smooth) + kb + np.diag(noise))
+    struct_ms = _structured_ms(kb, noise, min(int(hs(min(length for _, length in smooth))), n2))
     return {
         "n": len(xy),
         "rank_noise": rank,
@@ -106,7 +131,46 @@ def one(family: str, seed: int) -> dict[str, float]:
         "hs_broad": hs(hyper.broad_len),
         "dense_gflop": n2**3 / 3 * 1e-9,
         "lowrank_gflop": n2 * rank**2 * 1e-9,
+        "dense_ms": dense_ms,
+        "struct_ms": struct_ms,
     }
+
+
+def _best_ms(fn: Any) -> float:
+    """The least of :data:`REPEATS` runs of ``fn``, ms."""
+    times = []
+    for _ in range(REPEATS):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * min(times)
+
+
+def _dense_ms(k: np.ndarray) -> float:
+    """The dense evaluation's factorisations: Cholesky and inverse of the 2n x 2n covariance ``k``."""
+    from scopetwin.recon.lapack import cholesky_lower, lower_inverse
+
+    return _best_ms(lambda: lower_inverse(cholesky_lower(k.copy())))
+
+
+def _structured_ms(kb: np.ndarray, noise: np.ndarray, m: int) -> float:
+    """The structured evaluation's floor: sparse LU of the broadband part ``kb`` plus the ``noise`` variances, its solve
+    against m basis columns, and the Cholesky factor of the m x m capacitance matrix."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spl
+
+    d = np.sqrt(np.diag(kb) + noise)
+    b = np.where(np.abs(kb) >= SPARSE_CUT * np.outer(d, d), kb, 0.0) + np.diag(noise)
+    phi = np.random.default_rng(0).standard_normal((len(b), m))  # stands in for the basis: the cost is its shape's
+    a = sp.csc_matrix(b)
+
+    def once() -> None:
+        w = spl.splu(a, permc_spec="MMD_AT_PLUS_A").solve(phi)
+        cap = phi.T @ w
+        cap[np.diag_indices(m)] += 1.0
+        np.linalg.cholesky(cap)
+
+    return _best_ms(once)
 
 
 def main() -> None:
@@ -116,14 +180,16 @@ def main() -> None:
     args = ap.parse_args()
     print(
         f"{'family':18} {'n':>4} {'rank>noise':>10} {'rank>1e-3':>9} {'broad corr':>10} {'broad off':>9} "
-        f"{'l_broad':>7} {'l_smooth':>8} {'HS smooth':>9} {'HS broad':>8} {'dense GF':>8} {'low-rank GF':>11}"
+        f"{'l_broad':>7} {'l_smooth':>8} {'HS smooth':>9} {'HS broad':>8} {'dense GF':>8} {'low-rank GF':>11} "
+        f"{'dense ms':>8} {'struct ms':>9}"
     )
     for fam in args.families.split(","):
         r = one(fam, args.seed)
         print(
             f"{fam:18} {r['n']:4d} {r['rank_noise']:10d} {r['rank_milli']:9d} {r['broad_corr']:10.3f} "
             f"{r['broad_off']:9.3f} {r['broad_len']:7.2f} {r['smooth_len']:8.2f} {r['hs_smooth']:9.0f} "
-            f"{r['hs_broad']:8.0f} {r['dense_gflop']:8.3f} {r['lowrank_gflop']:11.4f}"
+            f"{r['hs_broad']:8.0f} {r['dense_gflop']:8.3f} {r['lowrank_gflop']:11.4f} {r['dense_ms']:8.2f} "
+            f"{r['struct_ms']:9.2f}"
         )
 
 
