@@ -83,13 +83,19 @@ def test_the_wheel_imports_from_its_own_files(wheel, tmp_path):
     assert version.stdout.strip() == f"scopetwin {scopetwin.__version__}", version.stderr[-2000:]
 
 
+#: Loads a written configuration in pymmcore-plus's UniMMCore and snaps. It leaves by ``os._exit`` once its answer
+#: is out, as ``scopetwin``'s own command line does: pymmcore's installation search runs in a thread that the
+#: interpreter's teardown can cancel inside C++ code, which aborts the process ("FATAL: exception not rethrown", exit
+#: -6; seen once in a full suite on 2 loaded cores, not in 35 runs alone).
 _UNIMMCORE = """
-import sys
+import os, sys
 from pymmcore_plus.experimental.unicore import UniMMCore
 core = UniMMCore()
 core.loadSystemConfiguration(sys.argv[1])
 core.setConfig("Channel", "uv"); core.snapImage()
-print(core.getImage().shape, core.getPixelSizeUm())
+print(core.getImage().shape, core.getPixelSizeUm(), flush=True)
+sys.stderr.flush()
+os._exit(0)
 """
 
 
