@@ -36,10 +36,10 @@ substrate's own size, so the paper's box (c = 1.2) and count are far from enough
 million nats off (steep); within a nat (1.1 on gauss+broadband) it took c = 2.5-4 and twice the count, 98-336 functions
 on five families, 798 on cut and 4784 on glass. The broadband part is short (0.25-0.45 mm; neighbouring markers
 correlated by at most 0.35) on five families, 0.79 mm on gauss (0.47) and 2.1 mm on cut, where it is a second smooth
-part (0.90). The factorisations of one evaluation: dense 21-31 ms; the structured floor 2.4 ms (features), 9-17 ms
-(gauss+broadband, steep, gauss), 24 ms (power+broadband), 83 ms (glass) and 210 ms (cut). So a finite-basis structured
-posterior would gain 1.3-12x on five families and lose 3-7x on glass and cut, and it is an approximation (within a nat)
-where the dense one is exact.
+part (0.90). The factorisations of one evaluation: dense 20-32 ms; the structured floor 2.2 ms (features), 8-17 ms
+(steep, gauss+broadband, gauss), 24 ms (power+broadband), 0.22 s (cut) and 1.8 s (glass, 4784 columns). So a finite-
+basis structured posterior would gain 1.3-14x on five families and lose 9x on cut and 60x on glass, and it is an
+approximation (within a nat) where the dense one is exact.
 """
 
 from __future__ import annotations
@@ -70,21 +70,15 @@ REPEATS = 20
 
 
 def _kernel(xy: np.ndarray, comps: list[tuple[float, float]]) -> np.ndarray:
-    """The gradient covariance [f_x; f_y] of squared-exponential components (amplitude mm, length mm), no tilt or
-    noise (the formulas of :mod:`scopetwin.recon.posterior`)."""
+    """The gradient covariance [f_x; f_y] of squared-exponential components (amplitude mm, length mm), without the
+    tilt or the noise: :mod:`scopetwin.recon.posterior`'s own pieces, its tilt taken off again."""
+    from scopetwin.recon.posterior import TILT_STD, _assemble, _Pairs, _se_pieces
+
+    pairs = _Pairs.of(xy)
+    k = _assemble(_se_pieces(pairs, [c for c in comps if c[0] > 0])[0], pairs, 0.0, 0.0)
     n = len(xy)
-    k = np.zeros((2 * n, 2 * n))
-    dx = xy[:, None, 0] - xy[None, :, 0]
-    dy = xy[:, None, 1] - xy[None, :, 1]
-    for amp, length in comps:
-        if amp <= 0:
-            continue
-        e = amp**2 * np.exp(-(dx * dx + dy * dy) / (2.0 * length**2))
-        il2, il4 = 1.0 / length**2, 1.0 / length**4
-        k[:n, :n] += e * (il2 - dx * dx * il4)
-        k[n:, n:] += e * (il2 - dy * dy * il4)
-        k[:n, n:] += -e * dx * dy * il4
-        k[n:, :n] += -e * dx * dy * il4
+    k[:n, :n] -= TILT_STD**2
+    k[n:, n:] -= TILT_STD**2
     return k
 
 
@@ -122,7 +116,7 @@ def _traced(family: str, seed: int) -> tuple[np.ndarray, np.ndarray, Any, list[f
 
 
 def one(family: str, seed: int) -> dict[str, float]:
-    from scopetwin.recon.posterior import TILT_STD, _smooth_components
+    from scopetwin.recon.posterior import _smooth_components, gradient_kernel
 
     xy, g, hyper, half = _traced(family, seed)
     smooth = _smooth_components(hyper) + ([(hyper.feature_amp, hyper.feature_len)] if hyper.feature_amp > 0 else [])
@@ -136,10 +130,9 @@ def one(family: str, seed: int) -> dict[str, float]:
     off = kb - np.diag(np.diag(kb))
     n, n2 = len(xy), 2 * len(xy)
     noise = np.repeat(np.square(hyper.noise_pair), n)
-    rest = kb + np.diag(noise)  # the broadband part, the noise and the (unpenalised) tilt
-    rest[:n, :n] += TILT_STD**2
-    rest[n:, n:] += TILT_STD**2
-    m, box, nats = _hs_accurate(xy, g, smooth, ks, rest, half)
+    exact = gradient_kernel(xy, hyper)  # the posterior's own covariance of the data
+    rest = exact - ks  # the broadband part, the noise and the (unpenalised) tilt
+    m, box, nats, phi = _hs_accurate(xy, g, smooth, exact, rest, half)
     return {
         "n": n,
         "rank_noise": int(np.sum(ev > noise2)),
@@ -152,8 +145,8 @@ def one(family: str, seed: int) -> dict[str, float]:
         "hs_box": box,
         "hs_nats": nats,
         "dense_gflop": n2**3 / 3 * 1e-9,
-        "dense_ms": _dense_ms(ks + rest),
-        "struct_ms": _structured_ms(kb, noise, min(m, n2)),
+        "dense_ms": _dense_ms(exact),
+        "struct_ms": _structured_ms(kb, noise, phi),
     }
 
 
@@ -180,17 +173,17 @@ def _hs_accurate(
     xy: np.ndarray,
     g: np.ndarray,
     smooth: list[tuple[float, float]],
-    ks: np.ndarray,
+    exact_k: np.ndarray,
     rest: np.ndarray,
     half: list[float],
-) -> tuple[int, float, float]:
+) -> tuple[int, float, float, np.ndarray]:
     """The fewest Hilbert-space functions (of the boxes :data:`BOXES` times the half extents, 1 or 2 times the
     rule of thumb 1.75 c L / l per axis) whose smooth part gives the evidence within :data:`HS_NATS` of the exact
-    kernel's (the broadband part, the noise and the tilt ``rest`` exact in both); where none does, the last tried.
-    Returns (functions, box factor c, evidence difference in nats)."""
-    exact = _nll(ks + rest, g)
+    covariance ``exact_k``'s (the broadband part, the noise and the tilt ``rest`` exact in both); where none does, the
+    last tried. Returns (functions, box factor c, evidence difference in nats, the basis' gradients (2n, m))."""
+    exact = _nll(exact_k, g)
     lmin = min(length for _, length in smooth)
-    tried = (0, 0.0, float("inf"))
+    tried: tuple[int, float, float, np.ndarray] = (0, 0.0, float("inf"), np.zeros((len(g), 0)))
     for c in BOXES:
         for mult in (1.0, 2.0):
             m_axes = [int(np.ceil(mult * 1.75 * c * h / lmin)) for h in half]
@@ -199,7 +192,7 @@ def _hs_accurate(
             phi, w2 = _hs_gradients(xy, [c * h for h in half], m_axes)
             spec = sum(a * a * 2.0 * np.pi * ln * ln * np.exp(-0.5 * ln * ln * w2) for a, ln in smooth)
             nats = _nll((phi * spec[None, :]) @ phi.T + rest, g) - exact
-            tried = (int(np.prod(m_axes)), c, nats)
+            tried = (int(np.prod(m_axes)), c, nats, phi)
             if abs(nats) <= HS_NATS:
                 return tried
     return tried
@@ -222,16 +215,16 @@ def _dense_ms(k: np.ndarray) -> float:
     return _best_ms(lambda: lower_inverse(cholesky_lower(k.copy())))
 
 
-def _structured_ms(kb: np.ndarray, noise: np.ndarray, m: int) -> float:
+def _structured_ms(kb: np.ndarray, noise: np.ndarray, phi: np.ndarray) -> float:
     """The structured evaluation's floor: sparse LU of the broadband part ``kb`` plus the ``noise`` variances, its solve
-    against m basis columns, and the Cholesky factor of the m x m capacitance matrix."""
+    against the basis' gradients ``phi`` (2n, m), and the Cholesky factor of the m x m capacitance matrix."""
     import scipy.sparse as sp
     import scipy.sparse.linalg as spl
 
     d = np.sqrt(np.diag(kb) + noise)
     b = np.where(np.abs(kb) >= SPARSE_CUT * np.outer(d, d), kb, 0.0) + np.diag(noise)
-    phi = np.random.default_rng(0).standard_normal((len(b), m))  # stands in for the basis: the cost is its shape's
     a = sp.csc_matrix(b)
+    m = phi.shape[1]
 
     def once() -> None:
         w = spl.splu(a, permc_spec="MMD_AT_PLUS_A").solve(phi)
