@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from scopetwin.recon.shifted_basis import ShiftedBasis
 from scopetwin.recon.substrate import Substrate2D
-from scopetwin.scenes.bspline import cubic_bspline_weights
+from scopetwin.scenes.bspline import cubic_bspline_second, cubic_bspline_weights
 from scopetwin.scenes.geometry import Array
 from scopetwin.scenes.surface import HeightMap
 
@@ -83,7 +83,7 @@ class SplineSurface:
 
         def axis(t: Array, step: float) -> tuple[Array, Array, Array]:
             w = np.stack(cubic_bspline_weights(t), axis=-1)  # (n, 8): the weights, then their derivatives by t
-            second = np.stack([1.0 - t, 3.0 * t - 2.0, 1.0 - 3.0 * t, t], axis=-1)  # d^2 w / dt^2
+            second = np.stack(cubic_bspline_second(t), axis=-1)  # d^2 w / dt^2
             return w[:, :4], w[:, 4:] / step, second / step**2
 
         return idx, axis(tu, self.dx), axis(tv, self.dy)

@@ -1,4 +1,4 @@
-"""The uniform cubic B-spline (de Boor): its four weights around a point and their derivatives.
+"""The uniform cubic B-spline (de Boor): its four weights around a point and their first and second derivatives.
 
 Pure arithmetic on any array type (numpy, Dr.Jit), so the inverse fit's surface and the renderer that traces it use
 one definition.
@@ -35,3 +35,8 @@ def cubic_bspline_weights(t: Any) -> tuple[Any, Any, Any, Any, Any, Any, Any, An
     d2 = -1.5 * t2 + t + 0.5
     d3 = 0.5 * t2
     return w0, w1, w2, w3, d0, d1, d2, d3
+
+
+def cubic_bspline_second(t: Any) -> tuple[Any, Any, Any, Any]:
+    """Second derivatives d^2 w_k / dt^2 of :func:`cubic_bspline_weights`: 1 - t, 3t - 2, 1 - 3t, t (linear in t)."""
+    return 1.0 - t, 3.0 * t - 2.0, 1.0 - 3.0 * t, t

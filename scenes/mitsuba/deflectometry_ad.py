@@ -17,11 +17,13 @@ the image jumps, is left out).
 Derivatives with respect to the surface: a ray's value depends on the surface only through the height and
 the gradient at its hit point (implicit differentiation of the intersection). :meth:`RayModel.trace` returns,
 per ray, ``(a, b, c)``: the derivative of the value with respect to a local perturbation
-``d0 + dx*(x - x_hit) + dy*(y - y_hit)`` of the surface (by forward-mode AD through the Newton iteration, the
-reflection and the pattern lookup). The derivative with respect to any coefficient of any height model is
-then ``a*B + b*dB/dx + c*dB/dy`` of its basis function B at the hit: the sparse Jacobian of the image with
-respect to B-spline coefficients is assembled from it (:mod:`scopetwin.recon.inverse`). With ``pose=True`` the same is
-done for small rigid motions of the camera and of the pattern (12 columns), for ``--refine-setup``.
+``d0 + dx*(x - x_hit) + dy*(y - y_hit)`` of the surface, in closed form in the trace's own kernel (the hit's move
+and the curvature there, the reflection, the pattern lookup: :class:`_Reflection`); Dr.Jit's forward-mode AD
+through the Newton iteration gives the same to round-off, three passes of the whole trace more. The derivative
+with respect to any coefficient of any height model is then ``a*B + b*dB/dx + c*dB/dy`` of its basis function B
+at the hit: the sparse Jacobian of the image with respect to B-spline coefficients is assembled from it
+(:mod:`scopetwin.recon.inverse`). With ``pose=True`` the derivatives with respect to small rigid motions of the
+camera and of the pattern (12 columns, for ``--refine-setup``) come from forward-mode AD.
 
 The backend follows :func:`scopetwin.scenes.mitsuba.variant.choose`: ``cuda`` when a CUDA device is usable (the
 ``cuda_ad_mono`` machine), else ``llvm``; nothing needs a GPU. Importing this module sets no variant.
@@ -36,7 +38,7 @@ import drjit as _drjit
 import numpy as np
 from numpy.typing import NDArray
 
-from scopetwin.scenes.bspline import cubic_bspline_weights
+from scopetwin.scenes.bspline import cubic_bspline_second, cubic_bspline_weights
 from scopetwin.scenes.camera import Camera
 from scopetwin.scenes.pattern import MarkerPattern
 from scopetwin.scenes.setup import Setup
@@ -109,6 +111,62 @@ class TraceResult:
 def _skew_apply(w: tuple[Any, Any, Any], v: tuple[Any, Any, Any]) -> tuple[Any, Any, Any]:
     """w x v for 3-tuples."""
     return (w[1] * v[2] - w[2] * v[1], w[2] * v[0] - w[0] * v[2], w[0] * v[1] - w[1] * v[0])
+
+
+def _dot(a: tuple[Any, Any, Any], b: tuple[Any, Any, Any]) -> Any:
+    """a . b for 3-tuples."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@dataclass(frozen=True)
+class _Reflection:
+    """A ray's reflection at its hit (Dr.Jit arrays, one entry per ray): what the derivatives of the point it reaches
+    on the pattern plane with respect to a local perturbation of the surface need (:meth:`pattern_tangents`)."""
+
+    d: tuple[Any, Any, Any]  # the camera ray's direction
+    slope: tuple[Any, Any]  # (dh/dx, dh/dy) at the hit
+    second: tuple[Any, Any, Any]  # (d2h/dx2, d2h/dxdy, d2h/dy2) at the hit
+    normal: tuple[Any, Any, Any]  # (-hx, -hy, 1) / sqrt(hx^2 + hy^2 + 1)
+    dn: Any  # d . normal
+    r: tuple[Any, Any, Any]  # the reflected direction d - 2 (d . n) n
+    den: Any  # r . (the pattern plane's normal)
+    mu: Any  # the parameter along r of the pattern plane
+    plane_n: tuple[Any, Any, Any]  # the pattern plane's normal
+
+    def pattern_tangents(self) -> list[tuple[Any, Any, Any]]:
+        """d q / d theta of the point q reached on the pattern plane, for theta = (d0, dx, dy) of the perturbation
+        d0 + dx (x - x_hit) + dy (y - y_hit) added to the surface (the implicit derivatives of the converged hit).
+
+        The hit solves f(lambda) = h(o + lambda d) - z = 0, so d lambda / d d0 = -1 / f' with f' = hx dx + hy dy - dz,
+        and the slope terms, zero at the hit, leave it in place. The hit's move changes the slopes through the
+        curvature; dx and dy add to them directly. Through the normal, the mirror reflection (thesis eq. 1.7) and
+        the line-plane intersection to q."""
+        dx, dy, dz = self.d
+        hx, hy = self.slope
+        hxx, hxy, hyy = self.second
+        dlam = -1.0 / (hx * dx + hy * dy - dz)
+        dp = (dx * dlam, dy * dlam, dz * dlam)
+        return [
+            self._moved(dp, hxx * dp[0] + hxy * dp[1], hxy * dp[0] + hyy * dp[1]),
+            self._moved(None, 1.0, 0.0),
+            self._moved(None, 0.0, 1.0),
+        ]
+
+    def _moved(self, dp: tuple[Any, Any, Any] | None, dhx: Any, dhy: Any) -> tuple[Any, Any, Any]:
+        """d q for a move dp of the hit (None: it stays) and changes (dhx, dhy) of the slopes there."""
+        hx, hy = self.slope
+        inv = self.normal[2]
+        dinv = -inv * inv * inv * (hx * dhx + hy * dhy)
+        dnorm = (-(dhx * inv + hx * dinv), -(dhy * inv + hy * dinv), dinv)
+        ddn = _dot(self.d, dnorm)
+        drefl = tuple(-2.0 * (ddn * n + self.dn * dnk) for n, dnk in zip(self.normal, dnorm, strict=True))
+        dden = _dot(drefl, self.plane_n)
+        dnum = 0.0 if dp is None else -_dot(dp, self.plane_n)
+        dmu = (dnum - self.mu * dden) / self.den
+        dq = [dmu * rk + self.mu * drk for rk, drk in zip(self.r, drefl, strict=True)]
+        if dp is not None:
+            dq = [a + b for a, b in zip(dq, dp, strict=True)]
+        return dq[0], dq[1], dq[2]
 
 
 class RayModel:
@@ -226,8 +284,10 @@ class RayModel:
         return (len(self.rows) if self.keep is None else len(self.keep)) * self.spp
 
     # -- the surface ---------------------------------------------------------------------------------------------
-    def _surface(self, grid: SplineGrid, coef: Any, x: Any, y: Any) -> tuple[Any, Any, Any]:
-        """(h, dh/dx, dh/dy) of the B-spline at (x, y)."""
+    def _surface(
+        self, grid: SplineGrid, coef: Any, x: Any, y: Any, curvature: bool = False
+    ) -> tuple[Any, Any, Any, tuple[Any, Any, Any] | None]:
+        """(h, dh/dx, dh/dy) of the B-spline at (x, y), and with ``curvature`` its second derivatives (xx, xy, yy)."""
         m = self.m
         F, I32 = m.Float64, m.Int32
         u = (x - grid.x0) / grid.dx
@@ -238,43 +298,40 @@ class RayModel:
         tv = v - F(j)
         wu = cubic_bspline_weights(tu)
         wv = cubic_bspline_weights(tv)
+        su = cubic_bspline_second(tu) if curvature else None
+        sv = cubic_bspline_second(tv) if curvature else None
         h = F(0.0)
         hx = F(0.0)
         hy = F(0.0)
+        hxx, hxy, hyy = F(0.0), F(0.0), F(0.0)
         base = (j - 1) * grid.nx + (i - 1)
         for mm in range(4):
             row_h = F(0.0)
             row_d = F(0.0)
+            row_s = F(0.0)
             for kk in range(4):
                 c = dr.gather(F, coef, m.UInt32(base + (mm * grid.nx + kk)))
                 row_h = dr.fma(c, wu[kk], row_h)
                 row_d = dr.fma(c, wu[4 + kk], row_d)
+                if su is not None:
+                    row_s = dr.fma(c, su[kk], row_s)
             h = dr.fma(row_h, wv[mm], h)
             hx = dr.fma(row_d, wv[mm], hx)
             hy = dr.fma(row_h, wv[4 + mm], hy)
-        return h, hx / grid.dx, hy / grid.dy
+            if sv is not None:
+                hxx = dr.fma(row_s, wv[mm], hxx)
+                hxy = dr.fma(row_d, wv[4 + mm], hxy)
+                hyy = dr.fma(row_h, sv[mm], hyy)
+        second = (hxx / grid.dx**2, hxy / (grid.dx * grid.dy), hyy / grid.dy**2) if curvature else None
+        return h, hx / grid.dx, hy / grid.dy, second
 
     # -- the trace -----------------------------------------------------------------------------------------------
-    def _trace(
-        self,
-        grid: SplineGrid,
-        coef: Any,
-        z_start: float,
-        local: tuple[Any, Any, Any, Any, Any] | None = None,
-        pose: tuple[Any, ...] | None = None,
-        lam0: Any = None,
-    ) -> tuple[Any, Any, Any, Any, Any]:
-        """Value, hit x, hit y, validity and ray parameter of the hit of every ray (Dr.Jit arrays).
-
-        The Newton iteration starts from the plane z = ``z_start`` (:data:`NEWTON_STEPS`), or from the ray
-        parameters ``lam0`` where they are finite (:data:`NEWTON_WARM_STEPS`).
-
-        ``local`` = (d0, dx, dy, x_ref, y_ref) adds the perturbation d0 + dx*(x - x_ref) + dy*(y - y_ref) to the
-        surface; ``pose`` = (cam shift (3), cam rotation (3), pattern shift (3), pattern rotation (3)) moves the
-        camera rays and the pattern plane rigidly by small amounts (rotation vectors about r_c / the pattern centre).
-        """
-        m = self.m
-        F = m.Float64
+    def _geometry(
+        self, pose: tuple[Any, ...] | None
+    ) -> tuple[tuple[Any, Any, Any], tuple[Any, Any, Any], tuple[tuple[Any, Any, Any], ...]]:
+        """The camera centre, the rays' directions and the pattern plane (origin, x and y axes, normal) as Dr.Jit
+        values, moved by ``pose`` (:meth:`_trace`) where given."""
+        F = self.m.Float64
         cam_c = self.camera.center
         ox, oy, oz = F(cam_c[0]), F(cam_c[1]), F(cam_c[2])
         dxr, dyr, dzr = self._d
@@ -292,15 +349,39 @@ class RayModel:
             p_tx = tuple(a + b for a, b in zip(p_tx, _skew_apply(pr, p_tx), strict=True))
             p_ty = tuple(a + b for a, b in zip(p_ty, _skew_apply(pr, p_ty), strict=True))
             p_nz = tuple(a + b for a, b in zip(p_nz, _skew_apply(pr, p_nz), strict=True))
+        return (ox, oy, oz), (dxr, dyr, dzr), (p_o, p_tx, p_ty, p_nz)
 
-        def surf(x: Any, y: Any) -> tuple[Any, Any, Any]:
-            h, hx, hy = self._surface(grid, coef, x, y)
+    def _trace(
+        self,
+        grid: SplineGrid,
+        coef: Any,
+        z_start: float,
+        local: tuple[Any, Any, Any, Any, Any] | None = None,
+        pose: tuple[Any, ...] | None = None,
+        lam0: Any = None,
+        tangents: bool = False,
+    ) -> tuple[Any, Any, Any, Any, Any, tuple[Any, Any, Any] | None]:
+        """Value, hit x, hit y, validity and ray parameter of the hit of every ray (Dr.Jit arrays), and with
+        ``tangents`` the derivatives of the value with respect to a local perturbation (:meth:`_tangents`).
+
+        The Newton iteration starts from the plane z = ``z_start`` (:data:`NEWTON_STEPS`), or from the ray
+        parameters ``lam0`` where they are finite (:data:`NEWTON_WARM_STEPS`).
+
+        ``local`` = (d0, dx, dy, x_ref, y_ref) adds the perturbation d0 + dx*(x - x_ref) + dy*(y - y_ref) to the
+        surface (Dr.Jit's forward-mode AD through it gives what ``tangents`` gives in closed form); ``pose`` = (cam
+        shift (3), cam rotation (3), pattern shift (3), pattern rotation (3)) moves the camera rays and the pattern
+        plane rigidly by small amounts (rotation vectors about r_c / the pattern centre).
+        """
+        (ox, oy, oz), (dxr, dyr, dzr), (p_o, p_tx, p_ty, p_nz) = self._geometry(pose)
+
+        def surf(x: Any, y: Any, curvature: bool = False) -> tuple[Any, Any, Any, tuple[Any, Any, Any] | None]:
+            h, hx, hy, second = self._surface(grid, coef, x, y, curvature)
             if local is not None:
                 d0, ddx, ddy, xr, yr = local
                 h = h + d0 + ddx * (x - xr) + ddy * (y - yr)
                 hx = hx + ddx
                 hy = hy + ddy
-            return h, hx, hy
+            return h, hx, hy, second
 
         lam = (z_start - oz) / dzr
         steps = NEWTON_STEPS
@@ -308,12 +389,12 @@ class RayModel:
             lam, steps = dr.select(dr.isfinite(lam0), lam0, lam), NEWTON_WARM_STEPS
         for _ in range(steps):
             px, py, pz = dr.fma(lam, dxr, ox), dr.fma(lam, dyr, oy), dr.fma(lam, dzr, oz)
-            h, hx, hy = surf(px, py)
+            h, hx, hy, _ = surf(px, py)
             f = h - pz
             fp = hx * dxr + hy * dyr - dzr
             lam = lam - f / fp
         px, py, pz = dr.fma(lam, dxr, ox), dr.fma(lam, dyr, oy), dr.fma(lam, dzr, oz)
-        _, hx, hy = surf(px, py)
+        _, hx, hy, second = surf(px, py, tangents)
         inv = dr.rsqrt(hx * hx + hy * hy + 1.0)
         nx, ny, nz = -hx * inv, -hy * inv, inv
         dn = dxr * nx + dyr * ny + dzr * nz
@@ -324,13 +405,21 @@ class RayModel:
         qx, qy, qz = dr.fma(mu, rx, px) - p_o[0], dr.fma(mu, ry, py) - p_o[1], dr.fma(mu, rz, pz) - p_o[2]
         lx = qx * p_tx[0] + qy * p_tx[1] + qz * p_tx[2]
         ly = qx * p_ty[0] + qy * p_ty[1] + qz * p_ty[2]
-        value = self._grey(lx, ly)
+        value, slope = self._grey(lx, ly)
         hw, hl = 0.5 * self.size[0], 0.5 * self.roi_length
         valid = (dr.abs(px) <= hw) & (dr.abs(py) < hl) & (den < 0.0) & (mu > 0.0) & (lam > 0.0)
-        return dr.select(valid, value * self.radiance, 0.0), px, py, valid, lam
+        sens = None
+        if second is not None:
+            ray = _Reflection((dxr, dyr, dzr), (hx, hy), second, (nx, ny, nz), dn, (rx, ry, rz), den, mu, p_nz)
+            sens = tuple(
+                dr.select(valid, self.radiance * (slope[0] * _dot(dq, p_tx) + slope[1] * _dot(dq, p_ty)), 0.0)
+                for dq in ray.pattern_tangents()
+            )
+        return dr.select(valid, value * self.radiance, 0.0), px, py, valid, lam, sens
 
-    def _grey(self, lx: Any, ly: Any) -> Any:
-        """g = max(0, 1 - r/r_m) of the nearest marker (the reference marker larger), 0 off the plate (§1.6.3)."""
+    def _grey(self, lx: Any, ly: Any) -> tuple[Any, tuple[Any, Any]]:
+        """g = max(0, 1 - r/r_m) of the nearest marker (the reference marker larger), 0 off the plate (§1.6.3), and
+        its derivatives (dg/dlx, dg/dly): -(rx, ry) / (r r_m) inside a marker's cone, else 0."""
         m = self.m
         F = m.Float64
         pat = self.pattern
@@ -344,9 +433,12 @@ class RayModel:
         r = dr.sqrt(rx * rx + ry * ry + _APEX)
         is_ref = (dr.detach(ki) == 0.0) & (dr.detach(kj) == 0.0)
         radius = dr.select(is_ref, F(pat.ref_radius), F(pat.radius))
-        g = dr.maximum(1.0 - r / radius, 0.0)
+        cone = 1.0 - r / radius
         on = (dr.abs(lx) <= 0.5 * pat.size_x) & (dr.abs(ly) <= 0.5 * pat.size_y)
-        return dr.select(on, g, 0.0)
+        inside = on & (cone > 0.0)
+        rate = -1.0 / (r * radius)
+        slope = (dr.select(inside, rx * rate, 0.0), dr.select(inside, ry * rate, 0.0))
+        return dr.select(on, dr.maximum(cone, 0.0), 0.0), slope
 
     def trace(
         self,
@@ -366,7 +458,9 @@ class RayModel:
         coef : ndarray, (grid.ny, grid.nx)
             B-spline coefficients, mm.
         sensitivities : bool
-            Also return d value / d (d0, dx, dy) of a local perturbation at each hit (forward-mode AD, 3 passes).
+            Also return d value / d (d0, dx, dy) of a local perturbation at each hit: in closed form, in the trace's
+            own kernel (:meth:`_Reflection.pattern_tangents`), what forward-mode AD through the converged Newton
+            iteration gives (``tests/recon/test_inverse.py`` checks the one against the other).
         pose : bool
             Also return the derivatives with respect to the 12 rigid-motion parameters of camera and pattern.
         z_start : float, optional
@@ -385,21 +479,13 @@ class RayModel:
         c = F(c_np.ravel())
         z0 = float(np.mean(c_np)) if z_start is None else float(z_start)
         lam0 = self._lam if warm and z_start is None else None
-        value, px, py, valid, lam = self._trace(grid, c, z0, lam0=lam0)
-        dr.eval(value, px, py, valid, lam)
+        value, px, py, valid, lam, sens = self._trace(grid, c, z0, lam0=lam0, tangents=sensitivities)
+        dr.eval(value, px, py, valid, lam, *(sens or ()))  # one kernel
         self._lam = dr.detach(lam)
         x_np, y_np = px.numpy(), py.numpy()
         out = TraceResult(value.numpy(), x_np, y_np, valid.numpy().astype(bool), None, None)
-        if sensitivities:
-            sens = np.empty((3, len(x_np)))
-            xr, yr = dr.detach(px), dr.detach(py)
-            for k in range(3):
-                params = [F(0.0), F(0.0), F(0.0)]
-                dr.enable_grad(params[k])
-                v, *_ = self._trace(grid, c, z0, (params[0], params[1], params[2], xr, yr), lam0=lam0)
-                dr.forward_from(params[k])
-                sens[k] = dr.grad(v).numpy()
-            out.sens = sens
+        if sens is not None:
+            out.sens = np.stack([s.numpy() for s in sens])
         if pose:
             jac = np.empty((12, len(x_np)))
             for k in range(12):
