@@ -106,6 +106,32 @@ def test_closed_form_sensitivities_are_forward_mode_ad(case, family):
         np.testing.assert_allclose(res.sens[k], ad[k], rtol=0, atol=1e-10 * np.max(np.abs(ad[k])))
 
 
+def test_the_span_shape_uncertainty_does_not_depend_on_the_spans_coordinates():
+    """The fit's shape standard deviation in a basis's span is a property of the span, not of its coordinates: a
+    15 mm shifted Gaussian basis's own coefficients are nearly collinear (condition ~5e10), and the same span
+    in mixed coordinates, or with its entries moved by 1e-12, gives the same figure (to 1e-8; 1e-5 moved)."""
+    from scopetwin.recon.config import ReconstructionConfig
+    from scopetwin.recon.inverse.uncertainty import _span_shape_std_um
+
+    setup = load_setup("thesis-1.10-deflectometry")
+    sub = Substrate2D.from_setup(setup)
+    span = SplineSurface.span(ReconstructionConfig().make_basis(sub, 15.0), sub, 0.5)
+    spline = SplineSurface.covering(sub, 0.5)
+    rng = np.random.default_rng(3)
+    half = 0.5 * sub.roi_length
+    jac = spline.design(rng.uniform(*sub.x_range, 4000), rng.uniform(-half, half, 4000))
+    d = spline.smoothness()
+    precision = (jac.T @ jac) * 1e6 + 1e-3 * (d.T @ d)
+    design = spline.design(*sub.roi_grid(0.5))
+    m = np.asarray(design.mean(axis=0)).ravel()
+    base = _span_shape_std_um(precision, span, design, m)
+    mix = np.eye(span.shape[1]) + 0.3 * rng.standard_normal((span.shape[1],) * 2) / np.sqrt(span.shape[1])
+    assert base > 0
+    assert _span_shape_std_um(precision, span @ mix, design, m) == pytest.approx(base, rel=1e-8)
+    moved = span * (1 + 1e-12 * rng.standard_normal(span.shape))
+    assert _span_shape_std_um(precision, moved, design, m) == pytest.approx(base, rel=1e-5)
+
+
 def test_jacobian_matches_finite_differences(case):
     """Per ray, the AD derivatives combined with the basis are exact; the pixel-level assembly is within 5 %."""
     _, _, truth, rec, lev = case
