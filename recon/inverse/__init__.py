@@ -16,8 +16,8 @@ Loss (Gauss-Newton / Levenberg-Marquardt on the coefficients c)::
 * ``D``: second differences of the coefficient grid (a discrete thin-plate energy): the smoothness prior, which
   also carries the surface into the frame regions, where there are no data;
 * the Jacobian dR/dc is sparse (16 coefficients per ray) and exact: per ray, the render returns the derivative
-  with respect to a local height/slope perturbation (forward-mode AD), combined with the B-spline basis
-  (:mod:`~scopetwin.recon.inverse.render`);
+  with respect to a local height/slope perturbation (closed form, in the trace's kernel), combined with the
+  B-spline basis (:mod:`~scopetwin.recon.inverse.render`);
 * coarse to fine from a plane start: first on binned images (b x b pixels each, rendered as one super-pixel: the
   image blurred and decimated, which widens the basin), then on the full-resolution image; from the centroid
   method's surface (already inside the basin) the full-resolution image directly.

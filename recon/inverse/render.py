@@ -4,7 +4,7 @@
 A level is a window of the image binned b x b (each block rendered as one super-pixel: the image blurred and
 decimated, which widens the basin) and the ray model of those super-pixels. The Jacobian with respect to the spline
 coefficients is sparse (16 coefficients per ray) and exact: per ray, the render returns the derivative with respect to
-a local height/slope perturbation (forward-mode AD), combined here with the B-spline basis.
+a local height/slope perturbation (in closed form, in the trace's kernel), combined here with the B-spline basis.
 
 The one module of the package that renders: the renderer is imported inside its functions only
 (``tests/architecture/test_layers.py``), so that importing the package loads no renderer.

@@ -6,7 +6,7 @@ differentiable) -> mirror reflection (§1.6.5, eq. 1.7) -> pattern plane (§1.6.
 g = max(0, 1 - r/r_m) of the nearest marker, times the pattern radiance. It is :mod:`scopetwin.scenes.analytic` (the
 float64 numpy reference) restricted to the deflectometry scene, with the surface given as a uniform cubic
 B-spline over the base plane, written in Dr.Jit (``Float64``: the measurement's 20 nm are below float32's
-rounding of 200 mm coordinates) so that Dr.Jit's forward-mode AD gives exact derivatives of every ray's value.
+rounding of 200 mm coordinates), differentiable by Dr.Jit's forward-mode AD.
 
 The image of a pixel is the mean of ``sub x sub`` rays at fixed stratified positions (a box filter, as the
 sensor and the Mitsuba renders integrate the pixel area). Fixed positions make the model a smooth function of
