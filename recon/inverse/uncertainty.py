@@ -42,16 +42,22 @@ def _shape_rms_um(s_mat: Array, cov: Array) -> float:
     return float(np.sqrt(max(float(np.sum(s_mat * (s_mat @ cov))), 0.0) / s_mat.shape[0])) * 1e3
 
 
+def _orthonormal(span: Array) -> Array:
+    """An orthonormal basis of the span's columns (QR): the same surfaces in well-conditioned coordinates.
+
+    A shifted Gaussian basis's own coefficients are nearly collinear (condition ~5e10 at 15 mm on the §1.10
+    substrate); the squared systems formed in them, P^T A P, lost every digit of an inverse (the shape's standard
+    deviation moved by 10 % when the Jacobian moved by 1e-12 relative) and six of a solve. Only for the undamped
+    systems of the uncertainty: the fit's damped steps depend on the coordinates they are taken in."""
+    return np.asarray(np.linalg.qr(span)[0])
+
+
 def _span_shape_std_um(precision: Any, span: Array, design: Any, m: Array) -> float:
     """:meth:`_ShapeUncertainty.shape_std_um` in a span's few coordinates: the trace exactly, with dense algebra.
 
     ``precision``: J^T W J + lambda D^T D of the coefficients; ``design`` the ROI heights' rows, ``m`` their mean.
-    The span is taken in an orthonormal basis of its columns (the same surfaces): a shifted Gaussian basis's own
-    coefficients are nearly collinear (condition ~5e10 at 15 mm on the §1.10 substrate), and in them the inverse
-    of the squared system lost every digit (the shape's standard deviation moved by 10 % when the Jacobian moved
-    by 1e-12 relative).
     """
-    p = np.linalg.qr(span)[0]
+    p = _orthonormal(span)
     a = p.T @ (precision @ p)
     q = null_space((p.T @ m)[None, :])  # coordinates that keep the mean ROI height, as in the fit
     a_q = q.T @ a @ q
@@ -82,10 +88,11 @@ def _height_response(a: sp.csr_matrix, m_row: Array, information: _Information, 
     [[A, C, m], [C^T, B, 0], [m^T, 0, 0]] [dc; d(alpha, beta); nu] = [0; 0; 1].
 
     ``a`` = F + lambda D^T D and ``m_row`` the mean ROI row of the spline's coefficients, C and B the photometric
-    blocks of ``information``; where the fit keeps to ``span``, solved in its coordinates as the fit's equations.
+    blocks of ``information``; where the fit keeps to ``span``, solved in it as the fit's equations.
     """
     cross = information.cross
-    if span is not None:  # the span's coordinates, as the fit's normal equations
+    if span is not None:  # in the span, as the fit's normal equations (in orthonormal coordinates: the same dc)
+        span = _orthonormal(span)
         a, m_row = sp.csr_matrix(span.T @ (a @ span)), span.T @ m_row
         cross = span.T @ cross
     k = len(m_row)

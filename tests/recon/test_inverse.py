@@ -106,12 +106,13 @@ def test_closed_form_sensitivities_are_forward_mode_ad(case, family):
         np.testing.assert_allclose(res.sens[k], ad[k], rtol=0, atol=1e-10 * np.max(np.abs(ad[k])))
 
 
-def test_the_span_shape_uncertainty_does_not_depend_on_the_spans_coordinates():
-    """The fit's shape standard deviation in a basis's span is a property of the span, not of its coordinates: a
-    15 mm shifted Gaussian basis's own coefficients are nearly collinear (condition ~5e10), and the same span
-    in mixed coordinates, or with its entries moved by 1e-12, gives the same figure (to 1e-8; 1e-5 moved)."""
+def test_the_span_uncertainty_does_not_depend_on_the_spans_coordinates():
+    """The fit's shape standard deviation in a basis's span, and its response to the start height, are properties of
+    the span, not of its coordinates: a 15 mm shifted Gaussian basis's own coefficients are nearly collinear
+    (condition ~5e10), and the same span in mixed coordinates, or with its entries moved by 1e-12, gives the same
+    figure (to 1e-8; 1e-5 moved) and the same response (a shift of the whole surface: contrasts below 1e-10)."""
     from scopetwin.recon.config import ReconstructionConfig
-    from scopetwin.recon.inverse.uncertainty import _span_shape_std_um
+    from scopetwin.recon.inverse.uncertainty import _height_response, _Information, _span_shape_std_um
 
     setup = load_setup("thesis-1.10-deflectometry")
     sub = Substrate2D.from_setup(setup)
@@ -130,6 +131,13 @@ def test_the_span_shape_uncertainty_does_not_depend_on_the_spans_coordinates():
     assert _span_shape_std_um(precision, span @ mix, design, m) == pytest.approx(base, rel=1e-8)
     moved = span * (1 + 1e-12 * rng.standard_normal(span.shape))
     assert _span_shape_std_um(precision, moved, design, m) == pytest.approx(base, rel=1e-5)
+    v = rng.uniform(0.0, 1.0, jac.shape[0])
+    photo = np.stack([v, np.ones_like(v)], axis=1)
+    info = _Information(precision.tocsc(), np.asarray(jac.T @ photo) * 1e3, photo.T @ photo)
+    for coords in (span, span @ mix):
+        h = design @ _height_response(precision.tocsr(), m, info, coords)
+        assert h.mean() == pytest.approx(1.0, abs=1e-12)
+        assert np.abs(h - h.mean()).max() < 1e-10
 
 
 def test_jacobian_matches_finite_differences(case):
