@@ -362,7 +362,8 @@ class RayModel:
         tangents: bool = False,
     ) -> tuple[Any, Any, Any, Any, Any, tuple[Any, Any, Any] | None]:
         """Value, hit x, hit y, validity and ray parameter of the hit of every ray (Dr.Jit arrays), and with
-        ``tangents`` the derivatives of the value with respect to a local perturbation (:meth:`_tangents`).
+        ``tangents`` the derivatives of the value with respect to a local perturbation (d0, dx, dy) at the hit
+        (:meth:`_Reflection.pattern_tangents`, through the cone's slope :meth:`_grey`).
 
         The Newton iteration starts from the plane z = ``z_start`` (:data:`NEWTON_STEPS`), or from the ray
         parameters ``lam0`` where they are finite (:data:`NEWTON_WARM_STEPS`).
