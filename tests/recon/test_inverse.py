@@ -7,6 +7,8 @@ the Jacobian against finite differences, and the recovery of the known surface f
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -66,6 +68,17 @@ def test_forward_model_matches_the_analytic_reference(case):
     assert abs(diff.mean()) < 1e-3
 
 
+@functools.lru_cache(maxsize=4)
+def _family_sheet(family):
+    """The §1.10 setup with a sheet of ``family`` (seed 9100) and that sheet as the inverse fit's spline (0.5 mm)."""
+    from scopetwin.sim.families import family_spec
+    from scopetwin.sim.surfaces import make_surface
+
+    setup = load_setup("thesis-1.10-deflectometry", {"substrate": {"surface": family_spec(family, 9100)}})
+    sub = Substrate2D.from_setup(setup)
+    return setup, SplineSurface.fit(make_surface(setup.substrate.surface, setup.substrate).height, sub, 0.5)
+
+
 def _forward_mode_sensitivities(model, grid, coef, hits):
     """d value / d (d0, dx, dy) of the local perturbation d0 + dx (x - x_hit) + dy (y - y_hit), by Dr.Jit's
     forward-mode AD through the whole trace (the Newton iteration from the mean plane included), one pass each."""
@@ -83,20 +96,15 @@ def _forward_mode_sensitivities(model, grid, coef, hits):
     return np.stack(out)
 
 
-@pytest.mark.parametrize("family", [None, "steep", "cut"])
+@pytest.mark.parametrize("family", [None, "steep", "features"])
 def test_closed_form_sensitivities_are_forward_mode_ad(case, family):
     """RayModel.trace's sensitivities, in closed form in the trace's kernel (the hit's implicit move, the curvature,
     the reflection, the cone's slope), equal Dr.Jit's forward-mode AD through the Newton iteration to 1e-10 of the
-    largest, ray by ray, on the smooth bow and on a steep and a cut sheet; the values are the same."""
+    largest, ray by ray, on the smooth bow, a steep sheet and one with local dimples; the values are the same."""
     _, _, truth, _, lev = case
     model = lev.model
     if family is not None:
-        from scopetwin.sim.families import family_spec
-        from scopetwin.sim.surfaces import make_surface
-
-        setup = load_setup("thesis-1.10-deflectometry", {"substrate": {"surface": family_spec(family, 9101)}})
-        sub = Substrate2D.from_setup(setup)
-        truth = SplineSurface.fit(make_surface(setup.substrate.surface, setup.substrate).height, sub, 0.5)
+        truth = _family_sheet(family)[1]
     grid = spline_grid(truth)
     res = model.trace(grid, truth.coef, warm=False)
     assert res.sens is not None
@@ -527,12 +535,8 @@ def test_a_trace_starts_from_the_last_ones_hits(case):
 def test_a_trace_from_a_plane_to_a_steep_sheet_starts_warm(family):
     """NEWTON_WARM_STEPS from the hits of a plane's trace through a whole steep (226 µm) or cut sheet, the largest move
     between two traces (a plane start's first step): the values and sensitivities of a cold start."""
-    from scopetwin.sim.families import family_spec
-    from scopetwin.sim.surfaces import make_surface
-
-    setup = load_setup("thesis-1.10-deflectometry", {"substrate": {"surface": family_spec(family, 9100)}})
+    setup, truth = _family_sheet(family)
     sub = Substrate2D.from_setup(setup)
-    truth = SplineSurface.fit(make_surface(setup.substrate.surface, setup.substrate).height, sub, 0.5)
     plane = SplineSurface.covering(sub, 0.5, sub.frame_z)
     image = np.zeros((setup.camera_model.ny, setup.camera_model.nx))
     model = InverseReconstructor(setup, image, InverseConfig(spacing=0.5), window=WINDOW)._level(1, 3).model
