@@ -23,7 +23,7 @@ through the Newton iteration gives the same to round-off, three passes of the wh
 with respect to any coefficient of any height model is then ``a*B + b*dB/dx + c*dB/dy`` of its basis function B
 at the hit: the sparse Jacobian of the image with respect to B-spline coefficients is assembled from it
 (:mod:`scopetwin.recon.inverse`). With ``pose=True`` the derivatives with respect to small rigid motions of the
-camera and of the pattern (12 columns, for ``--refine-setup``) come from forward-mode AD.
+camera and of the pattern (12 columns, for ``--refine-setup``) come the same way, where AD took twelve passes.
 
 The backend follows :func:`scopetwin.scenes.mitsuba.variant.choose`: ``cuda`` when a CUDA device is usable (the
 ``cuda_ad_mono`` machine), else ``llvm``; nothing needs a GPU. Importing this module sets no variant.
@@ -118,12 +118,21 @@ def _dot(a: tuple[Any, Any, Any], b: tuple[Any, Any, Any]) -> Any:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
+def _cross(w: tuple[float, float, float], v: tuple[Any, Any, Any]) -> tuple[Any, Any, Any]:
+    """w x v for a constant w (a unit rotation axis)."""
+    return _skew_apply(w, v)
+
+
+_AXES = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+
 @dataclass(frozen=True)
 class _Reflection:
-    """A ray's reflection at its hit (Dr.Jit arrays, one entry per ray): what the derivatives of the point it reaches
-    on the pattern plane with respect to a local perturbation of the surface need (:meth:`pattern_tangents`)."""
+    """A ray's path at its hit (Dr.Jit arrays, one entry per ray): what the first-order moves of the point it reaches
+    on the pattern plane, in the plane's own coordinates (lx, ly), need (:meth:`_tangent`)."""
 
     d: tuple[Any, Any, Any]  # the camera ray's direction
+    lam: Any  # the ray parameter of the hit
     slope: tuple[Any, Any]  # (dh/dx, dh/dy) at the hit
     second: tuple[Any, Any, Any]  # (d2h/dx2, d2h/dxdy, d2h/dy2) at the hit
     normal: tuple[Any, Any, Any]  # (-hx, -hy, 1) / sqrt(hx^2 + hy^2 + 1)
@@ -131,42 +140,74 @@ class _Reflection:
     r: tuple[Any, Any, Any]  # the reflected direction d - 2 (d . n) n
     den: Any  # r . (the pattern plane's normal)
     mu: Any  # the parameter along r of the pattern plane
-    plane_n: tuple[Any, Any, Any]  # the pattern plane's normal
+    q: tuple[Any, Any, Any]  # the point reached, relative to the pattern's origin
+    plane: tuple[tuple[Any, Any, Any], ...]  # the pattern's x and y axes and normal
 
-    def pattern_tangents(self) -> list[tuple[Any, Any, Any]]:
-        """d q / d theta of the point q reached on the pattern plane, for theta = (d0, dx, dy) of the perturbation
-        d0 + dx (x - x_hit) + dy (y - y_hit) added to the surface (the implicit derivatives of the converged hit).
+    def surface_tangents(self) -> list[tuple[Any, Any]]:
+        """d (lx, ly) / d theta for theta = (d0, dx, dy) of the perturbation d0 + dx (x - x_hit) + dy (y - y_hit) added
+        to the surface: d0 moves the hit along the ray, dx and dy add to the slopes there (and, zero at the hit,
+        leave it in place)."""
+        return [self._tangent(dfz=1.0), self._tangent(dh=(1.0, 0.0)), self._tangent(dh=(0.0, 1.0))]
 
-        The hit solves f(lambda) = h(o + lambda d) - z = 0, so d lambda / d d0 = -1 / f' with f' = hx dx + hy dy - dz,
-        and the slope terms, zero at the hit, leave it in place. The hit's move changes the slopes through the
-        curvature; dx and dy add to them directly. Through the normal, the mirror reflection (thesis eq. 1.7) and
-        the line-plane intersection to q."""
-        dx, dy, dz = self.d
+    def rigid_tangents(self) -> list[tuple[Any, Any]]:
+        """d (lx, ly) / d theta for the 12 small rigid motions of ``RayModel._trace``'s ``pose``, in its order: the
+        camera's shift (the rays' origin) and rotation about its centre (their directions), the pattern's shift and
+        rotation about its origin (its axes and normal)."""
+        tx, ty, nz = self.plane
+        out = [self._tangent(do=e) for e in _AXES]
+        out += [self._tangent(dd=_cross(e, self.d)) for e in _AXES]
+        out += [self._tangent(dpo=e) for e in _AXES]
+        out += [self._tangent(dplane=(_cross(e, tx), _cross(e, ty), _cross(e, nz))) for e in _AXES]
+        return out
+
+    def _tangent(
+        self,
+        dfz: Any = 0.0,
+        dh: tuple[Any, Any] = (0.0, 0.0),
+        do: tuple[Any, Any, Any] | None = None,
+        dd: tuple[Any, Any, Any] | None = None,
+        dpo: tuple[Any, Any, Any] | None = None,
+        dplane: tuple[tuple[Any, Any, Any], ...] | None = None,
+    ) -> tuple[Any, Any]:
+        """The first-order move (d lx, d ly) of the point reached on the pattern plane, from the implicit
+        derivatives of the converged hit: the surface raised by ``dfz`` and its slopes changed by ``dh`` at the hit,
+        the rays' origin moved by ``do`` and their direction by ``dd``, the pattern's origin moved by ``dpo`` and its
+        axes and normal by ``dplane``.
+
+        The hit solves f(lambda) = h(o + lambda d) - (o + lambda d)_z = 0, f' = hx dx + hy dy - dz: at fixed lambda
+        the ray's point moves by a = do + lambda dd, so d lambda = -(hx a_x + hy a_y - a_z + dfz) / f' and the hit
+        moves by dp = a + d d lambda; its slopes change by the curvature times dp, plus ``dh``. Then the normal, the
+        mirror reflection (thesis eq. 1.7) and the line-plane intersection."""
         hx, hy = self.slope
         hxx, hxy, hyy = self.second
-        dlam = -1.0 / (hx * dx + hy * dy - dz)
-        dp = (dx * dlam, dy * dlam, dz * dlam)
-        return [
-            self._moved(dp, hxx * dp[0] + hxy * dp[1], hxy * dp[0] + hyy * dp[1]),
-            self._moved(None, 1.0, 0.0),
-            self._moved(None, 0.0, 1.0),
-        ]
-
-    def _moved(self, dp: tuple[Any, Any, Any] | None, dhx: Any, dhy: Any) -> tuple[Any, Any, Any]:
-        """d q for a move dp of the hit (None: it stays) and changes (dhx, dhy) of the slopes there."""
-        hx, hy = self.slope
+        tx, ty, nz = self.plane
+        zero = (0.0, 0.0, 0.0)
+        a = tuple(
+            (do or zero)[k] + (self.lam * dd[k] if dd is not None else 0.0) for k in range(3)
+        )  # the ray's point at fixed lambda
+        dlam = -(hx * a[0] + hy * a[1] - a[2] + dfz) / (hx * self.d[0] + hy * self.d[1] - self.d[2])
+        dp = (a[0] + self.d[0] * dlam, a[1] + self.d[1] * dlam, a[2] + self.d[2] * dlam)
+        dhx = hxx * dp[0] + hxy * dp[1] + dh[0]
+        dhy = hxy * dp[0] + hyy * dp[1] + dh[1]
         inv = self.normal[2]
         dinv = -inv * inv * inv * (hx * dhx + hy * dhy)
         dnorm = (-(dhx * inv + hx * dinv), -(dhy * inv + hy * dinv), dinv)
-        ddn = _dot(self.d, dnorm)
-        drefl = tuple(-2.0 * (ddn * n + self.dn * dnk) for n, dnk in zip(self.normal, dnorm, strict=True))
-        dden = _dot(drefl, self.plane_n)
-        dnum = 0.0 if dp is None else -_dot(dp, self.plane_n)
+        ddn = _dot(self.d, dnorm) + (_dot(dd, self.normal) if dd is not None else 0.0)
+        drefl = tuple(
+            (dd[k] if dd is not None else 0.0) - 2.0 * (ddn * self.normal[k] + self.dn * dnorm[k]) for k in range(3)
+        )
+        dnz = dplane[2] if dplane is not None else zero
+        # num = (P_o - p) . N and den = r . N, with q + P_o = p + mu r
+        dnum = _dot(tuple((dpo or zero)[k] - dp[k] for k in range(3)), nz) + _dot(
+            tuple(self.mu * self.r[k] - self.q[k] for k in range(3)), dnz
+        )
+        dden = _dot(drefl, nz) + _dot(self.r, dnz)
         dmu = (dnum - self.mu * dden) / self.den
-        dq = [dmu * rk + self.mu * drk for rk, drk in zip(self.r, drefl, strict=True)]
-        if dp is not None:
-            dq = [a + b for a, b in zip(dq, dp, strict=True)]
-        return dq[0], dq[1], dq[2]
+        dq = tuple(dp[k] + dmu * self.r[k] + self.mu * drefl[k] - (dpo or zero)[k] for k in range(3))
+        dlx, dly = _dot(dq, tx), _dot(dq, ty)
+        if dplane is not None:
+            dlx, dly = dlx + _dot(self.q, dplane[0]), dly + _dot(self.q, dplane[1])
+        return dlx, dly
 
 
 class RayModel:
@@ -360,10 +401,12 @@ class RayModel:
         pose: tuple[Any, ...] | None = None,
         lam0: Any = None,
         tangents: bool = False,
-    ) -> tuple[Any, Any, Any, Any, Any, tuple[Any, Any, Any] | None]:
-        """Value, hit x, hit y, validity and ray parameter of the hit of every ray (Dr.Jit arrays), and with
-        ``tangents`` the derivatives of the value with respect to a local perturbation (d0, dx, dy) at the hit
-        (:meth:`_Reflection.pattern_tangents`, through the cone's slope :meth:`_grey`).
+        rigid: bool = False,
+    ) -> tuple[Any, Any, Any, Any, Any, list[Any]]:
+        """Value, hit x, hit y, validity and ray parameter of the hit of every ray (Dr.Jit arrays), and the value's
+        derivatives in closed form (through the cone's slope, :meth:`_grey`): with ``tangents`` those with respect to
+        a local perturbation (d0, dx, dy) at the hit (:meth:`_Reflection.surface_tangents`), then with ``rigid``
+        those with respect to the 12 motions of ``pose`` (:meth:`_Reflection.rigid_tangents`).
 
         The Newton iteration starts from the plane z = ``z_start`` (:data:`NEWTON_STEPS`), or from the ray
         parameters ``lam0`` where they are finite (:data:`NEWTON_WARM_STEPS`).
@@ -371,7 +414,8 @@ class RayModel:
         ``local`` = (d0, dx, dy, x_ref, y_ref) adds the perturbation d0 + dx*(x - x_ref) + dy*(y - y_ref) to the
         surface (Dr.Jit's forward-mode AD through it gives what ``tangents`` gives in closed form); ``pose`` = (cam
         shift (3), cam rotation (3), pattern shift (3), pattern rotation (3)) moves the camera rays and the pattern
-        plane rigidly by small amounts (rotation vectors about r_c / the pattern centre).
+        plane rigidly by small amounts (rotation vectors about r_c / the pattern centre; AD through it gives what
+        ``rigid`` gives).
         """
         (ox, oy, oz), (dxr, dyr, dzr), (p_o, p_tx, p_ty, p_nz) = self._geometry(pose)
 
@@ -395,7 +439,7 @@ class RayModel:
             fp = hx * dxr + hy * dyr - dzr
             lam = lam - f / fp
         px, py, pz = dr.fma(lam, dxr, ox), dr.fma(lam, dyr, oy), dr.fma(lam, dzr, oz)
-        _, hx, hy, second = surf(px, py, tangents)
+        _, hx, hy, second = surf(px, py, tangents or rigid)
         inv = dr.rsqrt(hx * hx + hy * hy + 1.0)
         nx, ny, nz = -hx * inv, -hy * inv, inv
         dn = dxr * nx + dyr * ny + dzr * nz
@@ -409,14 +453,15 @@ class RayModel:
         value, slope = self._grey(lx, ly)
         hw, hl = 0.5 * self.size[0], 0.5 * self.roi_length
         valid = (dr.abs(px) <= hw) & (dr.abs(py) < hl) & (den < 0.0) & (mu > 0.0) & (lam > 0.0)
-        sens = None
+        derivs = []
         if second is not None:
-            ray = _Reflection((dxr, dyr, dzr), (hx, hy), second, (nx, ny, nz), dn, (rx, ry, rz), den, mu, p_nz)
-            sens = tuple(
-                dr.select(valid, self.radiance * (slope[0] * _dot(dq, p_tx) + slope[1] * _dot(dq, p_ty)), 0.0)
-                for dq in ray.pattern_tangents()
-            )
-        return dr.select(valid, value * self.radiance, 0.0), px, py, valid, lam, sens
+            ray = _Reflection(
+                (dxr, dyr, dzr), lam, (hx, hy), second, (nx, ny, nz), dn, (rx, ry, rz), den, mu, (qx, qy, qz),
+                (p_tx, p_ty, p_nz),
+            )  # fmt: skip
+            moves = (ray.surface_tangents() if tangents else []) + (ray.rigid_tangents() if rigid else [])
+            derivs = [dr.select(valid, self.radiance * (slope[0] * dl + slope[1] * dm), 0.0) for dl, dm in moves]
+        return dr.select(valid, value * self.radiance, 0.0), px, py, valid, lam, derivs
 
     def _grey(self, lx: Any, ly: Any) -> tuple[Any, tuple[Any, Any]]:
         """g = max(0, 1 - r/r_m) of the nearest marker (the reference marker larger), 0 off the plate (§1.6.3), and
@@ -463,7 +508,8 @@ class RayModel:
             own kernel (:meth:`_Reflection.pattern_tangents`), what forward-mode AD through the converged Newton
             iteration gives (``tests/recon/test_inverse.py`` checks the one against the other).
         pose : bool
-            Also return the derivatives with respect to the 12 rigid-motion parameters of camera and pattern.
+            Also return the derivatives with respect to the 12 rigid-motion parameters of camera and pattern (in
+            closed form in the same kernel, :meth:`_Reflection.rigid_tangents`).
         z_start : float, optional
             Plane the Newton iteration starts from (default: the mean coefficient).
         warm : bool
@@ -480,22 +526,15 @@ class RayModel:
         c = F(c_np.ravel())
         z0 = float(np.mean(c_np)) if z_start is None else float(z_start)
         lam0 = self._lam if warm and z_start is None else None
-        value, px, py, valid, lam, sens = self._trace(grid, c, z0, lam0=lam0, tangents=sensitivities)
-        dr.eval(value, px, py, valid, lam, *(sens or ()))  # one kernel
+        value, px, py, valid, lam, derivs = self._trace(grid, c, z0, lam0=lam0, tangents=sensitivities, rigid=pose)
+        dr.eval(value, px, py, valid, lam, *derivs)  # one kernel
         self._lam = dr.detach(lam)
         x_np, y_np = px.numpy(), py.numpy()
         out = TraceResult(value.numpy(), x_np, y_np, valid.numpy().astype(bool), None, None)
-        if sens is not None:
-            out.sens = np.stack([s.numpy() for s in sens])
+        if sensitivities:
+            out.sens = np.stack([s.numpy() for s in derivs[:3]])
         if pose:
-            jac = np.empty((12, len(x_np)))
-            for k in range(12):
-                params = [F(0.0) for _ in range(12)]
-                dr.enable_grad(params[k])
-                v, *_ = self._trace(grid, c, z0, None, tuple(params), lam0)
-                dr.forward_from(params[k])
-                jac[k] = dr.grad(v).numpy()
-            out.pose = jac
+            out.pose = np.stack([s.numpy() for s in derivs[-12:]])
         return out
 
     def pixel_values(self, result: TraceResult) -> tuple[Array, NDArray[np.bool_]]:
