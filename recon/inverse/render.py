@@ -170,7 +170,7 @@ class _Level:
             assert res.sens is not None
             jac = _coefficient_jacobian(res, ok, model.spp, surf)
             if res.pose is not None:
-                jpose = res.pose.reshape(12, -1, model.spp).mean(axis=2)[:, ok].T
+                jpose = np.stack([p.reshape(-1, model.spp).mean(axis=1)[ok] for p in res.pose], axis=1)
         if self.near is None:
             return vals, ok, jac, jpose
         assert self._far_ok is not None

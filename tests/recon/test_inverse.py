@@ -543,7 +543,7 @@ def _assert_warm_is_cold(model, before, after):
     assert warm.sens is not None and cold.sens is not None
     np.testing.assert_array_equal(warm.valid, cold.valid)
     assert np.max(np.abs(warm.value - cold.value)) < 1e-12 * np.max(np.abs(cold.value))
-    assert np.max(np.abs(warm.sens - cold.sens)) < 1e-10 * np.max(np.abs(cold.sens))
+    assert np.max(np.abs(np.subtract(warm.sens, cold.sens))) < 1e-10 * np.max(np.abs(cold.sens))
 
 
 def test_a_trace_starts_from_the_last_ones_hits(case):
