@@ -121,11 +121,6 @@ def _dot(a: tuple[Any, Any, Any], b: tuple[Any, Any, Any]) -> Any:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def _cross(w: tuple[float, float, float], v: tuple[Any, Any, Any]) -> tuple[Any, Any, Any]:
-    """w x v for a constant w (a unit rotation axis)."""
-    return _skew_apply(w, v)
-
-
 _AXES = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
@@ -158,9 +153,9 @@ class _Reflection:
         rotation about its origin (its axes and normal)."""
         tx, ty, nz = self.plane
         out = [self._tangent(do=e) for e in _AXES]
-        out += [self._tangent(dd=_cross(e, self.d)) for e in _AXES]
+        out += [self._tangent(dd=_skew_apply(e, self.d)) for e in _AXES]
         out += [self._tangent(dpo=e) for e in _AXES]
-        out += [self._tangent(dplane=(_cross(e, tx), _cross(e, ty), _cross(e, nz))) for e in _AXES]
+        out += [self._tangent(dplane=(_skew_apply(e, tx), _skew_apply(e, ty), _skew_apply(e, nz))) for e in _AXES]
         return out
 
     def _tangent(
@@ -508,7 +503,7 @@ class RayModel:
             B-spline coefficients, mm.
         sensitivities : bool
             Also return d value / d (d0, dx, dy) of a local perturbation at each hit: in closed form, in the trace's
-            own kernel (:meth:`_Reflection.pattern_tangents`), what forward-mode AD through the converged Newton
+            own kernel (:meth:`_Reflection.surface_tangents`), what forward-mode AD through the converged Newton
             iteration gives (``tests/recon/test_inverse.py`` checks the one against the other).
         pose : bool
             Also return the derivatives with respect to the 12 rigid-motion parameters of camera and pattern (in
