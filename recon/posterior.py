@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 from scipy.optimize import minimize
 
 from scopetwin.recon.lapack import cholesky_lower, factor_solve, lower_inverse, solve_lower_blocks
+from scopetwin.recon.parallel import Background
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.geometry import Array
 
@@ -280,6 +281,19 @@ def _height_variance(p: Array, hyper: Hyper) -> Array:
     return TILT_STD**2 * (p[:, 0] ** 2 + p[:, 1] ** 2) + hyper.smooth_amp**2 + hyper.feature_amp**2 + hyper.broad_amp**2
 
 
+def _factor(k: Array) -> tuple[Array, bool]:
+    """``scipy.linalg.cho_factor`` of the gradient covariance ``k``, with a jitter of 1e-10 of its mean
+    variance where round-off leaves it indefinite."""
+    try:
+        return sla.cho_factor(k, lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        k[np.diag_indices(len(k))] += 1e-10 * float(np.mean(np.diag(k)))
+        try:
+            return sla.cho_factor(k, lower=True, check_finite=False)
+        except np.linalg.LinAlgError as exc:
+            raise PosteriorError(f"the gradient kernel matrix is singular ({exc})") from None
+
+
 class GradientGP:
     """A Gaussian process conditioned on gradient observations (module docstring).
 
@@ -291,21 +305,22 @@ class GradientGP:
         Measured gradients.
     hyper : Hyper
         Prior and noise.
+    factor : ndarray, (2n, 2n), optional
+        The lower Cholesky factor of this prior's gradient covariance at these very positions, from a process
+        formed before (:attr:`FrameModel.chol`), taken instead of forming and factorising the covariance again: the
+        same factor, the same arithmetic (only its lower triangle is read).
     """
 
-    def __init__(self, xy: Array, gx: Array, gy: Array, hyper: Hyper) -> None:
+    def __init__(self, xy: Array, gx: Array, gy: Array, hyper: Hyper, factor: Array | None = None) -> None:
         self.xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         self.g = np.concatenate([np.ravel(gx), np.ravel(gy)]).astype(np.float64)
         self.hyper = hyper
-        k = gradient_kernel(self.xy, hyper)
-        try:
-            self.chol = sla.cho_factor(k, lower=True, check_finite=False)
-        except np.linalg.LinAlgError:
-            k[np.diag_indices(len(k))] += 1e-10 * float(np.mean(np.diag(k)))
-            try:
-                self.chol = sla.cho_factor(k, lower=True, check_finite=False)
-            except np.linalg.LinAlgError as exc:
-                raise PosteriorError(f"the gradient kernel matrix is singular ({exc})") from None
+        if factor is not None:
+            if factor.shape != (len(self.g), len(self.g)):
+                raise ValueError(f"a factor of {len(self.g)} x {len(self.g)} is needed, got {factor.shape}")
+            self.chol = (factor, True)
+        else:
+            self.chol = _factor(gradient_kernel(self.xy, hyper))
         self.alpha = sla.cho_solve(self.chol, self.g, check_finite=False)
 
     def log_evidence(self) -> float:
@@ -896,16 +911,18 @@ def frame_model(
         raise PosteriorError("the node grid has no point in the ROI")
     f1, f2 = frame_points(x_range, y_range, roi_length, frame_step)
     fr = np.concatenate([f1, f2])
-    # the ROI mean m as one more functional; contrasts c = f(p) - m
-    k_gm, k_pm, k_mm = _roi_functional(gp, np.concatenate([fr, nodes]), axes)
-    wmat = gp.whitened(fr)  # (2n, k)
+    # the frame points' whitening (triangular solves without the interpreter lock) beside the ROI mean m as one more
+    # functional and the frame points' prior covariance; contrasts c = f(p) - m
+    with Background(lambda: gp.whitened(fr)) as whitening:
+        k_gm, k_pm, k_mm = _roi_functional(gp, np.concatenate([fr, nodes]), axes)
+        k = len(fr)
+        kf = height_kernel(fr, fr, gp.hyper)
+        wmat = whitening.result()  # (2n, k)
     w_m = sla.solve_triangular(gp.chol[0], k_gm, lower=True, check_finite=False)
     wmat -= w_m[:, None]  # the frame points' whitened contrasts
     # D by sampling the frame points' joint posterior (maxima: location and excess included): prior covariance of
     # the contrasts less the explained part, W^T W, lower triangle only (BLAS syrk: half a product's work; nothing
     # reads the upper one)
-    k = len(fr)
-    kf = height_kernel(fr, fr, gp.hyper)
     kf -= k_pm[:k, None] + k_pm[None, :k]
     kf += k_mm
     kf = sla.blas.dsyrk(-1.0, wmat, beta=1.0, c=kf, trans=1, lower=1, overwrite_c=1)
@@ -1030,10 +1047,11 @@ class ResidualCorrection:
 
 
 def residual_correction(
-    xy: Array, ex: Array, ey: Array, hyper: Hyper, roi_axes: tuple[Array, Array]
+    xy: Array, ex: Array, ey: Array, hyper: Hyper, roi_axes: tuple[Array, Array], factor: Array | None = None
 ) -> ResidualCorrection:
     """The Gaussian process conditioned on the residual gradients (ex, ey) at ``xy``, as a height correction with
-    zero mean over the tensor grid ``roi_axes`` (the reconstruction's ROI grid)."""
-    gp = GradientGP(xy, ex, ey, hyper)
+    zero mean over the tensor grid ``roi_axes`` (the reconstruction's ROI grid). ``factor``: the prior's factor at
+    ``xy`` where one was formed before (:class:`GradientGP`)."""
+    gp = GradientGP(xy, ex, ey, hyper, factor)
     k_gm, _, _ = _roi_functional(gp, np.zeros((0, 2)), roi_axes)
     return ResidualCorrection(gp.xy, gp.alpha, hyper, float(k_gm @ gp.alpha))

@@ -315,8 +315,11 @@ def posterior(
     h_final = it.roi_mean(surf.coef) + surf.offset
     nxx, nyy = np.meshgrid(post.node_x, post.node_y)
     # the traced gradients depend on the start height: an error dH of it bends the shape by sens * dH (that of the
-    # fit: the nested iteration never sees a posterior correction)
-    sens = start_height_sensitivity(it, surf, markers, nxx, nyy)
+    # fit: the nested iteration never sees a posterior correction). The node grid's spread (its whitening, triangular
+    # solves without the interpreter lock) is formed beside that inner loop
+    with Background(lambda: post.contrast_std) as spread:
+        sens = start_height_sensitivity(it, surf, markers, nxx, nyy)
+        spread.result()
     surf, note = _shape_from_posterior(it, surf, reading, h_final, policy)
     dev2 = (surf.height(nxx, nyy) - h_final - post.contrast_mean) ** 2
     shape_var = post.contrast_std**2 + dev2 + (sens * u_abs) ** 2
@@ -348,8 +351,14 @@ def _shape_from_posterior(
     xy, hx, hy = reading.data
     gx, gy = surf.gradient(xy[:, 0], xy[:, 1])
     rx, ry = it.sub.roi_grid(it.config.grid_step)
+    # the reading's own factor where its model was formed at these positions under this prior (not one reused from
+    # before a start-height step, whose observations lie up to REUSE_SHIFT_MM away)
+    model = reading.frame.model
+    same = model.hyper == reading.hyper and np.array_equal(model.xy, xy)
     try:
-        corr = residual_correction(xy, hx - gx, hy - gy, reading.hyper, (np.unique(rx), np.unique(ry)))
+        corr = residual_correction(
+            xy, hx - gx, hy - gy, reading.hyper, (np.unique(rx), np.unique(ry)), model.chol if same else None
+        )
     except PosteriorError:
         return surf, ""
     note = f"shape from the posterior mean: the fit was {off * 1e3:.3g} µm RMS from it (spread {spread * 1e3:.3g} µm)"

@@ -312,3 +312,23 @@ def test_a_residual_correction_on_a_grid_is_its_pointwise_value(hyper: Hyper) ->
     np.testing.assert_array_equal(grid, corr.on_grid(xx[0], yy[:, 0]))
     # not a tensor grid: the pointwise path
     np.testing.assert_allclose(corr.height(xx.T, yy.T), pointwise.T, rtol=0, atol=1e-9)
+
+
+def test_a_residual_correction_on_a_frame_models_factor_is_the_one_formed_anew() -> None:
+    """The residual correction read with the factor a frame model was formed with (same positions, same prior) is the
+    correction formed with a factor of its own, bit for bit; a factor of the wrong size is refused."""
+    from scopetwin.recon.posterior import GradientGP, frame_model, residual_correction
+
+    hyper = Hyper(0.01, 15.0, 1e-6, 0.4, 2e-6, 3e-7, 1.0)
+    rng = np.random.default_rng(5)
+    xy = np.column_stack([rng.uniform(-12, 12, 200), rng.uniform(-28, 28, 200)])
+    gp = GradientGP(xy, *_bowed_gradients(xy), hyper)
+    model = frame_model(gp, (-13.0, 13.0), (-30.0, 30.0), 48.0)
+    ex, ey = rng.normal(0, 1e-6, 200), rng.normal(0, 1e-6, 200)
+    axes = (np.linspace(-10, 10, 41), np.linspace(-24, 24, 97))
+    fresh = residual_correction(xy, ex, ey, hyper, axes)
+    reused = residual_correction(xy, ex, ey, hyper, axes, model.chol)
+    np.testing.assert_array_equal(reused.alpha, fresh.alpha)
+    assert reused.roi_mean == fresh.roi_mean
+    with pytest.raises(ValueError, match="a factor of 400 x 400"):
+        GradientGP(xy, ex, ey, hyper, model.chol[:-2, :-2])
