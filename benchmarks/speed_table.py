@@ -80,6 +80,24 @@ FRINGE_PRESET = "thesis-1.10-fringes"
 ROOT = Path(__file__).resolve().parent.parent
 REFERENCE_FILE = Path(__file__).resolve().parent / "speed_reference.json"
 SCOPETWIN = [sys.executable, "-m", "scopetwin"]
+#: The repository's package folders (setup.py maps them onto ``scopetwin.*``).
+PACKAGE_FOLDERS = ("scopetwin", "scenes", "recon", "calib", "sim", "instrument")
+
+
+def uncompiled_modules() -> list[str]:
+    """The project's modules without bytecode as new as their source: where the environment writes none
+    (``PYTHONDONTWRITEBYTECODE``; the editable install writes none either), every process that imports them compiles
+    them again, and the CLI rows time that too (``make setup`` compiles them, as installing the wheel does)."""
+    import importlib.util
+
+    stale = []
+    for folder in PACKAGE_FOLDERS:
+        for src in sorted((ROOT / folder).rglob("*.py")):
+            pyc = Path(importlib.util.cache_from_source(str(src)))
+            if not pyc.is_file() or pyc.stat().st_mtime < src.stat().st_mtime:
+                stale.append(str(src.relative_to(ROOT)))
+    return stale
+
 
 #: The glass-like surface of row 5 (``[substrate.surface]`` of the §1.10 preset), like float glass (power-law
 #: waviness at 8-80 mm, a bow, 20-100 nm of micro-waviness at 1-8 mm, PV 14-60 µm, slopes 2.5-8 mrad): a power law
@@ -837,6 +855,13 @@ def main() -> None:
             "record it here (--calibrate on a quiet machine) before quoting the estimates",
             flush=True,
         )
+    stale = uncompiled_modules()
+    if stale and sys.dont_write_bytecode:
+        print(
+            f"note: {len(stale)} of the project's modules have no up-to-date bytecode and this environment writes none "
+            "(PYTHONDONTWRITEBYTECODE): the CLI rows include compiling them in every process (make setup writes it)",
+            flush=True,
+        )
     reference()  # warm: the matrix, BLAS's first call
     ctx = Context(args.cache, args.fresh)
     t0 = time.perf_counter()
@@ -852,6 +877,7 @@ def main() -> None:
                     "cpus": os.cpu_count(),
                     "load_average_start": load,
                     "load_average_end": os.getloadavg()[0],
+                    "modules_without_bytecode": len(stale),
                     "quiet_reference": stored,
                     "glass_surface": GLASS,
                     "glass_seeds": list(GLASS_SEEDS),

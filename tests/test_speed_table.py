@@ -129,3 +129,23 @@ def test_a_stored_row_prints_again_with_the_quiet_reference(st: ModuleType, caps
     row["reference_cpu_s"] = 0.2
     st.print_row(row, 0.2)
     assert capsys.readouterr().out.split()[6:8] == ["0.600", "3.00"]  # reference wall / CPU: a busy machine
+
+
+def test_modules_without_up_to_date_bytecode_are_found(st: ModuleType, tmp_path: Path, monkeypatch) -> None:
+    """A module whose bytecode is missing or older than its source is listed; one compiled after its last edit is
+    not (the note the table prints where the environment writes no bytecode)."""
+    import os
+    import py_compile
+
+    pkg = tmp_path / "recon"
+    pkg.mkdir()
+    fresh, edited, bare = (pkg / f"{n}.py" for n in ("fresh", "edited", "bare"))
+    for src in (fresh, edited, bare):
+        src.write_text("X = 1\n")
+    for src in (fresh, edited):
+        py_compile.compile(str(src), doraise=True)
+    later = os.stat(edited).st_mtime + 10
+    os.utime(edited, (later, later))
+    monkeypatch.setattr(st, "ROOT", tmp_path)
+    monkeypatch.setattr(st, "PACKAGE_FOLDERS", ("recon",))
+    assert st.uncompiled_modules() == ["recon/bare.py", "recon/edited.py"]
