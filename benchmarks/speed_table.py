@@ -30,7 +30,8 @@ Rows (``*``: only with ``--full``):
    the §1.10 frame (``thesis-1.10-deflectometry``, its §1.9 surface, 16 spp, EMVA sensor noise, render seed 1; the
    frame is rendered once and cached in ``--cache``); markers found once, the per-setup precomputation outside: each
    run a first frame on a fresh Reconstructor (beside it, the same Reconstructor solving again, which starts on the
-   basis scale it chose: what a next frame with that scale gets).
+   basis scale it chose: what a next frame with that scale gets; and what limits the row: the first frame without the
+   posterior, with and without the scale choice on the data).
 2. The same with the bias step (:func:`centroid_bias_step` as the Reconstructor's bias).
 3. Detection + realtime reconstruction per frame (as ``benchmarks/reconstruct_speed.py``:
    :meth:`ReconstructionConfig.realtime`, ``find_markers_for`` + ``solve``), minimum over repeats; beside it the
@@ -399,7 +400,35 @@ def _solve_rows(ctx: Context, bias: bool) -> Measured:
     ]
     if not bias:
         extras.append(_warm_next_frame(ctx, recs[0], res))
+        extras += _without_posterior(ctx, obs)
     return Measured(min(times), extras=extras, note=note)
+
+
+def _without_posterior(ctx: Context, obs: Any) -> list[tuple[str, float, float | None]]:
+    """What limits row 1: the same first frame without its uncertainty (``posterior="off"``), with the scale chosen
+    on the data and without (``rechoose_scale`` off: the fits alone), each on a fresh Reconstructor. The first is the
+    least a faster posterior alone could bring the row to."""
+    from scopetwin.recon.config import ReconstructionConfig
+    from scopetwin.recon.policy import DEFAULT_POLICY
+    from scopetwin.recon.reconstruct import Reconstructor
+    from scopetwin.recon.strategy import solve
+
+    cfg = ReconstructionConfig(posterior="off")
+
+    def first_frames(policy: Any) -> float:
+        recs = iter([Reconstructor.from_setup(ctx.setup, cfg) for _ in range(FIRST_FRAME_RUNS)])
+        return min(
+            repeat_min(lambda: solve(next(recs), obs, policy), min_runs=2, max_runs=FIRST_FRAME_RUNS, budget_s=2)
+        )
+
+    return [
+        ("  without the posterior (the fits, the scale choice)", first_frames(DEFAULT_POLICY), None),
+        (
+            "  without the posterior and the scale choice",
+            first_frames(DEFAULT_POLICY.with_changes(rechoose_scale=False)),
+            None,
+        ),
+    ]
 
 
 #: Most first-frame runs of rows 1 and 2 (each on its own Reconstructor, built before the timing).
