@@ -39,7 +39,8 @@ Rows (``*``: only with ``--full``):
    overlapped (frame k+1's markers searched in a worker process while frame k is solved; goal: one frame period).
 4. ``scopetwin reconstruct`` of that frame (a subprocess; the JSON's ``seconds``), the process's wall time beside it
    (goal :data:`CLI_WALL_GOAL_S`) and their difference: the interpreter's start, the imports and the exit; then the
-   next frame of a rig (render seed 2) with ``--previous`` that frame's JSON (the evidence searched from its prior).
+   next frame of a rig (render seed 2) with ``--previous`` that frame's JSON (the evidence searched from its prior),
+   and with ``--hold`` too (its scale and prior held).
 5. ``scopetwin reconstruct`` of glass-like surfaces (:data:`GLASS`), 3 seeds, median of the JSONs' ``seconds``; the
    median process wall time beside it.
 6. ``scopetwin run`` (a subprocess): wall time; its ``summary.json``'s detect + reconstruct step beside it.
@@ -399,7 +400,7 @@ def _solve_rows(ctx: Context, bias: bool) -> Measured:
         ("  the same Reconstructor again (its scale kept)", min(again), None)
     ]
     if not bias:
-        extras.append(_warm_next_frame(ctx, recs[0], res))
+        extras += _warm_next_frame(ctx, recs[0], res)
         extras += _without_posterior(ctx, obs)
     return Measured(min(times), extras=extras, note=note)
 
@@ -435,11 +436,13 @@ def _without_posterior(ctx: Context, obs: Any) -> list[tuple[str, float, float |
 FIRST_FRAME_RUNS = 8
 
 
-def _warm_next_frame(ctx: Context, rec: Any, first: Any) -> tuple[str, float, float | None]:
+def _warm_next_frame(ctx: Context, rec: Any, first: Any) -> list[tuple[str, float, float | None]]:
     """The next frame of a live loop (the same surface, render seed 2) as ``scopetwin.reconstruct(previous=)`` reads
     it: its search started on the basis scale the first frame ended on, its posterior's evidence warm-started from
-    the first frame's prior (``Reconstructor.evidence_start``)."""
+    the first frame's prior (``Reconstructor.evidence_start``); and with ``hold=True``: that scale kept (no scale
+    choice) and that prior read as it is where plausible (``Reconstructor.held_prior``)."""
     from scopetwin.recon.markers import find_markers_for
+    from scopetwin.recon.policy import DEFAULT_POLICY
     from scopetwin.recon.posterior import Hyper
     from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor
     from scopetwin.recon.strategy import solve
@@ -448,12 +451,18 @@ def _warm_next_frame(ctx: Context, rec: Any, first: Any) -> tuple[str, float, fl
     image = read_image(ctx.render_cached(ctx.setup, 2, "frame-1.10"))[0]
     found = find_markers_for(image, ctx.setup)
     obs = MarkerObservations(found.ij, found.centroids)
-    times = []
-    for _ in range(5):  # a fresh Reconstructor each time: a reused one keeps the scale it ended on
-        warm = Reconstructor.from_setup(ctx.setup, rec.config.starting_at(float(first.surface.basis.sigma[0])))
-        warm.evidence_start = Hyper.from_dict(first.uncertainty.hyper)
-        times += repeat_min(lambda w=warm: solve(w, obs), min_runs=1, max_runs=1)
-    return ("  next frame, as previous= (scale and prior)", min(times), 0.15)
+    prior = Hyper.from_dict(first.uncertainty.hyper)
+    held = DEFAULT_POLICY.with_changes(rechoose_scale=False)
+    out: list[tuple[str, float, float | None]] = []
+    for label, hold in (("as previous= (scale and prior)", False), ("both held, previous= and hold=True", True)):
+        times = []
+        for _ in range(5):  # a fresh Reconstructor each time: a reused one keeps the scale it ended on
+            warm = Reconstructor.from_setup(ctx.setup, rec.config.starting_at(float(first.surface.basis.sigma[0])))
+            warm.evidence_start, warm.held_prior = prior, (prior if hold else None)
+            policy = held if hold else DEFAULT_POLICY
+            times += repeat_min(lambda w=warm, p=policy: solve(w, obs, p), min_runs=1, max_runs=1)
+        out.append((f"  next frame, {label}", min(times), 0.15))
+    return out
 
 
 def row_default(ctx: Context) -> Measured:
@@ -562,8 +571,12 @@ def row_cli_seed(ctx: Context) -> Measured:
     extras = _wall_extras(seconds, wall, CLI_WALL_GOAL_S)
     if np.isfinite(seconds):  # a rig's next frame (render seed 2), its prior searched from this frame's
         prior = ["--previous", str(ctx.work / "cli-seed.json")]
-        nxt, nxt_wall = _reconstruct_cli(ctx, ctx.render_cached(ctx.setup, 2, "frame-1.10"), "cli-next", prior, 600)
+        frame2 = ctx.render_cached(ctx.setup, 2, "frame-1.10")
+        nxt, nxt_wall = _reconstruct_cli(ctx, frame2, "cli-next", prior, 600)
         extras += [("  next frame, --previous (JSON seconds)", nxt, CLI_GOAL_S), ("    its wall time", nxt_wall, None)]
+        held, held_wall = _reconstruct_cli(ctx, frame2, "cli-held", [*prior, "--hold"], 600)
+        extras += [("  next frame, --previous --hold (JSON seconds)", held, CLI_GOAL_S)]
+        extras += [("    its wall time", held_wall, None)]
     return Measured(seconds, extras=extras)
 
 

@@ -313,6 +313,8 @@ def _accept(search: _Search, result: ReconstructionResult, history_path: str | P
             search.path.append(
                 f"posterior ({cfg.posterior}): start height moved {post.uncertainty.correction_um:+.3g} µm"
             )
+            if post.prior_note:
+                search.path.append(post.prior_note)
             if post.shape_note:
                 search.path.append(post.shape_note)
         if other <= cfg.consistency_um:
@@ -401,6 +403,7 @@ def reconstruct_image(
     policy: ReconstructionPolicy = DEFAULT_POLICY,
     history_path: str | Path | None = None,
     evidence_start: Hyper | None = None,
+    held_prior: Hyper | None = None,
 ) -> ImageReconstruction:
     """Markers of a deflectometry image and the surface they give (thesis §1.4-§1.8), with every fallback of ``policy``.
 
@@ -410,7 +413,8 @@ def reconstruct_image(
     index is a pitch or more off the lattice the nominal setup predicts (:meth:`Reconstructor.lattice_offset`), with
     the right one a small fraction of a pitch. The one candidate within ``reference_offset_max`` is kept; if none or
     several are, the tie is reported with each offset. ``evidence_start``: the posterior's warm start
-    (:attr:`Reconstructor.evidence_start`).
+    (:attr:`Reconstructor.evidence_start`); ``held_prior``: a prior read as it is where plausible
+    (:attr:`Reconstructor.held_prior`).
     """
     from scopetwin.recon.markers import ReferenceTieError, find_markers_for
 
@@ -425,6 +429,7 @@ def reconstruct_image(
         found, note = _decide_tied_reference(image, setup, config, policy, tie)
     rec = Reconstructor.from_setup(setup, config, bias)
     rec.evidence_start = evidence_start
+    rec.held_prior = held_prior
     result = solve(rec, MarkerObservations(found.ij, found.centroids), policy, history_path)
     if found.indexing == "lattice":
         result.strategy.insert(
@@ -889,6 +894,7 @@ def reconstruct(
     policy: ReconstructionPolicy = DEFAULT_POLICY,
     history_path: str | Path | None = None,
     evidence_start: Hyper | None = None,
+    held_prior: Hyper | None = None,
     second: tuple[NDArray[Any], float | None] | None = None,
     two_positions: TwoPositionConfig = DEFAULT_TWO_POSITIONS,
     fringe_config: FringeConfig | None = None,
@@ -898,12 +904,13 @@ def reconstruct(
 
     ``method=None`` (default): ``"fringes"`` where the setup has a ``[fringes]`` table and ``image`` is its (K, rows,
     cols) stack, else ``"centroid"``. ``method="centroid"``: :func:`reconstruct_image` (``evidence_start``: its
-    posterior's warm start); with ``second`` = (image 2, its pattern shift along N_z in mm or None for the setup's
-    ``[pattern_stage]``): :func:`reconstruct_pair` (``two_positions``: its parameters). ``method="inverse"``: the
-    inverse fit (:func:`scopetwin.recon.inverse.reconstruct_inverse`) from :func:`inverse_start`, holding the start's
-    height unless it starts from a plane (``inverse_config``'s other settings are kept); it uses one image.
-    ``method="fringes"``: :func:`reconstruct_fringe_images` (``second``: the stack at the second display position and
-    its shift; ``fringe_config``: its parameters).
+    posterior's warm start; ``held_prior``: a prior it reads as it is where plausible); with ``second`` = (image 2,
+    its pattern shift along N_z in mm or None for the setup's ``[pattern_stage]``): :func:`reconstruct_pair`
+    (``two_positions``: its parameters). ``method="inverse"``: the inverse fit
+    (:func:`scopetwin.recon.inverse.reconstruct_inverse`) from :func:`inverse_start`, holding the start's height unless
+    it starts from a plane (``inverse_config``'s other settings are kept); it uses one image. ``method="fringes"``:
+    :func:`reconstruct_fringe_images` (``second``: the stack at the second display position and its shift;
+    ``fringe_config``: its parameters).
 
     Raises
     ------
@@ -919,7 +926,7 @@ def reconstruct(
             raise ReconstructionError("a second image takes the centroid method (the inverse fit uses one image)")
         return reconstruct_pair(image, second[0], setup, second[1], config, policy, two_positions)
     if method == "centroid":
-        done = reconstruct_image(image, setup, config, policy, history_path, evidence_start)
+        done = reconstruct_image(image, setup, config, policy, history_path, evidence_start, held_prior)
         u = done.result.uncertainty
         unc = StandardUncertainty(u.absolute_um, u.shape_um) if u is not None else StandardUncertainty(None, None)
         return Reconstruction("centroid", done.result, done.markers, unc, done.result.strategy)

@@ -254,10 +254,14 @@ def _truth(setup: Setup, heights: HeightMap | None) -> MarkerTruth | None:
     return marker_truth(setup, heights)
 
 
-def _check_reconstruct_options(method: str | None, second: object, previous: Reconstruction | None) -> None:
+def _check_reconstruct_options(
+    method: str | None, second: object, previous: Reconstruction | None, hold: bool = False
+) -> None:
     """One clear error for options :func:`reconstruct` cannot combine (before any work starts)."""
     from scopetwin.recon.errors import ReconstructionError
 
+    if hold and previous is None:
+        raise ReconstructionError("hold=True holds the scale and prior of previous=; give previous=")
     if previous is not None and (second is not None or method not in (None, "centroid")):
         raise ReconstructionError("previous= takes one image and the centroid method (no second=, no inverse)")
     if second is not None and method == "inverse":
@@ -272,13 +276,13 @@ def reconstruct(
     policy: ReconstructionPolicy | None = None,
     second: tuple[NDArray[Any], float | None] | NDArray[Any] | None = None,
     previous: Reconstruction | None = None,
+    hold: bool = False,
 ) -> Reconstruction:
     """The substrate's heights from one deflectometry image (``scopetwin reconstruct``, thesis §1.4-§1.8).
 
-    One strategy for every entry point (:mod:`scopetwin.recon.strategy`): the markers found and indexed, the nested
-    start-height iteration with the basis scale chosen from the data and the centroid bias corrected, every
-    fallback of the :class:`~scopetwin.recon.policy.ReconstructionPolicy` where a step fails. A ``[fringes]``
-    setup's stack: :func:`scopetwin.recon.strategy.reconstruct_fringe_images` (every pixel's display point decoded).
+    One strategy for every entry point (:mod:`scopetwin.recon.strategy`): markers found and indexed, the nested
+    start-height iteration (the basis scale chosen from the data, the centroid bias corrected), every fallback of the
+    :class:`~scopetwin.recon.policy.ReconstructionPolicy`; a ``[fringes]`` setup's stack: every pixel decoded.
 
     Parameters
     ----------
@@ -287,9 +291,8 @@ def reconstruct(
     setup : Setup, str or path
         The (calibrated) deflectometry setup, or what :func:`load_setup` takes.
     method : {"centroid", "inverse", "fringes"}, optional
-        The marker centroids (the default for a marker setup), the inverse fit through a differentiable render
-        (slower; started from the centroid result), or the fringes (a fringe setup's only method; a method that does
-        not fit the setup: :class:`~scopetwin.recon.errors.MethodMismatchError`).
+        Marker centroids (a marker setup's default), the inverse fit through a differentiable render (slower), or
+        fringes (a fringe setup's only one); a misfit: :class:`~scopetwin.recon.errors.MethodMismatchError`.
     policy : ReconstructionPolicy, optional
         The fallbacks and their thresholds (default: :data:`scopetwin.recon.policy.DEFAULT_POLICY`).
     second : (ndarray, float or None) or ndarray, optional
@@ -299,12 +302,13 @@ def reconstruct(
         then holds the frame criterion's, the two positions' and the combined height (fringes: the second display
         position's stack, the height from the two positions' display points per pixel).
     previous : Reconstruction, optional
-        The centroid reconstruction of an earlier frame of the same setup (a rig's live loop; one image, centroid
-        method): the search starts on the scale that frame ended on (:attr:`Reconstruction.scale`, still chosen from
-        the data) and the prior is searched by evidence from that frame's (the §1.10 preset's second render: 0.65 s
-        instead of 0.95 s). The result then depends on the earlier frame within the evidence's flatness (both land
-        within half a standard uncertainty of its maximum: tests/recon/test_warm_evidence.py); leave it out where
-        each frame must stand alone (accuracy studies).
+        The centroid reconstruction of an earlier frame of the same setup (a rig's live loop; one image): the search
+        starts on the scale that frame ended on (:attr:`Reconstruction.scale`, still chosen from the data), the prior
+        is searched by evidence from that frame's. The result then depends on it within the evidence's flatness
+        (tests/recon/test_warm_evidence.py); leave it out where each frame must stand alone (accuracy studies).
+    hold : bool
+        With ``previous`` (frames of one surface): its scale held, its prior read as it is where plausible
+        (:func:`scopetwin.recon.uncertainty.held_prior_z`).
 
     Returns
     -------
@@ -333,7 +337,7 @@ def reconstruct(
     >>> error_um = (r.height_at(x, y) - m.heights.height(x, y)) * 1e3
     >>> bool(abs(error_um.mean()) < 1.0), bool(error_um.std() < 0.5), bool(r.uncertainty.absolute_um < 1.0)
     (True, True, True)
-    >>> r_next = scopetwin.reconstruct(m.image, m.setup, previous=r)  # the next frame of a live loop
+    >>> r_next = scopetwin.reconstruct(m.image, m.setup, previous=r, hold=True)  # a live loop's next frame
 
     With a second image, the pattern moved 30 mm by a stage (thesis §1.3; shown, not run here):
 
@@ -342,8 +346,8 @@ def reconstruct(
     >>> r2.result.estimate.height_um, r2.uncertainty.absolute_um  # doctest: +SKIP
     >>> f = scopetwin.render("thesis-1.10-fringes", spp=4)  # 24 fringe frames  # doctest: +SKIP
     >>> rf = scopetwin.reconstruct(f.images, f.setup)  # every pixel a slope  # doctest: +SKIP"""
-    _check_reconstruct_options(method, second, previous)
-    return _reconstruct_checked(image, load_setup(setup), method, policy, second, previous)
+    _check_reconstruct_options(method, second, previous, hold)
+    return _reconstruct_checked(image, load_setup(setup), method, policy, second, previous, hold)
 
 
 def _reconstruct_checked(
@@ -353,6 +357,7 @@ def _reconstruct_checked(
     policy: ReconstructionPolicy | None,
     second: tuple[NDArray[Any], float | None] | NDArray[Any] | None,
     previous: Reconstruction | None,
+    hold: bool = False,
 ) -> Reconstruction:
     """:func:`reconstruct` once its options are checked: both images of a pattern stage, or the one strategy."""
     import numpy as np
@@ -372,13 +377,15 @@ def _reconstruct_checked(
 
     start = previous.prior if previous is not None else None
     config = ReconstructionConfig().starting_at(previous.scale if previous is not None else None)
+    policy = policy or DEFAULT_POLICY
     return _reconstruct(
         np.asarray(image),
         setup,
         method,
         config=config,
-        policy=policy or DEFAULT_POLICY,
+        policy=policy.with_changes(rechoose_scale=False) if hold else policy,
         evidence_start=start,
+        held_prior=start if hold else None,
         second=pair,
     )
 

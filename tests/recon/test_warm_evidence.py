@@ -99,6 +99,64 @@ def test_the_warm_start_lands_where_the_cold_one_does(frames, monkeypatch) -> No
         assert abs(e["roi_absolute_um"]) <= 3 * res.uncertainty.absolute_um
 
 
+def test_a_held_prior_reads_the_next_frame_without_a_search(frames, monkeypatch) -> None:
+    """Reconstructor.held_prior: the next frame's gradients, a plausible draw of the first frame's prior, are read
+    with it as it is (no evidence evaluation, the path says so); the uncertainties stay within 10 % of a frame searched
+    from that prior and the heights within 3 u of the truth. An implausible prior (the same one, its amplitudes and
+    noise a hundred times too large) is searched again from."""
+    from dataclasses import replace
+
+    from scopetwin.recon.config import ReconstructionConfig
+    from scopetwin.recon.policy import DEFAULT_POLICY
+
+    setup, heights, (first, second) = frames
+    sub = Substrate2D.from_setup(setup)
+    res1, _ = _solve_counting(setup, first, None, monkeypatch)
+    assert res1.uncertainty is not None
+    prior = Hyper.from_dict(res1.uncertainty.hyper)
+    warm, _ = _solve_counting(setup, second, prior, monkeypatch)
+    assert warm.uncertainty is not None
+    config = ReconstructionConfig().starting_at(float(res1.surface.basis.sigma[0]))
+    policy = DEFAULT_POLICY.with_changes(rechoose_scale=False)
+
+    def held(hyper: Hyper) -> tuple:
+        calls = []
+        inner = posterior_module._evidence_and_gradient
+        with monkeypatch.context() as patch:
+            patch.setattr(posterior_module, "_evidence_and_gradient", lambda *a: calls.append(1) or inner(*a))
+            rec = Reconstructor.from_setup(setup, config)
+            rec.evidence_start, rec.held_prior = hyper, hyper
+            return solve(rec, second, policy), len(calls)
+
+    res, n = held(prior)
+    assert n == 0
+    assert any(step.startswith("prior held") for step in res.strategy), res.strategy
+    u, u_warm = res.uncertainty, warm.uncertainty
+    assert u is not None
+    assert abs(u.absolute_um - u_warm.absolute_um) <= 0.1 * u_warm.absolute_um, (u, u_warm)
+    assert abs(u.shape_um - u_warm.shape_um) <= 0.1 * u_warm.shape_um, (u, u_warm)
+    e = roi_errors(res.surface.height, heights, sub)
+    assert abs(e["roi_absolute_um"]) <= 3 * u.absolute_um, e
+    noise_y = None if prior.noise_y is None else 100 * prior.noise_y
+    wide = replace(prior, smooth_amp=100 * prior.smooth_amp, broad_amp=100 * prior.broad_amp, noise=100 * prior.noise)
+    res, n = held(replace(wide, noise_y=noise_y))
+    assert n > 0
+    assert any(step.startswith("held prior implausible") for step in res.strategy), res.strategy
+
+
+def test_held_prior_z_is_a_standard_score_of_the_whitened_gradients() -> None:
+    """held_prior_z: about N(0, 1) for whitened gradients that are standard normal draws (the prior holds), far beyond
+    HELD_PRIOR_Z for draws of a prior ten times too wide or narrow."""
+    from scopetwin.recon.uncertainty import HELD_PRIOR_Z, held_prior_z
+
+    rng = np.random.default_rng(4)
+    z = np.array([held_prior_z(rng.standard_normal(1000)) for _ in range(400)])
+    assert abs(z.mean()) < 0.2 and 0.85 < z.std() < 1.15
+    assert np.mean(np.abs(z) <= HELD_PRIOR_Z) > 0.99
+    v = rng.standard_normal(1000)
+    assert held_prior_z(10 * v) > 100 and held_prior_z(0.1 * v) < -20
+
+
 def test_previous_with_a_second_image_or_the_inverse_method_is_one_clear_error() -> None:
     import scopetwin
     from scopetwin.recon.errors import ReconstructionError
@@ -108,6 +166,8 @@ def test_previous_with_a_second_image_or_the_inverse_method_is_one_clear_error()
     for kwargs in ({"second": image}, {"method": "inverse"}):
         with pytest.raises(ReconstructionError, match="previous= takes one image"):
             scopetwin.reconstruct(image, "thesis-1.10-deflectometry", previous=dummy, **kwargs)  # type: ignore[arg-type]
+    with pytest.raises(ReconstructionError, match="give previous="):
+        scopetwin.reconstruct(image, "thesis-1.10-deflectometry", hold=True)
 
 
 def test_a_recorded_prior_is_read_back_and_checked() -> None:
@@ -159,6 +219,7 @@ def test_cli_previous_is_checked_before_any_work(tmp_path) -> None:
         (["--previous", str(good), "--method", "inverse"], "--previous takes one image"),
         (["--previous", str(good), "--second", str(tmp_path / "b.exr")], "--previous takes one image"),
         (["--previous", str(good), "--posterior", "off"], "--posterior off skips"),
+        (["--hold"], "give --previous JSON"),
     ):
         args = parser.parse_args(base + extra)
         with pytest.raises(ScopetwinError, match=match):
