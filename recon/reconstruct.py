@@ -65,7 +65,7 @@ from scopetwin.recon.policy import DEFAULT_POLICY
 from scopetwin.recon.scale import select_sigma
 from scopetwin.recon.shifted_basis import SBFSurface, ShiftedBasis, fit_gradients
 from scopetwin.recon.substrate import Substrate2D, check_substrate_visible, intersect_surface
-from scopetwin.recon.uncertainty import Uncertainty
+from scopetwin.recon.uncertainty import HeldPrior, Uncertainty
 from scopetwin.scenes.camera import Camera
 from scopetwin.scenes.geometry import Array
 from scopetwin.scenes.pattern import MarkerPattern
@@ -330,11 +330,11 @@ class Reconstructor:
         the same setup, :attr:`scopetwin.recon.uncertainty.Uncertainty.hyper` through
         :meth:`scopetwin.recon.posterior.Hyper.from_dict`); None (default): two cold starts. Set by the caller, never
         by a solve, so that a frame's result does not depend on the frames before it unless asked.
-    held_prior : Hyper or None
-        A prior the posterior step reads the gradients with as it is, without an evidence search, where they are a
-        plausible draw of it (:data:`scopetwin.recon.uncertainty.HELD_PRIOR_Z`; else searched again from
-        ``evidence_start``): an earlier frame's of the same setup and surface, on a rig. None (default): searched.
-        Set by the caller, as ``evidence_start``.
+    held_prior : HeldPrior or None
+        A prior the posterior step reads the gradients with as it is, without an evidence search, where they are as
+        plausible a draw of it as the frame's it was chosen on (:class:`scopetwin.recon.uncertainty.HeldPrior`; else
+        searched again from ``evidence_start``): an earlier frame's of the same setup and surface, on a rig. None
+        (default): searched. Set by the caller, as ``evidence_start``.
     """
 
     def __init__(
@@ -355,7 +355,7 @@ class Reconstructor:
         self.last: SBFSurface | None = None
         self.last_xy: Array | None = None  # the markers' points on the substrate in the last inner iteration, mm
         self.evidence_start: Hyper | None = None
-        self.held_prior: Hyper | None = None
+        self.held_prior: HeldPrior | None = None
         self.use_basis(self.config.make_basis(substrate))
 
     def use_basis(self, basis: ShiftedBasis) -> None:

@@ -81,7 +81,7 @@ from scopetwin.recon.two_positions import (
     without,
     without_outliers,
 )
-from scopetwin.recon.uncertainty import PriorAhead, posterior
+from scopetwin.recon.uncertainty import HeldPrior, PriorAhead, posterior
 from scopetwin.scenes.errors import ScopetwinError
 from scopetwin.scenes.pattern_stage import shift_pattern, stage_shift
 from scopetwin.scenes.setup import Setup
@@ -403,7 +403,7 @@ def reconstruct_image(
     policy: ReconstructionPolicy = DEFAULT_POLICY,
     history_path: str | Path | None = None,
     evidence_start: Hyper | None = None,
-    held_prior: Hyper | None = None,
+    held_prior: HeldPrior | None = None,
 ) -> ImageReconstruction:
     """Markers of a deflectometry image and the surface they give (thesis §1.4-§1.8), with every fallback of ``policy``.
 
@@ -869,6 +869,16 @@ class Reconstruction:
         u = getattr(self.result, "uncertainty", None)
         return Hyper.from_dict(u.hyper) if self.method == "centroid" and u is not None else None
 
+    @property
+    def held_prior(self) -> HeldPrior | None:
+        """:attr:`prior` with its plausibility on this frame's gradients: what a later frame of the same surface
+        holds (``scopetwin.reconstruct(previous=, hold=True)``); None without a prior."""
+        u = getattr(self.result, "uncertainty", None)
+        prior = self.prior
+        if prior is None or u is None or u.prior_z is None:
+            return None
+        return HeldPrior(prior, u.prior_z)
+
     def summary(self) -> dict[str, Any]:
         """JSON-ready: the method's own summary, the uncertainty and the strategy's path (for fringes ``method`` is
         ``"fringes"`` and ``absolute_from`` says where the absolute height came from)."""
@@ -894,7 +904,7 @@ def reconstruct(
     policy: ReconstructionPolicy = DEFAULT_POLICY,
     history_path: str | Path | None = None,
     evidence_start: Hyper | None = None,
-    held_prior: Hyper | None = None,
+    held_prior: HeldPrior | None = None,
     second: tuple[NDArray[Any], float | None] | None = None,
     two_positions: TwoPositionConfig = DEFAULT_TWO_POSITIONS,
     fringe_config: FringeConfig | None = None,

@@ -41,7 +41,7 @@ class Iteration(Protocol):
     config: ReconstructionConfig
     sub: Substrate2D
     evidence_start: Hyper | None
-    held_prior: Hyper | None
+    held_prior: HeldPrior | None
 
     def roi_mean(self, coef: Array) -> float: ...
 
@@ -74,6 +74,9 @@ class Uncertainty:
         d criterion / d start height of the outer loop (from its last two runs; 1 when unknown).
     hyper : dict
         The prior chosen by evidence (:meth:`scopetwin.recon.posterior.Hyper.as_dict`).
+    prior_z : float or None
+        :func:`held_prior_z` of the gradients this frame's posterior read with that prior: what a later frame of the
+        same surface that holds the prior is compared with (:class:`HeldPrior`).
     """
 
     absolute_um: float
@@ -82,6 +85,7 @@ class Uncertainty:
     correction_um: float
     slope: float
     hyper: dict[str, float]
+    prior_z: float | None = None
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready (the contract's ``uncertainty`` object plus details)."""
@@ -91,7 +95,19 @@ class Uncertainty:
             "correction_um": self.correction_um,
             "criterion_slope": self.slope,
             "prior": self.hyper,
+            "prior_z": self.prior_z,
         }
+
+
+@dataclass(frozen=True)
+class HeldPrior:
+    """A prior held for a rig's later frames of one surface (:attr:`scopetwin.recon.reconstruct.Reconstructor.
+    held_prior`): ``hyper``, and ``z``, the :func:`held_prior_z` of the frame it was chosen on
+    (:attr:`Uncertainty.prior_z`). A later frame's gradients are read with it as they are where their own z lies
+    within :data:`HELD_PRIOR_Z` of ``z``: as plausible a draw of it as that frame's."""
+
+    hyper: Hyper
+    z: float
 
 
 @dataclass
@@ -239,13 +255,15 @@ def _read(
         traced = (xy, hx, hy)
         hyper = earlier.hyper if earlier is not None else None
         frame = None
-        if hyper is None and it.held_prior is not None:
-            frame = read_frame(sub, axes, traced, it.held_prior, cfg.posterior_points)
+        held = it.held_prior
+        if hyper is None and held is not None:
+            frame = read_frame(sub, axes, traced, held.hyper, cfg.posterior_points)
             z = held_prior_z(frame.post.v)
-            if abs(z) <= HELD_PRIOR_Z:
-                hyper, note = it.held_prior, f"prior held (its chi-square on these gradients: z {z:+.2g})"
+            versus = f"chi-square z {z:+.3g}, {held.z:+.3g} on the frame it was chosen on"
+            if abs(z - held.z) <= HELD_PRIOR_Z:
+                hyper, note = held.hyper, f"prior held ({versus})"
             else:
-                frame, note = None, f"held prior implausible here (chi-square z {z:+.3g}): searched again from it"
+                frame, note = None, f"held prior implausible here ({versus}): searched again from it"
         if hyper is None and ahead is not None:
             hyper = ahead.hyper(it, surf, markers, traced)
         hyper = hyper or evidence_prior(it.config, traced, it.evidence_start)
@@ -264,11 +282,13 @@ def _read(
     return _Reading(frame, hyper, (m1 - m2) - post.delta_mean, post.delta_std, data, note)
 
 
-#: Largest |z| of :func:`held_prior_z` at which a held prior (:attr:`scopetwin.recon.reconstruct.Reconstructor.
-#: held_prior`) is read as it is; beyond it the prior is searched again by evidence, started from the held one.
-#: Measured on 16 spp renders with sensor noise (the §1.10 preset's seeds 1 and 2, glass-like seeds 1-3), each frame
-#: read with each frame's prior, its scale kept: a frame of the same surface +0.4 to +2.6; another glass-like surface
-#: -0.6 to +4.1; the other kind -22.6 to -22.8 (glass-like frames under the preset's prior: no result at all).
+#: Largest distance of a frame's :func:`held_prior_z` from the held one's (:class:`HeldPrior`) at which the held prior
+#: is read as it is; beyond it the prior is searched again by evidence, started from the held one. z itself is far
+#: from 0 on some surfaces under their own prior (cut sheets up to +14, locally featured ones -6 to +8: the model is
+#: not exact there), but it hardly moves between frames of one surface: within 0.4 over three frames of each of 8
+#: surfaces of four families (benchmarks/held_prior.py's noise). On 16 spp renders with sensor noise read with another
+#: surface's prior: another glass-like sheet 0.4-3.4 away, the other kind 21-23 away (glass-like frames under the
+#: §1.10 preset's prior gave no result at all).
 HELD_PRIOR_Z = 3.0
 
 
@@ -355,7 +375,8 @@ def posterior(
     u_shape = float(np.sqrt(np.mean(shape_var[post.roi])))
     node = np.sqrt((u_abs * (1.0 + sens)) ** 2 + post.contrast_std**2 + dev2)
     std_map = HeightMap(node, post.node_x[0], post.node_x[-1], post.node_y[0], post.node_y[-1])
-    u = Uncertainty(u_abs * 1e3, u_shape * 1e3, std_map, (h_final - h0) * 1e3, slope, reading.hyper.as_dict())
+    z = held_prior_z(post.v)
+    u = Uncertainty(u_abs * 1e3, u_shape * 1e3, std_map, (h_final - h0) * 1e3, slope, reading.hyper.as_dict(), z)
     return Posterior(surf, u, (post.delta_mean, post.delta_std), note, reading.prior_note)
 
 

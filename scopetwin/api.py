@@ -262,6 +262,8 @@ def _check_reconstruct_options(
 
     if hold and previous is None:
         raise ReconstructionError("hold=True holds the scale and prior of previous=; give previous=")
+    if hold and getattr(previous, "held_prior", None) is None:
+        raise ReconstructionError("hold=True: previous= has no posterior prior to hold (reconstructed without one)")
     if previous is not None and (second is not None or method not in (None, "centroid")):
         raise ReconstructionError("previous= takes one image and the centroid method (no second=, no inverse)")
     if second is not None and method == "inverse":
@@ -385,7 +387,7 @@ def _reconstruct_checked(
         config=config,
         policy=policy.with_changes(rechoose_scale=False) if hold else policy,
         evidence_start=start,
-        held_prior=start if hold else None,
+        held_prior=previous.held_prior if hold and previous is not None else None,
         second=pair,
     )
 

@@ -74,7 +74,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         raise ScopetwinError("--setup is required with a camera image (a fringes.json carries its own setup)")
     if args.method == "fringes":
         raise ScopetwinError(f"--method fringes takes a fringe measurement's fringes.json, not the image {args.image}")
-    start, scale = _previous(args)
+    start, scale, held = _previous(args)
     setup = load_setup(args.setup)
     if setup.scene != "deflectometry":
         raise ScopetwinError(f"setup {args.setup} is a {setup.scene!r} scene; reconstruct needs a deflectometry setup")
@@ -98,7 +98,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
         policy=_policy(args),
         history_path=history_path,
         evidence_start=start,
-        held_prior=start if args.hold else None,
+        held_prior=held,
     )
     found, result = done.markers, done.result
     heights = result.heightmap()
@@ -136,31 +136,42 @@ def cmd_reconstruct(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def _previous(args: argparse.Namespace) -> tuple[Any, float | None]:
+def _previous(args: argparse.Namespace) -> tuple[Any, float | None, Any]:
     """``--previous``: the prior and the final basis scale (mm; None where the JSON has no history) an earlier
-    reconstruction's JSON recorded, checked before any work; (None, None) without the option (the command line's
-    ``scopetwin.reconstruct(previous=...)``)."""
+    reconstruction's JSON recorded, and under ``--hold`` the prior to hold (with its ``prior_z``), checked before any
+    work; (None, None, None) without the option (the command line's ``scopetwin.reconstruct(previous=, hold=)``)."""
     if args.previous is None:
         if args.hold:
             raise ScopetwinError("--hold holds the scale and prior of --previous's frame; give --previous JSON")
-        return None, None
+        return None, None, None
     if args.second is not None or args.method == "inverse":
         raise ScopetwinError("--previous takes one image and the centroid method (no --second, no --method inverse)")
     if args.posterior == "off":
         raise ScopetwinError("--previous starts the posterior's evidence search, which --posterior off skips")
     from scopetwin.recon.posterior import recorded_prior
+    from scopetwin.recon.uncertainty import HeldPrior
     from scopetwin.scenes.inputs import load_json_input
 
     record = load_json_input(args.previous, "reconstruction JSON", PRIOR_JSON_LIMIT)
     prior = recorded_prior(record, args.previous)
+    held = HeldPrior(prior, _recorded_z(record, args.previous)) if args.hold else None
     history = record.get("history")
     last = history[-1] if isinstance(history, list) and history and isinstance(history[-1], dict) else {}
     scale = last.get("sigma_mm")
     if scale is None:
-        return prior, None
+        return prior, None, held
     if isinstance(scale, bool) or not isinstance(scale, int | float) or not 0.0 < scale <= MAX_SCALE_MM:
         raise ScopetwinError(f"{args.previous}: history[-1].sigma_mm must be a basis scale in (0, {MAX_SCALE_MM}] mm")
-    return prior, float(scale)
+    return prior, float(scale), held
+
+
+def _recorded_z(record: dict[str, Any], where: str) -> float:
+    """``uncertainty.prior_z`` of a reconstruction's JSON: the prior's plausibility on that frame, which ``--hold``
+    compares the next frame's with."""
+    z = (record.get("uncertainty") or {}).get("prior_z")
+    if isinstance(z, bool) or not isinstance(z, int | float) or not abs(z) < 1e12:
+        raise ScopetwinError(f"{where}: --hold needs uncertainty.prior_z, a finite number (got {z!r})")
+    return float(z)
 
 
 #: Largest basis scale ``--previous`` takes from a JSON, mm (the scale choice's candidates reach 24 mm).

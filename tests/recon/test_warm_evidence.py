@@ -100,14 +100,15 @@ def test_the_warm_start_lands_where_the_cold_one_does(frames, monkeypatch) -> No
 
 
 def test_a_held_prior_reads_the_next_frame_without_a_search(frames, monkeypatch) -> None:
-    """Reconstructor.held_prior: the next frame's gradients, a plausible draw of the first frame's prior, are read
-    with it as it is (no evidence evaluation, the path says so); the uncertainties stay within 10 % of a frame searched
-    from that prior and the heights within 3 u of the truth. An implausible prior (the same one, its amplitudes and
-    noise a hundred times too large) is searched again from."""
+    """Reconstructor.held_prior: the next frame's gradients, as plausible a draw of the first frame's prior as that
+    frame's own (held_prior_z), are read with it as it is (no evidence evaluation, the path says so); the
+    uncertainties stay within 10 % of a frame searched from that prior and the heights within 3 u of the truth. An
+    implausible prior (the same one, its amplitudes and noise a hundred times too large) is searched again from."""
     from dataclasses import replace
 
     from scopetwin.recon.config import ReconstructionConfig
     from scopetwin.recon.policy import DEFAULT_POLICY
+    from scopetwin.recon.uncertainty import HeldPrior
 
     setup, heights, (first, second) = frames
     sub = Substrate2D.from_setup(setup)
@@ -125,7 +126,7 @@ def test_a_held_prior_reads_the_next_frame_without_a_search(frames, monkeypatch)
         with monkeypatch.context() as patch:
             patch.setattr(posterior_module, "_evidence_and_gradient", lambda *a: calls.append(1) or inner(*a))
             rec = Reconstructor.from_setup(setup, config)
-            rec.evidence_start, rec.held_prior = hyper, hyper
+            rec.evidence_start, rec.held_prior = hyper, HeldPrior(hyper, res1.uncertainty.prior_z)
             return solve(rec, second, policy), len(calls)
 
     res, n = held(prior)
@@ -168,6 +169,8 @@ def test_previous_with_a_second_image_or_the_inverse_method_is_one_clear_error()
             scopetwin.reconstruct(image, "thesis-1.10-deflectometry", previous=dummy, **kwargs)  # type: ignore[arg-type]
     with pytest.raises(ReconstructionError, match="give previous="):
         scopetwin.reconstruct(image, "thesis-1.10-deflectometry", hold=True)
+    with pytest.raises(ReconstructionError, match="no posterior prior to hold"):
+        scopetwin.reconstruct(image, "thesis-1.10-deflectometry", previous=dummy, hold=True)  # type: ignore[arg-type]
 
 
 def test_a_recorded_prior_is_read_back_and_checked() -> None:
@@ -220,6 +223,7 @@ def test_cli_previous_is_checked_before_any_work(tmp_path) -> None:
         (["--previous", str(good), "--second", str(tmp_path / "b.exr")], "--previous takes one image"),
         (["--previous", str(good), "--posterior", "off"], "--posterior off skips"),
         (["--hold"], "give --previous JSON"),
+        (["--previous", str(good), "--hold"], "--hold needs uncertainty.prior_z"),
     ):
         args = parser.parse_args(base + extra)
         with pytest.raises(ScopetwinError, match=match):
