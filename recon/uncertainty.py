@@ -283,12 +283,13 @@ def _read(
 
 
 #: Largest distance of a frame's :func:`held_prior_z` from the held one's (:class:`HeldPrior`) at which the held prior
-#: is read as it is; beyond it the prior is searched again by evidence, started from the held one. z itself is far
-#: from 0 on some surfaces under their own prior (cut sheets up to +14, locally featured ones -6 to +8: the model is
-#: not exact there), but it hardly moves between frames of one surface: within 0.4 over three frames of each of 8
-#: surfaces of four families (benchmarks/held_prior.py's noise). On 16 spp renders with sensor noise read with another
-#: surface's prior: another glass-like sheet 0.4-3.4 away, the other kind 21-23 away (glass-like frames under the
-#: §1.10 preset's prior gave no result at all).
+#: is read as it is; beyond it the prior is searched again by evidence, started from the held one. z itself lies far
+#: from 0 on some surfaces under their own prior (a cut sheet +14, locally featured ones -6 and +8: the model is not
+#: exact there), but it moves little between frames of one surface: benchmarks/held_prior.py's 16 surfaces (eight
+#: families, two seeds), three later frames each against the first: within 1.1 on 15, up to 5.0 on one §1.9 Gaussian
+#: (two of its frames then searched). On 16 spp renders with sensor noise read with another surface's prior: another
+#: glass-like sheet 0.3-3.4 away, the other kind about 23 away (glass-like frames under the §1.10 preset's prior gave
+#: no result at all).
 HELD_PRIOR_Z = 3.0
 
 
