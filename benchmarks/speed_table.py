@@ -446,6 +446,7 @@ def _warm_next_frame(ctx: Context, rec: Any, first: Any) -> list[tuple[str, floa
     from scopetwin.recon.posterior import Hyper
     from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor
     from scopetwin.recon.strategy import solve
+    from scopetwin.recon.uncertainty import HeldPrior
     from scopetwin.scenes.io import read_image
 
     image = read_image(ctx.render_cached(ctx.setup, 2, "frame-1.10"))[0]
@@ -458,7 +459,10 @@ def _warm_next_frame(ctx: Context, rec: Any, first: Any) -> list[tuple[str, floa
         times = []
         for _ in range(5):  # a fresh Reconstructor each time: a reused one keeps the scale it ended on
             warm = Reconstructor.from_setup(ctx.setup, rec.config.starting_at(float(first.surface.basis.sigma[0])))
-            warm.evidence_start, warm.held_prior = prior, (prior if hold else None)
+            warm.evidence_start, warm.held_prior = (
+                prior,
+                (HeldPrior(prior, first.uncertainty.prior_z) if hold else None),
+            )
             policy = held if hold else DEFAULT_POLICY
             times += repeat_min(lambda w=warm, p=policy: solve(w, obs, p), min_runs=1, max_runs=1)
         out.append((f"  next frame, {label}", min(times), 0.15))
