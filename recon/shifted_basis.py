@@ -332,10 +332,16 @@ def _gradient_data(
     return xa, ya, gx, gy
 
 
-def _solve_normal(a: Array, b: Array, nb: int, lam: float) -> Array:
-    """Least squares of a c = b with ridge ``lam`` on the first ``nb`` coefficients, by the normal equations."""
+def _gram(a: Array, nb: int, lam: float) -> Array:
+    """The normal equations' matrix a^T a with ridge ``lam`` on its first ``nb`` diagonal entries."""
     m = a.T @ a
     m[np.arange(nb), np.arange(nb)] += lam
+    return m
+
+
+def _solve_normal(a: Array, b: Array, nb: int, lam: float) -> Array:
+    """Least squares of a c = b with ridge ``lam`` on the first ``nb`` coefficients, by the normal equations."""
+    m = _gram(a, nb, lam)
     v = a.T @ b
     try:
         return sla.cho_solve(sla.cho_factor(m, lower=False, check_finite=False), v, check_finite=False)
@@ -360,21 +366,18 @@ def _solve_lstsq(a: Array, b: Array, nb: int, lam: float) -> Array:
     of the time (the 2 mm basis, 1,037 terms: 0.042 against 0.414 s); the plain normal equations are 3e-9 and 9e-7 off.
     """
     try:
-        m = a.T @ a
-        m[np.arange(nb), np.arange(nb)] += lam
-        factor = sla.cho_factor(m, lower=False, check_finite=False)
-        x = sla.cho_solve(factor, a.T @ b, check_finite=False)
-        step = x
-        for _ in range(SEMINORMAL_STEPS):
-            rhs = a.T @ (b - a @ x)
-            rhs[:nb] -= lam * x[:nb]
-            step = sla.cho_solve(factor, rhs, check_finite=False)
-            x = x + step
-        if np.all(np.isfinite(x)) and np.max(np.abs(step)) <= SEMINORMAL_TOL * max(np.max(np.abs(x)), 1e-300):
-            return np.asarray(x)
-    except np.linalg.LinAlgError:
-        pass
-    return _solve_stacked(a, b, nb, lam)
+        factor = sla.cho_factor(_gram(a, nb, lam), lower=False, check_finite=False)
+    except np.linalg.LinAlgError:  # no factor: QR decides
+        return _solve_stacked(a, b, nb, lam)
+    x = sla.cho_solve(factor, a.T @ b, check_finite=False)
+    step = x
+    for _ in range(SEMINORMAL_STEPS):
+        rhs = a.T @ (b - a @ x)
+        rhs[:nb] -= lam * x[:nb]
+        step = sla.cho_solve(factor, rhs, check_finite=False)
+        x = x + step
+    settled = np.all(np.isfinite(x)) and np.max(np.abs(step)) <= SEMINORMAL_TOL * max(np.max(np.abs(x)), 1e-300)
+    return np.asarray(x) if settled else _solve_stacked(a, b, nb, lam)
 
 
 def _solve_stacked(a: Array, b: Array, nb: int, lam: float) -> Array:

@@ -266,7 +266,8 @@ def _read(
                 frame, note = None, f"held prior implausible here ({versus}): searched again from it"
         if hyper is None and ahead is not None:
             hyper = ahead.hyper(it, surf, markers, traced)
-        hyper = hyper or evidence_prior(it.config, traced, it.evidence_start)
+        # a held prior found implausible is searched again from itself
+        hyper = hyper or evidence_prior(it.config, traced, held.hyper if held is not None else it.evidence_start)
         if frame is None:
             frame = read_frame(sub, axes, traced, hyper, cfg.posterior_points, earlier.frame if earlier else None)
     except PosteriorError:
