@@ -97,7 +97,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", choices=["psd", "glass", "seed"], help="one kind of surface")
     args = ap.parse_args()
-    default = ReconstructionConfig()
+    default = ReconstructionConfig(prior="process")  # the Gaussian process's search, which these settings tune
     searches = {"default": default, "full": replace(default, evidence_coarse_points=0)}
     print(
         f"{'surface':17s} {'max: abs µm':>11s} {'u':>6s} {'s':>5s}   "

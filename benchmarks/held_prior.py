@@ -25,7 +25,7 @@ import numpy as np
 
 from scopetwin.recon.config import ReconstructionConfig
 from scopetwin.recon.policy import DEFAULT_POLICY
-from scopetwin.recon.posterior import Hyper
+from scopetwin.recon.posterior import prior_from_dict
 from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, single_thread_blas
 from scopetwin.recon.strategy import solve
 from scopetwin.recon.substrate import Substrate2D
@@ -71,7 +71,7 @@ def surface_rows(family: str, seed: int, frames: int) -> list[dict[str, Any]]:
     if first.uncertainty is None:
         return []
     u = first.uncertainty
-    prior, scale = HeldPrior(Hyper.from_dict(u.hyper), u.prior_z), float(first.surface.basis.sigma[0])
+    prior, scale = HeldPrior(prior_from_dict(u.hyper), u.prior_z), float(first.surface.basis.sigma[0])
     rows = []
     for k in range(1, frames):
         obs = _frame(truth, seed, k)

@@ -85,6 +85,7 @@ def _kernel(xy: np.ndarray, comps: list[tuple[float, float]]) -> np.ndarray:
 def _traced(family: str, seed: int) -> tuple[np.ndarray, np.ndarray, Any, list[float]]:
     """The family's surface reconstructed with the defaults: the traced gradients' positions relative to the
     substrate's centre (n, 2), the gradients [f_x; f_y] (2n,), the prior the posterior chose and the half extents."""
+    from scopetwin.recon.config import ReconstructionConfig
     from scopetwin.recon.posterior import Hyper
     from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor, single_thread_blas
     from scopetwin.recon.strategy import solve
@@ -99,7 +100,7 @@ def _traced(family: str, seed: int) -> tuple[np.ndarray, np.ndarray, Any, list[f
     truth = marker_truth(setup, heights)
     vis = truth.visible
     px = truth.center_px[vis] + 0.005 * np.random.default_rng([seed, 7]).standard_normal((int(vis.sum()), 2))
-    rec = Reconstructor.from_setup(setup)
+    rec = Reconstructor.from_setup(setup, ReconstructionConfig(prior="process"))  # the process's parts
     obs = MarkerObservations(truth.ij[vis], px)
     with single_thread_blas():
         res = solve(rec, obs)

@@ -443,7 +443,7 @@ def _warm_next_frame(ctx: Context, rec: Any, first: Any) -> list[tuple[str, floa
     choice) and that prior read as it is where plausible (``Reconstructor.held_prior``)."""
     from scopetwin.recon.markers import find_markers_for
     from scopetwin.recon.policy import DEFAULT_POLICY
-    from scopetwin.recon.posterior import Hyper
+    from scopetwin.recon.posterior import prior_from_dict
     from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor
     from scopetwin.recon.strategy import solve
     from scopetwin.recon.uncertainty import HeldPrior
@@ -452,7 +452,7 @@ def _warm_next_frame(ctx: Context, rec: Any, first: Any) -> list[tuple[str, floa
     image = read_image(ctx.render_cached(ctx.setup, 2, "frame-1.10"))[0]
     found = find_markers_for(image, ctx.setup)
     obs = MarkerObservations(found.ij, found.centroids)
-    prior = Hyper.from_dict(first.uncertainty.hyper)
+    prior = prior_from_dict(first.uncertainty.hyper)
     held = DEFAULT_POLICY.with_changes(rechoose_scale=False)
     out: list[tuple[str, float, float | None]] = []
     for label, hold in (("as previous= (scale and prior)", False), ("both held, previous= and hold=True", True)):

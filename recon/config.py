@@ -90,6 +90,11 @@ class ReconstructionConfig:
         more maximisation of the evidence on all its observations (about 20-50 evaluations, ~0.3-0.6 s a frame on
         2 cores); measured on a 16 spp §1.10 render with sensor noise, a 3 mm wide, 2 µm deep dimple comes back at
         88 % of its depth with it, -9 % without. Surfaces without such features keep the prior without it.
+    prior : {"auto", "process"}
+        The posterior's prior (:func:`scopetwin.recon.uncertainty.evidence_prior`): ``"auto"``, the shifted basis
+        itself as a Bayesian linear model (:mod:`scopetwin.recon.basis_posterior`: one m x m factorisation) where the
+        evidence peaks at one of its scales, the Gaussian process of :mod:`scopetwin.recon.posterior` where the surface
+        is rougher than that (and wherever ``local_features`` is on); ``"process"``: always the Gaussian process.
     posterior_points : int
         Most gradient observations entering the posterior (:func:`scopetwin.recon.uncertainty.posterior_subset_indices`:
         all of the outermost along y, an even subsample of the rest).
@@ -132,6 +137,7 @@ class ReconstructionConfig:
     posterior_points: int = 800
     posterior_iterations: int = 4
     posterior_settle: float = 1.0
+    prior: Literal["auto", "process"] = "auto"
 
     @classmethod
     def thesis(cls, literal_axes: bool = True, **changes: Any) -> ReconstructionConfig:

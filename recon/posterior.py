@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
-from typing import Any
+from typing import Any, Protocol, TypeAlias
 
 import numpy as np
 import scipy.linalg as sla
@@ -118,8 +118,10 @@ class Hyper:
         )
 
     def as_dict(self) -> dict[str, Any]:
-        """JSON-ready, in µm / mm / nm / µrad; ``smooth_shape`` null for a squared-exponential smooth part."""
+        """JSON-ready, in µm / mm / nm / µrad; ``smooth_shape`` null for a squared-exponential smooth part; ``kind``
+        "process" (a :class:`BasisPrior`'s is "basis")."""
         return {
+            "kind": "process",
             "smooth_amp_um": self.smooth_amp * 1e3,
             "smooth_len_mm": self.smooth_len,
             "broad_amp_nm": self.broad_amp * 1e6,
@@ -132,23 +134,65 @@ class Hyper:
         }
 
 
+@dataclass(frozen=True)
+class BasisPrior:
+    """The finite-basis prior (:mod:`scopetwin.recon.basis_posterior`): the Gaussian basis of scale ``sigma`` (mm)
+    covering the substrate (:func:`scopetwin.recon.basis_posterior.covering`), its coefficients' prior standard
+    deviation ``tau`` (mm), and the gradients' white noise (rad) per component."""
+
+    sigma: float
+    tau: float
+    noise: float
+    noise_y: float
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON form: ``kind`` "basis", the scale in mm, tau in µm, the noise in µrad."""
+        return {
+            "kind": "basis",
+            "basis_sigma_mm": self.sigma,
+            "coef_std_um": self.tau * 1e3,
+            "noise_urad": self.noise * 1e6,
+            "noise_y_urad": self.noise_y * 1e6,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> BasisPrior:
+        """The inverse of :meth:`as_dict`."""
+        return cls(
+            float(d["basis_sigma_mm"]), float(d["coef_std_um"]) * 1e-3, float(d["noise_urad"]) * 1e-6,
+            float(d["noise_y_urad"]) * 1e-6,
+        )  # fmt: skip
+
+
+#: The keys of :meth:`BasisPrior.as_dict` that hold positive numbers.
+BASIS_KEYS = ("basis_sigma_mm", "coef_std_um", "noise_urad", "noise_y_urad")
+
+
+#: A posterior's prior: the Gaussian process's, or the finite basis's (:mod:`scopetwin.recon.basis_posterior`).
+Prior: TypeAlias = "Hyper | BasisPrior"
+
 #: The keys of a recorded prior (:meth:`Hyper.as_dict`) that must be positive numbers; ``feature_amp_nm`` may be 0.
 _POSITIVE = ("smooth_amp_um", "smooth_len_mm", "broad_amp_nm", "broad_len_mm", "noise_urad", "noise_y_urad")
 
 
-def recorded_prior(record: Any, where: str) -> Hyper:
-    """The prior a reconstruction chose, from its JSON output (``uncertainty.prior``: :meth:`Hyper.as_dict`), checked:
-    the warm start of another frame's evidence search (:func:`fit_hyper` ``start``).
+def recorded_prior(record: Any, where: str) -> Prior:
+    """The prior a reconstruction chose, from its JSON output (``uncertainty.prior``: :meth:`Hyper.as_dict`, or
+    :meth:`BasisPrior.as_dict` where its ``kind`` is "basis"), checked: the warm
+    start of another frame's evidence search (:func:`fit_hyper` ``start``).
 
     Raises
     ------
     PosteriorError
-        No ``uncertainty.prior`` object, or one of its values missing or not a finite number in its range (naming it).
+        No ``uncertainty.prior`` object, an unknown ``kind``, or one of its values missing or not a finite number in
+        its range (naming it).
     """
     prior = record.get("uncertainty") if isinstance(record, dict) else None
     prior = prior.get("prior") if isinstance(prior, dict) else None
     if not isinstance(prior, dict):
         raise PosteriorError(f"{where} holds no uncertainty.prior (the JSON of a reconstruction with its posterior)")
+    kind = prior.get("kind", "process")
+    if kind not in ("process", "basis"):
+        raise PosteriorError(f"{where}: uncertainty.prior.kind must be 'process' or 'basis', got {kind!r}")
 
     def check(key: str, positive: bool = True, absent: bool = False, null: bool = False) -> None:
         """``key``'s value a finite number > 0 (``positive``) or >= 0; ``absent``: it may be missing, ``null``: None."""
@@ -157,15 +201,27 @@ def recorded_prior(record: Any, where: str) -> Hyper:
         v = prior.get(key)
         x = float(v) if isinstance(v, int | float) and not isinstance(v, bool) else float("nan")
         if not (x > 0 if positive else x >= 0) or x == float("inf"):
-            kind = "positive" if positive else "non-negative"
-            raise PosteriorError(f"{where}: uncertainty.prior.{key} must be a {kind} number, got {v!r}")
+            what = "positive" if positive else "non-negative"
+            raise PosteriorError(f"{where}: uncertainty.prior.{key} must be a {what} number, got {v!r}")
 
+    if kind == "basis":
+        for key in BASIS_KEYS:
+            check(key)
+        return BasisPrior.from_dict(prior)
     for key in _POSITIVE:
         check(key)
     check("smooth_shape", absent=True, null=True)
     check("feature_amp_nm", positive=False, absent=True)
     check("feature_len_mm", absent=True)
     return Hyper.from_dict(prior)
+
+
+def prior_from_dict(d: dict[str, Any]) -> Prior:
+    """A prior from its JSON form (:meth:`Hyper.as_dict` or, ``kind`` "basis", :meth:`BasisPrior.as_dict`), as a
+    reconstruction reports it."""
+    if d.get("kind") == "basis":
+        return BasisPrior.from_dict(d)
+    return Hyper.from_dict(d)
 
 
 #: Shape alpha of the smooth part's rational-quadratic covariance a^2 (1 + r^2 / (2 alpha l^2))^-alpha, the
@@ -688,10 +744,16 @@ class FramePosterior:
         :class:`_NodePart`).
     roi : ndarray of bool, (ny, nx)
         Nodes inside the ROI.
-    hyper : Hyper
+    hyper : Hyper or BasisPrior
         The prior used.
     frame1, frame2 : ndarray, (k, 2)
         The frame-region points the maxima were taken over.
+    nodes : NodeSpread
+        The node grid's whitened contrasts and spread.
+    v : ndarray
+        The whitened gradients the contrasts' mean is read with: ``nodes.whitened.T @ v``.
+    chi2 : (float, int) or None
+        g^T K^-1 g and len(g), where |v|^2 is not it (a finite-basis reading, whose v has the basis's length).
     """
 
     d_mean: float
@@ -701,11 +763,12 @@ class FramePosterior:
     node_x: Array
     node_y: Array
     roi: NDArray[np.bool_]
-    hyper: Hyper
+    hyper: Prior
     frame1: Array
     frame2: Array
-    nodes: _NodePart
-    v: Array  # L^-1 g, the whitened gradients the contrasts' mean is read with
+    nodes: NodeSpread
+    v: Array
+    chi2: tuple[float, int] | None = None
 
     @cached_property
     def contrast_mean(self) -> Array:
@@ -758,6 +821,17 @@ def _roi_functional(gp: GradientGP, pts: Array, axes: tuple[Array, Array]) -> tu
 #: model lies 0.13 nm (0.007 of its spread) from a fresh posterior of the same observations, where choosing the
 #: posterior's subset anew alone moves it by 4 nm (0.2 of its spread): the model keeps its subset too.
 REUSE_SHIFT_MM = 5e-4
+
+
+class NodeSpread(Protocol):
+    """The node grid's whitened contrasts (``whitened``: the contrasts' mean is ``whitened.T @ v``) and their
+    posterior standard deviation (``std``, (ny, nx), mm)."""
+
+    @property
+    def whitened(self) -> Array: ...
+
+    @property
+    def std(self) -> Array: ...
 
 
 class _NodePart:

@@ -73,7 +73,7 @@ from scopetwin.scenes.setup import Setup
 from scopetwin.scenes.surface import HeightMap
 
 if TYPE_CHECKING:
-    from scopetwin.recon.posterior import Hyper
+    from scopetwin.recon.posterior import Prior
 
 #: A centroid-bias step: (current surface, marker indices (n, 2), measured image positions (n, 2) px)
 #: -> corrected image positions of the marker centres (n, 2) px.
@@ -325,10 +325,10 @@ class Reconstructor:
 
     Attributes
     ----------
-    evidence_start : Hyper or None
+    evidence_start : Hyper or BasisPrior or None
         The one start of the posterior step's evidence maximisation (a warm start: the prior of an earlier frame of
         the same setup, :attr:`scopetwin.recon.uncertainty.Uncertainty.hyper` through
-        :meth:`scopetwin.recon.posterior.Hyper.from_dict`); None (default): two cold starts. Set by the caller, never
+        :func:`scopetwin.recon.posterior.prior_from_dict`); None (default): cold starts. Set by the caller, never
         by a solve, so that a frame's result does not depend on the frames before it unless asked.
     held_prior : HeldPrior or None
         A prior the posterior step reads the gradients with as it is, without an evidence search, where they are as
@@ -354,7 +354,7 @@ class Reconstructor:
         self.sigma_scores: dict[float, float] = {}
         self.last: SBFSurface | None = None
         self.last_xy: Array | None = None  # the markers' points on the substrate in the last inner iteration, mm
-        self.evidence_start: Hyper | None = None
+        self.evidence_start: Prior | None = None
         self.held_prior: HeldPrior | None = None
         self.use_basis(self.config.make_basis(substrate))
 

@@ -90,7 +90,7 @@ if TYPE_CHECKING:
     from scopetwin.recon.fringes.reconstruct import FringeConfig, FringeResult
     from scopetwin.recon.inverse import InverseConfig, InverseResult
     from scopetwin.recon.markers import Markers
-    from scopetwin.recon.posterior import Hyper
+    from scopetwin.recon.posterior import Prior
     from scopetwin.recon.shifted_basis import SBFSurface
 
 Method = Literal["centroid", "inverse", "fringes"]
@@ -402,7 +402,7 @@ def reconstruct_image(
     config: ReconstructionConfig | None = None,
     policy: ReconstructionPolicy = DEFAULT_POLICY,
     history_path: str | Path | None = None,
-    evidence_start: Hyper | None = None,
+    evidence_start: Prior | None = None,
     held_prior: HeldPrior | None = None,
 ) -> ImageReconstruction:
     """Markers of a deflectometry image and the surface they give (thesis §1.4-§1.8), with every fallback of ``policy``.
@@ -861,13 +861,13 @@ class Reconstruction:
         return float(basis.sigma[0]) if self.method == "centroid" and isinstance(basis, ShiftedBasis) else None
 
     @property
-    def prior(self) -> Hyper | None:
-        """The Gaussian-process prior the centroid method's posterior chose by evidence (None without one): the warm
-        start of the next frame of the same setup (``evidence_start``)."""
-        from scopetwin.recon.posterior import Hyper
+    def prior(self) -> Prior | None:
+        """The prior the centroid method's posterior chose by evidence (None without one): the warm start of the next
+        frame of the same setup (``evidence_start``)."""
+        from scopetwin.recon.posterior import prior_from_dict
 
         u = getattr(self.result, "uncertainty", None)
-        return Hyper.from_dict(u.hyper) if self.method == "centroid" and u is not None else None
+        return prior_from_dict(u.hyper) if self.method == "centroid" and u is not None else None
 
     @property
     def held_prior(self) -> HeldPrior | None:
@@ -903,7 +903,7 @@ def reconstruct(
     inverse_config: InverseConfig | None = None,
     policy: ReconstructionPolicy = DEFAULT_POLICY,
     history_path: str | Path | None = None,
-    evidence_start: Hyper | None = None,
+    evidence_start: Prior | None = None,
     held_prior: HeldPrior | None = None,
     second: tuple[NDArray[Any], float | None] | None = None,
     two_positions: TwoPositionConfig = DEFAULT_TWO_POSITIONS,

@@ -25,7 +25,7 @@ from scopetwin.recon.config import ReconstructionConfig
 from scopetwin.recon.markers.worker import WORKER_NAME, MarkerWorker, Pending, Searched, search_now
 from scopetwin.recon.parallel import available_cpus as _cpus
 from scopetwin.recon.policy import DEFAULT_POLICY, ReconstructionPolicy
-from scopetwin.recon.posterior import Hyper
+from scopetwin.recon.posterior import prior_from_dict
 from scopetwin.recon.reconstruct import MarkerObservations, ReconstructionResult, Reconstructor
 from scopetwin.recon.strategy import ImageReconstruction, solve
 from scopetwin.scenes.setup import Setup
@@ -81,7 +81,7 @@ def _next_frame(frames: Iterator[NDArray[Any]], stage: _Stage) -> Pending | None
 def _warm(rec: Reconstructor, result: ReconstructionResult) -> None:
     """The prior this frame's posterior chose by evidence becomes the next frame's start (none: left as it is)."""
     if result.uncertainty is not None:
-        rec.evidence_start = Hyper.from_dict(result.uncertainty.hyper)
+        rec.evidence_start = prior_from_dict(result.uncertainty.hyper)
 
 
 def _frames(

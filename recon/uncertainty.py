@@ -30,8 +30,9 @@ from scopetwin.scenes.surface import HeightMap
 log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
+    from scopetwin.recon.basis_posterior import BasisFrameModel
     from scopetwin.recon.config import ReconstructionConfig
-    from scopetwin.recon.posterior import FrameModel, FramePosterior, Hyper
+    from scopetwin.recon.posterior import FrameModel, FramePosterior, Prior
     from scopetwin.recon.shifted_basis import SBFSurface
 
 
@@ -40,7 +41,7 @@ class Iteration(Protocol):
 
     config: ReconstructionConfig
     sub: Substrate2D
-    evidence_start: Hyper | None
+    evidence_start: Prior | None
     held_prior: HeldPrior | None
 
     def roi_mean(self, coef: Array) -> float: ...
@@ -106,7 +107,7 @@ class HeldPrior:
     (:attr:`Uncertainty.prior_z`). A later frame's gradients are read with it as they are where their own z lies
     within :data:`HELD_PRIOR_Z` of ``z``: as plausible a draw of it as that frame's."""
 
-    hyper: Hyper
+    hyper: Prior
     z: float
 
 
@@ -128,7 +129,7 @@ class _Reading:
     surface's error of the criterion's shape functional against the posterior with its spread, mm."""
 
     frame: FrameReading
-    hyper: Hyper
+    hyper: Prior
     err: float
     spread: float
     data: tuple[Array, Array, Array]
@@ -148,11 +149,26 @@ def criterion_slope(history: list[Any], policy: ReconstructionPolicy = DEFAULT_P
     return policy.trusted_slope(slope)
 
 
-def evidence_prior(cfg: ReconstructionConfig, traced: tuple[Array, Array, Array], start: Hyper | None) -> Hyper:
-    """The prior of the posterior step: :func:`scopetwin.recon.posterior.fit_hyper` on traced gradients ``traced`` =
-    (xy, hx, hy) with ``cfg``'s evidence settings, warm-started from ``start`` where there is one."""
-    from scopetwin.recon.posterior import fit_hyper
+def evidence_prior(
+    cfg: ReconstructionConfig, sub: Substrate2D, traced: tuple[Array, Array, Array], start: Prior | None
+) -> Prior:
+    """The prior of the posterior step for traced gradients ``traced`` = (xy, hx, hy) over substrate ``sub``,
+    warm-started from ``start`` where there is one.
 
+    ``cfg.prior`` "auto": the finite-basis prior of maximum evidence
+    (:func:`scopetwin.recon.basis_posterior.fit_basis_prior`) where the evidence peaks at one of its scales, else the
+    Gaussian process's (:func:`scopetwin.recon.posterior.fit_hyper`, with ``cfg``'s evidence settings); the latter
+    also where ``start`` is a Gaussian process's prior (an earlier reading of this surface found it rough) and where
+    ``cfg.local_features`` asks for the process's local-features part. "process": always the latter."""
+    from scopetwin.recon.basis_posterior import fit_basis_prior
+    from scopetwin.recon.posterior import BasisPrior, fit_hyper
+
+    if cfg.prior == "auto" and not cfg.local_features and (start is None or isinstance(start, BasisPrior)):
+        found = fit_basis_prior(*traced, sub.x_range, sub.y_range, start)
+        if found is not None:
+            return found[0]
+    if isinstance(start, BasisPrior):
+        start = None
     return fit_hyper(
         *traced,
         cfg.evidence_points,
@@ -189,11 +205,12 @@ class PriorAhead:
         self._setting = (it.evidence_start, it.config)
         self._traced = traced
         cfg, start = it.config, it.evidence_start
-        self._job: Background[Hyper] = Background(lambda: evidence_prior(cfg, traced, start))
+        sub = it.sub
+        self._job: Background[Prior] = Background(lambda: evidence_prior(cfg, sub, traced, start))
 
     def hyper(
         self, it: Iteration, surface: SBFSurface, markers: Any, traced: tuple[Array, Array, Array]
-    ) -> Hyper | None:
+    ) -> Prior | None:
         """The prior for the gradients ``traced`` through ``surface`` at ``markers``: the early search's where they are
         the ones it traced, refined from it where they moved within its spread of them, else None (a cold search then;
         also where the iteration's warm start or configuration is not the one it searched with, or it failed)."""
@@ -211,8 +228,8 @@ class PriorAhead:
         if same:
             return early
         return (
-            evidence_prior(it.config, traced, early)
-            if _moved_within_prior(self._traced, traced, it.config, early)
+            evidence_prior(it.config, it.sub, traced, early)
+            if _moved_within_prior(self._traced, traced, it, early)
             else None
         )
 
@@ -221,18 +238,23 @@ class PriorAhead:
 
 
 def _moved_within_prior(
-    before: tuple[Array, Array, Array], after: tuple[Array, Array, Array], cfg: Any, h: Hyper
+    before: tuple[Array, Array, Array], after: tuple[Array, Array, Array], it: Iteration, h: Prior
 ) -> bool:
     """Whether the gradients ``after`` (xy, hx, hy) moved from ``before`` by at most :data:`REFINE_SHIFT` (squared
-    Mahalanobis distance under the prior ``h``, on the evidence's subsample of ``cfg.evidence_points``); False where
-    the observations are not the same ones."""
-    from scopetwin.recon.posterior import GradientGP, PosteriorError, even_subsample
+    Mahalanobis distance under the prior ``h``: a Gaussian process's on the evidence's subsample of
+    ``it.config.evidence_points``, a finite basis's on all of them, as each searched); False where the observations
+    are not the same ones."""
+    from scopetwin.recon.basis_posterior import squared_distance
+    from scopetwin.recon.posterior import GradientGP, Hyper, PosteriorError, even_subsample
 
     if before[0].shape != after[0].shape:
         return False
-    keep = even_subsample(len(before[0]), cfg.evidence_points)
+    dx, dy = after[1] - before[1], after[2] - before[2]
     try:
-        moved = GradientGP(before[0][keep], (after[1] - before[1])[keep], (after[2] - before[2])[keep], h)
+        if not isinstance(h, Hyper):  # the finite basis's, on every observation it searched on
+            return squared_distance(h, before[0], dx, dy, it.sub.x_range, it.sub.y_range) <= REFINE_SHIFT
+        keep = even_subsample(len(before[0]), it.config.evidence_points)
+        moved = GradientGP(before[0][keep], dx[keep], dy[keep], h)
     except PosteriorError:  # no factor of the prior's kernel: a cold search decides
         return False
     return float(moved.g @ moved.alpha) <= REFINE_SHIFT
@@ -258,7 +280,7 @@ def _read(
         held = it.held_prior
         if hyper is None and held is not None:
             frame = read_frame(sub, axes, traced, held.hyper, cfg.posterior_points)
-            z = held_prior_z(frame.post.v)
+            z = posterior_z(frame.post)
             versus = f"chi-square z {z:+.3g}, {held.z:+.3g} on the frame it was chosen on"
             if abs(z - held.z) <= HELD_PRIOR_Z:
                 hyper, note = held.hyper, f"prior held ({versus})"
@@ -267,7 +289,7 @@ def _read(
         if hyper is None and ahead is not None:
             hyper = ahead.hyper(it, surf, markers, traced)
         # a held prior found implausible is searched again from itself
-        hyper = hyper or evidence_prior(it.config, traced, held.hyper if held is not None else it.evidence_start)
+        hyper = hyper or evidence_prior(it.config, sub, traced, held.hyper if held is not None else it.evidence_start)
         if frame is None:
             frame = read_frame(sub, axes, traced, hyper, cfg.posterior_points, earlier.frame if earlier else None)
     except PosteriorError:
@@ -300,6 +322,15 @@ def held_prior_z(v: Array) -> float:
     len(v) degrees of freedom where the prior holds; returns (|v|^2 - k) / sqrt(2 k), k = len(v)."""
     k = len(v)
     return float((v @ v - k) / np.sqrt(2.0 * k))
+
+
+def posterior_z(post: FramePosterior) -> float:
+    """:func:`held_prior_z` of the gradients a frame posterior read: of its whitened gradients, or of g^T K^-1 g and
+    len(g) where the posterior gives them (a finite-basis reading, whose whitened vector has the basis's length)."""
+    if post.chi2 is None:
+        return held_prior_z(post.v)
+    q, k = post.chi2
+    return float((q - k) / np.sqrt(2.0 * k))
 
 
 def _newton_start_height(
@@ -377,7 +408,7 @@ def posterior(
     u_shape = float(np.sqrt(np.mean(shape_var[post.roi])))
     node = np.sqrt((u_abs * (1.0 + sens)) ** 2 + post.contrast_std**2 + dev2)
     std_map = HeightMap(node, post.node_x[0], post.node_x[-1], post.node_y[0], post.node_y[-1])
-    z = held_prior_z(post.v)
+    z = posterior_z(post)
     u = Uncertainty(u_abs * 1e3, u_shape * 1e3, std_map, (h_final - h0) * 1e3, slope, reading.hyper.as_dict(), z)
     return Posterior(surf, u, (post.delta_mean, post.delta_std), note, reading.prior_note)
 
@@ -398,23 +429,36 @@ def _shape_from_posterior(
         return surf, ""
     from dataclasses import replace
 
-    from scopetwin.recon.posterior import PosteriorError, residual_correction
+    from scopetwin.recon.posterior import PosteriorError
 
     xy, hx, hy = reading.data
     gx, gy = surf.gradient(xy[:, 0], xy[:, 1])
     rx, ry = it.sub.roi_grid(it.config.grid_step)
-    # the reading's own factor where its model was formed at these positions under this prior (not one reused from
-    # before a start-height step, whose observations lie up to REUSE_SHIFT_MM away)
-    model = reading.frame.model
-    same = model.hyper == reading.hyper and np.array_equal(model.xy, xy)
     try:
-        corr = residual_correction(
-            xy, hx - gx, hy - gy, reading.hyper, (np.unique(rx), np.unique(ry)), model.chol if same else None
-        )
+        corr = _residual_correction(reading, (xy, hx - gx, hy - gy), (np.unique(rx), np.unique(ry)))
     except PosteriorError:
+        return surf, ""
+    if corr is None:
         return surf, ""
     note = f"shape from the posterior mean: the fit was {off * 1e3:.3g} µm RMS from it (spread {spread * 1e3:.3g} µm)"
     return replace(surf, correction=corr), note
+
+
+def _residual_correction(reading: _Reading, residual: tuple[Array, Array, Array], roi_axes: tuple[Array, Array]) -> Any:
+    """The posterior mean of the heights the fit misses, from its residual gradients ``residual`` = (xy, ex, ey) at
+    the reading's observations: with the reading's own factor where its model was formed at these positions under
+    this prior (not one reused from before a start-height step, whose observations lie up to REUSE_SHIFT_MM away).
+    A finite-basis reading's needs its model (None where it was not formed here)."""
+    from scopetwin.recon.basis_posterior import BasisFrameModel, basis_residual_correction
+    from scopetwin.recon.posterior import Hyper, residual_correction
+
+    xy, ex, ey = residual
+    model = reading.frame.model
+    same = model.hyper == reading.hyper and np.array_equal(model.xy, xy)
+    if isinstance(model, BasisFrameModel):
+        return basis_residual_correction(model, ex, ey) if same else None
+    assert isinstance(reading.hyper, Hyper)
+    return residual_correction(xy, ex, ey, reading.hyper, roi_axes, model.chol if same else None)
 
 
 def start_height_sensitivity(
@@ -462,7 +506,7 @@ class FrameReading:
     model it was read with and the observations that entered it (indices into the traced ones, and their count)."""
 
     post: FramePosterior
-    model: FrameModel
+    model: FrameModel | BasisFrameModel
     keep: NDArray[np.intp]
     n_traced: int
 
@@ -471,7 +515,7 @@ def read_frame(
     sub: Substrate2D,
     roi_axes: tuple[Array, Array],
     traced: tuple[Array, Array, Array],
-    hyper: Hyper,
+    hyper: Prior,
     budget: int,
     earlier: FrameReading | None = None,
     contrasts: bool = True,
@@ -489,11 +533,15 @@ def read_frame(
     scopetwin.recon.posterior.PosteriorError
         The posterior cannot be formed.
     """
-    from scopetwin.recon.posterior import GradientGP, frame_model
+    from scopetwin.recon.basis_posterior import basis_frame_model
+    from scopetwin.recon.posterior import BasisPrior, GradientGP, frame_model
 
     xy, hx, hy = traced
     if earlier is not None and len(xy) == earlier.n_traced and earlier.model.covers(xy[earlier.keep]):
         model, keep = earlier.model, earlier.keep
+    elif isinstance(hyper, BasisPrior):
+        keep = posterior_subset_indices(xy, budget)
+        model = basis_frame_model(hyper, xy[keep], sub.x_range, sub.y_range, sub.roi_length, roi_axes)
     else:
         keep = posterior_subset_indices(xy, budget)
         gp = GradientGP(xy[keep], hx[keep], hy[keep], hyper)

@@ -36,7 +36,7 @@ from scopetwin.scenes.surface import HeightMap
 if TYPE_CHECKING:
     from scopetwin.recon.focusmap import FocusMap
     from scopetwin.recon.markers import Markers
-    from scopetwin.recon.posterior import Hyper
+    from scopetwin.recon.posterior import Prior
     from scopetwin.recon.reconstruct import MarkerObservations, ReconstructionResult
     from scopetwin.recon.substrate import Substrate2D
 
@@ -513,7 +513,7 @@ def _detect_and_reconstruct(
 
     results: dict[str, Any] = {}
     found: Markers | None = None
-    prior: Hyper | None = None
+    prior: Prior | None = None
     scale: float | None = None
     for name, s in setups.items():
         markers, results[name] = _reconstruct_one(image, name, s, out, heights, sub, prior, scale)
@@ -524,14 +524,14 @@ def _detect_and_reconstruct(
     return found, MarkerObservations(found.ij, found.centroids), results
 
 
-def _next_start(res: ReconstructionResult) -> tuple[Hyper | None, float | None]:
+def _next_start(res: ReconstructionResult) -> tuple[Prior | None, float | None]:
     """Where the same image's next reconstruction starts: ``res``'s prior and the basis scale it ended on (None, None
     without an uncertainty)."""
-    from scopetwin.recon.posterior import Hyper
+    from scopetwin.recon.posterior import prior_from_dict
 
     if res.uncertainty is None:
         return None, None
-    return Hyper.from_dict(res.uncertainty.hyper), float(res.surface.basis.sigma[0])
+    return prior_from_dict(res.uncertainty.hyper), float(res.surface.basis.sigma[0])
 
 
 def _reconstruct_one(
@@ -541,7 +541,7 @@ def _reconstruct_one(
     out: Path,
     heights: HeightMap,
     sub: Substrate2D,
-    prior: Hyper | None,
+    prior: Prior | None,
     scale: float | None,
 ) -> tuple[Markers, dict[str, Any]]:
     """The image reconstructed with one setup (:func:`scopetwin.recon.strategy.reconstruct`; its search started on

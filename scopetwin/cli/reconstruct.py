@@ -46,6 +46,8 @@ def _config(args: argparse.Namespace) -> ReconstructionConfig:
         changes["posterior"] = args.posterior
     if args.local_features:
         changes["local_features"] = True
+    if args.prior is not None:
+        changes["prior"] = args.prior
     return ReconstructionConfig(**changes)
 
 
@@ -194,6 +196,7 @@ _MARKER_ONLY = {
     "refine_setup": "--refine-setup",
     "posterior": "--posterior",
     "local_features": "--local-features",
+    "prior": "--prior",
     "previous": "--previous",
     "hold": "--hold",
 }
@@ -470,8 +473,14 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--posterior",
         choices=("correct", "report", "off"),
-        help="uncertainty from the Gaussian-process reading of the fit; 'correct' (default) also takes the start "
+        help="uncertainty from the Bayesian reading of the fit; 'correct' (default) also takes the start "
         "height from the posterior frame maxima, 'report' only reports, 'off' skips both",
+    )
+    p.add_argument(
+        "--prior",
+        choices=("auto", "process"),
+        help="the posterior's prior: 'auto' (default) the basis fit itself as a Bayesian linear model where the "
+        "evidence peaks at one of its scales (smooth surfaces), else the Gaussian process; 'process' always the latter",
     )
     _add_rig_options(p)
     p.add_argument(

@@ -167,13 +167,16 @@ def test_the_prior_is_searched_beside_the_scale_choice(exact, monkeypatch):
     from scopetwin.recon.posterior import GradientGP
 
     _, obs = exact
-    rec = Reconstructor.from_setup(SETUP)
+    from scopetwin.recon.config import ReconstructionConfig
+
+    process = ReconstructionConfig(prior="process")  # the Gaussian process's evidence (GradientGP below)
+    rec = Reconstructor.from_setup(SETUP, process)
     calls: list[tuple[threading.Thread, object]] = []
     searched = uncertainty.evidence_prior
 
-    def counted(cfg, traced, start):
+    def counted(cfg, sub, traced, start):
         calls.append((threading.current_thread(), start))
-        return searched(cfg, traced, start)
+        return searched(cfg, sub, traced, start)
 
     monkeypatch.setattr(uncertainty, "evidence_prior", counted)
     first = solve(rec, obs)
@@ -187,7 +190,7 @@ def test_the_prior_is_searched_beside_the_scale_choice(exact, monkeypatch):
     calls.clear()
     later = solve(rec, obs)  # the scale stands: the early search's prior as it is
     assert len(calls) == 1
-    fresh = Reconstructor.from_setup(SETUP)
+    fresh = Reconstructor.from_setup(SETUP, process)
     fresh.use_basis(rec.basis)
     after = solve(fresh, obs, DEFAULT_POLICY.with_changes(rechoose_scale=False))
     assert len(calls) == 2 and calls[1][0] is threading.main_thread()
@@ -201,7 +204,7 @@ def test_the_prior_is_searched_beside_the_scale_choice(exact, monkeypatch):
     near, far = (later.surface.shifted(first.surface.offset + dz) for dz in (1e-5, 0.02))
     traced = rec.traced_gradients(near, obs)[:3]
     refined = ahead.hyper(rec, near, obs, traced)
-    cold = searched(rec.config, traced, None)
+    cold = searched(rec.config, rec.sub, traced, None)
     assert refined is not None
     keep = np.linspace(0, len(traced[0]) - 1, rec.config.evidence_points).round().astype(int)
     evidence = [
@@ -210,7 +213,7 @@ def test_the_prior_is_searched_beside_the_scale_choice(exact, monkeypatch):
     assert evidence[0] > evidence[1] - 0.5, evidence
     assert ahead.hyper(rec, far, obs, rec.traced_gradients(far, obs)[:3]) is None
     assert ahead.hyper(rec, near, MarkerObservations(obs.ij, obs.px), traced) is None  # other markers
-    assert ahead.hyper(rec, first.surface, obs, (xy, hx, hy)) == searched(rec.config, (xy, hx, hy), None)
+    assert ahead.hyper(rec, first.surface, obs, (xy, hx, hy)) == searched(rec.config, rec.sub, (xy, hx, hy), None)
     rec.evidence_start = cold  # another warm start than the early search's: not used
     assert ahead.hyper(rec, first.surface, obs, (xy, hx, hy)) is None
     ahead.close()

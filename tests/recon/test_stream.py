@@ -199,19 +199,19 @@ def test_each_frames_posterior_starts_from_the_prior_of_the_frame_before(frames)
     """With the posterior on, frame k+1's evidence maximisation starts from frame k's chosen prior; the warm-started
     frame's uncertainty agrees with a cold start's within 20 % (the same frame, the same evidence maximum)."""
     from scopetwin.recon.config import ReconstructionConfig
-    from scopetwin.recon.posterior import Hyper
+    from scopetwin.recon.posterior import Prior, prior_from_dict
     from scopetwin.recon.reconstruct import Reconstructor
 
     setup, images = frames
     rec = Reconstructor.from_setup(setup, ReconstructionConfig.realtime(posterior="report"))
-    seen: list[Hyper | None] = []
+    seen: list[Prior | None] = []
     results = []
     for done in reconstruct_stream(images[:2], setup, rec, overlap=False):
         seen.append(rec.evidence_start)
         results.append(done.result)
     first, second = (r.uncertainty for r in results)
     assert first is not None and second is not None
-    assert seen[0] == Hyper.from_dict(first.hyper) and seen[1] == Hyper.from_dict(second.hyper)
+    assert seen[0] == prior_from_dict(first.hyper) and seen[1] == prior_from_dict(second.hyper)
     rec_cold = Reconstructor.from_setup(setup, ReconstructionConfig.realtime(posterior="report"))
     alone = next(iter(reconstruct_stream(images[1:2], setup, rec_cold, overlap=False))).result.uncertainty
     assert alone is not None

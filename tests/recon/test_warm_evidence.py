@@ -1,5 +1,6 @@
 """The posterior's warm start: the prior of one frame as the one start of the next frame's evidence
-maximisation (:attr:`scopetwin.recon.reconstruct.Reconstructor.evidence_start`).
+maximisation (:attr:`scopetwin.recon.reconstruct.Reconstructor.evidence_start`), for the Gaussian process's prior
+(``prior="process"``: the one rough surfaces get) and the finite basis's.
 
 Truth from elsewhere: two frames of the §1.10 setup's own surface, the exact images of the marker centres
 (:func:`scopetwin.sim.truth.marker_truth`) plus independent Gaussian centroid noise; the next frame is reconstructed
@@ -14,6 +15,7 @@ import numpy as np
 import pytest
 
 import scopetwin.recon.posterior as posterior_module
+from scopetwin.recon.config import ReconstructionConfig
 from scopetwin.recon.posterior import Hyper
 from scopetwin.recon.reconstruct import MarkerObservations, Reconstructor
 from scopetwin.recon.strategy import solve
@@ -66,7 +68,7 @@ def _solve_counting(setup, obs, start, monkeypatch, converged=False):
         if converged:
             patch.setattr(posterior_module, "FTOL", 1e-12)
             patch.setattr(posterior_module, "MAXITER", 400)
-        rec = Reconstructor.from_setup(setup)
+        rec = Reconstructor.from_setup(setup, ReconstructionConfig(prior="process"))
         rec.evidence_start = start
         res = solve(rec, obs)
     return res, len(calls)
@@ -106,7 +108,6 @@ def test_a_held_prior_reads_the_next_frame_without_a_search(frames, monkeypatch)
     implausible prior (the same one, its amplitudes and noise a hundred times too large) is searched again from."""
     from dataclasses import replace
 
-    from scopetwin.recon.config import ReconstructionConfig
     from scopetwin.recon.policy import DEFAULT_POLICY
     from scopetwin.recon.uncertainty import HeldPrior
 
@@ -117,7 +118,7 @@ def test_a_held_prior_reads_the_next_frame_without_a_search(frames, monkeypatch)
     prior = Hyper.from_dict(res1.uncertainty.hyper)
     warm, _ = _solve_counting(setup, second, prior, monkeypatch)
     assert warm.uncertainty is not None
-    config = ReconstructionConfig().starting_at(float(res1.surface.basis.sigma[0]))
+    config = ReconstructionConfig(prior="process").starting_at(float(res1.surface.basis.sigma[0]))
     policy = DEFAULT_POLICY.with_changes(rechoose_scale=False)
 
     def held(hyper: Hyper) -> tuple:
@@ -141,6 +142,51 @@ def test_a_held_prior_reads_the_next_frame_without_a_search(frames, monkeypatch)
     noise_y = None if prior.noise_y is None else 100 * prior.noise_y
     wide = replace(prior, smooth_amp=100 * prior.smooth_amp, broad_amp=100 * prior.broad_amp, noise=100 * prior.noise)
     res, n = held(replace(wide, noise_y=noise_y))
+    assert n > 0
+    assert any(step.startswith("held prior implausible") for step in res.strategy), res.strategy
+
+
+def test_a_held_finite_basis_prior_reads_the_next_frame_without_a_search(frames, monkeypatch) -> None:
+    """The §1.10 surface reads with the finite-basis prior (its evidence peaks at a basis scale): held for the next
+    frame, the gradients are read with it as they are (no basis search, the path says so), the uncertainties within
+    10 % of a frame searched from it, the heights within 3 u of the truth; a prior whose noise is a hundred times too
+    large is searched again from."""
+    from dataclasses import replace
+
+    import scopetwin.recon.basis_posterior as basis_module
+    from scopetwin.recon.policy import DEFAULT_POLICY
+    from scopetwin.recon.posterior import BasisPrior, prior_from_dict
+    from scopetwin.recon.uncertainty import HeldPrior
+
+    setup, heights, (first, second) = frames
+    sub = Substrate2D.from_setup(setup)
+    res1 = solve(Reconstructor.from_setup(setup), first)
+    assert res1.uncertainty is not None
+    prior = prior_from_dict(res1.uncertainty.hyper)
+    assert isinstance(prior, BasisPrior)
+    config = ReconstructionConfig().starting_at(float(res1.surface.basis.sigma[0]))
+
+    def next_frame(hyper: BasisPrior, hold: bool) -> tuple:
+        calls = []
+        inner = basis_module.fit_basis_prior
+        with monkeypatch.context() as patch:
+            patch.setattr(basis_module, "fit_basis_prior", lambda *a, **k: calls.append(1) or inner(*a, **k))
+            rec = Reconstructor.from_setup(setup, config)
+            rec.evidence_start = hyper
+            rec.held_prior = HeldPrior(hyper, res1.uncertainty.prior_z) if hold else None
+            return solve(rec, second, DEFAULT_POLICY.with_changes(rechoose_scale=False)), len(calls)
+
+    warm, n_warm = next_frame(prior, False)
+    res, n = next_frame(prior, True)
+    assert n_warm > 0 and n == 0
+    assert any(step.startswith("prior held") for step in res.strategy), res.strategy
+    u, u_warm = res.uncertainty, warm.uncertainty
+    assert u is not None and u_warm is not None
+    assert abs(u.absolute_um - u_warm.absolute_um) <= 0.1 * u_warm.absolute_um, (u, u_warm)
+    assert abs(u.shape_um - u_warm.shape_um) <= 0.1 * u_warm.shape_um, (u, u_warm)
+    e = roi_errors(res.surface.height, heights, sub)
+    assert abs(e["roi_absolute_um"]) <= 3 * u.absolute_um, e
+    res, n = next_frame(replace(prior, noise=100 * prior.noise, noise_y=100 * prior.noise_y), True)
     assert n > 0
     assert any(step.startswith("held prior implausible") for step in res.strategy), res.strategy
 
