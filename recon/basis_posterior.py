@@ -200,22 +200,47 @@ def _max_evidence(d: _Design, g_rms: float, x0: Array | None) -> tuple[float, Ar
         if x0 is not None
         else (0.3 * g_rms * sig, (3e-2 * g_rms) ** 2, (3e-2 * g_rms) ** 2)
     )
-    lo, hi = NOISE_BOUNDS[0] ** 2, NOISE_BOUNDS[1] ** 2
-    best: tuple[float, Array] = (np.inf, np.log([tau, bx, by]))
+    theta = np.log([tau, bx, by])
+    best: tuple[float, Array, Array] = (np.inf, theta, np.zeros(3))  # nll, theta, the plain step from it
+    step, last = 1.0, np.zeros(3)
     for _ in range(MAX_ITERATIONS):
+        tau, bx, by = (float(x) for x in np.exp(theta))
         m = _moments(tau, bx, by, d)
-        if m is None:
-            break
-        done = abs(best[0] - m.nll) <= FTOL * abs(m.nll)
-        if m.nll < best[0]:
-            best = (m.nll, np.log([tau, bx, by]))
+        if m is None or m.nll > best[0]:  # an over-relaxed step overshot: the plain step from the best point
+            if step == 1.0:
+                break
+            theta, step, last = _clipped(best[1] + best[2]), 1.0, best[2]
+            continue
+        move = _fixed_point_step(m, theta)
+        done = step == 1.0 and best[0] - m.nll <= FTOL * abs(m.nll)  # a plain step's gain: converged
+        best = (m.nll, theta, move)
         if done:
             break
-        gamma = max(m.nb - m.tr_nn / tau**2, 1e-6)
-        tau = float(np.sqrt(max(m.c2, 1e-300) / gamma))
-        bx = float(np.clip(m.rx2 / max(m.n - m.tr_x / bx, 1e-6), lo, hi))
-        by = float(np.clip(m.ry2 / max(m.n - m.tr_y / by, 1e-6), lo, hi))
-    return best
+        # over-relaxed while the fixed-point steps keep their direction (they shrink slowly on rough surfaces)
+        aligned = float(move @ last) > 0.9 * float(np.linalg.norm(move) * np.linalg.norm(last))
+        step = min(2.0 * step, 8.0) if aligned else 1.0
+        last = move
+        theta = _clipped(theta + step * move)
+    return best[0], best[1]
+
+
+def _fixed_point_step(m: _Moments, theta: Array) -> Array:
+    """MacKay's update of log(tau, b_x, b_y) at ``theta`` from its moments, as a step from ``theta``."""
+    tau2, bx, by = (float(x) for x in np.exp(theta * np.array([2.0, 1.0, 1.0])))
+    gamma = max(m.nb - m.tr_nn / tau2, 1e-6)
+    fixed = np.log([
+        max(m.c2, 1e-300) / gamma,
+        m.rx2 / max(m.n - m.tr_x / bx, 1e-6),
+        m.ry2 / max(m.n - m.tr_y / by, 1e-6),
+    ])  # fmt: skip
+    fixed[0] *= 0.5  # log tau from log tau^2
+    return fixed - theta
+
+
+def _clipped(theta: Array) -> Array:
+    """``theta`` with the noise variances within :data:`NOISE_BOUNDS`."""
+    lo, hi = (2.0 * float(np.log(b)) for b in NOISE_BOUNDS)
+    return np.concatenate([theta[:1], np.clip(theta[1:], lo, hi)])
 
 
 def fit_basis_prior(

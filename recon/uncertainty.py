@@ -150,7 +150,11 @@ def criterion_slope(history: list[Any], policy: ReconstructionPolicy = DEFAULT_P
 
 
 def evidence_prior(
-    cfg: ReconstructionConfig, sub: Substrate2D, traced: tuple[Array, Array, Array], start: Prior | None
+    cfg: ReconstructionConfig,
+    sub: Substrate2D,
+    traced: tuple[Array, Array, Array],
+    start: Prior | None,
+    basis: bool = True,
 ) -> Prior:
     """The prior of the posterior step for traced gradients ``traced`` = (xy, hx, hy) over substrate ``sub``,
     warm-started from ``start`` where there is one.
@@ -159,11 +163,12 @@ def evidence_prior(
     (:func:`scopetwin.recon.basis_posterior.fit_basis_prior`) where the evidence peaks at one of its scales, else the
     Gaussian process's (:func:`scopetwin.recon.posterior.fit_hyper`, with ``cfg``'s evidence settings); the latter
     also where ``start`` is a Gaussian process's prior (an earlier reading of this surface found it rough) and where
-    ``cfg.local_features`` asks for the process's local-features part. "process": always the latter."""
+    ``cfg.local_features`` asks for the process's local-features part, and where ``basis`` is False (an earlier search
+    of the same solve found the surface rough: :meth:`PriorAhead.rough`). "process": always the latter."""
     from scopetwin.recon.basis_posterior import fit_basis_prior
     from scopetwin.recon.posterior import BasisPrior, fit_hyper
 
-    if cfg.prior == "auto" and not cfg.local_features and (start is None or isinstance(start, BasisPrior)):
+    if basis and cfg.prior == "auto" and not cfg.local_features and (start is None or isinstance(start, BasisPrior)):
         found = fit_basis_prior(*traced, sub.x_range, sub.y_range, start)
         if found is not None:
             return found[0]
@@ -233,6 +238,16 @@ class PriorAhead:
             else None
         )
 
+    def rough(self) -> bool:
+        """Whether the early search read its surface with the Gaussian process's prior (the finite basis's evidence
+        still rising at its finest scale): a later cold search of the same solve then goes straight to the process."""
+        from scopetwin.recon.posterior import Hyper, PosteriorError
+
+        try:
+            return isinstance(self._job.result(), Hyper)
+        except PosteriorError:
+            return False
+
     def close(self) -> None:
         self._job.close()
 
@@ -289,7 +304,8 @@ def _read(
         if hyper is None and ahead is not None:
             hyper = ahead.hyper(it, surf, markers, traced)
         # a held prior found implausible is searched again from itself
-        hyper = hyper or evidence_prior(it.config, sub, traced, held.hyper if held is not None else it.evidence_start)
+        start = held.hyper if held is not None else it.evidence_start
+        hyper = hyper or evidence_prior(it.config, sub, traced, start, basis=ahead is None or not ahead.rough())
         if frame is None:
             frame = read_frame(sub, axes, traced, hyper, cfg.posterior_points, earlier.frame if earlier else None)
     except PosteriorError:

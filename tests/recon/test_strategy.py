@@ -174,9 +174,9 @@ def test_the_prior_is_searched_beside_the_scale_choice(exact, monkeypatch):
     calls: list[tuple[threading.Thread, object]] = []
     searched = uncertainty.evidence_prior
 
-    def counted(cfg, sub, traced, start):
+    def counted(cfg, sub, traced, start, **kwargs):
         calls.append((threading.current_thread(), start))
-        return searched(cfg, sub, traced, start)
+        return searched(cfg, sub, traced, start, **kwargs)
 
     monkeypatch.setattr(uncertainty, "evidence_prior", counted)
     first = solve(rec, obs)
