@@ -286,6 +286,34 @@ def test_cli_previous_is_checked_before_any_work(tmp_path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.json", "good.json"]
 
 
+def test_cli_takes_a_finite_basis_prior_and_the_prior_option(tmp_path) -> None:
+    """``--previous`` with a finite-basis prior (``kind`` "basis") is read and checked before the image; ``--prior``
+    sets the configuration's prior."""
+    import argparse
+    import json
+
+    from scopetwin.cli.reconstruct import _config, register
+    from scopetwin.recon.posterior import BasisPrior
+    from scopetwin.scenes.errors import ScopetwinError
+
+    parser = argparse.ArgumentParser(prog="scopetwin")
+    register(parser.add_subparsers(dest="command", required=True))
+    prior = tmp_path / "basis.json"
+    prior.write_text(json.dumps({"uncertainty": {"prior": BasisPrior(12.0, 3.8e-3, 2e-6, 1e-6).as_dict()}}))
+    base = ["reconstruct", str(tmp_path / "missing.exr"), "--setup", "thesis-1.10-deflectometry"]
+    base += ["--out", str(tmp_path / "h.exr")]
+    args = parser.parse_args([*base, "--previous", str(prior)])
+    with pytest.raises(ScopetwinError, match="does not exist"):  # the prior read, then the image
+        args.func(args)
+    prior.write_text(
+        json.dumps({"uncertainty": {"prior": {**BasisPrior(12.0, 3.8e-3, 2e-6, 1e-6).as_dict(), "noise_urad": 0}}})
+    )
+    with pytest.raises(ScopetwinError, match=r"uncertainty\.prior\.noise_urad must be a positive number"):
+        args.func(args)
+    assert _config(parser.parse_args([*base, "--prior", "process"])).prior == "process"
+    assert _config(parser.parse_args(base)).prior == "auto"
+
+
 def test_the_next_frame_starts_on_the_scale_the_last_ended_on() -> None:
     from scopetwin.recon.config import ReconstructionConfig
 
