@@ -238,16 +238,21 @@ def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
     # renders, medians of the whole solve, 12-16 runs alternated: beside a cold search 0.52 s on one CPU against
     # 0.58 s on both; beside one warm-started from the frame before, 0.49 against 0.50 s where the scale changes and
     # that search runs on the first scale's surface, 0.46 against 0.40 s where it does not)
-    best, rec.sigma_scores, fits = select_sigma(
-        rec.sub, xy[:, 0], xy[:, 1], hx, hy, cfg, max_threads=1 if speculate else None
-    )
+    chosen = _scale_by_evidence(search, out) if policy.scale_by_evidence else None
+    how = "by the finite basis's evidence" if chosen is not None else "on the data"
+    if chosen is not None:
+        best, fits = chosen, {}
+    else:
+        best, rec.sigma_scores, fits = select_sigma(
+            rec.sub, xy[:, 0], xy[:, 1], hx, hy, cfg, max_threads=1 if speculate else None
+        )
     current = float(rec.basis.sigma[0])
     too_coarse = current in fits and fits[current] > cfg.fit_ratio * min(fits.values())
     if best == current or not (out.converged or too_coarse):
         return out
     first = (rec.basis, len(search.history), out, rec.last, rec.last_xy)
     rec.use_basis(cfg.make_basis(rec.sub, best))
-    search.path.append(f"basis scale chosen on the data: {current:g} -> {best:g} mm")
+    search.path.append(f"basis scale chosen {how}: {current:g} -> {best:g} mm")
     # a converged search's start height is kept; an unconverged one's is no start: from the frame height again.
     # Where the first result can be kept, the finer scale gets a refinement's budget, not a whole search's
     h_start = search.history[-1].start_height_um * 1e-3 if out.converged else rec.sub.frame_z
@@ -273,6 +278,21 @@ def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
     rec.last, rec.last_xy = first[3], first[4]  # the markers' points with it (the coverage, the height map's mask)
     search.path.append(f"kept the first basis scale, {first[0].sigma[0]:g} mm")
     return first[2]
+
+
+def _scale_by_evidence(search: _Search, out: LoopOutcome) -> float | None:
+    """The basis scale of the finite-basis prior the early evidence search chose on the converged surface's gradients,
+    where it chose one among the configuration's candidates; None otherwise (a rough surface: the held-out choice)."""
+    from scopetwin.recon.posterior import BasisPrior, PosteriorError
+
+    if search.ahead is None or not out.converged:
+        return None
+    try:
+        prior = search.ahead.early()
+    except PosteriorError:
+        return None
+    cands = search.rec.config.sigma_candidates or ()
+    return prior.sigma if isinstance(prior, BasisPrior) and prior.sigma in cands else None
 
 
 def _reject_outliers(search: _Search, out: LoopOutcome) -> LoopOutcome:

@@ -238,6 +238,16 @@ class PriorAhead:
             else None
         )
 
+    def early(self) -> Prior:
+        """The early search's prior (waits for it).
+
+        Raises
+        ------
+        scopetwin.recon.posterior.PosteriorError
+            The search failed.
+        """
+        return self._job.result()
+
     def rough(self) -> bool:
         """Whether the early search read its surface with the Gaussian process's prior (the finite basis's evidence
         still rising at its finest scale): a later cold search of the same solve then goes straight to the process."""

@@ -217,3 +217,28 @@ def test_the_prior_is_searched_beside_the_scale_choice(exact, monkeypatch):
     rec.evidence_start = cold  # another warm start than the early search's: not used
     assert ahead.hyper(rec, first.surface, obs, (xy, hx, hy)) is None
     ahead.close()
+
+
+def test_a_smooth_surface_is_fitted_at_the_scale_its_evidence_chose(exact, monkeypatch) -> None:
+    """``scale_by_evidence``: the §1.10 surface (exact images plus 0.005 px of centroid noise) reads with the
+    finite-basis prior, so the fit takes that prior's scale and the held-out choice (select_sigma) does not run; the
+    heights within 3 u of the truth. Without it, the held-out choice runs as before."""
+    import scopetwin.recon.strategy as strategy
+    from scopetwin.recon.posterior import BasisPrior, prior_from_dict
+    from scopetwin.recon.substrate import Substrate2D
+    from scopetwin.sim.pipeline import roi_errors
+
+    heights, obs = exact
+    noisy = MarkerObservations(obs.ij, obs.px + 0.005 * np.random.default_rng(5).standard_normal(obs.px.shape))
+    calls = []
+    inner = strategy.select_sigma
+    monkeypatch.setattr(strategy, "select_sigma", lambda *a, **k: calls.append(1) or inner(*a, **k))
+    res = solve(Reconstructor.from_setup(SETUP), noisy)
+    prior = prior_from_dict(res.uncertainty.hyper)
+    assert isinstance(prior, BasisPrior) and not calls
+    assert float(res.surface.basis.sigma[0]) == prior.sigma
+    e = roi_errors(res.surface.height, heights, Substrate2D.from_setup(SETUP))
+    assert abs(e["roi_absolute_um"]) <= 3 * res.uncertainty.absolute_um, e
+    assert e["roi_shape_um"] <= 3 * res.uncertainty.shape_um, e
+    solve(Reconstructor.from_setup(SETUP), noisy, DEFAULT_POLICY.with_changes(scale_by_evidence=False))
+    assert len(calls) == 1
