@@ -285,16 +285,11 @@ def _rechoose_scale(search: _Search, out: LoopOutcome) -> LoopOutcome:
 def _scale_by_evidence(search: _Search, out: LoopOutcome) -> float | None:
     """The basis scale of the finite-basis prior the early evidence search chose on the converged surface's gradients,
     where it chose one among the configuration's candidates; None otherwise (a rough surface: the held-out choice)."""
-    from scopetwin.recon.posterior import BasisPrior, PosteriorError
-
     if search.ahead is None or not out.converged:
         return None
-    try:
-        prior = search.ahead.early()
-    except PosteriorError:
-        return None
+    prior = search.ahead.basis()
     cands = search.rec.config.sigma_candidates or ()
-    return prior.sigma if isinstance(prior, BasisPrior) and prior.sigma in cands else None
+    return prior.sigma if prior is not None and prior.sigma in cands else None
 
 
 def _reject_outliers(search: _Search, out: LoopOutcome) -> LoopOutcome:

@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 if TYPE_CHECKING:
     from scopetwin.recon.basis_posterior import BasisFrameModel
     from scopetwin.recon.config import ReconstructionConfig
-    from scopetwin.recon.posterior import FrameModel, FramePosterior, Prior
+    from scopetwin.recon.posterior import BasisPrior, FrameModel, FramePosterior, Prior
     from scopetwin.recon.shifted_basis import SBFSurface
 
 
@@ -165,13 +165,11 @@ def evidence_prior(
     also where ``start`` is a Gaussian process's prior (an earlier reading of this surface found it rough) and where
     ``cfg.local_features`` asks for the process's local-features part, and where ``basis`` is False (an earlier search
     of the same solve found the surface rough: :meth:`PriorAhead.rough`). "process": always the latter."""
-    from scopetwin.recon.basis_posterior import fit_basis_prior
     from scopetwin.recon.posterior import BasisPrior, fit_hyper
 
-    if basis and cfg.prior == "auto" and not cfg.local_features and (start is None or isinstance(start, BasisPrior)):
-        found = fit_basis_prior(*traced, sub.x_range, sub.y_range, start)
-        if found is not None:
-            return found[0]
+    found = basis_prior(cfg, sub, traced, start) if basis else None
+    if found is not None:
+        return found
     if isinstance(start, BasisPrior):
         start = None
     return fit_hyper(
@@ -181,6 +179,20 @@ def evidence_prior(
         coarse_points=cfg.evidence_coarse_points,
         local_features=cfg.local_features,
     )
+
+
+def basis_prior(
+    cfg: ReconstructionConfig, sub: Substrate2D, traced: tuple[Array, Array, Array], start: Prior | None
+) -> BasisPrior | None:
+    """The finite-basis half of :func:`evidence_prior`: its prior where ``cfg`` and ``start`` allow one and the
+    evidence peaks at one of its scales (:func:`scopetwin.recon.basis_posterior.fit_basis_prior`), else None."""
+    from scopetwin.recon.basis_posterior import fit_basis_prior
+    from scopetwin.recon.posterior import BasisPrior
+
+    if cfg.prior != "auto" or cfg.local_features or not (start is None or isinstance(start, BasisPrior)):
+        return None
+    found = fit_basis_prior(*traced, sub.x_range, sub.y_range, start)
+    return found[0] if found is not None else None
 
 
 #: The early evidence search's prior (:class:`PriorAhead`) is refined from, for the same markers' gradients traced
@@ -211,7 +223,12 @@ class PriorAhead:
         self._traced = traced
         cfg, start = it.config, it.evidence_start
         sub = it.sub
-        self._job: Background[Prior] = Background(lambda: evidence_prior(cfg, sub, traced, start))
+        # the finite basis's search first, in a thread of its own (the scale choice waits for it alone: basis), the
+        # Gaussian process's after it where it declined
+        self._basis: Background[BasisPrior | None] = Background(lambda: basis_prior(cfg, sub, traced, start))
+        self._job: Background[Prior] = Background(
+            lambda: self._basis.result() or evidence_prior(cfg, sub, traced, start, basis=False)
+        )
 
     def hyper(
         self, it: Iteration, surface: SBFSurface, markers: Any, traced: tuple[Array, Array, Array]
@@ -238,28 +255,19 @@ class PriorAhead:
             else None
         )
 
-    def early(self) -> Prior:
-        """The early search's prior (waits for it).
-
-        Raises
-        ------
-        scopetwin.recon.posterior.PosteriorError
-            The search failed.
-        """
-        return self._job.result()
+    def basis(self) -> BasisPrior | None:
+        """The finite-basis prior the early search found (waits for that half of it alone), None where it declined or
+        was not allowed."""
+        return self._basis.result()
 
     def rough(self) -> bool:
         """Whether the early search read its surface with the Gaussian process's prior (the finite basis's evidence
         still rising at its finest scale): a later cold search of the same solve then goes straight to the process."""
-        from scopetwin.recon.posterior import Hyper, PosteriorError
-
-        try:
-            return isinstance(self._job.result(), Hyper)
-        except PosteriorError:
-            return False
+        return self.basis() is None
 
     def close(self) -> None:
         self._job.close()
+        self._basis.close()
 
 
 def _moved_within_prior(
