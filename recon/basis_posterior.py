@@ -54,7 +54,8 @@ from scopetwin.scenes.geometry import Array
 #: the process's evidence subsample (500), and the surfaces whose evidence rises there are the rough ones.
 SCALES = (24.0, 18.0, 15.0, 12.0, 10.0, 8.0)
 #: The scale a cold search starts from: the finest, so that a rough surface, whose evidence falls at the next coarser
-#: scale, is known after two scales (a search from 12 mm took three scales and 124 iterations on glass-like sheets).
+#: scale, is known after two scales (a search from 12 mm took three scales and 124 plain iterations on a glass-like
+#: sheet).
 FIRST_SCALE = 8.0
 #: Bounds of the white gradient noise's standard deviation, rad (the Gaussian process's noise floor and ceiling).
 NOISE_BOUNDS = (2e-8, 1e-3)
@@ -182,7 +183,7 @@ def _evidence_and_gradient(theta: Array, d: _Design) -> tuple[float, Array]:
 
 
 #: Most fixed-point iterations of one scale's evidence maximisation (:func:`_max_evidence`).
-MAX_ITERATIONS = 60
+MAX_ITERATIONS = 60  # measured: 4-5 on the §1.10 preset's surface, 9-13 (over-relaxed) on glass-like sheets
 
 
 def _max_evidence(d: _Design, g_rms: float, x0: Array | None) -> tuple[float, Array]:
@@ -253,10 +254,9 @@ def fit_basis_prior(
 
     From :data:`FIRST_SCALE` (or ``start``'s scale, a warm start from an earlier frame's prior) towards finer scales
     while the evidence rises, else towards coarser ones while it rises: at each scale tau and the noise of maximum
-    evidence (:func:`_max_evidence`), started from the neighbouring scale's. Measured on 16 spp
-    renders of the §1.10 setup with sensor noise: its own surface peaks at 12 mm in three scales (-12417 nats against
-    -12398 at 10 mm and -12387 at 15 mm, 31 evaluations, 52 ms on one thread), glass-like sheets still rise at 8 mm
-    (None in 34-40 evaluations, 75-81 ms).
+    evidence (:func:`_max_evidence`), started from the neighbouring scale's. Measured on all the traced gradients of
+    16 spp renders of the §1.10 setup with sensor noise: its own surface peaks at 12 mm (-12417 nats against -12400 at
+    10 mm and -12387 at 15 mm; 42-51 ms on one thread), glass-like sheets fall from 8 to 10 mm (None in 53-61 ms).
     """
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     gx, gy = np.ravel(gx).astype(np.float64), np.ravel(gy).astype(np.float64)
