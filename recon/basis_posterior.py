@@ -39,12 +39,14 @@ from scopetwin.recon.lapack import cholesky_lower, lower_inverse
 from scopetwin.recon.posterior import (
     FRAME_STEP,
     FTOL,
-    REUSE_SHIFT_MM,
     TILT_STD,
     BasisPrior,
     FramePosterior,
     PosteriorError,
+    frame_maxima,
     frame_points,
+    node_grid,
+    same_positions,
 )
 from scopetwin.recon.shifted_basis import SBFSurface, ShiftedBasis
 from scopetwin.scenes.geometry import Array
@@ -369,9 +371,8 @@ class BasisFrameModel:
         return self.nodes.std
 
     def covers(self, xy: Array) -> bool:
-        """Whether gradients observed at ``xy`` may be read with this model (as :meth:`FrameModel.covers`)."""
-        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        return xy.shape == self.xy.shape and float(np.max(np.abs(xy - self.xy), initial=0.0)) <= REUSE_SHIFT_MM
+        """Whether gradients observed at ``xy`` may be read with this model (:func:`same_positions`)."""
+        return same_positions(self.xy, xy)
 
     def whiten(self, gx: Array, gy: Array) -> tuple[Array, float]:
         """v = R^-1 S A^T B^-1 g, and g^T K^-1 g = g^T B^-1 g - |v|^2, for gradients observed at :attr:`xy`."""
@@ -388,15 +389,10 @@ class BasisFrameModel:
     def read(self, gx: Array, gy: Array) -> FramePosterior:
         """The posterior of D and of the contrasts for gradients (gx, gy) observed at :attr:`xy`."""
         v, q = self.whiten(gx, gy)
-        mu = self.whitened.T @ v
-        n1 = len(self.frame1)
-        draws = mu[None, :] + self.deviations
-        max1, max2 = draws[:, :n1].max(axis=1), draws[:, n1:].max(axis=1)
-        d = 0.5 * (max1 + max2)
-        diff = max1 - max2
+        d = frame_maxima(self.whitened.T @ v, self.deviations, len(self.frame1))
         return FramePosterior(
-            float(d.mean()), float(d.std()), float(diff.mean()), float(diff.std()), self.node_x, self.node_y,
-            self.roi, self.hyper, self.frame1, self.frame2, self.nodes, v, (q, 2 * len(self.xy)),
+            *d, self.node_x, self.node_y, self.roi, self.hyper, self.frame1, self.frame2, self.nodes, v,
+            (q, 2 * len(self.xy)),
         )  # fmt: skip
 
 
@@ -418,11 +414,7 @@ def basis_frame_model(
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     design = _Design.of(covering(x_range, y_range, prior.sigma), xy, np.zeros(len(xy)), np.zeros(len(xy)))
     r, s = design.factor(prior.tau, prior.noise**2, prior.noise_y**2)
-    nx = max(2, int(round((x_range[1] - x_range[0]) / node_step)) + 1)
-    ny = max(2, int(round((y_range[1] - y_range[0]) / node_step)) + 1)
-    node_x, node_y = np.linspace(*x_range, nx), np.linspace(*y_range, ny)
-    nxx, nyy = np.meshgrid(node_x, node_y)
-    nodes = np.stack([nxx.ravel(), nyy.ravel()], axis=-1)
+    node_x, node_y, nodes = node_grid(x_range, y_range, node_step)
     f1, f2 = frame_points(x_range, y_range, roi_length, frame_step)
     gx_roi, gy_roi = np.meshgrid(*roi_axes)
     basis = design.basis

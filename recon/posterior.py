@@ -901,34 +901,45 @@ class FrameModel:
         return self.nodes.std
 
     def covers(self, xy: Array) -> bool:
-        """Whether gradients observed at ``xy`` may be read with this model: the same observations, none moved by
-        more than :data:`REUSE_SHIFT_MM`."""
-        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        return xy.shape == self.xy.shape and float(np.max(np.abs(xy - self.xy), initial=0.0)) <= REUSE_SHIFT_MM
+        """Whether gradients observed at ``xy`` may be read with this model (:func:`same_positions`)."""
+        return same_positions(self.xy, xy)
 
     def read(self, gx: Array, gy: Array) -> FramePosterior:
         """The posterior of D and (when asked for) of the contrasts for gradients (gx, gy) observed at :attr:`xy`."""
         g = np.concatenate([np.ravel(gx), np.ravel(gy)]).astype(np.float64)
         v = sla.solve_triangular(self.chol, g, lower=True, check_finite=False)
         mu = self.whitened.T @ v  # the posterior mean of the frame points' contrasts: cov(f(p) - m, g) K^-1 g
-        n1 = len(self.frame1)
-        draws = mu[None, :] + self.deviations
-        max1, max2 = draws[:, :n1].max(axis=1), draws[:, n1:].max(axis=1)
-        d = 0.5 * (max1 + max2)
+        d = frame_maxima(mu, self.deviations, len(self.frame1))
         return FramePosterior(
-            float(d.mean()),
-            float(d.std()),
-            float((max1 - max2).mean()),
-            float((max1 - max2).std()),
-            self.node_x,
-            self.node_y,
-            self.roi,
-            self.hyper,
-            self.frame1,
-            self.frame2,
-            self.nodes,
-            v,
+            *d, self.node_x, self.node_y, self.roi, self.hyper, self.frame1, self.frame2, self.nodes, v
         )
+
+
+def same_positions(model_xy: Array, xy: Array) -> bool:
+    """Whether observations at ``xy`` are those a frame model was formed at (``model_xy``): the same number, none
+    moved by more than :data:`REUSE_SHIFT_MM`."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    return xy.shape == model_xy.shape and float(np.max(np.abs(xy - model_xy), initial=0.0)) <= REUSE_SHIFT_MM
+
+
+def frame_maxima(mu: Array, deviations: Array, n1: int) -> tuple[float, float, float, float]:
+    """Mean and spread of D = (max_region1 + max_region2) / 2 and of Delta h_max = max_region1 - max_region2 over
+    the draws ``mu + deviations`` of the frame points' contrasts (the first ``n1`` in region 1), mm."""
+    draws = mu[None, :] + deviations
+    max1, max2 = draws[:, :n1].max(axis=1), draws[:, n1:].max(axis=1)
+    d, diff = 0.5 * (max1 + max2), max1 - max2
+    return float(d.mean()), float(d.std()), float(diff.mean()), float(diff.std())
+
+
+def node_grid(
+    x_range: tuple[float, float], y_range: tuple[float, float], node_step: float
+) -> tuple[Array, Array, Array]:
+    """The node grid of a frame model's contrast map over the substrate: its axes and its points (N, 2), mm."""
+    nx = max(2, int(round((x_range[1] - x_range[0]) / node_step)) + 1)
+    ny = max(2, int(round((y_range[1] - y_range[0]) / node_step)) + 1)
+    node_x, node_y = np.linspace(*x_range, nx), np.linspace(*y_range, ny)
+    nxx, nyy = np.meshgrid(node_x, node_y)
+    return node_x, node_y, np.stack([nxx.ravel(), nyy.ravel()], axis=-1)
 
 
 def frame_posterior(gp: GradientGP, *args: Any, **kwargs: Any) -> FramePosterior:
@@ -971,15 +982,10 @@ def frame_model(
         grid's part (three quarters of the whitening) is formed when a reading's contrasts are first asked for.
     """
     half = 0.5 * roi_length
-    nx = max(2, int(round((x_range[1] - x_range[0]) / node_step)) + 1)
-    ny = max(2, int(round((y_range[1] - y_range[0]) / node_step)) + 1)
-    node_x = np.linspace(*x_range, nx)
-    node_y = np.linspace(*y_range, ny)
+    node_x, node_y, nodes = node_grid(x_range, y_range, node_step)
     axes = roi_axes if roi_axes is not None else (node_x, node_y[np.abs(node_y) < half])
     if not contrasts:
-        node_x, node_y = node_x[:0], node_y[:0]
-    nxx, nyy = np.meshgrid(node_x, node_y)
-    nodes = np.stack([nxx.ravel(), nyy.ravel()], axis=-1)
+        node_x, node_y, nodes = node_x[:0], node_y[:0], nodes[:0]
     roi = np.abs(nodes[:, 1]) < half
     if contrasts and not roi.any():
         raise PosteriorError("the node grid has no point in the ROI")
